@@ -1,0 +1,7 @@
+"""``python -m chunkdic`` = the ``chunkdic`` command."""
+
+import sys
+
+from .cli import main
+
+sys.exit(main())

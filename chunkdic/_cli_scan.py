@@ -1,0 +1,150 @@
+"""``chunkdic ingest`` and ``chunkdic pyramid``: thin command-line layer over the scan API."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+from .errors import InputError
+
+
+def register(subparsers) -> None:
+    """Add the ``ingest`` and ``pyramid`` subcommands to an ``argparse`` subparsers object."""
+    p = subparsers.add_parser(
+        "ingest", help="convert a scan (TIFF slices/stack, raw, HDF5, npy) to a Zarr v3 scan group",
+        description="Convert a scan to a Zarr v3 group with OME-NGFF 0.5 metadata, chunk by chunk. "
+                    "SRC: folder of 2-D TIFF slices (natural order), 3-D TIFF, raw binary file "
+                    "(with --shape and --dtype), file.h5:/path/to/dataset, .npy, or a Zarr array/group.",
+    )
+    p.add_argument("src", metavar="SRC")
+    p.add_argument("out", metavar="OUT.zarr")
+    p.add_argument("--voxel-size", metavar="V", help="voxel size: one number or Z,Y,X (default: from metadata)")
+    p.add_argument("--unit", help="length unit of --voxel-size, e.g. micrometer (um), millimeter (mm)")
+    p.add_argument("--chunks", type=int, metavar="N", help="Zarr chunk edge in voxels (default 128)")
+    p.add_argument("--shape", metavar="Z,Y,X", help="raw input: array shape")
+    p.add_argument("--dtype", help="raw input: uint8, uint16, float32 (also int16, uint32, int32, float64)")
+    p.add_argument("--byte-order", default="little", choices=("little", "big"), help="raw input (default little)")
+    p.add_argument("--offset", type=int, default=0, metavar="N", help="raw input: header bytes to skip")
+    p.add_argument("--dataset", help="HDF5 dataset path (or write SRC as file.h5:/path/to/dataset)")
+    p.add_argument("--levels", type=int, default=0, metavar="N",
+                   help="also build pyramid levels 1..N (2 = the paper's 4^3 compression)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing OUT.zarr")
+    p.set_defaults(func=run_ingest)
+
+    q = subparsers.add_parser(
+        "pyramid", help="add 2x2x2-sum pyramid levels 1..N to a scan group",
+        description="Add levels 1..N (each the 2x2x2 sum of the level below, exact integer sums) to a "
+                    "scan group; complete levels are kept unless --overwrite.",
+    )
+    q.add_argument("scan", metavar="SCAN.zarr")
+    q.add_argument("--levels", type=int, required=True, metavar="N")
+    q.add_argument("--overwrite", action="store_true", help="rebuild levels that are already complete")
+    q.set_defaults(func=run_pyramid)
+
+
+def _err(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+class _Printer:
+    """Progress lines on stderr, every 10 %."""
+
+    def __init__(self, step: str):
+        self.step, self.next, self.t0 = step, 0.1, time.perf_counter()
+
+    def __call__(self, frac: float) -> None:
+        if frac + 1e-9 >= self.next:
+            _err(f"  {self.step}: {min(frac, 1.0):4.0%}  ({time.perf_counter() - self.t0:.1f} s)")
+            while self.next <= frac + 1e-9:
+                self.next += 0.1
+
+
+def _du(path: Path) -> int:
+    total = 0
+    for root, _, files in os.walk(path):
+        for f in files:
+            try:
+                total += os.path.getsize(os.path.join(root, f))
+            except OSError:
+                pass
+    return total
+
+
+def _summary(scan, seconds: float, nbytes_in: int, what: str) -> None:
+    levels = scan.stored_levels()
+    shapes = ", ".join(f"{s}:{'x'.join(map(str, scan.shape(s)))} {scan.dtype(s)}" for s in levels)
+    size = _du(Path(scan.path)) if scan.path else 0
+    vs = f"{scan.voxel_size} {scan.unit or ''}".strip() if scan.voxel_size else "none"
+    _err(f"{scan.path}: levels {shapes}; voxel size {vs}; {size / 1e6:.1f} MB on disk (all levels); "
+         f"{what} {nbytes_in / 1e6:.1f} MB in {seconds:.1f} s "
+         f"= {nbytes_in / 1e6 / max(seconds, 1e-9):.1f} MB/s")
+
+
+def run_ingest(args: argparse.Namespace) -> int:
+    """``chunkdic ingest``: returns the exit code (errors raise :class:`InputError`)."""
+    from .ingest import ingest
+    from .pyramid import build_pyramid
+
+    if args.levels < 0:
+        raise InputError(f"--levels must be >= 0, got {args.levels}")
+    if args.chunks is not None and args.chunks < 1:
+        raise InputError(f"--chunks must be a positive integer, got {args.chunks}")
+    _err(f"[1/{2 if args.levels else 1}] ingest {args.src} -> {args.out}")
+    t0 = time.perf_counter()
+    scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
+                  shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
+                  dataset=args.dataset, overwrite=args.overwrite, levels=0, progress=_Printer("level 0"))
+    t1 = time.perf_counter()
+    nbytes = _nbytes(scan, 0)
+    _summary(scan, t1 - t0, nbytes, "read")
+    if args.levels:
+        _err(f"[2/2] pyramid levels 1..{args.levels}")
+        try:
+            scan = build_pyramid(args.out, args.levels, progress=_Printer("pyramid"))
+        except BaseException:
+            import shutil
+
+            shutil.rmtree(args.out, ignore_errors=True)  # ingest creates the output: all or nothing
+            raise
+        _summary(scan, time.perf_counter() - t1, nbytes, "pyramid from level 0 of")
+    return 0
+
+
+def run_pyramid(args: argparse.Namespace) -> int:
+    """``chunkdic pyramid``: returns the exit code (errors raise :class:`InputError`)."""
+    from .pyramid import build_pyramid
+    from .volume import open_scan
+
+    before = open_scan(args.scan).stored_levels() if Path(args.scan).exists() else []
+    _err(f"pyramid {args.scan}: levels 1..{args.levels}"
+         + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
+    t0 = time.perf_counter()
+    scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=_Printer("pyramid"))
+    _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "pyramid from level 0 of")
+    return 0
+
+
+def _nbytes(scan, s: int) -> int:
+    n = 1
+    for v in scan.shape(s):
+        n *= v
+    return n * scan.dtype(s).itemsize
+
+
+def main(argv=None) -> int:  # pragma: no cover - the package entry point is chunkdic.cli.main
+    """Stand-alone entry for testing: ``python -m chunkdic._cli_scan ingest ...``."""
+    parser = argparse.ArgumentParser(prog="chunkdic")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as e:
+        _err(f"chunkdic: error: {e}")
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

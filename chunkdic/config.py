@@ -1,0 +1,33 @@
+"""Runtime knobs, kept in ``dask.config`` under the ``chunkdic.`` namespace.
+
+One YAML file (``~/.config/dask/chunkdic.yaml``) or ``DASK_CHUNKDIC__…`` environment
+variables configure Dask and chunkdic together, e.g.
+``DASK_CHUNKDIC__BLOCK_VOXELS=192`` for larger work units.
+"""
+
+from __future__ import annotations
+
+import dask.config
+
+DEFAULTS = {
+    "chunkdic": {
+        # Target edge of a correlation work unit (voxels); the block holds the largest
+        # whole number of elements that fits (at least one).
+        "block-voxels": 128,
+        # Halo (voxels) around a window prefiltered for cubic B-spline interpolation.
+        "bspline-halo": 12,
+        # Chunk edge of arrays chunkdic writes (scans, pyramid levels, scratch).
+        "chunk-size": 128,
+        # Where inputs that are not on disk and missing pyramid levels are spilled.
+        "scratch-directory": None,
+        # Number of threads of the embedded scheduler (None: all cores).
+        "num-threads": None,
+    }
+}
+
+dask.config.update_defaults(DEFAULTS)
+
+
+def get(key: str):
+    """Return ``dask.config.get("chunkdic." + key)``."""
+    return dask.config.get("chunkdic." + key)

@@ -1,0 +1,559 @@
+"""The C8-DIC engine: blocks → tasks → reductions → client solve → iterations → levels.
+
+Paper sections 3–4 (Roux, Hild, Viot, Bernard): the displacement is sought on 8-node
+cubic elements; each level of the ``2^s`` sum pyramid is solved by modified
+Gauss–Newton with ``M`` built once from the reference and ``b`` re-assembled from the
+corrected deformed image at every iteration. Out of core: every task reads its own
+block of ``f`` and the exact window of ``g`` it needs from the store and returns
+mesh-sized partials that the client adds up (shared/DESIGN.md, "Out-of-core shape").
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import shutil
+import tempfile
+import time
+import warnings
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from . import config, kernels
+from .errors import InputError
+from .mesh import Block, Mesh, transfer
+from .result import HISTORY_FIELDS, Result, check_output
+from .rigid import translation_task
+from .scheduler import open_runner
+from .solve import StencilSolver, PoorTextureWarning
+from .volume import ArrayRef, open_scan
+
+log = logging.getLogger(__name__)
+
+Box = tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Algorithm settings of one correlation (stored with the result).
+
+    Parameters
+    ----------
+    element_size : int
+        Element edge ``ell``, voxels of ``level``.
+    level : int
+        Pyramid level correlated last (0 = full resolution, 2 = the paper's 4³ compression).
+    coarsest : int or None
+        Coarsest pyramid level; ``None`` picks the coarsest level at most 3 above
+        ``level`` whose ROI is still at least ``MIN_COARSE_EDGE`` voxels on every axis.
+    interpolation : {"cubic", "linear"}
+        Interpolation of the deformed image (cubic B-spline, or the paper's trilinear).
+    tolerance : float
+        Convergence when ``max |δa|`` falls below it (voxels of ``level``).
+    coarse_tolerance : float
+        The same on coarser levels, whose field is only a starting point.
+    max_iterations : int
+        Iteration cap per level.
+    block_elements : int or None
+        Elements per block side; ``None`` uses ``chunkdic.block-voxels`` (config).
+    """
+
+    element_size: int
+    level: int = 0
+    coarsest: int | None = None
+    interpolation: str = "cubic"
+    tolerance: float = 1e-3
+    coarse_tolerance: float = 1e-2
+    max_iterations: int = 30
+    block_elements: int | None = None
+
+
+MIN_COARSE_EDGE = 24
+#: stop as stalled after this many iterations without a lower gap
+STALL_PATIENCE = 4
+#: a gap this many times the best one so far means divergence
+DIVERGENCE_FACTOR = 2.0
+
+
+# --------------------------------------------------------------------------- ROI / meshes
+
+
+def parse_roi(roi) -> Box | None:
+    """Parse ``"z0:z1,y0:y1,x0:x1"`` (or a sequence of 3 pairs/slices) to a box."""
+    if roi is None:
+        return None
+    if isinstance(roi, str):
+        parts = roi.split(",")
+        if len(parts) != 3:
+            raise InputError(f"ROI {roi!r}: expected z0:z1,y0:y1,x0:x1")
+        try:
+            pairs = [tuple(int(v) for v in p.split(":")) for p in parts]
+        except ValueError:
+            raise InputError(f"ROI {roi!r}: bounds must be integers, as in 10:90,10:90,10:90") from None
+    else:
+        pairs = [(s.start, s.stop) if isinstance(s, slice) else tuple(s) for s in roi]
+    if len(pairs) != 3 or any(len(p) != 2 for p in pairs):
+        raise InputError(f"ROI {roi!r}: expected three ranges z0:z1,y0:y1,x0:x1")
+    if any(a is None or b is None or b <= a for a, b in pairs):
+        raise InputError(f"ROI {roi!r}: every range needs start < stop")
+    return tuple((int(a), int(b)) for a, b in pairs)
+
+
+def _centred_mesh(box: Box, ell: int) -> Mesh | None:
+    """Largest centred mesh of whole ``ell`` elements inside ``box`` (None if none fits)."""
+    n = tuple((b - a) // ell for a, b in box)
+    if min(n) < 1:
+        return None
+    origin = tuple(a + ((b - a) - k * ell) // 2 for (a, b), k in zip(box, n))
+    return Mesh(origin, ell, n)
+
+
+def _box_at_level(box: Box, factor: int) -> Box:
+    """Voxels of a level ``factor`` times coarser that lie wholly inside ``box``."""
+    return tuple((-(-a // factor), b // factor) for a, b in box)
+
+
+def plan_meshes(ref_shape0, *, element_size: int, roi=None, level: int = 0, coarsest=None) -> dict[int, Mesh]:
+    """Meshes per pyramid level, finest (``level``) first.
+
+    The ROI is given in level-0 voxels (the scan a user looks at). On ``level`` it is
+    reduced to the voxels of that level inside it and trimmed, centred, to a whole number
+    of elements (paper section 4.1 adjusts the ROI the same way). Coarser levels use the
+    same element edge (the basis coarsens with the image, paper section 3) over the
+    level's share of that ROI, smaller elements only when the ROI is smaller than one.
+    """
+    ell = int(element_size)
+    shape0 = tuple(int(n) for n in ref_shape0)
+    box0 = parse_roi(roi)
+    if box0 is None:
+        factor = 2**level
+        shape = tuple(n // factor for n in shape0)
+        margin = max(2, ell // 4)
+        inner = tuple((margin, n - margin) for n in shape)
+        mesh = _centred_mesh(inner, ell)
+        if mesh is None:
+            raise InputError(
+                f"element size {ell} does not fit in the reference at level {level} "
+                f"(shape {shape}, margin {margin}): choose a smaller element size or level"
+            )
+    else:
+        for axis, ((a, b), n) in enumerate(zip(box0, shape0)):
+            if a < 0 or b > n:
+                raise InputError(
+                    f"ROI {a}:{b} on axis {'zyx'[axis]} lies outside the reference (0:{n}, level-0 voxels)"
+                )
+        box = _box_at_level(box0, 2**level)
+        mesh = _centred_mesh(box, ell)
+        if mesh is None:
+            raise InputError(
+                f"element size {ell} is larger than the ROI at level {level} "
+                f"({' x '.join(str(b - a) for a, b in box)} voxels)"
+            )
+    meshes = {level: mesh}
+    top = level + 3 if coarsest is None else int(coarsest)
+    if top < level:
+        raise InputError(f"coarsest level {top} is finer than the correlated level {level}")
+    box_fine = tuple((r.start, r.stop) for r in mesh.roi)
+    for s in range(level + 1, top + 1):
+        box = _box_at_level(box_fine, 2 ** (s - level))
+        edge = min(b - a for a, b in box)
+        if coarsest is None and edge < MIN_COARSE_EDGE:
+            break
+        ell_s = min(ell, edge)
+        if ell_s < 2:
+            raise InputError(f"coarsest level {top} is too coarse for this ROI (edge {edge} voxels at level {s})")
+        meshes[s] = _centred_mesh(box, ell_s)
+    return meshes
+
+
+# --------------------------------------------------------------------------- tasks
+
+
+def _halo_region(start, shape, full_shape, halo: int = 1):
+    """Core box grown by ``halo`` voxels, clipped to the volume; and the halos obtained."""
+    region, lo, hi = [], [], []
+    for a, n, N in zip(start, shape, full_shape):
+        r0, r1 = max(a - halo, 0), min(a + n + halo, N)
+        region.append(slice(r0, r1))
+        lo.append(a - r0)
+        hi.append(r1 - (a + n))
+    return tuple(region), tuple(lo), tuple(hi)
+
+
+def _read_f(f_ref: ArrayRef, start, shape):
+    region, lo, hi = _halo_region(start, shape, f_ref.shape)
+    return f_ref.read(region).astype(np.float32, copy=False), lo, hi
+
+
+def m_task(f_ref: ArrayRef, ell: int, block: Block, start, shape):
+    """Task: this block's share of ``M`` (a nodal stencil) and the min/max of ``f``."""
+    f, lo, hi = _read_f(f_ref, start, shape)
+    stencil, fmin, fmax = kernels.m_block(f, lo, hi, ell)
+    return block, stencil, fmin, fmax
+
+
+def b_task(f_ref: ArrayRef, g_ref: ArrayRef, ell: int, block: Block, start, shape,
+           u_block: np.ndarray, interpolation: str, halo: int):
+    """Task: this block's share of ``b``, ``Σ r²`` and the valid/excluded voxel counts."""
+    f, lo, hi = _read_f(f_ref, start, shape)
+    window = kernels.g_window(start, shape, u_block, g_ref.shape, interpolation=interpolation, halo=halo)
+    if any(s.stop <= s.start for s in window):
+        b = np.zeros(u_block.shape[1:] + (3,))
+        return block, b, 0.0, 0, int(np.prod(shape))
+    g = g_ref.read(window)
+    g_origin = tuple(s.start for s in window)
+    b, ssr, n_valid, n_excluded = kernels.b_block(
+        f, lo, hi, ell, u_block, start, g, g_origin, g_ref.shape, interpolation=interpolation
+    )
+    return block, b, ssr, n_valid, n_excluded
+
+
+# --------------------------------------------------------------------------- one level
+
+
+class _Level:
+    """State of one pyramid level: its mesh, data, assembled ``M`` and solver."""
+
+    def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings):
+        self.s, self.mesh, self.f_ref, self.g_ref, self.runner = s, mesh, f_ref, g_ref, runner
+        self.settings = settings
+        ell = mesh.element_size
+        m = settings.block_elements or max(1, config.get("block-voxels") // ell)
+        self.blocks = mesh.blocks(m)
+        self.halo = int(config.get("bspline-halo"))
+
+    def assemble_m(self) -> None:
+        mesh = self.mesh
+        S = np.zeros(mesh.nodes_shape + (27, 3, 3))
+        fmin, fmax = np.inf, -np.inf
+        args = [(self.f_ref, mesh.element_size, blk, *mesh.block_core(blk)) for blk in self.blocks]
+        for blk, part, lo, hi in self.runner.map_unordered(m_task, args):
+            S[blk.node_slices] += part
+            fmin, fmax = min(fmin, lo), max(fmax, hi)
+        self.stencil = S
+        self.dynamic_range = float(fmax - fmin)
+        if self.dynamic_range <= 0:
+            raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
+        self.solver = StencilSolver(S)
+        self._warn_weak_nodes()
+        # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
+        self.rigid_matrix = S.sum(axis=(0, 1, 2, 3))
+
+    def _warn_weak_nodes(self) -> None:
+        weak = self.solver.weak_nodes
+        if len(weak) == 0:
+            return
+        coords = self.mesh.node_coords()
+        where = ", ".join(
+            "node (%d, %d, %d) at voxel (%.1f, %.1f, %.1f)" % (*n, *coords[(slice(None), *n)]) for n in weak[:5]
+        )
+        more = f" and {len(weak) - 5} more" if len(weak) > 5 else ""
+        warnings.warn(
+            f"level {self.s}: {len(weak)} of {np.prod(self.mesh.nodes_shape)} nodes see too little texture "
+            f"to be measured ({where}{more}); they are regularised and their values are unreliable",
+            PoorTextureWarning,
+            stacklevel=3,
+        )
+
+    def assemble_b(self, u: np.ndarray):
+        """``b``, matching gap, valid and excluded voxel counts for the nodal field ``u``."""
+        mesh = self.mesh
+        b = np.zeros(mesh.nodes_shape + (3,))
+        ssr, n_valid, n_excluded = 0.0, 0, 0
+        args = [
+            (self.f_ref, self.g_ref, mesh.element_size, blk, *mesh.block_core(blk),
+             np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), self.settings.interpolation, self.halo)
+            for blk in self.blocks
+        ]
+        for blk, part, r2, nv, ne in self.runner.map_unordered(b_task, args):
+            b[blk.node_slices] += part
+            ssr += r2
+            n_valid += nv
+            n_excluded += ne
+        gap = math.sqrt(ssr / n_valid) / self.dynamic_range if n_valid else math.inf
+        return b, gap, n_valid, n_excluded
+
+
+# --------------------------------------------------------------------------- driver
+
+
+class _History:
+    def __init__(self):
+        self.rows = {name: [] for name in HISTORY_FIELDS}
+
+    def add(self, level, iteration, gap, max_delta, excluded):
+        for name, value in zip(HISTORY_FIELDS, (level, iteration, gap, max_delta, excluded)):
+            self.rows[name].append(value)
+
+    def arrays(self):
+        return {
+            "level": np.asarray(self.rows["level"], dtype=np.int32),
+            "iteration": np.asarray(self.rows["iteration"], dtype=np.int32),
+            "gap": np.asarray(self.rows["gap"], dtype=np.float64),
+            "max_delta": np.asarray(self.rows["max_delta"], dtype=np.float64),
+            "excluded": np.asarray(self.rows["excluded"], dtype=np.int64),
+        }
+
+
+def _emit(progress, **event):
+    log.info("%s", event)
+    if progress is not None:
+        progress(event)
+
+
+def _rigid_step(lvl: _Level, t0: np.ndarray, tolerance: float, max_iterations: int, history, progress):
+    """Sub-voxel refinement of a uniform translation with the rigid restriction of M."""
+    t = np.array(t0, dtype=np.float64)
+    ones = np.ones((3,) + lvl.mesh.nodes_shape)
+    for it in range(max_iterations):
+        b, gap, _, excluded = lvl.assemble_b(t[:, None, None, None] * ones)
+        delta = np.linalg.solve(lvl.rigid_matrix, b.sum(axis=(0, 1, 2)))
+        history.add(lvl.s, -1 - it, gap, float(np.abs(delta).max()), excluded)
+        _emit(progress, stage="rigid", level=lvl.s, iteration=it, gap=gap,
+              max_delta=float(np.abs(delta).max()), translation=t.tolist())
+        t += delta
+        if np.abs(delta).max() < tolerance:
+            break
+    return t
+
+
+def _gauss_newton(lvl: _Level, u: np.ndarray, tolerance: float, settings: Settings, history, progress):
+    """Modified Gauss–Newton on one level (paper section 3); returns (u, gap, status, excluded, n_valid).
+
+    Each pass evaluates ``b`` and the gap of the current field; the increment of the
+    previous pass being below ``tolerance`` means the current field is converged, so the
+    reported gap is always that of the returned field. A gap that stops decreasing is
+    *stalled*; one that grows past ``DIVERGENCE_FACTOR`` × the best is *diverged*; both
+    return the best field met, never flagged as converged.
+    """
+    best = (math.inf, u, 0, 0)
+    since_best = 0
+    last_delta = math.inf
+    status = "max-iterations"
+    for it in range(settings.max_iterations + 1):
+        t0 = time.perf_counter()
+        b, gap, n_valid, excluded = lvl.assemble_b(u)
+        if not math.isfinite(gap) or gap > DIVERGENCE_FACTOR * best[0]:
+            status = "diverged"
+            history.add(lvl.s, it, gap, math.nan, excluded)
+            break
+        if gap < best[0] * (1 - 1e-9):
+            best, since_best = (gap, u, excluded, n_valid), 0
+        else:
+            since_best += 1
+        if last_delta < tolerance:
+            history.add(lvl.s, it, gap, math.nan, excluded)
+            _emit(progress, stage="iteration", level=lvl.s, iteration=it, gap=gap, max_delta=None,
+                  excluded=excluded, seconds=time.perf_counter() - t0)
+            # the converged field is returned even if round-off left its gap a hair above the best
+            return u, gap, "converged", excluded, n_valid
+        if since_best >= STALL_PATIENCE:
+            status = "stalled"
+            history.add(lvl.s, it, gap, math.nan, excluded)
+            break
+        if it == settings.max_iterations:
+            history.add(lvl.s, it, gap, math.nan, excluded)
+            break
+        t1 = time.perf_counter()
+        delta, cg_iterations = lvl.solver.solve(b)
+        t2 = time.perf_counter()
+        last_delta = float(np.abs(delta).max())
+        history.add(lvl.s, it, gap, last_delta, excluded)
+        _emit(progress, stage="iteration", level=lvl.s, iteration=it, gap=gap, max_delta=last_delta,
+              excluded=excluded, seconds=t2 - t0, assemble_seconds=t1 - t0, solve_seconds=t2 - t1,
+              cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels)
+        u = u + np.moveaxis(delta, -1, 0)
+    gap, u, excluded, n_valid = best
+    return u, gap, status, excluded, n_valid
+
+
+def correlate(
+    ref,
+    deformed,
+    *,
+    element_size: int,
+    roi=None,
+    level: int = 0,
+    coarsest: int | None = None,
+    interpolation: str = "cubic",
+    tolerance: float = 1e-3,
+    max_iterations: int = 30,
+    block_elements: int | None = None,
+    scheduler=None,
+    output=None,
+    overwrite: bool = False,
+    progress: Callable[[dict], None] | None = None,
+) -> Result:
+    """Measure the displacement field between two scans by multiscale C8-DIC.
+
+    Parameters
+    ----------
+    ref, deformed : str, Path, ndarray, dask array or zarr array/group
+        Reference ``f`` and deformed ``g`` scans (see :func:`chunkdic.open_scan`); shapes
+        may differ. Convention: ``f(X) = g(X + u(X))``.
+    element_size : int
+        Element edge ``ell`` in voxels of ``level`` (the paper's ZOI size).
+    roi : str or sequence, optional
+        ``"z0:z1,y0:y1,x0:x1"`` in level-0 voxels; default: the largest centred box of
+        whole elements with a small margin. Trimmed to whole elements (reported).
+    level : int
+        Pyramid level correlated last (2 = the paper's 4³ super-voxels).
+    coarsest : int, optional
+        First (coarsest) level of the multiscale scheme; see :class:`Settings`.
+    interpolation : {"cubic", "linear"}
+        Interpolation of ``g``: cubic B-spline (default, more accurate) or trilinear.
+    tolerance : float
+        Convergence on ``max |δa|`` (voxels of ``level``).
+    max_iterations : int
+        Iteration cap per level.
+    block_elements : int, optional
+        Elements per block side (work unit); default from ``chunkdic.block-voxels``.
+    scheduler : None, "threads", "local[:N]", address or distributed.Client
+        Where tasks run (see :func:`chunkdic.scheduler.open_runner`).
+    output : path, optional
+        Write the result there as a Zarr v3 group (refused if it exists, unless
+        ``overwrite``).
+    progress : callable, optional
+        Called with a dict per event (``stage`` = "rigid", "iteration", "level", ...).
+
+    Returns
+    -------
+    Result
+        ``displacement`` (3, nz, ny, nx) float64 in voxels of ``level`` and the rest
+        (see :class:`chunkdic.Result`).
+
+    References
+    ----------
+    Roux, Hild, Viot, Bernard, sections 3 (C8-DIC, multiscale), 4.2 and 5.1 (gap).
+    """
+    settings = Settings(
+        element_size=_positive_int(element_size, "element size", minimum=2),
+        level=_positive_int(level, "level", minimum=0),
+        coarsest=None if coarsest is None else _positive_int(coarsest, "coarsest level", minimum=0),
+        interpolation=_choice(interpolation, ("cubic", "linear"), "interpolation"),
+        tolerance=float(tolerance),
+        max_iterations=_positive_int(max_iterations, "max iterations", minimum=1),
+        block_elements=None if block_elements is None else _positive_int(block_elements, "block elements", minimum=1),
+    )
+    if output is not None:
+        check_output(output, overwrite=overwrite)
+    f_scan, g_scan = open_scan(ref), open_scan(deformed)
+    meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi,
+                         level=settings.level, coarsest=settings.coarsest)
+    levels = sorted(meshes, reverse=True)
+    for s in levels:
+        if min(g_scan.shape(s)) < 2:
+            raise InputError(f"the deformed scan is too small at level {s} ({g_scan.shape(s)})")
+    scratch_root = config.get("scratch-directory")
+    scratch = Path(tempfile.mkdtemp(prefix="chunkdic-", dir=scratch_root))
+    try:
+        f_refs = f_scan.refs(levels, scratch / "ref")
+        g_refs = g_scan.refs(levels, scratch / "def")
+        with open_runner(scheduler) as runner:
+            _emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
+                  levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
+                  nodes=list(meshes[settings.level].nodes_shape))
+            runner.run_everywhere(kernels.warmup)
+            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    result.info.update(
+        voxel_size=f_scan.voxel_size, unit=f_scan.unit,
+        inputs={"reference": _describe(ref), "deformed": _describe(deformed)},
+    )
+    if output is not None:
+        result.save(output, overwrite=overwrite)
+    return result
+
+
+def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress) -> Result:
+    history = _History()
+    finest, coarsest = levels[-1], levels[0]
+    u = None
+    statuses = {}
+    rigid_t = None
+    for s in levels:
+        mesh = meshes[s]
+        t0 = time.perf_counter()
+        lvl = _Level(s, mesh, f_refs[s], g_refs[s], runner, settings)
+        lvl.assemble_m()
+        _emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.blocks),
+              voxels=mesh.n_voxels, seconds=time.perf_counter() - t0)
+        tol = settings.tolerance if s == finest else settings.coarse_tolerance
+        if s == coarsest:
+            roi = mesh.roi
+            t_int = runner_single(runner, translation_task, (f_refs[s], g_refs[s], roi))
+            rigid_t = _rigid_step(lvl, t_int, tol, 10, history, progress)
+            u = rigid_t[:, None, None, None] * np.ones((3,) + mesh.nodes_shape)
+        else:
+            u = transfer(u, meshes[s + 1], s + 1, mesh, s)
+        if s == finest:
+            _, initial_gap, _, _ = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape))
+            rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
+            _, rigid_gap, _, _ = lvl.assemble_b(rigid_fine[:, None, None, None] * np.ones((3,) + mesh.nodes_shape))
+            _emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
+                  translation=rigid_fine.tolist())
+        u, gap, status, excluded, n_valid = _gauss_newton(lvl, u, tol, settings, history, progress)
+        statuses[s] = status
+        _emit(progress, stage="level", level=s, status=status, gap=gap, seconds=time.perf_counter() - t0)
+    mesh = meshes[finest]
+    info = {
+        "element_size": settings.element_size,
+        "roi": [[r.start, r.stop] for r in mesh.roi],
+        "roi_level0": [[r.start * 2**finest, r.stop * 2**finest] for r in mesh.roi],
+        "level": finest,
+        "scale": 2**finest,
+        "levels": levels,
+        "level_status": {str(k): v for k, v in statuses.items()},
+        "status": statuses[finest],
+        "converged": statuses[finest] == "converged",
+        "initial_gap": initial_gap,
+        "rigid_gap": rigid_gap,
+        "final_gap": gap,
+        "rigid_translation": rigid_fine.tolist(),
+        "excluded_voxels": int(excluded),
+        "used_voxels": int(n_valid),
+        "settings": asdict(settings),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "chunkdic_version": _version(),
+    }
+    return Result(u, mesh.node_coords(), history.arrays(), info)
+
+
+def runner_single(runner, fn, args):
+    """Run one task on the runner and return its result."""
+    return next(iter(runner.map_unordered(fn, [args])))
+
+
+def _positive_int(value, name: str, *, minimum: int) -> int:
+    try:
+        out = int(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be an integer, got {value!r}") from None
+    if out != value or out < minimum:
+        raise InputError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return out
+
+
+def _choice(value, choices, name):
+    if value not in choices:
+        raise InputError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
+    return value
+
+
+def _describe(src) -> str:
+    if isinstance(src, (str, Path)):
+        return str(Path(src).resolve())
+    return f"<in-memory {type(src).__name__}>"
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("chunkdic")
+    except PackageNotFoundError:
+        return "unknown"

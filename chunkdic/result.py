@@ -1,0 +1,130 @@
+"""A correlation result and its Zarr v3 group.
+
+The group holds small arrays only (mesh-sized): ``displacement`` and ``node_coords``
+``(3, nz, ny, nx)`` float64 in voxels of the correlated level, and the iteration history
+``history/level``, ``history/iteration``, ``history/gap``, ``history/max_delta``,
+``history/excluded``. Everything else is in ``attrs["chunkdic"]``. The group is created
+with ``complete: false`` and marked complete last, so an interrupted write is never
+mistaken for a result.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .mesh import Mesh
+
+HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
+
+
+@dataclass
+class Result:
+    """Outcome of :func:`chunkdic.correlate`.
+
+    Attributes
+    ----------
+    displacement : ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
+        Nodal displacement, components ``(z, y, x)`` (``Uz, Uy, Ux``).
+    node_coords : ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
+        Node positions.
+    history : dict of 1-D ndarrays
+        Per level and iteration: ``level``, ``iteration``, matching gap ``gap``
+        (paper section 5.1), ``max_delta`` = max |δa| of the update that followed
+        (NaN for the final evaluation), ``excluded`` voxels.
+    info : dict
+        Everything else: ``element_size``, ``roi`` (level voxels, ``[[z0, z1], …]``),
+        ``roi_level0``, ``level``, ``scale`` (voxel edge in level-0 voxels),
+        ``voxel_size``, ``unit``, ``converged``, ``status``, ``initial_gap``,
+        ``rigid_gap``, ``final_gap``, ``rigid_translation``, ``excluded_voxels``,
+        ``used_voxels``, settings and inputs.
+    """
+
+    displacement: np.ndarray
+    node_coords: np.ndarray
+    history: dict[str, np.ndarray]
+    info: dict = field(default_factory=dict)
+    path: str | None = None
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.info.get("converged", False))
+
+    @property
+    def final_gap(self) -> float:
+        return float(self.info["final_gap"])
+
+    @property
+    def mesh(self) -> Mesh:
+        roi = self.info["roi"]
+        ell = int(self.info["element_size"])
+        return Mesh(tuple(int(a) for a, _ in roi), ell, tuple((b - a) // ell for a, b in roi))
+
+    def __repr__(self) -> str:
+        i = self.info
+        return (
+            f"<chunkdic.Result {self.displacement.shape[1:]} nodes, ell={i.get('element_size')} "
+            f"level={i.get('level')} status={i.get('status')} final_gap={i.get('final_gap', float('nan')):.4g}>"
+        )
+
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> None:
+        """Write the result as a Zarr v3 group (complete flag set last)."""
+        import zarr
+
+        path = Path(path)
+        check_output(path, overwrite=overwrite)
+        if path.exists():
+            shutil.rmtree(path)
+        root = zarr.open_group(str(path), mode="w", zarr_format=3)
+        root.attrs["chunkdic"] = {**_jsonable(self.info), "complete": False}
+        for name, arr in (("displacement", self.displacement), ("node_coords", self.node_coords)):
+            root.create_array(name, data=np.ascontiguousarray(arr, dtype=np.float64))
+        hist = root.create_group("history")
+        for name in HISTORY_FIELDS:
+            hist.create_array(name, data=np.asarray(self.history[name]))
+        root.attrs["chunkdic"] = {**_jsonable(self.info), "complete": True}
+        self.path = str(path)
+
+
+def check_output(path: str | os.PathLike, *, overwrite: bool) -> None:
+    """Refuse to replace an existing path unless ``overwrite`` (raises InputError)."""
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise InputError(f"output {path} exists: choose another path or pass --overwrite")
+
+
+def open_result(path: str | os.PathLike) -> Result:
+    """Read a result written by :func:`chunkdic.correlate` (refuses incomplete ones)."""
+    import zarr
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"result {path} does not exist")
+    try:
+        root = zarr.open_group(str(path), mode="r")
+        info = dict(root.attrs["chunkdic"])
+    except Exception as exc:  # noqa: BLE001 - any failure means "not a result"
+        raise InputError(f"{path} is not a chunkdic result ({exc.__class__.__name__})") from None
+    if not info.get("complete", False):
+        raise InputError(f"result {path} is incomplete (the run that wrote it was interrupted)")
+    history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
+    return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path))
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj

@@ -1,0 +1,151 @@
+"""Where tasks run: the embedded thread pool, a LocalCluster, or an existing cluster.
+
+The engine only needs one operation, ``map_unordered``: run a function over many small
+argument tuples and hand back the results as they complete, so that the client can add
+mesh-sized partial results into its totals (a streaming reduction) and count progress.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import contextlib
+import logging
+import os
+from collections.abc import Callable, Iterable, Iterator
+from typing import Any
+
+from . import config
+from .errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+class ThreadRunner:
+    """Embedded default: a pool of threads in this process (no cluster to set up).
+
+    The numba kernels release the GIL, and Zarr decompression does too, so threads give
+    real parallelism, like Dask's threaded scheduler.
+    """
+
+    def __init__(self, n_threads: int | None = None):
+        self.n_workers = n_threads or config.get("num-threads") or os.cpu_count() or 1
+        self._pool = concurrent.futures.ThreadPoolExecutor(self.n_workers)
+        self.dashboard_link = None
+
+    def map_unordered(self, fn: Callable, args: Iterable[tuple]) -> Iterator[Any]:
+        futures = [self._pool.submit(fn, *a) for a in args]
+        try:
+            for fut in concurrent.futures.as_completed(futures):
+                yield fut.result()
+        finally:
+            for fut in futures:
+                fut.cancel()
+
+    def run_everywhere(self, fn: Callable) -> None:
+        fn()
+
+    def close(self) -> None:
+        self._pool.shutdown(cancel_futures=True)
+
+    def __repr__(self) -> str:
+        return f"embedded thread pool ({self.n_workers} threads)"
+
+
+class DistributedRunner:
+    """Tasks on a ``dask.distributed`` cluster through a ``Client``.
+
+    Each task receives paths, a block description and its own slice of the nodal
+    field (kilobytes), never voxels; results are mesh-sized partials.
+    """
+
+    def __init__(self, client, cluster=None):
+        self.client = client
+        self._cluster = cluster
+        self.dashboard_link = getattr(client, "dashboard_link", None)
+        info = client.scheduler_info()
+        self.n_workers = max(1, sum(w.get("nthreads", 1) for w in info["workers"].values()))
+
+    def map_unordered(self, fn: Callable, args: Iterable[tuple]) -> Iterator[Any]:
+        from distributed import as_completed
+
+        args = list(args)
+        if not args:
+            return
+        futures = self.client.map(fn, *zip(*args), pure=False)
+        try:
+            for _, result in as_completed(futures, with_results=True):
+                yield result
+        finally:
+            self.client.cancel(futures)
+
+    def run_everywhere(self, fn: Callable) -> None:
+        self.client.run(fn)
+
+    def close(self) -> None:
+        if self._cluster is not None:
+            self.client.close()
+            self._cluster.close()
+
+    def __repr__(self) -> str:
+        return f"dask.distributed cluster ({self.n_workers} threads), dashboard {self.dashboard_link}"
+
+
+def start_local_cluster(n_workers: int | None = None, threads_per_worker: int = 1):
+    """Start a ``LocalCluster`` that listens on loopback only (scheduler, workers, dashboard)."""
+    from distributed import Client, LocalCluster
+
+    n = n_workers or os.cpu_count() or 1
+    cluster = LocalCluster(
+        n_workers=n,
+        threads_per_worker=threads_per_worker,
+        host="127.0.0.1",
+        dashboard_address="127.0.0.1:0",
+        processes=True,
+    )
+    return Client(cluster), cluster
+
+
+@contextlib.contextmanager
+def open_runner(scheduler=None):
+    """Context manager giving a runner for ``scheduler``.
+
+    Parameters
+    ----------
+    scheduler : None, "threads", "local", "local:N", address string, or distributed.Client
+        ``None``/``"threads"``: embedded thread pool (default). ``"local"`` or
+        ``"local:N"``: a LocalCluster of N single-threaded worker processes on loopback,
+        started and stopped here. ``"tcp://host:port"`` (or ``tls://…``): an existing
+        scheduler. A ``distributed.Client``: used as is and left open.
+    """
+    if scheduler is None or scheduler == "threads":
+        runner = ThreadRunner()
+    elif isinstance(scheduler, str) and scheduler.startswith("local"):
+        _, _, n = scheduler.partition(":")
+        try:
+            n_workers = int(n) if n else None
+        except ValueError:
+            raise InputError(f"scheduler {scheduler!r}: expected 'local' or 'local:N'") from None
+        client, cluster = start_local_cluster(n_workers)
+        runner = DistributedRunner(client, cluster)
+    elif isinstance(scheduler, str):
+        from distributed import Client
+
+        if "://" not in scheduler:
+            raise InputError(
+                f"scheduler {scheduler!r}: expected 'threads', 'local[:N]' or an address like tcp://host:8786"
+            )
+        try:
+            client = Client(scheduler, timeout="10s")
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"cannot reach scheduler {scheduler}: {exc}") from None
+        runner = DistributedRunner(client, cluster=None)
+        runner._owns_client = True
+    else:
+        runner = DistributedRunner(scheduler)
+    log.info("running on %r", runner)
+    try:
+        yield runner
+    finally:
+        if getattr(runner, "_owns_client", False):
+            runner.client.close()
+        runner.close()

@@ -1,0 +1,1100 @@
+"""Synthetic specimens: a procedural foam texture and analytic displacement fields.
+
+The texture imitates the paper's polypropylene foam (section 2): closed cells a few voxels
+across, grouped in millimetric beads whose skins are thicker and denser. It is evaluated
+**point by point** from integer hashes of lattice-cell indices and the seed (a hashed
+cellular, "Worley", texture): nothing is stored, any point of an unbounded volume is
+evaluated independently, so any chunk of any size is computed on its own and chunks agree
+at their borders exactly.
+
+A deformed scan is the reference texture evaluated at the inverted positions:
+``g(x) = f(X(x))`` with ``X = field.inverse(x)``, hence ``g(X + u(X)) = f(X)`` up to the
+inverse tolerance (1e-12 voxel or better here) and float32 round-off. There is no
+interpolation anywhere. Integer output dtypes round the intensities, so with them the
+relation holds only up to half a grey level.
+
+Texture (all sizes in level-0 voxels)
+-------------------------------------
+- *Cells*: one feature point per cubic lattice cell of edge ``cell_size`` (jittered over
+  80 % of the cell), Voronoi cells around them. ``cell_size`` is the cube root of the mean
+  cell volume. The signed distance ``d`` of a point to the bisector plane of its nearest
+  feature ``a`` and another feature ``b`` is ``(|p-b|^2 - |p-a|^2) / (2 |b-a|)``; the wall
+  weight is ``W = 1 - prod_b (1 - exp(-d_b^2 / (2 s^2)))`` with ``s`` set from the wall
+  full width at half maximum ``wall_width``. ``W == 1`` on every Voronoi face and its
+  derivative across a face vanishes from both sides, so the texture is C1 across faces and
+  smooth inside cells: sub-voxel interpolation sees a smooth, not aliased, image.
+- *Beads*: the same construction on a coarser lattice (``bead_size``), with thicker walls
+  (``skin_width``) and a brighter level (denser skins).
+- Grey levels: cell interiors (gas, dark) take a random level per cell, cell walls a level
+  per bead, bead skins the brightest level; changes of level happen only under a wall of
+  weight 1 (C1 again). A smooth value noise of small amplitude (``noise_size``) keeps cell
+  interiors from being flat.
+
+Feature points are looked up in the 3x3x3 lattice neighbourhood of the point (standard
+for cellular textures). In rare configurations the true second-nearest feature lies
+outside it; the texture is then still a deterministic function of the position (chunks
+still agree exactly) but may show a tiny kink there.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import shutil
+from abc import ABC, abstractmethod
+from dataclasses import asdict, dataclass, field as dc_field
+from typing import Any, ClassVar
+
+import numpy as np
+from numba import njit
+
+from .errors import InputError
+
+__all__ = [
+    "TextureParams",
+    "texture",
+    "Field",
+    "Translation",
+    "Affine",
+    "Band",
+    "render",
+    "as_dask",
+    "synthesize",
+    "true_displacement",
+    "load_field",
+]
+
+log = logging.getLogger(__name__)
+
+# --------------------------------------------------------------------------- hashing
+
+_M1 = np.uint64(0xBF58476D1CE4E5B9)
+_M2 = np.uint64(0x94D049BB133111EB)
+_GOLD = np.uint64(0x9E3779B97F4A7C15)
+_S30 = np.uint64(30)
+_S27 = np.uint64(27)
+_S31 = np.uint64(31)
+_S43 = np.uint64(43)
+_S22 = np.uint64(22)
+_S1 = np.uint64(1)
+_S11 = np.uint64(11)
+_MASK21 = np.uint64((1 << 21) - 1)
+_INV21 = 1.0 / (1 << 21)
+_INV53 = 1.0 / (1 << 53)
+
+# channels of the hash (distinct streams from one seed)
+_CH_CELL, _CH_BEAD, _CH_NOISE, _CH_ACQ_REF, _CH_ACQ_DEF = 1, 2, 3, 4, 5
+_JITTER = 0.8  # feature points within the central 80 % of their lattice cell
+_FWHM_R = 2.0 * math.sqrt(1.0 - 0.5 ** 0.25)  # FWHM / R of the profile (1 - d^2/R^2)^4
+
+
+@njit(nogil=True, cache=True)
+def _mix(h):
+    # splitmix64 finaliser
+    h = h ^ (h >> _S30)
+    h = h * _M1
+    h = h ^ (h >> _S27)
+    h = h * _M2
+    h = h ^ (h >> _S31)
+    return h
+
+
+@njit(nogil=True, cache=True)
+def _hash3(i, j, k, key):
+    h = _mix(key ^ np.uint64(i))
+    h = _mix(h ^ np.uint64(j))
+    return _mix(h ^ np.uint64(k))
+
+
+def _channel_key(seed: int, channel: int) -> np.uint64:
+    """64-bit key of one hash stream (NumPy twin of the kernel arithmetic)."""
+    mask = (1 << 64) - 1
+    h = ((int(seed) & mask) * 0x9E3779B97F4A7C15 + channel * 0xD1B54A32D192ED03) & mask
+    for _ in range(2):  # splitmix64 finaliser, twice
+        h ^= h >> 30
+        h = (h * 0xBF58476D1CE4E5B9) & mask
+        h ^= h >> 27
+        h = (h * 0x94D049BB133111EB) & mask
+        h ^= h >> 31
+    return np.uint64(h)
+
+
+# --------------------------------------------------------------------------- kernels
+# Parameter vector ``prm`` (float64):
+#  0 inv_cell  1 inv_bead  2 inv_noise  3 cell 1/(4 R^2) (lattice units)  4 bead 1/(4 R^2)
+#  5 cell 4 R^2  6 bead 4 R^2  7 noise amplitude
+#  8 cell interior low  9 cell interior high  10 wall low  11 wall high  12 skin level
+# Keys ``keys`` (uint64): 0 cells, 1 beads, 2 value noise.
+_NPRM = 13
+
+
+@njit(nogil=True, cache=True, inline="always", fastmath={"nnan", "ninf", "nsz"})
+def _min_value(work, n):
+    # min of work[0, :n]; min is exact in any order, so these flags (which let LLVM
+    # vectorise) change nothing
+    m = np.inf
+    for i in range(n):
+        m = min(m, work[0, i])
+    return m
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _feature(fc, fh, n, i, j, k, key, jit):
+    h = _hash3(i, j, k, key)
+    fz = np.float64((h >> _S43) & _MASK21) * _INV21
+    fy = np.float64((h >> _S22) & _MASK21) * _INV21
+    fx = np.float64((h >> _S1) & _MASK21) * _INV21
+    fc[0, n] = np.float64(i) + 0.5 + jit * (fz - 0.5)
+    fc[1, n] = np.float64(j) + 0.5 + jit * (fy - 0.5)
+    fc[2, n] = np.float64(k) + 0.5 + jit * (fx - 0.5)
+    fh[n] = h
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
+    """Wall weight at lattice position q, and the hash of the nearest feature's cell.
+
+    Caches (per kernel call), none of which changes the value (a function of q alone):
+
+    - ``fc`` (3, 32), ``fh`` (32,): coordinates and hashes of the features of the 27
+      lattice cells around the lattice cell of q (``ckey[0:3]``), refilled when that cell
+      changes (shifted when it moves by +1 along x);
+    - ``work[1]``: squared separations from the nearest feature ``ckey[4]``;
+    - ``ckey[8:8+ckey[5]]``: the features whose bisector with the nearest one ``ckey[6]``
+      lies within 2 R of the anchor ``work[2, 4:7]``; within R of the anchor only they
+      can give a wall term (the others are skipped by the full loop too, so the product
+      runs over the same terms in the same order);
+    - ``work[2, 0:4]``: a ball (centre, squared radius) around a point where the weight
+      was 0: the planes of the nearest feature are 1-Lipschitz in position, so inside the
+      ball every plane stays farther than R (weight exactly 0) and the nearest feature
+      stays the same. It is only used within the same lattice cell.
+    """
+    cz = math.floor(qz)
+    cy = math.floor(qy)
+    cx = math.floor(qx)
+    iz = np.int64(cz)
+    iy = np.int64(cy)
+    ix = np.int64(cx)
+    if ckey[3] == 0 or ckey[0] != iz or ckey[1] != iy or ckey[2] != ix:
+        if ckey[3] == 1 and ckey[0] == iz and ckey[1] == iy and ckey[2] + 1 == ix:
+            for m in range(9):  # shift along x: reuse 18 of the 27 features
+                b = 3 * m
+                for r in range(3):
+                    fc[r, b] = fc[r, b + 1]
+                    fc[r, b + 1] = fc[r, b + 2]
+                fh[b] = fh[b + 1]
+                fh[b + 1] = fh[b + 2]
+                _feature(fc, fh, b + 2, iz + m // 3 - 1, iy + m % 3 - 1, ix + 1, key, jit)
+        else:
+            n = 0
+            for dz in range(-1, 2):
+                for dy in range(-1, 2):
+                    for dx in range(-1, 2):
+                        _feature(fc, fh, n, iz + dz, iy + dy, ix + dx, key, jit)
+                        n += 1
+        ckey[0] = iz
+        ckey[1] = iy
+        ckey[2] = ix
+        ckey[3] = 1
+        ckey[4] = -1  # separations not computed
+        ckey[5] = -1  # no active set
+        work[2, 3] = -1.0  # no ball
+    elif work[2, 3] > 0.0:
+        a = qz - work[2, 0]
+        b = qy - work[2, 1]
+        c = qx - work[2, 2]
+        if a * a + b * b + c * c < work[2, 3]:
+            return 0.0, fh[ckey[4]]
+    for n in range(27):
+        a = qz - fc[0, n]
+        b = qy - fc[1, n]
+        c = qx - fc[2, n]
+        work[0, n] = a * a + b * b + c * c
+    best = _min_value(work, 27)
+    ia = 0
+    while work[0, ia] != best:
+        ia += 1
+    if ckey[4] != ia:
+        az = fc[0, ia]
+        ay = fc[1, ia]
+        ax = fc[2, ia]
+        for n in range(27):
+            a = fc[0, n] - az
+            b = fc[1, n] - ay
+            c = fc[2, n] - ax
+            work[1, n] = a * a + b * b + c * c
+        ckey[4] = ia
+    # active set: the features whose bisector with a lies within 2 R of an anchor point;
+    # within R of the anchor (same a, same lattice cell) every other bisector is beyond R
+    a = qz - work[2, 4]
+    b = qy - work[2, 5]
+    c = qx - work[2, 6]
+    if ckey[5] < 0 or ckey[6] != ia or a * a + b * b + c * c >= work[2, 7]:
+        lim_act = 4.0 * lim * (1.0 + 1e-6)  # 4 (2 R)^2 with a margin
+        m = 0
+        for n in range(27):
+            num = work[0, n] - best
+            if n != ia and num * num < lim_act * work[1, n]:
+                ckey[8 + m] = n
+                m += 1
+        ckey[5] = m
+        ckey[6] = ia
+        work[2, 4] = qz
+        work[2, 5] = qy
+        work[2, 6] = qx
+        work[2, 7] = 0.25 * lim  # R^2
+    prod = 1.0
+    for i in range(ckey[5]):
+        n = ckey[8 + i]
+        # distance to the bisector of (a, n): d = (d2[n] - best) / (2 sep); the profile
+        # (1 - d^2/R^2)^4 vanishes beyond d = R, i.e. for num^2 >= 4 R^2 sep^2
+        num = work[0, n] - best
+        if num * num >= lim * work[1, n]:
+            continue
+        t = 1.0 - num * num * inv4r2 / work[1, n]
+        t = t * t
+        prod *= 1.0 - t * t
+    if prod == 1.0:
+        # no wall here: the nearest bisector is at dmin > R; record the ball of radius
+        # dmin - R (less a margin far above round-off) where the weight stays 0
+        dmin2 = np.inf
+        for n in range(27):
+            if n != ia:
+                num = work[0, n] - best
+                dmin2 = min(dmin2, num * num / (4.0 * work[1, n]))
+        rad = math.sqrt(dmin2) - 0.5 * math.sqrt(lim) - 1e-7
+        if rad > 0.0:
+            work[2, 0] = qz
+            work[2, 1] = qy
+            work[2, 2] = qx
+            work[2, 3] = rad * rad
+        else:
+            work[2, 3] = -1.0
+    return 1.0 - prod, fh[ia]
+
+
+@njit(nogil=True, cache=True)
+def _fade(t):
+    return t * t * t * (t * (t * 6.0 - 15.0) + 10.0)
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _value_noise(qz, qy, qx, key, vc, ckey):
+    """Smooth (C2) value noise in [-1, 1] at lattice position q; ``vc`` (8,) cache."""
+    cz = math.floor(qz)
+    cy = math.floor(qy)
+    cx = math.floor(qx)
+    iz = np.int64(cz)
+    iy = np.int64(cy)
+    ix = np.int64(cx)
+    if ckey[3] == 0 or ckey[0] != iz or ckey[1] != iy or ckey[2] != ix:
+        if ckey[3] == 1 and ckey[0] == iz and ckey[1] == iy and ckey[2] + 1 == ix:
+            for m in range(4):  # shift along x: reuse 4 of the 8 corners
+                vc[2 * m] = vc[2 * m + 1]
+                h = _hash3(iz + m // 2, iy + m % 2, ix + 1, key)
+                vc[2 * m + 1] = np.float64(h >> _S11) * _INV53 * 2.0 - 1.0
+        else:
+            n = 0
+            for dz in range(2):
+                for dy in range(2):
+                    for dx in range(2):
+                        h = _hash3(iz + dz, iy + dy, ix + dx, key)
+                        vc[n] = np.float64(h >> _S11) * _INV53 * 2.0 - 1.0
+                        n += 1
+        ckey[0] = iz
+        ckey[1] = iy
+        ckey[2] = ix
+        ckey[3] = 1
+    tz = _fade(qz - cz)
+    ty = _fade(qy - cy)
+    tx = _fade(qx - cx)
+    v00 = vc[0] + tx * (vc[1] - vc[0])
+    v01 = vc[2] + tx * (vc[3] - vc[2])
+    v10 = vc[4] + tx * (vc[5] - vc[4])
+    v11 = vc[6] + tx * (vc[7] - vc[6])
+    v0 = v00 + ty * (v01 - v00)
+    v1 = v10 + ty * (v11 - v10)
+    return v0 + tz * (v1 - v0)
+
+
+@njit(nogil=True, cache=True)
+def _unit(h, m):
+    # a second float in [0, 1) derived from a feature hash
+    return np.float64(_mix(h ^ m) >> _S11) * _INV53
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _point(z, y, x, prm, keys, c_fp, c_fh, c_d2, c_key, b_fp, b_fh, b_d2, b_key, n_vc, n_key):
+    wc, hc = _worley_wall(
+        z * prm[0], y * prm[0], x * prm[0], keys[0], _JITTER, prm[3], prm[5],
+        c_fp, c_fh, c_d2, c_key,
+    )
+    wb, hb = _worley_wall(
+        z * prm[1], y * prm[1], x * prm[1], keys[1], _JITTER, prm[4], prm[6],
+        b_fp, b_fh, b_d2, b_key,
+    )
+    interior = prm[8] + (prm[9] - prm[8]) * _unit(hc, _GOLD)
+    wall = prm[10] + (prm[11] - prm[10]) * _unit(hb, _GOLD)
+    v = (1.0 - wb) * ((1.0 - wc) * interior + wc * wall) + wb * prm[12]
+    if prm[7] != 0.0:
+        v += prm[7] * _value_noise(z * prm[2], y * prm[2], x * prm[2], keys[2], n_vc, n_key)
+    return v
+
+
+@njit(nogil=True, cache=True)
+def _texture_points(z, y, x, prm, keys, out):
+    c_fp = np.empty((3, 32))
+    c_fh = np.empty(32, np.uint64)
+    c_d2 = np.empty((3, 32))
+    c_key = np.zeros(40, np.int64)
+    b_fp = np.empty((3, 32))
+    b_fh = np.empty(32, np.uint64)
+    b_d2 = np.empty((3, 32))
+    b_key = np.zeros(40, np.int64)
+    n_vc = np.empty(8)
+    n_key = np.zeros(4, np.int64)
+    for i in range(z.size):
+        out[i] = _point(z[i], y[i], x[i], prm, keys, c_fp, c_fh, c_d2, c_key,
+                        b_fp, b_fh, b_d2, b_key, n_vc, n_key)
+
+
+@njit(nogil=True, cache=True)
+def _texture_grid(o0, o1, o2, prm, keys, out):
+    c_fp = np.empty((3, 32))
+    c_fh = np.empty(32, np.uint64)
+    c_d2 = np.empty((3, 32))
+    c_key = np.zeros(40, np.int64)
+    b_fp = np.empty((3, 32))
+    b_fh = np.empty(32, np.uint64)
+    b_d2 = np.empty((3, 32))
+    b_key = np.zeros(40, np.int64)
+    n_vc = np.empty(8)
+    n_key = np.zeros(4, np.int64)
+    nz, ny, nx = out.shape
+    for i in range(nz):
+        z = np.float64(o0 + i)
+        for j in range(ny):
+            y = np.float64(o1 + j)
+            for k in range(nx):
+                out[i, j, k] = _point(z, y, np.float64(o2 + k), prm, keys, c_fp, c_fh, c_d2,
+                                      c_key, b_fp, b_fh, b_d2, b_key, n_vc, n_key)
+
+
+@njit(nogil=True, cache=True)
+def _add_gaussian_noise(out, o0, o1, o2, key, std):
+    """Add N(0, std^2) noise hashed from the global voxel index (chunk independent)."""
+    nz, ny, nx = out.shape
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                h = _hash3(o0 + i, o1 + j, o2 + k, key)
+                u1 = (np.float64(h >> _S11) + 0.5) * _INV53
+                u2 = np.float64(_mix(h ^ _GOLD) >> _S11) * _INV53
+                g = math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
+                out[i, j, k] += std * g
+
+
+# --------------------------------------------------------------------------- texture API
+
+
+@dataclass(frozen=True)
+class TextureParams:
+    """Parameters of the foam texture (sizes in level-0 voxels).
+
+    Parameters
+    ----------
+    seed : int
+        Seed of every hash stream.
+    cell_size : float
+        Lattice spacing of the cell features = cube root of the mean cell volume.
+    bead_size : float
+        Same for the beads.
+    wall_width : float
+        Full width at half maximum of a cell wall profile (voxels).
+    skin_width : float
+        Full width at half maximum of a bead skin profile (voxels).
+    noise_size : float or None
+        Lattice spacing of the smooth value noise (default ``cell_size / 2``).
+    noise_amplitude : float
+        Amplitude of the smooth value noise (texture units, the texture spans ~[0.1, 1]).
+    """
+
+    seed: int = 0
+    cell_size: float = 8.0
+    bead_size: float = 64.0
+    wall_width: float = 2.0
+    skin_width: float = 4.0
+    noise_size: float | None = None
+    noise_amplitude: float = 0.04
+
+    def __post_init__(self):
+        for name in ("cell_size", "bead_size", "wall_width", "skin_width"):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and v > 0):
+                raise InputError(f"texture parameter {name} must be a positive number, got {v!r}")
+        if self.noise_size is not None and not (self.noise_size > 0):
+            raise InputError(f"noise_size must be positive, got {self.noise_size!r}")
+        if self.bead_size < 2 * self.cell_size:
+            raise InputError(
+                f"bead_size ({self.bead_size}) should be at least twice cell_size ({self.cell_size})"
+            )
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    def _kernel_args(self) -> tuple[np.ndarray, np.ndarray]:
+        # wall profile (1 - d^2/R^2)^4 for |d| < R (compact, C3, near-Gaussian);
+        # its full width at half maximum is 0.7981 R
+        r_c = self.wall_width / _FWHM_R / self.cell_size  # lattice units
+        r_b = self.skin_width / _FWHM_R / self.bead_size
+        noise = self.noise_size if self.noise_size is not None else self.cell_size / 2.0
+        prm = np.empty(_NPRM)
+        prm[0] = 1.0 / self.cell_size
+        prm[1] = 1.0 / self.bead_size
+        prm[2] = 1.0 / noise
+        prm[3] = 1.0 / (4.0 * r_c * r_c)  # d^2/R^2 = num^2 / (4 R^2 sep^2)
+        prm[4] = 1.0 / (4.0 * r_b * r_b)
+        prm[5] = 4.0 * r_c * r_c
+        prm[6] = 4.0 * r_b * r_b
+        prm[7] = self.noise_amplitude
+        prm[8:13] = (0.08, 0.30, 0.60, 0.80, 0.95)
+        keys = np.array(
+            [_channel_key(self.seed, c) for c in (_CH_CELL, _CH_BEAD, _CH_NOISE)], np.uint64
+        )
+        return prm, keys
+
+
+def _params(seed, cell_size, bead_size, kw) -> TextureParams:
+    if isinstance(seed, TextureParams):
+        return seed
+    return TextureParams(seed=int(seed), cell_size=float(cell_size), bead_size=float(bead_size), **kw)
+
+
+def texture(z, y, x, *, seed: int = 0, cell_size: float = 8.0, bead_size: float = 64.0,
+            **params) -> np.ndarray:
+    """Foam texture at arbitrary points.
+
+    Parameters
+    ----------
+    z, y, x : array_like, broadcastable, float64, level-0 voxels
+        Coordinates of the points (voxel ``i`` has its centre at ``i``).
+    seed : int
+        Seed of the specimen.
+    cell_size, bead_size : float, voxels
+        Mean cell and bead sizes (see :class:`TextureParams`).
+    **params
+        Other :class:`TextureParams` fields (``wall_width``, ``skin_width``,
+        ``noise_size``, ``noise_amplitude``).
+
+    Returns
+    -------
+    ndarray, float32, broadcast shape of the coordinates
+        Grey levels, roughly in [0.05, 1].
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> v = texture(np.arange(4.0), 0.0, 0.0, seed=1)
+    >>> v.shape, v.dtype
+    ((4,), dtype('float32'))
+    """
+    p = _params(seed, cell_size, bead_size, params)
+    zz, yy, xx = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (z, y, x)))
+    shape = zz.shape
+    prm, keys = p._kernel_args()
+    out = np.empty(zz.size, np.float32)
+    _texture_points(
+        np.ascontiguousarray(zz).ravel(), np.ascontiguousarray(yy).ravel(),
+        np.ascontiguousarray(xx).ravel(), prm, keys, out,
+    )
+    return out.reshape(shape)
+
+
+# --------------------------------------------------------------------------- fields
+
+
+class Field(ABC):
+    """A displacement field ``u(X)`` in the reference (Lagrangian) frame, in voxels.
+
+    Subclasses are frozen dataclasses. ``x = X + u(X)`` is the position in the deformed
+    scan of the material point at ``X`` in the reference scan.
+    """
+
+    kind: ClassVar[str] = ""
+    _registry: ClassVar[dict[str, type]] = {}
+
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        if cls.kind:
+            Field._registry[cls.kind] = cls
+
+    @abstractmethod
+    def displacement(self, z, y, x) -> np.ndarray:
+        """Displacement ``u(X)``.
+
+        Parameters
+        ----------
+        z, y, x : array_like, broadcastable, float64, voxels
+            Reference positions ``X``.
+
+        Returns
+        -------
+        ndarray, shape (3, *shape), float64, voxels
+            Components ``(Uz, Uy, Ux)``.
+        """
+
+    @abstractmethod
+    def inverse(self, z, y, x) -> np.ndarray:
+        """Reference positions ``X`` with ``X + u(X) = x``.
+
+        Parameters
+        ----------
+        z, y, x : array_like, broadcastable, float64, voxels
+            Deformed positions ``x``.
+
+        Returns
+        -------
+        ndarray, shape (3, *shape), float64, voxels
+        """
+
+    @abstractmethod
+    def _json_fields(self) -> dict:
+        ...
+
+    def to_json(self) -> dict:
+        """A JSON-serialisable dict; :meth:`Field.from_json` reads it back."""
+        return {"type": self.kind, **self._json_fields()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Field":
+        """Build the field described by ``d`` (the output of :meth:`to_json`)."""
+        d = dict(d)
+        kind = d.pop("type", None)
+        if kind not in Field._registry:
+            raise InputError(f"unknown field type {kind!r} (known: {sorted(Field._registry)})")
+        return Field._registry[kind]._from_fields(d)
+
+    @classmethod
+    def _from_fields(cls, d: dict) -> "Field":
+        return cls(**d)
+
+
+def _xyz(z, y, x):
+    return np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (z, y, x)))
+
+
+def _vec3(v, name) -> tuple[float, float, float]:
+    t = tuple(float(a) for a in np.asarray(v, dtype=np.float64).ravel())
+    if len(t) != 3 or not all(np.isfinite(t)):
+        raise InputError(f"{name} must be 3 finite numbers (z, y, x), got {v!r}")
+    return t
+
+
+@dataclass(frozen=True)
+class Translation(Field):
+    """Rigid translation ``u(X) = t``.
+
+    Parameters
+    ----------
+    t : tuple of 3 float, voxels
+        ``(tz, ty, tx)``.
+    """
+
+    kind: ClassVar[str] = "translation"
+    t: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        object.__setattr__(self, "t", _vec3(self.t, "t"))
+
+    def displacement(self, z, y, x):
+        zz, _, _ = _xyz(z, y, x)
+        return np.stack([np.full(zz.shape, c) for c in self.t])
+
+    def inverse(self, z, y, x):
+        zz, yy, xx = _xyz(z, y, x)
+        return np.stack([zz - self.t[0], yy - self.t[1], xx - self.t[2]])
+
+    def _json_fields(self):
+        return {"t": list(self.t)}
+
+
+@dataclass(frozen=True)
+class Affine(Field):
+    """Affine field ``u(X) = A (X - center) + translation``.
+
+    Parameters
+    ----------
+    matrix : 3x3 nested tuple of float
+        Displacement gradient ``A[i][j] = dU_i / dX_j``, axes ``(z, y, x)``.
+    center : tuple of 3 float, voxels
+        Point where ``u = translation``.
+    translation : tuple of 3 float, voxels
+    """
+
+    kind: ClassVar[str] = "affine"
+    matrix: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        a = np.asarray(self.matrix, dtype=np.float64)
+        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            raise InputError(f"affine matrix must be 3x3 finite numbers, got {self.matrix!r}")
+        if abs(np.linalg.det(np.eye(3) + a)) < 1e-6 or np.linalg.det(np.eye(3) + a) < 0:
+            raise InputError("affine field is not invertible (det(I + A) <= 0)")
+        object.__setattr__(self, "matrix", tuple(tuple(float(v) for v in r) for r in a))
+        object.__setattr__(self, "center", _vec3(self.center, "center"))
+        object.__setattr__(self, "translation", _vec3(self.translation, "translation"))
+
+    def displacement(self, z, y, x):
+        X = _xyz(z, y, x)
+        d = [X[j] - self.center[j] for j in range(3)]
+        a = self.matrix
+        return np.stack([
+            a[i][0] * d[0] + a[i][1] * d[1] + a[i][2] * d[2] + self.translation[i]
+            for i in range(3)
+        ])
+
+    def inverse(self, z, y, x):
+        xs = _xyz(z, y, x)
+        b = np.linalg.inv(np.eye(3) + np.asarray(self.matrix))
+        d = [xs[j] - self.center[j] - self.translation[j] for j in range(3)]
+        return np.stack([
+            self.center[i] + (b[i, 0] * d[0] + b[i, 1] * d[1] + b[i, 2] * d[2])
+            for i in range(3)
+        ])
+
+    def _json_fields(self):
+        return {
+            "matrix": [list(r) for r in self.matrix],
+            "center": list(self.center),
+            "translation": list(self.translation),
+        }
+
+    @classmethod
+    def _from_fields(cls, d):
+        return cls(matrix=tuple(tuple(r) for r in d["matrix"]), center=tuple(d["center"]),
+                   translation=tuple(d["translation"]))
+
+
+@njit(nogil=True, cache=True)
+def _lncosh(a):
+    a = abs(a)
+    return a + math.log1p(math.exp(-2.0 * a)) - math.log(2.0)
+
+
+@njit(nogil=True, cache=True)
+def _band_profile(s, half, edge):
+    # smooth top hat of width 2*half, value 1 inside, 0 outside, tanh edges of scale edge
+    return 0.5 * (math.tanh((s + half) / edge) - math.tanh((s - half) / edge))
+
+
+@njit(nogil=True, cache=True)
+def _band_integral(s, half, edge):
+    # integral of the profile from 0 to s (odd in s)
+    return 0.5 * edge * (_lncosh((s + half) / edge) - _lncosh((s - half) / edge))
+
+
+@njit(nogil=True, cache=True)
+def _band_inverse_z(xz, cz, half, edge, strain, out):
+    """Solve Z + strain * I(Z - cz) = xz per element (Newton, own stopping per element)."""
+    for i in range(xz.size):
+        target = xz[i] - cz
+        s = target  # u_z is at most |strain| * half away from it
+        for _ in range(100):
+            r = s + strain * _band_integral(s, half, edge) - target
+            step = r / (1.0 + strain * _band_profile(s, half, edge))
+            s -= step
+            if abs(step) < 1e-13 * (1.0 + abs(s)):
+                break
+        out[i] = s + cz
+
+
+@dataclass(frozen=True)
+class Band(Field):
+    """Localized compression band normal to z with lateral expansion (the paper's case).
+
+    With ``s = Z - center_z`` and ``p(s)`` a smooth top hat of width ``width`` (tanh
+    edges of scale ``edge``) and ``I(s)`` its integral from 0:
+
+    - ``Uz = strain * I(s)`` (strain ``< 0``: compression inside the band, rigid shifts of
+      ``strain * width / 2`` on both sides, so the band shortens by ``|strain| * width``),
+    - ``Uy = -lateral * strain * p(s) * (Y - center_y)``, same for ``x``.
+
+    ``dUz/dZ = strain * p(s)``, so the field is smooth (C-infinity) and invertible for
+    ``strain > -1``; the inverse solves the 1-D ``z`` equation by Newton to 1e-13 and the
+    lateral components exactly.
+
+    Parameters
+    ----------
+    center_z : float, voxels
+    width : float, voxels
+        Band width (full width at half of the profile).
+    strain : float
+        Axial strain inside the band (negative = compression), e.g. ``-0.05``.
+    lateral : float
+        Poisson-like lateral expansion factor (``0`` for a foam that does not expand).
+    center_y, center_x : float, voxels
+        Axis of the lateral expansion.
+    edge : float or None, voxels
+        Softness of the band edges (default ``width / 8``).
+    """
+
+    kind: ClassVar[str] = "band"
+    center_z: float = 0.0
+    width: float = 32.0
+    strain: float = -0.05
+    lateral: float = 0.3
+    center_y: float = 0.0
+    center_x: float = 0.0
+    edge: float | None = None
+
+    def __post_init__(self):
+        for name in ("center_z", "width", "strain", "lateral", "center_y", "center_x"):
+            v = float(getattr(self, name))
+            if not np.isfinite(v):
+                raise InputError(f"band parameter {name} must be finite, got {v!r}")
+            object.__setattr__(self, name, v)
+        if self.width <= 0:
+            raise InputError(f"band width must be positive, got {self.width}")
+        if not -1.0 < self.strain < 1.0:
+            raise InputError(f"band strain must lie in (-1, 1), got {self.strain}")
+        if self.edge is not None:
+            if not float(self.edge) > 0:
+                raise InputError(f"band edge must be positive, got {self.edge!r}")
+            object.__setattr__(self, "edge", float(self.edge))
+        if abs(self.lateral * self.strain) >= 1.0:
+            raise InputError("band lateral * strain must have magnitude < 1")
+
+    @property
+    def _edge(self) -> float:
+        return self.edge if self.edge is not None else self.width / 8.0
+
+    def _profile(self, s):
+        e, h = self._edge, self.width / 2.0
+        return 0.5 * (np.tanh((s + h) / e) - np.tanh((s - h) / e))
+
+    def _integral(self, s):
+        e, h = self._edge, self.width / 2.0
+
+        def lncosh(a):
+            a = np.abs(a)
+            return a + np.log1p(np.exp(-2.0 * a)) - math.log(2.0)
+
+        return 0.5 * e * (lncosh((s + h) / e) - lncosh((s - h) / e))
+
+    def displacement(self, z, y, x):
+        zz, yy, xx = _xyz(z, y, x)
+        s = zz - self.center_z
+        p = self._profile(s)
+        k = -self.lateral * self.strain
+        return np.stack([self.strain * self._integral(s), k * p * (yy - self.center_y),
+                         k * p * (xx - self.center_x)])
+
+    def inverse(self, z, y, x):
+        zz, yy, xx = _xyz(z, y, x)
+        Z = np.empty(zz.size)
+        _band_inverse_z(np.ascontiguousarray(zz).ravel(), self.center_z, self.width / 2.0,
+                        self._edge, self.strain, Z)
+        Z = Z.reshape(zz.shape)
+        g = 1.0 - self.lateral * self.strain * self._profile(Z - self.center_z)
+        return np.stack([Z, self.center_y + (yy - self.center_y) / g,
+                         self.center_x + (xx - self.center_x) / g])
+
+    def _json_fields(self):
+        return {"center_z": self.center_z, "width": self.width, "strain": self.strain,
+                "lateral": self.lateral, "center_y": self.center_y, "center_x": self.center_x,
+                "edge": self.edge}
+
+
+def true_displacement(field: Field, z, y, x) -> np.ndarray:
+    """The true displacement ``u(X)``, shape ``(3, *shape)``, float64, voxels.
+
+    Same as ``field.displacement(z, y, x)``; ``field=None`` means no motion.
+    """
+    if field is None:
+        zz, _, _ = _xyz(z, y, x)
+        return np.zeros((3, *zz.shape))
+    return field.displacement(z, y, x)
+
+
+# --------------------------------------------------------------------------- rendering
+
+_INT_LO, _INT_HI = 20.0 / 255.0, 235.0 / 255.0  # [0, 1] maps to 20..235 for uint8
+_SLAB_POINTS = 1 << 21  # points per batch of a deformed render (bounds the temporaries)
+
+
+def _check_dtype(dtype) -> np.dtype:
+    dt = np.dtype(dtype)
+    if dt.kind not in "uif" or dt.itemsize > 8:
+        raise InputError(f"unsupported dtype {dtype!r} (use uint8, uint16, float32, ...)")
+    return dt
+
+
+def _quantise(v: np.ndarray, dt: np.dtype) -> np.ndarray:
+    if dt.kind == "f":
+        return v.astype(dt, copy=False)
+    info = np.iinfo(dt)
+    top = float(info.max)
+    if dt.kind == "i":  # signed: use the positive half
+        top = float(info.max)
+    lo, hi = _INT_LO * top, _INT_HI * top
+    q = np.rint(lo + v.astype(np.float64) * (hi - lo))
+    return np.clip(q, 0, top).astype(dt)
+
+
+def _shape3(shape, name="shape") -> tuple[int, int, int]:
+    if np.isscalar(shape):
+        shape = (shape,) * 3
+    t = tuple(int(s) for s in shape)
+    if len(t) != 3 or any(s < 1 for s in t):
+        raise InputError(f"{name} must be 3 positive integers (z, y, x), got {shape!r}")
+    return t
+
+
+def render(shape, *, field: Field | None = None, seed: int = 0, origin=(0, 0, 0),
+           which: str = "reference", dtype="float32", cell_size: float = 8.0,
+           bead_size: float = 64.0, noise: float = 0.0, **params) -> np.ndarray:
+    """Render one box of the reference or deformed scan in memory.
+
+    Parameters
+    ----------
+    shape : int or tuple of 3 int
+        Box shape ``(nz, ny, nx)``.
+    field : Field or None
+        Displacement field (``None``: no motion).
+    seed, cell_size, bead_size, **params
+        Texture parameters (see :class:`TextureParams`).
+    origin : tuple of 3 int
+        Global voxel index of the box's first voxel.
+    which : {"reference", "deformed"}
+        ``reference``: ``f(X)``; ``deformed``: ``g(x) = f(field.inverse(x))``.
+    dtype : str
+        Output dtype; integer dtypes map [0, 1] to 20/255..235/255 of the range, rounded.
+    noise : float
+        Standard deviation of additive Gaussian acquisition noise in texture units
+        (independent in the two scans, hashed from the global voxel index).
+
+    Returns
+    -------
+    ndarray, shape ``shape``, ``dtype``
+
+    Examples
+    --------
+    >>> f = render((8, 8, 8), seed=3)
+    >>> g = render((8, 8, 8), seed=3, field=Translation((0.5, 0, 0)), which="deformed")
+    """
+    p = _params(seed, cell_size, bead_size, params)
+    shape = _shape3(shape)
+    origin = tuple(int(o) for o in origin)
+    if len(origin) != 3:
+        raise InputError(f"origin must be 3 integers, got {origin!r}")
+    if which not in ("reference", "deformed"):
+        raise InputError(f"which must be 'reference' or 'deformed', got {which!r}")
+    dt = _check_dtype(dtype)
+    prm, keys = p._kernel_args()
+    out = np.empty(shape, np.float32)
+    if which == "reference" or field is None:
+        _texture_grid(origin[0], origin[1], origin[2], prm, keys, out)
+    else:
+        nz, ny, nx = shape
+        step = max(1, _SLAB_POINTS // (ny * nx))
+        yy = np.arange(ny, dtype=np.float64)[:, None] + origin[1]
+        xx = np.arange(nx, dtype=np.float64)[None, :] + origin[2]
+        for z0 in range(0, nz, step):
+            zz = np.arange(z0, min(nz, z0 + step), dtype=np.float64)[:, None, None] + origin[0]
+            X = field.inverse(zz, yy[None], xx[None])
+            buf = np.empty(X.shape[1:], np.float32)
+            _texture_points(X[0].ravel(), X[1].ravel(), X[2].ravel(), prm, keys, buf.ravel())
+            out[z0:z0 + buf.shape[0]] = buf
+    if noise:
+        acq = _channel_key(p.seed, _CH_ACQ_REF if which == "reference" else _CH_ACQ_DEF)
+        _add_gaussian_noise(out, origin[0], origin[1], origin[2], acq, float(noise))
+    return _quantise(out, dt)
+
+
+def _render_block(*, field, params, which, out_dtype, noise, origin, block_info=None):
+    loc = block_info[None]["array-location"]
+    o = tuple(origin[i] + loc[i][0] for i in range(3))
+    s = tuple(loc[i][1] - loc[i][0] for i in range(3))
+    return render(s, field=field, seed=params, origin=o, which=which, dtype=out_dtype, noise=noise)
+
+
+def as_dask(shape, *, chunks, field: Field | None = None, seed: int = 0,
+            which: str = "reference", dtype="float32", cell_size: float = 8.0,
+            bead_size: float = 64.0, noise: float = 0.0, origin=(0, 0, 0), **params):
+    """The reference or deformed scan as a lazy Dask array, computed chunk by chunk.
+
+    Same parameters as :func:`render`, plus ``chunks`` (anything
+    :func:`dask.array.core.normalize_chunks` accepts). The graph carries only the small
+    parameters (field, texture parameters), never arrays; each chunk equals the same box
+    of :func:`render` exactly.
+
+    Returns
+    -------
+    dask.array.Array, shape ``shape``, ``dtype``
+    """
+    import dask.array as da
+
+    p = _params(seed, cell_size, bead_size, params)
+    shape = _shape3(shape)
+    dt = _check_dtype(dtype)
+    if which not in ("reference", "deformed"):
+        raise InputError(f"which must be 'reference' or 'deformed', got {which!r}")
+    norm = da.core.normalize_chunks(chunks, shape, dtype=dt)
+    return da.map_blocks(
+        _render_block, chunks=norm, dtype=dt, meta=np.empty((0, 0, 0), dt),
+        name=f"chunkdic-synth-{which}-" + _token(p, field, which, dt, noise, origin, norm),
+        field=field, params=p, which=which, out_dtype=dt.name, noise=float(noise),
+        origin=tuple(int(o) for o in origin),
+    )
+
+
+def _token(*args) -> str:
+    from dask.base import tokenize
+
+    return tokenize(*(repr(a) for a in args))
+
+
+# --------------------------------------------------------------------------- writer
+
+_SYNTH_ATTR = "synthetic"
+
+
+def _metadata(field, p: TextureParams, shape, dtype, noise) -> dict:
+    return {
+        "field": None if field is None else field.to_json(),
+        "texture": p.to_json(),
+        "seed": p.seed,
+        "shape": list(shape),
+        "dtype": np.dtype(dtype).name,
+        "noise": float(noise),
+        "intensity_map": None if np.dtype(dtype).kind == "f" else [_INT_LO, _INT_HI],
+    }
+
+
+def synthesize(out_dir, shape, *, field: Field | None = None, seed: int = 0,
+               dtype="uint8", chunks=None, voxel_size=None, unit=None, levels: int = 0,
+               overwrite: bool = False, progress=None, cell_size: float = 8.0,
+               bead_size: float = 64.0, noise: float = 0.0, **params) -> dict:
+    """Write a synthetic reference/deformed pair ``out_dir/ref.zarr``, ``out_dir/def.zarr``.
+
+    Both scans are written chunk by chunk with :func:`chunkdic.volume.write_scan`. The field
+    JSON, seed and texture parameters go to ``attrs["chunkdic"]["synthetic"]`` of both
+    groups and to ``out_dir/field.json`` (written last: its presence marks a complete pair).
+
+    Parameters
+    ----------
+    out_dir : path
+        Output directory (created).
+    shape : int or tuple of 3 int
+        Scan shape ``(nz, ny, nx)``.
+    field : Field or None
+        Displacement field (``None``: a pair of identical scans up to ``noise``).
+    dtype : str
+        ``uint8`` (default), ``uint16`` or ``float32``. Integer grey levels are rounded,
+        so ``g(X + u(X)) = f(X)`` holds to half a grey level (exactly for float32 up to
+        round-off).
+    chunks, voxel_size, unit, levels, overwrite, progress
+        Passed to ``write_scan``.
+    seed, cell_size, bead_size, noise, **params
+        Texture parameters (see :func:`render`).
+
+    Returns
+    -------
+    dict
+        ``{"reference": path, "deformed": path, "field_json": path, "field": Field,
+        "texture": TextureParams}``.
+    """
+    from . import config
+    from .volume import write_scan
+
+    p = _params(seed, cell_size, bead_size, params)
+    shape = _shape3(shape)
+    dt = _check_dtype(dtype)
+    out_dir = os.fspath(out_dir)
+    ref, dfm = os.path.join(out_dir, "ref.zarr"), os.path.join(out_dir, "def.zarr")
+    fjson = os.path.join(out_dir, "field.json")
+    existing = [q for q in (ref, dfm, fjson) if os.path.exists(q)]
+    if existing and not overwrite:
+        raise InputError(f"{existing[0]} exists (use overwrite=True / --overwrite)")
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise InputError(f"{out_dir} exists and is not a directory")
+    if chunks is None:
+        chunks = config.get("chunk-size")
+    os.makedirs(out_dir, exist_ok=True)
+    if os.path.exists(fjson):
+        os.remove(fjson)  # the pair is incomplete until field.json is back
+    meta = _metadata(field, p, shape, dt, noise)
+    written = []
+    try:
+        for i, (which, path) in enumerate((("reference", ref), ("deformed", dfm))):
+            arr = as_dask(shape, chunks=chunks, field=field, seed=p, which=which, dtype=dt,
+                          noise=noise)
+            log.info("writing %s scan %s, shape %s, %s", which, path, shape, dt.name)
+            sub = None if progress is None else _sub_progress(progress, i / 2.0, (i + 1) / 2.0)
+            written.append(path)
+            write_scan(path, arr, voxel_size=voxel_size, unit=unit, chunks=chunks,
+                       overwrite=overwrite, levels=levels, progress=sub)
+            _set_synthetic_attrs(path, {**meta, "role": which})
+        tmp = fjson + ".tmp"
+        with open(tmp, "w") as fh:
+            json.dump(meta, fh, indent=2)
+        os.replace(tmp, fjson)
+    except BaseException:
+        for path in written:  # leave no half-written pair behind
+            shutil.rmtree(path, ignore_errors=True)
+        raise
+    return {"reference": ref, "deformed": dfm, "field_json": fjson, "field": field,
+            "texture": p}
+
+
+def _sub_progress(progress, start: float, end: float):
+    def report(frac: float) -> None:
+        progress(start + (end - start) * float(frac))
+
+    return report
+
+
+def _set_synthetic_attrs(path: str, meta: dict) -> None:
+    import zarr
+
+    g = zarr.open_group(path, mode="r+")
+    ck = dict(g.attrs.get("chunkdic", {}))
+    ck[_SYNTH_ATTR] = meta
+    g.attrs["chunkdic"] = ck
+
+
+def load_metadata(path) -> dict:
+    """Synthetic metadata of a pair directory (``field.json``) or of one scan group."""
+    path = os.fspath(path)
+    fj = os.path.join(path, "field.json")
+    if os.path.isfile(fj):
+        with open(fj) as fh:
+            return json.load(fh)
+    if os.path.isfile(path) and path.endswith(".json"):
+        with open(path) as fh:
+            return json.load(fh)
+    try:
+        import zarr
+
+        g = zarr.open_group(path, mode="r")
+        return dict(g.attrs["chunkdic"][_SYNTH_ATTR])
+    except Exception as exc:  # noqa: BLE001 - turned into one actionable line
+        raise InputError(f"{path} is not a synthetic pair directory or scan ({exc})") from None
+
+
+def load_field(path) -> Field | None:
+    """The displacement field of a synthetic pair (directory, ``field.json`` or scan group).
+
+    Returns ``None`` for a pair written without a field.
+    """
+    d = load_metadata(path)["field"]
+    return None if d is None else Field.from_json(d)
+
+
+def load_texture(path) -> TextureParams:
+    """The texture parameters of a synthetic pair (directory, ``field.json`` or scan group)."""
+    return TextureParams(**load_metadata(path)["texture"])

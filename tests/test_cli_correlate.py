@@ -1,0 +1,79 @@
+"""`chunkdic correlate`: a real run, and bad input refused in one line with exit 2."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import chunkdic
+from chunkdic.cli import main
+
+from textures import smooth_noise
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pair")
+    f = smooth_noise((48, 48, 48), sigma=1.2, seed=5).astype(np.float32)
+    g = np.roll(f, (1, 2, -1), axis=(0, 1, 2))
+    np.save(d / "ref.npy", f)
+    np.save(d / "def.npy", g)
+    np.save(d / "flat.npy", f[0])
+    return d
+
+
+def test_correlate_command_writes_a_result(pair, tmp_path, capsys):
+    out = tmp_path / "res.zarr"
+    code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size", "8"])
+    assert code == 0
+    err = capsys.readouterr().err
+    assert "iter" in err and "converged" in err
+    res = chunkdic.open_result(out)
+    err = res.displacement - np.array([1, 2, -1.0])[:, None, None, None]
+    assert np.abs(err).max() < 1e-3
+    assert res.info["element_size"] == 8 and res.info["level"] == 0 and res.info["scale"] == 1
+    assert res.history["gap"][-1] == pytest.approx(res.info["final_gap"])
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["missing.npy", "def.npy"], "does not exist"),
+        (["flat.npy", "def.npy"], "3-D"),
+        (["ref.npy", "def.npy", "--roi", "0:40,0:40,10:60"], "outside"),
+        (["ref.npy", "def.npy", "--element-size", "64"], "element size"),
+        (["ref.npy", "def.npy", "--roi", "0:40,0:40"], "ROI"),
+    ],
+)
+def test_bad_input_is_one_line_exit_2_nothing_written(pair, tmp_path, capsys, args, message):
+    out = tmp_path / "res.zarr"
+    argv = ["correlate", *[str(pair / a) if a.endswith(".npy") else a for a in args], "-o", str(out)]
+    if "--element-size" not in argv:
+        argv += ["--element-size", "8"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err, err
+    assert not out.exists()
+
+
+def test_existing_output_is_refused_without_overwrite(pair, tmp_path, capsys):
+    out = tmp_path / "res.zarr"
+    out.mkdir()
+    (out / "keep.txt").write_text("user data")
+    argv = ["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size", "8"]
+    assert main(argv) == 2
+    assert "--overwrite" in capsys.readouterr().err
+    assert (out / "keep.txt").read_text() == "user data"
+
+
+def test_no_traceback_from_the_installed_command(pair, tmp_path):
+    proc = subprocess.run(
+        [sys.executable, "-m", "chunkdic", "correlate", str(pair / "nope.npy"), str(pair / "def.npy"),
+         "-o", str(tmp_path / "r.zarr"), "--element-size", "8"],
+        capture_output=True, text=True,
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr

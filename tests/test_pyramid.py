@@ -1,0 +1,138 @@
+"""build_pyramid: exact sums level by level, resumability, NGFF metadata, refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import zarr
+
+import chunkdic.volume as volume
+from chunkdic.errors import InputError
+from chunkdic.pyramid import build_pyramid
+from chunkdic.volume import open_scan, write_scan
+
+
+def block_sums(x: np.ndarray, s: int) -> np.ndarray:
+    """Oracle: level ``s`` by NumPy reshape-sums in int64 (odd trailing voxels dropped)."""
+    x = x.astype(np.int64)
+    for _ in range(s):
+        n = [k // 2 for k in x.shape]
+        x = x[: 2 * n[0], : 2 * n[1], : 2 * n[2]].reshape(n[0], 2, n[1], 2, n[2], 2).sum(axis=(1, 3, 5))
+    return x
+
+
+@pytest.fixture()
+def scan_path(tmp_path):
+    x = np.random.default_rng(5).integers(0, 256, (45, 38, 27), dtype=np.uint8)
+    p = tmp_path / "s.zarr"
+    write_scan(p, x, chunks=8, voxel_size=(3.0, 2.0, 2.0), unit="mm")
+    return p, x
+
+
+def test_levels_equal_numpy_block_sums(scan_path):
+    p, x = scan_path
+    scan = build_pyramid(p, 4)
+    assert scan.stored_levels() == [0, 1, 2, 3, 4]
+    for s in range(5):
+        got = scan.level(s).compute()
+        assert got.shape == tuple(n // 2**s for n in x.shape)
+        np.testing.assert_array_equal(got, block_sums(x, s))
+    # 8-bit data: the 4^3 level fits uint16 (the paper's 14 bits), level 3 needs uint32
+    assert scan.dtype(2) == np.uint16 and scan.dtype(3) == np.uint32
+    assert int(scan.level(2).max().compute()) <= 255 * 64
+
+
+def test_rerun_skips_complete_levels_and_rebuilds_incomplete(scan_path, monkeypatch):
+    p, x = scan_path
+    build_pyramid(p, 2)
+    stamp = {s: (p / str(s) / "zarr.json").stat().st_mtime_ns for s in (1, 2)}
+    calls = []
+    original = volume._write_level
+    monkeypatch.setattr("chunkdic.pyramid._write_level", lambda *a, **k: calls.append(a[1]) or original(*a, **k))
+    build_pyramid(p, 2)
+    assert calls == []
+    assert all((p / str(s) / "zarr.json").stat().st_mtime_ns == stamp[s] for s in (1, 2))
+    # level 1 interrupted (not complete): it and every level above are rebuilt
+    meta = p / "1" / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["attributes"]["chunkdic"]["complete"] = False
+    meta.write_text(json.dumps(doc))
+    scan = build_pyramid(p, 3)
+    assert calls == [1, 2, 3]
+    for s in range(4):
+        np.testing.assert_array_equal(scan.level(s).compute(), block_sums(x, s))
+    calls.clear()
+    build_pyramid(p, 3, overwrite=True)
+    assert calls == [1, 2, 3]
+
+
+def test_invalid_level_is_rebuilt(scan_path):
+    p, x = scan_path
+    build_pyramid(p, 1)
+    g = zarr.open_group(str(p), mode="r+")
+    del g["1"]
+    g.create_array("1", shape=(3, 3, 3), dtype="uint8", attributes={"chunkdic": {"level": 1, "complete": True}})
+    assert open_scan(str(p)).stored_levels() == [0]  # wrong shape/dtype: not trusted
+    scan = build_pyramid(p, 1)
+    np.testing.assert_array_equal(scan.level(1).compute(), block_sums(x, 1))
+
+
+def test_interrupted_build_leaves_no_complete_level(scan_path, monkeypatch):
+    p, x = scan_path
+    calls = []
+
+    def flaky(block, path, key, block_info=None):
+        calls.append(key)
+        if key == "2" and len(calls) > 3:
+            raise KeyboardInterrupt("killed")
+        return write(block, path, key, block_info=block_info)
+
+    write = volume._write_block
+    monkeypatch.setattr(volume, "_write_block", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        build_pyramid(p, 3)
+    g = zarr.open_group(str(p), mode="r")
+    assert g["2"].attrs["chunkdic"]["complete"] is False
+    assert "3" not in g
+    assert open_scan(str(p)).stored_levels() == [0, 1]
+    ms = g.attrs["ome"]["multiscales"][0]
+    assert [d["path"] for d in ms["datasets"]] == ["0", "1"]
+    monkeypatch.setattr(volume, "_write_block", write)
+    scan = build_pyramid(p, 3)
+    assert scan.stored_levels() == [0, 1, 2, 3]
+    np.testing.assert_array_equal(scan.level(3).compute(), block_sums(x, 3))
+
+
+def test_ngff_after_pyramid(scan_path):
+    from ome_zarr.io import parse_url
+    from ome_zarr.reader import Reader
+
+    p, _ = scan_path
+    build_pyramid(p, 3)
+    node = list(Reader(parse_url(str(p)))())[0]
+    assert len(node.data) == 4
+    vs = np.array([3.0, 2.0, 2.0])
+    for s, tr in enumerate(node.metadata["coordinateTransformations"]):
+        t = {d["type"]: d for d in tr}
+        np.testing.assert_allclose(t["scale"]["scale"], vs * 2**s)
+        np.testing.assert_allclose(t["translation"]["translation"], vs * (2**s - 1) / 2)
+    assert node.metadata["axes"][0]["unit"] == "millimeter"
+
+
+def test_refusals(tmp_path, scan_path):
+    p, _ = scan_path
+    with pytest.raises(InputError, match="at most 4"):
+        build_pyramid(p, 5)
+    with pytest.raises(InputError, match="does not exist"):
+        build_pyramid(tmp_path / "nope.zarr", 1)
+    with pytest.raises(InputError, match=">= 1"):
+        build_pyramid(p, 0)
+    np.save(tmp_path / "v.npy", np.zeros((4, 4, 4)))
+    with pytest.raises(InputError, match="ingest"):
+        build_pyramid(tmp_path / "v.npy", 1)
+    zarr.create_array(str(tmp_path / "arr.zarr"), shape=(4, 4, 4), dtype="uint8")
+    with pytest.raises(InputError, match="ingest"):
+        build_pyramid(tmp_path / "arr.zarr", 1)
+    assert open_scan(str(p)).stored_levels() == [0]

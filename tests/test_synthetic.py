@@ -1,0 +1,186 @@
+"""Synthetic specimens: point-wise texture, exact deformed scans, stored fields."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from chunkdic import synthetic as S
+from chunkdic.errors import InputError
+
+FIELDS = {
+    "translation": S.Translation((2.3, -1.4, 0.7)),
+    "affine": S.Affine(((-0.01, 0.0, 0.005), (0.0, 0.003, 0.0), (0.005, 0.0, 0.003)),
+                       center=(20.0, 24.0, 28.0), translation=(0.4, -0.3, 1.1)),
+    "band": S.Band(center_z=20.0, width=12.0, strain=-0.05, lateral=0.3, center_y=24.0,
+                   center_x=28.0),
+}
+
+
+def test_texture_point_wise_equals_grid():
+    f = S.render((12, 13, 14), origin=(-5, 3, 100), seed=7)
+    z, y, x = np.meshgrid(np.arange(-5, 7.0), np.arange(3, 16.0), np.arange(100, 114.0),
+                          indexing="ij")
+    assert np.array_equal(S.texture(z, y, x, seed=7), f)
+    # broadcasting and arbitrary visiting order
+    rng = np.random.default_rng(0)
+    idx = rng.permutation(f.size)[:300]
+    zi, yi, xi = np.unravel_index(idx, f.shape)
+    v = S.texture(zi - 5.0, yi + 3.0, xi + 100.0, seed=7)
+    assert np.array_equal(v, f[zi, yi, xi])
+
+
+def test_chunks_agree_with_larger_render():
+    big = S.render((40, 44, 48), seed=3, origin=(10, -20, 5))
+    part = S.render((17, 9, 23), seed=3, origin=(10 + 11, -20 + 30, 5 + 7))
+    assert np.array_equal(part, big[11:28, 30:39, 7:30])
+    fld = FIELDS["band"]
+    bigd = S.render((40, 44, 48), seed=3, field=fld, which="deformed", dtype="uint16")
+    partd = S.render((13, 20, 9), seed=3, field=fld, which="deformed", dtype="uint16",
+                     origin=(5, 21, 33))
+    assert np.array_equal(partd, bigd[5:18, 21:41, 33:42])
+
+
+@pytest.mark.parametrize("which", ["reference", "deformed"])
+def test_as_dask_equals_render(which):
+    fld = FIELDS["affine"]
+    kw = dict(field=fld, seed=11, which=which, dtype="uint8", noise=0.02)
+    one = S.render((37, 30, 33), **kw)
+    for chunks in [(16, 16, 16), (10, 30, 7), 37]:
+        arr = S.as_dask((37, 30, 33), chunks=chunks, **kw)
+        assert np.array_equal(arr.compute(scheduler="threads"), one)
+    # the graph carries parameters only
+    assert all(not isinstance(v, np.ndarray) for v in dict(arr.dask).values())
+
+
+@pytest.mark.parametrize("name", sorted(FIELDS))
+def test_deformed_matches_reference_exactly(name):
+    fld = FIELDS[name]
+    rng = np.random.default_rng(1)
+    X = rng.uniform(0.0, 48.0, size=(3, 2000))
+    u = fld.displacement(*X)
+    assert u.shape == (3, 2000)
+    x = X + u
+    back = fld.inverse(*x)
+    assert np.abs(back - X).max() < 1e-6
+    f = S.texture(*X, seed=5)
+    g = S.texture(*fld.inverse(*x), seed=5)  # deformed scan evaluated at x = X + u(X)
+    np.testing.assert_allclose(g, f, rtol=0, atol=1e-6)
+    # and on the grid: render(deformed) at integer x equals texture at inverse(x)
+    gd = S.render((8, 9, 10), seed=5, field=fld, which="deformed", origin=(12, 14, 16))
+    zz, yy, xx = np.meshgrid(np.arange(12, 20.0), np.arange(14, 23.0), np.arange(16, 26.0),
+                             indexing="ij")
+    assert np.array_equal(gd, S.texture(*fld.inverse(zz, yy, xx), seed=5))
+
+
+def test_translation_and_affine_inverse_exact():
+    t = FIELDS["translation"]
+    np.testing.assert_array_equal(t.displacement(1.0, 2.0, np.zeros((2, 3)))[:, 0, 0], t.t)
+    a = FIELDS["affine"]
+    X = np.array([3.0, -7.0, 50.0])
+    A = np.asarray(a.matrix)
+    np.testing.assert_allclose(a.displacement(*X), A @ (X - a.center) + a.translation,
+                               atol=1e-13)
+
+
+def test_band_shape():
+    b = S.Band(center_z=50.0, width=20.0, strain=-0.05, lateral=0.4, center_y=10.0,
+               center_x=10.0)
+    z = np.linspace(0.0, 100.0, 2001)
+    u = b.displacement(z, 10.0, 10.0)
+    # rigid shift of strain * width / 2 on each side, compression in between
+    np.testing.assert_allclose(u[0, 0], 0.05 * 10.0, rtol=1e-3)
+    np.testing.assert_allclose(u[0, -1], -0.05 * 10.0, rtol=1e-3)
+    dudz = np.gradient(u[0], z)
+    assert dudz.min() == pytest.approx(-0.05, rel=1e-3) and dudz.max() <= 1e-12
+    assert np.allclose(u[1:], 0.0)  # on the axis no lateral motion
+    ul = b.displacement(50.0, 20.0, 0.0)  # lateral expansion in the band
+    np.testing.assert_allclose(ul[1:], [0.4 * 0.05 * 10.0, -0.4 * 0.05 * 10.0], rtol=1e-3)
+
+
+def test_texture_is_rich_and_smooth():
+    f = S.render((64, 64, 64), seed=0).astype(np.float64)
+    assert 0.15 < f.std() < 0.4
+    assert 0.3 < f.mean() < 0.7
+    wall = (f > 0.55).mean()
+    assert 0.15 < wall < 0.7
+    g = np.gradient(f)
+    energy = np.mean(sum(c * c for c in g))
+    assert energy > 1e-2  # texture at the cell scale
+    # smooth, not aliased: the finest differences are not larger than first differences
+    d1 = np.diff(f, axis=2)
+    d2 = np.diff(f, 2, axis=2)
+    assert np.mean(d2 ** 2) < 1.5 * np.mean(d1 ** 2)
+    # power spectrum falls off towards Nyquist
+    spec = np.abs(np.fft.rfft(f - f.mean(), axis=2)) ** 2
+    p = spec.mean(axis=(0, 1))
+    assert p[-1] < 0.05 * p[1:8].max()
+    # different seeds give different specimens
+    assert not np.array_equal(S.render((8, 8, 8), seed=1), S.render((8, 8, 8), seed=2))
+
+
+def test_integer_dtypes_and_noise():
+    v = S.render((16, 16, 16), seed=2)
+    q = S.render((16, 16, 16), seed=2, dtype="uint8")
+    assert q.dtype == np.uint8
+    np.testing.assert_array_equal(q, np.clip(np.rint(20 + v.astype(np.float64) * 215), 0, 255))
+    n = S.render((16, 16, 16), seed=2, noise=0.05)
+    assert 0.04 < np.std(n - v) < 0.06
+    nd = S.render((16, 16, 16), seed=2, noise=0.05, which="deformed")
+    assert not np.array_equal(n, nd)  # independent acquisition noise in the two scans
+
+
+def test_field_json_round_trip():
+    for fld in FIELDS.values():
+        d = json.loads(json.dumps(fld.to_json()))
+        assert S.Field.from_json(d) == fld
+    with pytest.raises(InputError):
+        S.Field.from_json({"type": "spiral"})
+    with pytest.raises(InputError):
+        S.Affine(matrix=((-1.0, 0, 0), (0, 0, 0), (0, 0, 0)))
+    with pytest.raises(InputError):
+        S.Band(width=-1.0)
+
+
+def test_synthesize_writes_pair(tmp_path):
+    from chunkdic.volume import open_scan
+
+    fld = FIELDS["band"]
+    out = tmp_path / "pair"
+    res = S.synthesize(out, (24, 20, 28), field=fld, seed=4, dtype="uint8", chunks=8,
+                       voxel_size=4.91, unit="micrometer", levels=1)
+    for which, key in (("reference", "reference"), ("deformed", "deformed")):
+        scan = open_scan(res[key])
+        lvl0 = np.asarray(scan.level(0))
+        np.testing.assert_array_equal(
+            lvl0, S.render((24, 20, 28), field=fld, seed=4, which=which, dtype="uint8"))
+    assert S.load_field(out) == fld
+    assert S.load_field(res["deformed"]) == fld
+    assert S.load_field(os.path.join(out, "field.json")) == fld
+    assert S.load_texture(out) == S.TextureParams(seed=4)
+    with pytest.raises(InputError):
+        S.synthesize(out, (8, 8, 8))  # exists, no overwrite
+    S.synthesize(out, (8, 8, 8), overwrite=True, chunks=8)
+    assert S.load_field(out) is None
+
+
+def test_cli_synth(tmp_path):
+    import argparse
+
+    from chunkdic import _cli_synth
+
+    parser = argparse.ArgumentParser()
+    _cli_synth.register(parser.add_subparsers(dest="command"))
+    out = tmp_path / "cli"
+    args = parser.parse_args(["synth", str(out), "--shape", "16,16,24", "--field", "affine",
+                              "--chunks", "8", "--seed", "3"])
+    assert args.func(args) == 0
+    fld = S.load_field(out)
+    assert isinstance(fld, S.Affine)
+    np.testing.assert_allclose(np.asarray(fld.matrix)[0, 0], -0.01)
+    bad = parser.parse_args(["synth", str(out), "--shape", "16,16"])
+    with pytest.raises(InputError):
+        bad.func(bad)

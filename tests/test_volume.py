@@ -1,0 +1,234 @@
+"""write_scan / open_scan / Scan: round trips, exact pyramid sums, refs, NGFF, refusals."""
+
+from __future__ import annotations
+
+import json
+
+import dask.array as da
+import numpy as np
+import pytest
+import zarr
+
+from chunkdic.errors import InputError
+from chunkdic.volume import (
+    ArrayRef,
+    _store,
+    check_write_alignment,
+    coarsen_sum,
+    open_scan,
+    pyramid_dtype,
+    write_scan,
+)
+
+
+def block_sums(x: np.ndarray, s: int) -> np.ndarray:
+    """Oracle: level ``s`` by NumPy reshape-sums in int64 (odd trailing voxels dropped)."""
+    x = x.astype(np.float64) if x.dtype.kind == "f" else x.astype(np.int64)
+    for _ in range(s):
+        n = [k // 2 for k in x.shape]
+        x = x[: 2 * n[0], : 2 * n[1], : 2 * n[2]].reshape(n[0], 2, n[1], 2, n[2], 2).sum(axis=(1, 3, 5))
+    return x
+
+
+@pytest.fixture(scope="module")
+def vol8():
+    return np.random.default_rng(0).integers(0, 256, (37, 29, 23), dtype=np.uint8)
+
+
+def test_pyramid_dtype_table():
+    assert [pyramid_dtype("uint8", s).name for s in range(5)] == ["uint8", "uint16", "uint16", "uint32", "uint32"]
+    assert pyramid_dtype("uint16", 1).name == "uint32"
+    assert pyramid_dtype("int16", 1).name == "int32"
+    assert pyramid_dtype("int8", 1).name == "int16"
+    assert pyramid_dtype("float32", 3).name == "float32"
+    assert pyramid_dtype("float64", 1).name == "float64"
+    assert pyramid_dtype(">u2", 0) == np.dtype("uint16")
+    # the paper's case: a 4^3 sum of 8-bit data fills 14 bits
+    assert 255 * 64 < 2**14 <= np.iinfo(pyramid_dtype("uint8", 2)).max
+
+
+@pytest.mark.parametrize("shape", [(37, 29, 23), (8, 9, 7), (5, 4, 3)])
+def test_coarsen_sum_equals_numpy(shape):
+    x = np.random.default_rng(1).integers(0, 256, shape, dtype=np.uint8)
+    for chunks in [(4, 6, 2), (3, 5, 7), shape]:
+        got = coarsen_sum(da.from_array(x, chunks=chunks)).compute()
+        assert got.dtype == np.uint16
+        np.testing.assert_array_equal(got, block_sums(x, 1))
+    np.testing.assert_array_equal(coarsen_sum(x), block_sums(x, 1))
+
+
+def test_write_scan_roundtrip_levels(tmp_path, vol8):
+    seen = []
+    scan = write_scan(tmp_path / "a.zarr", da.from_array(vol8, chunks=(7, 11, 5)), chunks=8, levels=3,
+                      voxel_size=4.91, unit="um", progress=seen.append)
+    assert scan.stored_levels() == [0, 1, 2, 3]
+    assert scan.voxel_size == (4.91, 4.91, 4.91) and scan.unit == "micrometer"
+    assert seen and seen[-1] == 1.0 and all(b >= a for a, b in zip(seen, seen[1:]))
+    for s in range(4):
+        assert scan.dtype(s) == pyramid_dtype("uint8", s)
+        np.testing.assert_array_equal(scan.level(s).compute(), block_sums(vol8, s))
+    g = zarr.open_group(str(tmp_path / "a.zarr"), mode="r")
+    assert g["0"].chunks == (8, 8, 8)
+    assert all(g[str(s)].attrs["chunkdic"] == {"level": s, "complete": True} for s in range(4))
+    # reopened from disk: same voxel size; lazy level 4 from stored level 3
+    again = open_scan(str(tmp_path / "a.zarr"))
+    assert again.voxel_size == (4.91, 4.91, 4.91)
+    np.testing.assert_array_equal(again.level(4).compute(), block_sums(vol8, 4))
+    assert open_scan(str(tmp_path / "a.zarr"), voxel_size=(2, 1, 1)).voxel_size == (2.0, 1.0, 1.0)
+
+
+def test_write_scan_float_levels(tmp_path):
+    x = np.random.default_rng(2).random((9, 10, 11)).astype(np.float32)
+    scan = write_scan(tmp_path / "f.zarr", x, chunks=4, levels=2)
+    assert scan.dtype(2) == np.float32
+    np.testing.assert_allclose(scan.level(2).compute(), block_sums(x, 2), rtol=1e-6)
+
+
+def test_ngff_metadata_read_by_ome_zarr(tmp_path):
+    from ome_zarr.io import parse_url
+    from ome_zarr.reader import Reader
+
+    path = tmp_path / "m.zarr"
+    write_scan(path, np.zeros((17, 16, 15), np.uint8), chunks=8, levels=2, voxel_size=(2.0, 1.0, 0.5),
+               unit="micrometer")
+    node = list(Reader(parse_url(str(path)))())[0]
+    assert [a["name"] for a in node.metadata["axes"]] == ["z", "y", "x"]
+    assert {a["unit"] for a in node.metadata["axes"]} == {"micrometer"}
+    assert [tuple(a.shape) for a in node.data] == [(17, 16, 15), (8, 8, 7), (4, 4, 3)]
+    vs = np.array([2.0, 1.0, 0.5])
+    for s, transforms in enumerate(node.metadata["coordinateTransformations"]):
+        by_type = {t["type"]: t for t in transforms}
+        np.testing.assert_allclose(by_type["scale"]["scale"], vs * 2**s)
+        np.testing.assert_allclose(by_type["translation"]["translation"], vs * (2**s - 1) / 2)
+
+
+def test_write_scan_refuses_existing_and_overwrites(tmp_path, vol8):
+    p = tmp_path / "a.zarr"
+    write_scan(p, vol8, chunks=16)
+    with pytest.raises(InputError, match="already exists"):
+        write_scan(p, vol8)
+    scan = write_scan(p, vol8[:10], chunks=16, overwrite=True)
+    assert scan.shape(0) == (10, 29, 23)
+    np.testing.assert_array_equal(scan.level(0).compute(), vol8[:10])
+    (tmp_path / "notzarr").mkdir()
+    (tmp_path / "notzarr" / "precious.txt").write_text("keep")
+    with pytest.raises(InputError, match="not a Zarr store"):
+        write_scan(tmp_path / "notzarr", vol8, overwrite=True)
+    assert (tmp_path / "notzarr" / "precious.txt").exists()
+
+
+def test_failed_write_leaves_nothing(tmp_path, vol8):
+    def boom(b, block_info=None):
+        if block_info[0]["chunk-location"][0] == 2:
+            raise RuntimeError("disk on fire")
+        return b
+
+    data = da.from_array(vol8, chunks=8).map_blocks(boom, dtype=vol8.dtype)
+    with pytest.raises(RuntimeError, match="disk on fire"):
+        write_scan(tmp_path / "a.zarr", data, chunks=8)
+    assert not (tmp_path / "a.zarr").exists()
+
+
+def test_chunk_alignment_violation_is_caught(tmp_path):
+    with pytest.raises(InputError, match="multiples of 8"):
+        check_write_alignment(((5, 11), (16,), (16,)), (16, 16, 16), (8, 8, 8))
+    check_write_alignment(((8, 8), (16,), (10,)), (16, 16, 10), (8, 8, 8))
+    arr = zarr.create_array(str(tmp_path / "x.zarr"), shape=(16, 16, 16), chunks=(8, 8, 8), dtype="uint8")
+    with pytest.raises(InputError, match="own whole chunks"):
+        _store(da.ones((16, 16, 16), dtype="uint8", chunks=(5, 16, 16)), str(tmp_path / "x.zarr"), "")
+    assert int(np.asarray(arr[:]).sum()) == 0  # nothing written
+    # sharded arrays: the write unit is the shard
+    sharded = zarr.create_array(str(tmp_path / "s.zarr"), shape=(16, 16, 16), chunks=(4, 4, 4),
+                                shards=(8, 8, 8), dtype="uint8")
+    with pytest.raises(InputError, match="multiples of 8"):
+        _store(da.ones((16, 16, 16), dtype="uint8", chunks=4), str(tmp_path / "s.zarr"), "")
+    _store(da.ones((16, 16, 16), dtype="uint8", chunks=8), str(tmp_path / "s.zarr"), "")
+    assert int(np.asarray(sharded[:]).sum()) == 16**3
+
+
+def test_open_scan_sources(tmp_path, vol8):
+    np.save(tmp_path / "v.npy", vol8)
+    write_scan(tmp_path / "g.zarr", vol8, chunks=16, levels=1)
+    zarr.create_array(str(tmp_path / "root.zarr"), data=vol8, chunks=(16, 16, 16))
+    sources = [
+        vol8,
+        da.from_array(vol8, chunks=10),
+        str(tmp_path / "v.npy"),
+        str(tmp_path / "g.zarr"),
+        str(tmp_path / "g.zarr/0"),
+        str(tmp_path / "root.zarr"),
+        zarr.open_group(str(tmp_path / "g.zarr"), mode="r"),
+        zarr.open_array(str(tmp_path / "g.zarr"), path="0", mode="r"),
+    ]
+    for src in sources:
+        scan = open_scan(src)
+        assert scan.shape(0) == vol8.shape and scan.dtype(0) == np.uint8
+        np.testing.assert_array_equal(scan.level(0).compute(), vol8)
+        np.testing.assert_array_equal(scan.level(2).compute(), block_sums(vol8, 2))
+    npy = open_scan(str(tmp_path / "v.npy"))
+    assert npy.refs([0])[0].kind == "npy"  # used in place, memory-mapped
+    assert open_scan(str(tmp_path / "g.zarr")).stored_levels() == [0, 1]
+
+
+def test_refs_materialize_missing_levels(tmp_path, vol8):
+    scan = open_scan(vol8)
+    refs = scan.refs([0, 2, 3], tmp_path / "scratch" / "ref")
+    assert set(refs) == {0, 2, 3}
+    for s, ref in refs.items():
+        assert isinstance(ref, ArrayRef) and ref.kind == "zarr"
+        np.testing.assert_array_equal(ref.read((slice(None),) * 3), block_sums(vol8, s))
+        assert ref.dtype == pyramid_dtype("uint8", s).name
+    stored = write_scan(tmp_path / "g.zarr", vol8, chunks=16)
+    refs = stored.refs([0, 1, 2], tmp_path / "scratch2")
+    assert refs[0].path == str(tmp_path / "g.zarr")  # stored level used directly
+    assert refs[2].path.startswith(str(tmp_path / "scratch2"))
+    np.testing.assert_array_equal(refs[2].read((slice(None),) * 3), block_sums(vol8, 2))
+
+
+def test_incomplete_level_is_ignored(tmp_path, vol8):
+    p = tmp_path / "a.zarr"
+    write_scan(p, vol8, chunks=16, levels=1)
+    meta = p / "1" / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["attributes"]["chunkdic"]["complete"] = False
+    meta.write_text(json.dumps(doc))
+    scan = open_scan(str(p))
+    assert scan.stored_levels() == [0]
+    np.testing.assert_array_equal(scan.level(1).compute(), block_sums(vol8, 1))
+
+
+@pytest.mark.parametrize(
+    "src, match",
+    [
+        ("missing.zarr", "does not exist"),
+        (np.zeros((4, 4)), "3-D"),
+        (da.zeros((2, 3, 4, 5)), "3-D"),
+        (12, "cannot open a scan"),
+        ("notes.txt", "not a Zarr store"),
+        ("bad.zarr", "cannot read"),
+        ("flat.npy", "3-D"),
+        ("slices.tif", "chunkdic ingest"),
+    ],
+)
+def test_open_scan_refuses(tmp_path, monkeypatch, src, match):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "notes.txt").write_text("hello")
+    (tmp_path / "bad.zarr").mkdir()
+    (tmp_path / "bad.zarr" / "zarr.json").write_text("{not json")
+    np.save(tmp_path / "flat.npy", np.zeros((3, 3)))
+    (tmp_path / "slices.tif").write_bytes(b"II*\x00")
+    with pytest.raises(InputError, match=match) as err:
+        open_scan(src)
+    assert "\n" not in str(err.value)
+
+
+def test_write_scan_refuses_bad_input(tmp_path):
+    with pytest.raises(InputError, match="3-D"):
+        write_scan(tmp_path / "a.zarr", np.zeros((4, 4)))
+    with pytest.raises(InputError, match="at most"):
+        write_scan(tmp_path / "a.zarr", np.zeros((4, 4, 4)), levels=3)
+    with pytest.raises(InputError, match="unit"):
+        write_scan(tmp_path / "a.zarr", np.zeros((4, 4, 4)), voxel_size=1, unit="furlongs")
+    with pytest.raises(InputError, match="voxel size"):
+        write_scan(tmp_path / "a.zarr", np.zeros((4, 4, 4)), voxel_size=(1, 2))
+    assert not (tmp_path / "a.zarr").exists()
