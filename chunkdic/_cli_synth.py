@@ -46,7 +46,8 @@ def register(subparsers) -> None:
     p.add_argument("--unit", default=None, help="length unit, e.g. micrometer")
     p.add_argument("--cell-size", type=float, default=8.0, help="mean cell size, voxels")
     p.add_argument("--bead-size", type=float, default=64.0, help="mean bead size, voxels")
-    p.add_argument("--wall-width", type=float, default=2.0, help="cell wall FWHM, voxels")
+    p.add_argument("--wall-width", type=float, default=2.5,
+                   help="cell wall FWHM, voxels (default 2.5)")
     p.add_argument("--noise", type=float, default=0.0,
                    help="std of additive acquisition noise (texture spans ~0.05..1)")
     p.add_argument("--overwrite", action="store_true")

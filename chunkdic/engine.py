@@ -25,6 +25,7 @@ import numpy as np
 from . import config, kernels
 from .errors import InputError
 from .mesh import Block, Mesh, transfer
+from .prefilter import Coefficients, build_coefficients, reachable_box
 from .result import HISTORY_FIELDS, Result, check_output
 from .rigid import translation_task
 from .scheduler import open_runner
@@ -196,17 +197,29 @@ def m_task(f_ref: ArrayRef, ell: int, block: Block, start, shape):
 
 
 def b_task(f_ref: ArrayRef, g_ref: ArrayRef, ell: int, block: Block, start, shape,
-           u_block: np.ndarray, interpolation: str, halo: int):
-    """Task: this block's share of ``b``, ``Σ r²`` and the valid/excluded voxel counts."""
+           u_block: np.ndarray, interpolation: str, halo: int, coefficients: Coefficients | None):
+    """Task: this block's share of ``b``, ``Σ r²`` and the valid/excluded voxel counts.
+
+    With cubic interpolation the window of ``g`` comes from the level's prefiltered
+    ``coefficients`` when they cover it, else it is read raw with a halo and prefiltered
+    here (same result to float32 precision, see :mod:`chunkdic.prefilter`).
+    """
     f, lo, hi = _read_f(f_ref, start, shape)
-    window = kernels.g_window(start, shape, u_block, g_ref.shape, interpolation=interpolation, halo=halo)
+    window = kernels.g_window(start, shape, u_block, g_ref.shape, interpolation=interpolation)
     if any(s.stop <= s.start for s in window):
         b = np.zeros(u_block.shape[1:] + (3,))
         return block, b, 0.0, 0, int(np.prod(shape))
-    g = g_ref.read(window)
+    prefiltered = coefficients is not None and coefficients.covers(window)
+    if prefiltered:
+        g = coefficients.read(window)
+    else:
+        if interpolation == "cubic":
+            window = kernels.g_window(start, shape, u_block, g_ref.shape, interpolation=interpolation, halo=halo)
+        g = g_ref.read(window)
     g_origin = tuple(s.start for s in window)
     b, ssr, n_valid, n_excluded = kernels.b_block(
-        f, lo, hi, ell, u_block, start, g, g_origin, g_ref.shape, interpolation=interpolation
+        f, lo, hi, ell, u_block, start, g, g_origin, g_ref.shape, interpolation=interpolation,
+        prefiltered=prefiltered,
     )
     return block, b, ssr, n_valid, n_excluded
 
@@ -217,9 +230,12 @@ def b_task(f_ref: ArrayRef, g_ref: ArrayRef, ell: int, block: Block, start, shap
 class _Level:
     """State of one pyramid level: its mesh, data, assembled ``M`` and solver."""
 
-    def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings):
+    def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
+                 scratch: Path):
         self.s, self.mesh, self.f_ref, self.g_ref, self.runner = s, mesh, f_ref, g_ref, runner
         self.settings = settings
+        self.scratch = scratch
+        self.coefficients = None
         ell = mesh.element_size
         m = settings.block_elements or max(1, config.get("block-voxels") // ell)
         self.blocks = mesh.blocks(m)
@@ -233,14 +249,13 @@ class _Level:
         for blk, part, lo, hi in self.runner.map_unordered(m_task, args):
             S[blk.node_slices] += part
             fmin, fmax = min(fmin, lo), max(fmax, hi)
-        self.stencil = S
         self.dynamic_range = float(fmax - fmin)
         if self.dynamic_range <= 0:
             raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
-        self.solver = StencilSolver(S)
-        self._warn_weak_nodes()
         # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
         self.rigid_matrix = S.sum(axis=(0, 1, 2, 3))
+        self.solver = StencilSolver(S)
+        self._warn_weak_nodes()
 
     def _warn_weak_nodes(self) -> None:
         weak = self.solver.weak_nodes
@@ -258,6 +273,26 @@ class _Level:
             stacklevel=3,
         )
 
+    def prepare_interpolation(self, u: np.ndarray) -> None:
+        """Cubic: prefilter once the part of ``g`` that ``u`` (± a margin) can reach."""
+        if self.settings.interpolation != "cubic":
+            return
+        margin = max(8, self.mesh.element_size)
+        box = reachable_box(self.mesh, u, self.g_ref.shape, margin=margin)
+        if box is None or (self.coefficients is not None and self.coefficients.box == box):
+            return
+        path = self.scratch / f"bspline-level{self.s}-{id(box):x}.zarr"
+        t0 = time.perf_counter()
+        self.release()
+        self.coefficients = build_coefficients(self.g_ref, box, path, self.runner, halo=self.halo)
+        log.info("level %d: g prefiltered over %s in %.1f s", self.s, box, time.perf_counter() - t0)
+
+    def release(self) -> None:
+        """Delete this level's scratch coefficients."""
+        if self.coefficients is not None:
+            shutil.rmtree(self.coefficients.ref.path, ignore_errors=True)
+            self.coefficients = None
+
     def assemble_b(self, u: np.ndarray):
         """``b``, matching gap, valid and excluded voxel counts for the nodal field ``u``."""
         mesh = self.mesh
@@ -265,7 +300,8 @@ class _Level:
         ssr, n_valid, n_excluded = 0.0, 0, 0
         args = [
             (self.f_ref, self.g_ref, mesh.element_size, blk, *mesh.block_core(blk),
-             np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), self.settings.interpolation, self.halo)
+             np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), self.settings.interpolation, self.halo,
+             self.coefficients)
             for blk in self.blocks
         ]
         for blk, part, r2, nv, ne in self.runner.map_unordered(b_task, args):
@@ -457,7 +493,7 @@ def correlate(
                   levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
                   nodes=list(meshes[settings.level].nodes_shape))
             runner.run_everywhere(kernels.warmup)
-            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress)
+            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     result.info.update(
@@ -469,7 +505,7 @@ def correlate(
     return result
 
 
-def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress) -> Result:
+def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, scratch: Path) -> Result:
     history = _History()
     finest, coarsest = levels[-1], levels[0]
     u = None
@@ -478,7 +514,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress) -
     for s in levels:
         mesh = meshes[s]
         t0 = time.perf_counter()
-        lvl = _Level(s, mesh, f_refs[s], g_refs[s], runner, settings)
+        lvl = _Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch)
         lvl.assemble_m()
         _emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.blocks),
               voxels=mesh.n_voxels, seconds=time.perf_counter() - t0)
@@ -486,10 +522,12 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress) -
         if s == coarsest:
             roi = mesh.roi
             t_int = runner_single(runner, translation_task, (f_refs[s], g_refs[s], roi))
+            lvl.prepare_interpolation(t_int[:, None, None, None] * np.ones((3,) + mesh.nodes_shape))
             rigid_t = _rigid_step(lvl, t_int, tol, 10, history, progress)
             u = rigid_t[:, None, None, None] * np.ones((3,) + mesh.nodes_shape)
         else:
             u = transfer(u, meshes[s + 1], s + 1, mesh, s)
+        lvl.prepare_interpolation(u)
         if s == finest:
             _, initial_gap, _, _ = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape))
             rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
@@ -497,6 +535,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress) -
             _emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
                   translation=rigid_fine.tolist())
         u, gap, status, excluded, n_valid = _gauss_newton(lvl, u, tol, settings, history, progress)
+        lvl.release()
         statuses[s] = status
         _emit(progress, stage="level", level=s, status=status, gap=gap, seconds=time.perf_counter() - t0)
     mesh = meshes[finest]

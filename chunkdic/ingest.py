@@ -7,7 +7,7 @@ Zarr array / scan group (rechunked, recompressed copy).
 
 Nothing is read whole: a small picklable *reader* (a path and a layout) is wrapped in a
 Dask array whose blocks are slabs of whole Zarr chunks (``chunk`` slices deep, full rows
-if they fit ``chunkdic.ingest-slab-bytes``, 64 MiB by default); each task opens the file
+if they fit ``chunkdic.ingest-slab-bytes``, 32 MiB by default); each task opens the file
 by path, reads its slab (page range, ``pread`` rows, HDF5 hyperslab, memory map) and
 writes it with :func:`chunkdic.volume.write_scan`. Float input is checked for NaN and
 infinity slab by slab during the write; a failure removes the half-written output.
@@ -32,7 +32,7 @@ log = logging.getLogger(__name__)
 _TIFF = (".tif", ".tiff")
 _HDF5 = (".h5", ".hdf5", ".hdf", ".he5", ".nxs")
 _RAW_DTYPES = ("uint8", "uint16", "int16", "uint32", "int32", "float32", "float64")
-_DEFAULT_SLAB_BYTES = 64 * 2**20
+_DEFAULT_SLAB_BYTES = 32 * 2**20
 
 
 # --------------------------------------------------------------------------------------
@@ -59,10 +59,6 @@ class _Reader:
 
     def __dask_tokenize__(self):
         return (type(self).__name__, self._token_fields())
-
-
-def _full(region, shape):
-    return tuple(range(*r.indices(n)) if isinstance(r, slice) else r for r, n in zip(region, shape))
 
 
 class _RawReader(_Reader):
@@ -275,9 +271,7 @@ def _open_tiff_file(path: Path):
     try:
         with tifffile.TiffFile(path) as tif:
             series = tif.series[0]
-            shape = tuple(int(n) for n in series.shape if n != 1)
-            if len(shape) == 2 and len(series.shape) >= 2:
-                shape = shape  # single slice: reported below as not 3-D
+            shape = tuple(int(n) for n in series.shape if n != 1)  # squeeze (1, Z, 1, Y, X) layouts
             dtype = np.dtype(series.dtype)
             vs, unit = _tiff_voxel_size(tif)
             pages = len(series.pages) if hasattr(series, "pages") else 0

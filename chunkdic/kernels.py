@@ -678,7 +678,7 @@ def g_window(core_origin, core_shape, u_nodes, g_shape, *, interpolation: str,
 # --------------------------------------------------------------------------------------
 
 
-def _prepare_g(g, g_origin, g_shape, interpolation):
+def _prepare_g(g, g_origin, g_shape, interpolation, prefiltered=False):
     """Window as float32 samples (linear) or float32 B-spline coefficients (cubic).
 
     float32 coefficients: the images are float32 (architecture.md) and the B-spline
@@ -687,7 +687,7 @@ def _prepare_g(g, g_origin, g_shape, interpolation):
     """
     if g.ndim != 3 or len(g_origin) != 3 or len(g_shape) != 3:
         raise ValueError("g, g_origin and g_shape must be 3-D")
-    if interpolation == "cubic" and g.size:
+    if interpolation == "cubic" and g.size and not prefiltered:
         # scipy computes each line in float64 and stores float32
         return ndi.spline_filter(np.asarray(g, dtype=np.float32), order=3, mode="mirror",
                                  output=np.float32)
@@ -753,7 +753,7 @@ def _warp_numpy(ell, u_nodes, core_origin, core_shape, gw, g_origin, g_shape,
 
 
 def _setup_b(ell, u_nodes, core_origin, core_shape, g, g_origin, g_shape, interpolation,
-             impl):
+             impl, prefiltered=False):
     _check_impl(impl)
     _check_interpolation(interpolation)
     elems = _elements(core_shape, ell)
@@ -764,12 +764,13 @@ def _setup_b(ell, u_nodes, core_origin, core_shape, g, g_origin, g_shape, interp
     g = np.asarray(g)
     any_valid = _check_window(g, g_origin, core_origin, core_shape, u_nodes, g_shape,
                               interpolation)
-    gw = _prepare_g(g, g_origin, g_shape, interpolation) if any_valid else None
+    gw = _prepare_g(g, g_origin, g_shape, interpolation, prefiltered) if any_valid else None
     return elems, u_nodes, core_origin, g_origin, g_shape, gw
 
 
 def warp_block(ell: int, u_nodes: np.ndarray, core_origin, core_shape, g: np.ndarray,
-               g_origin, g_shape, *, interpolation: str = "cubic", impl: str = "numba"):
+               g_origin, g_shape, *, interpolation: str = "cubic", impl: str = "numba",
+               prefiltered: bool = False):
     """The corrected deformed image ``g(X + u(X))`` over a block core.
 
     Parameters
@@ -804,7 +805,8 @@ def warp_block(ell: int, u_nodes: np.ndarray, core_origin, core_shape, g: np.nda
     """
     core_shape = tuple(int(v) for v in core_shape)
     elems, u_nodes, core_origin, g_origin, g_shape, gw = _setup_b(
-        ell, u_nodes, core_origin, core_shape, g, g_origin, g_shape, interpolation, impl)
+        ell, u_nodes, core_origin, core_shape, g, g_origin, g_shape, interpolation, impl,
+        prefiltered)
     if gw is None:
         return np.full(core_shape, np.nan, dtype=np.float32), np.zeros(core_shape, bool)
     if impl == "numba":
@@ -817,7 +819,7 @@ def warp_block(ell: int, u_nodes: np.ndarray, core_origin, core_shape, g: np.nda
 
 def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin,
             g: np.ndarray, g_origin, g_shape, *, interpolation: str = "cubic",
-            impl: str = "numba"):
+            impl: str = "numba", prefiltered: bool = False):
     """Block contribution to the right-hand side ``b`` of one modified Gauss-Newton step.
 
     With the current field ``u``, ``b_(a,i) = sum_X N_a(X) d_i f(X) r(X)``,
@@ -848,6 +850,9 @@ def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin,
     interpolation : {"linear", "cubic"}, keyword-only
         Default ``"cubic"``; the paper's choice is ``"linear"``.
     impl : {"numba", "numpy"}, keyword-only
+    prefiltered : bool, keyword-only
+        ``cubic`` only: ``g`` already holds float32 B-spline coefficients of the deformed
+        level (see :mod:`chunkdic.prefilter`), so no per-window prefilter is done.
 
     Returns
     -------
@@ -862,10 +867,23 @@ def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin,
     References
     ----------
     Paper section 3 (``b_i``) and 3.1 (modified Gauss-Newton, trilinear interpolation).
+
+    Examples
+    --------
+    Identical images and a zero field give a zero right-hand side:
+
+    >>> vol = np.random.default_rng(0).random((8, 8, 8)).astype(np.float32)
+    >>> u = np.zeros((3, 3, 3, 3))
+    >>> win = g_window((0, 0, 0), (8, 8, 8), u, vol.shape, interpolation="linear")
+    >>> b, ssr, n_valid, n_excluded = b_block(
+    ...     vol, (0, 0, 0), (0, 0, 0), 4, u, (0, 0, 0), vol[win],
+    ...     tuple(s.start for s in win), vol.shape, interpolation="linear")
+    >>> bool(np.all(b == 0)), ssr, n_valid, n_excluded
+    (True, 0.0, 512, 0)
     """
     core = _core_shape(f, lo, hi)
     elems, u_nodes, core_origin, g_origin, g_shape, gw = _setup_b(
-        ell, u_nodes, core_origin, core, g, g_origin, g_shape, interpolation, impl)
+        ell, u_nodes, core_origin, core, g, g_origin, g_shape, interpolation, impl, prefiltered)
     ell = int(ell)
     lo = tuple(int(v) for v in lo)
     hi = tuple(int(v) for v in hi)

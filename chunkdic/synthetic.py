@@ -17,12 +17,14 @@ Texture (all sizes in level-0 voxels)
 -------------------------------------
 - *Cells*: one feature point per cubic lattice cell of edge ``cell_size`` (jittered over
   80 % of the cell), Voronoi cells around them. ``cell_size`` is the cube root of the mean
-  cell volume. The signed distance ``d`` of a point to the bisector plane of its nearest
-  feature ``a`` and another feature ``b`` is ``(|p-b|^2 - |p-a|^2) / (2 |b-a|)``; the wall
-  weight is ``W = 1 - prod_b (1 - exp(-d_b^2 / (2 s^2)))`` with ``s`` set from the wall
-  full width at half maximum ``wall_width``. ``W == 1`` on every Voronoi face and its
-  derivative across a face vanishes from both sides, so the texture is C1 across faces and
-  smooth inside cells: sub-voxel interpolation sees a smooth, not aliased, image.
+  cell volume. The signed distance of a point ``p`` to the bisector plane of its nearest
+  feature ``a`` and another feature ``b`` is ``d_b = (|p-b|^2 - |p-a|^2) / (2 |b-a|)``;
+  the wall weight is ``W = 1 - prod_b (1 - phi(d_b))`` with the compact, near-Gaussian
+  profile ``phi(d) = (1 - d^2/R^2)^4`` for ``|d| < R`` (C3 at ``R``), ``R`` set from the
+  wall full width at half maximum ``wall_width`` (FWHM = 0.798 R). ``W == 1`` on every
+  Voronoi face and its derivative across a face vanishes from both sides, so the texture
+  is C1 across faces and smooth elsewhere: sub-voxel interpolation sees a smooth, not
+  aliased, image.
 - *Beads*: the same construction on a coarser lattice (``bead_size``), with thicker walls
   (``skin_width``) and a brighter level (denser skins).
 - Grey levels: cell interiors (gas, dark) take a random level per cell, cell walls a level
@@ -44,8 +46,8 @@ import math
 import os
 import shutil
 from abc import ABC, abstractmethod
-from dataclasses import asdict, dataclass, field as dc_field
-from typing import Any, ClassVar
+from dataclasses import asdict, dataclass
+from typing import ClassVar
 
 import numpy as np
 from numba import njit
@@ -162,14 +164,10 @@ def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
       lattice cells around the lattice cell of q (``ckey[0:3]``), refilled when that cell
       changes (shifted when it moves by +1 along x);
     - ``work[1]``: squared separations from the nearest feature ``ckey[4]``;
-    - ``ckey[8:8+ckey[5]]``: the features whose bisector with the nearest one ``ckey[6]``
-      lies within 2 R of the anchor ``work[2, 4:7]``; within R of the anchor only they
-      can give a wall term (the others are skipped by the full loop too, so the product
-      runs over the same terms in the same order);
     - ``work[2, 0:4]``: a ball (centre, squared radius) around a point where the weight
       was 0: the planes of the nearest feature are 1-Lipschitz in position, so inside the
       ball every plane stays farther than R (weight exactly 0) and the nearest feature
-      stays the same. It is only used within the same lattice cell.
+      stays the same (``ckey[5]``). It is only used within the same lattice cell.
     """
     cz = math.floor(qz)
     cy = math.floor(qy)
@@ -199,14 +197,13 @@ def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
         ckey[2] = ix
         ckey[3] = 1
         ckey[4] = -1  # separations not computed
-        ckey[5] = -1  # no active set
         work[2, 3] = -1.0  # no ball
     elif work[2, 3] > 0.0:
         a = qz - work[2, 0]
         b = qy - work[2, 1]
         c = qx - work[2, 2]
         if a * a + b * b + c * c < work[2, 3]:
-            return 0.0, fh[ckey[4]]
+            return 0.0, fh[ckey[5]]
     for n in range(27):
         a = qz - fc[0, n]
         b = qy - fc[1, n]
@@ -226,32 +223,12 @@ def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
             c = fc[2, n] - ax
             work[1, n] = a * a + b * b + c * c
         ckey[4] = ia
-    # active set: the features whose bisector with a lies within 2 R of an anchor point;
-    # within R of the anchor (same a, same lattice cell) every other bisector is beyond R
-    a = qz - work[2, 4]
-    b = qy - work[2, 5]
-    c = qx - work[2, 6]
-    if ckey[5] < 0 or ckey[6] != ia or a * a + b * b + c * c >= work[2, 7]:
-        lim_act = 4.0 * lim * (1.0 + 1e-6)  # 4 (2 R)^2 with a margin
-        m = 0
-        for n in range(27):
-            num = work[0, n] - best
-            if n != ia and num * num < lim_act * work[1, n]:
-                ckey[8 + m] = n
-                m += 1
-        ckey[5] = m
-        ckey[6] = ia
-        work[2, 4] = qz
-        work[2, 5] = qy
-        work[2, 6] = qx
-        work[2, 7] = 0.25 * lim  # R^2
     prod = 1.0
-    for i in range(ckey[5]):
-        n = ckey[8 + i]
+    for n in range(27):
         # distance to the bisector of (a, n): d = (d2[n] - best) / (2 sep); the profile
         # (1 - d^2/R^2)^4 vanishes beyond d = R, i.e. for num^2 >= 4 R^2 sep^2
         num = work[0, n] - best
-        if num * num >= lim * work[1, n]:
+        if n == ia or num * num >= lim * work[1, n]:
             continue
         t = 1.0 - num * num * inv4r2 / work[1, n]
         t = t * t
@@ -270,6 +247,7 @@ def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
             work[2, 1] = qy
             work[2, 2] = qx
             work[2, 3] = rad * rad
+            ckey[5] = ia
         else:
             work[2, 3] = -1.0
     return 1.0 - prod, fh[ia]
@@ -348,11 +326,11 @@ def _texture_points(z, y, x, prm, keys, out):
     c_fp = np.empty((3, 32))
     c_fh = np.empty(32, np.uint64)
     c_d2 = np.empty((3, 32))
-    c_key = np.zeros(40, np.int64)
+    c_key = np.zeros(6, np.int64)
     b_fp = np.empty((3, 32))
     b_fh = np.empty(32, np.uint64)
     b_d2 = np.empty((3, 32))
-    b_key = np.zeros(40, np.int64)
+    b_key = np.zeros(6, np.int64)
     n_vc = np.empty(8)
     n_key = np.zeros(4, np.int64)
     for i in range(z.size):
@@ -365,11 +343,11 @@ def _texture_grid(o0, o1, o2, prm, keys, out):
     c_fp = np.empty((3, 32))
     c_fh = np.empty(32, np.uint64)
     c_d2 = np.empty((3, 32))
-    c_key = np.zeros(40, np.int64)
+    c_key = np.zeros(6, np.int64)
     b_fp = np.empty((3, 32))
     b_fh = np.empty(32, np.uint64)
     b_d2 = np.empty((3, 32))
-    b_key = np.zeros(40, np.int64)
+    b_key = np.zeros(6, np.int64)
     n_vc = np.empty(8)
     n_key = np.zeros(4, np.int64)
     nz, ny, nx = out.shape
@@ -424,7 +402,7 @@ class TextureParams:
     seed: int = 0
     cell_size: float = 8.0
     bead_size: float = 64.0
-    wall_width: float = 2.0
+    wall_width: float = 2.5
     skin_width: float = 4.0
     noise_size: float | None = None
     noise_amplitude: float = 0.04
@@ -438,7 +416,8 @@ class TextureParams:
             raise InputError(f"noise_size must be positive, got {self.noise_size!r}")
         if self.bead_size < 2 * self.cell_size:
             raise InputError(
-                f"bead_size ({self.bead_size}) should be at least twice cell_size ({self.cell_size})"
+                f"bead_size ({self.bead_size}) should be at least twice "
+                f"cell_size ({self.cell_size})"
             )
 
     def to_json(self) -> dict:
@@ -469,7 +448,8 @@ class TextureParams:
 def _params(seed, cell_size, bead_size, kw) -> TextureParams:
     if isinstance(seed, TextureParams):
         return seed
-    return TextureParams(seed=int(seed), cell_size=float(cell_size), bead_size=float(bead_size), **kw)
+    return TextureParams(seed=int(seed), cell_size=float(cell_size),
+                         bead_size=float(bead_size), **kw)
 
 
 def texture(z, y, x, *, seed: int = 0, cell_size: float = 8.0, bead_size: float = 64.0,
@@ -480,8 +460,9 @@ def texture(z, y, x, *, seed: int = 0, cell_size: float = 8.0, bead_size: float 
     ----------
     z, y, x : array_like, broadcastable, float64, level-0 voxels
         Coordinates of the points (voxel ``i`` has its centre at ``i``).
-    seed : int
-        Seed of the specimen.
+    seed : int or TextureParams
+        Seed of the specimen, or a whole :class:`TextureParams` (the other texture
+        arguments are then ignored).
     cell_size, bead_size : float, voxels
         Mean cell and bead sizes (see :class:`TextureParams`).
     **params
@@ -795,11 +776,15 @@ class Band(Field):
 
     def inverse(self, z, y, x):
         zz, yy, xx = _xyz(z, y, x)
-        Z = np.empty(zz.size)
-        _band_inverse_z(np.ascontiguousarray(zz).ravel(), self.center_z, self.width / 2.0,
+        # Z depends on z alone: solve on z as given (e.g. one value per plane of a grid),
+        # then broadcast; element by element the result is the same
+        z0 = np.asarray(z, dtype=np.float64)
+        Z = np.empty(z0.size)
+        _band_inverse_z(np.ascontiguousarray(z0).ravel(), self.center_z, self.width / 2.0,
                         self._edge, self.strain, Z)
-        Z = Z.reshape(zz.shape)
+        Z = Z.reshape(z0.shape)
         g = 1.0 - self.lateral * self.strain * self._profile(Z - self.center_z)
+        Z, g = np.broadcast_to(Z, zz.shape), np.broadcast_to(g, zz.shape)
         return np.stack([Z, self.center_y + (yy - self.center_y) / g,
                          self.center_x + (xx - self.center_x) / g])
 
@@ -866,7 +851,8 @@ def render(shape, *, field: Field | None = None, seed: int = 0, origin=(0, 0, 0)
     field : Field or None
         Displacement field (``None``: no motion).
     seed, cell_size, bead_size, **params
-        Texture parameters (see :class:`TextureParams`).
+        Texture parameters (see :func:`texture`; ``seed`` may be a
+        :class:`TextureParams`).
     origin : tuple of 3 int
         Global voxel index of the box's first voxel.
     which : {"reference", "deformed"}

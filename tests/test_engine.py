@@ -110,3 +110,37 @@ def test_result_does_not_depend_on_the_scheduler(invariance_pair):
     res = chunkdic.correlate(f, g, element_size=8, block_elements=4, coarsest=0, scheduler="local:2")
     np.testing.assert_allclose(res.displacement, ref.displacement, rtol=0, atol=1e-6)
     assert res.info["final_gap"] == pytest.approx(ref.info["final_gap"], rel=1e-9)
+
+
+def test_untextured_region_warns_with_location_and_gives_no_nan():
+    f = smooth_noise((48, 48, 48), sigma=1.2, seed=8).astype(np.float32)
+    f[:, :, :20] = 50.0  # no texture at all in x < 20
+    g = np.roll(f, (1, 0, 0), axis=(0, 1, 2))
+    with pytest.warns(chunkdic.PoorTextureWarning, match=r"node \(\d+, \d+, 0\) at voxel"):
+        res = chunkdic.correlate(f, g, element_size=8, coarsest=0)
+    assert np.isfinite(res.displacement).all()
+    textured = res.node_coords[2] > 24
+    np.testing.assert_allclose(res.displacement[0][textured], 1.0, atol=1e-3)
+
+
+@pytest.mark.parametrize("kind", ["npy", "zarr-array", "scan-group", "dask"])
+def test_every_input_kind_gives_the_same_field(tmp_path, noise64, kind):
+    import dask.array as da
+    import zarr
+
+    g = np.roll(noise64, (2, 0, -1), axis=(0, 1, 2))
+    if kind == "npy":
+        np.save(tmp_path / "f.npy", noise64), np.save(tmp_path / "g.npy", g)
+        ref, dfm = tmp_path / "f.npy", tmp_path / "g.npy"
+    elif kind == "zarr-array":
+        zarr.create_array(tmp_path / "f.zarr", data=noise64, chunks=(32, 32, 32))
+        zarr.create_array(tmp_path / "g.zarr", data=g, chunks=(32, 32, 32))
+        ref, dfm = str(tmp_path / "f.zarr"), str(tmp_path / "g.zarr")
+    elif kind == "scan-group":  # stored pyramid levels are used as they are
+        ref = chunkdic.write_scan(tmp_path / "f.zarr", da.from_array(noise64, chunks=32), levels=2).path
+        dfm = chunkdic.write_scan(tmp_path / "g.zarr", da.from_array(g, chunks=32), levels=2).path
+    else:
+        ref, dfm = da.from_array(noise64, chunks=32), da.from_array(g, chunks=32)
+    res = chunkdic.correlate(ref, dfm, element_size=16)
+    assert res.converged
+    assert np.abs(res.displacement - np.array([2, 0, -1.0])[:, None, None, None]).max() < 1e-3

@@ -116,12 +116,13 @@ def test_npy_and_zarr(tmp_path, vol16):
 
 
 def test_slab_chunks_bounded():
-    # whole planes when they fit, else bands of whole chunks
+    # whole Zarr chunks, whole planes when they fit the budget (32 MiB), else bands
     assert _slab_chunks((1000, 512, 512), np.uint8, (128, 128, 128)) == (128, 512, 512)
-    cz, cy, cx = _slab_chunks((1000, 2048, 2048), np.uint16, (128, 128, 128))
-    assert (cz, cx) == (128, 2048) and cy % 128 == 0 and cz * cy * cx * 2 <= 64 * 2**20
-    cz, cy, cx = _slab_chunks((1000, 4096, 4096), np.uint16, (128, 128, 128))
-    assert (cz, cy) == (128, 128) and cx % 128 == 0 and cz * cy * cx * 2 <= 64 * 2**20
+    for shape, dtype in [((1000, 1024, 1024), np.uint8), ((900, 2048, 2048), np.uint16),
+                         ((500, 4096, 4096), np.uint16)]:
+        cz, cy, cx = _slab_chunks(shape, dtype, (128, 128, 128))
+        assert cz == 128 and cy % 128 == 0 and (cx % 128 == 0 or cx == shape[2])
+        assert cz * cy * cx * np.dtype(dtype).itemsize <= 32 * 2**20
 
 
 def _bad_inputs(tmp_path):

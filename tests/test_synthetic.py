@@ -33,6 +33,29 @@ def test_texture_point_wise_equals_grid():
     assert np.array_equal(v, f[zi, yi, xi])
 
 
+def test_caches_do_not_change_values():
+    """The kernels cache features along a scan; each value must still be a function of
+    its point alone: compare with points evaluated one per call (fresh caches) and with
+    the grid visited in random order."""
+    shape, origin = (24, 26, 28), (-40, 17, 3)
+    kw = dict(seed=13, cell_size=6.0, bead_size=24.0)
+    f = S.render(shape, origin=origin, **kw)
+    rng = np.random.default_rng(2)
+    for _ in range(150):
+        i = tuple(int(rng.integers(0, n)) for n in shape)
+        v = S.texture(*(float(i[a] + origin[a]) for a in range(3)), **kw)
+        assert v == f[i]
+    idx = rng.permutation(f.size)
+    zi, yi, xi = np.unravel_index(idx, shape)
+    v = S.texture(zi + float(origin[0]), yi + float(origin[1]), xi + float(origin[2]), **kw)
+    assert np.array_equal(v, f[zi, yi, xi])
+    for _ in range(6):
+        o = [int(rng.integers(0, n - 4)) for n in shape]
+        s = [int(rng.integers(1, n - oo)) for n, oo in zip(shape, o)]
+        part = S.render(s, origin=[a + b for a, b in zip(origin, o)], **kw)
+        assert np.array_equal(part, f[o[0]:o[0] + s[0], o[1]:o[1] + s[1], o[2]:o[2] + s[2]])
+
+
 def test_chunks_agree_with_larger_render():
     big = S.render((40, 44, 48), seed=3, origin=(10, -20, 5))
     part = S.render((17, 9, 23), seed=3, origin=(10 + 11, -20 + 30, 5 + 7))
@@ -106,7 +129,7 @@ def test_texture_is_rich_and_smooth():
     assert 0.15 < f.std() < 0.4
     assert 0.3 < f.mean() < 0.7
     wall = (f > 0.55).mean()
-    assert 0.15 < wall < 0.7
+    assert 0.15 < wall < 0.85
     g = np.gradient(f)
     energy = np.mean(sum(c * c for c in g))
     assert energy > 1e-2  # texture at the cell scale
