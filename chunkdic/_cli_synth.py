@@ -109,8 +109,8 @@ def run(args) -> int:
     t0 = time.perf_counter()
 
     def progress(frac: float) -> None:
-        pct = int(100 * frac)
-        if pct >= last[0] + 5 or frac >= 1.0:
+        pct = min(100, int(100 * frac))
+        if pct >= last[0] + 5 or (pct == 100 and last[0] < 100):
             last[0] = pct
             print(f"synth: {pct:3d}% ({time.perf_counter() - t0:.1f} s)", file=sys.stderr,
                   flush=True)
@@ -125,7 +125,7 @@ def run(args) -> int:
     )
     dt = time.perf_counter() - t0
     nvox = 2 * shape[0] * shape[1] * shape[2]
-    print(f"synth: wrote {res['reference']} and {res['deformed']} ({nvox / dt / 1e6:.1f} "
+    print(f"synth: wrote {res['reference']} and {res['deformed']} ({nvox / dt / 1e6:.2f} "
           f"Mvoxel/s, {dt:.1f} s); field in {res['field_json']}", file=sys.stderr, flush=True)
     return 0
 

@@ -34,7 +34,11 @@ def _format_event(event: dict) -> str | None:
         dash = f", dashboard {event['dashboard']}" if event.get("dashboard") else ""
         roi = ",".join(f"{a}:{b}" for a, b in event["roi"])
         nodes = "x".join(str(n) for n in event["nodes"])
-        return f"running on {event['scheduler']}{dash}; levels {event['levels']}; ROI {roi} (level voxels); {nodes} nodes"
+        line = f"running on {event['scheduler']}{dash}; levels {event['levels']}; ROI {roi} (level voxels); {nodes} nodes"
+        if event.get("requested_roi"):
+            asked = ",".join(f"{a}:{b}" for a, b in event["requested_roi"])
+            line += f" (requested {asked} in level-0 voxels, trimmed to whole elements)"
+        return line
     if stage == "matrix":
         rate = event["voxels"] / max(event["seconds"], 1e-9) / 1e6
         return f"level {event['level']}: M built over {event['blocks']} blocks in {event['seconds']:.1f} s ({rate:.1f} Mvoxel/s)"
@@ -49,6 +53,8 @@ def _format_event(event: dict) -> str | None:
             f"level {event['level']} iter {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {d}"
             f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)"
         )
+    if stage == "resume":
+        return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
     if stage == "level":
         return f"level {event['level']}: {event['status']}, gap {100 * event['gap']:.3f}% ({event['seconds']:.1f} s)"
     return None

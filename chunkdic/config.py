@@ -18,6 +18,11 @@ DEFAULTS = {
         "bspline-halo": 12,
         # Chunk edge of arrays chunkdic writes (scans, pyramid levels, scratch).
         "chunk-size": 128,
+        # Compressor of scans chunkdic writes: "auto" (zstd-1 for 1-byte data, blosc-lz4
+        # with bit shuffle for wider types, see docs/scans.md), "zstd", "lz4" or "none".
+        "compressor": "auto",
+        # Bytes of source read per ingest task (a slab of whole chunks).
+        "ingest-slab-bytes": 33554432,
         # Where inputs that are not on disk and missing pyramid levels are spilled.
         "scratch-directory": None,
         # Number of threads of the embedded scheduler (None: all cores).

@@ -15,6 +15,7 @@ import math
 import shutil
 import tempfile
 import time
+import uuid
 import warnings
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
@@ -26,7 +27,8 @@ from . import config, kernels
 from .errors import InputError
 from .mesh import Block, Mesh, transfer
 from .prefilter import Coefficients, build_coefficients, reachable_box
-from .result import HISTORY_FIELDS, Result, check_output
+from .checkpoint import Checkpoint, fingerprint, refuse_existing
+from .result import HISTORY_FIELDS, Result
 from .rigid import translation_task
 from .scheduler import open_runner
 from .solve import StencilSolver, PoorTextureWarning
@@ -356,54 +358,106 @@ def _rigid_step(lvl: _Level, t0: np.ndarray, tolerance: float, max_iterations: i
     return t
 
 
-def _gauss_newton(lvl: _Level, u: np.ndarray, tolerance: float, settings: Settings, history, progress):
-    """Modified Gauss–Newton on one level (paper section 3); returns (u, gap, status, excluded, n_valid).
+@dataclass
+class _GaussNewton:
+    """Modified Gauss–Newton state on one level: everything needed to resume exactly."""
+
+    u: np.ndarray
+    iteration: int = 0
+    best_gap: float = math.inf
+    best_u: np.ndarray | None = None
+    best_excluded: int = 0
+    best_valid: int = 0
+    since_best: int = 0
+    last_delta: float = math.inf
+    status: str | None = None  # set once the level is finished
+    gap: float = math.nan
+    excluded: int = 0
+    n_valid: int = 0
+
+    SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
+               "status", "gap", "excluded", "n_valid")
+
+    def scalars(self) -> dict:
+        return {k: _json_float(getattr(self, k)) for k in self.SCALARS}
+
+    def arrays(self) -> dict:
+        return {"u": self.u, "best_u": self.u if self.best_u is None else self.best_u}
+
+    @classmethod
+    def restore(cls, scalars: dict, arrays: dict) -> "_GaussNewton":
+        gn = cls(u=arrays["u"], best_u=arrays["best_u"])
+        for k in cls.SCALARS:
+            value = scalars[k]
+            setattr(gn, k, _from_json_float(value) if k in ("best_gap", "last_delta", "gap") else value)
+        return gn
+
+    def finish(self, status: str, gap: float, excluded: int, n_valid: int, *, keep_current: bool) -> None:
+        self.status = status
+        if keep_current:
+            self.gap, self.excluded, self.n_valid = gap, excluded, n_valid
+        else:  # diverged / stalled / out of iterations: the best field met, never "converged"
+            self.u, self.gap, self.excluded, self.n_valid = self.best_u, self.best_gap, self.best_excluded, self.best_valid
+
+
+def _json_float(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return repr(v)  # "inf" / "nan": JSON has no such numbers
+    return v
+
+
+def _from_json_float(v):
+    return float(v) if v is not None else math.nan
+
+
+def _gauss_newton(lvl: _Level, gn: _GaussNewton, tolerance: float, settings: Settings, history, progress,
+                  on_iteration=None) -> _GaussNewton:
+    """Modified Gauss–Newton on one level (paper section 3), from state ``gn``.
 
     Each pass evaluates ``b`` and the gap of the current field; the increment of the
     previous pass being below ``tolerance`` means the current field is converged, so the
     reported gap is always that of the returned field. A gap that stops decreasing is
     *stalled*; one that grows past ``DIVERGENCE_FACTOR`` × the best is *diverged*; both
-    return the best field met, never flagged as converged.
+    return the best field met, never flagged as converged. ``on_iteration(gn)`` is
+    called after every pass (checkpoints).
     """
-    best = (math.inf, u, 0, 0)
-    since_best = 0
-    last_delta = math.inf
-    status = "max-iterations"
-    for it in range(settings.max_iterations + 1):
+    while gn.status is None:
+        it = gn.iteration
         t0 = time.perf_counter()
-        b, gap, n_valid, excluded = lvl.assemble_b(u)
-        if not math.isfinite(gap) or gap > DIVERGENCE_FACTOR * best[0]:
-            status = "diverged"
-            history.add(lvl.s, it, gap, math.nan, excluded)
-            break
-        if gap < best[0] * (1 - 1e-9):
-            best, since_best = (gap, u, excluded, n_valid), 0
+        b, gap, n_valid, excluded = lvl.assemble_b(gn.u)
+        event = dict(stage="iteration", level=lvl.s, iteration=it, gap=gap, max_delta=None, excluded=excluded)
+        if not math.isfinite(gap) or gap > DIVERGENCE_FACTOR * gn.best_gap:
+            gn.finish("diverged", gap, excluded, n_valid, keep_current=False)
         else:
-            since_best += 1
-        if last_delta < tolerance:
+            if gap < gn.best_gap * (1 - 1e-9):
+                gn.best_gap, gn.best_u, gn.best_excluded, gn.best_valid = gap, gn.u, excluded, n_valid
+                gn.since_best = 0
+            else:
+                gn.since_best += 1
+            if gn.last_delta < tolerance:
+                # the converged field is returned even if round-off left its gap a hair above the best
+                gn.finish("converged", gap, excluded, n_valid, keep_current=True)
+            elif gn.since_best >= STALL_PATIENCE:
+                gn.finish("stalled", gap, excluded, n_valid, keep_current=False)
+            elif it == settings.max_iterations:
+                gn.finish("max-iterations", gap, excluded, n_valid, keep_current=False)
+        if gn.status is not None:
             history.add(lvl.s, it, gap, math.nan, excluded)
-            _emit(progress, stage="iteration", level=lvl.s, iteration=it, gap=gap, max_delta=None,
-                  excluded=excluded, seconds=time.perf_counter() - t0)
-            # the converged field is returned even if round-off left its gap a hair above the best
-            return u, gap, "converged", excluded, n_valid
-        if since_best >= STALL_PATIENCE:
-            status = "stalled"
-            history.add(lvl.s, it, gap, math.nan, excluded)
-            break
-        if it == settings.max_iterations:
-            history.add(lvl.s, it, gap, math.nan, excluded)
-            break
-        t1 = time.perf_counter()
-        delta, cg_iterations = lvl.solver.solve(b)
-        t2 = time.perf_counter()
-        last_delta = float(np.abs(delta).max())
-        history.add(lvl.s, it, gap, last_delta, excluded)
-        _emit(progress, stage="iteration", level=lvl.s, iteration=it, gap=gap, max_delta=last_delta,
-              excluded=excluded, seconds=t2 - t0, assemble_seconds=t1 - t0, solve_seconds=t2 - t1,
-              cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels)
-        u = u + np.moveaxis(delta, -1, 0)
-    gap, u, excluded, n_valid = best
-    return u, gap, status, excluded, n_valid
+            _emit(progress, **event, seconds=time.perf_counter() - t0)
+        else:
+            t1 = time.perf_counter()
+            delta, cg_iterations = lvl.solver.solve(b)
+            t2 = time.perf_counter()
+            gn.last_delta = float(np.abs(delta).max())
+            history.add(lvl.s, it, gap, gn.last_delta, excluded)
+            event.update(max_delta=gn.last_delta, seconds=t2 - t0, assemble_seconds=t1 - t0,
+                         solve_seconds=t2 - t1, cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels)
+            _emit(progress, **event)
+            gn.u = gn.u + np.moveaxis(delta, -1, 0)
+            gn.iteration += 1
+        if on_iteration is not None:
+            on_iteration(gn)
+    return gn
 
 
 def correlate(
@@ -474,8 +528,8 @@ def correlate(
         max_iterations=_positive_int(max_iterations, "max iterations", minimum=1),
         block_elements=None if block_elements is None else _positive_int(block_elements, "block elements", minimum=1),
     )
-    if output is not None:
-        check_output(output, overwrite=overwrite)
+    if output is not None and not overwrite:
+        refuse_existing(output)  # early: before any input is opened
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
     meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi,
                          level=settings.level, coarsest=settings.coarsest)
@@ -483,61 +537,100 @@ def correlate(
     for s in levels:
         if min(g_scan.shape(s)) < 2:
             raise InputError(f"the deformed scan is too small at level {s} ({g_scan.shape(s)})")
+    ckpt = resume = None
+    run_print = fingerprint({
+        "settings": asdict(settings), "roi": parse_roi(roi),
+        "inputs": [_identify(src, scan) for src, scan in ((ref, f_scan), (deformed, g_scan))],
+    })
+    if output is not None:
+        # all input checks passed: only now is anything written
+        ckpt, resume = Checkpoint.start(output, run_print, overwrite=overwrite, inputs=(ref, deformed))
     scratch_root = config.get("scratch-directory")
     scratch = Path(tempfile.mkdtemp(prefix="chunkdic-", dir=scratch_root))
     try:
-        f_refs = f_scan.refs(levels, scratch / "ref")
-        g_refs = g_scan.refs(levels, scratch / "def")
         with open_runner(scheduler) as runner:
             _emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
                   levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
+                  requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
                   nodes=list(meshes[settings.level].nodes_shape))
+            # inside the runner: with a cluster, missing levels are built by its workers
+            f_refs = f_scan.refs(levels, scratch / "ref")
+            g_refs = g_scan.refs(levels, scratch / "def")
             runner.run_everywhere(kernels.warmup)
-            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch)
+            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     result.info.update(
-        voxel_size=f_scan.voxel_size, unit=f_scan.unit,
+        voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
         inputs={"reference": _describe(ref), "deformed": _describe(deformed)},
     )
     if output is not None:
-        result.save(output, overwrite=overwrite)
+        result.save(output, overwrite=True)  # replaces the checkpointed group, marked complete last
     return result
 
 
-def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, scratch: Path) -> Result:
+def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, scratch: Path,
+         checkpoint=None, resume: dict | None = None) -> Result:
+    """All levels, coarsest first; resumes from ``resume`` (a checkpoint state) if given."""
     history = _History()
     finest, coarsest = levels[-1], levels[0]
+    statuses: dict[int, str] = {}
+    rigid_t = initial_gap = rigid_gap = None
+    gn = None
+    if resume is not None:
+        history.rows = {k: [_from_json_float(v) if k in ("gap", "max_delta") else v for v in vals]
+                        for k, vals in resume["history"].items()}
+        statuses = {int(k): v for k, v in resume["statuses"].items()}
+        rigid_t = np.array(resume["rigid_t"])
+        initial_gap, rigid_gap = resume.get("initial_gap"), resume.get("rigid_gap")
+        gn = _GaussNewton.restore(resume["gn"], resume["arrays"])
+        _emit(progress, stage="resume", level=resume["level"], iteration=gn.iteration)
     u = None
-    statuses = {}
-    rigid_t = None
+
+    def save_checkpoint(state: _GaussNewton, s: int) -> None:
+        if checkpoint is None:
+            return
+        checkpoint.save(
+            {"level": s, "gn": state.scalars(), "statuses": {str(k): v for k, v in statuses.items()},
+             "history": {k: [_json_float(v) for v in vals] for k, vals in history.rows.items()},
+             "rigid_t": rigid_t.tolist(), "initial_gap": initial_gap, "rigid_gap": rigid_gap},
+            state.arrays(),
+        )
+
     for s in levels:
+        if resume is not None and s > resume["level"]:
+            continue  # finished before the interruption
         mesh = meshes[s]
-        t0 = time.perf_counter()
-        lvl = _Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch)
-        lvl.assemble_m()
-        _emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.blocks),
-              voxels=mesh.n_voxels, seconds=time.perf_counter() - t0)
         tol = settings.tolerance if s == finest else settings.coarse_tolerance
-        if s == coarsest:
-            roi = mesh.roi
-            t_int = runner_single(runner, translation_task, (f_refs[s], g_refs[s], roi))
-            lvl.prepare_interpolation(t_int[:, None, None, None] * np.ones((3,) + mesh.nodes_shape))
-            rigid_t = _rigid_step(lvl, t_int, tol, 10, history, progress)
-            u = rigid_t[:, None, None, None] * np.ones((3,) + mesh.nodes_shape)
-        else:
-            u = transfer(u, meshes[s + 1], s + 1, mesh, s)
-        lvl.prepare_interpolation(u)
-        if s == finest:
-            _, initial_gap, _, _ = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape))
-            rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
-            _, rigid_gap, _, _ = lvl.assemble_b(rigid_fine[:, None, None, None] * np.ones((3,) + mesh.nodes_shape))
-            _emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
-                  translation=rigid_fine.tolist())
-        u, gap, status, excluded, n_valid = _gauss_newton(lvl, u, tol, settings, history, progress)
-        lvl.release()
-        statuses[s] = status
-        _emit(progress, stage="level", level=s, status=status, gap=gap, seconds=time.perf_counter() - t0)
+        if gn is None or gn.status is None:
+            t0 = time.perf_counter()
+            lvl = _Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch)
+            lvl.assemble_m()
+            _emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.blocks),
+                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0)
+            if gn is None:
+                if s == coarsest:
+                    t_int = runner_single(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))
+                    lvl.prepare_interpolation(t_int[:, None, None, None] * np.ones((3,) + mesh.nodes_shape))
+                    rigid_t = _rigid_step(lvl, t_int, tol, 10, history, progress)
+                    u = rigid_t[:, None, None, None] * np.ones((3,) + mesh.nodes_shape)
+                else:
+                    u = transfer(u, meshes[s + 1], s + 1, mesh, s)
+                gn = _GaussNewton(u)
+            lvl.prepare_interpolation(gn.u)
+            if s == finest and initial_gap is None:
+                rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
+                _, initial_gap, _, _ = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape))
+                _, rigid_gap, _, _ = lvl.assemble_b(rigid_fine[:, None, None, None] * np.ones((3,) + mesh.nodes_shape))
+                _emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
+                      translation=rigid_fine.tolist())
+            gn = _gauss_newton(lvl, gn, tol, settings, history, progress,
+                               on_iteration=lambda state, s=s: save_checkpoint(state, s))
+            lvl.release()
+            statuses[s] = gn.status
+            save_checkpoint(gn, s)
+            _emit(progress, stage="level", level=s, status=gn.status, gap=gn.gap, seconds=time.perf_counter() - t0)
+        final, u, gn = gn, gn.u, None
     mesh = meshes[finest]
     info = {
         "element_size": settings.element_size,
@@ -551,10 +644,10 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         "converged": statuses[finest] == "converged",
         "initial_gap": initial_gap,
         "rigid_gap": rigid_gap,
-        "final_gap": gap,
-        "rigid_translation": rigid_fine.tolist(),
-        "excluded_voxels": int(excluded),
-        "used_voxels": int(n_valid),
+        "final_gap": final.gap,
+        "rigid_translation": (rigid_t * 2.0 ** (coarsest - finest)).tolist(),
+        "excluded_voxels": int(final.excluded),
+        "used_voxels": int(final.n_valid),
         "settings": asdict(settings),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "chunkdic_version": _version(),
@@ -581,6 +674,13 @@ def _choice(value, choices, name):
     if value not in choices:
         raise InputError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
     return value
+
+
+def _identify(src, scan) -> dict:
+    """What identifies an input for resuming: its path, shape and dtype (in-memory: never)."""
+    if isinstance(src, (str, Path)):
+        return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0))}
+    return {"in-memory": uuid.uuid4().hex}
 
 
 def _describe(src) -> str:

@@ -3,7 +3,9 @@
 The group holds small arrays only (mesh-sized): ``displacement`` and ``node_coords``
 ``(3, nz, ny, nx)`` float64 in voxels of the correlated level, and the iteration history
 ``history/level``, ``history/iteration``, ``history/gap``, ``history/max_delta``,
-``history/excluded``. Everything else is in ``attrs["chunkdic"]``. The group is created
+``history/excluded``, and the element strains ``strain`` ``(3, 3, ez, ey, ex)`` float64
+(dimensionless, :mod:`chunkdic.strain`; computed from ``displacement`` when the result
+is saved, absent from results written before it existed). Everything else is in ``attrs["chunkdic"]``. The group is created
 with ``complete: false`` and marked complete last, so an interrupted write is never
 mistaken for a result.
 """
@@ -43,6 +45,9 @@ class Result:
         ``voxel_size``, ``unit``, ``converged``, ``status``, ``initial_gap``,
         ``rigid_gap``, ``final_gap``, ``rigid_translation``, ``excluded_voxels``,
         ``used_voxels``, settings and inputs.
+    strain : ndarray, shape (3, 3, ez, ey, ex), float64, optional
+        Small-strain tensor per element at the element centres (paper section 5.4), axes
+        ``(z, y, x)``; ``None`` until computed (:meth:`element_strain` computes it).
     """
 
     displacement: np.ndarray
@@ -50,6 +55,7 @@ class Result:
     history: dict[str, np.ndarray]
     info: dict = field(default_factory=dict)
     path: str | None = None
+    strain: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -64,6 +70,14 @@ class Result:
         roi = self.info["roi"]
         ell = int(self.info["element_size"])
         return Mesh(tuple(int(a) for a, _ in roi), ell, tuple((b - a) // ell for a, b in roi))
+
+    def element_strain(self) -> np.ndarray:
+        """Element strains ``(3, 3, ez, ey, ex)`` (stored, else computed and kept)."""
+        if self.strain is None:
+            from .strain import element_strain
+
+            self.strain = element_strain(self.displacement, self.info["element_size"])
+        return self.strain
 
     def __repr__(self) -> str:
         i = self.info
@@ -84,6 +98,8 @@ class Result:
         root.attrs["chunkdic"] = {**_jsonable(self.info), "complete": False}
         for name, arr in (("displacement", self.displacement), ("node_coords", self.node_coords)):
             root.create_array(name, data=np.ascontiguousarray(arr, dtype=np.float64))
+        if "element_size" in self.info:
+            root.create_array("strain", data=np.ascontiguousarray(self.element_strain(), dtype=np.float64))
         hist = root.create_group("history")
         for name in HISTORY_FIELDS:
             hist.create_array(name, data=np.asarray(self.history[name]))
@@ -113,7 +129,8 @@ def open_result(path: str | os.PathLike) -> Result:
     if not info.get("complete", False):
         raise InputError(f"result {path} is incomplete (the run that wrote it was interrupted)")
     history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
-    return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path))
+    strain = root["strain"][...] if "strain" in root else None
+    return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path), strain)
 
 
 def _jsonable(obj):

@@ -106,8 +106,13 @@ def test_result_does_not_depend_on_block_size(invariance_pair, block_elements):
 
 
 def test_result_does_not_depend_on_the_scheduler(invariance_pair):
+    """Embedded thread pool versus an existing 2-worker cluster reached by its address."""
+    from distributed import LocalCluster
+
     f, g, ref = invariance_pair
-    res = chunkdic.correlate(f, g, element_size=8, block_elements=4, coarsest=0, scheduler="local:2")
+    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as cluster:
+        res = chunkdic.correlate(f, g, element_size=8, block_elements=4, coarsest=0,
+                                 scheduler=cluster.scheduler_address)
     np.testing.assert_allclose(res.displacement, ref.displacement, rtol=0, atol=1e-6)
     assert res.info["final_gap"] == pytest.approx(ref.info["final_gap"], rel=1e-9)
 
@@ -144,3 +149,25 @@ def test_every_input_kind_gives_the_same_field(tmp_path, noise64, kind):
     res = chunkdic.correlate(ref, dfm, element_size=16)
     assert res.converged
     assert np.abs(res.displacement - np.array([2, 0, -1.0])[:, None, None, None]).max() < 1e-3
+
+
+def test_unrelated_images_are_not_reported_as_converged():
+    f = smooth_noise((48, 48, 48), sigma=1.2, seed=1).astype(np.float32)
+    g = smooth_noise((48, 48, 48), sigma=1.2, seed=2).astype(np.float32)
+    res = chunkdic.correlate(f, g, element_size=8, max_iterations=8)
+    assert not res.converged
+    assert res.info["status"] in {"stalled", "diverged", "max-iterations"}
+    assert res.final_gap == min(res.history["gap"][res.history["level"] == 0])  # the best field is kept
+
+
+def test_deformed_scan_of_another_shape(noise64):
+    """g is a larger crop: f(X) = g(X + t) with t = crop offset; voxels mapped outside g are excluded."""
+    big = smooth_noise((72, 70, 68), sigma=1.2, seed=9).astype(np.float32)
+    f = big[4:68, 3:67, 2:66]
+    res = chunkdic.correlate(f, big, element_size=16)
+    assert res.converged
+    assert np.abs(res.displacement - np.array([4, 3, 2.0])[:, None, None, None]).max() < 1e-3
+    g_small = big[4:60, 3:67, 2:66]  # g ends before f does along z: those voxels are excluded
+    res = chunkdic.correlate(f, g_small, element_size=16, coarsest=0)
+    assert res.info["excluded_voxels"] > 0
+    assert np.abs(res.displacement[:, :-1] - np.array([0, 0, 0.0])[:, None, None, None]).max() < 1e-3

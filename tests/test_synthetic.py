@@ -163,6 +163,8 @@ def test_field_json_round_trip():
     with pytest.raises(InputError):
         S.Field.from_json({"type": "spiral"})
     with pytest.raises(InputError):
+        S.Field.from_json({"type": "translation", "shift": [1, 2, 3]})
+    with pytest.raises(InputError):
         S.Affine(matrix=((-1.0, 0, 0), (0, 0, 0), (0, 0, 0)))
     with pytest.raises(InputError):
         S.Band(width=-1.0)

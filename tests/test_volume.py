@@ -57,6 +57,25 @@ def test_coarsen_sum_equals_numpy(shape):
     np.testing.assert_array_equal(coarsen_sum(x), block_sums(x, 1))
 
 
+@pytest.mark.parametrize("src, out", [("uint8", "uint16"), ("uint16", "uint32"), ("int16", "int32"),
+                                      ("uint32", "uint32"), ("float32", "float32")])
+def test_numba_kernel_equals_numpy_twin(src, out):
+    from chunkdic.volume import _coarsen_block, _coarsen_block_numpy
+
+    rng = np.random.default_rng(3)
+    if np.dtype(src).kind == "f":
+        x = rng.random((11, 8, 9)).astype(src)
+    else:
+        info = np.iinfo(src)
+        hi = min(int(info.max), 2**20)  # level-2 uint32 sums of 8-bit data stay far below 2**32
+        x = rng.integers(max(int(info.min), -hi), hi, (11, 8, 9), endpoint=True).astype(src)
+    for block in (x, x[1:, 2:, :7]):  # odd sizes, non-contiguous
+        got = _coarsen_block(block, out)
+        assert got.dtype == np.dtype(out)
+        np.testing.assert_array_equal(got, _coarsen_block_numpy(block, out))
+        np.testing.assert_allclose(got, block_sums(block, 1))
+
+
 def test_write_scan_roundtrip_levels(tmp_path, vol8):
     seen = []
     scan = write_scan(tmp_path / "a.zarr", da.from_array(vol8, chunks=(7, 11, 5)), chunks=8, levels=3,

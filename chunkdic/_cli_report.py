@@ -1,0 +1,272 @@
+"""``chunkdic strain | uncertainty | sweep | report | export``: analyses of results, thin over the API.
+
+Each subcommand function takes the parsed ``argparse`` namespace and returns the exit code;
+bad input raises :class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli``).
+Progress goes to stderr, results (tables, paths) to stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from .errors import InputError
+
+
+def _err(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+def _sizes_arg(p) -> None:
+    p.add_argument("--element-sizes", "-l", type=int, nargs="+", required=True, metavar="ELL",
+                   help="element edges, voxels of --level (paper: 16 12 8 6)")
+
+
+def _common_corr(p) -> None:
+    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels (default: centred box)")
+    p.add_argument("--level", type=int, default=0, help="pyramid level correlated (default 0)")
+    p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic")
+    p.add_argument("--scheduler", default=None, help="threads (default), local[:N], or tcp://host:port")
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="output directory")
+    p.add_argument("--overwrite", action="store_true", help="reuse a non-empty output directory")
+
+
+def register(subparsers) -> None:
+    """Add ``strain``, ``uncertainty``, ``sweep``, ``report`` and ``export`` to ``subparsers``."""
+    p = subparsers.add_parser(
+        "strain", help="mean strain of a result (without the outermost elements), principal strains",
+        description="Element strains at the element centres (C8), their mean over the ROI without the "
+                    "outermost layer of elements (paper 5.2), the (1 - 2 ell / L) correction (5.4), "
+                    "tr(eps), eps_zz and principal strains.")
+    p.add_argument("result", metavar="RESULT.zarr")
+    p.add_argument("--all-elements", action="store_true", help="keep the outermost layer in the mean")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(func=run_strain)
+
+    p = subparsers.add_parser(
+        "uncertainty", help="a-priori uncertainty vs element size: Fourier-shifted reference (paper 4.2)",
+        description="Translate the reference by a sub-voxel Fourier phase shift (out of core, exact), "
+                    "correlate it against the reference for each element size, tabulate bias and standard "
+                    "deviation of the nodal displacement and the strain uncertainty, fit "
+                    "sigma_U = A^(alpha+1) ell^(-alpha). Writes uncertainty.csv/.md/.png into DIR.")
+    p.add_argument("scan", metavar="SCAN")
+    _sizes_arg(p)
+    p.add_argument("--shift", default="0.5", metavar="T|TZ,TY,TX",
+                   help="prescribed translation, voxels of --level (default 0.5 on each axis)")
+    _common_corr(p)
+    p.set_defaults(func=run_uncertainty)
+
+    p = subparsers.add_parser(
+        "sweep", help="ZOI-size sweep: the paper's Table 1 for a pair of scans",
+        description="Correlate REF and DEF for each element size and tabulate <Ux>, <Uy>, <Uz>, final gap, "
+                    "tr(eps), eps_zz (also corrected by 1 - 2 ell / L) and the a-priori strain uncertainty "
+                    "(zoi_table.md / zoi_table.csv in DIR).")
+    p.add_argument("ref", metavar="REF")
+    p.add_argument("deformed", metavar="DEF")
+    _sizes_arg(p)
+    _common_corr(p)
+    p.add_argument("--uncertainty", metavar="DIR|CSV",
+                   help="take delta eps from an earlier `chunkdic uncertainty` run instead of running it")
+    p.add_argument("--no-a-priori", action="store_true", help="leave the delta eps column empty")
+    p.add_argument("--shift", default="0.5", metavar="T|TZ,TY,TX", help="shift of the a-priori test")
+    p.set_defaults(func=run_sweep)
+
+    p = subparsers.add_parser(
+        "report", help="PNG figures of one or several results (cuts, Uz and eps_zz maps, residual, gap)",
+        description="Mid-plane cuts of reference/deformed/corrected images, residual, Uz and eps_zz maps on "
+                    "the mid-plane normal to x (one panel per result), gap per iteration (paper Figs. 6-10).")
+    p.add_argument("results", metavar="RESULT.zarr", nargs="+")
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="directory for the PNG files")
+    p.add_argument("--ref", help="reference scan (default: the path recorded in the result)")
+    p.add_argument("--deformed", help="deformed scan (default: the path recorded in the result)")
+    p.add_argument("--interpolation", choices=("cubic", "linear"), default=None)
+    p.set_defaults(func=run_report)
+
+    p = subparsers.add_parser(
+        "export", help="VTK mesh (ParaView), node CSV, corrected image and residual volumes",
+        description="--vtk: C8 mesh as VTK hexahedra with nodal displacement and element strains; --csv: one "
+                    "line per node; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as Zarr arrays.")
+    p.add_argument("result", metavar="RESULT.zarr")
+    p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
+    p.add_argument("--csv", metavar="NODES.csv", help="node table")
+    p.add_argument("--corrected", metavar="OUT.zarr", help="Zarr group with arrays corrected and residual")
+    p.add_argument("--units", choices=("voxels", "physical"), default="voxels",
+                   help="coordinates of --vtk/--csv: voxels of the result's level (default) or physical")
+    p.add_argument("--ref", help="reference scan for --corrected (default: recorded path)")
+    p.add_argument("--deformed", help="deformed scan for --corrected (default: recorded path)")
+    p.add_argument("--scheduler", default=None)
+    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.set_defaults(func=run_export)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _shift(text: str):
+    try:
+        vals = [float(v) for v in str(text).split(",")]
+    except ValueError:
+        raise InputError(f"--shift {text!r}: expected a number or TZ,TY,TX") from None
+    if len(vals) not in (1, 3) or not all(np.isfinite(vals)):
+        raise InputError(f"--shift {text!r}: expected a number or three numbers TZ,TY,TX")
+    return tuple(vals * 3) if len(vals) == 1 else tuple(vals)
+
+
+def _progress(event: dict) -> None:
+    from .cli import _format_event
+
+    stage = event.get("stage")
+    if stage == "shift":
+        f = event["fraction"]
+        if f >= 1 or int(10 * f) != int(10 * (f - 1e-9)):
+            _err(f"  Fourier shift: {f:4.0%} ({event['seconds']:.1f} s)")
+        return
+    if stage == "element-size":
+        _err(f"== element size {event['element_size']} ==")
+        return
+    if stage == "a-priori":
+        _err("== a-priori uncertainty (Fourier-shifted reference) ==")
+        return
+    if stage == "uncertainty":
+        _err(f"ell {event['element_size']}: bias ({event['bias_z']:+.4f}, {event['bias_y']:+.4f}, "
+             f"{event['bias_x']:+.4f}) std ({event['std_z']:.4f}, {event['std_y']:.4f}, {event['std_x']:.4f}) voxel, "
+             f"delta eps {event['delta_eps']:.2e}, gap {event['final_gap_percent']:.3f}%")
+        return
+    line = _format_event(event)
+    if line:
+        _err("  " + line)
+
+
+def _fmt_tensor(t) -> str:
+    rows = ["      " + "  ".join(f"{v:+.3e}" for v in row) for row in np.asarray(t)]
+    return "\n".join(rows)
+
+
+def format_strain(summary, result) -> str:
+    """Text block printed by ``chunkdic strain``."""
+    ell = result.info["element_size"]
+    n = result.mesh.shape
+    used = "x".join(str(k) for k in summary.elements)
+    excl = "without the outermost layer" if any(summary.excluded) else "all elements"
+    f = ", ".join(f"{v:.4f}" for v in summary.factor)
+    return "\n".join([
+        f"{result.path}: {'x'.join(map(str, n))} elements of ell = {ell} voxels (level {result.info.get('level', 0)})",
+        f"mean strain over {used} elements ({excl}), axes (z, y, x):",
+        _fmt_tensor(summary.mean),
+        f"  tr(eps) = {summary.volume_change:+.5f}   eps_zz = {summary.eps_zz:+.5f}",
+        f"  principal strains: {', '.join(f'{v:+.5f}' for v in summary.principal)}   "
+        f"max |principal| = {summary.delta_eps:.5f}",
+        f"corrected by (1 - 2 ell / L) per axis ({f}) (paper 5.4):",
+        f"  tr(eps) = {summary.volume_change_corrected:+.5f}   eps_zz = {summary.eps_zz_corrected:+.5f}",
+        f"mean over all {'x'.join(map(str, n))} elements: tr(eps) = {np.trace(summary.mean_all):+.5f}   "
+        f"eps_zz = {summary.mean_all[0, 0]:+.5f}",
+    ])
+
+
+# --------------------------------------------------------------------------- commands
+
+
+def run_strain(args: argparse.Namespace) -> int:
+    from .result import open_result
+    from .strain import mean_strain
+
+    res = open_result(args.result)
+    s = mean_strain(res.displacement, res.info["element_size"], exclude_outer=not args.all_elements)
+    if args.json:
+        print(json.dumps({"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}, indent=2))
+    else:
+        print(format_strain(s, res))
+    return 0
+
+
+def run_uncertainty(args: argparse.Namespace) -> int:
+    from .metrology import uncertainty
+
+    t0 = time.perf_counter()
+    rep = uncertainty(args.scan, args.element_sizes, args.output, shift=_shift(args.shift), roi=args.roi,
+                      level=args.level, interpolation=args.interpolation, scheduler=args.scheduler,
+                      overwrite=args.overwrite, progress=_progress)
+    print(rep.markdown())
+    _err(f"wrote {rep.files['csv']}, {rep.files['markdown']}, {rep.files['plot']} "
+         f"({time.perf_counter() - t0:.1f} s)")
+    return 0 if all(r["status"] == "converged" for r in rep.rows) else 1
+
+
+def run_sweep(args: argparse.Namespace) -> int:
+    from .metrology import sweep
+
+    t0 = time.perf_counter()
+    out = sweep(args.ref, args.deformed, args.element_sizes, args.output, roi=args.roi, level=args.level,
+                interpolation=args.interpolation, uncertainty_from=args.uncertainty,
+                a_priori=not args.no_a_priori, shift=_shift(args.shift), scheduler=args.scheduler,
+                overwrite=args.overwrite, progress=_progress)
+    print(out["markdown"])
+    _err(f"wrote {out['md']}, {out['csv']} ({time.perf_counter() - t0:.1f} s)")
+    return 0 if all(r["status"] == "converged" for r in out["rows"]) else 1
+
+
+def run_report(args: argparse.Namespace) -> int:
+    from .report import report
+
+    paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
+                   interpolation=args.interpolation, progress=_err)
+    for p in paths.values():
+        print(p)
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from . import export
+    from .result import open_result
+
+    if not (args.vtk or args.csv or args.corrected):
+        raise InputError("nothing to export: give --vtk, --csv and/or --corrected")
+    for path in (args.vtk, args.csv):
+        if path and Path(path).exists() and not args.overwrite:
+            raise InputError(f"output {path} exists: choose another path or pass --overwrite")
+    res = open_result(args.result)
+    if args.vtk:
+        info = export.write_vtk(res, args.vtk, units=args.units)
+        _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}")
+        print(args.vtk)
+    if args.csv:
+        n = export.write_nodes_csv(res, args.csv, units=args.units)
+        _err(f"{args.csv}: {n} nodes")
+        print(args.csv)
+    if args.corrected:
+        t0 = time.perf_counter()
+        last = [0.0]
+
+        def progress(f):
+            if f >= 1 or f - last[0] >= 0.1:
+                last[0] = f
+                _err(f"  corrected image: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
+
+        out = export.write_corrected(res, args.corrected, ref=args.ref, deformed=args.deformed,
+                                     scheduler=args.scheduler, overwrite=args.overwrite, progress=progress)
+        _err(f"{args.corrected}: corrected and residual, gap {100 * out['gap']:.3f}% over {out['valid']} voxels "
+             f"({out['excluded']} excluded)")
+        print(args.corrected)
+    return 0
+
+
+def main(argv=None) -> int:  # pragma: no cover - the package entry point is chunkdic.cli.main
+    """Stand-alone entry for testing: ``python -m chunkdic._cli_report strain R.zarr``."""
+    parser = argparse.ArgumentParser(prog="chunkdic")
+    register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as e:
+        _err(f"chunkdic: error: {e}")
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""Checkpoints: a correlation survives the death of its client.
+
+While it runs, a correlation keeps its output group marked incomplete and writes, after
+every completed iteration, what it needs to continue: the Gauss–Newton state of the
+current level (nodal field, best field so far, counters), the history, the rigid
+translation and the statuses of the finished levels. Re-running the same command finds
+the checkpoint, checks that inputs and settings are the same (a fingerprint) and carries
+on from there; ``M`` and the B-spline coefficients are recomputed (deterministic), so the
+final field equals that of an uninterrupted run to float round-off.
+
+Layout inside ``OUT.zarr``: ``attrs["chunkdic"] = {"complete": false, "fingerprint": …,
+"checkpoint": {…scalars…, "slot": k}}`` and arrays ``checkpoint/<name><k>``. Arrays are
+written to the slot not in use before the attributes point at it, so a kill during a
+checkpoint leaves the previous one intact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+
+def fingerprint(description: dict) -> str:
+    """A stable hash of what determines a run's result (inputs and settings)."""
+    text = json.dumps(description, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _read_attrs(path: Path) -> dict | None:
+    import zarr
+
+    try:
+        return dict(zarr.open_group(str(path), mode="r").attrs.get("chunkdic", {}))
+    except Exception:  # noqa: BLE001 - anything unreadable is "not ours"
+        return None
+
+
+def refuse_existing(path) -> None:
+    """Raise InputError unless ``path`` is absent or holds an interrupted chunkdic run."""
+    path = Path(path)
+    if not path.exists():
+        return
+    attrs = _read_attrs(path)
+    if attrs is None or "fingerprint" not in attrs:
+        raise InputError(f"output {path} exists: choose another path or pass --overwrite")
+    if attrs.get("complete"):
+        raise InputError(f"output {path} is a complete result: choose another path or pass --overwrite")
+
+
+class Checkpoint:
+    """The checkpoint of one run in its output group."""
+
+    def __init__(self, path: Path, print_: str):
+        self.path = Path(path)
+        self.fingerprint = print_
+
+    @classmethod
+    def start(cls, path, print_: str, *, overwrite: bool, inputs=()) -> tuple["Checkpoint", dict | None]:
+        """Open the output for a run: fresh, or resumed from a matching checkpoint.
+
+        Returns the checkpoint and the saved state (``None`` for a fresh run). Refuses
+        (InputError) a complete result or a foreign path without ``overwrite``, a run made
+        with other inputs or settings, and an output that is one of the inputs.
+        """
+        import zarr
+
+        path = Path(path)
+        for src in inputs:
+            if isinstance(src, (str, Path)) and Path(src).resolve() == path.resolve():
+                raise InputError(f"output {path} is one of the inputs: choose another path")
+        state = None
+        if path.exists():
+            attrs = _read_attrs(path)
+            if overwrite:
+                shutil.rmtree(path) if path.is_dir() else path.unlink()
+            elif attrs is None or "fingerprint" not in attrs or attrs.get("complete"):
+                refuse_existing(path)
+            elif attrs["fingerprint"] != print_:
+                raise InputError(
+                    f"output {path} holds an interrupted run made with other inputs or settings: "
+                    "pass --overwrite to start again"
+                )
+            elif "checkpoint" in attrs:
+                state = attrs["checkpoint"]
+        if not path.exists():
+            root = zarr.open_group(str(path), mode="w", zarr_format=3)
+            root.attrs["chunkdic"] = {"complete": False, "fingerprint": print_}
+        ckpt = cls(path, print_)
+        if state is not None:
+            state = dict(state, arrays=ckpt._load_arrays(state))
+        return ckpt, state
+
+    def _load_arrays(self, state: dict) -> dict[str, np.ndarray]:
+        import zarr
+
+        group = zarr.open_group(str(self.path / "checkpoint"), mode="r")
+        k = state["slot"]
+        return {name: group[f"{name}{k}"][...] for name in state["array_names"]}
+
+    def save(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
+        """Write a new checkpoint (arrays first, into the free slot, then the pointer)."""
+        import zarr
+
+        root = zarr.open_group(str(self.path), mode="r+")
+        attrs = dict(root.attrs["chunkdic"])
+        slot = 1 - attrs.get("checkpoint", {}).get("slot", 1)
+        group = root.require_group("checkpoint")
+        for name, arr in arrays.items():
+            group.create_array(f"{name}{slot}", data=np.ascontiguousarray(arr), overwrite=True)
+        attrs["checkpoint"] = {**state, "slot": slot, "array_names": sorted(arrays)}
+        root.attrs["chunkdic"] = attrs

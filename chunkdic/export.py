@@ -1,0 +1,333 @@
+"""Exports of a correlation result: corrected image and residual (Zarr), VTK mesh, node CSV.
+
+- :func:`write_corrected` writes the deformed scan corrected by the measured field,
+  ``g(X + u(X))``, and the residual ``r = f(X) - g(X + u(X))`` over the ROI as two Zarr v3
+  arrays, chunk by chunk: one task per block of whole elements, each block exactly one
+  chunk of the outputs (the task owns it), arrays created first, marked complete last
+  (shared/DESIGN.md, "Out-of-core shape"; paper section 5.3, Figs. 6-8).
+- :func:`write_vtk` writes the C8 mesh as VTK hexahedra (ParaView) with the nodal
+  displacement and the element strains, via meshio.
+- :func:`write_nodes_csv` writes one line per node.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import shutil
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from . import config, kernels
+from .errors import InputError
+from .result import Result, check_output, open_result
+
+log = logging.getLogger(__name__)
+
+__all__ = ["write_corrected", "open_corrected", "write_vtk", "write_nodes_csv", "VTK_HEX_ORDER"]
+
+#: local nodes ``(dz, dy, dx)`` in VTK_HEXAHEDRON order: bottom face (z0) counter-clockwise
+#: seen from +z starting at the origin, then the top face (z1) in the same order
+VTK_HEX_ORDER = ((0, 0, 0), (0, 0, 1), (0, 1, 1), (0, 1, 0), (1, 0, 0), (1, 0, 1), (1, 1, 1), (1, 1, 0))
+
+
+# --------------------------------------------------------------------------- inputs
+
+
+def _as_result(result) -> Result:
+    return result if isinstance(result, Result) else open_result(result)
+
+
+def input_scans(result: Result, ref=None, deformed=None):
+    """The reference and deformed :class:`~chunkdic.Scan` of a result.
+
+    ``ref`` / ``deformed`` override the paths recorded in ``result.info["inputs"]`` (needed
+    when the result was computed from in-memory arrays, or the scans moved).
+    """
+    from .volume import open_scan
+
+    inputs = result.info.get("inputs") or {}
+    out = []
+    for given, key in ((ref, "reference"), (deformed, "deformed")):
+        src = given if given is not None else inputs.get(key)
+        if src is None or (isinstance(src, str) and src.startswith("<in-memory")):
+            raise InputError(
+                f"the {key} scan of this result is not on disk ({src or 'unknown'}): pass it explicitly "
+                f"(--{'ref' if key == 'reference' else 'deformed'} PATH)"
+            )
+        out.append(open_scan(src))
+    return tuple(out)
+
+
+@contextlib.contextmanager
+def level_refs(result: Result, ref=None, deformed=None):
+    """``(f_ref, g_ref)`` ArrayRefs of the result's level; scratch levels removed on exit."""
+    f_scan, g_scan = input_scans(result, ref, deformed)
+    s = int(result.info.get("level", 0))
+    scratch = Path(tempfile.mkdtemp(prefix="chunkdic-export-", dir=config.get("scratch-directory")))
+    try:
+        f_ref = f_scan.refs([s], scratch / "ref")[s]
+        g_ref = g_scan.refs([s], scratch / "def")[s]
+        yield f_ref, g_ref
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+
+
+def interpolation_of(result: Result) -> str:
+    return str((result.info.get("settings") or {}).get("interpolation", "cubic"))
+
+
+# --------------------------------------------------------------------------- corrected image
+
+
+def corrected_task(f_ref, g_ref, ell: int, start, shape, local, u_block, interpolation: str, halo: int,
+                   out_path: str):
+    """Task: ``g(X + u(X))`` and ``f - g(X + u(X))`` over one block, written to its own chunk.
+
+    Returns ``(Σ r², n_valid, n_excluded, min f, max f)`` over the block (float64 sums).
+    """
+    import zarr
+
+    core = tuple(slice(a, a + n) for a, n in zip(start, shape))
+    f = f_ref.read(core).astype(np.float32, copy=False)
+    window = kernels.g_window(start, shape, u_block, g_ref.shape, interpolation=interpolation,
+                              halo=halo if interpolation == "cubic" else 0)
+    if any(w.stop <= w.start for w in window):
+        warped = np.full(shape, np.nan, np.float32)
+        valid = np.zeros(shape, bool)
+    else:
+        g = g_ref.read(window)
+        warped, valid = kernels.warp_block(ell, u_block, start, shape, g, tuple(w.start for w in window),
+                                           g_ref.shape, interpolation=interpolation)
+    residual = (f - warped).astype(np.float32)
+    region = tuple(slice(a, a + n) for a, n in zip(local, shape))
+    for name, data in (("corrected", warped), ("residual", residual)):
+        arr = zarr.open_array(store=out_path, path=name, mode="r+")
+        arr[region] = data
+    r = residual[valid].astype(np.float64)
+    return float(r @ r), int(valid.sum()), int(valid.size - valid.sum()), float(f.min()), float(f.max())
+
+
+def write_corrected(result, out, *, ref=None, deformed=None, interpolation: str | None = None,
+                    scheduler=None, overwrite: bool = False,
+                    progress: Callable[[float], None] | None = None) -> dict:
+    """Write the corrected deformed image and the residual over the ROI as Zarr volumes.
+
+    Parameters
+    ----------
+    result : Result or path
+        A correlation result.
+    out : path
+        Zarr v3 group to create, holding arrays ``corrected`` and ``residual``, shape = ROI
+        shape ``(Lz, Ly, Lx)`` in voxels of the result's level, float32 grey levels of that
+        level, NaN where ``X + u(X)`` leaves the deformed scan. Voxel ``(i, j, k)`` of them
+        is voxel ``roi_start + (i, j, k)`` of the reference level.
+    ref, deformed : path or array, optional
+        The scans (default: the paths recorded in the result).
+    interpolation : {"cubic", "linear"}, optional
+        Interpolation of ``g`` (default: the result's).
+    scheduler
+        As in :func:`chunkdic.correlate`.
+    overwrite : bool
+        Replace an existing ``out``.
+    progress : callable(float), optional
+        Fraction of blocks done.
+
+    Returns
+    -------
+    dict
+        ``path``, ``gap`` (matching gap of paper section 5.1 over the valid voxels, which
+        equals the result's ``final_gap`` up to float round-off), ``valid`` and ``excluded``
+        voxel counts.
+
+    References
+    ----------
+    Paper sections 3 ("corrected deformed image") and 5.3 (mid-plane cuts, Figs. 6-8).
+    """
+    import zarr
+
+    from .scheduler import open_runner
+
+    result = _as_result(result)
+    interpolation = interpolation or interpolation_of(result)
+    if interpolation not in ("cubic", "linear"):
+        raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
+    out = Path(out)
+    check_output(out, overwrite=overwrite)
+    mesh = result.mesh
+    ell = mesh.element_size
+    m = max(1, int(config.get("chunk-size")) // ell)
+    chunk = tuple(min(m, n) * ell for n in mesh.shape)  # a block of m^3 elements = one chunk
+    roi_shape = tuple(n * ell for n in mesh.shape)
+    halo = int(config.get("bspline-halo"))
+    u = result.displacement
+    with level_refs(result, ref, deformed) as (f_ref, g_ref):
+        if out.exists():
+            shutil.rmtree(out)
+        root = zarr.open_group(str(out), mode="w", zarr_format=3)
+        meta = {
+            "complete": False, "result": result.path, "level": result.info.get("level", 0),
+            "roi": [[r.start, r.stop] for r in mesh.roi], "element_size": ell, "interpolation": interpolation,
+            "voxel_size": result.info.get("voxel_size"), "unit": result.info.get("unit"),
+            "description": "corrected = g(X + u(X)), residual = f(X) - g(X + u(X)) over the ROI; "
+                           "voxel (i, j, k) is ROI start + (i, j, k) of the reference level",
+        }
+        root.attrs["chunkdic"] = meta
+        for name in ("corrected", "residual"):
+            root.create_array(name, shape=roi_shape, chunks=chunk, dtype="float32", fill_value=float("nan"),
+                              dimension_names=("z", "y", "x"))
+        blocks = mesh.blocks(m)
+        args = []
+        for blk in blocks:
+            start, shape = mesh.block_core(blk)
+            local = tuple(e0 * ell for e0, _ in blk.elements)
+            assert all(a % c == 0 for a, c in zip(local, chunk))  # each task owns one whole chunk
+            args.append((f_ref, g_ref, ell, start, shape, local,
+                         np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), interpolation, halo, str(out)))
+        ssr, n_valid, n_bad, fmin, fmax = 0.0, 0, 0, math.inf, -math.inf
+        try:
+            with open_runner(scheduler) as runner:
+                for done, (r2, nv, nb, lo, hi) in enumerate(runner.map_unordered(corrected_task, args), 1):
+                    ssr, n_valid, n_bad = ssr + r2, n_valid + nv, n_bad + nb
+                    fmin, fmax = min(fmin, lo), max(fmax, hi)
+                    if progress is not None:
+                        progress(done / len(args))
+        except BaseException:
+            shutil.rmtree(out, ignore_errors=True)
+            raise
+    gap = math.sqrt(ssr / n_valid) / (fmax - fmin) if n_valid and fmax > fmin else math.nan
+    meta.update(complete=True, gap=gap, valid_voxels=n_valid, excluded_voxels=n_bad)
+    zarr.open_group(str(out), mode="r+").attrs["chunkdic"] = meta
+    log.info("corrected image and residual written to %s (gap %.4g)", out, gap)
+    return {"path": str(out), "gap": gap, "valid": n_valid, "excluded": n_bad}
+
+
+def open_corrected(path):
+    """Open a group written by :func:`write_corrected`: ``(corrected, residual, attrs)`` as
+    lazily read Zarr arrays (refuses an incomplete one)."""
+    import zarr
+
+    try:
+        g = zarr.open_group(str(path), mode="r")
+        meta = dict(g.attrs["chunkdic"])
+    except Exception as exc:  # noqa: BLE001
+        raise InputError(f"{path} is not a corrected-image group ({exc.__class__.__name__})") from None
+    if not meta.get("complete"):
+        raise InputError(f"{path} is incomplete (the run that wrote it was interrupted)")
+    return g["corrected"], g["residual"], meta
+
+
+# --------------------------------------------------------------------------- VTK / CSV
+
+
+def _positions(result: Result, units: str):
+    """Node positions and displacement, shape (3, nz, ny, nx), in level voxels or physical units."""
+    X, u = result.node_coords, result.displacement
+    if units == "voxels":
+        return X, u, "voxel, level %d" % int(result.info.get("level", 0))
+    if units != "physical":
+        raise InputError(f"units must be 'voxels' or 'physical', got {units!r}")
+    vs = result.info.get("voxel_size")
+    if not vs:
+        raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
+    scale = float(result.info.get("scale", 1))
+    v = np.asarray(vs, float)[:, None, None, None]
+    level0 = scale * X + (scale - 1) / 2  # level-s voxel centre in level-0 voxels (DESIGN.md)
+    return level0 * v, u * scale * v, result.info.get("unit") or "unit"
+
+
+def hexahedra(nodes_shape) -> np.ndarray:
+    """VTK_HEXAHEDRON connectivity of a regular node grid.
+
+    Parameters
+    ----------
+    nodes_shape : tuple of 3 int
+        ``(nz, ny, nx)`` nodes; points are numbered in C order over ``(z, y, x)``.
+
+    Returns
+    -------
+    ndarray, shape ((nz-1)(ny-1)(nx-1), 8), int64
+        Element rows in C order over ``(ez, ey, ex)``, columns in :data:`VTK_HEX_ORDER`.
+    """
+    nz, ny, nx = nodes_shape
+    ez, ey, ex = np.meshgrid(np.arange(nz - 1), np.arange(ny - 1), np.arange(nx - 1), indexing="ij")
+    cols = [((ez + dz) * ny + (ey + dy)) * nx + (ex + dx) for dz, dy, dx in VTK_HEX_ORDER]
+    return np.stack([c.ravel() for c in cols], axis=1).astype(np.int64)
+
+
+def write_vtk(result, path, *, units: str = "voxels") -> dict:
+    """Write the C8 mesh, nodal displacement and element strains as a VTK file (meshio).
+
+    Parameters
+    ----------
+    result : Result or path
+    path : path
+        Output file; the format follows the suffix (``.vtu`` XML unstructured grid
+        recommended, ``.vtk`` legacy).
+    units : {"voxels", "physical"}, keyword-only
+        Coordinates and displacements in voxels of the result's level (default), or in
+        the scan's physical unit (level-0 voxel centres scaled by ``voxel_size``).
+
+    Returns
+    -------
+    dict
+        ``points``, ``cells`` counts and ``unit``.
+
+    Notes
+    -----
+    VTK orders vector components ``(x, y, z)``: points are ``(x, y, z)``; point data
+    ``displacement`` is ``(Ux, Uy, Uz)`` plus scalars ``Ux, Uy, Uz``; cell data ``strain``
+    is the 9-component tensor in ``(x, y, z)`` order, plus scalars ``eps_xx`` … ``eps_xy``,
+    ``volume_change`` = tr(eps) and ``max_abs_principal``.
+    """
+    import meshio
+
+    from .strain import principal_strains
+
+    result = _as_result(result)
+    X, u, unit = _positions(result, units)
+    n = X.shape[1:]
+    points = np.stack([X[2].ravel(), X[1].ravel(), X[0].ravel()], axis=1)
+    disp = np.stack([u[2].ravel(), u[1].ravel(), u[0].ravel()], axis=1)
+    cells = hexahedra(n)
+    eps = result.element_strain()  # (3, 3, ez, ey, ex), axes z, y, x
+    eps_xyz = eps[::-1, ::-1].reshape(3, 3, -1).transpose(2, 0, 1).reshape(-1, 9)
+    cell_data = {"strain": [eps_xyz]}
+    names = "zyx"
+    for i, j in ((2, 2), (1, 1), (0, 0), (1, 2), (0, 2), (0, 1)):
+        cell_data[f"eps_{names[j]}{names[i]}" if i < j else f"eps_{names[i]}{names[j]}"] = [eps[i, j].ravel()]
+    cell_data["volume_change"] = [np.trace(eps).ravel()]
+    cell_data["max_abs_principal"] = [np.abs(principal_strains(eps)).max(axis=0).ravel()]
+    point_data = {"displacement": disp, "Ux": disp[:, 0], "Uy": disp[:, 1], "Uz": disp[:, 2]}
+    mesh = meshio.Mesh(points, [("hexahedron", cells)], point_data=point_data, cell_data=cell_data)
+    path = Path(path)
+    if not path.parent.exists():
+        raise InputError(f"output directory {path.parent} does not exist")
+    try:
+        mesh.write(str(path))
+    except (KeyError, ValueError) as exc:
+        raise InputError(f"cannot write {path}: {exc} (use a .vtu or .vtk suffix)") from None
+    return {"points": len(points), "cells": len(cells), "unit": unit}
+
+
+def write_nodes_csv(result, path, *, units: str = "voxels") -> int:
+    """One CSV line per node: ``iz, iy, ix, z, y, x, Uz, Uy, Ux`` (returns the row count).
+
+    Positions and displacements in voxels of the result's level, or physical units
+    (``units="physical"``); the header says which.
+    """
+    result = _as_result(result)
+    X, u, unit = _positions(result, units)
+    idx = np.indices(X.shape[1:]).reshape(3, -1).T
+    data = np.column_stack([idx, X.reshape(3, -1).T, u.reshape(3, -1).T])
+    header = f"# positions and displacements in {unit}\niz,iy,ix,z,y,x,Uz,Uy,Ux"
+    path = Path(path)
+    if not path.parent.exists():
+        raise InputError(f"output directory {path.parent} does not exist")
+    fmt = ["%d"] * 3 + ["%.6f"] * 3 + ["%.8g"] * 3
+    np.savetxt(path, data, delimiter=",", header=header, comments="", fmt=fmt)
+    return len(data)

@@ -1,0 +1,457 @@
+"""Figures of a correlation (paper section 5, Figs. 5-10): PNG files with colour bars and units.
+
+Every figure reads only what it shows: mid-planes of the reference and deformed scans (one
+2-D plane each), the thin slab of the deformed scan that the corrected plane
+``g(X + u(X))`` needs, and mesh-sized arrays. Figures are drawn with matplotlib's
+object-oriented API on an Agg canvas created inside each function (no ``pyplot``, no
+global backend switch, nothing at import).
+
+- ``cut_x.png``, ``cut_y.png``, ``cut_z.png``: mid-plane cuts of the ROI normal to x, y, z;
+  reference, deformed and corrected side by side (Figs. 6-8);
+- ``residual.png``: the residual ``f - g(X + u(X))`` on the three mid-planes;
+- ``uz_map.png``: ``Uz`` on the mid-plane normal to x, one panel per result (Fig. 9);
+- ``epszz_map.png``: ``eps_zz`` on that plane, linearly interpolated between element
+  centres (Fig. 10);
+- ``gap.png``: matching gap per iteration (section 5.1);
+- ``uncertainty.png`` (from :func:`chunkdic.metrology.uncertainty`): log-log ``sigma_U``
+  versus element size with the power-law fit (Fig. 5).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import scipy.ndimage as ndi
+
+from . import config
+from .errors import InputError
+from .result import Result, open_result
+
+log = logging.getLogger(__name__)
+
+__all__ = ["report", "plot_cuts", "plot_uz_maps", "plot_epszz_maps", "plot_gap", "plot_uncertainty",
+           "mid_planes", "corrected_plane"]
+
+AXES = "zyx"
+
+
+def _figure(width: float, height: float):
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width, height), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _as_results(results) -> list[Result]:
+    if isinstance(results, (Result, str, Path)):
+        results = [results]
+    out = [r if isinstance(r, Result) else open_result(r) for r in results]
+    if not out:
+        raise InputError("no result given")
+    return out
+
+
+def _level_label(result: Result) -> str:
+    return f"voxel, level {int(result.info.get('level', 0))}"
+
+
+# --------------------------------------------------------------------------- planes
+
+
+def mid_planes(result: Result) -> dict[str, int]:
+    """Index (level voxels) of the ROI mid-plane normal to each axis: ``{"z": .., "y": .., "x": ..}``."""
+    return {AXES[a]: (r.start + r.stop) // 2 for a, r in enumerate(result.mesh.roi)}
+
+
+def _plane_region(result: Result, normal: int, index: int):
+    roi = result.mesh.roi
+    return tuple(slice(index, index + 1) if a == normal else roi[a] for a in range(3))
+
+
+def _read_plane(ref, region) -> np.ndarray:
+    """``region`` (one voxel thick) of an on-disk array, clipped; NaN outside; float32 2-D."""
+    out = np.full(tuple(s.stop - s.start for s in region), np.nan, np.float32)
+    src, dst = [], []
+    for s, n in zip(region, ref.shape):
+        a, b = max(s.start, 0), min(s.stop, n)
+        if b <= a:
+            return out.squeeze()
+        src.append(slice(a, b))
+        dst.append(slice(a - s.start, b - s.start))
+    out[tuple(dst)] = ref.read(tuple(src))
+    return out.reshape([n for n in out.shape if n != 1] or [1])
+
+
+def corrected_plane(result: Result, g_ref, normal: int, index: int, *, interpolation: str = "cubic",
+                    halo: int | None = None) -> np.ndarray:
+    """``g(X + u(X))`` on one plane of the ROI, reading only the slab of ``g`` it needs.
+
+    Parameters
+    ----------
+    result : Result
+    g_ref : ArrayRef
+        Deformed scan at the result's level.
+    normal : int
+        Axis normal to the plane (0 = z, 1 = y, 2 = x).
+    index : int
+        Plane index along ``normal`` (level voxels).
+    interpolation : {"cubic", "linear"}
+        Cubic: the slab is read with ``halo`` extra voxels (``chunkdic.bspline-halo``) and
+        prefiltered, as the engine does.
+
+    Returns
+    -------
+    ndarray, 2-D (the two other axes in ``(z, y, x)`` order over the ROI), float32
+        Grey levels of the result's level; NaN where ``X + u(X)`` leaves ``g``.
+    """
+    mesh = result.mesh
+    region = _plane_region(result, normal, index)
+    grids = np.meshgrid(*[np.arange(s.start, s.stop, dtype=np.float64) for s in region], indexing="ij")
+    X = np.stack([g.reshape(-1) for g in grids])
+    p = X + mesh.evaluate(result.displacement, X)
+    n = np.asarray(g_ref.shape, float)[:, None]
+    valid = np.all((p >= 0) & (p <= n - 1), axis=0)
+    out = np.full(X.shape[1], np.nan, np.float32)
+    if valid.any():
+        extra = (1 + (int(config.get("bspline-halo")) if halo is None else halo)) if interpolation == "cubic" else 0
+        lo = np.maximum(np.floor(p[:, valid].min(axis=1)).astype(int) - extra, 0)
+        hi = np.minimum(np.floor(p[:, valid].max(axis=1)).astype(int) + 2 + extra, np.asarray(g_ref.shape))
+        window = g_ref.read(tuple(slice(a, b) for a, b in zip(lo, hi))).astype(np.float32)
+        local = p[:, valid] - lo[:, None]
+        if interpolation == "cubic":
+            coeffs = ndi.spline_filter(window, order=3, mode="mirror", output=np.float32)
+            out[valid] = ndi.map_coordinates(coeffs, local, order=3, mode="mirror", prefilter=False)
+        else:
+            out[valid] = ndi.map_coordinates(window, local, order=1, mode="nearest")
+    return out.reshape([s.stop - s.start for a, s in enumerate(region) if a != normal])
+
+
+def _extent(result: Result, normal: int):
+    """imshow extent (columns axis, rows axis) of a plane; rows = first remaining axis."""
+    roi = result.mesh.roi
+    a, b = [k for k in range(3) if k != normal]
+    return [roi[b].start - 0.5, roi[b].stop - 0.5, roi[a].start - 0.5, roi[a].stop - 0.5], AXES[a], AXES[b]
+
+
+def _panel(fig, ax, img, extent, title, xlabel, ylabel, cbar, **kw):
+    im = ax.imshow(img, origin="lower", extent=extent, interpolation="nearest", **kw)
+    ax.set_title(title, fontsize=10)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    fig.colorbar(im, ax=ax, shrink=0.8, label=cbar)
+    return im
+
+
+def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | None = None,
+              progress: Callable[[str], None] | None = None) -> dict[str, str]:
+    """Mid-plane cuts of reference, deformed and corrected images, and the residual.
+
+    Writes ``cut_z.png``, ``cut_y.png``, ``cut_x.png`` (three panels each, shared grey scale,
+    paper Figs. 6-8) and ``residual.png`` (three panels) into ``out_dir``.
+
+    Parameters
+    ----------
+    result : Result or path
+    out_dir : path
+    ref, deformed : path, optional
+        The scans (default: the paths recorded in the result).
+    interpolation : {"cubic", "linear"}, optional
+        Default: the result's.
+    progress : callable(str), optional
+        Called with a message per figure.
+
+    Returns
+    -------
+    dict of str to str
+        Figure name -> path.
+    """
+    from .export import interpolation_of, level_refs
+
+    result = _as_results(result)[0]
+    out_dir = Path(out_dir)
+    interpolation = interpolation or interpolation_of(result)
+    planes = mid_planes(result)
+    lab = _level_label(result)
+    paths, residuals = {}, {}
+    with level_refs(result, ref, deformed) as (f_ref, g_ref):
+        for normal in (2, 1, 0):
+            name = AXES[normal]
+            idx = planes[name]
+            region = _plane_region(result, normal, idx)
+            f = _read_plane(f_ref, region)
+            g = _read_plane(g_ref, region)
+            c = corrected_plane(result, g_ref, normal, idx, interpolation=interpolation)
+            residuals[name] = (f - c, f)
+            finite = np.concatenate([v[np.isfinite(v)] for v in (f, g, c)])
+            vmin, vmax = np.percentile(finite, [0.5, 99.5]) if finite.size else (0, 1)
+            extent, row_ax, col_ax = _extent(result, normal)
+            fig = _figure(13, 4.4)
+            axs = fig.subplots(1, 3)
+            for ax, img, title in zip(axs, (f, g, c), ("(a) reference f", "(b) deformed g",
+                                                       "(c) corrected g(X + u(X))")):
+                _panel(fig, ax, img, extent, title, f"{col_ax} ({lab})", f"{row_ax} ({lab})",
+                       "grey level", cmap="gray", vmin=vmin, vmax=vmax)
+            fig.suptitle(f"Mid-plane cut normal to {name}, {name} = {idx} ({lab}); ℓ = {result.info['element_size']}")
+            path = out_dir / f"cut_{name}.png"
+            fig.savefig(path)
+            paths[f"cut_{name}"] = str(path)
+            if progress:
+                progress(f"wrote {path}")
+    fig = _figure(13, 4.4)
+    axs = fig.subplots(1, 3)
+    lim = max([np.nanpercentile(np.abs(r), 99.5) for r, _ in residuals.values() if np.isfinite(r).any()] or [1.0])
+    for ax, normal in zip(axs, (2, 1, 0)):
+        name = AXES[normal]
+        r, f = residuals[name]
+        extent, row_ax, col_ax = _extent(result, normal)
+        rng = float(np.nanmax(f) - np.nanmin(f)) or 1.0
+        gap = float(np.sqrt(np.nanmean(r**2)) / rng) if np.isfinite(r).any() else float("nan")
+        _panel(fig, ax, r, extent, f"normal to {name}, {name} = {planes[name]}; gap {100 * gap:.2f} %",
+               f"{col_ax} ({lab})", f"{row_ax} ({lab})", "f − g(X+u) (grey level)",
+               cmap="RdBu_r", vmin=-lim, vmax=lim)
+    fig.suptitle(f"Residual f − g(X + u(X)) on the ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
+    path = out_dir / "residual.png"
+    fig.savefig(path)
+    paths["residual"] = str(path)
+    if progress:
+        progress(f"wrote {path}")
+    return paths
+
+
+# --------------------------------------------------------------------------- maps
+
+
+def _grid(n: int):
+    cols = min(n, 2 if n == 4 else 3)
+    return (n + cols - 1) // cols, cols
+
+
+def _x_plane(results: list[Result]) -> int:
+    """Mid-plane normal to x of the first result (the paper's x = 100 voxels)."""
+    return mid_planes(results[0])["x"]
+
+
+def plot_uz_maps(results, path, *, x: int | None = None) -> str:
+    """``Uz`` on the plane normal to x, one panel per result (paper Fig. 9).
+
+    Parameters
+    ----------
+    results : Result, path or sequence of them
+        Results of the same pair (e.g. several element sizes), same level.
+    path : path
+        PNG file.
+    x : int, optional
+        Plane index, voxels of the level (default: mid-plane of the first result's ROI).
+
+    Returns
+    -------
+    str
+        ``path``.
+    """
+    results = _as_results(results)
+    x = _x_plane(results) if x is None else int(x)
+    maps = []
+    for res in results:
+        roi = res.mesh.roi
+        zz, yy = np.meshgrid(np.arange(roi[0].start, roi[0].stop, dtype=float),
+                             np.arange(roi[1].start, roi[1].stop, dtype=float), indexing="ij")
+        pts = np.stack([zz, yy, np.full_like(zz, x)])
+        maps.append(res.mesh.evaluate(res.displacement, pts)[0])
+    vmin = min(float(m.min()) for m in maps)
+    vmax = max(float(m.max()) for m in maps)
+    rows, cols = _grid(len(results))
+    fig = _figure(5.2 * cols, 4.4 * rows)
+    axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    for ax, res, m in zip(axs, results, maps):
+        extent, row_ax, col_ax = _extent(res, 2)
+        lab = _level_label(res)
+        _panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
+               f"Uz ({lab})", cmap="viridis", vmin=vmin, vmax=vmax)
+    for ax in axs[len(results):]:
+        ax.set_visible(False)
+    fig.suptitle(f"Uz on the plane x = {x}")
+    fig.savefig(path)
+    return str(path)
+
+
+def _epszz_plane(res: Result, x: float):
+    """eps_zz on the plane ``x`` at the element centres (linear along x between centre
+    layers) and the centre coordinates ``(cz, cy)``."""
+    mesh = res.mesh
+    eps = res.element_strain()[0, 0]  # (ez, ey, ex)
+    ell = mesh.element_size
+    centres = [o + ell * (np.arange(n) + 0.5) - 0.5 for o, n in zip(mesh.origin, mesh.shape)]
+    cx = centres[2]
+    if len(cx) == 1:
+        layer = eps[:, :, 0]
+    else:
+        k = int(np.clip(np.searchsorted(cx, x) - 1, 0, len(cx) - 2))
+        w = float(np.clip((x - cx[k]) / ell, 0.0, 1.0))
+        layer = (1 - w) * eps[:, :, k] + w * eps[:, :, k + 1]
+    return layer, centres[0], centres[1]
+
+
+def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5) -> str:
+    """``eps_zz`` on the plane normal to x, interpolated linearly between element centres
+    (paper Fig. 10: "linearly interpolated between element centers where the element strain
+    has been imposed"), one panel per result.
+
+    The map covers the hull of the element centres (half an element inside the ROI);
+    along x, the two nearest layers of centres are interpolated linearly too.
+
+    Parameters
+    ----------
+    results : Result, path or sequence of them
+    path : path
+        PNG file.
+    x : int, optional
+        Plane index (default: mid-plane of the first result's ROI).
+    step : float
+        Pixel size of the rendered map, voxels.
+    """
+    from scipy.interpolate import RegularGridInterpolator
+
+    results = _as_results(results)
+    x = _x_plane(results) if x is None else int(x)
+    maps = []
+    for res in results:
+        layer, cz, cy = _epszz_plane(res, x)
+        if len(cz) < 2 or len(cy) < 2:
+            zz, yy = cz, cy
+            img = layer
+        else:
+            zz = np.arange(cz[0], cz[-1] + 1e-9, step)
+            yy = np.arange(cy[0], cy[-1] + 1e-9, step)
+            interp = RegularGridInterpolator((cz, cy), layer, method="linear")
+            img = interp(np.stack(np.meshgrid(zz, yy, indexing="ij"), axis=-1))
+        maps.append((img, [yy[0], yy[-1], zz[0], zz[-1]]))
+    lim = max(float(np.abs(m).max()) for m, _ in maps) or 1e-6
+    rows, cols = _grid(len(results))
+    fig = _figure(5.2 * cols, 4.4 * rows)
+    axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    for ax, res, (img, extent) in zip(axs, results, maps):
+        lab = _level_label(res)
+        im = ax.imshow(img, origin="lower", extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim,
+                       interpolation="bilinear")
+        ax.set_title(f"ℓ = {res.info['element_size']}", fontsize=10)
+        ax.set_xlabel(f"y ({lab})")
+        ax.set_ylabel(f"z ({lab})")
+        fig.colorbar(im, ax=ax, shrink=0.8, label="ε_zz (–)")
+    for ax in axs[len(results):]:
+        ax.set_visible(False)
+    fig.suptitle(f"ε_zz on the plane x = {x}, linear between element centres")
+    fig.savefig(path)
+    return str(path)
+
+
+def plot_gap(results, path) -> str:
+    """Matching gap (%) per iteration, every level, one line per result (section 5.1).
+
+    Rigid-translation steps come first (open markers), then Gauss-Newton iterations
+    (filled markers), level by level from the coarsest.
+    """
+    results = _as_results(results)
+    fig = _figure(7.5, 4.5)
+    ax = fig.subplots()
+    for res in results:
+        h = res.history
+        gap = 100 * np.asarray(h["gap"], float)
+        step = np.arange(len(gap))
+        line, = ax.semilogy(step, gap, "-", lw=1, label=f"ℓ = {res.info['element_size']}")
+        rigid = np.asarray(h["iteration"]) < 0
+        ax.semilogy(step[rigid], gap[rigid], "o", mfc="none", color=line.get_color())
+        ax.semilogy(step[~rigid], gap[~rigid], "o", ms=4, color=line.get_color())
+        levels = np.asarray(h["level"])
+        for k in np.nonzero(np.diff(levels))[0]:
+            ax.axvline(k + 0.5, color=line.get_color(), lw=0.5, ls=":")
+    ax.set_xlabel("evaluation (rigid steps ○, then Gauss–Newton iterations ●; dotted: next level)")
+    ax.set_ylabel("matching gap R (%)")
+    ax.set_title("Matching gap per iteration")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.savefig(path)
+    return str(path)
+
+
+def plot_uncertainty(report, path) -> str:
+    """Log-log ``sigma_U`` versus element size with the power-law fit (paper Fig. 5).
+
+    Parameters
+    ----------
+    report : chunkdic.metrology.UncertaintyReport
+    path : path
+        PNG file.
+    """
+    rows = report.rows
+    ell = np.array([r["element_size"] for r in rows], float)
+    fig = _figure(6.5, 4.8)
+    ax = fig.subplots()
+    for key, mark, lab in (("std_z", "v", "σ(Uz)"), ("std_y", "^", "σ(Uy)"), ("std_x", "s", "σ(Ux)")):
+        ax.loglog(ell, [max(r[key], 1e-12) for r in rows], mark, ms=4, alpha=0.5, label=lab)
+    ax.loglog(ell, [max(r["sigma_u"], 1e-12) for r in rows], "o", mfc="none", ms=9, mew=1.5, color="k",
+              label="σ(U) (RMS of components)")
+    if report.fit is not None:
+        xs = np.geomspace(ell.min() * 0.9, ell.max() * 1.1, 50)
+        ax.loglog(xs, report.fit(xs), "-", color="k",
+                  label=f"fit A^(α+1) ℓ^(−α): A = {report.fit.A:.3g} vox., α = {report.fit.alpha:.3g}")
+    t = ", ".join(f"{v:g}" for v in report.shift)
+    ax.set_xticks(sorted(set(ell)), [f"{v:g}" for v in sorted(set(ell))])
+    ax.set_xticks([], minor=True)
+    ax.set_xlabel("element size ℓ (voxel)")
+    ax.set_ylabel("displacement uncertainty σ(U) (voxel)")
+    ax.set_title(f"A-priori uncertainty, Fourier shift ({t}) voxel")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.savefig(path)
+    return str(path)
+
+
+# --------------------------------------------------------------------------- all
+
+
+def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None,
+           progress: Callable[[str], None] | None = None) -> dict[str, str]:
+    """All figures of one or several results into ``out_dir``.
+
+    Cuts and residual come from the first result (they need the scans: recorded paths, or
+    ``ref``/``deformed``); ``Uz``, ``eps_zz`` maps and the gap plot show every result
+    (one panel or line each, e.g. one per element size as in paper Figs. 9-10).
+
+    Parameters
+    ----------
+    results : Result, path or sequence of them
+    out_dir : path
+        Created if missing.
+    ref, deformed : path, optional
+    interpolation : {"cubic", "linear"}, optional
+    progress : callable(str), optional
+        One message per figure written (or skipped, with the reason).
+
+    Returns
+    -------
+    dict of str to str
+        Figure name -> PNG path.
+    """
+    results = _as_results(results)
+    out_dir = Path(out_dir)
+    if not out_dir.parent.exists():
+        raise InputError(f"directory {out_dir.parent} does not exist")
+    out_dir.mkdir(exist_ok=True)
+    say = progress or (lambda msg: None)
+    paths = {}
+    for name, fn in (("uz_map", plot_uz_maps), ("epszz_map", plot_epszz_maps), ("gap", plot_gap)):
+        paths[name] = fn(results, out_dir / f"{name}.png")
+        say(f"wrote {paths[name]}")
+    try:
+        paths.update(plot_cuts(results[0], out_dir, ref=ref, deformed=deformed, interpolation=interpolation,
+                               progress=say))
+    except InputError as exc:
+        if ref is not None or deformed is not None:
+            raise
+        say(f"skipped the cuts and residual: {exc}")
+    return paths

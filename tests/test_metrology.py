@@ -1,0 +1,131 @@
+"""A-priori uncertainty (paper 4.2), out-of-core Fourier shift, power-law fit, ZOI sweep (issue 4)."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+
+import numpy as np
+import pytest
+import zarr
+
+from chunkdic import _cli_report, metrology, synthetic
+from chunkdic.errors import InputError
+from chunkdic.metrology import PowerLaw, fit_power_law
+from chunkdic.volume import ArrayRef
+
+
+def _parser():
+    parser = argparse.ArgumentParser(prog="chunkdic")
+    _cli_report.register(parser.add_subparsers(dest="command", required=True))
+    return parser
+
+
+# --------------------------------------------------------------------------- power law
+
+
+def test_power_law_fit_recovers_known_parameters():
+    ell = np.array([6, 8, 12, 16])
+    law = fit_power_law(ell, PowerLaw(2.4, 1.07)(ell))
+    assert law.A == pytest.approx(2.4, rel=1e-9) and law.alpha == pytest.approx(1.07, rel=1e-9)
+    rng = np.random.default_rng(0)
+    noisy = PowerLaw(1.3, 1.8)(ell) * np.exp(rng.normal(scale=0.01, size=4))
+    law = fit_power_law(ell, noisy)
+    assert law.A == pytest.approx(1.3, rel=0.05) and law.alpha == pytest.approx(1.8, abs=0.05)
+
+
+@pytest.mark.parametrize("ell, sigma", [([8], [0.1]), ([8, 8], [0.1, 0.2]), ([8, 16], [0.1, 0.0])])
+def test_power_law_fit_refuses_degenerate_data(ell, sigma):
+    with pytest.raises(InputError):
+        fit_power_law(ell, sigma)
+
+
+# --------------------------------------------------------------------------- Fourier shift
+
+
+def _stored(tmp_path, a):
+    z = zarr.create_array(str(tmp_path / "src.zarr"), shape=a.shape, chunks=(16, 16, 16), dtype=a.dtype)
+    z[...] = a
+    return ArrayRef("zarr", str(tmp_path / "src.zarr"), "", a.shape, a.dtype.name)
+
+
+def test_pencil_fourier_shift_equals_whole_volume_fft(tmp_path, monkeypatch):
+    """The out-of-core shift (3 passes of 1-D FFTs over pencils) vs one 3-D FFT in memory."""
+    monkeypatch.setattr(metrology, "PENCIL_EDGE", 16)  # several pencils per pass, partial ones at the ends
+    f = synthetic.render((40, 48, 36), seed=2)
+    t = (0.5, -0.3, 0.25)
+    out = metrology.fourier_shift_scan(_stored(tmp_path, f), tmp_path / "g.zarr", t)
+    g = out.read((slice(None),) * 3)
+    whole = metrology.fourier_shift_volume(f, t)
+    err = np.abs(g - whole).max() / (f.max() - f.min())
+    assert err < 2e-6, err  # measured 6.6e-7 (float32 round-off)
+    assert zarr.open_array(str(tmp_path / "g.zarr")).attrs["chunkdic"]["complete"] is True
+    assert not (tmp_path / "g.zarr.passes").exists()
+
+
+def test_fourier_shift_sign_and_integer_shift(tmp_path):
+    f = synthetic.render((32, 32, 32), seed=4)
+    out = metrology.fourier_shift_scan(_stored(tmp_path, f), tmp_path / "g.zarr", (2, 0, -1))
+    g = out.read((slice(None),) * 3)
+    # g(x) = f(x - t): away from the mirrored borders an integer shift is a plain roll
+    expect = np.roll(f, (2, 0, -1), axis=(0, 1, 2))
+    assert np.abs(g - expect)[2:, :, :-1].max() < 1e-4
+
+
+# --------------------------------------------------------------------------- uncertainty + sweep
+
+
+@pytest.fixture(scope="module")
+def affine_pair(tmp_path_factory):
+    d = tmp_path_factory.mktemp("pair")
+    field = synthetic.Affine(matrix=((-0.01, 0, 0), (0, 0, 0), (0, 0, 0.004)), center=(32, 32, 32),
+                             translation=(0.6, -0.3, 0.2))
+    return synthetic.synthesize(d, (64, 64, 64), field=field, seed=5, dtype="uint8")
+
+
+@pytest.fixture(scope="module")
+def uncertainty_dir(affine_pair, tmp_path_factory):
+    out = tmp_path_factory.mktemp("unc") / "u"
+    args = _parser().parse_args(["uncertainty", affine_pair["reference"], "--element-sizes", "16", "8",
+                                 "-o", str(out)])
+    assert args.func(args) == 0
+    return out
+
+
+def test_uncertainty_command_on_synthetic_texture(uncertainty_dir):
+    with open(uncertainty_dir / "uncertainty.csv", newline="") as fh:
+        rows = {int(r["element_size"]): r for r in csv.DictReader(fh)}
+    assert set(rows) == {16, 8}
+    for c in "zyx":
+        assert abs(float(rows[16][f"bias_{c}"])) < 0.02
+    assert float(rows[16]["sigma_u"]) < float(rows[8]["sigma_u"]) < 0.05
+    assert 0 <= float(rows[16]["delta_eps"]) < 5e-3
+    md = (uncertainty_dir / "uncertainty.md").read_text()
+    assert "A =" in md and "α =" in md and "| 16 |" in md
+    png = (uncertainty_dir / "uncertainty.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (uncertainty_dir / "result-ell16.zarr").is_dir()
+
+
+def test_uncertainty_refuses_bad_input(affine_pair, tmp_path):
+    with pytest.raises(InputError):
+        metrology.uncertainty(affine_pair["reference"], [1], tmp_path / "x")
+    with pytest.raises(InputError):
+        _cli_report._shift("0.5,0.5")
+
+
+def test_sweep_table(affine_pair, uncertainty_dir, tmp_path):
+    out = metrology.sweep(affine_pair["reference"], affine_pair["deformed"], [16, 8], tmp_path / "sweep",
+                          uncertainty_from=uncertainty_dir)
+    rows = out["rows"]
+    assert [r["element_size"] for r in rows] == [16, 8]
+    for r in rows:
+        assert r["status"] == "converged"
+        assert r["eps_zz"] == pytest.approx(-0.01, abs=1.5e-3)
+        assert r["volume_change"] == pytest.approx(-0.006, abs=2e-3)  # -1 % along z, +0.4 % along x
+        assert r["delta_eps"] is not None and r["delta_eps"] >= 0
+        assert r["mean_ux"] == pytest.approx(0.2, abs=0.05)
+    md = (tmp_path / "sweep" / "zoi_table.md").read_text()
+    assert "⟨Uz⟩" in md and "δε" in md and md.count("\n| ") >= 3
+    with open(tmp_path / "sweep" / "zoi_table.csv", newline="") as fh:
+        assert len(list(csv.DictReader(fh))) == 2

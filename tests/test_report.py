@@ -1,0 +1,137 @@
+"""Corrected image and residual, figures, VTK / CSV exports (issue 4)."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import pytest
+
+import chunkdic
+from chunkdic import _cli_report, synthetic
+from chunkdic.errors import InputError
+from chunkdic.export import VTK_HEX_ORDER, hexahedra, open_corrected, write_corrected
+from chunkdic.report import plot_epszz_maps, plot_uz_maps, report
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+T = (1.3, -0.7, 0.4)
+
+
+def _run(argv) -> int:
+    parser = argparse.ArgumentParser(prog="chunkdic")
+    _cli_report.register(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(argv)
+    return args.func(args)
+
+
+@pytest.fixture(scope="module")
+def translation(tmp_path_factory):
+    """An exact translation pair (analytic texture, no interpolation) and its result."""
+    d = tmp_path_factory.mktemp("translation")
+    pair = synthetic.synthesize(d, (48, 48, 48), field=synthetic.Translation(T), seed=3, dtype="float32")
+    res = chunkdic.correlate(pair["reference"], pair["deformed"], element_size=12, output=d / "result.zarr")
+    assert res.converged
+    return pair, res, d
+
+
+def test_corrected_image_matches_reference(translation, tmp_path):
+    pair, res, _ = translation
+    out = write_corrected(res, tmp_path / "corrected.zarr")
+    assert out["gap"] < 0.01 and out["excluded"] == 0
+    assert out["gap"] == pytest.approx(res.final_gap, rel=1e-3)  # same sums as the engine
+    corrected, residual, meta = open_corrected(tmp_path / "corrected.zarr")
+    roi = tuple(slice(a, b) for a, b in res.info["roi"])
+    f = chunkdic.open_scan(pair["reference"]).level(0)[roi].compute()
+    c = corrected[...]
+    assert c.shape == f.shape and np.isfinite(c).all()
+    rng = float(f.max() - f.min())
+    assert np.sqrt(np.mean((c - f) ** 2)) / rng < 0.01
+    assert np.allclose(residual[...], f - c, atol=1e-6)
+    # the uncorrected deformed image is far from the reference
+    g = chunkdic.open_scan(pair["deformed"]).level(0)[roi].compute()
+    assert np.sqrt(np.mean((g - f) ** 2)) / rng > 5 * out["gap"]
+    assert meta["complete"] is True and meta["level"] == 0
+
+
+def test_corrected_refuses_existing_output_and_missing_scans(translation, tmp_path):
+    _, res, _ = translation
+    (tmp_path / "c.zarr").mkdir()
+    with pytest.raises(InputError):
+        write_corrected(res, tmp_path / "c.zarr")
+    mem = chunkdic.Result(res.displacement, res.node_coords, res.history,
+                          {**res.info, "inputs": {"reference": "<in-memory ndarray>", "deformed": "<in-memory ndarray>"}})
+    with pytest.raises(InputError, match="not on disk"):
+        write_corrected(mem, tmp_path / "d.zarr")
+
+
+def _assert_png_not_blank(path):
+    import matplotlib.image as mpimg
+
+    data = open(path, "rb").read()
+    assert data[:8] == PNG_MAGIC, path
+    img = mpimg.imread(path)
+    assert img.ndim == 3 and img.shape[0] > 100 and img.shape[1] > 100
+    assert img[..., :3].std() > 0.05, path  # a figure, not an empty canvas
+
+
+def test_report_figures(translation, tmp_path):
+    _, res, d = translation
+    assert _run(["report", str(d / "result.zarr"), "-o", str(tmp_path / "fig")]) == 0
+    names = ["cut_x", "cut_y", "cut_z", "residual", "uz_map", "epszz_map", "gap"]
+    for name in names:
+        _assert_png_not_blank(tmp_path / "fig" / f"{name}.png")
+    # several results: one panel each
+    plot_uz_maps([res, res], tmp_path / "uz2.png")
+    plot_epszz_maps([res, res, res, res], tmp_path / "eps4.png")
+    _assert_png_not_blank(tmp_path / "uz2.png")
+    _assert_png_not_blank(tmp_path / "eps4.png")
+
+
+def test_report_without_scans_skips_cuts(translation, tmp_path):
+    _, res, _ = translation
+    mem = chunkdic.Result(res.displacement, res.node_coords, res.history,
+                          {**res.info, "inputs": {"reference": "<in-memory ndarray>"}})
+    msgs = []
+    paths = report(mem, tmp_path / "fig", progress=msgs.append)
+    assert set(paths) == {"uz_map", "epszz_map", "gap"}
+    assert any("skipped" in m for m in msgs)
+
+
+def test_vtk_and_csv_export(translation, tmp_path):
+    import meshio
+
+    _, res, d = translation
+    vtu, csv_path = tmp_path / "mesh.vtu", tmp_path / "nodes.csv"
+    assert _run(["export", str(d / "result.zarr"), "--vtk", str(vtu), "--csv", str(csv_path)]) == 0
+    m = meshio.read(vtu)
+    nodes = res.displacement.shape[1:]
+    assert len(m.points) == np.prod(nodes)
+    assert len(m.cells_dict["hexahedron"]) == np.prod([n - 1 for n in nodes])
+    # point 0 is node (0, 0, 0); VTK vectors are (x, y, z)
+    assert np.allclose(m.points[0], res.node_coords[::-1, 0, 0, 0])
+    assert np.allclose(m.point_data["displacement"][7], res.displacement[::-1].reshape(3, -1)[:, 7])
+    assert m.point_data["displacement"][0] == pytest.approx(T[::-1], abs=0.02)
+    assert m.cell_data["strain"][0].shape == (len(m.cells_dict["hexahedron"]), 9)
+    table = np.loadtxt(csv_path, delimiter=",", skiprows=2)
+    assert table.shape == (np.prod(nodes), 9)
+    assert np.allclose(table[:, 6:], res.displacement.reshape(3, -1).T, atol=1e-6)
+    with pytest.raises(InputError):
+        _run(["export", str(d / "result.zarr"), "--vtk", str(vtu)])  # exists, no --overwrite
+
+
+def test_hexahedra_are_positively_oriented():
+    cells = hexahedra((2, 2, 2))
+    assert cells.tolist() == [[0, 1, 3, 2, 4, 5, 7, 6]]
+    pts = np.array([(dx, dy, dz) for dz in (0, 1) for dy in (0, 1) for dx in (0, 1)], float)  # VTK (x, y, z)
+    p = pts[cells[0]]
+    # VTK_HEXAHEDRON: the bottom face 0-1-2-3 turns counter-clockwise seen from the top face
+    normal = np.cross(p[1] - p[0], p[3] - p[0])
+    assert normal @ (p[4] - p[0]) > 0
+    assert len(VTK_HEX_ORDER) == 8
+
+
+def test_strain_command(translation, capsys):
+    _, _, d = translation
+    assert _run(["strain", str(d / "result.zarr")]) == 0
+    out = capsys.readouterr().out
+    assert "tr(eps)" in out and "principal" in out and "(1 - 2 ell / L)" in out

@@ -1,0 +1,70 @@
+"""A correlation killed with SIGKILL resumes from its checkpoint and ends where an
+uninterrupted run ends (issue 5)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import chunkdic
+from chunkdic import synthetic
+from chunkdic.cli import main
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    d = tmp_path_factory.mktemp("resume")
+    n = 64
+    field = synthetic.Affine(matrix=((-0.01, 0, 0.005), (0, 0.004, 0), (0, 0, 0)), center=(32, 32, 32),
+                             translation=(0.6, -0.4, 0.3))
+    np.save(d / "f.npy", synthetic.render((n, n, n), seed=21))
+    np.save(d / "g.npy", synthetic.render((n, n, n), seed=21, field=field, which="deformed"))
+    return d
+
+
+def _cmd(d, out, *extra):
+    return [sys.executable, "-m", "chunkdic", "correlate", str(d / "f.npy"), str(d / "g.npy"), "-o", str(out),
+            "--element-size", "8", "--tolerance", "1e-5", *extra]
+
+
+def test_killed_client_resumes_and_matches_an_uninterrupted_run(pair, tmp_path, capsys):
+    out = tmp_path / "res.zarr"
+    proc = subprocess.Popen(_cmd(pair, out), stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if line.startswith("level 0 iter  2"):
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    proc.wait()
+    assert proc.returncode == -signal.SIGKILL
+    with pytest.raises(chunkdic.InputError, match="incomplete"):
+        chunkdic.open_result(out)  # clearly marked incomplete, never mistaken for a result
+
+    assert main(_cmd(pair, out)[3:]) in (0, 1)
+    err = capsys.readouterr().err
+    assert "resuming the interrupted run from its checkpoint: level 0, iteration" in err, err
+    resumed = chunkdic.open_result(out)
+
+    reference = chunkdic.correlate(pair / "f.npy", pair / "g.npy", element_size=8, tolerance=1e-5)
+    np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(resumed.history["iteration"], reference.history["iteration"])
+
+    # complete now: refused without --overwrite
+    assert main(_cmd(pair, out)[3:]) == 2
+    assert "complete result" in capsys.readouterr().err
+
+
+def test_interrupted_run_with_other_settings_is_refused(pair, tmp_path, capsys):
+    out = tmp_path / "res.zarr"
+    proc = subprocess.Popen(_cmd(pair, out), stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if line.startswith("level 0 iter  1"):
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    proc.wait()
+    assert main(_cmd(pair, out, "--interpolation", "linear")[3:]) == 2
+    assert "other inputs or settings" in capsys.readouterr().err

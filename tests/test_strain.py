@@ -1,0 +1,96 @@
+"""Element strains, mean strain with/without the outer layer, principal values (issue 4)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from chunkdic.mesh import Mesh
+from chunkdic.result import Result, open_result
+from chunkdic.strain import (
+    displacement_gradient,
+    element_strain,
+    mean_strain,
+    principal_strains,
+)
+
+
+def _affine_nodes(mesh: Mesh, A: np.ndarray, t) -> np.ndarray:
+    X = mesh.node_coords()
+    return np.einsum("ij,j...->i...", A, X) + np.asarray(t)[:, None, None, None]
+
+
+def test_affine_field_strain_is_its_symmetric_gradient():
+    rng = np.random.default_rng(0)
+    A = rng.normal(scale=0.03, size=(3, 3))
+    mesh = Mesh((5, 3, 7), 6, (4, 3, 5))
+    u = _affine_nodes(mesh, A, (1.2, -0.4, 3.0))
+    H = displacement_gradient(u, 6)
+    assert H.shape == (3, 3, 4, 3, 5)
+    assert np.abs(H - A[:, :, None, None, None]).max() < 1e-9
+    eps = element_strain(u, 6)
+    assert np.abs(eps - 0.5 * (A + A.T)[:, :, None, None, None]).max() < 1e-9
+    s = mean_strain(u, 6)
+    assert np.abs(s.mean - 0.5 * (A + A.T)).max() < 1e-9
+    assert np.abs(s.mean_all - s.mean).max() < 1e-9
+
+
+def test_trilinear_centre_gradient_is_the_edge_average():
+    # u_z = z*y (bilinear): at an element centre dUz/dz = y_centre, dUz/dy = z_centre
+    mesh = Mesh((0, 0, 0), 4, (2, 2, 2))
+    z, y, x = mesh.node_coords()
+    u = np.stack([z * y, 0 * z, 0 * z])
+    H = displacement_gradient(u, 4)
+    cz = (np.arange(2) * 4 + 1.5)  # element centres (nodes at k*4 - 0.5)
+    assert np.allclose(H[0, 0], cz[None, :, None] * np.ones((2, 2, 2)))
+    assert np.allclose(H[0, 1], cz[:, None, None] * np.ones((2, 2, 2)))
+
+
+def test_mean_strain_with_and_without_outer_layer_hand_values():
+    # 5 elements along z of edge 10; eps_zz = -0.05 in the first (outer) layer only:
+    # all elements: -0.05 / 5 = -0.01; without the outer layer: 0 (and corrected 0)
+    ell, n = 10, 5
+    kz = np.arange(n + 1, dtype=float)
+    uz_profile = np.where(kz >= 1, -0.05 * ell, -0.05 * ell * kz)
+    u = np.zeros((3, n + 1, n + 1, n + 1))
+    u[0] = uz_profile[:, None, None]
+    s = mean_strain(u, ell)
+    assert s.mean_all[0, 0] == pytest.approx(-0.01, abs=1e-12)
+    assert s.mean[0, 0] == pytest.approx(0.0, abs=1e-12)
+    assert s.elements == (3, 3, 3) and s.excluded == (True, True, True)
+    # strain only inside: 4 % in the middle layer, inner mean 4/3 %, corrected (1 - 2/5) of it
+    uz_profile = np.where(kz >= 3, -0.04 * ell, 0.0)
+    u[0] = uz_profile[:, None, None]
+    s = mean_strain(u, ell)
+    assert s.mean_all[0, 0] == pytest.approx(-0.04 / 5, abs=1e-12)
+    assert s.eps_zz == pytest.approx(-0.04 / 3, abs=1e-12)
+    assert s.eps_zz_corrected == pytest.approx(-0.04 / 3 * (1 - 2 * ell / (n * ell)), abs=1e-12)
+    # ... which is the mean over the whole ROI when the removed elements carry no strain
+    assert s.eps_zz_corrected == pytest.approx(s.mean_all[0, 0], abs=1e-12)
+    assert s.volume_change == pytest.approx(s.eps_zz)
+    assert s.delta_eps == pytest.approx(0.04 / 3)
+    assert not np.any(np.isnan(s.principal))
+    off = mean_strain(u, ell, exclude_outer=False)
+    assert off.eps_zz == pytest.approx(s.mean_all[0, 0]) and off.excluded == (False,) * 3
+
+
+def test_principal_strains_sorted_and_invariant():
+    rng = np.random.default_rng(1)
+    R, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    eps = R @ np.diag([0.01, -0.03, 0.002]) @ R.T
+    p = principal_strains(eps)
+    assert np.allclose(p, [0.01, 0.002, -0.03])
+    field = np.broadcast_to(eps[:, :, None, None], (3, 3, 2, 2)).copy()
+    assert np.allclose(principal_strains(field)[:, 1, 1], [0.01, 0.002, -0.03])
+
+
+def test_strain_stored_with_result(tmp_path):
+    mesh = Mesh((2, 2, 2), 8, (3, 3, 3))
+    A = np.diag([-0.02, 0.01, 0.0])
+    u = _affine_nodes(mesh, A, (0, 0, 0))
+    hist = {k: np.zeros(1) for k in ("level", "iteration", "gap", "max_delta", "excluded")}
+    info = {"element_size": 8, "roi": [[2, 26]] * 3, "level": 0, "final_gap": 0.01}
+    Result(u, mesh.node_coords(), hist, info).save(tmp_path / "r.zarr")
+    r = open_result(tmp_path / "r.zarr")
+    assert r.strain.shape == (3, 3, 3, 3, 3)
+    assert np.allclose(r.strain[0, 0], -0.02) and np.allclose(r.strain[1, 1], 0.01)
