@@ -23,6 +23,14 @@ _EXPORTS = {
     "open_result": "result",
     "open_scan": "volume",
     "write_scan": "volume",
+    "element_strain": "strain",
+    "mean_strain": "strain",
+    "uncertainty": "metrology",
+    "sweep": "metrology",
+    "zoi_table": "metrology",
+    "fit_power_law": "metrology",
+    "write_corrected": "export",
+    "write_vtk": "export",
 }
 
 
@@ -44,19 +52,27 @@ __version__ = "0.1.0"
 
 __all__ = [
     "ArrayRef",
+    "build_pyramid",
+    "correlate",
+    "element_strain",
+    "fit_power_law",
+    "ingest",
     "InputError",
+    "mean_strain",
     "Mesh",
+    "open_result",
+    "open_scan",
     "PoorTextureWarning",
     "Result",
     "Scan",
     "Settings",
-    "build_pyramid",
-    "correlate",
-    "ingest",
-    "open_result",
-    "open_scan",
     "show_versions",
+    "sweep",
+    "uncertainty",
+    "write_corrected",
     "write_scan",
+    "write_vtk",
+    "zoi_table",
 ]
 
 
@@ -66,7 +82,7 @@ def show_versions() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
     lines = [f"python: {platform.python_version()} ({platform.platform()})", f"chunkdic: {__version__}"]
-    for name in ("numpy", "scipy", "dask", "distributed", "zarr", "numcodecs", "numba", "tifffile", "h5py"):
+    for name in ("numpy", "scipy", "dask", "distributed", "zarr", "numcodecs", "numba", "tifffile", "h5py", "matplotlib", "meshio"):
         try:
             lines.append(f"{name}: {version(name)}")
         except PackageNotFoundError:

@@ -1,4 +1,4 @@
-"""``chunkdic strain | uncertainty | sweep | report | export``: analyses of results, thin over the API.
+"""``chunkdic strain | uncertainty | sweep | table | report | export``: analyses of results, thin over the API.
 
 Each subcommand function takes the parsed ``argparse`` namespace and returns the exit code;
 bad input raises :class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli``).
@@ -36,7 +36,7 @@ def _common_corr(p) -> None:
 
 
 def register(subparsers) -> None:
-    """Add ``strain``, ``uncertainty``, ``sweep``, ``report`` and ``export`` to ``subparsers``."""
+    """Add ``strain``, ``uncertainty``, ``sweep``, ``table``, ``report`` and ``export`` to ``subparsers``."""
     p = subparsers.add_parser(
         "strain", help="mean strain of a result (without the outermost elements), principal strains",
         description="Element strains at the element centres (C8), their mean over the ROI without the "
@@ -74,6 +74,15 @@ def register(subparsers) -> None:
     p.add_argument("--no-a-priori", action="store_true", help="leave the delta eps column empty")
     p.add_argument("--shift", default="0.5", metavar="T|TZ,TY,TX", help="shift of the a-priori test")
     p.set_defaults(func=run_sweep)
+
+    p = subparsers.add_parser(
+        "table", help="the paper's Table 1 from existing results (one per element size)",
+        description="Tabulate <Ux>, <Uy>, <Uz>, final gap, tr(eps), eps_zz (also corrected by 1 - 2 ell / L) "
+                    "and delta eps (from --uncertainty) for results already computed.")
+    p.add_argument("results", metavar="RESULT.zarr", nargs="+")
+    p.add_argument("--uncertainty", metavar="DIR|CSV", help="delta eps from a `chunkdic uncertainty` run")
+    p.add_argument("-o", "--output", metavar="DIR", help="also write zoi_table.md and zoi_table.csv there")
+    p.set_defaults(func=run_table)
 
     p = subparsers.add_parser(
         "report", help="PNG figures of one or several results (cuts, Uz and eps_zz maps, residual, gap)",
@@ -207,6 +216,22 @@ def run_sweep(args: argparse.Namespace) -> int:
     print(out["markdown"])
     _err(f"wrote {out['md']}, {out['csv']} ({time.perf_counter() - t0:.1f} s)")
     return 0 if all(r["status"] == "converged" for r in out["rows"]) else 1
+
+
+def run_table(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from .metrology import _read_delta_eps, write_zoi_table, zoi_table
+
+    rows = zoi_table(args.results, delta_eps=_read_delta_eps(args.uncertainty))
+    out = None
+    if args.output:
+        out = Path(args.output)
+        if not out.parent.exists():
+            raise InputError(f"directory {out.parent} does not exist")
+        out.mkdir(exist_ok=True)
+    print(write_zoi_table(rows, out))
+    return 0
 
 
 def run_report(args: argparse.Namespace) -> int:

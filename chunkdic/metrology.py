@@ -67,6 +67,7 @@ __all__ = [
     "UncertaintyReport",
     "sweep",
     "zoi_table",
+    "write_zoi_table",
     "write_table",
 ]
 
@@ -618,9 +619,18 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     else:
         d_eps = {}
     rows = zoi_table(results, delta_eps=d_eps)
-    csv_path, md_path = out / "zoi_table.csv", out / "zoi_table.md"
-    write_table(rows, SWEEP_COLUMNS + [("volume_change_corrected", "tr_corrected", "+.4f"),
-                                       ("result", "result", "s")], csv_path)
+    md = write_zoi_table(rows, out)
+    return {"rows": rows, "markdown": md, "csv": str(out / "zoi_table.csv"), "md": str(out / "zoi_table.md"),
+            "uncertainty": report}
+
+
+def write_zoi_table(rows: list[dict], out_dir=None) -> str:
+    """Markdown of :func:`zoi_table` rows; with ``out_dir``, also ``zoi_table.md`` and ``zoi_table.csv``
+    (the CSV adds ``volume_change_corrected`` and the result paths)."""
+    csv_path = md_path = None
+    if out_dir is not None:
+        csv_path, md_path = Path(out_dir) / "zoi_table.csv", Path(out_dir) / "zoi_table.md"
+        write_table(rows, SWEEP_COLUMNS + [("volume_change_corrected", "volume_change_corrected", "+.4f"),
+                                           ("result", "result", "s")], csv_path)
     title = "ZOI-size sweep (paper Table 1); strains: mean over the ROI without the outermost elements"
-    md = write_table(rows, SWEEP_COLUMNS, None, md_path, title=title)
-    return {"rows": rows, "markdown": md, "csv": str(csv_path), "md": str(md_path), "uncertainty": report}
+    return write_table(rows, SWEEP_COLUMNS, None, md_path, title=title)

@@ -181,6 +181,88 @@ def test_b_block_numba_equals_numpy(interpolation, block):
     assert np.isnan(w1[~m1]).all()
 
 
+@pytest.mark.parametrize("interpolation", INTERPS)
+def test_fast_and_general_paths_agree_with_whole_volume(interpolation):
+    # The numba kernels take a flat, check-free path for element rows whose taps all lie
+    # inside the window and the volume, and the general (clamping / mirroring) path for
+    # the others. Both must give map_coordinates on the whole volume to float64 round-off:
+    # blocks in the interior (fast path only) and at the volume faces (both paths), fields
+    # that fold elements (|u_a - u_b| > ell along x) and send voxels out of g.
+    ell = 8
+    vol = _smooth_volume((40, 40, 48), seed=20, sigma=1.2)
+    coef = ndi.spline_filter(vol, order=3, mode="mirror", output=np.float32)
+    gv = coef if interpolation == "cubic" else vol
+    order = 3 if interpolation == "cubic" else 1
+    cases = [((1, 1, 1), (4, 4, 5), 3.0), ((0, 0, 0), (2, 3, 3), 4.0),
+             ((3, 2, 4), (5, 5, 6), 4.0), ((1, 1, 1), (3, 3, 3), 12.0)]
+    for k, (e0, e1, amp) in enumerate(cases):
+        f, lo, hi, c0, core = _block(vol, e0, e1, ell)
+        u = _smooth_nodes(tuple(n // ell + 1 for n in core), amp=amp, seed=30 + k)
+        for halo in (12, 0):
+            win = K.g_window(c0, core, u, vol.shape, interpolation=interpolation, halo=halo)
+            go = tuple(w.start for w in win)
+            w1, m1 = K.warp_block(ell, u, c0, core, gv[win], go, vol.shape,
+                                  interpolation=interpolation, prefiltered=True)
+            pos = _voxel_positions(u, ell, c0)
+            want_mask = np.all((pos >= 0) & (pos <= np.array(vol.shape)[:, None, None, None]
+                                              - 1), axis=0)
+            np.testing.assert_array_equal(m1, want_mask)
+            assert m1.any()
+            if halo == 12:  # the window's own mirror differs from the volume's without halo
+                want = ndi.map_coordinates(gv.astype(np.float64), pos[:, m1], order=order,
+                                           mode="mirror", prefilter=False)
+                # warp output is float32
+                np.testing.assert_allclose(w1[m1], want, rtol=0, atol=1e-6 * 255)
+            out = {impl: K.b_block(f, lo, hi, ell, u, c0, gv[win], go, vol.shape,
+                                   interpolation=interpolation, impl=impl, prefiltered=True)
+                   for impl in K._IMPLS}
+            b1, r1, n1, x1 = out["numba"]
+            b2, r2, n2, x2 = out["numpy"]
+            assert (n1, x1) == (n2, x2) == (int(m1.sum()), int((~m1).sum()))
+            np.testing.assert_allclose(b1, b2, rtol=0, atol=1e-10 * np.abs(b2).max())
+            np.testing.assert_allclose(r1, r2, rtol=1e-10)
+
+
+@pytest.mark.parametrize("interpolation", INTERPS)
+def test_nan_displacement_excludes_voxels_in_kernel(interpolation):
+    # b_block / warp_block exclude a whole block when u has a NaN (g_window is empty); the
+    # kernels themselves must still treat NaN positions as invalid, in both paths
+    ell = 4
+    vol = _smooth_volume((16, 16, 16), seed=21)
+    c0, core = (4, 4, 4), (8, 8, 8)
+    u = _smooth_nodes((3, 3, 3), amp=1.0, seed=22)
+    ok = u.copy()
+    u[1, 2, 1, 0] = np.nan  # a node of the 2 elements (ez, ey, ex) = (1, 0|1, 0)
+    win = K.g_window(c0, core, ok, vol.shape, interpolation=interpolation, halo=12)
+    go = tuple(w.start for w in win)
+    cubic = interpolation == "cubic"
+    gw = K._prepare_g(vol[win], go, vol.shape, interpolation)
+    args = (ell, 2, 2, 2, K._xi(ell))
+    w, m = K._warp_kernel(*args, u, *c0, gw, *go, *vol.shape, cubic)
+    w_ok, m_ok = K._warp_kernel(*args, ok, *c0, gw, *go, *vol.shape, cubic)
+    bad = np.zeros(core, bool)
+    bad[4:, :, :4] = True
+    assert m_ok.all()
+    np.testing.assert_array_equal(m, ~bad)
+    assert np.isnan(w[bad]).all()
+    np.testing.assert_array_equal(w[~bad], w_ok[~bad])
+
+
+def test_prefiltered_window_equals_prefilter_inside():
+    ell = 4
+    vol = _smooth_volume((20, 20, 20), seed=23)
+    f, lo, hi, c0, core = _block(vol, (1, 1, 1), (3, 4, 3), ell)
+    u = _smooth_nodes((3, 4, 3), amp=2.0, seed=24)
+    win = K.g_window(c0, core, u, vol.shape, interpolation="cubic", halo=12)
+    go = tuple(w.start for w in win)
+    coef = ndi.spline_filter(vol[win], order=3, mode="mirror", output=np.float32)
+    a = K.b_block(f, lo, hi, ell, u, c0, vol[win], go, vol.shape, interpolation="cubic")
+    b = K.b_block(f, lo, hi, ell, u, c0, coef, go, vol.shape, interpolation="cubic",
+                  prefiltered=True)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert a[1:] == b[1:]
+
+
 def test_nodal_field_is_sum_of_shape_functions():
     u = _smooth_nodes((3, 2, 4), amp=3.0, seed=6)
     pos = _voxel_positions(u, 5, (0, 0, 0))

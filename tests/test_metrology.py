@@ -129,3 +129,8 @@ def test_sweep_table(affine_pair, uncertainty_dir, tmp_path):
     assert "⟨Uz⟩" in md and "δε" in md and md.count("\n| ") >= 3
     with open(tmp_path / "sweep" / "zoi_table.csv", newline="") as fh:
         assert len(list(csv.DictReader(fh))) == 2
+    # the same table from the existing results (`chunkdic table`)
+    args = _parser().parse_args(["table", *(r["result"] for r in rows), "--uncertainty", str(uncertainty_dir),
+                                 "-o", str(tmp_path / "table")])
+    assert args.func(args) == 0
+    assert (tmp_path / "table" / "zoi_table.md").read_text() == md

@@ -68,3 +68,35 @@ def test_interrupted_run_with_other_settings_is_refused(pair, tmp_path, capsys):
     proc.wait()
     assert main(_cmd(pair, out, "--interpolation", "linear")[3:]) == 2
     assert "other inputs or settings" in capsys.readouterr().err
+
+
+def test_worker_killed_during_an_iteration_does_not_change_the_result(pair):
+    """Dask reschedules the dead worker's tasks; partial sums are only added once."""
+    import threading
+    import time
+
+    from distributed import Client, LocalCluster
+
+    reference = chunkdic.correlate(pair / "f.npy", pair / "g.npy", element_size=8, block_elements=2)
+    killed = []
+    with LocalCluster(n_workers=2, threads_per_worker=1, host="127.0.0.1", dashboard_address=None) as cluster, \
+            Client(cluster) as client:
+        pids = client.run(os.getpid)
+
+        def kill_a_busy_worker():
+            deadline = time.time() + 120
+            while not killed and time.time() < deadline:
+                for address, keys in client.processing().items():
+                    if any("b_task" in str(k) for k in keys) and address in pids:
+                        os.kill(pids[address], signal.SIGKILL)
+                        killed.append(address)
+                        return
+                time.sleep(0.01)
+
+        killer = threading.Thread(target=kill_a_busy_worker, daemon=True)
+        killer.start()
+        res = chunkdic.correlate(pair / "f.npy", pair / "g.npy", element_size=8, block_elements=2,
+                                 scheduler=client)
+        killer.join()
+    assert killed, "no worker was killed during a b pass"
+    np.testing.assert_allclose(res.displacement, reference.displacement, rtol=0, atol=1e-6)

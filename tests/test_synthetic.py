@@ -56,6 +56,70 @@ def test_caches_do_not_change_values():
         assert np.array_equal(part, f[o[0]:o[0] + s[0], o[1]:o[1] + s[1], o[2]:o[2] + s[2]])
 
 
+_MASK = (1 << 64) - 1
+
+
+def _mix(h):
+    h ^= h >> 30
+    h = (h * 0xBF58476D1CE4E5B9) & _MASK
+    h ^= h >> 27
+    h = (h * 0x94D049BB133111EB) & _MASK
+    return h ^ (h >> 31)
+
+
+def _hash3(i, j, k, key):
+    return _mix(_mix(_mix(key ^ (i & _MASK)) ^ (j & _MASK)) ^ (k & _MASK))
+
+
+def _wall_reference(q, key, r):
+    """Plain-Python twin of the cellular wall weight (no caches, no pruning)."""
+    c = [int(np.floor(v)) for v in q]
+    feats = []
+    for dz in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            for dx in (-1, 0, 1):
+                cell = (c[0] + dz, c[1] + dy, c[2] + dx)
+                h = _hash3(*cell, key)
+                u = [((h >> s) & ((1 << 21) - 1)) / (1 << 21) for s in (43, 22, 1)]
+                feats.append((np.array([cell[a] + 0.5 + 0.8 * (u[a] - 0.5) for a in range(3)]), h))
+    d = [float(np.sum((q - f) ** 2)) for f, _ in feats]
+    ia = int(np.argmin(d))
+    a = feats[ia][0]
+    prod = 1.0
+    for n, (b, _) in enumerate(feats):
+        if n != ia:
+            dist = (d[n] - d[ia]) / (2 * np.linalg.norm(b - a))
+            if dist < r:
+                prod *= 1 - (1 - dist ** 2 / r ** 2) ** 4
+    return 1 - prod, feats[ia][1]
+
+
+def _unit(h):
+    return (_mix(h ^ 0x9E3779B97F4A7C15) >> 11) / 2.0 ** 53
+
+
+def _texture_reference(p, tp):
+    """Plain-Python twin of the texture formula at one point (smooth noise off)."""
+    fwhm = 2 * np.sqrt(1 - 0.5 ** 0.25)
+    keys = [int(S._channel_key(tp.seed, ch)) for ch in (1, 2)]
+    wc, hc = _wall_reference(p / tp.cell_size, keys[0], tp.wall_width / fwhm / tp.cell_size)
+    wb, hb = _wall_reference(p / tp.bead_size, keys[1], tp.skin_width / fwhm / tp.bead_size)
+    interior = 0.08 + 0.22 * _unit(hc)
+    wall = 0.60 + 0.20 * _unit(hb)
+    return (1 - wb) * ((1 - wc) * interior + wc * wall) + wb * 0.95
+
+
+def test_texture_matches_plain_python_twin():
+    tp = S.TextureParams(seed=21, cell_size=7.0, bead_size=20.0, noise_amplitude=0.0)
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-60.0, 60.0, size=(3, 60))
+    v = S.texture(*pts, seed=tp)
+    ref = [_texture_reference(pts[:, i], tp) for i in range(pts.shape[1])]
+    np.testing.assert_allclose(v, ref, rtol=0, atol=2e-6)
+    walls = np.array(ref)
+    assert walls.max() > 0.6 and walls.min() < 0.35  # points in walls and in cells
+
+
 def test_chunks_agree_with_larger_render():
     big = S.render((40, 44, 48), seed=3, origin=(10, -20, 5))
     part = S.render((17, 9, 23), seed=3, origin=(10 + 11, -20 + 30, 5 + 7))
