@@ -279,19 +279,3 @@ def run_export(args: argparse.Namespace) -> int:
              f"({out['excluded']} excluded)")
         print(args.corrected)
     return 0
-
-
-def main(argv=None) -> int:  # pragma: no cover - the package entry point is chunkdic.cli.main
-    """Stand-alone entry for testing: ``python -m chunkdic._cli_report strain R.zarr``."""
-    parser = argparse.ArgumentParser(prog="chunkdic")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except InputError as e:
-        _err(f"chunkdic: error: {e}")
-        return 2
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -132,19 +132,3 @@ def _nbytes(scan, s: int) -> int:
     for v in scan.shape(s):
         n *= v
     return n * scan.dtype(s).itemsize
-
-
-def main(argv=None) -> int:  # pragma: no cover - the package entry point is chunkdic.cli.main
-    """Stand-alone entry for testing: ``python -m chunkdic._cli_scan ingest ...``."""
-    parser = argparse.ArgumentParser(prog="chunkdic")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except InputError as e:
-        _err(f"chunkdic: error: {e}")
-        return 2
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 
@@ -128,18 +127,3 @@ def run(args) -> int:
     print(f"synth: wrote {res['reference']} and {res['deformed']} ({nvox / dt / 1e6:.2f} "
           f"Mvoxel/s, {dt:.1f} s); field in {res['field_json']}", file=sys.stderr, flush=True)
     return 0
-
-
-def main(argv=None) -> int:  # pragma: no cover - the package CLI is chunkdic.cli:main
-    parser = argparse.ArgumentParser(prog="chunkdic")
-    register(parser.add_subparsers(dest="command", required=True))
-    args = parser.parse_args(argv)
-    try:
-        return args.func(args)
-    except InputError as exc:
-        print(f"chunkdic: error: {exc}", file=sys.stderr)
-        return 2
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

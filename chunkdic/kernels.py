@@ -228,8 +228,8 @@ def gradient_block(f: np.ndarray, lo, hi) -> np.ndarray:
 # --------------------------------------------------------------------------------------
 
 _jit = numba.njit(nogil=True, cache=True)
-# hot per-voxel helpers: inlined at numba IR level (LLVM's own heuristics keep some of them
-# as calls, a 2x slow-down of the voxel loop)
+# hot per-voxel helpers: inlined at numba IR level (LLVM's own heuristics left some of them
+# as calls with ~30 arguments each, which made the voxel loop ~2x slower)
 _jit_inline = numba.njit(nogil=True, cache=True, inline="always")
 
 
@@ -517,20 +517,11 @@ def _cubic_taps(typingctx, c, i, s0, s1, tz, ty, tx):
 
 
 @_jit_inline
-def _cubic_fast(c, i, s0, s1, tz, ty, tx):
-    """Cubic B-spline from the flat coefficient window c, first tap at flat index i.
-
-    No bounds or mirror logic: the caller checked that all 64 taps lie in the window and
-    in the volume.
-    """
-    return _cubic_taps(c, i, s0, s1, tz, ty, tx)
-
-
-@_jit_inline
 def _linear_fast(g, i, s0, s1, t0, t1, t2):
     """Trilinear from the flat window g, corner at flat index i, no clamping.
 
-    Same arithmetic, in the same order, as _interp_linear: bit-identical results.
+    Same arithmetic, in the same order, as _interp_linear: bit-identical results (for
+    windows that start inside the volume, as g_window's do; see _interp_inside).
     """
     # unsigned indices: numba emits no negative-index wrap-around for them
     a = np.uint64(i)
@@ -590,7 +581,8 @@ def _interp_inside(g, gf, s0, s1, o0, o1, o2, cubic, p0, p1, p2):
     f2 = np.floor(p2)
     i = (int(f0) - o0) * s0 + (int(f1) - o1) * s1 + (int(f2) - o2)
     if cubic:
-        return _cubic_fast(gf, i - s0 - s1 - 1, s0, s1, p0 - f0, p1 - f1, p2 - f2)
+        # first of the 4 x 4 x 4 taps at floor(p) - 1 on each axis
+        return _cubic_taps(gf, i - s0 - s1 - 1, s0, s1, p0 - f0, p1 - f1, p2 - f2)
     # (p - o) - floor(p - o) == p - floor(p): o is an integer and p - o is exact
     return _linear_fast(gf, i, s0, s1, p0 - f0, p1 - f1, p2 - f2)
 
