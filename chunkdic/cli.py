@@ -53,6 +53,9 @@ def _format_event(event: dict) -> str | None:
             f"level {event['level']} iter {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {d}"
             f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)"
         )
+    if stage == "blocks":
+        return (f"  level {event['level']} {event['label']} pass: {event['done']}/{event['total']} blocks, "
+                f"{event['rate'] / 1e6:.1f} Mvoxel/s, ETA {event['eta']:.0f} s")
     if stage == "resume":
         return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
     if stage == "level":

@@ -75,6 +75,8 @@ class Settings:
 
 
 MIN_COARSE_EDGE = 24
+#: interval of block-count progress events during a long pass over the voxels (seconds)
+PROGRESS_SECONDS = 5.0
 #: stop as stalled after this many iterations without a lower gap
 STALL_PATIENCE = 4
 #: a gap this many times the best one so far means divergence
@@ -233,22 +235,42 @@ class _Level:
     """State of one pyramid level: its mesh, data, assembled ``M`` and solver."""
 
     def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
-                 scratch: Path):
+                 scratch: Path, progress=None):
         self.s, self.mesh, self.f_ref, self.g_ref, self.runner = s, mesh, f_ref, g_ref, runner
         self.settings = settings
         self.scratch = scratch
+        self.progress = progress
         self.coefficients = None
+        self._builds = 0
         ell = mesh.element_size
         m = settings.block_elements or max(1, config.get("block-voxels") // ell)
         self.blocks = mesh.blocks(m)
         self.halo = int(config.get("bspline-halo"))
+
+    def _map(self, fn, args, label: str):
+        """Run one task per block, yield results as they come, report long passes.
+
+        A pass that lasts more than ``PROGRESS_SECONDS`` emits ``stage="blocks"`` events
+        (done/total, voxel rate, ETA) at that interval, for a person at a terminal.
+        """
+        total = len(args)
+        voxels_per_block = self.mesh.n_voxels / max(total, 1)
+        t0 = last = time.perf_counter()
+        for done, result in enumerate(self.runner.map_unordered(fn, args), start=1):
+            yield result
+            now = time.perf_counter()
+            if now - last >= PROGRESS_SECONDS and done < total:
+                last = now
+                rate = done * voxels_per_block / (now - t0)
+                _emit(self.progress, stage="blocks", level=self.s, label=label, done=done, total=total,
+                      rate=rate, eta=(total - done) * voxels_per_block / rate)
 
     def assemble_m(self) -> None:
         mesh = self.mesh
         S = np.zeros(mesh.nodes_shape + (27, 3, 3))
         fmin, fmax = np.inf, -np.inf
         args = [(self.f_ref, mesh.element_size, blk, *mesh.block_core(blk)) for blk in self.blocks]
-        for blk, part, lo, hi in self.runner.map_unordered(m_task, args):
+        for blk, part, lo, hi in self._map(m_task, args, "M"):
             S[blk.node_slices] += part
             fmin, fmax = min(fmin, lo), max(fmax, hi)
         self.dynamic_range = float(fmax - fmin)
@@ -279,13 +301,15 @@ class _Level:
         """Cubic: prefilter once the part of ``g`` that ``u`` (± a margin) can reach."""
         if self.settings.interpolation != "cubic":
             return
-        margin = max(8, self.mesh.element_size)
-        box = reachable_box(self.mesh, u, self.g_ref.shape, margin=margin)
-        if box is None or (self.coefficients is not None and self.coefficients.box == box):
+        needed = reachable_box(self.mesh, u, self.g_ref.shape, margin=0)
+        if needed is None or (self.coefficients is not None and self.coefficients.covers(
+                tuple(slice(a, b) for a, b in needed))):
             return
-        path = self.scratch / f"bspline-level{self.s}-{id(box):x}.zarr"
-        t0 = time.perf_counter()
+        box = reachable_box(self.mesh, u, self.g_ref.shape, margin=max(8, self.mesh.element_size))
         self.release()
+        self._builds += 1
+        path = self.scratch / f"bspline-level{self.s}-{self._builds}.zarr"
+        t0 = time.perf_counter()
         self.coefficients = build_coefficients(self.g_ref, box, path, self.runner, halo=self.halo)
         log.info("level %d: g prefiltered over %s in %.1f s", self.s, box, time.perf_counter() - t0)
 
@@ -306,7 +330,7 @@ class _Level:
              self.coefficients)
             for blk in self.blocks
         ]
-        for blk, part, r2, nv, ne in self.runner.map_unordered(b_task, args):
+        for blk, part, r2, nv, ne in self._map(b_task, args, "b"):
             b[blk.node_slices] += part
             ssr += r2
             n_valid += nv
@@ -423,8 +447,9 @@ def _gauss_newton(lvl: _Level, gn: _GaussNewton, tolerance: float, settings: Set
     """
     while gn.status is None:
         it = gn.iteration
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         b, gap, n_valid, excluded = lvl.assemble_b(gn.u)
+        cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
         event = dict(stage="iteration", level=lvl.s, iteration=it, gap=gap, max_delta=None, excluded=excluded)
         if not math.isfinite(gap) or gap > DIVERGENCE_FACTOR * gn.best_gap:
             gn.finish("diverged", gap, excluded, n_valid, keep_current=False)
@@ -451,7 +476,8 @@ def _gauss_newton(lvl: _Level, gn: _GaussNewton, tolerance: float, settings: Set
             gn.last_delta = float(np.abs(delta).max())
             history.add(lvl.s, it, gap, gn.last_delta, excluded)
             event.update(max_delta=gn.last_delta, seconds=t2 - t0, assemble_seconds=t1 - t0,
-                         solve_seconds=t2 - t1, cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels)
+                         solve_seconds=t2 - t1, cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels,
+                         assemble_cpu_seconds=cpu)
             _emit(progress, **event)
             gn.u = gn.u + np.moveaxis(delta, -1, 0)
             gn.iteration += 1
@@ -603,11 +629,11 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         mesh = meshes[s]
         tol = settings.tolerance if s == finest else settings.coarse_tolerance
         if gn is None or gn.status is None:
-            t0 = time.perf_counter()
-            lvl = _Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch)
+            t0, c0 = time.perf_counter(), time.process_time()
+            lvl = _Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress)
             lvl.assemble_m()
             _emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.blocks),
-                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0)
+                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
             if gn is None:
                 if s == coarsest:
                     t_int = runner_single(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))

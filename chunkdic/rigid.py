@@ -14,7 +14,8 @@ import numpy as np
 from .volume import ArrayRef
 
 #: largest box edge (voxels) used for phase correlation; a central sub-box beyond that
-MAX_EDGE = 256
+#: (enough for a mean translation, and it bounds the task's memory to ~100 MB)
+MAX_EDGE = 128
 
 
 def _central_box(roi: tuple[slice, slice, slice]) -> tuple[slice, slice, slice]:
@@ -42,13 +43,11 @@ def phase_correlation(f: np.ndarray, g: np.ndarray) -> np.ndarray:
     t : ndarray, shape (3,), float64, voxels
         Integer peak refined by a parabola through its neighbours on each axis.
     """
-    window = np.ones(f.shape)
-    for axis, n in enumerate(f.shape):
-        shape = [1, 1, 1]
-        shape[axis] = n
-        window = window * np.hanning(n + 2)[1:-1].reshape(shape)
+    hann = [np.hanning(n + 2)[1:-1].astype(np.float32) for n in f.shape]
+    window = hann[0][:, None, None] * hann[1][None, :, None] * hann[2][None, None, :]
     F = np.fft.rfftn((f - f.mean()) * window)
     G = np.fft.rfftn((g - g.mean()) * window)
+    del window
     cross = G * np.conj(F)
     cross /= np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max())
     corr = np.fft.irfftn(cross, s=f.shape, axes=(0, 1, 2))
@@ -71,8 +70,8 @@ def phase_correlation(f: np.ndarray, g: np.ndarray) -> np.ndarray:
 def translation_task(f_ref: ArrayRef, g_ref: ArrayRef, roi: tuple[slice, slice, slice]) -> np.ndarray:
     """Task: read the ROI box of ``f`` and the same box of ``g``, return ``t`` (voxels)."""
     box = _central_box(roi)
-    f = f_ref.read(box).astype(np.float64)
-    g = np.zeros(f.shape)
+    f = f_ref.read(box).astype(np.float32)
+    g = np.zeros(f.shape, dtype=np.float32)
     # the same box of g, clipped to g (zeros where g does not reach)
     src, dst = [], []
     for s, n in zip(box, g_ref.shape):

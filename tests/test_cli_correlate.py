@@ -77,3 +77,14 @@ def test_no_traceback_from_the_installed_command(pair, tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.count("\n") == 1 and "Traceback" not in proc.stderr
+
+
+def test_long_passes_report_blocks_rate_and_eta(pair, tmp_path, capsys, monkeypatch):
+    from chunkdic import engine
+
+    monkeypatch.setattr(engine, "PROGRESS_SECONDS", 0.0)  # every block counts as "long"
+    argv = ["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(tmp_path / "r.zarr"),
+            "--element-size", "8", "--block-elements", "2"]
+    assert main(argv) == 0
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if " pass: " in ln]
+    assert any("level 0 b pass: 1/27 blocks" in ln and "Mvoxel/s, ETA" in ln for ln in lines), lines

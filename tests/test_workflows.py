@@ -53,7 +53,7 @@ def test_slurm_with_local_standin(tmp_path):
     pytest.importorskip("dask_jobqueue")
     out = _load("slurm").main(["--workdir", str(tmp_path), "--size", "48", "--local-standin", "--jobs", "1",
                                "--processes", "2", "--cores", "2", "--memory", "2GiB", "--dashboard-port", "0",
-                               "--print-job-script", "--account", "proj", "--job-extra", "--exclusive"])
+                               "--print-job-script", "--account", "proj", "--job-extra=--exclusive"])
     assert not out["slurm"]
     script = out["job_script"]
     assert "#SBATCH -A proj" in script and "#SBATCH --exclusive" in script and "--nworkers 2" in script

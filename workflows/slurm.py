@@ -18,7 +18,7 @@ cores each)::
 
     python workflows/slurm.py ref.zarr def.zarr --element-size 8 --level 2 \\
         --jobs 4 --cores 32 --processes 2 --memory 180GB --walltime 02:00:00 \\
-        --queue compute --account myproj --interface ib0 --local-directory '$TMPDIR' \\
+        --queue compute --account myproj --interface ib0 --local-directory '$TMPDIR' --job-extra=--exclusive \\
         --prologue 'source ~/venvs/chunkdic/bin/activate' --workdir /scratch/$USER/run1
 
 ``--print-job-script`` shows the batch script that would be submitted. Where ``sbatch``

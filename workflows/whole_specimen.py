@@ -66,7 +66,7 @@ def percent(label: str):
     return report
 
 
-def write_synthetic_raw(path: Path, shape, field, *, which: str, dtype: str, seed: int) -> None:
+def write_synthetic_raw(path: Path, shape, field, *, which: str, dtype: str, seed: int, cell_size: float) -> None:
     """Render a synthetic scan slab by slab into a raw file (stands in for a beamline file)."""
     nz, ny, nx = shape
     slab = max(1, (16 << 20) // (ny * nx))
@@ -74,12 +74,13 @@ def write_synthetic_raw(path: Path, shape, field, *, which: str, dtype: str, see
     with open(tmp, "wb") as fh:
         for z0 in range(0, nz, slab):
             block = synthetic.render((min(slab, nz - z0), ny, nx), origin=(z0, 0, 0), field=field,
-                                     which=which, dtype=dtype, seed=seed)
+                                     which=which, dtype=dtype, seed=seed, cell_size=cell_size,
+                                     bead_size=8 * cell_size)
             fh.write(np.ascontiguousarray(block, dtype=np.dtype(dtype).newbyteorder("<")).tobytes())
     tmp.replace(path)
 
 
-def synthetic_inputs(workdir: Path, size: int, field_kind: str, dtype: str):
+def synthetic_inputs(workdir: Path, size: int, field_kind: str, dtype: str, cell_size: float):
     """Two raw files with a known field: the paper's band (default) or an affine field."""
     c = (size - 1) / 2.0
     if field_kind == "band":
@@ -92,7 +93,7 @@ def synthetic_inputs(workdir: Path, size: int, field_kind: str, dtype: str):
         path = workdir / f"{which}.raw"
         if not path.exists():
             print(f"writing the synthetic raw scan {path} ({size}^3 {dtype})", flush=True)
-            write_synthetic_raw(path, (size,) * 3, field, which=which, dtype=dtype, seed=7)
+            write_synthetic_raw(path, (size,) * 3, field, which=which, dtype=dtype, seed=7, cell_size=cell_size)
         raws.append(path)
     return raws, field
 
@@ -110,6 +111,9 @@ def main(argv=None) -> dict:
     p.add_argument("--workdir", default="chunkdic-specimen", help="output directory")
     p.add_argument("--size", type=int, default=160, help="edge of the synthetic scans (no raw files given)")
     p.add_argument("--field", choices=("band", "affine"), default="band", help="synthetic field")
+    p.add_argument("--cell-size", type=float, default=16.0,
+                   help="synthetic foam cell size, level-0 voxels (beads 8x larger); level 2 sees cells of "
+                        "cell-size / 4 voxels")
     p.add_argument("--level", type=int, default=2, help="pyramid level correlated (2 = the paper's 4^3)")
     p.add_argument("--element-size", type=int, default=8, help="element edge, voxels of --level")
     p.add_argument("--levels", type=int, default=None, help="pyramid levels to store (default --level + 2)")
@@ -123,7 +127,7 @@ def main(argv=None) -> dict:
     workdir.mkdir(parents=True, exist_ok=True)
     field = None
     if args.ref_raw is None:
-        (ref_raw, def_raw), field = synthetic_inputs(workdir, args.size, args.field, args.dtype)
+        (ref_raw, def_raw), field = synthetic_inputs(workdir, args.size, args.field, args.dtype, args.cell_size)
         shape = (args.size,) * 3
     else:
         if args.shape is None:
