@@ -317,8 +317,8 @@ def main(argv=None) -> dict:
     p.add_argument("--reuse", action="store_true",
                    help="reuse the pair of an earlier --keep run with the same size, dtype and seed")
     p.add_argument("--iterations-only", action="store_true",
-                   help="time --iterations passes on --level alone and extrapolate")
-    p.add_argument("--iterations", type=int, default=3, help="passes timed by --iterations-only")
+                   help="time --iterations Gauss-Newton passes per level and extrapolate a full run")
+    p.add_argument("--iterations", type=int, default=3, help="Gauss-Newton iterations per level with --iterations-only")
     p.add_argument("--assume-iterations", type=int, default=8,
                    help="Gauss-Newton passes assumed by the extrapolation of --iterations-only")
     args = p.parse_args(argv)

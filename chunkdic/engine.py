@@ -32,7 +32,7 @@ from .result import HISTORY_FIELDS, Result
 from .rigid import translation_task
 from .scheduler import open_runner
 from .solve import StencilSolver, PoorTextureWarning
-from .volume import ArrayRef, open_scan
+from .volume import ArrayRef, forget_open_arrays, open_scan
 
 log = logging.getLogger(__name__)
 
@@ -310,13 +310,16 @@ class _Level:
         self._builds += 1
         path = self.scratch / f"bspline-level{self.s}-{self._builds}.zarr"
         t0 = time.perf_counter()
-        self.coefficients = build_coefficients(self.g_ref, box, path, self.runner, halo=self.halo)
+        self.coefficients = build_coefficients(self.g_ref, box, path, self.runner, halo=self.halo,
+                                               local=self.runner.local)
         log.info("level %d: g prefiltered over %s in %.1f s", self.s, box, time.perf_counter() - t0)
 
     def release(self) -> None:
-        """Delete this level's scratch coefficients."""
+        """Delete this level's scratch coefficients (and forget open handles on them)."""
         if self.coefficients is not None:
-            shutil.rmtree(self.coefficients.ref.path, ignore_errors=True)
+            self.runner.run_everywhere(forget_open_arrays)
+            path = Path(self.coefficients.ref.path)
+            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
             self.coefficients = None
 
     def assemble_b(self, u: np.ndarray):

@@ -237,9 +237,9 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
         raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    from .volume import _clear_open_caches
+    from .volume import forget_open_arrays
 
-    _clear_open_caches()
+    forget_open_arrays()
     return ArrayRef("zarr", str(out), "", shape, "float32")
 
 

@@ -6,7 +6,7 @@ about as much as the interpolation itself, because the window must carry a halo 
 ``chunkdic.bspline-halo`` voxels for the result to equal a whole-volume prefilter. Since
 ``g`` never changes, the engine instead prefilters, once per level, the box of ``g`` that
 the current field can reach (plus a margin), chunk by chunk on the workers, into a float32
-scratch Zarr array; every iteration then only gathers from it. A task whose window leaves
+scratch array; every iteration then only gathers from it. A task whose window leaves
 the box falls back to prefiltering its own window, so the result never depends on the box.
 """
 
@@ -55,37 +55,52 @@ def reachable_box(mesh: Mesh, u: np.ndarray, g_shape, *, margin: int):
     return tuple(box)
 
 
-def prefilter_task(g_ref: ArrayRef, out_path: str, box, region, halo: int) -> int:
-    """Task: coefficients of ``region`` (absolute slices) into the store at ``out_path``.
+def prefilter_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int) -> int:
+    """Task: coefficients of ``region`` (absolute slices) into the store ``out``.
 
     The region is read with ``halo`` extra voxels per side (clipped to the volume, where
-    the mirror boundary is then exact), filtered, cropped and written; the region covers
-    whole chunks of the store, so concurrent tasks never share a chunk.
+    the mirror boundary is then exact), filtered, cropped and written; in a Zarr store the
+    region covers whole chunks, so concurrent tasks never share a chunk.
     """
-    import zarr
-
     grown = tuple(slice(max(r.start - halo, 0), min(r.stop + halo, n)) for r, n in zip(region, g_ref.shape))
     data = g_ref.read(grown).astype(np.float32, copy=False)
     coeffs = ndi.spline_filter(data, order=3, mode="mirror", output=np.float32)
     crop = tuple(slice(r.start - s.start, r.stop - s.start) for r, s in zip(region, grown))
     local = tuple(slice(r.start - a, r.stop - a) for r, (a, _) in zip(region, box))
-    zarr.open_array(out_path, mode="r+")[local] = coeffs[crop]
+    if out.kind == "npy":
+        target = np.load(out.path, mmap_mode="r+")
+    else:
+        import zarr
+
+        target = zarr.open_array(out.path, mode="r+")
+    target[local] = coeffs[crop]
     return int(np.prod([r.stop - r.start for r in region]))
 
 
-def build_coefficients(g_ref: ArrayRef, box, path: Path, runner, *, halo: int) -> Coefficients:
-    """Prefilter ``box`` of ``g`` into a new float32 Zarr array at ``path``, on the runner."""
-    import zarr
+def build_coefficients(g_ref: ArrayRef, box, path: Path, runner, *, halo: int, local: bool) -> Coefficients:
+    """Prefilter ``box`` of ``g`` into a new float32 array at ``path``, on the runner.
 
+    ``local``: every task runs on this machine, so the store is a memory-mapped ``.npy``
+    file, whose windows read 3-4x cheaper than from Zarr chunks (no chunk assembly; it
+    is on the hot path of every iteration). Otherwise an uncompressed Zarr array, safe
+    for workers on other hosts sharing the file system.
+    """
     shape = tuple(b - a for a, b in box)
-    zarr.create_array(str(path), shape=shape, chunks=(CHUNK,) * 3, dtype="float32",
-                      compressors=None, zarr_format=3, overwrite=True)
+    if local:
+        path = path.with_suffix(".npy")
+        np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape).flush()
+        out = ArrayRef("npy", str(path), "", shape, "float32")
+    else:
+        import zarr
+
+        zarr.create_array(str(path), shape=shape, chunks=(CHUNK,) * 3, dtype="float32",
+                          compressors=None, zarr_format=3, overwrite=True)
+        out = ArrayRef("zarr", str(path), "", shape, "float32")
     starts = [range(a, b, TASK_EDGE) for a, b in box]
     regions = [
         tuple(slice(s, min(s + TASK_EDGE, b)) for s, (_, b) in zip(corner, box))
         for corner in ((z, y, x) for z in starts[0] for y in starts[1] for x in starts[2])
     ]
-    for _ in runner.map_unordered(prefilter_task, [(g_ref, str(path), box, r, halo) for r in regions]):
+    for _ in runner.map_unordered(prefilter_task, [(g_ref, out, box, r, halo) for r in regions]):
         pass
-    ref = ArrayRef("zarr", str(path), "", shape, "float32")
-    return Coefficients(ref, box)
+    return Coefficients(out, box)

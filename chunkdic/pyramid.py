@@ -23,7 +23,7 @@ from .errors import InputError
 from .volume import (
     Scan,
     _check_levels,
-    _clear_open_caches,
+    forget_open_arrays,
     _ref_dask,
     _update_group_metadata,
     _write_level,
@@ -39,7 +39,7 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
     """Add levels ``1..levels`` to the scan group ``path`` (see :func:`build_pyramid`)."""
     import zarr
 
-    _clear_open_caches()
+    forget_open_arrays()
     scan = open_scan(path)
     shape0, dtype0 = scan.shape(0), scan.dtype(0)
     _check_levels(shape0, levels)
@@ -69,7 +69,7 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
         _write_level(path, s, data, chunk0, progress, *cuts[s])
         _update_group_metadata(path)
         log.info("%s: level %d %s %s built in %.1f s", path, s, data.shape, data.dtype, time.perf_counter() - t0)
-    _clear_open_caches()
+    forget_open_arrays()
     return open_scan(path)
 
 

@@ -31,6 +31,7 @@ class ThreadRunner:
         self.n_workers = n_threads or config.get("num-threads") or os.cpu_count() or 1
         self._pool = concurrent.futures.ThreadPoolExecutor(self.n_workers)
         self.dashboard_link = None
+        self.local = True  # tasks run on this machine
 
     def map_unordered(self, fn: Callable, args: Iterable[tuple]) -> Iterator[Any]:
         futures = [self._pool.submit(fn, *a) for a in args]
@@ -61,6 +62,8 @@ class DistributedRunner:
     def __init__(self, client, cluster=None):
         self.client = client
         self._cluster = cluster
+        # a cluster we started ourselves runs on this machine; any other may span hosts
+        self.local = cluster is not None
         self.dashboard_link = getattr(client, "dashboard_link", None)
         info = client.scheduler_info()
         self.n_workers = max(1, sum(w.get("nthreads", 1) for w in info["workers"].values()))

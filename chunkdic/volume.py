@@ -93,7 +93,7 @@ class ArrayRef:
         return 3
 
 
-def _clear_open_caches() -> None:
+def forget_open_arrays() -> None:
     """Forget cached handles in this process (a store may have been rewritten)."""
     _open_zarr_array.cache_clear()
     _open_npy.cache_clear()
@@ -569,7 +569,7 @@ def _write_level(path: str, s: int, data, chunk_shape=None, progress=None, start
     _create_level(path, s, data.shape, data.dtype, chunk_shape)
     _store(_aligned(data, chunk_shape), path, str(s), progress, start, end)
     _mark_complete(path, s)
-    _clear_open_caches()
+    forget_open_arrays()
     return ArrayRef("zarr", str(path), str(s), tuple(int(n) for n in data.shape), np.dtype(data.dtype).name)
 
 
@@ -655,7 +655,7 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     levels = int(levels)
     _check_levels(data.shape, levels)
     p = _prepare_output(path, overwrite)
-    _clear_open_caches()
+    forget_open_arrays()
     weights = [1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)]
     cuts = np.cumsum([0.0] + weights) / sum(weights)
     t0 = time.perf_counter()
@@ -674,7 +674,7 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
         _remove_partial(p)
         raise
     finally:
-        _clear_open_caches()
+        forget_open_arrays()
     return open_scan(str(p))
 
 

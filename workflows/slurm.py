@@ -35,6 +35,7 @@ of the driver ran out); ``--overwrite`` starts over.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import shutil
 import time
 from pathlib import Path
@@ -135,11 +136,8 @@ def main(argv=None) -> dict:
 
     use_slurm = not args.local_standin and shutil.which("sbatch") is not None
     job_script = None
-    if args.print_job_script or use_slurm:
-        try:
-            import dask_jobqueue  # noqa: F401
-        except ImportError:
-            p.error("dask-jobqueue is not installed: pip install dask-jobqueue")
+    if (args.print_job_script or use_slurm) and importlib.util.find_spec("dask_jobqueue") is None:
+        p.error("dask-jobqueue is not installed: pip install dask-jobqueue")
     if args.print_job_script and not use_slurm:
         probe = slurm_cluster(args, probe=True)
         job_script = probe.job_script()

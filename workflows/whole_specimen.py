@@ -111,7 +111,7 @@ def main(argv=None) -> dict:
     p.add_argument("--workdir", default="chunkdic-specimen", help="output directory")
     p.add_argument("--size", type=int, default=160, help="edge of the synthetic scans (no raw files given)")
     p.add_argument("--field", choices=("band", "affine"), default="band", help="synthetic field")
-    p.add_argument("--cell-size", type=float, default=16.0,
+    p.add_argument("--cell-size", type=float, default=8.0,
                    help="synthetic foam cell size, level-0 voxels (beads 8x larger); level 2 sees cells of "
                         "cell-size / 4 voxels")
     p.add_argument("--level", type=int, default=2, help="pyramid level correlated (2 = the paper's 4^3)")
