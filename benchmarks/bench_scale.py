@@ -23,9 +23,10 @@ asked of the file system, page-cache hits included); the size on disk of the sto
 the end: the nodal displacement error (RMS and max over nodes, per component and of the
 vector) against the known field, in voxels of the correlated level and of level 0.
 
-``--iterations-only`` skips strain and report, runs ``--iterations`` Gauss-Newton passes
-per level (tolerance 0) and extrapolates a full run: coarser levels as measured, plus on
-``--level`` ``M + (2 gap evaluations + N) passes`` with ``N`` = ``--assume-iterations``,
+``--iterations-only`` skips strain and report, runs ``--iterations`` Gauss-Newton
+iterations per level (tolerance 0) and extrapolates a full run: the measured time of every
+level (``M``, B-spline prefilter, gap evaluations, passes) plus ``N - --iterations`` more
+passes on ``--level`` at the median measured pass time (``N`` = ``--assume-iterations``),
 and the same times 8 and 64 for 2x and 4x the edge.
 
 Usage (the commands of the table in docs/distributed.md)::
@@ -427,9 +428,11 @@ def _extrapolate(events: list[dict], args) -> dict:
     its = [e for e in events if e["stage"] == "iteration" and e["level"] == lv and e.get("assemble_seconds") is not None]
     it_s = statistics.median(e["seconds"] for e in its) if its else math.nan
     coarse = sum(e["seconds"] for e in events if e["stage"] == "level" and e["level"] != lv)
-    # the two gap evaluations on the finest level cost a pass each
-    one = m["seconds"] + (2 + args.assume_iterations) * it_s
-    out = {"matrix_seconds": m["seconds"], "iteration_seconds": it_s, "voxels": m["voxels"],
+    level_s = [e for e in events if e["stage"] == "level" and e["level"] == lv][-1]["seconds"]
+    # measured on --level: M, prefilter, 2 gap passes and --iterations + 1 b passes; a full run
+    # with N iterations makes N - --iterations more passes
+    one = level_s + max(0, args.assume_iterations - args.iterations) * it_s
+    out = {"matrix_seconds": m["seconds"], "iteration_seconds": it_s, "voxels": m["voxels"], "level_seconds": level_s,
            "coarse_levels_seconds": coarse, "b_voxels_per_second": m["voxels"] / it_s if its else math.nan,
            "estimate_seconds": {f"{args.size}": coarse + one, f"{2 * args.size}": 8 * (coarse + one),
                                 f"{4 * args.size}": 64 * (coarse + one)}}

@@ -31,7 +31,7 @@ def _say(msg: str) -> None:
 def _format_event(event: dict) -> str | None:
     stage = event["stage"]
     if stage == "start":
-        dash = f", dashboard {event['dashboard']}" if event.get("dashboard") else ""
+        dash = ""  # the runner's description already names its dashboard
         roi = ",".join(f"{a}:{b}" for a, b in event["roi"])
         nodes = "x".join(str(n) for n in event["nodes"])
         line = f"running on {event['scheduler']}{dash}; levels {event['levels']}; ROI {roi} (level voxels); {nodes} nodes"
@@ -48,7 +48,7 @@ def _format_event(event: dict) -> str | None:
     if stage == "gaps":
         return f"level {event['level']}: initial gap {100 * event['initial_gap']:.3f}%, after rigid translation {100 * event['rigid_gap']:.3f}%"
     if stage == "iteration":
-        d = "converged" if event["max_delta"] is None else f"{event['max_delta']:.2e}"
+        d = event.get("status", "final") if event["max_delta"] is None else f"{event['max_delta']:.2e}"
         return (
             f"level {event['level']} iter {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {d}"
             f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)"

@@ -471,7 +471,7 @@ def _gauss_newton(lvl: _Level, gn: _GaussNewton, tolerance: float, settings: Set
                 gn.finish("max-iterations", gap, excluded, n_valid, keep_current=False)
         if gn.status is not None:
             history.add(lvl.s, it, gap, math.nan, excluded)
-            _emit(progress, **event, seconds=time.perf_counter() - t0)
+            _emit(progress, **event, status=gn.status, seconds=time.perf_counter() - t0)
         else:
             t1 = time.perf_counter()
             delta, cg_iterations = lvl.solver.solve(b)

@@ -141,6 +141,11 @@ def open_runner(scheduler=None):
             client = Client(scheduler, timeout="10s")
         except (OSError, TimeoutError) as exc:
             raise InputError(f"cannot reach scheduler {scheduler}: {exc}") from None
+        except (TypeError, ValueError) as exc:  # e.g. tls:// without certificates configured
+            raise InputError(
+                f"cannot connect to {scheduler} ({exc}); for tls:// set distributed.comm.tls.* "
+                "(see docs/distributed.md)"
+            ) from None
         runner = DistributedRunner(client, cluster=None)
         runner._owns_client = True
     else:

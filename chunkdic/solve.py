@@ -104,6 +104,7 @@ class StencilSolver:
         # stencil, and M only steers the modified Gauss-Newton steps (the converged field
         # solves b = 0 whatever M), so its round-off at 6e-8 changes nothing measurable.
         self.matrix = S.astype(np.float32)
+        self.stencil = None  # the float64 assembly is not kept: half the client's memory for M
 
     def solve(self, b: np.ndarray) -> tuple[np.ndarray, int]:
         """Solve ``M δa = b``; ``b`` and the result have shape (nz, ny, nx, 3).
