@@ -122,7 +122,7 @@ def cpu() -> float:
 
 
 def child(n: int, workdir: Path, runs: int) -> dict:
-    from chunkdic.ingest import ingest
+    from chunkdic.formats import ingest
     from chunkdic.pyramid import build_pyramid
 
     raw = workdir / f"foam_{n}.raw"

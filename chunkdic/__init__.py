@@ -19,7 +19,7 @@ _EXPORTS = {
     "Settings": "engine",
     "build_pyramid": "pyramid",
     "correlate": "engine",
-    "ingest": "ingest",
+    "ingest": "formats",
     "open_result": "result",
     "open_scan": "volume",
     "write_scan": "volume",

@@ -85,7 +85,7 @@ def _summary(scan, seconds: float, nbytes_in: int, what: str) -> None:
 
 def run_ingest(args: argparse.Namespace) -> int:
     """``chunkdic ingest``: returns the exit code (errors raise :class:`InputError`)."""
-    from .ingest import ingest
+    from .formats import ingest
     from .pyramid import build_pyramid
 
     if args.levels < 0:

@@ -11,7 +11,7 @@ import tifffile
 
 from chunkdic import _cli_scan
 from chunkdic.errors import InputError
-from chunkdic.ingest import _natural_key, _slab_chunks, ingest
+from chunkdic.formats import _natural_key, _slab_chunks, ingest
 
 SHAPE = (13, 17, 19)
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import json
 
 import dask.array as da
@@ -251,3 +252,17 @@ def test_write_scan_refuses_bad_input(tmp_path):
     with pytest.raises(InputError, match="voxel size"):
         write_scan(tmp_path / "a.zarr", np.zeros((4, 4, 4)), voxel_size=(1, 2))
     assert not (tmp_path / "a.zarr").exists()
+
+
+def test_public_names_are_the_functions_whatever_was_imported_first():
+    """A submodule named like a public function would shadow it once imported."""
+    import importlib
+
+    import chunkdic
+
+    for name in chunkdic.__all__:
+        try:
+            importlib.import_module(f"chunkdic.{name}")
+        except ModuleNotFoundError:
+            pass
+        assert not inspect.ismodule(getattr(chunkdic, name)), name
