@@ -267,7 +267,10 @@ class _Level:
 
     def assemble_m(self) -> None:
         mesh = self.mesh
-        S = np.zeros(mesh.nodes_shape + (27, 3, 3))
+        # float32: M only steers the modified Gauss-Newton steps (the converged field solves
+        # b = 0 whatever M), and at 128³ nodes a float64 stencil alone would be 4 GB.
+        # Each block's partial is summed in float64 by its task.
+        S = np.zeros(mesh.nodes_shape + (27, 3, 3), dtype=np.float32)
         fmin, fmax = np.inf, -np.inf
         args = [(self.f_ref, mesh.element_size, blk, *mesh.block_core(blk)) for blk in self.blocks]
         for blk, part, lo, hi in self._map(m_task, args, "M"):
@@ -277,7 +280,7 @@ class _Level:
         if self.dynamic_range <= 0:
             raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
         # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
-        self.rigid_matrix = S.sum(axis=(0, 1, 2, 3))
+        self.rigid_matrix = S.sum(axis=(0, 1, 2, 3), dtype=np.float64)
         self.solver = StencilSolver(S)
         self._warn_weak_nodes()
 

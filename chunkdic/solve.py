@@ -66,8 +66,8 @@ class StencilSolver:
 
     Parameters
     ----------
-    stencil : ndarray, shape (nz, ny, nx, 27, 3, 3), float64
-        Assembled ``M`` (see docs/architecture.md for the layout).
+    stencil : ndarray, shape (nz, ny, nx, 27, 3, 3), float32 or float64
+        Assembled ``M`` (see docs/architecture.md for the layout); used in place.
     weak_threshold : float
         A node is *poorly textured* when the smallest eigenvalue of its 3×3 diagonal
         block is below ``weak_threshold`` times the median over nodes of the mean
@@ -85,7 +85,7 @@ class StencilSolver:
     def __post_init__(self):
         S = self.stencil
         self.nodes_shape = S.shape[:3]
-        diag = S[..., CENTRE, :, :].reshape(-1, 3, 3)
+        diag = S[..., CENTRE, :, :].reshape(-1, 3, 3).astype(np.float64)
         eig = np.linalg.eigvalsh(diag)  # ascending
         scale = float(np.median(eig.mean(axis=1)))
         if not np.isfinite(scale) or scale <= 0:
@@ -94,17 +94,15 @@ class StencilSolver:
         self.weak_nodes = np.argwhere(weak.reshape(self.nodes_shape))
         if weak.any():
             # Regularise in place: a Tikhonov term on the weak nodes' own block.
-            S_centre = S[..., CENTRE, :, :].reshape(-1, 3, 3)
-            S_centre[weak] += self.weak_threshold * scale * np.eye(3)
-            S[..., CENTRE, :, :] = S_centre.reshape(S.shape[:3] + (3, 3))
-            diag = S_centre
+            diag[weak] += self.weak_threshold * scale * np.eye(3)
+            S[..., CENTRE, :, :] = diag.reshape(S.shape[:3] + (3, 3))
         self.block_inverse = np.linalg.inv(diag)
         self.scale = scale
         # float32 for the matrix-vector product: CG is bound by memory traffic through the
         # stencil, and M only steers the modified Gauss-Newton steps (the converged field
         # solves b = 0 whatever M), so its round-off at 6e-8 changes nothing measurable.
-        self.matrix = S.astype(np.float32)
-        self.stencil = None  # the float64 assembly is not kept: half the client's memory for M
+        self.matrix = S.astype(np.float32, copy=False)
+        self.stencil = None  # only the float32 matrix is kept
 
     def solve(self, b: np.ndarray) -> tuple[np.ndarray, int]:
         """Solve ``M δa = b``; ``b`` and the result have shape (nz, ny, nx, 3).
