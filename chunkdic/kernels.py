@@ -86,7 +86,6 @@ __all__ = [
     "b_block",
     "warp_block",
     "warmup",
-    "stencil_offsets",
 ]
 
 _IMPLS = ("numba", "numpy")
@@ -94,20 +93,6 @@ _INTERPOLATIONS = ("linear", "cubic")
 
 # Index of the symmetric gradient product d_i f d_j f in the 6-vector G_c.
 _SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]], dtype=np.int64)
-
-
-def stencil_offsets() -> np.ndarray:
-    """Node offsets of the 27-point stencil.
-
-    Returns
-    -------
-    off : ndarray, shape (27, 3), int64
-        ``off[k] = (k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1)``, the ``(z, y, x)`` offset of
-        the column node of stencil entry ``k`` (docs/architecture.md, "Nodal 27-point
-        stencil"). ``off[26 - k] == -off[k]``.
-    """
-    k = np.arange(27)
-    return np.stack([k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1], axis=1)
 
 
 # --------------------------------------------------------------------------------------
@@ -823,7 +808,7 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba"):
     -------
     S : ndarray, shape (ez+1, ey+1, ex+1, 27, 3, 3), float64, grey levels^2
         ``S[n, k, i, j] = M[(n, i), (n + off_k, j)]`` with ``off_k`` from
-        :func:`stencil_offsets`, ``M_(a,i),(b,j) = sum_X N_a N_b d_i f d_j f`` over the
+        :data:`chunkdic.mesh.STENCIL_OFFSETS`, ``M_(a,i),(b,j) = sum_X N_a N_b d_i f d_j f`` over the
         core voxels; entries whose column node leaves the block's node grid are 0.
         Symmetric: ``S[n, k, i, j] == S[n + off_k, 26 - k, j, i]``.
     fmin, fmax : float

@@ -15,6 +15,9 @@ import numpy as np
 
 #: offsets (dz, dy, dx) of the 8 local nodes, local index ``a = 4*dz + 2*dy + dx``
 LOCAL_NODES = np.array([(a >> 2 & 1, a >> 1 & 1, a & 1) for a in range(8)], dtype=np.int64)
+#: node offsets (dz, dy, dx) of the 27-point stencil entries ``k`` (docs/architecture.md):
+#: ``(k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1)``, so ``STENCIL_OFFSETS[26 - k] == -STENCIL_OFFSETS[k]``
+STENCIL_OFFSETS = np.array([(k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1) for k in range(27)], dtype=np.int64)
 
 
 @functools.lru_cache(maxsize=32)

@@ -17,8 +17,6 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-#: (dz, dy, dx) of stencil entry k
-OFFSETS = np.array([(k // 9 - 1, (k // 3) % 3 - 1, k % 3 - 1) for k in range(27)], dtype=np.int64)
 CENTRE = 13
 
 

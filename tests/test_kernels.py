@@ -15,7 +15,7 @@ import pytest
 import scipy.ndimage as ndi
 
 from chunkdic import kernels as K
-from chunkdic.mesh import LOCAL_NODES, shape_table
+from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS, shape_table
 
 INTERPS = ("linear", "cubic")
 
@@ -71,7 +71,7 @@ def _voxel_positions(u_nodes, ell, core_origin):
 
 def _dense(S):
     """Dense (3 n_nodes)^2 matrix of a stencil, unknowns ordered (node, component)."""
-    off = K.stencil_offsets()
+    off = STENCIL_OFFSETS
     nn = np.array(S.shape[:3])
     nnode = int(np.prod(nn))
     M = np.zeros((nnode * 3, nnode * 3))
@@ -113,7 +113,7 @@ def test_element_matrix_by_hand(impl):
     # node (1, 1, 1) to node 0 -> k = 0
     np.testing.assert_allclose(S[1, 1, 1, 0], cc * 27 / 512, rtol=1e-14)
     # all other stencil entries of node 0 point outside the element -> 0
-    off = K.stencil_offsets()
+    off = STENCIL_OFFSETS
     outside = np.any(off < 0, axis=1)
     assert np.all(S[0, 0, 0][outside] == 0)
     # the whole matrix sums to c c^T times the number of voxels (sum_a N_a = 1)
@@ -412,7 +412,7 @@ def test_stencil_symmetry(impl):
     vol = _smooth_volume((12, 8, 12), seed=12)
     f, lo, hi, _, _ = _block(vol, (0, 0, 1), (3, 2, 3), 4)
     S, _, _ = K.m_block(f, lo, hi, 4, impl=impl)
-    off = K.stencil_offsets()
+    off = STENCIL_OFFSETS
     nn = np.array(S.shape[:3])
     n_checked = 0
     for n in np.ndindex(*S.shape[:3]):

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from chunkdic.mesh import LOCAL_NODES
-from chunkdic.solve import OFFSETS, StencilSolver, stencil_matvec
+from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS
+from chunkdic.solve import StencilSolver, stencil_matvec
 
 
 def _random_system(elements=(2, 3, 2), seed=0, weak_element=None):
@@ -26,7 +26,7 @@ def _random_system(elements=(2, 3, 2), seed=0, weak_element=None):
                 dense[3 * idx[a] : 3 * idx[a] + 3, 3 * idx[b] : 3 * idx[b] + 3] += blk
                 na = np.array(np.unravel_index(idx[a], nodes))
                 off = np.array(np.unravel_index(idx[b], nodes)) - na
-                k = int(np.flatnonzero((OFFSETS == off).all(axis=1))[0])
+                k = int(np.flatnonzero((STENCIL_OFFSETS == off).all(axis=1))[0])
                 S[tuple(na) + (k,)] += blk
     return dense, S
 
