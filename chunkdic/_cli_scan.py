@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from .errors import InputError
+from .scheduler import SCHEDULER_HELP, dask_scheduler
 
 
 def register(subparsers) -> None:
@@ -32,6 +33,7 @@ def register(subparsers) -> None:
     p.add_argument("--levels", type=int, default=0, metavar="N",
                    help="also build pyramid levels 1..N (2 = the paper's 4^3 compression)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing OUT.zarr")
+    p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP + "; its workers must see SRC and OUT.zarr")
     p.set_defaults(func=run_ingest)
 
     q = subparsers.add_parser(
@@ -42,6 +44,7 @@ def register(subparsers) -> None:
     q.add_argument("scan", metavar="SCAN.zarr")
     q.add_argument("--levels", type=int, required=True, metavar="N")
     q.add_argument("--overwrite", action="store_true", help="rebuild levels that are already complete")
+    q.add_argument("--scheduler", default=None, help=SCHEDULER_HELP + "; its workers must see SCAN.zarr")
     q.set_defaults(func=run_pyramid)
 
 
@@ -85,13 +88,18 @@ def _summary(scan, seconds: float, nbytes_in: int, what: str) -> None:
 
 def run_ingest(args: argparse.Namespace) -> int:
     """``chunkdic ingest``: returns the exit code (errors raise :class:`InputError`)."""
-    from .formats import ingest
-    from .pyramid import build_pyramid
-
     if args.levels < 0:
         raise InputError(f"--levels must be >= 0, got {args.levels}")
     if args.chunks is not None and args.chunks < 1:
         raise InputError(f"--chunks must be a positive integer, got {args.chunks}")
+    with dask_scheduler(args.scheduler, announce=_err):
+        return _ingest(args)
+
+
+def _ingest(args: argparse.Namespace) -> int:
+    from .formats import ingest
+    from .pyramid import build_pyramid
+
     _err(f"[1/{2 if args.levels else 1}] ingest {args.src} -> {args.out}")
     t0 = time.perf_counter()
     scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
@@ -121,8 +129,9 @@ def run_pyramid(args: argparse.Namespace) -> int:
     before = open_scan(args.scan).stored_levels() if Path(args.scan).exists() else []
     _err(f"pyramid {args.scan}: levels 1..{args.levels}"
          + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
-    t0 = time.perf_counter()
-    scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=_Printer("pyramid"))
+    with dask_scheduler(args.scheduler, announce=_err):
+        t0 = time.perf_counter()
+        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=_Printer("pyramid"))
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "pyramid from level 0 of")
     return 0
 

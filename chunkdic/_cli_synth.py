@@ -6,6 +6,7 @@ import sys
 import time
 
 from .errors import InputError
+from .scheduler import SCHEDULER_HELP, dask_scheduler
 
 FIELDS = ("none", "translation", "affine", "band")
 DEFAULT_TRANSLATION = (2.3, -1.4, 0.7)
@@ -50,6 +51,7 @@ def register(subparsers) -> None:
     p.add_argument("--noise", type=float, default=0.0,
                    help="std of additive acquisition noise (texture spans ~0.05..1)")
     p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP + "; its workers must see OUT_DIR")
     p.set_defaults(func=run)
 
 
@@ -116,12 +118,13 @@ def run(args) -> int:
 
     print(f"synth: {args.out_dir} shape {shape} {args.dtype}, field "
           f"{'none' if fld is None else fld.to_json()}", file=sys.stderr, flush=True)
-    res = S.synthesize(
-        args.out_dir, shape, field=fld, seed=args.seed, dtype=args.dtype, chunks=args.chunks,
-        voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=args.overwrite,
-        progress=progress, cell_size=args.cell_size, bead_size=args.bead_size,
-        wall_width=args.wall_width, noise=args.noise,
-    )
+    with dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr, flush=True)):
+        res = S.synthesize(
+            args.out_dir, shape, field=fld, seed=args.seed, dtype=args.dtype, chunks=args.chunks,
+            voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=args.overwrite,
+            progress=progress, cell_size=args.cell_size, bead_size=args.bead_size,
+            wall_width=args.wall_width, noise=args.noise,
+        )
     dt = time.perf_counter() - t0
     nvox = 2 * shape[0] * shape[1] * shape[2]
     print(f"synth: wrote {res['reference']} and {res['deformed']} ({nvox / dt / 1e6:.2f} "

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .scheduler import SCHEDULER_HELP
 
 EXIT_BAD_INPUT = 2
 
@@ -137,7 +138,7 @@ def _add_correlate(sub) -> None:
     p.add_argument("--tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
     p.add_argument("--max-iterations", type=int, default=30)
     p.add_argument("--block-elements", type=int, default=None, help="elements per block side")
-    p.add_argument("--scheduler", default=None, help="threads (default), local[:N], or tcp://host:port")
+    p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_correlate)
 
@@ -148,7 +149,7 @@ def _add_demo(sub) -> None:
     p.add_argument("--size", type=int, default=96, help="edge of the synthetic scans, voxels")
     p.add_argument("--element-size", type=int, default=12)
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--scheduler", default=None)
+    p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
     p.add_argument("--overwrite", action="store_true")
     p.set_defaults(func=cmd_demo)
 

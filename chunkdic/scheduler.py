@@ -19,6 +19,10 @@ from .errors import InputError
 
 log = logging.getLogger(__name__)
 
+#: ``--scheduler`` help of every CLI command that computes
+SCHEDULER_HELP = ("where tasks run: threads (default, this process), local[:N] (a LocalCluster of N workers "
+                  "on loopback), or the address of an existing scheduler (tcp://host:8786, tls://...)")
+
 
 class ThreadRunner:
     """Embedded default: a pool of threads in this process (no cluster to set up).
@@ -157,3 +161,23 @@ def open_runner(scheduler=None):
         if getattr(runner, "_owns_client", False):
             runner.client.close()
         runner.close()
+
+
+@contextlib.contextmanager
+def dask_scheduler(scheduler=None, announce: Callable[[str], None] | None = None):
+    """Context manager running the ``dask`` collections computed inside it on ``scheduler``.
+
+    For the Dask-array steps (ingest, pyramid, synthesis): ``None``/``"threads"`` keeps
+    dask's default (chunkdic's embedded thread pool); anything else is opened with
+    :func:`open_runner` and its client made the current one, so the chunk writes run on its
+    workers (which must see the same file system as the client). ``announce`` receives one
+    line naming the cluster and its dashboard.
+    """
+    if scheduler is None or scheduler == "threads":
+        yield None
+        return
+    with open_runner(scheduler) as runner:
+        if announce is not None:
+            announce(f"running on {runner!r}")
+        with runner.client.as_current():
+            yield runner

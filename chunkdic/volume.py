@@ -428,13 +428,24 @@ class _Progress:
 
 
 def _compute(x, progress=None, start=0.0, end=1.0):
-    """Compute ``x``; on the local threaded scheduler use our own pool and, on failure,
-    wait for the running tasks before returning so that callers can clean up safely."""
+    """Compute the dask array ``x`` (one small block per written chunk), reporting progress.
+
+    On the local threaded scheduler use our own pool and, on failure, wait for the running
+    tasks before returning so that callers can clean up safely. On a ``distributed``
+    client, progress comes from the blocks' futures as they finish (local-scheduler
+    callbacks never fire there).
+    """
     import dask
     import dask.threaded
     from dask.base import get_scheduler
 
     sched = get_scheduler(collections=[x])
+    client = getattr(sched, "__self__", None)  # the bound ``Client.get`` of a distributed client
+    if progress is not None and client is not None:
+        from distributed import Client
+
+        if isinstance(client, Client):
+            return _compute_on_client(client, x, progress, start, end)
     with _Progress(progress, start, end):
         if sched is None or sched is dask.threaded.get:
             n = config.get("num-threads") or os.cpu_count() or 1
@@ -444,6 +455,28 @@ def _compute(x, progress=None, start=0.0, end=1.0):
             finally:
                 pool.shutdown(wait=True, cancel_futures=True)
         return dask.compute(x)[0]
+
+
+def _compute_on_client(client, x, progress, start: float, end: float) -> None:
+    """Run the blocks of ``x`` on a distributed ``client``, calling ``progress(fraction)``
+    (at most every 1 %) as their futures finish; on failure cancel what has not run."""
+    from distributed import as_completed
+
+    futures = client.compute(list(x.to_delayed().ravel()))
+    done, last = 0, -1.0
+    try:
+        for fut in as_completed(futures):
+            fut.result()  # raises the task's error here
+            done += 1
+            frac = start + (end - start) * done / len(futures)
+            if frac - last >= 0.01:
+                last = frac
+                progress(float(frac))
+    except BaseException:
+        client.cancel(futures)
+        raise
+    if last < end:
+        progress(end)
 
 
 def _store(data, path: str, key: str, progress=None, start=0.0, end=1.0) -> None:
@@ -625,7 +658,8 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     levels : int
         Number of pyramid levels to build after level 0.
     progress : callable(float), optional
-        Called with the fraction done (local schedulers).
+        Called with the fraction done (0..1), on the threaded scheduler as tasks finish
+        and on a distributed client (the current one) as the chunk writes finish.
 
     Returns
     -------

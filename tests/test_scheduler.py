@@ -24,3 +24,37 @@ def test_embedded_runner_is_the_default():
     with open_runner(None) as runner:
         assert isinstance(runner, ThreadRunner)
         assert sorted(runner.map_unordered(pow, [(3, k) for k in range(3)])) == [1, 3, 9]
+
+
+def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
+    """synth, pyramid and ingest with --scheduler local:2: same voxels as the analytic
+    texture / numpy sums / the source, and progress lines from the distributed futures."""
+    import re
+
+    import numpy as np
+
+    from chunkdic import synthetic
+    from chunkdic.cli import main
+    from chunkdic.volume import open_scan
+
+    out = tmp_path / "pair"
+    assert main(["synth", str(out), "--shape", "32", "--chunks", "8", "--dtype", "uint16", "--seed", "3",
+                 "--field", "none", "--scheduler", "local:2"]) == 0
+    err = capsys.readouterr().err
+    assert "running on dask.distributed cluster" in err and "dashboard http://127.0.0.1:" in err
+    percents = [int(p) for p in re.findall(r"synth:\s+(\d+)%", err)]
+    assert len(set(percents)) >= 5 and percents == sorted(percents) and percents[-1] == 100
+    ref = out / "ref.zarr"
+    level0 = open_scan(str(ref)).level(0).compute()
+    np.testing.assert_array_equal(level0, synthetic.render((32, 32, 32), seed=3, dtype="uint16"))
+
+    assert main(["pyramid", str(ref), "--levels", "2", "--scheduler", "local:2"]) == 0
+    err = capsys.readouterr().err
+    assert len(re.findall(r"pyramid:\s+\d+%", err)) >= 5
+    sums = level0.astype(np.int64).reshape(8, 4, 8, 4, 8, 4).sum(axis=(1, 3, 5))
+    np.testing.assert_array_equal(open_scan(str(ref)).level(2).compute(), sums)
+
+    np.save(tmp_path / "v.npy", level0)
+    assert main(["ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"), "--chunks", "8",
+                 "--scheduler", "local:2"]) == 0
+    np.testing.assert_array_equal(open_scan(str(tmp_path / "v.zarr")).level(0).compute(), level0)
