@@ -137,7 +137,7 @@ def child(n: int, workdir: Path, runs: int) -> dict:
     import tifffile  # noqa: F401
     import zarr  # noqa: F401
 
-    from chunkdic.volume import _coarsen_block
+    from chunkdic.coarsen import _coarsen_block
 
     _coarsen_block(np.zeros((4, 4, 4), np.uint8), np.uint16)  # numba import + cached kernel load
 

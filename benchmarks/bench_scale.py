@@ -230,6 +230,22 @@ def _print_event(event: dict) -> None:
         print("   " + line, flush=True)
 
 
+def _fraction_printer(step: str):
+    """``progress(fraction)`` callback printing every 10 % with the elapsed time and an ETA."""
+    t0, next_ = time.perf_counter(), [0.1]
+
+    def report(frac: float) -> None:
+        if frac + 1e-9 < next_[0]:
+            return
+        dt = time.perf_counter() - t0
+        eta = dt * (1 - frac) / frac if frac > 0 else math.nan
+        print(f"   {step}: {frac:4.0%} ({dt:.0f} s, about {eta:.0f} s left)", flush=True)
+        while next_[0] <= frac + 1e-9:
+            next_[0] += 0.1
+
+    return report
+
+
 def _voxel_passes(events: list[dict]) -> tuple[int, dict]:
     """Voxels processed by the correlation: per level, ROI voxels x passes (M, rigid, b)."""
     per_level: dict[int, dict] = {}
@@ -379,11 +395,12 @@ def main(argv=None) -> dict:
         else:
             with mon.stage("synthesize", voxels=2 * n**3) as row:
                 paths = synthetic.synthesize(pair_dir, (n,) * 3, field=field, seed=args.seed, dtype=args.dtype,
-                                             levels=0, overwrite=True, **_texture(args))
+                                             levels=0, overwrite=True, progress=_fraction_printer("synthesize"),
+                                             **_texture(args))
                 row["disk"] = _du(pair_dir)
         with mon.stage("pyramid", voxels=2 * n**3, levels=top) as row:
             for key in ("reference", "deformed"):
-                chunkdic.build_pyramid(paths[key], top)
+                chunkdic.build_pyramid(paths[key], top, progress=_fraction_printer(f"pyramid {key}"))
             row["disk"] = _du(pair_dir)
         events: list[dict] = []
 

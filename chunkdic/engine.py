@@ -28,6 +28,7 @@ from .errors import InputError
 from .mesh import Block, Mesh, transfer
 from .prefilter import Coefficients, build_coefficients, reachable_box
 from .checkpoint import Checkpoint, fingerprint, refuse_existing
+from .haloed import HaloedBlocks
 from .result import HISTORY_FIELDS, Result
 from .rigid import translation_task
 from .scheduler import open_runner
@@ -188,27 +189,30 @@ def _halo_region(start, shape, full_shape, halo: int = 1):
     return tuple(region), tuple(lo), tuple(hi)
 
 
-def _read_f(f_ref: ArrayRef, start, shape):
+def m_task(f_ref: ArrayRef, ell: int, block: Block, start, shape, copy: HaloedBlocks, index):
+    """Task: this block's share of ``M`` (a nodal stencil) and the min/max of ``f``.
+
+    Also keeps the block's haloed ``f`` as chunk ``index`` of ``copy`` for the ``b`` passes.
+    """
     region, lo, hi = _halo_region(start, shape, f_ref.shape)
-    return f_ref.read(region).astype(np.float32, copy=False), lo, hi
-
-
-def m_task(f_ref: ArrayRef, ell: int, block: Block, start, shape):
-    """Task: this block's share of ``M`` (a nodal stencil) and the min/max of ``f``."""
-    f, lo, hi = _read_f(f_ref, start, shape)
-    stencil, fmin, fmax = kernels.m_block(f, lo, hi, ell)
+    raw = f_ref.read(region)
+    copy.write(index, raw)
+    stencil, fmin, fmax = kernels.m_block(raw.astype(np.float32, copy=False), lo, hi, ell)
     return block, stencil, fmin, fmax
 
 
 def b_task(f_ref: ArrayRef, g_ref: ArrayRef, ell: int, block: Block, start, shape,
-           u_block: np.ndarray, interpolation: str, halo: int, coefficients: Coefficients | None):
+           u_block: np.ndarray, interpolation: str, halo: int, coefficients: Coefficients | None,
+           copy: HaloedBlocks, index):
     """Task: this block's share of ``b``, ``Σ r²`` and the valid/excluded voxel counts.
 
+    ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass.
     With cubic interpolation the window of ``g`` comes from the level's prefiltered
     ``coefficients`` when they cover it, else it is read raw with a halo and prefiltered
     here (same result to float32 precision, see :mod:`chunkdic.prefilter`).
     """
-    f, lo, hi = _read_f(f_ref, start, shape)
+    region, lo, hi = _halo_region(start, shape, f_ref.shape)
+    f = copy.read(index, tuple(r.stop - r.start for r in region)).astype(np.float32, copy=False)
     window = kernels.g_window(start, shape, u_block, g_ref.shape, interpolation=interpolation)
     if any(s.stop <= s.start for s in window):
         b = np.zeros(u_block.shape[1:] + (3,))
@@ -245,7 +249,9 @@ class _Level:
         ell = mesh.element_size
         m = settings.block_elements or max(1, config.get("block-voxels") // ell)
         self.blocks = mesh.blocks(m)
+        self.block_index = {blk: tuple(e0 // m for e0, _ in blk.elements) for blk in self.blocks}
         self.halo = int(config.get("bspline-halo"))
+        self.f_copy = None
 
     def _map(self, fn, args, label: str):
         """Run one task per block, yield results as they come, report long passes.
@@ -272,7 +278,9 @@ class _Level:
         # Each block's partial is summed in float64 by its task.
         S = np.zeros(mesh.nodes_shape + (27, 3, 3), dtype=np.float32)
         fmin, fmax = np.inf, -np.inf
-        args = [(self.f_ref, mesh.element_size, blk, *mesh.block_core(blk)) for blk in self.blocks]
+        self.f_copy = self._create_f_copy()
+        args = [(self.f_ref, mesh.element_size, blk, *mesh.block_core(blk), self.f_copy, self.block_index[blk])
+                for blk in self.blocks]
         for blk, part, lo, hi in self._map(m_task, args, "M"):
             S[blk.node_slices] += part
             fmin, fmax = min(fmin, lo), max(fmax, hi)
@@ -283,6 +291,13 @@ class _Level:
         self.rigid_matrix = S.sum(axis=(0, 1, 2, 3), dtype=np.float64)
         self.solver = StencilSolver(S)
         self._warn_weak_nodes()
+
+    def _create_f_copy(self) -> HaloedBlocks:
+        """Empty store for the blocks' haloed ``f`` (see :mod:`chunkdic.haloed`)."""
+        grid = tuple(max(i[a] for i in self.block_index.values()) + 1 for a in range(3))
+        regions = [_halo_region(*self.mesh.block_core(blk), self.f_ref.shape)[0] for blk in self.blocks]
+        chunk = tuple(max(r[a].stop - r[a].start for r in regions) for a in range(3))
+        return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, self.f_ref.dtype)
 
     def _warn_weak_nodes(self) -> None:
         weak = self.solver.weak_nodes
@@ -317,13 +332,20 @@ class _Level:
                                                local=self.runner.local)
         log.info("level %d: g prefiltered over %s in %.1f s", self.s, box, time.perf_counter() - t0)
 
-    def release(self) -> None:
-        """Delete this level's scratch coefficients (and forget open handles on them)."""
+    def release(self, *, f_copy: bool = False) -> None:
+        """Delete this level's scratch coefficients and, with ``f_copy``, the haloed copy of
+        ``f`` (and forget open handles on them)."""
+        paths = []
         if self.coefficients is not None:
-            self.runner.run_everywhere(forget_open_arrays)
-            path = Path(self.coefficients.ref.path)
-            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+            paths.append(Path(self.coefficients.ref.path))
             self.coefficients = None
+        if f_copy and self.f_copy is not None:
+            paths.append(Path(self.f_copy.path))
+            self.f_copy = None
+        if paths:
+            self.runner.run_everywhere(forget_open_arrays)
+        for path in paths:
+            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
 
     def assemble_b(self, u: np.ndarray):
         """``b``, matching gap, valid and excluded voxel counts for the nodal field ``u``."""
@@ -333,7 +355,7 @@ class _Level:
         args = [
             (self.f_ref, self.g_ref, mesh.element_size, blk, *mesh.block_core(blk),
              np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), self.settings.interpolation, self.halo,
-             self.coefficients)
+             self.coefficients, self.f_copy, self.block_index[blk])
             for blk in self.blocks
         ]
         for blk, part, r2, nv, ne in self._map(b_task, args, "b"):
@@ -658,7 +680,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                       translation=rigid_fine.tolist())
             gn = _gauss_newton(lvl, gn, tol, settings, history, progress,
                                on_iteration=lambda state, s=s: save_checkpoint(state, s))
-            lvl.release()
+            lvl.release(f_copy=True)
             statuses[s] = gn.status
             save_checkpoint(gn, s)
             _emit(progress, stage="level", level=s, status=gn.status, gap=gn.gap, seconds=time.perf_counter() - t0)

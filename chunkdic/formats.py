@@ -25,7 +25,9 @@ import dask.config
 import numpy as np
 
 from .errors import InputError
-from .volume import Scan, _chunk_shape, _normalize_unit, _normalize_voxel_size, open_scan, write_scan
+from .ngff import _normalize_unit, _normalize_voxel_size
+from .store import _chunk_shape
+from .volume import Scan, open_scan, write_scan
 
 log = logging.getLogger(__name__)
 

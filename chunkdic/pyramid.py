@@ -19,17 +19,16 @@ from pathlib import Path
 
 import numpy as np
 
+from .coarsen import coarsen_sum, pyramid_dtype
 from .errors import InputError
+from .ngff import _update_group_metadata
 from .volume import (
     Scan,
     _check_levels,
     forget_open_arrays,
     _ref_dask,
-    _update_group_metadata,
     _write_level,
-    coarsen_sum,
     open_scan,
-    pyramid_dtype,
 )
 
 log = logging.getLogger(__name__)
@@ -78,7 +77,7 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
     """Add pyramid levels ``"1"``..``"levels"`` to a stored scan group.
 
     Each level is the 2x2x2 sum of the stored level below (odd sizes trimmed), in
-    :func:`chunkdic.volume.pyramid_dtype` (exact integer sums), written chunk by chunk and
+    :func:`chunkdic.coarsen.pyramid_dtype` (exact integer sums), written chunk by chunk and
     marked complete last; OME-NGFF ``scale = voxel_size * 2^s`` and
     ``translation = voxel_size * (2^s - 1) / 2`` are updated. Levels that are already
     complete and valid are kept unless ``overwrite``; an incomplete or invalid level is

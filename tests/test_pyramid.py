@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import zarr
 
+import chunkdic.store as store
 import chunkdic.volume as volume
 from chunkdic.errors import InputError
 from chunkdic.pyramid import build_pyramid
@@ -89,8 +90,8 @@ def test_interrupted_build_leaves_no_complete_level(scan_path, monkeypatch):
             raise KeyboardInterrupt("killed")
         return write(block, path, key, block_info=block_info)
 
-    write = volume._write_block
-    monkeypatch.setattr(volume, "_write_block", flaky)
+    write = store._write_block
+    monkeypatch.setattr(store, "_write_block", flaky)
     with pytest.raises(KeyboardInterrupt):
         build_pyramid(p, 3)
     g = zarr.open_group(str(p), mode="r")
@@ -99,7 +100,7 @@ def test_interrupted_build_leaves_no_complete_level(scan_path, monkeypatch):
     assert open_scan(str(p)).stored_levels() == [0, 1]
     ms = g.attrs["ome"]["multiscales"][0]
     assert [d["path"] for d in ms["datasets"]] == ["0", "1"]
-    monkeypatch.setattr(volume, "_write_block", write)
+    monkeypatch.setattr(store, "_write_block", write)
     scan = build_pyramid(p, 3)
     assert scan.stored_levels() == [0, 1, 2, 3]
     np.testing.assert_array_equal(scan.level(3).compute(), block_sums(x, 3))

@@ -10,16 +10,10 @@ import numpy as np
 import pytest
 import zarr
 
+from chunkdic.coarsen import coarsen_sum, pyramid_dtype
 from chunkdic.errors import InputError
-from chunkdic.volume import (
-    ArrayRef,
-    _store,
-    check_write_alignment,
-    coarsen_sum,
-    open_scan,
-    pyramid_dtype,
-    write_scan,
-)
+from chunkdic.store import _store, check_write_alignment
+from chunkdic.volume import ArrayRef, open_scan, write_scan
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:
@@ -61,7 +55,7 @@ def test_coarsen_sum_equals_numpy(shape):
 @pytest.mark.parametrize("src, out", [("uint8", "uint16"), ("uint16", "uint32"), ("int16", "int32"),
                                       ("uint32", "uint32"), ("float32", "float32")])
 def test_numba_kernel_equals_numpy_twin(src, out):
-    from chunkdic.volume import _coarsen_block, _coarsen_block_numpy
+    from chunkdic.coarsen import _coarsen_block, _coarsen_block_numpy
 
     rng = np.random.default_rng(3)
     if np.dtype(src).kind == "f":

@@ -1,0 +1,153 @@
+"""OME-NGFF 0.5 metadata of a scan group: units, voxel sizes, ``multiscales``.
+
+Units are stored with their OME-NGFF (UDUNITS-2) names (``"um"`` is accepted and becomes
+``"micrometer"``). The group's ``multiscales`` list only the complete levels ``0..k``; the
+voxel size is read back from ``attrs["chunkdic"]``, else from the NGFF scale transforms of
+a group written by another tool.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+
+# OME-NGFF space units (UDUNITS-2 names) and the spellings users type.
+_SPACE_UNITS = {
+    "angstrom", "attometer", "centimeter", "decimeter", "exameter", "femtometer", "foot",
+    "gigameter", "hectometer", "inch", "kilometer", "megameter", "meter", "micrometer",
+    "mile", "millimeter", "nanometer", "parsec", "petameter", "picometer", "terameter",
+    "yard", "yoctometer", "yottameter", "zeptometer", "zettameter",
+}
+_UNIT_ALIASES = {
+    "um": "micrometer", "µm": "micrometer", "μm": "micrometer", "micron": "micrometer",
+    "microns": "micrometer", "micrometre": "micrometer", "mm": "millimeter",
+    "millimetre": "millimeter", "nm": "nanometer", "nanometre": "nanometer",
+    "cm": "centimeter", "m": "meter", "metre": "meter", "a": "angstrom", "å": "angstrom",
+    "pm": "picometer",
+}
+
+
+def _normalize_unit(unit) -> str | None:
+    """Return the OME-NGFF spelling of ``unit`` (``"um"`` -> ``"micrometer"``)."""
+    if unit is None:
+        return None
+    u = str(unit).strip()
+    if not u:
+        return None
+    low = u.lower()
+    low = _UNIT_ALIASES.get(low, low)
+    if low not in _SPACE_UNITS:
+        raise InputError(
+            f"unknown length unit {unit!r}: use an OME-NGFF unit such as micrometer, "
+            "millimeter or nanometer (um, mm, nm also accepted)"
+        )
+    return low
+
+
+def _normalize_voxel_size(voxel_size) -> tuple[float, float, float] | None:
+    """``4.9`` or ``(vz, vy, vx)`` -> a tuple of 3 positive floats (or ``None``)."""
+    if voxel_size is None:
+        return None
+    if isinstance(voxel_size, str):
+        voxel_size = [v for v in voxel_size.replace(" ", ",").split(",") if v]
+    try:
+        values = [float(v) for v in np.atleast_1d(np.asarray(voxel_size, dtype=object))]
+    except (TypeError, ValueError):
+        raise InputError(f"voxel size {voxel_size!r} is not a number or 3 numbers (z,y,x)") from None
+    if len(values) == 1:
+        values = values * 3
+    if len(values) != 3 or not all(np.isfinite(v) and v > 0 for v in values):
+        raise InputError(f"voxel size {voxel_size!r} must be one positive number or 3 (z,y,x)")
+    return tuple(values)
+
+
+def _ngff_attrs(levels, voxel_size, unit, name) -> dict:
+    vs = voxel_size or (1.0, 1.0, 1.0)
+    axes = []
+    for ax in "zyx":
+        a = {"name": ax, "type": "space"}
+        if unit and voxel_size is not None:
+            a["unit"] = unit
+        axes.append(a)
+    datasets = []
+    for s in levels:
+        f = 2**s
+        datasets.append({
+            "path": str(s),
+            "coordinateTransformations": [
+                {"type": "scale", "scale": [v * f for v in vs]},
+                {"type": "translation", "translation": [v * (f - 1) / 2 for v in vs]},
+            ],
+        })
+    return {
+        "version": "0.5",
+        "multiscales": [{
+            "name": name,
+            "axes": axes,
+            "datasets": datasets,
+            "type": "sum",
+            "metadata": {
+                "description": "level s is the sum over 2^s voxels per axis of level 0 (odd trailing voxels "
+                               "trimmed); voxel centre of level s at level-0 coordinate 2^s*j + (2^s-1)/2",
+                "method": "chunkdic.coarsen.coarsen_sum",
+            },
+        }],
+    }
+
+
+def _complete_levels(group) -> list[int]:
+    out = []
+    for name in sorted((k for k in group.array_keys() if k.isdigit()), key=int):
+        info = group[name].attrs.get("chunkdic") or {}
+        if info.get("complete") is True:
+            out.append(int(name))
+    return out
+
+
+def _update_group_metadata(path: str) -> None:
+    """Rewrite the NGFF ``multiscales`` of group ``path`` to list its complete levels 0..k."""
+    import zarr
+
+    g = zarr.open_group(store=path, mode="r+")
+    info = dict(g.attrs.get("chunkdic") or {})
+    complete = _complete_levels(g)
+    levels = []
+    for s in complete:
+        if s != len(levels):
+            break
+        levels.append(s)
+    vs = info.get("voxel_size")
+    attrs = {"chunkdic": info}
+    if levels:
+        attrs["ome"] = _ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), Path(path).name)
+    else:
+        attrs["ome"] = {"version": "0.5"}
+    g.update_attributes(attrs)
+
+
+def _voxel_from_group_attrs(attrs) -> tuple:
+    info = attrs.get("chunkdic") or {}
+    if "voxel_size" in info:
+        vs = info.get("voxel_size")
+        return (tuple(float(v) for v in vs) if vs else None), info.get("unit")
+    ome = attrs.get("ome") or {}
+    ms = ome.get("multiscales") or attrs.get("multiscales")
+    if not ms:
+        return None, None
+    try:
+        m = ms[0]
+        scale = np.ones(3)
+        for t in m["datasets"][0].get("coordinateTransformations", []):
+            if t.get("type") == "scale":
+                scale = scale * np.asarray(t["scale"], float)[-3:]
+        for t in m.get("coordinateTransformations", []) or []:
+            if t.get("type") == "scale":
+                scale = scale * np.asarray(t["scale"], float)[-3:]
+        units = {a.get("unit") for a in m.get("axes", [])[-3:] if isinstance(a, dict)}
+        unit = units.pop() if len(units) == 1 else None
+        return tuple(float(v) for v in scale), unit
+    except (KeyError, IndexError, TypeError, ValueError):
+        return None, None
