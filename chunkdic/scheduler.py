@@ -66,10 +66,14 @@ class DistributedRunner:
     def __init__(self, client, cluster=None):
         self.client = client
         self._cluster = cluster
-        # a cluster we started ourselves runs on this machine; any other may span hosts
-        self.local = cluster is not None
         self.dashboard_link = getattr(client, "dashboard_link", None)
         info = client.scheduler_info()
+        # Tasks run on this machine (so scratch arrays may be memory-mapped files) when we
+        # started the cluster, or when its scheduler and every worker listen on loopback
+        # (a worker elsewhere could not reach a loopback scheduler); otherwise they may
+        # span hosts.
+        self.local = cluster is not None or all(
+            _on_loopback(a) for a in [client.scheduler.address, *info["workers"]])
         self.n_workers = max(1, sum(w.get("nthreads", 1) for w in info["workers"].values()))
 
     def map_unordered(self, fn: Callable, args: Iterable[tuple]) -> Iterator[Any]:
@@ -95,6 +99,20 @@ class DistributedRunner:
 
     def __repr__(self) -> str:
         return f"dask.distributed cluster ({self.n_workers} threads), dashboard {self.dashboard_link}"
+
+
+def _on_loopback(address: str) -> bool:
+    """Whether a Dask address (``tcp://127.0.0.1:8786``, ``inproc://…``) is on this host only."""
+    import ipaddress
+    from urllib.parse import urlparse
+
+    if address.startswith("inproc://"):
+        return True
+    host = urlparse(address).hostname or ""
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
 
 
 def start_local_cluster(n_workers: int | None = None, threads_per_worker: int = 1):

@@ -58,3 +58,16 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
     assert main(["ingest", str(tmp_path / "v.npy"), str(tmp_path / "v.zarr"), "--chunks", "8",
                  "--scheduler", "local:2"]) == 0
     np.testing.assert_array_equal(open_scan(str(tmp_path / "v.zarr")).level(0).compute(), level0)
+
+
+def test_a_given_client_is_local_only_when_everything_is_on_loopback():
+    from distributed import Client, LocalCluster
+
+    from chunkdic.scheduler import _on_loopback
+
+    assert _on_loopback("tcp://127.0.0.1:8786") and _on_loopback("tls://localhost:1")
+    assert not _on_loopback("tcp://10.0.0.5:8786") and not _on_loopback("tcp://node12:8786")
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address="127.0.0.1:0") as cluster, Client(cluster) as client:
+        with open_runner(client) as runner:
+            assert runner.local

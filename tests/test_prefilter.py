@@ -1,0 +1,26 @@
+"""B-spline coefficients prefiltered once per level: equal to a whole-volume prefilter."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.ndimage as ndi
+
+from chunkdic.prefilter import build_coefficients
+from chunkdic.scheduler import open_runner
+from chunkdic.volume import ArrayRef
+
+
+@pytest.mark.parametrize("local", [True, False], ids=["memory-mapped", "zarr"])
+def test_coefficients_equal_whole_volume_prefilter(tmp_path, noise64, local):
+    np.save(tmp_path / "g.npy", noise64)
+    g = ArrayRef("npy", str(tmp_path / "g.npy"), "", noise64.shape, "float32")
+    box = ((5, 64), (0, 64), (10, 50))  # touches the volume's faces on some sides only
+    with open_runner(None) as runner:
+        coeffs = build_coefficients(g, box, tmp_path / "c", runner, halo=12, local=local)
+    assert coeffs.ref.kind == ("npy" if local else "zarr")
+    whole = ndi.spline_filter(noise64.astype(np.float64), order=3, mode="mirror")
+    window = (slice(5, 64), slice(0, 64), slice(10, 50))
+    assert coeffs.covers(window) and not coeffs.covers((slice(4, 10),) + window[1:])
+    span = float(noise64.max() - noise64.min())
+    np.testing.assert_allclose(coeffs.read(window), whole[window], rtol=0, atol=1e-6 * span)
