@@ -1,0 +1,107 @@
+"""Client memory and solve time of a full-resolution 2048³ correlation, without the scans.
+
+The client of a correlation never touches voxels: it receives mesh-sized partial sums
+from the block tasks, adds them into the nodal stencil of ``M`` (float32), builds the
+block-Jacobi preconditioner and solves. Its memory is therefore set by the mesh, and it
+can be measured on the real client code (``engine._Level.assemble_m`` and the solver)
+with the tasks replaced by a stand-in runner that returns, for every block, the stencil
+of a random texture block of the right shape (computed once per shape by the real
+``kernels.m_block``; ``f`` is never read and no scan is needed).
+
+Prints, for each ``--size`` (level-0 edge, ``--element-size`` on level 0): nodes, blocks,
+assembly and preconditioner time, the time and CG iterations of ``--solves`` solves with
+a random right-hand side, and the client's peak RSS (``VmHWM``). The default, 2048 with
+ell 16, is the mesh of a level-0 run of the scale benchmark (128³ nodes).
+
+Usage::
+
+    python benchmarks/bench_client_memory.py --sizes 1024 2048
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _hwm_mib() -> float:
+    with open("/proc/self/status") as fh:
+        return int(re.search(r"VmHWM:\s+(\d+)\s+kB", fh.read()).group(1)) / 1024
+
+
+class _StandInRunner:
+    """Runs no task: returns each block's stencil from a random block of the same shape."""
+
+    local = True
+
+    def __init__(self, seed: int = 0):
+        import numpy as np
+
+        self._rng = np.random.default_rng(seed)
+        self._cache: dict = {}
+
+    def map_unordered(self, fn, args):
+        from chunkdic import kernels
+
+        for f_ref, ell, blk, start, shape, _copy, _index in args:
+            key = tuple(shape)
+            if key not in self._cache:
+                f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in shape)).astype("float32")
+                self._cache[key] = kernels.m_block(f, (1, 1, 1), (1, 1, 1), ell)
+            stencil, fmin, fmax = self._cache[key]
+            yield blk, stencil, fmin, fmax
+
+    def run_everywhere(self, fn):
+        fn()
+
+
+def _child(size: int, ell: int, solves: int) -> None:
+    import numpy as np
+
+    from chunkdic.engine import Settings, _Level, plan_meshes
+    from chunkdic.volume import ArrayRef
+
+    mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
+    f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened
+    with tempfile.TemporaryDirectory() as scratch:
+        lvl = _Level(0, mesh, f_ref, f_ref, _StandInRunner(), Settings(element_size=ell), Path(scratch))
+        t0 = time.perf_counter()
+        lvl.assemble_m()
+        t_m = time.perf_counter() - t0
+        rng = np.random.default_rng(1)
+        times, its = [], []
+        for _ in range(solves):
+            b = rng.normal(size=mesh.nodes_shape + (3,))
+            t0 = time.perf_counter()
+            _, it = lvl.solver.solve(b)
+            times.append(time.perf_counter() - t0)
+            its.append(it)
+    nodes = int(np.prod(mesh.nodes_shape))
+    print(f"{size:>6} {ell:>4} {nodes:>10} {len(lvl.blocks):>7} {t_m:>12.1f} {statistics.median(times):>9.2f} "
+          f"{statistics.median(its):>6.0f} {_hwm_mib():>14.0f}", flush=True)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--sizes", type=int, nargs="+", default=[2048])
+    p.add_argument("--element-size", type=int, default=16)
+    p.add_argument("--solves", type=int, default=3)
+    p.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        _child(args.child, args.element_size, args.solves)
+        return
+    print("  size  ell      nodes  blocks  M assembly s   solve s  CG it  client peak MiB")
+    for size in args.sizes:  # one process per size: each peak is its own
+        subprocess.run([sys.executable, __file__, "--child", str(size), "--element-size", str(args.element_size),
+                        "--solves", str(args.solves)], check=True)
+
+
+if __name__ == "__main__":
+    main()
