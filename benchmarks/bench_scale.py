@@ -319,12 +319,22 @@ def _texture(args) -> dict:
     return {"cell_size": 8.0 * k, "bead_size": 64.0 * k, "wall_width": 2.5 * k, "skin_width": 4.0 * k}
 
 
-def _check_disk(workdir: Path, size: int, itemsize: int, force: bool) -> None:
+def _check_disk(workdir: Path, args, reuse: bool) -> None:
+    import numpy as np
+
+    from chunkdic.coarsen import pyramid_dtype
+
+    size = args.size
     # level 0 of two scans uncompressed, plus the pyramids (levels 1.. in 4-byte sums: 1/2, 1/16...)
-    need = 2 * size**3 * (itemsize + 4 / 8 * 8 / 7)
+    scans = 0 if reuse else 2 * size**3 * (np.dtype(args.dtype).itemsize + 4 / 8 * 8 / 7)
+    # the correlation's scratch on its finest level, at most the whole level: the float32
+    # B-spline coefficients of g and the haloed copy of f (the level's dtype)
+    scratch = (size >> args.level) ** 3 * (4 + pyramid_dtype(args.dtype, args.level).itemsize)
+    need = scans + scratch
     free = shutil.disk_usage(workdir).free
-    print(f"# disk: up to {_fmt_bytes(need)} needed (uncompressed estimate), {_fmt_bytes(free)} free in {workdir}")
-    if need > 0.9 * free and not force:
+    print(f"# disk: up to {_fmt_bytes(need)} needed (uncompressed estimate: scans {_fmt_bytes(scans)}, "
+          f"scratch {_fmt_bytes(scratch)}), {_fmt_bytes(free)} free in {workdir}")
+    if need > 0.9 * free and not args.force:
         sys.exit(f"not enough free disk in {workdir} for a {size}^3 pair: pass --workdir elsewhere or --force")
 
 
@@ -371,12 +381,12 @@ def main(argv=None) -> dict:
     n = args.size
     workdir = Path(args.workdir)
     workdir.mkdir(parents=True, exist_ok=True)
-    _check_disk(workdir, n, np.dtype(args.dtype).itemsize, args.force)
     run_dir = workdir / f"scale{n}"
     pair_dir, result_path, report_dir = run_dir / "pair", run_dir / "result.zarr", run_dir / "report"
     c = (n - 1) / 2.0
     field = synthetic.Band(center_z=c, width=n / 4.0, strain=-0.05, lateral=0.3, center_y=c, center_x=c)
     reuse = args.reuse and _same_pair(pair_dir, field, n, args)
+    _check_disk(workdir, args, reuse)
     if run_dir.exists():
         for q in ([result_path, report_dir] if reuse else [run_dir]):
             shutil.rmtree(q, ignore_errors=True)

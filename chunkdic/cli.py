@@ -55,7 +55,7 @@ def _format_event(event: dict) -> str | None:
             f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)"
         )
     if stage == "blocks":
-        return (f"  level {event['level']} {event['label']} pass: {event['done']}/{event['total']} blocks, "
+        return (f"  level {event['level']} {event['label']}: {event['done']}/{event['total']} blocks, "
                 f"{event['rate'] / 1e6:.1f} Mvoxel/s, ETA {event['eta']:.0f} s")
     if stage == "resume":
         return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"

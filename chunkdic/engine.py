@@ -253,14 +253,15 @@ class _Level:
         self.halo = int(config.get("bspline-halo"))
         self.f_copy = None
 
-    def _map(self, fn, args, label: str):
+    def _map(self, fn, args, label: str, voxels: int | None = None):
         """Run one task per block, yield results as they come, report long passes.
 
         A pass that lasts more than ``PROGRESS_SECONDS`` emits ``stage="blocks"`` events
         (done/total, voxel rate, ETA) at that interval, for a person at a terminal.
+        ``voxels``: what the tasks cover together (default: the mesh's ROI).
         """
         total = len(args)
-        voxels_per_block = self.mesh.n_voxels / max(total, 1)
+        voxels_per_block = (self.mesh.n_voxels if voxels is None else voxels) / max(total, 1)
         t0 = last = time.perf_counter()
         for done, result in enumerate(self.runner.map_unordered(fn, args), start=1):
             yield result
@@ -281,7 +282,7 @@ class _Level:
         self.f_copy = self._create_f_copy()
         args = [(self.f_ref, mesh.element_size, blk, *mesh.block_core(blk), self.f_copy, self.block_index[blk])
                 for blk in self.blocks]
-        for blk, part, lo, hi in self._map(m_task, args, "M"):
+        for blk, part, lo, hi in self._map(m_task, args, "M pass"):
             S[blk.node_slices] += part
             fmin, fmax = min(fmin, lo), max(fmax, hi)
         self.dynamic_range = float(fmax - fmin)
@@ -328,8 +329,11 @@ class _Level:
         self._builds += 1
         path = self.scratch / f"bspline-level{self.s}-{self._builds}.zarr"
         t0 = time.perf_counter()
-        self.coefficients = build_coefficients(self.g_ref, box, path, self.runner, halo=self.halo,
-                                               local=self.runner.local)
+        voxels = int(np.prod([b - a for a, b in box]))
+        self.coefficients = build_coefficients(
+            self.g_ref, box, path, self.runner, halo=self.halo, local=self.runner.local,
+            map_tasks=lambda fn, args: self._map(fn, args, "prefilter of g", voxels),
+        )
         log.info("level %d: g prefiltered over %s in %.1f s", self.s, box, time.perf_counter() - t0)
 
     def release(self, *, f_copy: bool = False) -> None:
@@ -358,7 +362,7 @@ class _Level:
              self.coefficients, self.f_copy, self.block_index[blk])
             for blk in self.blocks
         ]
-        for blk, part, r2, nv, ne in self._map(b_task, args, "b"):
+        for blk, part, r2, nv, ne in self._map(b_task, args, "b pass"):
             b[blk.node_slices] += part
             ssr += r2
             n_valid += nv

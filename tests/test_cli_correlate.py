@@ -80,11 +80,14 @@ def test_no_traceback_from_the_installed_command(pair, tmp_path):
 
 
 def test_long_passes_report_blocks_rate_and_eta(pair, tmp_path, capsys, monkeypatch):
-    from chunkdic import engine
+    from chunkdic import engine, prefilter
 
     monkeypatch.setattr(engine, "PROGRESS_SECONDS", 0.0)  # every block counts as "long"
+    monkeypatch.setattr(prefilter, "TASK_EDGE", 16)  # several prefilter tasks on this small pair
     argv = ["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(tmp_path / "r.zarr"),
             "--element-size", "8", "--block-elements", "2"]
     assert main(argv) == 0
-    lines = [ln for ln in capsys.readouterr().err.splitlines() if " pass: " in ln]
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if "blocks, " in ln]
     assert any("level 0 b pass: 1/27 blocks" in ln and "Mvoxel/s, ETA" in ln for ln in lines), lines
+    assert any("level 0 M pass: 1/27 blocks" in ln for ln in lines), lines
+    assert any("level 0 prefilter of g: 1/" in ln and "Mvoxel/s, ETA" in ln for ln in lines), lines
