@@ -82,7 +82,13 @@ class DistributedRunner:
         args = list(args)
         if not args:
             return
-        futures = self.client.map(fn, *zip(*args), pure=False)
+        import dask
+
+        # Each task carries its own slice of the nodal field: at 128³ nodes a pass's graph
+        # is ~70 MB, sent once per pass, which the client has to send anyway. distributed
+        # would warn about it (above 10 MB) on every pass.
+        with dask.config.set({"distributed.admin.large-graph-warning-threshold": "2GB"}):
+            futures = self.client.map(fn, *zip(*args), pure=False)
         try:
             for _, result in as_completed(futures, with_results=True):
                 yield result

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import warnings
 from urllib.parse import urlparse
+
+import numpy as np
 
 from chunkdic.scheduler import ThreadRunner, open_runner
 
@@ -60,7 +63,11 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
     np.testing.assert_array_equal(open_scan(str(tmp_path / "v.zarr")).level(0).compute(), level0)
 
 
-def test_a_given_client_is_local_only_when_everything_is_on_loopback():
+def _sum(a):
+    return float(a.sum())
+
+
+def test_a_given_client_runs_tasks_and_is_local_only_when_everything_is_on_loopback():
     from distributed import Client, LocalCluster
 
     from chunkdic.scheduler import _on_loopback
@@ -71,3 +78,9 @@ def test_a_given_client_is_local_only_when_everything_is_on_loopback():
                       dashboard_address="127.0.0.1:0") as cluster, Client(cluster) as client:
         with open_runner(client) as runner:
             assert runner.local
+            # tasks carrying 12.6 MB of nodal slices in all (a pass at 128³ nodes sends
+            # ~70 MB) must not make distributed warn about a large graph on every pass
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                got = sorted(runner.map_unordered(_sum, [(np.full(65536, i, float),) for i in range(24)]))
+            assert got == [65536.0 * i for i in range(24)]
