@@ -3,6 +3,11 @@
 The engine only needs one operation, ``map_unordered``: run a function over many small
 argument tuples and hand back the results as they complete, so that the client can add
 mesh-sized partial results into its totals (a streaming reduction) and count progress.
+
+Both runners forget each result once it has been handed over. The ``M`` pass's partials
+are 1.4 MB per block (float64 stencil of 9³ nodes), 5.8 GB over the 4096 blocks of a
+level-0 2048³ run with ``ell = 16``; keeping the finished futures until the end of the
+pass held them all, 3 GB on each of two workers.
 """
 
 from __future__ import annotations
@@ -38,12 +43,16 @@ class ThreadRunner:
         self.local = True  # tasks run on this machine
 
     def map_unordered(self, fn: Callable, args: Iterable[tuple]) -> Iterator[Any]:
-        futures = [self._pool.submit(fn, *a) for a in args]
+        # Each result is handed over and forgotten (module docstring).
+        pending = {self._pool.submit(fn, *a) for a in args}
         try:
-            for fut in concurrent.futures.as_completed(futures):
-                yield fut.result()
+            for fut in concurrent.futures.as_completed(pending):
+                pending.discard(fut)
+                result = fut.result()
+                del fut
+                yield result
         finally:
-            for fut in futures:
+            for fut in pending:
                 fut.cancel()
 
     def run_everywhere(self, fn: Callable) -> None:
@@ -89,11 +98,18 @@ class DistributedRunner:
         # would warn about it (above 10 MB) on every pass.
         with dask.config.set({"distributed.admin.large-graph-warning-threshold": "2GB"}):
             futures = self.client.map(fn, *zip(*args), pure=False)
+        # Each result is released on the workers as soon as it is received (module docstring).
+        pending = set(futures)
+        done = as_completed(futures, with_results=True)
+        del futures
         try:
-            for _, result in as_completed(futures, with_results=True):
+            for fut, result in done:
+                pending.discard(fut)
+                fut.release()
+                del fut
                 yield result
         finally:
-            self.client.cancel(futures)
+            self.client.cancel(list(pending))
 
     def run_everywhere(self, fn: Callable) -> None:
         self.client.run(fn)
