@@ -331,8 +331,8 @@ class _Level:
         t0 = time.perf_counter()
         voxels = int(np.prod([b - a for a, b in box]))
         self.coefficients = build_coefficients(
-            self.g_ref, box, path, self.runner, halo=self.halo, local=self.runner.local,
-            map_tasks=lambda fn, args: self._map(fn, args, "prefilter of g", voxels),
+            self.g_ref, box, path, lambda fn, args: self._map(fn, args, "prefilter of g", voxels),
+            halo=self.halo, local=self.runner.local,
         )
         log.info("level %d: g prefiltered over %s in %.1f s", self.s, box, time.perf_counter() - t0)
 

@@ -77,12 +77,12 @@ def prefilter_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int) -> in
     return int(np.prod([r.stop - r.start for r in region]))
 
 
-def build_coefficients(g_ref: ArrayRef, box, path: Path, runner, *, halo: int, local: bool,
-                       map_tasks=None) -> Coefficients:
-    """Prefilter ``box`` of ``g`` into a new float32 array at ``path``, on the runner.
+def build_coefficients(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, local: bool) -> Coefficients:
+    """Prefilter ``box`` of ``g`` into a new float32 array at ``path``.
 
-    ``map_tasks(fn, args)``, if given, runs the tasks instead of ``runner.map_unordered``
-    (the engine passes one that reports progress: at level 0 of 2048³ this is 8.6 G voxels).
+    ``map_tasks(fn, args)`` runs the tasks and yields their results: a runner's
+    ``map_unordered``, or the engine's wrapper of it that reports progress (at level 0 of
+    2048³ this is 8.6 G voxels).
 
     ``local``: every task runs on this machine, so the store is a memory-mapped ``.npy``
     file, whose windows read 3-4x cheaper than from Zarr chunks (no chunk assembly; it
@@ -105,6 +105,6 @@ def build_coefficients(g_ref: ArrayRef, box, path: Path, runner, *, halo: int, l
         tuple(slice(s, min(s + TASK_EDGE, b)) for s, (_, b) in zip(corner, box))
         for corner in ((z, y, x) for z in starts[0] for y in starts[1] for x in starts[2])
     ]
-    for _ in (map_tasks or runner.map_unordered)(prefilter_task, [(g_ref, out, box, r, halo) for r in regions]):
+    for _ in map_tasks(prefilter_task, [(g_ref, out, box, r, halo) for r in regions]):
         pass
     return Coefficients(out, box)
