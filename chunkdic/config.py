@@ -27,6 +27,12 @@ DEFAULTS = {
         "scratch-directory": None,
         # Number of threads of the embedded scheduler (None: all cores).
         "num-threads": None,
+        # A correlation whose final pass excludes more than this fraction of the ROI's
+        # voxels (X + u(X) outside the deformed scan) is reported "excluded", not converged.
+        "max-excluded-fraction": 0.2,
+        # A node whose elements hold fewer valid voxels than this fraction of one element
+        # has no data: NaN in the result, flagged.
+        "min-node-support": 0.1,
     }
 }
 

@@ -28,7 +28,8 @@ from .gauss_newton import History, State, iterate, rigid_step
 from .level import Level, emit
 from .mesh import transfer
 from .planning import parse_roi, plan_meshes
-from .result import Result
+from .prefilter import face_margin
+from .result import FLAG_NO_DATA, FLAG_WEAK, Result
 from .rigid import translation_task
 from .scheduler import open_runner
 from .settings import Settings
@@ -96,7 +97,8 @@ def correlate(
         refuse_existing(output)  # early: before any input is opened
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
     meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi,
-                         level=settings.level, coarsest=settings.coarsest)
+                         level=settings.level, coarsest=settings.coarsest,
+                         min_margin=face_margin(settings.smoothing))
     levels = sorted(meshes, reverse=True)
     for s in levels:
         if min(g_scan.shape(s)) < 2:
@@ -150,6 +152,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
     statuses: dict[int, str] = {}
     rigid_t = initial_gap = rigid_gap = None
     state = None
+    weak = []  # poorly textured nodes of the finest level
     history = History()
     if resume is not None:
         history = History(resume["history"])
@@ -177,24 +180,28 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         tol = settings.tolerance if s == finest else settings.coarse_tolerance
         if state is None or state.status is None:
             t0, c0 = time.perf_counter(), time.process_time()
+            if state is not None:
+                start = state.u  # resumed
+            elif s == coarsest:
+                t_int = run_one(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))
+                start = _uniform(t_int, mesh)
+            else:
+                start = transfer(u, meshes[s + 1], s + 1, mesh, s)
             lvl = Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress)
-            lvl.assemble_m()
+            lvl.assemble_m(start)
             emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
             if state is None:
                 if s == coarsest:
-                    t_int = run_one(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))
-                    lvl.prepare_interpolation(_uniform(t_int, mesh))
+                    lvl.prepare_interpolation(start)
                     rigid_t = rigid_step(lvl, t_int, tol, 10, history, progress)
-                    u = _uniform(rigid_t, mesh)
-                else:
-                    u = transfer(u, meshes[s + 1], s + 1, mesh, s)
-                state = State(u)
+                    start = _uniform(rigid_t, mesh)
+                state = State(start)
             lvl.prepare_interpolation(state.u)
             if s == finest and initial_gap is None:
                 rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
-                _, initial_gap, _, _ = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape))
-                _, rigid_gap, _, _ = lvl.assemble_b(_uniform(rigid_fine, mesh))
+                initial_gap = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape)).gap
+                rigid_gap = lvl.assemble_b(_uniform(rigid_fine, mesh)).gap
                 emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
                      translation=rigid_fine.tolist())
             state = iterate(lvl, state, tol, settings.max_iterations, history, progress,
@@ -204,8 +211,15 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             save_checkpoint(state, s)
             emit(progress, stage="level", level=s, status=state.status, gap=state.gap,
                  seconds=time.perf_counter() - t0)
+            weak = lvl.solver.weak_nodes
         final, u, state = state, state.u, None
     mesh = meshes[finest]
+    flags = node_flags(mesh, final.elements, weak)
+    u = np.where((flags & FLAG_NO_DATA)[None] > 0, np.nan, u)
+    status = statuses[finest]
+    excluded_fraction = final.excluded / max(final.excluded + final.n_valid, 1)
+    if status == "converged" and excluded_fraction > config.get("max-excluded-fraction"):
+        status = statuses[finest] = "excluded"
     info = {
         "element_size": settings.element_size,
         "roi": [[r.start, r.stop] for r in mesh.roi],
@@ -214,19 +228,53 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         "scale": 2**finest,
         "levels": levels,
         "level_status": {str(k): v for k, v in statuses.items()},
-        "status": statuses[finest],
-        "converged": statuses[finest] == "converged",
+        "status": status,
+        "converged": status == "converged",
         "initial_gap": initial_gap,
         "rigid_gap": rigid_gap,
         "final_gap": final.gap,
         "rigid_translation": (rigid_t * 2.0 ** (coarsest - finest)).tolist(),
         "excluded_voxels": int(final.excluded),
         "used_voxels": int(final.n_valid),
+        "excluded_fraction": float(excluded_fraction),
+        "nodes_without_data": int(np.count_nonzero(flags & FLAG_NO_DATA)),
+        "weak_nodes": int(np.count_nonzero(flags & FLAG_WEAK)),
+        "grey_level": _brightness_summary(settings.grey, final.elements),
         "settings": settings.to_json(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "chunkdic_version": _version(),
     }
-    return Result(u, mesh.node_coords(), history.arrays(), info)
+    brightness = None if final.elements is None else final.elements[:2]
+    return Result(u, mesh.node_coords(), history.arrays(), info, flags=flags, brightness=brightness)
+
+
+def node_flags(mesh, elements: np.ndarray | None, weak_nodes) -> np.ndarray:
+    """Per-node flags (:data:`chunkdic.result.FLAG_NO_DATA`, ``FLAG_WEAK``), shape (nz, ny, nx) uint8.
+
+    A node has no data when the elements around it together hold fewer valid voxels (voxels
+    whose ``X + u(X)`` falls inside ``g``) than ``chunkdic.min-node-support`` of one element:
+    its value would be extrapolated by its neighbours, not measured.
+    """
+    flags = np.zeros(mesh.nodes_shape, np.uint8)
+    if elements is not None:
+        valid = np.pad(elements[2], 1)
+        support = sum(valid[dz:dz + flags.shape[0], dy:dy + flags.shape[1], dx:dx + flags.shape[2]]
+                      for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
+        flags[support < config.get("min-node-support") * mesh.element_size**3] |= FLAG_NO_DATA
+    for n in weak_nodes:
+        flags[tuple(n)] |= FLAG_WEAK
+    return flags
+
+
+def _brightness_summary(model: str, elements: np.ndarray | None) -> dict:
+    out = {"model": model}
+    if elements is not None:
+        used = elements[2] > 0
+        gain, offset = elements[0][used], elements[1][used]
+        if gain.size:
+            out.update(gain=float(np.median(gain)), offset=float(np.median(offset)),
+                       offset_range=[float(offset.min()), float(offset.max())])
+    return out
 
 
 def _uniform(t, mesh) -> np.ndarray:

@@ -24,6 +24,13 @@ from .mesh import Mesh
 
 HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
 
+#: node flag: the node's elements hold (almost) no voxel that maps inside ``g``; its
+#: displacement is NaN (not measured)
+FLAG_NO_DATA = 1
+#: node flag: poorly textured (its 3x3 block of ``M`` is nearly singular); regularised,
+#: its value is unreliable
+FLAG_WEAK = 2
+
 
 @dataclass
 class Result:
@@ -48,6 +55,12 @@ class Result:
     strain : ndarray, shape (3, 3, ez, ey, ex), float64, optional
         Small-strain tensor per element at the element centres (paper section 5.4), axes
         ``(z, y, x)``; ``None`` until computed (:meth:`element_strain` computes it).
+    flags : ndarray, shape (nz, ny, nx), uint8, optional
+        Per-node flags, bits :data:`FLAG_NO_DATA` (displacement NaN: not measured) and
+        :data:`FLAG_WEAK` (poorly textured, regularised).
+    brightness : ndarray, shape (2, ez, ey, ex), float64, optional
+        Per-element gain and offset of the grey-level model (:mod:`chunkdic.greylevel`):
+        ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
     """
 
     displacement: np.ndarray
@@ -56,6 +69,8 @@ class Result:
     info: dict = field(default_factory=dict)
     path: str | None = None
     strain: np.ndarray | None = None
+    flags: np.ndarray | None = None
+    brightness: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -100,6 +115,10 @@ class Result:
             root.create_array(name, data=np.ascontiguousarray(arr, dtype=np.float64))
         if "element_size" in self.info:
             root.create_array("strain", data=np.ascontiguousarray(self.element_strain(), dtype=np.float64))
+        if self.flags is not None:
+            root.create_array("flags", data=np.ascontiguousarray(self.flags, dtype=np.uint8))
+        if self.brightness is not None:
+            root.create_array("brightness", data=np.ascontiguousarray(self.brightness, dtype=np.float64))
         hist = root.create_group("history")
         for name in HISTORY_FIELDS:
             hist.create_array(name, data=np.asarray(self.history[name]))
@@ -129,8 +148,8 @@ def open_result(path: str | os.PathLike) -> Result:
     if not info.get("complete", False):
         raise InputError(f"result {path} is incomplete (the run that wrote it was interrupted)")
     history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
-    strain = root["strain"][...] if "strain" in root else None
-    return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path), strain)
+    optional = {name: root[name][...] if name in root else None for name in ("strain", "flags", "brightness")}
+    return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path), **optional)
 
 
 def _jsonable(obj):

@@ -15,6 +15,7 @@ import pytest
 import scipy.ndimage as ndi
 
 from chunkdic import kernels as K
+from chunkdic.kernels_numpy import nodal_field
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS, shape_table
 
 INTERPS = ("linear", "cubic")
@@ -165,7 +166,7 @@ def test_b_block_numba_equals_numpy(interpolation, block):
     g = g_vol[win]
     g_origin = tuple(s.start for s in win)
     out = {impl: K.b_block(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape,
-                           interpolation=interpolation, impl=impl) for impl in K._IMPLS}
+                           interpolation=interpolation, impl=impl) for impl in K.IMPLEMENTATIONS}
     b1, r1, n1, x1 = out["numba"]
     b2, r2, n2, x2 = out["numpy"]
     assert (n1, x1) == (n2, x2)
@@ -215,7 +216,7 @@ def test_fast_and_general_paths_agree_with_whole_volume(interpolation):
                 np.testing.assert_allclose(w1[m1], want, rtol=0, atol=1e-6 * 255)
             out = {impl: K.b_block(f, lo, hi, ell, u, c0, gv[win], go, vol.shape,
                                    interpolation=interpolation, impl=impl, prefiltered=True)
-                   for impl in K._IMPLS}
+                   for impl in K.IMPLEMENTATIONS}
             b1, r1, n1, x1 = out["numba"]
             b2, r2, n2, x2 = out["numpy"]
             assert (n1, x1) == (n2, x2) == (int(m1.sum()), int((~m1).sum()))
@@ -236,10 +237,10 @@ def test_nan_displacement_excludes_voxels_in_kernel(interpolation):
     win = K.g_window(c0, core, ok, vol.shape, interpolation=interpolation, halo=12)
     go = tuple(w.start for w in win)
     cubic = interpolation == "cubic"
-    gw = K._prepare_g(vol[win], go, vol.shape, interpolation)
-    args = (ell, 2, 2, 2, K._xi(ell))
-    w, m = K._warp_kernel(*args, u, *c0, gw, *go, *vol.shape, cubic)
-    w_ok, m_ok = K._warp_kernel(*args, ok, *c0, gw, *go, *vol.shape, cubic)
+    gw = K.prepare_window(vol[win], interpolation)
+    args = (ell, 2, 2, 2, K.voxel_xi(ell))
+    w, m = K._warp_kernel(*args, u, *c0, gw, *go, *vol.shape, 0.0, cubic)
+    w_ok, m_ok = K._warp_kernel(*args, ok, *c0, gw, *go, *vol.shape, 0.0, cubic)
     bad = np.zeros(core, bool)
     bad[4:, :, :4] = True
     assert m_ok.all()
@@ -267,7 +268,7 @@ def test_nodal_field_is_sum_of_shape_functions():
     u = _smooth_nodes((3, 2, 4), amp=3.0, seed=6)
     pos = _voxel_positions(u, 5, (0, 0, 0))
     grids = np.meshgrid(*[np.arange(n) for n in pos.shape[1:]], indexing="ij")
-    np.testing.assert_allclose(K._nodal_field(u, 5), pos - np.stack(grids), atol=1e-13)
+    np.testing.assert_allclose(nodal_field(u, 5), pos - np.stack(grids), atol=1e-13)
 
 
 # ---------------------------------------------------------------------------- (4) translation
@@ -388,9 +389,12 @@ def test_g_window_bounds_and_refusal():
     u = np.zeros((3, 2, 2, 2))
     u[0, 1] = 2.3
     u[2, 0] = -1.7
-    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear", halo=12)
+    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear")
     # z: [10, 13 + 2.3] -> floor 10 .. floor(15.3) + 1 = 16; x: [8.3, 13] -> 8 .. 14
     assert w == (slice(10, 17), slice(10, 15), slice(8, 15))
+    # a halo (for a window the task low-passes itself) grows it on every side, clipped
+    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear", halo=12)
+    assert w == (slice(0, 29), slice(0, 27), slice(0, 27))
     w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=2)
     assert w == (slice(7, 20), slice(7, 18), slice(5, 18))
     w = K.g_window((0, 0, 26), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=12)
