@@ -25,18 +25,17 @@ class ElementSums:
         ``B[e, q, a, i] = Σ_{valid X in e} N_a d_i f q`` for ``q = (d, g', 1)``,
         local node ``a = 4 dz + 2 dy + dx``, component ``i`` (z, y, x).
     moments : ndarray, shape (ez, ey, ex, 6), float64
-        ``n, Σd, Σg', Σd², Σdg', Σg'²`` over the valid voxels of each element.
+        ``Σw, Σwd, Σwg', Σwd², Σwdg', Σwg'²`` over each element, ``w`` the voxel weights
+        (1 inside the usable part of ``g``, tapering to 0 over its last voxel).
     n_excluded : int
-        Core voxels whose ``X + u(X)`` leaves ``g``.
+        Core voxels of weight 0 (``X + u(X)`` outside the usable part of ``g``).
+
+    Every sum of ``B`` carries the voxel weight ``w`` too.
     """
 
     B: np.ndarray
     moments: np.ndarray
     n_excluded: int
-
-    @property
-    def n_valid(self) -> int:
-        return int(self.moments[..., 0].sum())
 
 
 # --------------------------------------------------------------------------------------

@@ -73,17 +73,18 @@ class Fit:
     b : ndarray, shape (nz, ny, nx, 3), float64
         Right-hand side with the optimal brightness, grey levels² / voxel.
     ssr : float
-        ``Σ r²`` over the valid voxels, grey levels².
-    n_valid : int
+        ``Σ w r²`` over the valid voxels (weights ``w``, :class:`chunkdic.blocks.ElementSums`), grey levels².
+    weight : float
+        ``Σ w``: the number of valid voxels, the ones at the edge of the usable part of ``g`` in part.
     gain, offset : ndarray, shape (ez, ey, ex), float64
         Brightness per element: ``f ≈ gain · g(X + u) + offset`` (grey levels).
     valid_per_element : ndarray, shape (ez, ey, ex), float64
-        Valid voxels per element.
+        ``Σ w`` per element.
     """
 
     b: np.ndarray
     ssr: float
-    n_valid: int
+    weight: float
     gain: np.ndarray
     offset: np.ndarray
     valid_per_element: np.ndarray
@@ -135,22 +136,22 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
     n = scalars[0]
     ones = np.ones_like(n_e)
     if model == "none":
-        return Fit(nodal[0], float(scalars[1]), int(n), ones, 0 * ones, n_e)
+        return Fit(nodal[0], float(scalars[1]), float(n), ones, 0 * ones, n_e)
     if model == "global":
         sd, sg, sdd, sdg, sgg = scalars[1:]
         A = np.array([[sgg, sg], [sg, n]])
         alpha, mu = np.linalg.solve(A, [sdg, sd]) if np.linalg.det(A) > FLAT * sgg * n else (0.0, sd / max(n, 1))
         b = nodal[0] - alpha * nodal[1] - mu * nodal[2]
         ssr = sdd - 2 * alpha * sdg - 2 * mu * sd + alpha**2 * sgg + 2 * alpha * mu * sg + mu**2 * n
-        return Fit(b, float(max(ssr, 0.0)), int(n), (1 + alpha) * ones, (mu - alpha * center) * ones, n_e)
+        return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, n_e)
     if model == "offset":
         cdd, cdg, cgg = scalars[1:]
         alpha = cdg / cgg if cgg > 0 else 0.0
         b = nodal[0] - alpha * nodal[1]
         ssr = cdd - 2 * alpha * cdg + alpha**2 * cgg
         mu = elements[1] - alpha * elements[2]
-        return Fit(b, float(max(ssr, 0.0)), int(n), (1 + alpha) * ones, mu - alpha * center, n_e)
+        return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, mu - alpha * center, n_e)
     if model == "element":
         alpha, mu = elements[1], elements[2]
-        return Fit(nodal[0], float(scalars[1]), int(n), 1 + alpha, mu - alpha * center, n_e)
+        return Fit(nodal[0], float(scalars[1]), float(n), 1 + alpha, mu - alpha * center, n_e)
     raise ValueError(f"unknown brightness model {model!r}")

@@ -163,9 +163,7 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                         p0 = c0 + z + lerp(uz0, uz1, tx)
                         p1 = c1 + y + lerp(uy0, uy1, tx)
                         p2 = c2 + ex * ell + lx + lerp(ux0, ux1, tx)
-                        inside = (vm_lo <= p0 <= n0 - 1.0 - vm_lo and vm_lo <= p1 <= n1 - 1.0 - vm_lo
-                                  and vm_lo <= p2 <= n2 - 1.0 - vm_lo)
-                        vm[ex * ell + lx] = 1.0 if inside else 0.0
+                        vm[ex * ell + lx] = _taper(p0, p1, p2, n0, n1, n2, vm_lo)
             # pass 1 over the row: gradient (float32, as gradient_block) and its products
             for x in range(nx):
                 xx = x + lo2
@@ -174,19 +172,20 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                     fmin = v
                 if v > fmax:
                     fmax = v
+                # a weight w on every voxel's squared residual (the b passes' taper)
                 w = vm[x]
-                gz = np.float64((fp[zp, yy, xx] - fp[zm, yy, xx]) * sz) * w
-                gy = np.float64((fp[zz, yp, xx] - fp[zz, ym, xx]) * sy) * w
-                gx = np.float64((fp[zz, yy, ipx[x]] - fp[zz, yy, imx[x]]) * scx[x]) * w
-                prod[0, x] = gz * gz
-                prod[1, x] = gz * gy
-                prod[2, x] = gz * gx
-                prod[3, x] = gy * gy
-                prod[4, x] = gy * gx
-                prod[5, x] = gx * gx
-                prod[6, x] = gz
-                prod[7, x] = gy
-                prod[8, x] = gx
+                gz = np.float64((fp[zp, yy, xx] - fp[zm, yy, xx]) * sz)
+                gy = np.float64((fp[zz, yp, xx] - fp[zz, ym, xx]) * sy)
+                gx = np.float64((fp[zz, yy, ipx[x]] - fp[zz, yy, imx[x]]) * scx[x])
+                prod[0, x] = w * gz * gz
+                prod[1, x] = w * gz * gy
+                prod[2, x] = w * gz * gx
+                prod[3, x] = w * gy * gy
+                prod[4, x] = w * gy * gx
+                prod[5, x] = w * gx * gx
+                prod[6, x] = w * gz
+                prod[7, x] = w * gy
+                prod[8, x] = w * gx
             # pass 2: per element, reduce the row against psi_px, then spread over pz, py
             for ex in range(nex):
                 x0 = ex * ell
@@ -480,20 +479,39 @@ def _setup(ell, u_nodes, core_origin, core, g, g_origin, g_shape, interpolation,
 
 @jit
 def _valid_bounds(b, n0, n1, n2, m):
-    """Fast-path bounds narrowed to the validity domain ``[m, n - 1 - m]``."""
+    """Fast-path bounds narrowed to where every weight is 1: ``[m + 1, n - 2 - m]`` (:func:`_taper`)."""
+    m = m + 1.0
     return (max(b[0], m), min(b[1], n0 - 1.0 - m), max(b[2], m), min(b[3], n1 - 1.0 - m),
             max(b[4], m), min(b[5], n2 - 1.0 - m))
 
 
 @jit_inline
+def _taper(p0, p1, p2, n0, n1, n2, m):
+    """Weight of a position: its distance (voxels, at most 1) inside ``[m, n - 1 - m]`` on every axis.
+
+    A voxel's weight falls linearly to 0 over the last voxel before the boundary of the
+    usable part of ``g``, so that the sums, hence ``b``, change continuously when an
+    iteration moves voxels across it (a hard cut made boundary nodes oscillate).
+    """
+    if p0 != p0 or p1 != p1 or p2 != p2:  # NaN: min() would drop it
+        return 0.0
+    d = min(p0 - m, n0 - 1.0 - m - p0, p1 - m, n1 - 1.0 - m - p1, p2 - m, n2 - 1.0 - m - p2)
+    if not d > 0.0:
+        return 0.0
+    return d if d < 1.0 else 1.0
+
+
+@jit_inline
 def _segment_samples(u, ez, ey, ex, tz, ty, X0, X1, xa, ell, xi, g, gf, gs0, gs1, o0, o1, o2,
-                     n0, n1, n2, vm_lo, bounds, cubic, gbuf, ok):
+                     n0, n1, n2, vm_lo, bounds, cubic, gbuf, wt):
     """``g(X + u(X))`` over one element row segment (``ell`` voxels along x from ``xa``).
 
-    Fills ``gbuf`` and ``ok`` (False where ``X + u`` leaves ``[vm_lo, n - 1 - vm_lo]``) and
-    returns the number of invalid voxels. The positions are affine along the segment: when both end points pass
-    :func:`chunkdic.interp.segment_inside` every voxel is valid and takes the check-free
-    flat path; otherwise each voxel is tested and clamped or mirrored as needed.
+    Fills ``gbuf`` and the weights ``wt`` (:func:`_taper`; 0 where ``X + u`` leaves
+    ``[vm_lo, n - 1 - vm_lo]``) and returns the number of voxels of weight 0. The
+    positions are affine along the segment: when both end points pass
+    :func:`chunkdic.interp.segment_inside` (bounds at least one voxel inside that box)
+    every voxel has weight 1 and takes the check-free flat path; otherwise each voxel is
+    weighted and clamped or mirrored as needed.
     """
     uz0, uz1 = _row_field(u, 0, ez, ey, ex, tz, ty)
     uy0, uy1 = _row_field(u, 1, ez, ey, ex, tz, ty)
@@ -509,16 +527,15 @@ def _segment_samples(u, ez, ey, ex, tz, ty, X0, X1, xa, ell, xi, g, gf, gs0, gs1
             tx = xi[lx]
             gbuf[lx] = interp_inside(g, gf, gs0, gs1, o0, o1, o2, cubic, X0 + lerp(uz0, uz1, tx),
                                      X1 + lerp(uy0, uy1, tx), (xa + lx) + lerp(ux0, ux1, tx))
-            ok[lx] = True
+            wt[lx] = 1.0
         return 0
     for lx in range(ell):
         tx = xi[lx]
         p0 = X0 + lerp(uz0, uz1, tx)
         p1 = X1 + lerp(uy0, uy1, tx)
         p2 = (xa + lx) + lerp(ux0, ux1, tx)
-        ok[lx] = (vm_lo <= p0 <= n0 - 1.0 - vm_lo and vm_lo <= p1 <= n1 - 1.0 - vm_lo
-                  and vm_lo <= p2 <= n2 - 1.0 - vm_lo)
-        if not ok[lx]:
+        wt[lx] = _taper(p0, p1, p2, n0, n1, n2, vm_lo)
+        if wt[lx] == 0.0:
             nbad += 1
         elif cubic:
             gbuf[lx] = interp_cubic(g, o0, o1, o2, n0, n1, n2, p0, p1, p2)
@@ -543,7 +560,7 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
     fs1 = fp.shape[2]
     nx = nex * ell
     gbuf = np.empty(ell)
-    ok = np.empty(ell, dtype=np.bool_)
+    wt = np.empty(ell)
     # one x-row of f and of its gradient (float32 differences, as gradient_block)
     frow = np.empty((4, nx), dtype=np.float32)
     for z in range(nez * ell):
@@ -576,30 +593,31 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
             for ex in range(nex):
                 xa = c2 + ex * ell
                 nbad += _segment_samples(u, ez, ey, ex, tz, ty, X0, X1, xa, ell, xi, g, gf, gs0, gs1,
-                                         o0, o1, o2, n0, n1, n2, vm_lo, bounds, cubic, gbuf, ok)
+                                         o0, o1, o2, n0, n1, n2, vm_lo, bounds, cubic, gbuf, wt)
                 # x-face sums (w0 = 1 - xi, w1 = xi) of grad f times d, g' and 1
                 d0z = d0y = d0x = d1z = d1y = d1x = 0.0
                 g0z = g0y = g0x = g1z = g1y = g1x = 0.0
                 e0z = e0y = e0x = e1z = e1y = e1x = 0.0
                 n = sd = sg = sdd = sdg = sgg = 0.0
                 for lx in range(ell):
-                    if not ok[lx]:
+                    w = wt[lx]
+                    if w == 0.0:
                         continue
                     x = ex * ell + lx
                     gv = gbuf[lx]
                     d = np.float64(frow[0, x]) - gv
                     gp = gv - center
-                    gz = np.float64(frow[1, x])
-                    gy = np.float64(frow[2, x])
-                    gx = np.float64(frow[3, x])
+                    gz = np.float64(frow[1, x]) * w
+                    gy = np.float64(frow[2, x]) * w
+                    gx = np.float64(frow[3, x]) * w
                     w1 = xi[lx]
                     w0 = 1.0 - w1
-                    n += 1.0
-                    sd += d
-                    sg += gp
-                    sdd += d * d
-                    sdg += d * gp
-                    sgg += gp * gp
+                    n += w
+                    sd += w * d
+                    sg += w * gp
+                    sdd += w * d * d
+                    sdg += w * d * gp
+                    sgg += w * gp * gp
                     e0z += w0 * gz
                     e0y += w0 * gy
                     e0x += w0 * gx
@@ -665,7 +683,7 @@ def _warp_kernel(ell, nez, ney, nex, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n
     gs1 = g.shape[2]
     bounds = _valid_bounds(fast_bounds(g.shape, o0, o1, o2, n0, n1, n2, cubic), n0, n1, n2, vm_lo)
     gbuf = np.empty(ell)
-    ok = np.empty(ell, dtype=np.bool_)
+    wt = np.empty(ell)
     for z in range(nez * ell):
         ez = z // ell
         tz = xi[z - ez * ell]
@@ -674,11 +692,11 @@ def _warp_kernel(ell, nez, ney, nex, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n
             ty = xi[y - ey * ell]
             for ex in range(nex):
                 _segment_samples(u, ez, ey, ex, tz, ty, c0 + z, c1 + y, c2 + ex * ell, ell, xi, g, gf,
-                                 gs0, gs1, o0, o1, o2, n0, n1, n2, vm_lo, bounds, cubic, gbuf, ok)
+                                 gs0, gs1, o0, o1, o2, n0, n1, n2, vm_lo, bounds, cubic, gbuf, wt)
                 for lx in range(ell):
                     x = ex * ell + lx
-                    mask[z, y, x] = ok[lx]
-                    out[z, y, x] = gbuf[lx] if ok[lx] else np.nan
+                    mask[z, y, x] = wt[lx] > 0.0
+                    out[z, y, x] = gbuf[lx] if wt[lx] > 0.0 else np.nan
     return out, mask
 
 
@@ -747,8 +765,9 @@ def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g
     """The paper's ``b`` over a block: no brightness correction (``r = f - g(X + u)``).
 
     Same parameters as :func:`b_sums`. Returns ``(b, ssr, n_valid, n_excluded)``: ``b``
-    of shape (ez+1, ey+1, ex+1, 3), float64, grey levels² / voxel; ``ssr = Σ r²`` over the
-    valid voxels; valid and excluded voxel counts (they add up to the core size).
+    of shape (ez+1, ey+1, ex+1, 3), float64, grey levels² / voxel; ``ssr = Σ w r²`` over the
+    valid voxels (weights ``w``, see :class:`ElementSums`); valid and excluded voxel counts
+    (they add up to the core size).
 
     Examples
     --------
@@ -766,7 +785,8 @@ def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g
     sums = b_sums(f, lo, hi, ell, u_nodes, core_origin, g, g_origin, g_shape, interpolation=interpolation,
                   impl=impl, prefiltered=prefiltered)
     b = element_to_nodes(sums.B[..., 0, :, :])
-    return b, float(sums.moments[..., 3].sum()), sums.n_valid, sums.n_excluded
+    n_core = int(np.prod(core_shape(f, lo, hi)))
+    return b, float(sums.moments[..., 3].sum()), n_core - sums.n_excluded, sums.n_excluded
 
 
 @jit
@@ -824,8 +844,8 @@ def warp_block(ell: int, u_nodes: np.ndarray, core_origin, core_shape, g: np.nda
     if st.gw is None:
         return np.full(core, np.nan, dtype=np.float32), np.zeros(core, bool)
     if impl == "numpy":
-        out, mask = kernels_numpy.warp_numpy(int(ell), st.u_nodes, st.core_origin, core, st.gw, st.g_origin,
-                                             st.g_shape, interpolation, int(margin))
+        out, mask, _ = kernels_numpy.warp_numpy(int(ell), st.u_nodes, st.core_origin, core, st.gw, st.g_origin,
+                                                st.g_shape, interpolation, int(margin))
         return out.astype(np.float32), mask
     return _warp_kernel(int(ell), *st.elems, voxel_xi(int(ell)), st.u_nodes, *st.core_origin, st.gw,
                         *st.g_origin, *st.g_shape, float(margin), interpolation == "cubic")

@@ -28,30 +28,28 @@ def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_node
     """
     grad = gradient_block(f32, lo, hi).astype(np.float64)
     core = f32[lo[0]:lo[0] + grad.shape[1], lo[1]:lo[1] + grad.shape[2], lo[2]:lo[2] + grad.shape[3]]
+    weight = np.ones(core.shape)
     if u_nodes is not None:
         u = nodal_field(u_nodes, ell)
         grids = np.meshgrid(*[np.arange(n) for n in core.shape], indexing="ij")
-        inside = np.ones(core.shape, bool)
-        for i in range(3):
-            p = core_origin[i] + grids[i] + u[i]
-            inside &= (p >= margin) & (p <= g_shape[i] - 1 - margin)
-        grad = grad * inside
+        pos = np.stack([core_origin[i] + grids[i] + u[i] for i in range(3)])
+        weight = taper(pos, g_shape, margin)
     fc = core.astype(np.float64) - center
     W = shape_table(ell).reshape(-1, 8)
     S = np.zeros(tuple(e + 1 for e in elems) + (27, 3, 3))
     for ez, ey, ex in np.ndindex(*elems):
         sl = tuple(slice(e * ell, (e + 1) * ell) for e in (ez, ey, ex))
         G = grad[(slice(None),) + sl].reshape(3, -1)  # (3, ell^3)
-        # Ke[a, i, b, j] = sum_v N_a N_b d_i f d_j f   (paper section 3, M_ij)
-        Ke = np.einsum("va,vb,iv,jv->aibj", W, W, G, G, optimize=True)
-        if condensed and (u_nodes is None or inside[sl].any()):
+        w = weight[sl].reshape(-1)
+        # Ke[a, i, b, j] = sum_v w N_a N_b d_i f d_j f   (paper section 3, M_ij)
+        Ke = np.einsum("v,va,vb,iv,jv->aibj", w, W, W, G, G, optimize=True)
+        if condensed and w.any():
             fv = fc[sl].reshape(-1)
-            w = np.ones_like(fv) if u_nodes is None else inside[sl].reshape(-1).astype(np.float64)
             # columns of the brightness unknowns: (f - c, 1) on the used voxels; per element,
             # eliminated exactly
-            Q = np.stack([w * fv, w], axis=1) if condensed == 2 else w[:, None]
-            C = np.einsum("va,iv,vq->aiq", W, G, Q)  # (8, 3, q)
-            K = Q.T @ Q
+            Q = np.stack([fv, np.ones_like(fv)], axis=1) if condensed == 2 else np.ones((fv.size, 1))
+            C = np.einsum("v,va,iv,vq->aiq", w, W, G, Q)  # (8, 3, q)
+            K = Q.T @ (w[:, None] * Q)
             if condensed == 2 and np.linalg.det(K) <= 1e-12 * K[0, 0] * K[1, 1]:
                 C, K = C[..., 1:], K[1:, 1:]  # a flat element: offset only
             Ke = Ke - np.einsum("aip,pq,bjq->aibj", C, np.linalg.inv(K), C)
@@ -59,6 +57,12 @@ def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_node
             for b, db in enumerate(LOCAL_NODES):
                 S[ez + da[0], ey + da[1], ex + da[2], _stencil_index(db - da)] += Ke[a, :, b, :]
     return S, float(core.min()), float(core.max())
+
+
+def taper(pos: np.ndarray, g_shape, margin: int) -> np.ndarray:
+    """Voxel weights: distance (at most 1) inside ``[margin, g_shape - 1 - margin]`` on every axis, else 0."""
+    d = np.min(np.stack([np.minimum(pos[i] - margin, g_shape[i] - 1 - margin - pos[i]) for i in range(3)]), axis=0)
+    return np.clip(np.nan_to_num(d, nan=-1.0), 0.0, 1.0)
 
 
 def nodal_field(u_nodes: np.ndarray, ell: int) -> np.ndarray:
@@ -82,13 +86,12 @@ def nodal_field(u_nodes: np.ndarray, ell: int) -> np.ndarray:
 
 
 def warp_numpy(ell, u_nodes, core_origin, core_shape, gw, g_origin, g_shape, interpolation, margin: int = 0):
-    """float64 ``g(X+u)`` and validity mask with ``map_coordinates``; ``gw`` as the kernels read it."""
+    """float64 ``g(X+u)``, validity mask and voxel weights (:func:`taper`) with ``map_coordinates``."""
     u = nodal_field(u_nodes, ell)
     grids = np.meshgrid(*[np.arange(n) for n in core_shape], indexing="ij")
     pos = np.stack([core_origin[i] + grids[i] + u[i] for i in range(3)])
-    mask = np.ones(core_shape, dtype=bool)
-    for i in range(3):
-        mask &= (pos[i] >= margin) & (pos[i] <= g_shape[i] - 1 - margin)
+    weight = taper(pos, g_shape, margin)
+    mask = weight > 0
     out = np.full(core_shape, np.nan)
     if mask.any():
         local = np.stack([pos[i][mask] - g_origin[i] for i in range(3)])
@@ -98,7 +101,7 @@ def warp_numpy(ell, u_nodes, core_origin, core_shape, gw, g_origin, g_shape, int
             out[mask] = ndi.map_coordinates(gw, local, order=3, mode="mirror", prefilter=False, output=np.float64)
         else:
             out[mask] = ndi.map_coordinates(gw, local, order=1, mode="nearest", output=np.float64)
-    return out, mask
+    return out, mask, weight
 
 
 def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, interpolation,
@@ -106,11 +109,11 @@ def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, 
     """Per-element sums of one pass: warp, then each element with the shape table."""
     core = tuple(n - a - b for n, a, b in zip(f32.shape, lo, hi))
     elems = tuple(n // ell for n in core)
-    warped, mask = warp_numpy(ell, u_nodes, core_origin, core, gw, g_origin, g_shape, interpolation, margin)
+    warped, mask, weight = warp_numpy(ell, u_nodes, core_origin, core, gw, g_origin, g_shape, interpolation, margin)
     fc = f32[lo[0]:lo[0] + core[0], lo[1]:lo[1] + core[1], lo[2]:lo[2] + core[2]].astype(np.float64)
     d = np.where(mask, fc - warped, 0.0)
     gp = np.where(mask, warped - center, 0.0)
-    one = mask.astype(np.float64)
+    one = weight
     grad = gradient_block(f32, lo, hi).astype(np.float64)
     W = shape_table(ell).reshape(-1, 8)
     B = np.zeros(elems + (3, 8, 3))
@@ -118,8 +121,9 @@ def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, 
     for e in np.ndindex(*elems):
         sl = tuple(slice(k * ell, (k + 1) * ell) for k in e)
         G = grad[(slice(None),) + sl].reshape(3, -1)
-        for q, val in enumerate((d, gp, one)):
+        for q, val in enumerate((d * weight, gp * weight, weight)):
             B[e][q] = np.einsum("va,iv,v->ai", W, G, val[sl].reshape(-1))
         dv, gv, ov = d[sl], gp[sl], one[sl]
-        moments[e] = (ov.sum(), dv.sum(), gv.sum(), (dv * dv).sum(), (dv * gv).sum(), (gv * gv).sum())
+        moments[e] = (ov.sum(), (ov * dv).sum(), (ov * gv).sum(), (ov * dv * dv).sum(), (ov * dv * gv).sum(),
+                      (ov * gv * gv).sum())
     return ElementSums(B, moments, int(mask.size - mask.sum()))

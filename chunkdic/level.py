@@ -261,5 +261,5 @@ class Level:
             elements[(slice(None), *(slice(e0, e1) for e0, e1 in blk.elements))] = part.elements
             n_excluded += part.n_excluded
         fit = combine(self.settings.grey, nodal, scalars, elements, self.inputs.center)
-        gap = math.sqrt(fit.ssr / fit.n_valid) / self.dynamic_range if fit.n_valid else math.inf
-        return Pass(fit, gap, fit.n_valid, n_excluded)
+        gap = math.sqrt(fit.ssr / fit.weight) / self.dynamic_range if fit.weight > 0 else math.inf
+        return Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded)

@@ -355,16 +355,20 @@ def test_cubic_window_prefilter_equals_whole_volume(impl):
 def test_voxels_leaving_g_are_excluded_and_counted(impl, interpolation):
     ell = 4
     vol = _smooth_volume((12, 12, 16), seed=11)
-    # whole volume as one block: u_x = -2.5 sends x = 0, 1, 2 below 0; u_z = +1 sends the
-    # last plane z = 11 to 12 > 11; u_y = 0.0 keeps y; a voxel landing exactly on the last
-    # sample (z = 10 -> 11) stays valid.
+    # whole volume as one block: u_x = -2.5 sends x = 0, 1, 2 below 0 (excluded) and x = 3
+    # to 0.5 (half a voxel inside: weight 0.5, the boundary taper); u_z = +1 sends z = 10
+    # onto the last sample (on the boundary: weight 0) and z = 11 beyond; u_y = 0 puts
+    # y = 0 and y = 11 on the boundary (weight 0). Every other voxel has weight 1.
     f, lo, hi, c0, core = _block(vol, (0, 0, 0), (3, 3, 4), ell)
     u = np.zeros((3, 4, 4, 5))
     u[0] = 1.0
     u[2] = -2.5
-    n_bad_x = 3 * 12 * 12
-    n_bad_z = 1 * 12 * 16
-    expected_bad = n_bad_x + n_bad_z - 3 * 12 * 1
+    weight = np.ones((12, 12, 16))
+    weight[10:] = 0.0
+    weight[:, [0, 11]] = 0.0
+    weight[:, :, :3] = 0.0
+    weight[:, :, 3] *= 0.5
+    expected_bad = int((weight == 0).sum())
     win = K.g_window(c0, core, u, vol.shape, interpolation=interpolation, halo=12)
     g_origin = tuple(w.start for w in win)
     b, ssr, nv, nx = K.b_block(f, lo, hi, ell, u, c0, vol[win], g_origin, vol.shape,
@@ -372,10 +376,10 @@ def test_voxels_leaving_g_are_excluded_and_counted(impl, interpolation):
     assert nx == expected_bad
     assert nv == 12 * 12 * 16 - expected_bad
     if interpolation == "linear":
-        # valid voxels: r = f(z, y, x) - (g(z+1, y, x-3) + g(z+1, y, x-2)) / 2, by hand
+        # r = f(z, y, x) - (g(z+1, y, x-3) + g(z+1, y, x-2)) / 2, by hand, weighted
         g = vol.astype(np.float64)
         r = vol[:11, :, 3:] - 0.5 * (g[1:, :, :-3] + g[1:, :, 1:-2])
-        np.testing.assert_allclose(ssr, np.sum(r * r), rtol=1e-12)
+        np.testing.assert_allclose(ssr, np.sum(weight[:11, :, 3:] * r * r), rtol=1e-12)
     # entirely outside: empty window, every voxel excluded, b = 0
     u_far = np.full((3, 4, 4, 5), 100.0)
     win = K.g_window(c0, core, u_far, vol.shape, interpolation=interpolation, halo=12)
