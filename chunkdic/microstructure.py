@@ -85,6 +85,7 @@ _INV53 = 1.0 / (1 << 53)
 CH_GRAINS, CH_AGGREGATES, CH_PORES, CH_TEXTURE = 21, 22, 23, 24
 _MAXCOUNT = 24  # spheres per cell at most (P(more) < 1e-20 for the defaults)
 _HALF_DIAG = 0.5 * math.sqrt(3.0)
+_REACH = math.sqrt(3.0)
 
 
 @njit(nogil=True, cache=True)
@@ -434,27 +435,26 @@ def _build_table(pop, key, lo0, lo1, lo2, hi0, hi1, hi2):
     return c0, dims, start, sph
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
+def _cube(a):
+    return a * a * a if a > 0.0 else 0.0
+
+
+@njit(nogil=True, cache=True, inline="always")
 def _cdf3(x, w1, w2, w3):
     # P(V1 + V2 + V3 <= x), V_i uniform on [0, w_i], w1 >= w2 >= w3 > 0, 0 < x <= W/2
-    t = x * x * x
-    for d in (w1, w2, w3):
-        if x > d:
-            t -= (x - d) ** 3
-    for d in (w1 + w2, w1 + w3, w2 + w3):
-        if x > d:
-            t += (x - d) ** 3
+    t = x * x * x - _cube(x - w1) - _cube(x - w2) - _cube(x - w3)
+    t += _cube(x - w1 - w2) + _cube(x - w1 - w3) + _cube(x - w2 - w3)
     return t / (6.0 * w1 * w2 * w3)
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _cdf2(x, w1, w2):
-    t = x * x
-    for d in (w1, w2):
-        if x > d:
-            t -= (x - d) ** 2
-    if x > w1 + w2:
-        t += (x - w1 - w2) ** 2
+    a = x - w1
+    b = x - w2
+    c = x - w1 - w2
+    t = x * x - (a * a if a > 0.0 else 0.0) - (b * b if b > 0.0 else 0.0)
+    t += c * c if c > 0.0 else 0.0
     return t / (2.0 * w1 * w2)
 
 
@@ -485,12 +485,13 @@ def _cube_fraction(s, nz, ny, nx):
 
 @njit(nogil=True, cache=True, inline="always")
 def _nearest2(qz, qy, qx, L, c0, dims, start, sph):
-    """Two spheres of least signed distance around q: (s1, i1, s2, i2), -1 if none."""
+    """Two spheres of least signed distance (< sqrt 3) around q: (s1, i1, s2, i2), -1 if none."""
     iz = np.int64(math.floor(qz / L)) - c0[0]
     iy = np.int64(math.floor(qy / L)) - c0[1]
     ix = np.int64(math.floor(qx / L)) - c0[2]
-    s1 = np.inf
-    s2 = np.inf
+    # spheres farther than sqrt(3) voxel do not touch the voxel nor its grey blending
+    s1 = _REACH
+    s2 = _REACH
     i1 = -1
     i2 = -1
     for dz in range(-1, 2):
@@ -501,7 +502,11 @@ def _nearest2(qz, qy, qx, L, c0, dims, start, sph):
                     a = qz - sph[k, 0]
                     b = qy - sph[k, 1]
                     c = qx - sph[k, 2]
-                    sd = math.sqrt(a * a + b * b + c * c) - sph[k, 3]
+                    d2 = a * a + b * b + c * c
+                    lim = s2 + sph[k, 3]  # the sphere matters only if d < lim
+                    if lim <= 0.0 or d2 >= lim * lim:
+                        continue
+                    sd = math.sqrt(d2) - sph[k, 3]
                     if sd < s1:
                         s2, i2 = s1, i1
                         s1, i1 = sd, k
@@ -726,7 +731,10 @@ def cube_fraction(s, n) -> np.ndarray:
     ndarray, float64, shape of ``s``
     """
     s = np.asarray(s, np.float64)
-    n = np.broadcast_to(np.asarray(n, np.float64), (3, *s.shape)).reshape(3, -1)
+    n = np.asarray(n, np.float64)
+    if n.ndim == 1:
+        n = n.reshape(3, *([1] * s.ndim))
+    n = np.broadcast_to(n, (3, *s.shape)).reshape(3, -1)
     out = np.empty(s.size)
     _cube_fraction_many(np.ascontiguousarray(s).ravel(), np.ascontiguousarray(n), out)
     return out.reshape(s.shape)
