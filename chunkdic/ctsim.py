@@ -41,7 +41,7 @@ import numpy as np
 from numba import njit
 
 from .errors import InputError
-from .microstructure import hash3, stream_key
+from .boolean import hash3, stream_key
 
 __all__ = [
     "Imaging",

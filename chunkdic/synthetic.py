@@ -70,6 +70,7 @@ __all__ = [
     "load_field",
     "load_texture",
     "load_specimen",
+    "standard_case",
     "warmup",
 ]
 
@@ -778,6 +779,28 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
     out = _write_pair(out_dir, shape, make, meta, chunks=chunks, voxel_size=voxel_size,
                       unit=unit, levels=levels, overwrite=overwrite, progress=progress)
     return {**out, "field": field, "texture": p if specimen == "foam" else p.params}
+
+
+def standard_case(out_dir, case: str, shape=128, *, specimen: str = "grains", **kw) -> dict:
+    """Write one of the three standard test pairs in one call (docs/synthetic.md).
+
+    ``case``: ``"fourier-shift"`` (the paper's section 4.2 test: deformed = reference
+    Fourier-shifted by (0.5, 0.5, 0.5) voxel), ``"shift"`` (the same translation rendered
+    from the geometry, independent noise in each scan) or ``"band"`` (compression band at
+    mid-height: -8 % peak strain, 6 voxels wide, lateral expansion 0.3). ``kw`` goes to
+    :func:`synthesize` (``noise``, ``gain``, ``offset``, ``drift``, ``seed``, ``dtype``,
+    specimen and imaging parameters, ...).
+
+    Examples
+    --------
+    >>> standard_case("band128", "band", 128, noise=0.02, gain=1.1, offset=0.05,
+    ...               drift=0.03)  # doctest: +SKIP
+    """
+    from .ctpair import standard_field
+
+    shape = _shape3(shape)
+    fld, fourier = standard_field(case, shape)
+    return synthesize(out_dir, shape, field=fld, specimen=specimen, fourier_shift=fourier, **kw)
 
 
 def _write_pair(out_dir, shape, make, meta, *, chunks, voxel_size, unit, levels, overwrite,

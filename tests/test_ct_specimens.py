@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from chunkdic import boolean as B
 from chunkdic import ctsim as C
 from chunkdic import microstructure as M
 from chunkdic import synthetic as S
@@ -28,26 +29,26 @@ FIELDS = {
 def test_cube_fraction_known_values():
     s = np.linspace(-1.0, 1.0, 41)
     # plane normal to an axis: the occupied fraction is a linear ramp of one voxel
-    np.testing.assert_allclose(M.cube_fraction(s, [0.0, 0.0, 1.0]), np.clip(0.5 - s, 0, 1), atol=1e-12)
+    np.testing.assert_allclose(B.cube_fraction(s, [0.0, 0.0, 1.0]), np.clip(0.5 - s, 0, 1), atol=1e-12)
     # normal (1, 1, 0)/sqrt 2: n.U = (U1 + U2)/sqrt 2, U1 + U2 triangular on [-1, 1]
     n = np.array([1.0, 1.0, 0.0]) / math.sqrt(2)
     a = -math.sqrt(2) * s
     tri = np.where(a < 0, (1 + np.clip(a, -1, 0)) ** 2 / 2, 1 - (1 - np.clip(a, 0, 1)) ** 2 / 2)
-    np.testing.assert_allclose(M.cube_fraction(s, n), tri, atol=1e-9)
+    np.testing.assert_allclose(B.cube_fraction(s, n), tri, atol=1e-9)
     # any normal: complementary halves and the value at the centre
     rng = np.random.default_rng(1)
     for _ in range(20):
         n = rng.normal(size=3)
         n /= np.linalg.norm(n)
-        np.testing.assert_allclose(M.cube_fraction(s, n) + M.cube_fraction(-s, n), 1.0, atol=1e-9)
-        assert abs(M.cube_fraction(0.0, n) - 0.5) < 1e-9
+        np.testing.assert_allclose(B.cube_fraction(s, n) + B.cube_fraction(-s, n), 1.0, atol=1e-9)
+        assert abs(B.cube_fraction(0.0, n) - 0.5) < 1e-9
     # a Monte Carlo check of the three-uniform CDF for a generic normal
     n = np.array([0.3, -0.5, 0.8124])
     n /= np.linalg.norm(n)
     u = rng.random((400_000, 3)) - 0.5
     proj = u @ n
     for sv in (-0.4, -0.1, 0.2, 0.55):
-        assert abs(M.cube_fraction(sv, n) - np.mean(proj < -sv)) < 0.003  # 4 sigma of MC
+        assert abs(B.cube_fraction(sv, n) - np.mean(proj < -sv)) < 0.003  # 4 sigma of MC
 
 
 def _isolated(sp, lo, hi, gap):
