@@ -5,17 +5,17 @@ reconstruction, :mod:`chunkdic.ctsim`), from the phase map of :mod:`chunkdic.mic
 (reference: ``phase(x)``; deformed: ``phase(field.inverse(x))``). Each slab is one Dask
 task of ``SLAB`` slices; :func:`chunkdic.volume.write_scan` regroups slabs into whole Zarr
 chunks (every writing task owns whole chunks). Memory per task: the slab in the output
-dtype plus one slice's working set (phase map, sinogram, its padded spectrum, the
-reconstruction: about ``70 N^2`` bytes for an ``N x N`` slice); the writer holds the slabs of
-one chunk row, ``chunk_z x N^2`` samples of the output dtype. At 2048^2 slices with
-uint16 and 128-voxel chunks: 134 MB per slab task, ~300 MB of working set, ~1.1 GB for
-a chunk row.
+dtype plus one slice's working set (phase map and its coordinates, projections filtered
+in place, reconstruction: measured peak ``48 N^2`` bytes for an ``N x N`` slice); the
+writer holds the slabs of one chunk row, ``chunk_z x N^2`` samples of the output dtype. At
+2048^2 slices with uint16 and 128-voxel chunks: 134 MB per slab task, ~200 MB of working
+set, ~1.1 GB for a chunk row.
 
 Grey levels: reconstructions are in phase units (pores 0, grains/aggregates 1). Integer
 dtypes map ``[-0.5, 1.5]`` linearly to the whole range (``uint16``: 0..65535, the phase
 contrast spans 32768 levels; ``uint8``: 128 levels), rounded and clipped: the half-contrast
-margins hold the FBP overshoot at edges (~0.2) and noise (< 1e-9 of the voxels clip for
-noise <= 0.05). ``float32`` keeps phase units.
+margins hold the FBP overshoot at edges (up to ~0.2) and noise (at noise 0.02 a voxel
+clips only 14 sigma beyond the worst overshoot). ``float32`` keeps phase units.
 
 The deformed scan of a ``fourier_shift`` pair is not rendered: it is the stored reference
 translated by a Fourier phase shift (:func:`chunkdic.metrology.fourier_shift_scan`, the
