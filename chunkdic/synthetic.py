@@ -766,7 +766,7 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
         p = CTSpecimen.build(specimen, shape, seed=seed, field=field, dtype=dtype,
                              fourier_shift=fourier_shift, noise=noise, **params)
         dt = np.dtype(p.dtype)
-        meta = {"field": None if field is None else field.to_json(), "seed": int(seed),
+        meta = {"field": None if field is None else field.to_json(), "seed": p.params.seed,
                 "shape": list(shape), "dtype": dt.name, "noise": p.imaging.noise,
                 **p.metadata()}
 
