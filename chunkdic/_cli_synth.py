@@ -39,7 +39,7 @@ def register(subparsers) -> None:
                    help="standard test case, overrides --field: fourier-shift (reference "
                         "Fourier-shifted by 0.5 voxel, CT specimens), shift (0.5 voxel "
                         "translation rendered with independent noise), band (-8%% strain, "
-                        "6-voxel band at mid-height, lateral 0.3)")
+                        "6-voxel band at mid-height, lateral 0.05)")
     p.add_argument("--field", choices=FIELDS, default="translation",
                    help="displacement field (default translation)")
     p.add_argument("--translation", default=None,
