@@ -172,23 +172,44 @@ def child_env(threads: int) -> dict:
     return env
 
 
-def wait_with_rusage(proc: subprocess.Popen, timeout: float):
-    """Wait for ``proc`` with ``os.wait4``; kill its process group on timeout.
+def _vm_hwm_mb(pid: int) -> float | None:
+    """Peak resident memory of ``pid``'s own address space (``VmHWM``), MB; None if unknown."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
 
-    Returns ``(exit code or None on timeout, peak RSS of that child in MB)``. ``proc`` must
-    have been started with ``start_new_session=True``.
+
+def wait_with_peak(proc: subprocess.Popen, timeout: float):
+    """Wait for ``proc``, tracking its peak memory; kill its process group on timeout.
+
+    The peak is ``VmHWM`` of ``/proc/PID/status``, polled every 50 ms (it is a running
+    maximum, so only a peak in the last 50 ms can be missed). ``ru_maxrss`` from ``wait4``
+    is not used where ``/proc`` exists: on Linux it starts from the RSS of the forked copy
+    of the parent, so every child would report at least the benchmark's own memory.
+
+    Returns ``(exit code or None on timeout, peak MB)``. ``proc`` must have been started
+    with ``start_new_session=True``.
     """
     t_end = time.monotonic() + timeout
+    peak = None
     while True:
+        hwm = _vm_hwm_mb(proc.pid)
+        if hwm is not None:
+            peak = hwm if peak is None else max(peak, hwm)
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid == proc.pid:
             proc.returncode = os.waitstatus_to_exitcode(status)
-            return proc.returncode, usage.ru_maxrss / 1024.0
+            return proc.returncode, peak if peak is not None else usage.ru_maxrss / 1024.0
         if time.monotonic() > t_end:
             os.killpg(proc.pid, signal.SIGKILL)
             _, status, usage = os.wait4(proc.pid, 0)
             proc.returncode = None
-            return None, usage.ru_maxrss / 1024.0
+            return None, peak if peak is not None else usage.ru_maxrss / 1024.0
         time.sleep(0.05)
 
 
@@ -235,7 +256,7 @@ def run_aldvc(exe: Path, ref: Path, deformed: Path, out_dir: Path, *, winsize: i
         log.flush()
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 env=child_env(threads), start_new_session=True)
-        rc, peak = wait_with_rusage(proc, timeout)
+        rc, peak = wait_with_peak(proc, timeout)
     wall = time.perf_counter() - t0
     text = log_path.read_text(errors="replace")
     done = re.search(r"Done in ([0-9.]+)s", text)
