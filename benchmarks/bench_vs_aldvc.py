@@ -191,10 +191,11 @@ def npy_copies(case: Case, workdir: Path) -> tuple[Path, Path]:
     from chunkdic.volume import open_scan
 
     out = []
-    for role, src in (("ref", case.reference), ("def", case.deformed)):
+    for src in (case.reference, case.deformed):
         arr = open_scan(src).refs([0])[0].open()
-        d = Path(src).parent
-        target = (d if os.access(d, os.W_OK) else workdir) / f"{Path(src).stem}.npy"
+        src = Path(src).resolve()
+        target = workdir / "npy" / f"{src.parent.name}-{src.stem}.npy"  # never beside a user's scans
+        target.parent.mkdir(parents=True, exist_ok=True)
         out.append(peer.write_npy(arr, target))
     return out[0], out[1]
 
@@ -347,7 +348,7 @@ def warm_up(exe: Path, args, workdir: Path) -> None:
 
 
 def _affine_fit(points, u):
-    """Least-squares ``u = M (p - c) + b``; returns ``M`` (3, 3) and the fit at ``c`` = 0."""
+    """Least-squares affine fit ``u = M q + b`` of ``u`` (3, N) at ``q`` (3, N); returns ``M``, ``b``."""
     P = np.vstack([points, np.ones(points.shape[1])]).T
     coef, *_ = np.linalg.lstsq(P, u.T, rcond=None)
     return coef[:3].T, coef[3]
@@ -418,10 +419,12 @@ def selfcheck(exe: Path, args, workdir: Path) -> int:
             passed &= good < 0.01
         else:
             m, b = _affine_fit(a.points[:, a.valid] - c, a.u[:, a.valid])
-            offset = np.linalg.solve(np.asarray(matrix), np.asarray(field.translation) - b)
-            print(f"  fitted gradient (rows Uz, Uy, Ux; columns d/dz, d/dy, d/dx):\n"
+            # measured u = A (X_true - c) + t with X_true = X_reported + offset, so the fit's
+            # value at the centre is b = t + A offset
+            offset = np.linalg.solve(np.asarray(matrix), b - np.asarray(field.translation))
+            print("  fitted gradient (rows Uz, Uy, Ux; columns d/dz, d/dy, d/dx):\n"
                   + "\n".join("    " + " ".join(f"{v:+.5f}" for v in r) for r in m)
-                  + f"\n  true gradient:\n" + "\n".join("    " + " ".join(f"{v:+.5f}" for v in r) for r in matrix))
+                  + "\n  true gradient:\n" + "\n".join("    " + " ".join(f"{v:+.5f}" for v in r) for r in matrix))
             print(f"  fitted u at the centre {np.round(b, 4).tolist()}, true {list(field.translation)}: "
                   f"node positions consistent to {np.round(offset, 3).tolist()} voxel (z, y, x)")
             passed &= bool(np.abs(m - np.asarray(matrix)).max() < 0.002 and np.abs(offset).max() < 0.25)
