@@ -21,22 +21,25 @@ chunkdic's embedded pool (``DASK_CHUNKDIC__NUM_THREADS``), al-dvc's ``n_threads`
 ``NUMBA_NUM_THREADS`` / ``OMP_NUM_THREADS`` / BLAS of both children. A warm-up run of
 each tool on a 48³ pair comes first, so that neither pays for Numba compilation.
 
-Cases (foam texture of :mod:`chunkdic.synthetic`, or ``--specimen`` once the CT-like
-specimens exist):
+Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` of
+:mod:`chunkdic.microstructure` imaged by :mod:`chunkdic.ctsim`, with independent noise
+``--noise`` in each scan; ``foam`` for the smooth synthetic foam):
 
-- ``shift``: the reference, Fourier-shifted by (0.5, 0.5, 0.5) voxel
-  (:func:`chunkdic.metrology.fourier_shift_scan`; the paper's section 4.2 test);
-- ``noise``: a (0.5, 0.5, 0.5) translation rendered exactly, independent noise
-  (``--noise``) in each scan;
-- ``band``: compression band normal to z through the centre (:class:`chunkdic.fields.Band`),
-  −8 % peak strain, 6-voxel width, lateral expansion factor ``--band-lateral`` (default
-  0.02), independent noise in each scan. The C8 basis alone cannot follow so sharp a band:
-  at 128³ the L2 projection of this field on chunkdic's meshes leaves 0.030 / 0.014 voxel
-  RMS at the scored nodes for ell = 12 / 8 (with a lateral factor of 0.3 it would be
-  0.12 / 0.18: the lateral term grows with the distance to the axis, and the benchmark
-  would measure the basis rather than the tools);
+- ``shift``: the reference, Fourier-shifted by (0.5, 0.5, 0.5) voxel (the paper's section
+  4.2 test: both scans share the reference's noise);
+- ``noise``: a (0.5, 0.5, 0.5) translation rendered from the geometry, independent noise
+  in each scan;
+- ``band``: the standard compression band (:func:`chunkdic.ctpair.standard_field`: −8 %
+  peak strain, 6-voxel width, lateral factor 0.05 unless ``--band-lateral``), independent
+  noise in each scan. The C8 basis alone cannot follow so sharp a band: at 100³ the L2
+  projection of this field on chunkdic's meshes leaves 0.029 / 0.026 voxel RMS at the
+  scored nodes for ell = 12 / 8 (0.13 / 0.06 with a lateral factor of 0.3, which would
+  measure the basis rather than the tools);
 - ``band-grey``: ``band`` with the deformed scan's grey levels changed (gain 1.1, +5 %
-  offset, 3 % drift along z); needs the CT specimens' grey-level option, skipped otherwise.
+  offset, 3 % drift along z; CT specimens only).
+
+``--set KEY=VALUE`` passes settings to chunkdic (e.g. ``--set smoothing=0 --set grey=none``
+for the paper's plain C8).
 
 Usage::
 
@@ -49,7 +52,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import math
 import os
@@ -93,81 +95,68 @@ class Case:
     note: str = ""
 
 
-def _synth_kwargs(args) -> dict:
-    kw = {"seed": args.seed, "dtype": args.dtype, "overwrite": True}
-    if args.specimen:
-        kw["specimen"] = args.specimen
-    return kw
+GREY_CHANGE = {"gain": 1.1, "offset": 0.05, "drift": 0.03}
 
 
-def _grey_kwargs():
-    """``synthesize`` keywords of the band-grey change, or None if this chunkdic lacks them."""
-    from chunkdic import synthetic
+def _band(n: int, lateral: float | None):
+    from chunkdic.ctpair import standard_field
 
-    if "grey" not in inspect.signature(synthetic.synthesize).parameters:
-        return None
-    try:
-        from chunkdic.ctsim import GreyChange
-    except ImportError:
-        return None
-    return {"grey": GreyChange(gain=1.1, offset=0.05, drift=0.03)}
+    kw = {} if lateral is None else {"lateral": lateral}
+    return standard_field("band", (n,) * 3, **kw)[0]
 
 
-def _band(n: int, lateral: float):
-    from chunkdic.fields import Band
-
-    c = (n - 1) / 2.0
-    return Band(center_z=c, width=6.0, strain=-0.08, lateral=lateral, center_y=c, center_x=c)
-
-
-def _pair(out: Path, n: int, args, *, field, noise: float, extra: dict | None = None) -> dict:
+def _pair(out: Path, n: int, args, specimen: str, *, field, **extra) -> dict:
     from chunkdic import synthetic
 
     if (out / "field.json").exists():
         return {"reference": str(out / "ref.zarr"), "deformed": str(out / "def.zarr")}
     t0 = time.perf_counter()
-    paths = synthetic.synthesize(out, (n,) * 3, field=field, noise=noise, **_synth_kwargs(args),
-                                 **(extra or {}))
+    kw = {"seed": args.seed, "dtype": args.dtype, "overwrite": True, "noise": args.noise}
+    if specimen != "foam":
+        kw["specimen"] = specimen
+    paths = synthetic.synthesize(out, (n,) * 3, field=field, **kw, **extra)
     print(f"# synthesized {out.name} ({n}^3) in {time.perf_counter() - t0:.1f} s", flush=True)
     return paths
 
 
-def build_case(name: str, n: int, workdir: Path, args) -> Case | None:
+def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | None:
     """Write the scans of case ``name`` at ``n``³ under ``workdir`` (kept between runs)."""
     from chunkdic.fields import Translation
 
-    tag = f"{name}-{n}-{args.specimen or 'foam'}-{args.dtype}-n{args.noise:g}-s{args.seed}"
-    if name.startswith("band"):
+    tag = f"{name}-{n}-{specimen}-{args.dtype}-n{args.noise:g}-s{args.seed}"
+    if name.startswith("band") and args.band_lateral is not None:
         tag += f"-lat{args.band_lateral:g}"
     out = workdir / tag
+    label = f"{name}/{specimen}"
     if name == "shift":
-        from chunkdic.metrology import fourier_shift_scan
-        from chunkdic.volume import open_scan
+        if specimen == "foam":
+            from chunkdic.metrology import fourier_shift_scan
+            from chunkdic.volume import open_scan
 
-        paths = _pair(out, n, args, field=None, noise=args.noise)
-        shifted = out / "shifted.zarr"
-        if not shifted.exists():
-            src = open_scan(paths["reference"]).refs([0])[0]
-            fourier_shift_scan(src, shifted, SHIFT, overwrite=True)
-        return Case(name, paths["reference"], str(shifted), Translation(SHIFT), (n,) * 3,
+            paths = _pair(out, n, args, specimen, field=None)
+            shifted = out / "shifted.zarr"
+            if not shifted.exists():
+                src = open_scan(paths["reference"]).refs([0])[0]
+                fourier_shift_scan(src, shifted, SHIFT, overwrite=True)
+            return Case(label, paths["reference"], str(shifted), Translation(SHIFT), (n,) * 3,
+                        "Fourier shift of the reference")
+        paths = _pair(out, n, args, specimen, field=Translation(SHIFT), fourier_shift=True)
+        return Case(label, paths["reference"], paths["deformed"], Translation(SHIFT), (n,) * 3,
                     "Fourier shift of the reference")
     if name == "noise":
-        paths = _pair(out, n, args, field=Translation(SHIFT), noise=args.noise)
-        return Case(name, paths["reference"], paths["deformed"], Translation(SHIFT), (n,) * 3,
+        paths = _pair(out, n, args, specimen, field=Translation(SHIFT))
+        return Case(label, paths["reference"], paths["deformed"], Translation(SHIFT), (n,) * 3,
                     f"translation, independent noise {args.noise:g}")
+    field = _band(n, args.band_lateral)
     if name == "band":
-        field = _band(n, args.band_lateral)
-        paths = _pair(out, n, args, field=field, noise=args.noise)
-        return Case(name, paths["reference"], paths["deformed"], field, (n,) * 3, "band -8 %, width 6")
+        paths = _pair(out, n, args, specimen, field=field)
+        return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3, "band -8 %, width 6")
     if name == "band-grey":
-        grey = _grey_kwargs()
-        if grey is None:
-            print("# band-grey skipped: chunkdic.synthetic.synthesize has no grey-level option yet "
-                  "(it comes with the CT-like specimens)", flush=True)
+        if specimen == "foam":
+            print("# band-grey skipped on the foam (grey-level changes are a CT-specimen option)", flush=True)
             return None
-        field = _band(n, args.band_lateral)
-        paths = _pair(out, n, args, field=field, noise=args.noise, extra=grey)
-        return Case(name, paths["reference"], paths["deformed"], field, (n,) * 3,
+        paths = _pair(out, n, args, specimen, field=field, **GREY_CHANGE)
+        return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
                     "band, deformed x1.1 +5 % drift 3 %")
     raise ValueError(name)
 
@@ -208,7 +197,8 @@ def _chunkdic_child(args) -> None:
     import chunkdic
 
     t0 = time.perf_counter()
-    res = chunkdic.correlate(args.ref, args.deformed, element_size=args.element_size)
+    options = json.loads(args.options or "{}")
+    res = chunkdic.correlate(args.ref, args.deformed, element_size=args.element_size, **options)
     wall = time.perf_counter() - t0
     scale = float(res.info.get("scale", 1))
     # level-s voxels -> level-0 voxels (shared/DESIGN.md: centre offset (2^s - 1) / 2)
@@ -226,10 +216,10 @@ def _chunkdic_child(args) -> None:
         json.dump(summary, fh)
 
 
-def run_chunkdic(case: Case, ell: int, threads: int, out: Path, timeout: float) -> dict:
+def run_chunkdic(case: Case, ell: int, threads: int, out: Path, timeout: float, options: dict | None = None) -> dict:
     out.parent.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, __file__, "--child", "--ref", case.reference, "--deformed", case.deformed,
-           "--element-size", str(ell), "--out", str(out)]
+           "--element-size", str(ell), "--out", str(out), "--options", json.dumps(options or {})]
     env = peer.child_env(threads)
     env["DASK_CHUNKDIC__NUM_THREADS"] = str(threads)
     t0 = time.perf_counter()
@@ -283,7 +273,7 @@ def _summarise(runs: list[dict]) -> dict:
     return out
 
 
-HEADER = (f"{'size':>4} {'case':<9} {'ell':>3} {'tool':<8} {'sigma':>8} {'|bias|':>8} {'RMS':>8} "
+HEADER = (f"{'size':>4} {'case':<18} {'ell':>3} {'tool':<8} {'sigma':>8} {'|bias|':>8} {'RMS':>8} "
           f"{'max':>7} {'points':>6} {'failed':>6} {'status':<14} {'wall s':>7} {'proc s':>7} "
           f"{'MB':>6} {'x':>5}")
 
@@ -295,7 +285,7 @@ def _fmt(v, spec):
 def row(size, case, ell, tool, m: dict, ratio=None) -> str:
     bias = m.get("bias")
     bnorm = float(np.linalg.norm(bias)) if bias and all(np.isfinite(bias)) else None
-    return (f"{size:>4} {case:<9} {ell:>3} {tool:<8} {_fmt(m.get('sigma'), '8.4f')} {_fmt(bnorm, '8.4f')} "
+    return (f"{size:>4} {case:<18} {ell:>3} {tool:<8} {_fmt(m.get('sigma'), '8.4f')} {_fmt(bnorm, '8.4f')} "
             f"{_fmt(m.get('rms'), '8.4f')} {_fmt(m.get('max_error'), '7.3f')} "
             f"{_fmt(m.get('n_points'), '6.0f')} {_fmt(m.get('n_failed'), '6.0f')} {m.get('status', '-'):<14} "
             f"{_fmt(m.get('wall'), '7.1f')} {_fmt(m.get('proc'), '7.1f')} {_fmt(m.get('peak_rss_mb'), '6.0f')} "
@@ -310,7 +300,7 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys) -> dict:
     runs = {"chunkdic": [], "al-dvc": []}
     for rep in range(args.repeats):
         base = workdir / "runs" / f"{case.name}-{case.shape[0]}-ell{ell}-r{rep}"
-        c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout)
+        c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout, args.options)
         score = _score(c.pop("points", None), c.pop("u", None), None, case, ell)
         runs["chunkdic"].append({**c, **score})
         a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
@@ -331,12 +321,13 @@ def warm_up(exe: Path, args, workdir: Path) -> None:
     from chunkdic.fields import Translation
 
     class A:  # the synthesis settings of a tiny pair
-        seed, dtype, specimen, noise = 0, "uint8", None, 0.0
+        seed, dtype, noise = 0, "uint8", 0.0
 
-    paths = _pair(workdir / "warmup-48", 48, A, field=Translation((0.3, 0.2, 0.1)), noise=0.0)
+    paths = _pair(workdir / "warmup-48", 48, A, "foam", field=Translation((0.3, 0.2, 0.1)))
     case = Case("warmup", paths["reference"], paths["deformed"], None, (48,) * 3)
     t0 = time.perf_counter()
-    c = run_chunkdic(case, 8, args.threads, workdir / "runs" / "warmup" / "chunkdic", args.timeout)
+    c = run_chunkdic(case, 8, args.threads, workdir / "runs" / "warmup" / "chunkdic", args.timeout,
+                     args.options)
     ref, dfm = npy_copies(case, workdir)
     a = peer.run_aldvc(exe, ref, dfm, workdir / "runs" / "warmup" / "aldvc", winsize=16, step=8,
                        threads=args.threads, timeout=args.timeout)
@@ -474,12 +465,14 @@ def parse_args(argv=None):
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="cores given to each tool")
     p.add_argument("--noise", type=float, default=0.02,
                    help="acquisition noise std, texture units (grey range ~1); independent per scan")
-    p.add_argument("--band-lateral", type=float, default=0.02,
-                   help="lateral expansion factor of the band cases (chunkdic.fields.Band lateral)")
+    p.add_argument("--band-lateral", type=float, default=None,
+                   help="lateral expansion factor of the band cases (default: the standard case's 0.05)")
     p.add_argument("--dtype", default="uint16", choices=["uint8", "uint16", "float32"])
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--specimen", default=None,
-                   help="specimen passed to chunkdic.synthetic.synthesize(specimen=...) (CT-like specimens)")
+    p.add_argument("--specimen", nargs="+", default=["grains", "concrete"], choices=["grains", "concrete", "foam"],
+                   help="specimens of the built-in cases (default: the CT-like grains and concrete)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a chunkdic setting for every run, e.g. --set regularization=none (repeatable)")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per tool run")
     p.add_argument("--workdir", default=None, help="scans and runs (default: a new temporary directory)")
     p.add_argument("--venv", default=str(peer.DEFAULT_VENV), help="al-dvc's virtual environment")
@@ -488,7 +481,7 @@ def parse_args(argv=None):
     p.add_argument("--selfcheck", action="store_true",
                    help="only verify the adapter's conventions on known fields, then exit")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    for name in ("--ref", "--deformed", "--out"):
+    for name in ("--ref", "--deformed", "--out", "--options"):
         p.add_argument(name, help=argparse.SUPPRESS)
     p.add_argument("--element-size", type=int, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -500,11 +493,15 @@ def parse_args(argv=None):
         _error("--sizes must be >= 32")
     if args.repeats < 1 or args.threads < 1 or args.timeout <= 0:
         _error("--repeats, --threads and --timeout must be positive")
-    if args.specimen:
-        from chunkdic import synthetic
-
-        if "specimen" not in inspect.signature(synthetic.synthesize).parameters:
-            _error("this chunkdic's synthesize() has no specimen option yet (CT-like specimens)")
+    args.options = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            _error(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            args.options[key.replace("-", "_")] = json.loads(value)
+        except json.JSONDecodeError:
+            args.options[key.replace("-", "_")] = value
     return args
 
 
@@ -524,10 +521,11 @@ def main(argv=None) -> int:
         warm_up(exe, args, workdir)
     cases = []
     for n in args.sizes:
-        for name in args.cases:
-            c = build_case(name, n, workdir, args)
-            if c is not None:
-                cases.append(c)
+        for specimen in args.specimen:
+            for name in args.cases:
+                c = build_case(name, n, specimen, workdir, args)
+                if c is not None:
+                    cases.append(c)
     cases += [pair_case(p) for p in args.pair]
     print(f"# medians of {args.repeats} run(s); sigma pooled, RMS vector error, points >= ell from the "
           f"faces; x = al-dvc wall / chunkdic wall\n" + HEADER, flush=True)

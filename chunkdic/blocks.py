@@ -12,35 +12,47 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["ElementSums", "core_shape", "elements_of", "check_nodes", "voxel_xi", "grad_index", "gradient_block"]
+#: lags (voxels along x) of the autocorrelations that estimate the noise correlation
+LAGS = 4
+
+__all__ = ["LAGS", "QUANTITIES", "ElementSums", "core_shape", "elements_of", "check_nodes", "voxel_xi", "grad_index", "gradient_block"]
+
+
+#: order of the quantities of :class:`ElementSums`: ``d``, ``g'``, ``1``, then the
+#: element-centred coordinates ``z~, y~, x~ = ξ - 1/2`` (ξ the local coordinate, 0..1)
+QUANTITIES = ("d", "g", "1", "z", "y", "x")
 
 
 @dataclass
 class ElementSums:
-    """Per-element sums of one ``b`` pass over a block (see the module docstring).
+    """Per-element sums of one ``b`` pass over a block (see :mod:`chunkdic.kernels`).
+
+    With ``d = f - g(X + u)``, ``g' = g(X + u) - c`` and the element-centred coordinates
+    ``q~ = ξ - 1/2`` (in element sizes), ``v = (d, g', 1, z~, y~, x~)`` (:data:`QUANTITIES`).
 
     Attributes
     ----------
-    B : ndarray, shape (ez, ey, ex, 3, 8, 3), float64
-        ``B[e, q, a, i] = Σ_{valid X in e} N_a d_i f q`` for ``q = (d, g', 1)``,
-        local node ``a = 4 dz + 2 dy + dx``, component ``i`` (z, y, x).
-    moments : ndarray, shape (ez, ey, ex, 6), float64
-        ``Σw, Σwd, Σwg', Σwd², Σwdg', Σwg'²`` over each element, ``w`` the voxel weights
-        (1 inside the usable part of ``g``, tapering to 0 over its last voxel).
+    B : ndarray, shape (ez, ey, ex, 6, 8, 3), float64
+        ``B[e, q, a, i] = Σ_{X in e} w N_a ∂_i f v_q``, local node ``a = 4 dz + 2 dy + dx``,
+        component ``i`` (z, y, x).
+    gram : ndarray, shape (ez, ey, ex, 6, 6), float64
+        ``Σ_{X in e} w v vᵀ`` (``gram[e, 2, 2]`` is the element's ``Σ w``).
     n_excluded : int
         Core voxels of weight 0 (``X + u(X)`` outside the usable part of ``g``).
+    lags : ndarray, shape (6, LAGS + 1), float64, optional
+        Along x, for ``k = 0 … LAGS``: ``Σ w w' d d'``, ``Σ w w'``, ``Σ w w' (d g'' + g' d')``,
+        ``Σ w w' g' g''`` (primes: the voxel ``k`` further), and ``Σ w d``, ``Σ w g'`` in
+        ``[4, 0]``, ``[5, 0]``: the autocorrelation of any residual ``d - α g'``
+        (:func:`chunkdic.noise.correlation_factor`; numba kernels only).
 
-    Every sum of ``B`` carries the voxel weight ``w`` too.
+    ``w`` are the voxel weights: 1 inside the usable part of ``g``, tapering to 0 over
+    its last voxel.
     """
 
     B: np.ndarray
-    moments: np.ndarray
+    gram: np.ndarray
     n_excluded: int
-
-
-# --------------------------------------------------------------------------------------
-# argument checks shared by both implementations
-# --------------------------------------------------------------------------------------
+    lags: np.ndarray | None = None
 
 
 def core_shape(f: np.ndarray, lo, hi) -> tuple[int, int, int]:

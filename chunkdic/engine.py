@@ -12,6 +12,7 @@ adds up (shared/DESIGN.md, "Out-of-core shape").
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 import tempfile
 import time
@@ -29,6 +30,7 @@ from .level import Level, emit
 from .mesh import transfer
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
+from .regularization import choose_length
 from .result import FLAG_NO_DATA, FLAG_WEAK, Result
 from .rigid import translation_task
 from .scheduler import open_runner
@@ -153,6 +155,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
     rigid_t = initial_gap = rigid_gap = None
     state = None
     weak = []  # poorly textured nodes of the finest level
+    reg_length = math.nan  # regularisation length of the finest level, level-0 voxels
     history = History()
     if resume is not None:
         history = History(resume["history"])
@@ -197,6 +200,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                     rigid_t = rigid_step(lvl, t_int, tol, 10, history, progress)
                     start = _uniform(rigid_t, mesh)
                 state = State(start)
+            lvl.regularize(_regularization_length(settings, state, s, mesh))
             lvl.prepare_interpolation(state.u)
             if s == finest and initial_gap is None:
                 rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
@@ -206,6 +210,11 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                      translation=rigid_fine.tolist())
             state = iterate(lvl, state, tol, settings.max_iterations, history, progress,
                             on_iteration=lambda st, s=s: save_checkpoint(st, s))
+            if s == finest and _choose_automatically(settings, state):
+                state = _with_chosen_regularization(lvl, state, progress)
+                state = iterate(lvl, state, tol, settings.max_iterations, history, progress,
+                                on_iteration=lambda st, s=s: save_checkpoint(st, s))
+            reg_length = lvl.regularization_length * 2**s
             lvl.release()
             statuses[s] = state.status
             save_checkpoint(state, s)
@@ -240,6 +249,9 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         "nodes_without_data": int(np.count_nonzero(flags & FLAG_NO_DATA)),
         "weak_nodes": int(np.count_nonzero(flags & FLAG_WEAK)),
         "grey_level": _brightness_summary(settings.grey, final.elements),
+        "regularization": {"kind": settings.regularization,
+                           "length": None if not np.isfinite(reg_length) else float(reg_length),
+                           "automatic": settings.regularization_length is None},
         "settings": settings.to_json(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "chunkdic_version": _version(),
@@ -273,8 +285,50 @@ def _brightness_summary(model: str, elements: np.ndarray | None) -> dict:
         gain, offset = elements[0][used], elements[1][used]
         if gain.size:
             out.update(gain=float(np.median(gain)), offset=float(np.median(offset)),
-                       offset_range=[float(offset.min()), float(offset.max())])
+                       offset_range=[float(offset.min()), float(offset.max())],
+                       drift=[float(v) for v in elements[3:, 0, 0, 0]])
     return out
+
+
+#: the regularisation length before (coarse levels: instead of) the automatic choice, in element sizes
+START_LENGTH = 2.0
+
+
+def _regularization_length(settings: Settings, state: State, s: int, mesh) -> float:
+    """``ℓ_reg`` for level ``s``, voxels of the level: given, chosen (resumed), or the starting one."""
+    if settings.regularization_length is not None:
+        return settings.regularization_length / 2.0**s
+    if math.isfinite(state.reg_length):
+        return state.reg_length
+    return START_LENGTH * mesh.element_size
+
+
+def _choose_automatically(settings: Settings, state: State) -> bool:
+    return (settings.regularization != "none" and settings.regularization_length is None
+            and not math.isfinite(state.reg_length) and state.status == "converged")
+
+
+def _with_chosen_regularization(lvl: Level, state: State, progress) -> State:
+    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.regularization.choose_length`), restart."""
+    p = lvl.last_pass
+    u = np.moveaxis(state.u, 0, -1)
+
+    def solve_with(half, reg, weight, rhs):
+        from .solve import StencilSolver
+
+        solver = StencilSolver(half.copy())
+        solver.regularize(reg, weight)
+        return solver.solve(rhs)[0]
+
+    choice = choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
+                           p.kappa * p.noise_variance, solve_with)
+    scale = 2.0**lvl.s
+    emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale,
+         l_curve_length=choice.l_curve_length * scale, kind=lvl.settings.regularization, kappa=p.kappa)
+    lvl.regularize(choice.length)
+    state.reg_length = choice.length
+    state.restart()
+    return state
 
 
 def _uniform(t, mesh) -> np.ndarray:

@@ -91,10 +91,11 @@ class State:
     n_valid: int = 0
     elements: np.ndarray | None = None
     best_elements: np.ndarray | None = None
+    reg_length: float = math.nan  # automatic regularisation length once chosen (voxels of the level)
 
     SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
-               "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid")
-    _FLOATS = ("best_gap", "last_delta", "best_delta", "gap")
+               "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length")
+    _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length")
     _ARRAYS = ("u", "best_u", "elements", "best_elements")
 
     def scalars(self) -> dict:
@@ -125,6 +126,12 @@ class State:
         else:
             self.since_best += 1
 
+    def restart(self) -> None:
+        """Iterate again from the current field with a changed objective (a new regularisation)."""
+        self.status = None
+        self.best_gap, self.best_u, self.since_best = math.inf, None, 0
+        self.last_delta, self.best_delta, self.since_smaller = math.inf, math.inf, 0
+
     def finish(self, status: str, *, keep_current: bool) -> None:
         self.status = status
         if not keep_current and self.best_u is not None:  # diverged / stalled: the best field met
@@ -143,8 +150,10 @@ class State:
 
 
 def element_fields(p) -> np.ndarray:
-    """Per-element gain, offset and valid voxels of a pass, shape (3, ez, ey, ex)."""
-    return np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element])
+    """Per-element gain, offset (at the centre), valid voxels of a pass, and the drift
+    (grey levels per voxel, z, y, x, repeated per element): shape (6, ez, ey, ex)."""
+    drift = np.broadcast_to(p.fit.drift[:, None, None, None], (3,) + p.fit.gain.shape)
+    return np.concatenate([np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element]), drift])
 
 
 def _decide(state: State, gap: float, tolerance: float, max_iterations: int) -> None:

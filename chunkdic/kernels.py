@@ -65,7 +65,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from . import kernels_numpy
-from .blocks import ElementSums, check_nodes, core_shape, elements_of, grad_index, gradient_block, voxel_xi
+from .blocks import LAGS, ElementSums, check_nodes, core_shape, elements_of, grad_index, gradient_block, voxel_xi
 from .interp import (
     fast_bounds,
     interp_cubic,
@@ -96,7 +96,7 @@ __all__ = [
 IMPLEMENTATIONS = ("numba", "numpy")
 INTERPOLATIONS = ("linear", "cubic")
 #: brightness models whose element moments condense ``M`` (see :func:`m_block`)
-CONDENSED = {"none": 0, "global": 0, "offset": 1, "element": 2}
+CONDENSED = {"none": 0, "global": 0, "drift": 1, "element": 2}
 
 # Index of the symmetric gradient product d_i f d_j f in the 6-vector G_c.
 _SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]], dtype=np.int64)
@@ -137,6 +137,7 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
     T = np.zeros((nez, ney, nex, 3, 3, 3, 6))
     C = np.zeros((nez, ney, nex, 2, 8, 3))
     K = np.zeros((nez, ney, nex, 3))
+    lags = np.zeros((3, LAGS + 1))
     prod = np.empty((9, nx))
     vm = np.ones(nx)
     fmin = np.inf
@@ -186,6 +187,13 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                 prod[6, x] = w * gz
                 prod[7, x] = w * gy
                 prod[8, x] = w * gx
+            # autocorrelation of the gradient along x (noise correlation estimate, LAGS)
+            for i in range(3):
+                for k in range(LAGS + 1):
+                    acc = 0.0
+                    for x in range(nx - k):
+                        acc += prod[6 + i, x] * prod[6 + i, x + k]
+                    lags[i, k] += acc
             # pass 2: per element, reduce the row against psi_px, then spread over pz, py
             for ex in range(nex):
                 x0 = ex * ell
@@ -239,7 +247,7 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                 K[ez, ey, ex, 0] += k0
                 K[ez, ey, ex, 1] += k1
                 K[ez, ey, ex, 2] += k2
-    return T, C, K, fmin, fmax
+    return T, C, K, lags, fmin, fmax
 
 
 @jit
@@ -290,7 +298,7 @@ def _assemble_stencil(T, C, K, sym, condensed):
 
 def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str = "none",
             center: float = 0.0, u_nodes: np.ndarray | None = None, core_origin=None, g_shape=None,
-            margin: int = 0):
+            margin: int = 0, with_lags: bool = False):
     """Block contribution to the C8 matrix ``M`` as a nodal 27-point stencil.
 
     Parameters
@@ -304,8 +312,8 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
         Element edge, voxels. The core shape must be a multiple of ``ell``.
     impl : {"numba", "numpy"}, keyword-only
         Fused kernel or its NumPy twin (test oracle).
-    grey : {"none", "global", "offset", "element"}, keyword-only
-        Brightness model (:mod:`chunkdic.greylevel`). ``offset`` and ``element`` have
+    grey : {"none", "global", "drift", "element"}, keyword-only
+        Brightness model (:mod:`chunkdic.greylevel`). ``drift`` and ``element`` have
         per-element brightness unknowns, eliminated exactly (variable projection), so the
         Gauss–Newton matrix is ``M`` minus their Schur complement per element, with ``f``
         standing for ``g(X + u)`` as in the rest of the modified Gauss–Newton.
@@ -320,6 +328,10 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     margin : int, keyword-only
         Positions within ``margin`` voxels of a face of ``g`` count as outside (see
         :func:`b_sums`).
+    with_lags : bool, keyword-only
+        Also return ``lags`` (3, LAGS + 1): ``Σ w ∂_i f(x) w ∂_i f(x + k)`` along x, the
+        autocorrelation of the sensitivities that estimates the noise correlation
+        (:func:`chunkdic.noise.correlation_factor`). numba only.
 
     Returns
     -------
@@ -354,8 +366,10 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
     xi = voxel_xi(ell)
     psi = np.stack([(1.0 - xi) ** 2, xi * (1.0 - xi), xi**2])  # psi_p, p = d_a + d_b
-    T, C, K, fmin, fmax = _m_kernel(f32, lo[0], lo[1], lo[2], ell, *elems, *idx[0], *idx[1], *idx[2],
-                                    psi, xi, float(center), u, *origin, *shape, float(margin), masked)
+    T, C, K, lags, fmin, fmax = _m_kernel(f32, lo[0], lo[1], lo[2], ell, *elems, *idx[0], *idx[1], *idx[2],
+                                          psi, xi, float(center), u, *origin, *shape, float(margin), masked)
+    if with_lags:
+        return _assemble_stencil(T, C, K, _SYM, CONDENSED[grey]), float(fmin), float(fmax), lags
     return _assemble_stencil(T, C, K, _SYM, CONDENSED[grey]), float(fmin), float(fmax)
 
 
@@ -544,12 +558,65 @@ def _segment_samples(u, ez, ey, ex, tz, ty, X0, X1, xa, ell, xi, g, gf, gs0, gs1
     return nbad
 
 
+@jit_inline
+def _spread(Be, q, a, w, s0z, s0y, s0x, s1z, s1y, s1x):
+    """Add ``w`` × the two x-face sums of quantity ``q`` to local nodes ``a`` and ``a + 1``."""
+    Be[q, a, 0] += w * s0z
+    Be[q, a, 1] += w * s0y
+    Be[q, a, 2] += w * s0x
+    Be[q, a + 1, 0] += w * s1z
+    Be[q, a + 1, 1] += w * s1y
+    Be[q, a + 1, 2] += w * s1x
+
+
+@jit_inline
+def _gram_row(Ge, n, sd, sg, sq, sdd, sdg, sgg, sdq, sgq, sqq, zt, yt):
+    """Add a row segment to the upper triangle of the element Gram of
+    ``v = (d, g', 1, z~, y~, x~)`` (weights ``w``; :func:`_symmetrize` completes it).
+
+    ``sq, sdq, sgq, sqq``: the segment's sums with ``x~``; ``z~ = zt``, ``y~ = yt`` on the row.
+    """
+    Ge[0, 0] += sdd
+    Ge[0, 1] += sdg
+    Ge[0, 2] += sd
+    Ge[0, 3] += zt * sd
+    Ge[0, 4] += yt * sd
+    Ge[0, 5] += sdq
+    Ge[1, 1] += sgg
+    Ge[1, 2] += sg
+    Ge[1, 3] += zt * sg
+    Ge[1, 4] += yt * sg
+    Ge[1, 5] += sgq
+    Ge[2, 2] += n
+    Ge[2, 3] += zt * n
+    Ge[2, 4] += yt * n
+    Ge[2, 5] += sq
+    Ge[3, 3] += zt * zt * n
+    Ge[3, 4] += zt * yt * n
+    Ge[3, 5] += zt * sq
+    Ge[4, 4] += yt * yt * n
+    Ge[4, 5] += yt * sq
+    Ge[5, 5] += sqq
+
+
+@jit
+def _symmetrize(G):
+    """Copy the upper triangle of every element's Gram onto its lower triangle."""
+    for ez in range(G.shape[0]):
+        for ey in range(G.shape[1]):
+            for ex in range(G.shape[2]):
+                for j in range(6):
+                    for k in range(j + 1, 6):
+                        G[ez, ey, ex, k, j] = G[ez, ey, ex, j, k]
+
+
 @jit
 def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
               scx, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n2, vm_lo, cubic, center):
     """One fused sweep: ``g(X + u)``, ``d``, ``g'`` and the per-element sums (ElementSums)."""
-    B = np.zeros((nez, ney, nex, 3, 8, 3))
-    mom = np.zeros((nez, ney, nex, 6))
+    B = np.zeros((nez, ney, nex, 6, 8, 3))
+    G = np.zeros((nez, ney, nex, 6, 6))
+    lags = np.zeros((6, LAGS + 1))
     nbad = 0
     gf = g.ravel()
     gs0 = g.shape[1] * g.shape[2]
@@ -563,6 +630,9 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
     wt = np.empty(ell)
     # one x-row of f and of its gradient (float32 differences, as gradient_block)
     frow = np.empty((4, nx), dtype=np.float32)
+    drow = np.zeros(nx)  # the row's d, g' and weights, for the residual's autocorrelation
+    grow = np.zeros(nx)
+    wrow = np.zeros(nx)
     for z in range(nez * ell):
         ez = z // ell
         zz = z + lo0
@@ -594,30 +664,39 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                 xa = c2 + ex * ell
                 nbad += _segment_samples(u, ez, ey, ex, tz, ty, X0, X1, xa, ell, xi, g, gf, gs0, gs1,
                                          o0, o1, o2, n0, n1, n2, vm_lo, bounds, cubic, gbuf, wt)
-                # x-face sums (w0 = 1 - xi, w1 = xi) of grad f times d, g' and 1
+                # x-face sums (w0 = 1 - xi, w1 = xi) of grad f times d, g', 1 and x~ = xi - 1/2
                 d0z = d0y = d0x = d1z = d1y = d1x = 0.0
                 g0z = g0y = g0x = g1z = g1y = g1x = 0.0
                 e0z = e0y = e0x = e1z = e1y = e1x = 0.0
-                n = sd = sg = sdd = sdg = sgg = 0.0
+                q0z = q0y = q0x = q1z = q1y = q1x = 0.0
+                n = sd = sg = sq = sdd = sdg = sgg = sdq = sgq = sqq = 0.0
                 for lx in range(ell):
                     w = wt[lx]
+                    x = ex * ell + lx
+                    wrow[x] = w
                     if w == 0.0:
                         continue
-                    x = ex * ell + lx
                     gv = gbuf[lx]
                     d = np.float64(frow[0, x]) - gv
                     gp = gv - center
+                    drow[x] = d
+                    grow[x] = gp
                     gz = np.float64(frow[1, x]) * w
                     gy = np.float64(frow[2, x]) * w
                     gx = np.float64(frow[3, x]) * w
                     w1 = xi[lx]
                     w0 = 1.0 - w1
+                    q = w1 - 0.5
                     n += w
                     sd += w * d
                     sg += w * gp
+                    sq += w * q
                     sdd += w * d * d
                     sdg += w * d * gp
                     sgg += w * gp * gp
+                    sdq += w * d * q
+                    sgq += w * gp * q
+                    sqq += w * q * q
                     e0z += w0 * gz
                     e0y += w0 * gy
                     e0x += w0 * gx
@@ -636,15 +715,18 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                     g1z += w1 * gz * gp
                     g1y += w1 * gy * gp
                     g1x += w1 * gx * gp
+                    q0z += w0 * gz * q
+                    q0y += w0 * gy * q
+                    q0x += w0 * gx * q
+                    q1z += w1 * gz * q
+                    q1y += w1 * gy * q
+                    q1x += w1 * gx * q
                 if n == 0.0:
                     continue
-                m = mom[ez, ey, ex]
-                m[0] += n
-                m[1] += sd
-                m[2] += sg
-                m[3] += sdd
-                m[4] += sdg
-                m[5] += sgg
+                # the element's Gram of (d, g', 1, z~, y~, x~); z~, y~ are constant on the row
+                zt = tz - 0.5
+                yt = ty - 0.5
+                _gram_row(G[ez, ey, ex], n, sd, sg, sq, sdd, sdg, sgg, sdq, sgq, sqq, zt, yt)
                 # spread the row sums over the 4 (dz, dy) node pairs of each x-face
                 Be = B[ez, ey, ex]
                 for dz in range(2):
@@ -652,25 +734,34 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                     for dy in range(2):
                         w = wz * (ty if dy else 1.0 - ty)
                         a = 4 * dz + 2 * dy
-                        Be[0, a, 0] += w * d0z
-                        Be[0, a, 1] += w * d0y
-                        Be[0, a, 2] += w * d0x
-                        Be[0, a + 1, 0] += w * d1z
-                        Be[0, a + 1, 1] += w * d1y
-                        Be[0, a + 1, 2] += w * d1x
-                        Be[1, a, 0] += w * g0z
-                        Be[1, a, 1] += w * g0y
-                        Be[1, a, 2] += w * g0x
-                        Be[1, a + 1, 0] += w * g1z
-                        Be[1, a + 1, 1] += w * g1y
-                        Be[1, a + 1, 2] += w * g1x
-                        Be[2, a, 0] += w * e0z
-                        Be[2, a, 1] += w * e0y
-                        Be[2, a, 2] += w * e0x
-                        Be[2, a + 1, 0] += w * e1z
-                        Be[2, a + 1, 1] += w * e1y
-                        Be[2, a + 1, 2] += w * e1x
-    return B, mom, nbad
+                        _spread(Be, 0, a, w, d0z, d0y, d0x, d1z, d1y, d1x)
+                        _spread(Be, 1, a, w, g0z, g0y, g0x, g1z, g1y, g1x)
+                        _spread(Be, 2, a, w, e0z, e0y, e0x, e1z, e1y, e1x)
+                        _spread(Be, 3, a, w * zt, e0z, e0y, e0x, e1z, e1y, e1x)
+                        _spread(Be, 4, a, w * yt, e0z, e0y, e0x, e1z, e1y, e1x)
+                        _spread(Be, 5, a, w, q0z, q0y, q0x, q1z, q1y, q1x)
+            # autocorrelation of the residual along x (noise correlation estimate, LAGS):
+            # the client forms that of r = d - α g' from these (blocks.ElementSums.lags)
+            for k in range(LAGS + 1):
+                sdd_k = 0.0
+                cnt = 0.0
+                sdg_k = 0.0
+                sgg_k = 0.0
+                for x in range(nx - k):
+                    ww = wrow[x] * wrow[x + k]
+                    sdd_k += ww * drow[x] * drow[x + k]
+                    sdg_k += ww * (drow[x] * grow[x + k] + grow[x] * drow[x + k])
+                    sgg_k += ww * grow[x] * grow[x + k]
+                    cnt += ww
+                lags[0, k] += sdd_k
+                lags[1, k] += cnt
+                lags[2, k] += sdg_k
+                lags[3, k] += sgg_k
+            for x in range(nx):
+                lags[4, 0] += wrow[x] * drow[x]
+                lags[5, 0] += wrow[x] * grow[x]
+    _symmetrize(G)
+    return B, G, lags, nbad
 
 
 @jit
@@ -747,16 +838,17 @@ def b_sums(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g:
     lo = tuple(int(v) for v in lo)
     hi = tuple(int(v) for v in hi)
     if st.gw is None:
-        return ElementSums(np.zeros(st.elems + (3, 8, 3)), np.zeros(st.elems + (6,)), int(np.prod(core)))
+        return ElementSums(np.zeros(st.elems + (6, 8, 3)), np.zeros(st.elems + (6, 6)), int(np.prod(core)),
+                           np.zeros((6, LAGS + 1)))
     f32 = np.ascontiguousarray(f, dtype=np.float32)
     if impl == "numpy":
         return kernels_numpy.b_sums_numpy(f32, lo, hi, ell, st.u_nodes, st.core_origin, st.gw, st.g_origin,
                                           st.g_shape, interpolation, float(center), int(margin))
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
-    B, mom, nbad = _b_kernel(f32, lo[0], lo[1], lo[2], ell, *st.elems, *idx[0], *idx[1], *idx[2],
+    B, gram, lags, nbad = _b_kernel(f32, lo[0], lo[1], lo[2], ell, *st.elems, *idx[0], *idx[1], *idx[2],
                              voxel_xi(ell), st.u_nodes, *st.core_origin, st.gw, *st.g_origin, *st.g_shape,
                              float(margin), interpolation == "cubic", float(center))
-    return ElementSums(B, mom, int(nbad))
+    return ElementSums(B, gram, int(nbad), lags)
 
 
 def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g: np.ndarray,
@@ -786,7 +878,7 @@ def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g
                   impl=impl, prefiltered=prefiltered)
     b = element_to_nodes(sums.B[..., 0, :, :])
     n_core = int(np.prod(core_shape(f, lo, hi)))
-    return b, float(sums.moments[..., 3].sum()), n_core - sums.n_excluded, sums.n_excluded
+    return b, float(sums.gram[..., 0, 0].sum()), n_core - sums.n_excluded, sums.n_excluded
 
 
 @jit

@@ -113,17 +113,18 @@ def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, 
     fc = f32[lo[0]:lo[0] + core[0], lo[1]:lo[1] + core[1], lo[2]:lo[2] + core[2]].astype(np.float64)
     d = np.where(mask, fc - warped, 0.0)
     gp = np.where(mask, warped - center, 0.0)
-    one = weight
     grad = gradient_block(f32, lo, hi).astype(np.float64)
     W = shape_table(ell).reshape(-1, 8)
-    B = np.zeros(elems + (3, 8, 3))
-    moments = np.zeros(elems + (6,))
+    q = voxel_xi(ell) - 0.5  # element-centred coordinate of each voxel, element sizes
+    qz, qy, qx = np.meshgrid(q, q, q, indexing="ij")
+    B = np.zeros(elems + (6, 8, 3))
+    gram = np.zeros(elems + (6, 6))
     for e in np.ndindex(*elems):
         sl = tuple(slice(k * ell, (k + 1) * ell) for k in e)
         G = grad[(slice(None),) + sl].reshape(3, -1)
-        for q, val in enumerate((d * weight, gp * weight, weight)):
-            B[e][q] = np.einsum("va,iv,v->ai", W, G, val[sl].reshape(-1))
-        dv, gv, ov = d[sl], gp[sl], one[sl]
-        moments[e] = (ov.sum(), (ov * dv).sum(), (ov * gv).sum(), (ov * dv * dv).sum(), (ov * dv * gv).sum(),
-                      (ov * gv * gv).sum())
-    return ElementSums(B, moments, int(mask.size - mask.sum()))
+        w = weight[sl].reshape(-1)
+        v = np.stack([d[sl].reshape(-1), gp[sl].reshape(-1), np.ones(w.size), qz.reshape(-1), qy.reshape(-1),
+                      qx.reshape(-1)])
+        B[e] = np.einsum("va,iv,qv->qai", W, G * w, v)
+        gram[e] = (v * w) @ v.T
+    return ElementSums(B, gram, int(mask.size - mask.sum()))

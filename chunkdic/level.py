@@ -22,7 +22,9 @@ from . import config
 from .errors import InputError
 from .greylevel import Fit, combine
 from .haloed import HaloedBlocks
+from .blocks import LAGS
 from .mesh import Mesh
+from .noise import correlation_factor
 from .prefilter import build_prepared, face_margin, prepared_halo, reachable_box
 from .settings import Settings
 from .regularization import Regularizer, plane_wave_weight
@@ -55,12 +57,21 @@ class Pass:
         Matching gap ``rms(r) / (max f - min f)`` over the valid voxels (paper section 5.1).
     n_valid, n_excluded : int
         Voxels used, and voxels whose ``X + u(X)`` left ``g``.
+    kappa : float
+        How much more misfit a fitted unknown absorbs than with white noise
+        (:func:`chunkdic.noise.correlation_factor`).
     """
 
     fit: Fit
     gap: float
     n_valid: int
     n_excluded: int
+    kappa: float = 1.0
+
+    @property
+    def noise_variance(self) -> float:
+        """``σ_r²``: the mean squared residual (grey levels²)."""
+        return self.fit.ssr / self.fit.weight if self.fit.weight > 0 else float("nan")
 
     @property
     def b(self) -> np.ndarray:
@@ -154,9 +165,11 @@ class Level:
         S = np.zeros(mesh.nodes_shape + (14, 3, 3), dtype=np.float32)
         fmin, fmax = np.inf, -np.inf
         args = [(self.inputs, job, self._nodes_of(u, job)) for job in self.jobs]
-        for blk, part, lo, hi in self._map(m_task, args, "M pass"):
+        self.sensitivity_lags = np.zeros((3, LAGS + 1))
+        for blk, part, lo, hi, lags in self._map(m_task, args, "M pass"):
             S[blk.node_slices] += part[..., 13:, :, :]
             fmin, fmax = min(fmin, lo), max(fmax, hi)
+            self.sensitivity_lags += lags
         self.dynamic_range = float(fmax - fmin)
         if not self.dynamic_range > 0:
             raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
@@ -165,21 +178,19 @@ class Level:
         self.rigid_matrix = rigid_restriction(S)
         self.solver = StencilSolver(S)
         self._warn_weak_nodes()
-        self._regularize()
-
-    def _regularize(self) -> None:
-        """Add ``λ R`` (:mod:`chunkdic.regularization`) with the level's length, voxels of the level."""
-        st = self.settings
+        self.regularization_length = math.nan
         self.regularization_weight = 0.0
-        if st.regularization == "none" or not st.regularization_length:
+
+    def regularize(self, length: float) -> None:
+        """Solve with ``λ R`` from now on (:mod:`chunkdic.regularization`); ``length``: ``ℓ_reg``, voxels of the level."""
+        kind = self.settings.regularization
+        if kind == "none":
             return
-        length = st.regularization_length / 2.0**self.s
-        reg = Regularizer(st.regularization, self.mesh.nodes_shape, self.mesh.element_size)
+        reg = Regularizer(kind, self.mesh.nodes_shape, self.mesh.element_size)
         weight = plane_wave_weight(reg, lambda v: stencil_matvec(self.solver.matrix, v), length)
         self.solver.regularize(reg, weight)
-        self.regularization_weight = weight
-        log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", self.s, st.regularization,
-                 length, weight)
+        self.regularization_length, self.regularization_weight = float(length), weight
+        log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", self.s, kind, length, weight)
 
     def _warn_weak_nodes(self) -> None:
         weak = self.solver.weak_nodes
@@ -250,6 +261,7 @@ class Level:
         nodal = scalars = None
         elements = None
         n_excluded = 0
+        lags = np.zeros((6, LAGS + 1))
         args = [(self.inputs, job, self._nodes_of(u, job)) for job in self.jobs]
         for blk, part in self._map(b_task, args, "b pass"):
             if nodal is None:
@@ -260,6 +272,10 @@ class Level:
             scalars += part.scalars
             elements[(slice(None), *(slice(e0, e1) for e0, e1 in blk.elements))] = part.elements
             n_excluded += part.n_excluded
-        fit = combine(self.settings.grey, nodal, scalars, elements, self.inputs.center)
+            lags += part.lags
+        fit = combine(self.settings.grey, nodal, scalars, elements, self.inputs.center, mesh.element_size)
         gap = math.sqrt(fit.ssr / fit.weight) / self.dynamic_range if fit.weight > 0 else math.inf
-        return Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded)
+        kappa = correlation_factor(lags, self.sensitivity_lags, float(np.median(fit.gain)),
+                                   fit.ssr / fit.weight if fit.weight > 0 else None)
+        self.last_pass = Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded, kappa)
+        return self.last_pass

@@ -10,22 +10,24 @@ with a penalty ``aᵀ R a`` that damps the short wavelengths of the field and le
 long ones to the images (the usual regularised global DVC: pyxel, UFreckles, Correli):
 
 ``tikhonov``
-    ``R = K_H1`` (per component), the stiffness of ``∫ |∇u|²``: a second-order low-pass.
-    It vanishes on rigid translations; on a linear field its rows vanish at interior nodes
-    (the boundary rows carry the natural boundary term), so a homogeneous strain is
-    pulled slightly towards zero near the ROI faces.
+    ``R = Lᵀ P L + μ_s Σ_faces L_sᵀ P_s L_s``: ``L`` the discrete Laplacian of each
+    component (the stiffness of ``∫ |∇u|²``), ``P`` keeps its rows at interior nodes. It
+    penalises the curvature of the field, not its gradient: rigid and linear fields cost
+    nothing (the H¹ energy ``∫ |∇u|²`` itself would pull a homogeneous strain towards zero:
+    on a 5³-node mesh of a −2 % compression it measured −1.7 %). On the ROI faces, where
+    ``L u`` is not a curvature, ``L_s`` is the in-plane (Q4) Laplacian of each face, ``P_s``
+    keeps the rows inside the face, ``μ_s`` balances the two terms for a plane wave. A
+    fourth-order low-pass.
 ``equilibrium-gap``
-    ``R = Kᵀ P K + μ_s Lᵀ P_s L``: ``K`` the stiffness of a homogeneous isotropic elastic
-    solid on the C8 mesh (Poisson ratio ``POISSON``), ``P`` keeps its rows at interior
-    nodes (the equilibrium gap: zero for any field in equilibrium, hence for rigid and
-    linear fields); on the ROI faces, where ``K u`` is a traction the images cannot
-    constrain, ``L`` is the in-plane (Q4) Laplacian of each face, ``P_s`` keeps the rows
-    inside the faces, ``μ_s`` balances the two terms for a plane wave. A fourth-order
-    low-pass that leaves homogeneous strains untouched (Tomičević, Hild, Roux 2013).
+    the same with ``K``, the stiffness of a homogeneous isotropic elastic solid on the C8
+    mesh (Poisson ratio ``POISSON``), in place of ``L``: the equilibrium gap, zero for any
+    field in equilibrium (Tomičević, Hild, Roux 2013). It couples the components as an
+    elastic solid does; a localised band (a local softening) is not in equilibrium for a
+    homogeneous material, and the equilibrium gap damps it more than Tikhonov does.
 
 Normalisation (as pyxel does for its weak regularisation): ``λ`` is such that a plane
-wave of wavelength ``T`` is penalised ``(ℓ_reg / T)^p`` times its image term
-``vᵀ M v`` (``p = 2`` Tikhonov, 4 equilibrium gap): one length ``ℓ_reg`` (voxels)
+wave of wavelength ``T`` is penalised ``(ℓ_reg / T)^4`` times its image term
+``vᵀ M v``: one length ``ℓ_reg`` (voxels)
 sets the weight; features shorter than it are damped, longer ones left to the images.
 ``λ`` is measured with waves of wavelength ``T_ref = 10 ℓ`` (bounded by the mesh), where
 the discrete operators follow the continuous scaling, averaged over the three directions
@@ -49,7 +51,7 @@ KINDS = ("none", "tikhonov", "equilibrium-gap")
 #: Poisson ratio of the equilibrium-gap material (the result depends on it only weakly)
 POISSON = 0.3
 #: order of the low-pass: penalty ∝ (ℓ_reg / T)^ORDER for a plane wave of wavelength T
-ORDER = {"tikhonov": 2, "equilibrium-gap": 4}
+ORDER = {"tikhonov": 4, "equilibrium-gap": 4}
 
 _GAUSS = (0.5 - 0.5 / math.sqrt(3.0), 0.5 + 0.5 / math.sqrt(3.0))
 
@@ -191,22 +193,29 @@ def _apply_faces(Kf, x, y, w):
 
 @numba.njit(nogil=True, cache=True)
 def add_weighted(code, Ke, Kf, surface_weight, lam, x, y):
-    """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve`); ``code`` 1 Tikhonov, 2 equilibrium gap."""
+    """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve`); ``code`` 1 Tikhonov, 2 equilibrium gap.
+
+    ``R x = Kᵀ P K x + μ_s Σ_faces Lᵀ P_s L x``: ``K`` the scalar Laplacian per component
+    (code 1, ``Ke`` 8×8) or the elastic stiffness (code 2, ``Ke`` 24×24).
+    """
+    k = np.zeros_like(x)
+    if code == 1:
+        _apply_scalar(Ke, x, k)
+    else:
+        _apply_vector(Ke, x, k)
+    k[0, :, :, :] = 0.0
+    k[-1, :, :, :] = 0.0
+    k[:, 0, :, :] = 0.0
+    k[:, -1, :, :] = 0.0
+    k[:, :, 0, :] = 0.0
+    k[:, :, -1, :] = 0.0
     t = np.zeros_like(x)
     if code == 1:
-        _apply_scalar(Ke, x, t)
+        _apply_scalar(Ke, k, t)
     else:
-        k = np.zeros_like(x)
-        _apply_vector(Ke, x, k)
-        k[0, :, :, :] = 0.0
-        k[-1, :, :, :] = 0.0
-        k[:, 0, :, :] = 0.0
-        k[:, -1, :, :] = 0.0
-        k[:, :, 0, :] = 0.0
-        k[:, :, -1, :] = 0.0
         _apply_vector(Ke, k, t)
-        if surface_weight != 0.0:
-            _apply_faces(Kf, x, t, surface_weight)
+    if surface_weight != 0.0:
+        _apply_faces(Kf, x, t, surface_weight)
     for i in range(x.shape[0]):
         for j in range(x.shape[1]):
             for l in range(x.shape[2]):
@@ -241,13 +250,10 @@ class Regularizer:
         if self.kind not in KINDS[1:]:
             raise ValueError(f"unknown regularisation {self.kind!r}")
         self.nodes_shape = tuple(int(n) for n in self.nodes_shape)
-        if self.kind == "tikhonov":
-            self._Ke = laplacian_element(self.ell)
-        else:
-            self._Ke = elastic_element(self.ell)
-            self._Kf = face_laplacian_element()
-            self.surface_weight = 1.0
-            self.surface_weight = self._balance_surface()
+        self._Ke = laplacian_element(self.ell) if self.kind == "tikhonov" else elastic_element(self.ell)
+        self._Kf = face_laplacian_element()
+        self.surface_weight = 1.0
+        self.surface_weight = self._balance_surface()
 
     @property
     def order(self) -> int:
@@ -255,29 +261,26 @@ class Regularizer:
 
     def numba_args(self) -> tuple:
         """``(code, Ke, Kf, surface weight)`` for :func:`add_weighted`."""
-        if self.kind == "tikhonov":
-            return 1, self._Ke, np.zeros((4, 4)), 0.0
-        return 2, self._Ke, self._Kf, float(self.surface_weight)
+        return (1 if self.kind == "tikhonov" else 2), self._Ke, self._Kf, float(self.surface_weight)
 
     def _K(self, x: np.ndarray) -> np.ndarray:
         y = np.zeros_like(x)
-        _apply_vector(self._Ke, x, y)
+        if self.kind == "tikhonov":
+            _apply_scalar(self._Ke, x, y)
+        else:
+            _apply_vector(self._Ke, x, y)
         return y
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """``R x`` for a nodal field ``x`` of shape (nz, ny, nx, 3), float64."""
         x = np.ascontiguousarray(x, dtype=np.float64)
-        if self.kind == "tikhonov":
-            y = np.zeros_like(x)
-            _apply_scalar(self._Ke, x, y)
-            return y
         y = self._K(_interior(self._K(x)))
         if self.surface_weight:
             _apply_faces(self._Kf, x, y, float(self.surface_weight))
         return y
 
     def _volume_and_surface(self, x: np.ndarray) -> tuple[float, float]:
-        """The two terms of ``xᵀ R x`` of the equilibrium gap (volume, surface with unit weight)."""
+        """The two terms of ``xᵀ R x`` (volume, surface with unit weight)."""
         vol = float(np.sum(_interior(self._K(x)) ** 2))
         y = np.zeros_like(x)
         _apply_faces(self._Kf, x, y, 1.0)
@@ -305,14 +308,13 @@ class Regularizer:
         most ``2 (reach + 1) + 1`` nodes per axis, with unit vectors on a colouring of
         nodes whose supports do not overlap, and mapped back by distance to the faces.
         """
-        reach = 2 if self.kind == "equilibrium-gap" else 1
+        reach = 2
         core = reach + 1
         small_shape = tuple(min(n, 2 * core + 1) for n in self.nodes_shape)
         small = self
         if small_shape != self.nodes_shape:
             small = Regularizer(self.kind, small_shape, self.ell)
-            if self.kind == "equilibrium-gap":
-                small.surface_weight = self.surface_weight
+            small.surface_weight = self.surface_weight
         period = 2 * reach + 1
         blocks = np.zeros(small_shape + (3, 3))
         grid = np.indices(small_shape)
@@ -368,3 +370,129 @@ def plane_wave_weight(reg: Regularizer, matvec, length: float) -> float:
     if r <= 0:
         return 0.0
     return (float(length) / T) ** reg.order * m / r
+
+
+#: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)
+CANDIDATES = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
+#: the automatic choice looks at the central sub-mesh of at most this many nodes per axis
+CHOICE_EDGE = 24
+
+
+@dataclass
+class Choice:
+    """Outcome of :func:`choose_length`.
+
+    Attributes
+    ----------
+    length : float
+        The chosen ``ℓ_reg``, voxels of the level.
+    weight : float
+        Its ``λ``.
+    lengths, misfit, roughness : ndarray
+        The candidates (voxels), the linearised data misfit increase ``Φ(λ) - Φ_0``
+        (grey levels²) and ``aᵀ R a`` of each (the L-curve).
+    budget : float
+        The misfit increase the noise can explain: ``κ σ_r² · 3 N`` (grey levels²).
+    l_curve_length : float
+        The candidate at the L-curve's corner (largest curvature of ``(log Φ, log Ψ)``),
+        for comparison.
+    """
+
+    length: float
+    weight: float
+    lengths: np.ndarray
+    misfit: np.ndarray
+    roughness: np.ndarray
+    budget: float
+    l_curve_length: float
+
+
+def regions(shape, edge: int = None) -> list[tuple[slice, slice, slice]]:
+    """Sub-meshes of at most ``edge`` nodes per axis where the automatic choice looks.
+
+    The whole mesh when it fits; otherwise up to 8 (a 2×2×2 grid of boxes centred in the
+    mesh's octants), so that a feature anywhere in the ROI is seen.
+    """
+    edge = CHOICE_EDGE if edge is None else edge
+    per_axis = []
+    for n in shape:
+        if n <= edge:
+            per_axis.append([slice(0, n)])
+        else:
+            starts = [max(min(int(round(c - edge / 2)), n - edge), 0) for c in (n / 4, 3 * n / 4)]
+            per_axis.append([slice(a, a + edge) for a in sorted(set(starts))])
+    return [(a, b, c) for a in per_axis[0] for b in per_axis[1] for c in per_axis[2]]
+
+
+def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.ndarray,
+                  noise_variance: float, solve_with) -> Choice:
+    """The regularisation length by the discrepancy principle, on the client.
+
+    At a converged field ``a`` with right-hand side ``b``, the data misfit of a field
+    ``a + Δ`` is, to second order, ``Φ_0 - 2 bᵀΔ + Δᵀ M Δ`` (modified Gauss–Newton). For each
+    candidate length the field minimising that misfit plus ``λ aᵀ R a`` is one solve of
+    ``(M + λ R) a' = M a + b``. Noise alone explains a misfit increase of ``κ σ_r²`` per
+    unknown (a fitted unknown absorbs that much of the noise, :mod:`chunkdic.noise`): the
+    longest length whose increase stays within ``κ σ_r² · 3 N`` is chosen (Morozov's
+    discrepancy principle). A smooth field (a translation, a homogeneous strain) then gets
+    a long length, a field with short features (a band) a short one. It is evaluated on
+    each of :func:`regions` and the shortest length wins (a feature anywhere is kept).
+
+    Parameters
+    ----------
+    kind : {"tikhonov", "equilibrium-gap"}
+    half : ndarray, shape (nz, ny, nx, 14, 3, 3)
+        The half stencil of ``M`` (:mod:`chunkdic.solve`).
+    ell : float
+        Element size, voxels of the level.
+    a, b : ndarray, shape (nz, ny, nx, 3)
+        Converged field and its right-hand side.
+    noise_variance : float
+        What one fitted unknown absorbs from the noise: ``κ σ_r²``, grey levels²
+        (:mod:`chunkdic.noise`).
+    solve_with : callable
+        ``solve_with(half, regularizer, weight, rhs) -> x``: the solver of ``(M + λ R) x = rhs``.
+
+    Returns
+    -------
+    Choice
+        For the region that decided.
+    """
+    from .solve import stencil_matvec
+
+    best = None
+    for sub in regions(half.shape[:3]):
+        H = np.ascontiguousarray(half[sub])
+        reg = Regularizer(kind, H.shape[:3], ell)
+        matvec = lambda v, H=H: stencil_matvec(H, v)  # noqa: E731
+        a_s, b_s = np.ascontiguousarray(a[sub]), np.ascontiguousarray(b[sub])
+        rhs = matvec(a_s) + b_s
+        lengths = np.array([c * ell for c in CANDIDATES])
+        misfit, rough = [], []
+        for length in lengths:
+            x = solve_with(H, reg, plane_wave_weight(reg, matvec, length), rhs)
+            d = x - a_s
+            misfit.append(float(-2.0 * np.sum(b_s * d) + np.sum(d * matvec(d))))
+            rough.append(float(np.sum(x * reg.apply(x))))
+        misfit, rough = np.array(misfit), np.array(rough)
+        budget = float(noise_variance) * 3 * int(np.prod(H.shape[:3]))
+        ok = np.flatnonzero(misfit - misfit[0] <= budget)
+        pick = int(ok.max()) if ok.size else 0
+        if best is None or lengths[pick] < best.length:
+            best = Choice(float(lengths[pick]), 0.0, lengths, misfit, rough, budget,
+                          float(lengths[_corner(misfit - misfit[0], rough)]))
+    full = Regularizer(kind, half.shape[:3], ell)
+    best.weight = plane_wave_weight(full, lambda v: stencil_matvec(half, v), best.length)
+    return best
+
+
+def _corner(misfit: np.ndarray, rough: np.ndarray) -> int:
+    """Index of the largest curvature of the L-curve ``(log misfit, log roughness)``."""
+    x = np.log(np.maximum(misfit, 1e-30 * max(misfit.max(), 1e-300)))
+    y = np.log(np.maximum(rough, 1e-300))
+    if len(x) < 3:
+        return 0
+    dx, dy = np.gradient(x), np.gradient(y)
+    ddx, ddy = np.gradient(dx), np.gradient(dy)
+    kappa = (dx * ddy - dy * ddx) / np.maximum((dx * dx + dy * dy) ** 1.5, 1e-30)
+    return int(np.argmax(kappa[1:-1]) + 1)

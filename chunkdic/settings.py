@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, fields
 from .errors import InputError
 
 INTERPOLATIONS = ("cubic", "linear")
-GREY_MODELS = ("none", "global", "offset", "element")
+GREY_MODELS = ("none", "global", "drift", "element")
 REGULARIZATIONS = ("none", "tikhonov", "equilibrium-gap")
 
 
@@ -37,7 +37,7 @@ class Settings:
         Standard deviation (voxels of each level, >= 0) of the Gaussian low-pass applied to
         both scans before correlating; 0 turns it off (the paper). docs/engine.md, "Image
         preparation".
-    grey : {"none", "global", "offset", "element"}
+    grey : {"none", "global", "drift", "element"}
         Brightness model between the scans (:mod:`chunkdic.greylevel`); ``none`` is the
         paper's plain residual.
     regularization : {"none", "tikhonov", "equilibrium-gap"}
@@ -61,8 +61,8 @@ class Settings:
     coarsest: int | None = None
     interpolation: str = "cubic"
     smoothing: float = 1.0
-    grey: str = "offset"
-    regularization: str = "none"
+    grey: str = "drift"
+    regularization: str = "tikhonov"
     regularization_length: float | None = None
     tolerance: float = 1e-3
     coarse_tolerance: float = 1e-2

@@ -130,10 +130,10 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     f = np.asarray(f, dtype=np.float32)
     # the brightness condensation is invariant to the centring constant: the block's mean
     # keeps its sums small
-    stencil, fmin, fmax = kernels.m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
-                                          u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
-                                          margin=inputs.g_margin)
-    return job.block, stencil, fmin, fmax
+    stencil, fmin, fmax, lags = kernels.m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
+                                                u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
+                                                margin=inputs.g_margin, with_lags=True)
+    return job.block, stencil, fmin, fmax, lags
 
 
 def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray) -> tuple[Block, Partials]:
@@ -148,7 +148,7 @@ def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray) -> tuple[Blo
     g, g_origin = read_g_window(inputs, job, u_block)
     if g is None:
         sums = kernels.ElementSums(np.zeros(job.block.n_elements + (3, 8, 3)),
-                                   np.zeros(job.block.n_elements + (6,)), int(np.prod(job.shape)))
+                                   np.zeros(job.block.n_elements + (6,)), int(np.prod(job.shape)))  # no lags
     else:
         sums = kernels.b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
                               interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,

@@ -173,6 +173,14 @@ def test_b_block_numba_equals_numpy(interpolation, block):
     assert n1 + x1 == np.prod(core) and n1 > 0
     np.testing.assert_allclose(b1, b2, rtol=0, atol=1e-10 * np.abs(b2).max())
     np.testing.assert_allclose(r1, r2, rtol=1e-10)
+    # every element sum the brightness models use (d, g', 1, element-centred coordinates)
+    sums = {impl: K.b_sums(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape, interpolation=interpolation,
+                           impl=impl, center=100.0, margin=1) for impl in K.IMPLEMENTATIONS}
+    np.testing.assert_allclose(sums["numba"].B, sums["numpy"].B, rtol=0,
+                               atol=1e-10 * np.abs(sums["numpy"].B).max())
+    np.testing.assert_allclose(sums["numba"].gram, sums["numpy"].gram, rtol=1e-10,
+                               atol=1e-10 * np.abs(sums["numpy"].gram).max())
+    assert sums["numba"].n_excluded == sums["numpy"].n_excluded
     w1, m1 = K.warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
                           interpolation=interpolation, impl="numba")
     w2, m2 = K.warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
