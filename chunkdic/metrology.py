@@ -422,9 +422,13 @@ def _prepare_dir(out_dir, overwrite: bool) -> Path:
     return out
 
 
+#: the paper's analyses characterise the C8 basis itself: no regularisation unless asked for
+PAPER_SETTINGS = {"regularization": "none"}
+
+
 def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=None, level: int = 0,
                 interpolation: str = "cubic", scheduler=None, overwrite: bool = False,
-                progress: Callable[[dict], None] | None = None) -> UncertaintyReport:
+                progress: Callable[[dict], None] | None = None, options: dict | None = None) -> UncertaintyReport:
     """A-priori displacement and strain uncertainty versus element size (paper section 4.2).
 
     Parameters
@@ -452,6 +456,11 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     progress : callable(dict), optional
         Correlation events (see :func:`chunkdic.correlate`) plus ``{"stage": "shift",
         "fraction": f}`` and ``{"stage": "uncertainty", "element_size": ell, ...row}``.
+    options : dict, optional
+        More :class:`chunkdic.Settings` fields for every correlation. The analysis
+        characterises the C8 basis (the paper's power law of ``σ`` against ``ℓ``), so it runs
+        without regularisation (:data:`PAPER_SETTINGS`) unless ``options`` asks for one: a
+        regularised field's noise depends on ``ℓ_reg`` more than on ``ℓ``.
 
     Returns
     -------
@@ -486,6 +495,7 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     for ell in sizes:
         emit({"stage": "element-size", "element_size": ell})
         res = correlate(_ref_path(src), _ref_path(shifted), element_size=ell, roi=roi_arg, interpolation=interpolation,
+                        **{**PAPER_SETTINGS, **(options or {})},
                         scheduler=scheduler, output=out / f"result-ell{ell}.zarr", overwrite=True,
                         progress=progress)
         row = _displacement_stats(res, t)
@@ -565,7 +575,7 @@ def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dic
 def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, level: int = 0,
           interpolation: str = "cubic", uncertainty_from=None, a_priori: bool = True, shift=0.5,
           scheduler=None, overwrite: bool = False,
-          progress: Callable[[dict], None] | None = None) -> dict:
+          progress: Callable[[dict], None] | None = None, options: dict | None = None) -> dict:
     """The ZOI-size sweep of paper Table 1: correlate for each element size, tabulate.
 
     Parameters
@@ -587,6 +597,9 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
         for the same sizes to fill ``delta eps``; ``False`` leaves the column empty.
     overwrite : bool
     progress : callable(dict), optional
+    options : dict, optional
+        More :class:`chunkdic.Settings` fields; as for :func:`uncertainty`, the paper's
+        analysis runs without regularisation unless asked for (:data:`PAPER_SETTINGS`).
 
     Returns
     -------
@@ -604,6 +617,7 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
         emit({"stage": "element-size", "element_size": ell})
         results.append(correlate(ref, deformed, element_size=ell, roi=roi, level=level,
                                  interpolation=interpolation, scheduler=scheduler,
+                                 **{**PAPER_SETTINGS, **(options or {})},
                                  output=out / f"result-ell{ell}.zarr", overwrite=True, progress=progress))
     report = None
     if uncertainty_from is not None:
@@ -611,7 +625,8 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     elif a_priori:
         emit({"stage": "a-priori"})
         report = uncertainty(ref, sizes, out / "uncertainty", shift=shift, roi=roi, level=level,
-                             interpolation=interpolation, scheduler=scheduler, overwrite=True, progress=progress)
+                             interpolation=interpolation, scheduler=scheduler, overwrite=True, progress=progress,
+                             options=options)
         d_eps = _read_delta_eps(report)
     else:
         d_eps = {}

@@ -10,20 +10,22 @@ with a penalty ``aᵀ R a`` that damps the short wavelengths of the field and le
 long ones to the images (the usual regularised global DVC: pyxel, UFreckles, Correli):
 
 ``tikhonov``
-    ``R = Lᵀ P L + μ_s Σ_faces L_sᵀ P_s L_s``: ``L`` the discrete Laplacian of each
-    component (the stiffness of ``∫ |∇u|²``), ``P`` keeps its rows at interior nodes. It
-    penalises the curvature of the field, not its gradient: rigid and linear fields cost
-    nothing (the H¹ energy ``∫ |∇u|²`` itself would pull a homogeneous strain towards zero:
-    on a 5³-node mesh of a −2 % compression it measured −1.7 %). On the ROI faces, where
-    ``L u`` is not a curvature, ``L_s`` is the in-plane (Q4) Laplacian of each face, ``P_s``
-    keeps the rows inside the face, ``μ_s`` balances the two terms for a plane wave. A
-    fourth-order low-pass.
+    ``R = Σ_axes D2ᵀ D2``, the squared second differences of each component along every
+    grid line of nodes (a discrete curvature, in voxel units scaled away by the
+    normalisation). It reaches every node, the ROI's edges and corners included, and costs
+    nothing for rigid and linear fields: it penalises the curvature of the field, not its
+    gradient (the H¹ energy ``∫ |∇u|²`` would pull a homogeneous strain towards zero: on a
+    5³-node mesh of a −2 % compression it measured −1.7 %). A fourth-order low-pass.
 ``equilibrium-gap``
-    the same with ``K``, the stiffness of a homogeneous isotropic elastic solid on the C8
-    mesh (Poisson ratio ``POISSON``), in place of ``L``: the equilibrium gap, zero for any
-    field in equilibrium (Tomičević, Hild, Roux 2013). It couples the components as an
-    elastic solid does; a localised band (a local softening) is not in equilibrium for a
-    homogeneous material, and the equilibrium gap damps it more than Tikhonov does.
+    ``R = Kᵀ P K + μ_s Σ_faces Lᵀ P_s L``: ``K`` the stiffness of a homogeneous isotropic
+    elastic solid on the C8 mesh (Poisson ratio ``POISSON``), ``P`` keeps its rows at
+    interior nodes: the equilibrium gap, zero for any field in equilibrium (Tomičević,
+    Hild, Roux 2013). On the ROI faces, where ``K u`` is a traction the images cannot
+    constrain, ``L`` is the in-plane (Q4) Laplacian of each face, ``P_s`` keeps the rows
+    inside the face and ``μ_s`` balances the two terms for a plane wave. It couples the
+    components as an elastic solid does; a localised band (a local softening) is not in
+    equilibrium for a homogeneous material, and the equilibrium gap damps it more than
+    Tikhonov does.
 
 Normalisation (as pyxel does for its weak regularisation): ``λ`` is such that a plane
 wave of wavelength ``T`` is penalised ``(ℓ_reg / T)^4`` times its image term
@@ -147,6 +149,32 @@ def _apply_vector(Ke, x, y):
 
 
 @numba.njit(nogil=True, cache=True)
+def _apply_curvature(x, y, w):
+    """y += w Σ_axes D2ᵀ D2 x: squared second differences along every grid line, per component."""
+    nz, ny, nx = x.shape[0], x.shape[1], x.shape[2]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for c in range(3):
+                    v = x[i, j, k, c]
+                    if 0 < i < nz - 1:
+                        t = w * (x[i - 1, j, k, c] - 2.0 * v + x[i + 1, j, k, c])
+                        y[i - 1, j, k, c] += t
+                        y[i, j, k, c] -= 2.0 * t
+                        y[i + 1, j, k, c] += t
+                    if 0 < j < ny - 1:
+                        t = w * (x[i, j - 1, k, c] - 2.0 * v + x[i, j + 1, k, c])
+                        y[i, j - 1, k, c] += t
+                        y[i, j, k, c] -= 2.0 * t
+                        y[i, j + 1, k, c] += t
+                    if 0 < k < nx - 1:
+                        t = w * (x[i, j, k - 1, c] - 2.0 * v + x[i, j, k + 1, c])
+                        y[i, j, k - 1, c] += t
+                        y[i, j, k, c] -= 2.0 * t
+                        y[i, j, k + 1, c] += t
+
+
+@numba.njit(nogil=True, cache=True)
 def _face_node(axis, k0, i1, i2):
     """(z, y, x) of node (i1, i2) of the face ``axis = k0`` (in-plane axes in cyclic order)."""
     if axis == 0:
@@ -193,16 +221,12 @@ def _apply_faces(Kf, x, y, w):
 
 @numba.njit(nogil=True, cache=True)
 def add_weighted(code, Ke, Kf, surface_weight, lam, x, y):
-    """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve`); ``code`` 1 Tikhonov, 2 equilibrium gap.
-
-    ``R x = Kᵀ P K x + μ_s Σ_faces Lᵀ P_s L x``: ``K`` the scalar Laplacian per component
-    (code 1, ``Ke`` 8×8) or the elastic stiffness (code 2, ``Ke`` 24×24).
-    """
-    k = np.zeros_like(x)
+    """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve`); ``code`` 1 Tikhonov, 2 equilibrium gap."""
     if code == 1:
-        _apply_scalar(Ke, x, k)
-    else:
-        _apply_vector(Ke, x, k)
+        _apply_curvature(x, y, lam)
+        return
+    k = np.zeros_like(x)
+    _apply_vector(Ke, x, k)
     k[0, :, :, :] = 0.0
     k[-1, :, :, :] = 0.0
     k[:, 0, :, :] = 0.0
@@ -210,10 +234,7 @@ def add_weighted(code, Ke, Kf, surface_weight, lam, x, y):
     k[:, :, 0, :] = 0.0
     k[:, :, -1, :] = 0.0
     t = np.zeros_like(x)
-    if code == 1:
-        _apply_scalar(Ke, k, t)
-    else:
-        _apply_vector(Ke, k, t)
+    _apply_vector(Ke, k, t)
     if surface_weight != 0.0:
         _apply_faces(Kf, x, t, surface_weight)
     for i in range(x.shape[0]):
@@ -250,10 +271,14 @@ class Regularizer:
         if self.kind not in KINDS[1:]:
             raise ValueError(f"unknown regularisation {self.kind!r}")
         self.nodes_shape = tuple(int(n) for n in self.nodes_shape)
-        self._Ke = laplacian_element(self.ell) if self.kind == "tikhonov" else elastic_element(self.ell)
         self._Kf = face_laplacian_element()
-        self.surface_weight = 1.0
-        self.surface_weight = self._balance_surface()
+        if self.kind == "tikhonov":
+            self._Ke = np.zeros((24, 24))
+            self.surface_weight = 0.0
+        else:
+            self._Ke = elastic_element(self.ell)
+            self.surface_weight = 1.0
+            self.surface_weight = self._balance_surface()
 
     @property
     def order(self) -> int:
@@ -265,15 +290,16 @@ class Regularizer:
 
     def _K(self, x: np.ndarray) -> np.ndarray:
         y = np.zeros_like(x)
-        if self.kind == "tikhonov":
-            _apply_scalar(self._Ke, x, y)
-        else:
-            _apply_vector(self._Ke, x, y)
+        _apply_vector(self._Ke, x, y)
         return y
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """``R x`` for a nodal field ``x`` of shape (nz, ny, nx, 3), float64."""
         x = np.ascontiguousarray(x, dtype=np.float64)
+        if self.kind == "tikhonov":
+            y = np.zeros_like(x)
+            _apply_curvature(x, y, 1.0)
+            return y
         y = self._K(_interior(self._K(x)))
         if self.surface_weight:
             _apply_faces(self._Kf, x, y, float(self.surface_weight))
@@ -314,7 +340,8 @@ class Regularizer:
         small = self
         if small_shape != self.nodes_shape:
             small = Regularizer(self.kind, small_shape, self.ell)
-            small.surface_weight = self.surface_weight
+            if self.kind == "equilibrium-gap":
+                small.surface_weight = self.surface_weight
         period = 2 * reach + 1
         blocks = np.zeros(small_shape + (3, 3))
         grid = np.indices(small_shape)
