@@ -30,8 +30,9 @@ from .level import Level, emit
 from .mesh import transfer
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
+from .masks import prepare_mask
 from .regularization import choose_length
-from .result import FLAG_NO_DATA, FLAG_WEAK, Result
+from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result
 from .rigid import translation_task
 from .scheduler import open_runner
 from .settings import Settings
@@ -50,6 +51,7 @@ def correlate(
     output=None,
     overwrite: bool = False,
     progress: Callable[[dict], None] | None = None,
+    mask=None,
     **options,
 ) -> Result:
     """Measure the displacement field between two scans by multiscale C8-DIC.
@@ -73,6 +75,10 @@ def correlate(
         ``overwrite``); a checkpoint after every iteration lets an interrupted run resume.
     progress : callable, optional
         Called with a dict per event (``stage`` = "rigid", "iteration", "level", ...).
+    mask : str, Path, array, optional
+        Specimen mask of the reference's shape (any input :func:`chunkdic.open_scan`
+        reads; non-zero = material): only elements with enough material take part, nodes
+        outside are NaN (:mod:`chunkdic.masks`).
 
     Returns
     -------
@@ -109,6 +115,7 @@ def correlate(
     run_print = fingerprint({
         "settings": settings.to_json(), "roi": parse_roi(roi),
         "inputs": [_identify(src, scan) for src, scan in ((ref, f_scan), (deformed, g_scan))],
+        "mask": None if mask is None else _identify(mask, open_scan(mask)),
     })
     if output is not None:
         # all input checks passed: only now is anything written
@@ -123,13 +130,16 @@ def correlate(
             # inside the runner: with a cluster, missing levels are built by its workers
             f_refs = f_scan.refs(levels, scratch / "ref")
             g_refs = g_scan.refs(levels, scratch / "def")
+            mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
             runner.run_everywhere(kernels.warmup)
-            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume)
+            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
+                          mask_refs)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     result.info.update(
         voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
-        inputs={"reference": _describe(ref), "deformed": _describe(deformed)},
+        inputs={"reference": _describe(ref), "deformed": _describe(deformed),
+                "mask": None if mask is None else _describe(mask)},
     )
     if output is not None:
         result.save(output, overwrite=True)  # replaces the checkpointed group, marked complete last
@@ -148,13 +158,14 @@ def _settings(settings: Settings | None, options: dict) -> Settings:
 
 
 def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, scratch: Path,
-         checkpoint=None, resume: dict | None = None) -> Result:
+         checkpoint=None, resume: dict | None = None, mask_refs: dict | None = None) -> Result:
     """All levels, coarsest first; resumes from ``resume`` (a checkpoint state) if given."""
     finest, coarsest = levels[-1], levels[0]
     statuses: dict[int, str] = {}
     rigid_t = initial_gap = rigid_gap = None
     state = None
     weak = []  # poorly textured nodes of the finest level
+    masked, active = None, None  # nodes outside the mask, active elements (finest level)
     reg_length = math.nan  # regularisation length of the finest level, level-0 voxels
     history = History()
     if resume is not None:
@@ -190,7 +201,8 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                 start = _uniform(t_int, mesh)
             else:
                 start = transfer(u, meshes[s + 1], s + 1, mesh, s)
-            lvl = Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress)
+            lvl = Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress,
+                        None if mask_refs is None else mask_refs[s])
             lvl.assemble_m(start)
             emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
@@ -220,11 +232,11 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             save_checkpoint(state, s)
             emit(progress, stage="level", level=s, status=state.status, gap=state.gap,
                  seconds=time.perf_counter() - t0)
-            weak = lvl.solver.weak_nodes
+            weak, masked, active = lvl.weak_nodes(), lvl.masked_nodes(), lvl.active
         final, u, state = state, state.u, None
     mesh = meshes[finest]
-    flags = node_flags(mesh, final.elements, weak)
-    u = np.where((flags & FLAG_NO_DATA)[None] > 0, np.nan, u)
+    flags = node_flags(mesh, final.elements, weak, masked)
+    u = np.where((flags & (FLAG_NO_DATA | FLAG_MASKED))[None] > 0, np.nan, u)
     status = statuses[finest]
     excluded_fraction = final.excluded / max(final.excluded + final.n_valid, 1)
     if status == "converged" and excluded_fraction > config.get("max-excluded-fraction"):
@@ -247,6 +259,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         "used_voxels": int(final.n_valid),
         "excluded_fraction": float(excluded_fraction),
         "nodes_without_data": int(np.count_nonzero(flags & FLAG_NO_DATA)),
+        "masked_nodes": int(np.count_nonzero(flags & FLAG_MASKED)),
         "weak_nodes": int(np.count_nonzero(flags & FLAG_WEAK)),
         "grey_level": _brightness_summary(settings.grey, final.elements),
         "regularization": {"kind": settings.regularization,
@@ -257,11 +270,12 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         "chunkdic_version": _version(),
     }
     brightness = None if final.elements is None else final.elements[:2]
-    return Result(u, mesh.node_coords(), history.arrays(), info, flags=flags, brightness=brightness)
+    return Result(u, mesh.node_coords(), history.arrays(), info, flags=flags, brightness=brightness,
+                  active=active)
 
 
-def node_flags(mesh, elements: np.ndarray | None, weak_nodes) -> np.ndarray:
-    """Per-node flags (:data:`chunkdic.result.FLAG_NO_DATA`, ``FLAG_WEAK``), shape (nz, ny, nx) uint8.
+def node_flags(mesh, elements: np.ndarray | None, weak_nodes, masked: np.ndarray | None = None) -> np.ndarray:
+    """Per-node flags (:data:`chunkdic.result.FLAG_NO_DATA`, ``FLAG_WEAK``, ``FLAG_MASKED``), shape (nz, ny, nx) uint8.
 
     A node has no data when the elements around it together hold fewer valid voxels (voxels
     whose ``X + u(X)`` falls inside ``g``) than ``chunkdic.min-node-support`` of one element:
@@ -275,6 +289,8 @@ def node_flags(mesh, elements: np.ndarray | None, weak_nodes) -> np.ndarray:
         flags[support < config.get("min-node-support") * mesh.element_size**3] |= FLAG_NO_DATA
     for n in weak_nodes:
         flags[tuple(n)] |= FLAG_WEAK
+    if masked is not None:
+        flags[masked] = FLAG_MASKED
     return flags
 
 

@@ -102,6 +102,16 @@ CONDENSED = {"none": 0, "global": 0, "drift": 1, "element": 2}
 _SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]], dtype=np.int64)
 
 
+def _active(active, elems) -> np.ndarray:
+    """The element activity of a block as uint8 (ez, ey, ex); all 1 by default."""
+    if active is None:
+        return np.ones(elems, np.uint8)
+    active = np.ascontiguousarray(active, dtype=np.uint8)
+    if active.shape != tuple(elems):
+        raise ValueError(f"active must have shape {tuple(elems)}, got {active.shape}")
+    return active
+
+
 def _check(value, allowed, name):
     if value not in allowed:
         raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
@@ -125,13 +135,14 @@ def _row_field(u, c, ez, ey, ex, tz, ty):
 
 @jit
 def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
-              scx, psi, xi, center, u, c0, c1, c2, n0, n1, n2, vm_lo, masked):
+              scx, psi, xi, center, u, c0, c1, c2, n0, n1, n2, vm_lo, masked, active):
     """Element tensor moments T, element brightness couplings C and moments K; min / max.
 
     ``C[e, q, a, i] = Σ N_a d_i f q`` for ``q = (f - center, 1)`` and
     ``K[e] = (n, Σ(f - c), Σ(f - c)²)``: what the Schur complement of a brightness model
     needs (:func:`_assemble_stencil`). With ``masked``, voxels whose ``X + u(X)`` leaves
-    ``[vm_lo, n - 1 - vm_lo]`` are left out of T, C and K (min / max keep every core voxel).
+    ``[vm_lo, n - 1 - vm_lo]`` are left out of T, C and K, and so are the elements whose
+    ``active`` is 0 (min / max keep every core voxel).
     """
     nx = nex * ell
     T = np.zeros((nez, ney, nex, 3, 3, 3, 6))
@@ -154,8 +165,16 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
             ty = xi[ly]
             zp, zm, sz = ipz[z], imz[z], scz[z]
             yp, ym, sy = ipy[y], imy[y], scy[y]
-            if masked:
-                for ex in range(nex):
+            for ex in range(nex):
+                if active[ez, ey, ex] == 0:
+                    for lx in range(ell):
+                        vm[ex * ell + lx] = 0.0
+                    continue
+                if not masked:
+                    for lx in range(ell):
+                        vm[ex * ell + lx] = 1.0
+                    continue
+                if masked:
                     uz0, uz1 = _row_field(u, 0, ez, ey, ex, tz, ty)
                     uy0, uy1 = _row_field(u, 1, ez, ey, ex, tz, ty)
                     ux0, ux1 = _row_field(u, 2, ez, ey, ex, tz, ty)
@@ -298,7 +317,7 @@ def _assemble_stencil(T, C, K, sym, condensed):
 
 def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str = "none",
             center: float = 0.0, u_nodes: np.ndarray | None = None, core_origin=None, g_shape=None,
-            margin: int = 0, with_lags: bool = False):
+            margin: int = 0, with_lags: bool = False, active: np.ndarray | None = None):
     """Block contribution to the C8 matrix ``M`` as a nodal 27-point stencil.
 
     Parameters
@@ -328,6 +347,8 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     margin : int, keyword-only
         Positions within ``margin`` voxels of a face of ``g`` count as outside (see
         :func:`b_sums`).
+    active : ndarray, shape (ez, ey, ex), uint8, keyword-only, optional
+        0 for the elements left out (:mod:`chunkdic.masks`); default all 1.
     with_lags : bool, keyword-only
         Also return ``lags`` (3, LAGS + 1): ``Σ w ∂_i f(x) w ∂_i f(x + k)`` along x, the
         autocorrelation of the sensitivities that estimates the noise correlation
@@ -359,15 +380,17 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     u = check_nodes(u_nodes if masked else np.zeros((3,) + tuple(e + 1 for e in elems)), elems)
     origin = tuple(int(v) for v in core_origin) if masked else (0, 0, 0)
     shape = tuple(int(v) for v in g_shape) if masked else (1, 1, 1)
+    active = _active(active, elems)
     if impl == "numpy":
         return kernels_numpy.m_block_numpy(f32, lo, hi, int(ell), elems, CONDENSED[grey], float(center),
-                                           u if masked else None, origin, shape, int(margin))
+                                           u if masked else None, origin, shape, int(margin), active)
     ell = int(ell)
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
     xi = voxel_xi(ell)
     psi = np.stack([(1.0 - xi) ** 2, xi * (1.0 - xi), xi**2])  # psi_p, p = d_a + d_b
     T, C, K, lags, fmin, fmax = _m_kernel(f32, lo[0], lo[1], lo[2], ell, *elems, *idx[0], *idx[1], *idx[2],
-                                          psi, xi, float(center), u, *origin, *shape, float(margin), masked)
+                                          psi, xi, float(center), u, *origin, *shape, float(margin), masked,
+                                          active)
     if with_lags:
         return _assemble_stencil(T, C, K, _SYM, CONDENSED[grey]), float(fmin), float(fmax), lags
     return _assemble_stencil(T, C, K, _SYM, CONDENSED[grey]), float(fmin), float(fmax)
@@ -612,8 +635,11 @@ def _symmetrize(G):
 
 @jit
 def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
-              scx, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n2, vm_lo, cubic, center):
-    """One fused sweep: ``g(X + u)``, ``d``, ``g'`` and the per-element sums (ElementSums)."""
+              scx, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n2, vm_lo, cubic, center, active):
+    """One fused sweep: ``g(X + u)``, ``d``, ``g'`` and the per-element sums (ElementSums).
+
+    Elements whose ``active`` is 0 are skipped (their voxels have weight 0 and are not
+    counted as excluded)."""
     B = np.zeros((nez, ney, nex, 6, 8, 3))
     G = np.zeros((nez, ney, nex, 6, 6))
     lags = np.zeros((6, LAGS + 1))
@@ -662,6 +688,11 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                 frow[3, x] = (ff[rx + np.uint64(ipx[x])] - ff[rx + np.uint64(imx[x])]) * scx[x]
             for ex in range(nex):
                 xa = c2 + ex * ell
+                if active[ez, ey, ex] == 0:
+                    for lx in range(ell):
+                        wt[lx] = 0.0
+                        wrow[ex * ell + lx] = 0.0
+                    continue
                 nbad += _segment_samples(u, ez, ey, ex, tz, ty, X0, X1, xa, ell, xi, g, gf, gs0, gs1,
                                          o0, o1, o2, n0, n1, n2, vm_lo, bounds, cubic, gbuf, wt)
                 # x-face sums (w0 = 1 - xi, w1 = xi) of grad f times d, g', 1 and x~ = xi - 1/2
@@ -793,7 +824,8 @@ def _warp_kernel(ell, nez, ney, nex, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n
 
 def b_sums(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g: np.ndarray,
            g_origin, g_shape, *, interpolation: str = "cubic", impl: str = "numba",
-           prefiltered: bool = False, center: float = 0.0, margin: int = 0) -> ElementSums:
+           prefiltered: bool = False, center: float = 0.0, margin: int = 0,
+           active: np.ndarray | None = None) -> ElementSums:
     """Per-element sums of one modified Gauss–Newton pass over a block (module docstring).
 
     Parameters
@@ -823,6 +855,9 @@ def b_sums(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g:
         A voxel is valid when ``margin <= X_i + u_i <= g_shape_i - 1 - margin`` on every axis;
         the data beyond still serve the interpolation and its prefilter (the engine
         excludes where the low-pass of ``g`` is not exact, :func:`chunkdic.prefilter.face_margin`).
+    active : ndarray, shape (ez, ey, ex), uint8, keyword-only, optional
+        0 for the elements left out (:mod:`chunkdic.masks`): no sums, not counted as
+        excluded. Default all 1.
 
     Returns
     -------
@@ -837,17 +872,19 @@ def b_sums(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g:
     ell = int(ell)
     lo = tuple(int(v) for v in lo)
     hi = tuple(int(v) for v in hi)
+    active = _active(active, st.elems)
     if st.gw is None:
-        return ElementSums(np.zeros(st.elems + (6, 8, 3)), np.zeros(st.elems + (6, 6)), int(np.prod(core)),
+        n_off = int(np.sum(active == 0)) * ell**3
+        return ElementSums(np.zeros(st.elems + (6, 8, 3)), np.zeros(st.elems + (6, 6)), int(np.prod(core)) - n_off,
                            np.zeros((6, LAGS + 1)))
     f32 = np.ascontiguousarray(f, dtype=np.float32)
     if impl == "numpy":
         return kernels_numpy.b_sums_numpy(f32, lo, hi, ell, st.u_nodes, st.core_origin, st.gw, st.g_origin,
-                                          st.g_shape, interpolation, float(center), int(margin))
+                                          st.g_shape, interpolation, float(center), int(margin), active)
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
     B, gram, lags, nbad = _b_kernel(f32, lo[0], lo[1], lo[2], ell, *st.elems, *idx[0], *idx[1], *idx[2],
                              voxel_xi(ell), st.u_nodes, *st.core_origin, st.gw, *st.g_origin, *st.g_shape,
-                             float(margin), interpolation == "cubic", float(center))
+                             float(margin), interpolation == "cubic", float(center), active)
     return ElementSums(B, gram, int(nbad), lags)
 
 
@@ -955,6 +992,7 @@ def warmup() -> None:
     u = np.full((3, 2, 2, 2), 0.25)
     for grey in ("none", "element"):
         m_block(f, lo, hi, ell, grey=grey)
+    m_block(f, lo, hi, ell, with_lags=True, active=np.ones((1, 1, 1), np.uint8))
     m_block(f, lo, hi, ell, u_nodes=u, core_origin=(1, 1, 1), g_shape=f.shape)
     for interp in INTERPOLATIONS:
         sums = b_sums(f, lo, hi, ell, u, (1, 1, 1), f, (0, 0, 0), f.shape, interpolation=interp)

@@ -20,20 +20,26 @@ def _stencil_index(offset) -> int:
     return 9 * (offset[0] + 1) + 3 * (offset[1] + 1) + (offset[2] + 1)
 
 
+def _element_weights(active, elems, ell) -> np.ndarray:
+    """Voxel weights of the element activity (1 in active elements, 0 elsewhere)."""
+    a = np.ones(elems) if active is None else np.asarray(active, dtype=np.float64)
+    return np.repeat(np.repeat(np.repeat(a, ell, axis=0), ell, axis=1), ell, axis=2)
+
+
 def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_nodes=None, core_origin=None,
-                  g_shape=None, margin: int = 0):
+                  g_shape=None, margin: int = 0, active=None):
     """``M`` stencil (optionally minus the brightness Schur complement), min and max of ``f``.
 
     With ``u_nodes``, voxels whose ``X + u(X)`` leaves ``[margin, g_shape - 1 - margin]`` are left out.
     """
     grad = gradient_block(f32, lo, hi).astype(np.float64)
     core = f32[lo[0]:lo[0] + grad.shape[1], lo[1]:lo[1] + grad.shape[2], lo[2]:lo[2] + grad.shape[3]]
-    weight = np.ones(core.shape)
+    weight = _element_weights(active, elems, ell)
     if u_nodes is not None:
         u = nodal_field(u_nodes, ell)
         grids = np.meshgrid(*[np.arange(n) for n in core.shape], indexing="ij")
         pos = np.stack([core_origin[i] + grids[i] + u[i] for i in range(3)])
-        weight = taper(pos, g_shape, margin)
+        weight = weight * taper(pos, g_shape, margin)
     fc = core.astype(np.float64) - center
     W = shape_table(ell).reshape(-1, 8)
     S = np.zeros(tuple(e + 1 for e in elems) + (27, 3, 3))
@@ -105,11 +111,14 @@ def warp_numpy(ell, u_nodes, core_origin, core_shape, gw, g_origin, g_shape, int
 
 
 def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, interpolation,
-                 center: float, margin: int = 0) -> ElementSums:
+                 center: float, margin: int = 0, active=None) -> ElementSums:
     """Per-element sums of one pass: warp, then each element with the shape table."""
     core = tuple(n - a - b for n, a, b in zip(f32.shape, lo, hi))
     elems = tuple(n // ell for n in core)
     warped, mask, weight = warp_numpy(ell, u_nodes, core_origin, core, gw, g_origin, g_shape, interpolation, margin)
+    on = _element_weights(active, elems, ell) > 0
+    n_off = int((~on).sum())
+    mask, weight = mask & on, weight * on
     fc = f32[lo[0]:lo[0] + core[0], lo[1]:lo[1] + core[1], lo[2]:lo[2] + core[2]].astype(np.float64)
     d = np.where(mask, fc - warped, 0.0)
     gp = np.where(mask, warped - center, 0.0)
@@ -127,4 +136,4 @@ def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, 
                       qx.reshape(-1)])
         B[e] = np.einsum("va,iv,qv->qai", W, G * w, v)
         gram[e] = (v * w) @ v.T
-    return ElementSums(B, gram, int(mask.size - mask.sum()))
+    return ElementSums(B, gram, int(mask.size - mask.sum()) - n_off)

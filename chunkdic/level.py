@@ -24,6 +24,7 @@ from .greylevel import Fit, combine
 from .haloed import HaloedBlocks
 from .blocks import LAGS
 from .mesh import Mesh
+from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
 from .prefilter import build_prepared, face_margin, prepared_halo, reachable_box
 from .settings import Settings
@@ -104,7 +105,7 @@ class Level:
     """
 
     def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
-                 scratch: Path, progress=None):
+                 scratch: Path, progress=None, mask: ArrayRef | None = None):
         self.s, self.mesh, self.runner, self.settings = s, mesh, runner, settings
         self.scratch = scratch
         self.progress = progress
@@ -117,7 +118,8 @@ class Level:
                              f"{settings.smoothing} voxels: choose a finer coarsest level or less smoothing")
         self.inputs = LevelInputs(f_ref, g_ref, self._create_f_copy(f_ref, settings.smoothing),
                                   settings.interpolation, settings.smoothing, settings.grey,
-                                  int(config.get("bspline-halo")), margin)
+                                  int(config.get("bspline-halo")), margin, level=s, mask=mask)
+        self.active = None  # element activity of a specimen mask (set by the M pass)
         self.dynamic_range = math.nan
 
     @property
@@ -166,10 +168,18 @@ class Level:
         fmin, fmax = np.inf, -np.inf
         args = [(self.inputs, job, self._nodes_of(u, job)) for job in self.jobs]
         self.sensitivity_lags = np.zeros((3, LAGS + 1))
-        for blk, part, lo, hi, lags in self._map(m_task, args, "M pass"):
+        fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
+        for blk, part, lo, hi, lags, frac in self._map(m_task, args, "M pass"):
             S[blk.node_slices] += part[..., 13:, :, :]
             fmin, fmax = min(fmin, lo), max(fmax, hi)
             self.sensitivity_lags += lags
+            if fractions is not None:
+                fractions[tuple(slice(e0, e1) for e0, e1 in blk.elements)] = frac
+        if fractions is not None:
+            self.active = active_elements(fractions)
+            if not self.active.any():
+                raise InputError(f"the mask has no element with material in the ROI at level {self.s} "
+                                 f"(at least {MIN_MATERIAL:.0%} of an element must be material)")
         self.dynamic_range = float(fmax - fmin)
         if not self.dynamic_range > 0:
             raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
@@ -192,8 +202,15 @@ class Level:
         self.regularization_length, self.regularization_weight = float(length), weight
         log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", self.s, kind, length, weight)
 
-    def _warn_weak_nodes(self) -> None:
+    def weak_nodes(self) -> np.ndarray:
+        """Poorly textured nodes (index triples), those outside a specimen mask left out."""
         weak = self.solver.weak_nodes
+        if self.active is not None and len(weak):
+            weak = weak[~self.masked_nodes()[tuple(weak.T)]]
+        return weak
+
+    def _warn_weak_nodes(self) -> None:
+        weak = self.weak_nodes()
         if len(weak) == 0:
             return
         coords = self.mesh.node_coords()
@@ -250,6 +267,21 @@ class Level:
         for path in paths:
             shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
 
+    def _active_of(self, job: BlockJob) -> np.ndarray | None:
+        """A block's slice of the element activity (None without a mask)."""
+        if self.active is None:
+            return None
+        return np.ascontiguousarray(self.active[tuple(slice(e0, e1) for e0, e1 in job.block.elements)])
+
+    def masked_nodes(self) -> np.ndarray:
+        """Nodes with no active element around them (bool, nodes shape); all False without a mask."""
+        if self.active is None:
+            return np.zeros(self.mesh.nodes_shape, bool)
+        a = np.pad(self.active, 1)
+        n = self.mesh.nodes_shape
+        around = sum(a[dz:dz + n[0], dy:dy + n[1], dx:dx + n[2]] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
+        return around == 0
+
     @staticmethod
     def _nodes_of(u: np.ndarray, job: BlockJob) -> np.ndarray:
         """A block's own slice of the nodal field: what its task receives (kilobytes)."""
@@ -262,7 +294,7 @@ class Level:
         elements = None
         n_excluded = 0
         lags = np.zeros((6, LAGS + 1))
-        args = [(self.inputs, job, self._nodes_of(u, job)) for job in self.jobs]
+        args = [(self.inputs, job, self._nodes_of(u, job), self._active_of(job)) for job in self.jobs]
         for blk, part in self._map(b_task, args, "b pass"):
             if nodal is None:
                 nodal = np.zeros((part.nodal.shape[0],) + mesh.nodes_shape + (3,))

@@ -30,6 +30,8 @@ FLAG_NO_DATA = 1
 #: node flag: poorly textured (its 3x3 block of ``M`` is nearly singular); regularised,
 #: its value is unreliable
 FLAG_WEAK = 2
+#: node flag: outside the specimen mask (no active element around it); NaN, not measured
+FLAG_MASKED = 4
 
 
 @dataclass
@@ -56,8 +58,12 @@ class Result:
         Small-strain tensor per element at the element centres (paper section 5.4), axes
         ``(z, y, x)``; ``None`` until computed (:meth:`element_strain` computes it).
     flags : ndarray, shape (nz, ny, nx), uint8, optional
-        Per-node flags, bits :data:`FLAG_NO_DATA` (displacement NaN: not measured) and
-        :data:`FLAG_WEAK` (poorly textured, regularised).
+        Per-node flags, bits :data:`FLAG_NO_DATA` (displacement NaN: not measured),
+        :data:`FLAG_WEAK` (poorly textured, regularised) and :data:`FLAG_MASKED` (outside
+        the specimen mask, NaN).
+    active : ndarray, shape (ez, ey, ex), uint8, optional
+        Elements that took part (a specimen mask's material elements, :mod:`chunkdic.masks`);
+        ``None`` without a mask.
     brightness : ndarray, shape (2, ez, ey, ex), float64, optional
         Per-element gain and offset of the grey-level model (:mod:`chunkdic.greylevel`):
         ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
@@ -71,6 +77,7 @@ class Result:
     strain: np.ndarray | None = None
     flags: np.ndarray | None = None
     brightness: np.ndarray | None = None
+    active: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -119,6 +126,8 @@ class Result:
             root.create_array("flags", data=np.ascontiguousarray(self.flags, dtype=np.uint8))
         if self.brightness is not None:
             root.create_array("brightness", data=np.ascontiguousarray(self.brightness, dtype=np.float64))
+        if self.active is not None:
+            root.create_array("active", data=np.ascontiguousarray(self.active, dtype=np.uint8))
         hist = root.create_group("history")
         for name in HISTORY_FIELDS:
             hist.create_array(name, data=np.asarray(self.history[name]))
@@ -148,7 +157,8 @@ def open_result(path: str | os.PathLike) -> Result:
     if not info.get("complete", False):
         raise InputError(f"result {path} is incomplete (the run that wrote it was interrupted)")
     history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
-    optional = {name: root[name][...] if name in root else None for name in ("strain", "flags", "brightness")}
+    optional = {name: root[name][...] if name in root else None
+                for name in ("strain", "flags", "brightness", "active")}
     return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path), **optional)
 
 

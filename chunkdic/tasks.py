@@ -16,6 +16,7 @@ from . import kernels
 from .greylevel import Partials, reduce_block
 from .haloed import HaloedBlocks
 from .mesh import Block, Mesh
+from .masks import active_elements, element_fractions
 from .prefilter import PreparedImage, check_finite, gaussian_radius, prepare_deformed, prepare_reference, prepared_halo
 from .volume import ArrayRef
 
@@ -84,6 +85,10 @@ class LevelInputs:
         ``M`` pass).
     prepared : PreparedImage or None
         The level's prepared ``g``, when built.
+    level : int
+        The pyramid level.
+    mask : ArrayRef or None
+        The binary specimen mask's sums at this level (:mod:`chunkdic.masks`).
     """
 
     f: ArrayRef
@@ -96,6 +101,8 @@ class LevelInputs:
     g_margin: int = 0
     center: float = 0.0
     prepared: PreparedImage | None = None
+    level: int = 0
+    mask: ArrayRef | None = None
 
     @property
     def g_needs_preparing(self) -> bool:
@@ -128,31 +135,39 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     f = prepare_reference(raw, region, inner, inputs.sigma) if inputs.sigma > 0 else raw
     inputs.f_copy.write(job.index, f)
     f = np.asarray(f, dtype=np.float32)
+    fractions = None
+    if inputs.mask is not None:
+        fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
     # the brightness condensation is invariant to the centring constant: the block's mean
     # keeps its sums small
     stencil, fmin, fmax, lags = kernels.m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
                                                 u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
-                                                margin=inputs.g_margin, with_lags=True)
-    return job.block, stencil, fmin, fmax, lags
+                                                margin=inputs.g_margin, with_lags=True,
+                                                active=None if fractions is None else active_elements(fractions))
+    return job.block, stencil, fmin, fmax, lags, fractions
 
 
-def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray) -> tuple[Block, Partials]:
+def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
+           active: np.ndarray | None = None) -> tuple[Block, Partials]:
     """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.greylevel.Partials`).
 
     ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass;
     the window of ``g`` from the level's prepared store when it covers it, else it is read
-    raw with a halo and prepared here (same result to float32 precision).
+    raw with a halo and prepared here (same result to float32 precision). ``active``: the
+    block's element activity (a specimen mask), default all.
     """
     region, lo, hi = job.haloed_region(inputs.f.shape)
     f = inputs.f_copy.read(job.index, tuple(r.stop - r.start for r in region))
     g, g_origin = read_g_window(inputs, job, u_block)
     if g is None:
-        sums = kernels.ElementSums(np.zeros(job.block.n_elements + (3, 8, 3)),
-                                   np.zeros(job.block.n_elements + (6,)), int(np.prod(job.shape)))  # no lags
+        # no voxel of the block maps inside g: every active voxel is excluded
+        n_off = 0 if active is None else int(np.sum(active == 0)) * job.ell**3
+        sums = kernels.ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
+                                   np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
     else:
         sums = kernels.b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
                               interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
-                              margin=inputs.g_margin)
+                              margin=inputs.g_margin, active=active)
     return job.block, reduce_block(sums, inputs.grey)
 
 
