@@ -31,6 +31,7 @@ from .mesh import transfer
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
 from .masks import prepare_mask
+from .noise import nodal_uncertainty
 from .regularization import choose_length
 from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result
 from .rigid import translation_task
@@ -166,6 +167,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
     state = None
     weak = []  # poorly textured nodes of the finest level
     masked, active = None, None  # nodes outside the mask, active elements (finest level)
+    sigma_u, noise = None, {}  # per-node uncertainty and the noise it comes from (finest level)
     reg_length = math.nan  # regularisation length of the finest level, level-0 voxels
     history = History()
     if resume is not None:
@@ -233,10 +235,17 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             emit(progress, stage="level", level=s, status=state.status, gap=state.gap,
                  seconds=time.perf_counter() - t0)
             weak, masked, active = lvl.weak_nodes(), lvl.masked_nodes(), lvl.active
+            if s == finest:
+                p = lvl.last_pass
+                sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
+                noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
         final, u, state = state, state.u, None
     mesh = meshes[finest]
     flags = node_flags(mesh, final.elements, weak, masked)
-    u = np.where((flags & (FLAG_NO_DATA | FLAG_MASKED))[None] > 0, np.nan, u)
+    missing = (flags & (FLAG_NO_DATA | FLAG_MASKED))[None] > 0
+    u = np.where(missing, np.nan, u)
+    if sigma_u is not None:
+        sigma_u = np.where(missing, np.nan, sigma_u)
     status = statuses[finest]
     excluded_fraction = final.excluded / max(final.excluded + final.n_valid, 1)
     if status == "converged" and excluded_fraction > config.get("max-excluded-fraction"):
@@ -262,6 +271,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         "masked_nodes": int(np.count_nonzero(flags & FLAG_MASKED)),
         "weak_nodes": int(np.count_nonzero(flags & FLAG_WEAK)),
         "grey_level": _brightness_summary(settings.grey, final.elements),
+        "noise": noise,
         "regularization": {"kind": settings.regularization,
                            "length": None if not np.isfinite(reg_length) else float(reg_length),
                            "automatic": settings.regularization_length is None},
@@ -271,7 +281,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
     }
     brightness = None if final.elements is None else final.elements[:2]
     return Result(u, mesh.node_coords(), history.arrays(), info, flags=flags, brightness=brightness,
-                  active=active)
+                  active=active, uncertainty=sigma_u)
 
 
 def node_flags(mesh, elements: np.ndarray | None, weak_nodes, masked: np.ndarray | None = None) -> np.ndarray:

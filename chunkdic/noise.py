@@ -54,3 +54,69 @@ def correlation_factor(residual_lags: np.ndarray, sensitivity_lags: np.ndarray, 
     rho_s = s / s[:, :1]
     kappa = np.mean((1.0 + 2.0 * np.sum(rho_r[None, 1:] * rho_s[:, 1:], axis=1)) ** 3)
     return float(np.clip(kappa, *BOUNDS))
+
+
+#: the exact diagonal is probed on a central sub-mesh of at most this many nodes per axis
+PROBE_EDGE = 10
+#: nodes of one colour of the probing are this many nodes apart on every axis
+PROBE_PERIOD = 4
+
+
+def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray:
+    """Standard deviation of each nodal displacement, shape (3, nz, ny, nx), voxels.
+
+    The global-DIC estimate ``Cov(a) = κ σ_r² A⁻¹ M A⁻¹`` (``A = M + λ R``; for ``λ = 0``
+    the usual ``σ_r² M⁻¹``, with the noise correlation factor ``κ``): the variance of node
+    ``i`` is modelled locally as ``c · [A_ii⁻¹ M_ii A_ii⁻¹]`` (its own 3×3 blocks), and the
+    factor ``c`` (how much the coupling to the neighbours adds) is measured once on a
+    central sub-mesh, where the exact diagonal is probed with solves of ``A`` on coloured
+    unit vectors. Mesh-sized work only.
+
+    Parameters
+    ----------
+    solver : StencilSolver
+        The level's solver (``M`` and its regularisation).
+    noise_variance : float
+        ``σ_r²``, grey levels².
+    kappa : float
+        Noise correlation factor (:func:`correlation_factor`).
+    """
+    from .solve import StencilSolver
+
+    H = solver.matrix
+    n = H.shape[:3]
+    Mii = H[..., 0, :, :].astype(np.float64)
+    Ainv = solver.block_inverse
+    local = np.einsum("...ij,...jk,...kl->...il", Ainv, Mii, Ainv)
+    local_diag = np.diagonal(local, axis1=-2, axis2=-1)  # (nz, ny, nx, 3)
+    # the factor c on a central sub-mesh
+    sub = tuple(slice(max((k - PROBE_EDGE) // 2, 0), max((k - PROBE_EDGE) // 2, 0) + min(k, PROBE_EDGE)) for k in n)
+    small = StencilSolver(np.ascontiguousarray(H[sub]).copy())
+    if solver.regularizer is not None:
+        from .regularization import Regularizer
+
+        reg = Regularizer(solver.regularizer.kind, small.nodes_shape, solver.regularizer.ell)
+        small.regularize(reg, solver.weight)
+    from .solve import stencil_matvec
+
+    shape = small.nodes_shape
+    exact = np.zeros(shape + (3,))
+    grid = np.indices(shape)
+    p = PROBE_PERIOD
+    for cz in range(p):
+        for cy in range(p):
+            for cx in range(p):
+                sel = (grid[0] % p == cz) & (grid[1] % p == cy) & (grid[2] % p == cx)
+                if not sel.any():
+                    continue
+                for j in range(3):
+                    e = np.zeros(shape + (3,))
+                    e[sel, j] = 1.0
+                    x = small.solve(e)[0]
+                    y = small.solve(stencil_matvec(small.matrix, x))[0]
+                    exact[sel, j] = y[sel, j]
+    ratio = exact / np.maximum(local_diag[sub], 1e-300)
+    inner = tuple(slice(1, -1) if k > 2 else slice(None) for k in shape)
+    c = float(np.median(ratio[inner])) if ratio[inner].size else 1.0
+    var = float(kappa) * float(noise_variance) * c * local_diag
+    return np.sqrt(np.moveaxis(var, -1, 0))

@@ -64,6 +64,9 @@ class Result:
     active : ndarray, shape (ez, ey, ex), uint8, optional
         Elements that took part (a specimen mask's material elements, :mod:`chunkdic.masks`);
         ``None`` without a mask.
+    uncertainty : ndarray, shape (3, nz, ny, nx), float64, optional
+        Standard deviation of each nodal displacement from the final residual's noise,
+        voxels of ``level`` (:func:`chunkdic.noise.nodal_uncertainty`); NaN where not measured.
     brightness : ndarray, shape (2, ez, ey, ex), float64, optional
         Per-element gain and offset of the grey-level model (:mod:`chunkdic.greylevel`):
         ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
@@ -78,6 +81,7 @@ class Result:
     flags: np.ndarray | None = None
     brightness: np.ndarray | None = None
     active: np.ndarray | None = None
+    uncertainty: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -128,6 +132,8 @@ class Result:
             root.create_array("brightness", data=np.ascontiguousarray(self.brightness, dtype=np.float64))
         if self.active is not None:
             root.create_array("active", data=np.ascontiguousarray(self.active, dtype=np.uint8))
+        if self.uncertainty is not None:
+            root.create_array("uncertainty", data=np.ascontiguousarray(self.uncertainty, dtype=np.float64))
         hist = root.create_group("history")
         for name in HISTORY_FIELDS:
             hist.create_array(name, data=np.asarray(self.history[name]))
@@ -158,7 +164,7 @@ def open_result(path: str | os.PathLike) -> Result:
         raise InputError(f"result {path} is incomplete (the run that wrote it was interrupted)")
     history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
     optional = {name: root[name][...] if name in root else None
-                for name in ("strain", "flags", "brightness", "active")}
+                for name in ("strain", "flags", "brightness", "active", "uncertainty")}
     return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path), **optional)
 
 
