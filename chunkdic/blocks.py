@@ -14,8 +14,10 @@ import numpy as np
 
 #: lags (voxels along x) of the autocorrelations that estimate the noise correlation
 LAGS = 4
+#: they are summed on one row of voxels in this many (a 64³ block still gives 160 000 pairs per lag)
+LAG_STRIDE = 8
 
-__all__ = ["LAGS", "QUANTITIES", "ElementSums", "core_shape", "elements_of", "check_nodes", "voxel_xi", "grad_index", "gradient_block"]
+__all__ = ["LAG_STRIDE", "LAGS", "QUANTITIES", "ElementSums", "core_shape", "elements_of", "check_nodes", "voxel_xi", "grad_index", "gradient_block"]
 
 
 #: order of the quantities of :class:`ElementSums`: ``d``, ``g'``, ``1``, then the

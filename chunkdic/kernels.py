@@ -65,7 +65,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from . import kernels_numpy
-from .blocks import LAGS, ElementSums, check_nodes, core_shape, elements_of, grad_index, gradient_block, voxel_xi
+from .blocks import LAG_STRIDE, LAGS, ElementSums, check_nodes, core_shape, elements_of, grad_index, gradient_block, voxel_xi
 from .interp import (
     fast_bounds,
     interp_cubic,
@@ -178,6 +178,15 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                     uz0, uz1 = _row_field(u, 0, ez, ey, ex, tz, ty)
                     uy0, uy1 = _row_field(u, 1, ez, ey, ex, tz, ty)
                     ux0, ux1 = _row_field(u, 2, ez, ey, ex, tz, ty)
+                    xa = c2 + ex * ell
+                    lo_in = vm_lo + 1.0  # weight 1 at least one voxel inside the usable part
+                    if (segment_inside(c0 + z, c0 + z, uz0, uz1, xi[0], xi[ell - 1], lo_in, n0 - 1.0 - lo_in)
+                            and segment_inside(c1 + y, c1 + y, uy0, uy1, xi[0], xi[ell - 1], lo_in, n1 - 1.0 - lo_in)
+                            and segment_inside(xa, xa + ell - 1, ux0, ux1, xi[0], xi[ell - 1], lo_in,
+                                               n2 - 1.0 - lo_in)):
+                        for lx in range(ell):
+                            vm[ex * ell + lx] = 1.0
+                        continue
                     for lx in range(ell):
                         tx = xi[lx]
                         p0 = c0 + z + lerp(uz0, uz1, tx)
@@ -206,8 +215,9 @@ def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                 prod[6, x] = w * gz
                 prod[7, x] = w * gy
                 prod[8, x] = w * gx
-            # autocorrelation of the gradient along x (noise correlation estimate, LAGS)
-            for i in range(3):
+            # autocorrelation of the gradient along x (noise correlation estimate, LAGS), on
+            # one row in LAG_STRIDE
+            for i in range(3 if (z * ney * ell + y) % LAG_STRIDE == 0 else 0):
                 for k in range(LAGS + 1):
                     acc = 0.0
                     for x in range(nx - k):
@@ -574,6 +584,7 @@ def _segment_samples(u, ez, ey, ex, tz, ty, X0, X1, xa, ell, xi, g, gf, gs0, gs1
         wt[lx] = _taper(p0, p1, p2, n0, n1, n2, vm_lo)
         if wt[lx] == 0.0:
             nbad += 1
+            gbuf[lx] = 0.0  # finite: the sums multiply it by its weight 0
         elif cubic:
             gbuf[lx] = interp_cubic(g, o0, o1, o2, n0, n1, n2, p0, p1, p2)
         else:
@@ -771,8 +782,11 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                         _spread(Be, 3, a, w * zt, e0z, e0y, e0x, e1z, e1y, e1x)
                         _spread(Be, 4, a, w * yt, e0z, e0y, e0x, e1z, e1y, e1x)
                         _spread(Be, 5, a, w, q0z, q0y, q0x, q1z, q1y, q1x)
-            # autocorrelation of the residual along x (noise correlation estimate, LAGS):
-            # the client forms that of r = d - α g' from these (blocks.ElementSums.lags)
+            # autocorrelation of the residual along x (noise correlation estimate, LAGS), on
+            # one row in LAG_STRIDE (millions of pairs still): the client forms that of
+            # r = d - α g' from these (blocks.ElementSums.lags)
+            if (z * ney * ell + y) % LAG_STRIDE != 0:
+                continue
             for k in range(LAGS + 1):
                 sdd_k = 0.0
                 cnt = 0.0

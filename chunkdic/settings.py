@@ -47,7 +47,8 @@ class Settings:
         damped, longer ones left to the images. ``None``: chosen automatically
         (docs/engine.md, "Regularisation").
     tolerance : float
-        Convergence when ``max |δa|`` falls below it (voxels of ``level``; finite, > 0).
+        Convergence when ``max |δa|`` falls below it (voxels of ``level``; finite, >= 0;
+        0 iterates until ``max_iterations``).
     coarse_tolerance : float
         The same on coarser levels, whose field is only a starting point.
     max_iterations : int
@@ -81,8 +82,8 @@ class Settings:
         _choice(self.regularization, REGULARIZATIONS, "regularization")
         if self.regularization_length is not None:
             check(self, "regularization_length", _positive_float(self.regularization_length, "regularization length"))
-        check(self, "tolerance", _positive_float(self.tolerance, "tolerance"))
-        check(self, "coarse_tolerance", _positive_float(self.coarse_tolerance, "coarse tolerance"))
+        check(self, "tolerance", _nonnegative_float(self.tolerance, "tolerance"))
+        check(self, "coarse_tolerance", _nonnegative_float(self.coarse_tolerance, "coarse tolerance"))
         check(self, "max_iterations", _integer(self.max_iterations, "max iterations", minimum=1))
         if self.block_elements is not None:
             check(self, "block_elements", _integer(self.block_elements, "block elements", minimum=1))
