@@ -42,10 +42,11 @@ class ElementSums:
     n_excluded : int
         Core voxels of weight 0 (``X + u(X)`` outside the usable part of ``g``).
     lags : ndarray, shape (6, LAGS + 1), float64, optional
-        Along x, for ``k = 0 … LAGS``: ``Σ w w' d d'``, ``Σ w w'``, ``Σ w w' (d g'' + g' d')``,
-        ``Σ w w' g' g''`` (primes: the voxel ``k`` further), and ``Σ w d``, ``Σ w g'`` in
-        ``[4, 0]``, ``[5, 0]``: the autocorrelation of any residual ``d - α g'``
-        (:func:`chunkdic.noise.correlation_factor`; numba kernels only).
+        Along x, pairs of voxels ``k = 0 … LAGS`` apart in one row (primes: the voxel ``k``
+        further): ``Σ w w' Δd²``, ``Σ w w'``, ``Σ w w' 2 Δd Δg'``, ``Σ w w' Δg'²`` with
+        ``Δq = q - q'`` for ``k >= 1`` and ``Δq = q`` for ``k = 0`` (the second moments), and
+        ``Σ w d``, ``Σ w g'`` in ``[4, 0]``, ``[5, 0]``: the variogram of any residual
+        ``d - α g'`` (:func:`chunkdic.noise.correlation_factor`; numba kernels only).
 
     ``w`` are the voxel weights: 1 inside the usable part of ``g``, tapering to 0 over
     its last voxel.

@@ -782,9 +782,11 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                         _spread(Be, 3, a, w * zt, e0z, e0y, e0x, e1z, e1y, e1x)
                         _spread(Be, 4, a, w * yt, e0z, e0y, e0x, e1z, e1y, e1x)
                         _spread(Be, 5, a, w, q0z, q0y, q0x, q1z, q1y, q1x)
-            # autocorrelation of the residual along x (noise correlation estimate, LAGS), on
-            # one row in LAG_STRIDE (millions of pairs still): the client forms that of
-            # r = d - α g' from these (blocks.ElementSums.lags)
+            # variogram of the residual along x (noise correlation estimate, LAGS), on one
+            # row in LAG_STRIDE (millions of pairs still): the client forms that of
+            # r = d - α g' from these (blocks.ElementSums.lags). Lag 0 holds the second
+            # moments; lags k >= 1 the squared differences of voxels k apart, so that whatever
+            # is constant along the row (an offset, a drift along z or y) cancels exactly
             if (z * ney * ell + y) % LAG_STRIDE != 0:
                 continue
             for k in range(LAGS + 1):
@@ -794,9 +796,15 @@ def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, sc
                 sgg_k = 0.0
                 for x in range(nx - k):
                     ww = wrow[x] * wrow[x + k]
-                    sdd_k += ww * drow[x] * drow[x + k]
-                    sdg_k += ww * (drow[x] * grow[x + k] + grow[x] * drow[x + k])
-                    sgg_k += ww * grow[x] * grow[x + k]
+                    if k == 0:
+                        dd = drow[x]
+                        dg = grow[x]
+                    else:
+                        dd = drow[x] - drow[x + k]
+                        dg = grow[x] - grow[x + k]
+                    sdd_k += ww * dd * dd
+                    sdg_k += ww * 2.0 * dd * dg
+                    sgg_k += ww * dg * dg
                     cnt += ww
                 lags[0, k] += sdd_k
                 lags[1, k] += cnt
