@@ -45,9 +45,11 @@ def correlation_factor(residual_lags: np.ndarray, sensitivity_lags: np.ndarray, 
     if r[1, 0] <= 0 or np.any(r[1] <= 0) or np.any(s[:, 0] <= 0):
         return 1.0
     alpha = float(gain) - 1.0
-    second = (r[0] - alpha * r[2] + alpha * alpha * r[3]) / r[1]  # mean r_x r_{x+k}
-    gamma = second[0] - second  # semivariogram (stationary: E r_x² the same for every x)
-    sill = float(noise_variance) if noise_variance else second[0] - ((r[4, 0] - alpha * r[5, 0]) / r[1, 0]) ** 2
+    # k = 0: mean r²; k >= 1: mean (r_x - r_{x+k})² (ElementSums.lags)
+    moments = (r[0] - alpha * r[2] + alpha * alpha * r[3]) / r[1]
+    gamma = 0.5 * moments
+    gamma[0] = 0.0  # semivariogram
+    sill = float(noise_variance) if noise_variance else moments[0] - ((r[4, 0] - alpha * r[5, 0]) / r[1, 0]) ** 2
     if not sill > 0:
         return 1.0
     rho_r = 1.0 - gamma / sill
@@ -56,10 +58,9 @@ def correlation_factor(residual_lags: np.ndarray, sensitivity_lags: np.ndarray, 
     return float(np.clip(kappa, *BOUNDS))
 
 
-#: the exact diagonal is probed on a central sub-mesh of at most this many nodes per axis
-PROBE_EDGE = 10
-#: nodes of one colour of the probing are this many nodes apart on every axis
-PROBE_PERIOD = 4
+#: the exact diagonal is computed on a central sub-mesh of at most this many nodes per axis
+#: (a dense factorisation of at most 3 · 8³ = 1 536 unknowns: under a second)
+PROBE_EDGE = 8
 
 
 def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray:
@@ -69,8 +70,15 @@ def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray
     the usual ``σ_r² M⁻¹``, with the noise correlation factor ``κ``): the variance of node
     ``i`` is modelled locally as ``c · [A_ii⁻¹ M_ii A_ii⁻¹]`` (its own 3×3 blocks), and the
     factor ``c`` (how much the coupling to the neighbours adds) is measured once on a
-    central sub-mesh, where the exact diagonal is probed with solves of ``A`` on coloured
-    unit vectors. Mesh-sized work only.
+    central sub-mesh of at most :data:`PROBE_EDGE` nodes per axis, where the diagonal of
+    ``A⁻¹ M A⁻¹`` is computed exactly (:func:`exact_diagonal`): the median ratio over its
+    inner nodes. Mesh-sized work only.
+
+    Exact and dense rather than probed by CG solves on coloured unit vectors: with a long
+    regularisation length ``A⁻¹`` reaches across the whole mesh, so the unit vectors of one
+    colour contaminate each other's diagonal (measured: ``c`` off by 1.6×), and CG on that
+    ill-conditioned ``A`` needs hundreds of iterations per probe (the 384 probe solves took
+    5–40 s at 100³, more than the correlation itself).
 
     Parameters
     ----------
@@ -97,26 +105,43 @@ def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray
 
         reg = Regularizer(solver.regularizer.kind, small.nodes_shape, solver.regularizer.ell)
         small.regularize(reg, solver.weight)
-    from .solve import stencil_matvec
-
+    exact = exact_diagonal(small)
     shape = small.nodes_shape
-    exact = np.zeros(shape + (3,))
-    grid = np.indices(shape)
-    p = PROBE_PERIOD
-    for cz in range(p):
-        for cy in range(p):
-            for cx in range(p):
-                sel = (grid[0] % p == cz) & (grid[1] % p == cy) & (grid[2] % p == cx)
-                if not sel.any():
-                    continue
-                for j in range(3):
-                    e = np.zeros(shape + (3,))
-                    e[sel, j] = 1.0
-                    x = small.solve(e)[0]
-                    y = small.solve(stencil_matvec(small.matrix, x))[0]
-                    exact[sel, j] = y[sel, j]
     ratio = exact / np.maximum(local_diag[sub], 1e-300)
     inner = tuple(slice(1, -1) if k > 2 else slice(None) for k in shape)
     c = float(np.median(ratio[inner])) if ratio[inner].size else 1.0
     var = float(kappa) * float(noise_variance) * c * local_diag
     return np.sqrt(np.moveaxis(var, -1, 0))
+
+
+def exact_diagonal(small) -> np.ndarray:
+    """The diagonal of ``A⁻¹ M A⁻¹`` of a small :class:`~chunkdic.solve.StencilSolver`, (nz, ny, nx, 3).
+
+    Dense: ``A = M + λ R`` and ``M`` are assembled column by column from their matrix-vector
+    products and ``A`` is factorised (Cholesky; ``A`` is symmetric positive definite).
+    Meant for a few thousand unknowns at most (:data:`PROBE_EDGE`).
+    """
+    import scipy.linalg as sla
+
+    from .solve import stencil_matvec
+
+    shape = tuple(small.nodes_shape)
+    size = 3 * int(np.prod(shape))
+    A = np.empty((size, size))
+    M = np.empty((size, size))
+    e = np.zeros(shape + (3,))
+    flat = e.reshape(-1)
+    for k in range(size):
+        flat[k] = 1.0
+        A[:, k] = small.matvec(e).reshape(-1)
+        M[:, k] = stencil_matvec(small.matrix, e).reshape(-1)
+        flat[k] = 0.0
+    A = 0.5 * (A + A.T)  # symmetric up to round-off
+    try:
+        factor = sla.cho_factor(A)
+        X = sla.cho_solve(factor, M)  # A⁻¹ M
+        Y = sla.cho_solve(factor, X.T)  # A⁻¹ M A⁻¹
+    except np.linalg.LinAlgError:  # numerically indefinite: a symmetric solve still gives it
+        X = sla.solve(A, M, assume_a="sym")
+        Y = sla.solve(A, X.T, assume_a="sym")
+    return np.diagonal(Y).reshape(shape + (3,)).copy()
