@@ -98,26 +98,17 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 def _ingest(args: argparse.Namespace) -> int:
     from .formats import ingest
-    from .pyramid import build_pyramid
 
-    _err(f"[1/{2 if args.levels else 1}] ingest {args.src} -> {args.out}")
+    levels = f" and pyramid levels 1..{args.levels}" if args.levels else ""
+    _err(f"ingest {args.src} -> {args.out}{levels}")
     t0 = time.perf_counter()
+    # level 0 and the pyramid are written together, in a staged copy renamed into place at
+    # the end (chunkdic.outputs): all or nothing
     scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
                   shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
-                  dataset=args.dataset, overwrite=args.overwrite, levels=0, progress=_Printer("level 0"))
-    t1 = time.perf_counter()
-    nbytes = _nbytes(scan, 0)
-    _summary(scan, t1 - t0, nbytes, "read")
-    if args.levels:
-        _err(f"[2/2] pyramid levels 1..{args.levels}")
-        try:
-            scan = build_pyramid(args.out, args.levels, progress=_Printer("pyramid"))
-        except BaseException:
-            import shutil
-
-            shutil.rmtree(args.out, ignore_errors=True)  # ingest creates the output: all or nothing
-            raise
-        _summary(scan, time.perf_counter() - t1, nbytes, "pyramid from level 0 of")
+                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels,
+                  progress=_Printer("ingest" + (" + pyramid" if args.levels else "")))
+    _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
     return 0
 
 

@@ -97,15 +97,35 @@ def build_field(args, shape):
                   center_y=center[1], center_x=center[2])
 
 
+def _check_options(args) -> None:
+    """Numeric options in range (one line naming the option), before anything is written."""
+    from .inputs import number
+
+    for name, kw in (("noise", dict(minimum=0)), ("cell_size", dict(above=0)), ("bead_size", dict(above=0)),
+                     ("wall_width", dict(above=0)), ("lateral", dict(above=-1)), ("band_width", dict(above=0)),
+                     ("strain", dict(above=-1)), ("shear", {}), ("seed", dict(minimum=0, integer=True)),
+                     ("levels", dict(minimum=0, integer=True)), ("chunks", dict(minimum=1, integer=True))):
+        if getattr(args, name) is not None:
+            number(getattr(args, name), "--" + name.replace("_", "-"), **kw)
+    for name in ("translation", "voxel_size"):
+        if getattr(args, name) is not None:
+            for v in _floats(getattr(args, name), name.replace("_", "-"), 3):
+                number(v, "--" + name.replace("_", "-"), above=0 if name == "voxel_size" else None)
+
+
 def run(args) -> int:
     """Run ``chunkdic synth``; returns the exit code."""
     from . import synthetic as S
+    from .outputs import Outputs
+    from .scheduler import check_scheduler
 
     shape = _shape(args.shape)
+    _check_options(args)
     vs = None if args.voxel_size is None else _floats(args.voxel_size, "voxel-size", 3)
-    if args.chunks is not None and args.chunks < 1:
-        raise InputError(f"--chunks must be positive, got {args.chunks}")
     fld = build_field(args, shape)
+    check_scheduler(args.scheduler)
+    plan = Outputs(overwrite=args.overwrite)
+    plan.add(args.out_dir, "synth")  # checked before anything is written; removed if the run fails
     last = [-1]
     t0 = time.perf_counter()
 
@@ -118,10 +138,11 @@ def run(args) -> int:
 
     print(f"synth: {args.out_dir} shape {shape} {args.dtype}, field "
           f"{'none' if fld is None else fld.to_json()}", file=sys.stderr, flush=True)
-    with dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr, flush=True)):
+    with plan, dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr,
+                                                                          flush=True)):
         res = S.synthesize(
             args.out_dir, shape, field=fld, seed=args.seed, dtype=args.dtype, chunks=args.chunks,
-            voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=args.overwrite,
+            voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=False,
             progress=progress, cell_size=args.cell_size, bead_size=args.bead_size,
             wall_width=args.wall_width, noise=args.noise,
         )

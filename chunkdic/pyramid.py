@@ -22,6 +22,7 @@ import numpy as np
 from .coarsen import coarsen_sum, pyramid_dtype
 from .errors import InputError
 from .ngff import _update_group_metadata
+from .outputs import check_writable
 from .volume import (
     Scan,
     _check_levels,
@@ -123,4 +124,5 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
         raise InputError(f"cannot read {p} as a Zarr store: {e}".splitlines()[0]) from None
     if not isinstance(node, zarr.Group) or "chunkdic" not in node.attrs:
         raise InputError(f"{p} is not a chunkdic scan group: convert it with `chunkdic ingest {p} OUT.zarr`")
+    check_writable(p)  # the levels are written into the scan group itself
     return _build_levels(str(p), levels, rebuild=overwrite, progress=progress)
