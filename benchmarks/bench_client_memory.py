@@ -3,7 +3,7 @@
 The client of a correlation never touches voxels: it receives mesh-sized partial sums
 from the block tasks, adds them into the nodal stencil of ``M`` (float32), builds the
 block-Jacobi preconditioner and solves. Its memory is therefore set by the mesh, and it
-can be measured on the real client code (``engine._Level.assemble_m`` and the solver)
+can be measured on the real client code (``level.Level.assemble_m`` and the solver)
 with the tasks replaced by a stand-in runner that returns, for every block, the stencil
 of a random texture block of the right shape (computed once per shape by the real
 ``kernels.m_block``; ``f`` is never read and no scan is needed).
@@ -49,13 +49,13 @@ class _StandInRunner:
     def map_unordered(self, fn, args):
         from chunkdic import kernels
 
-        for f_ref, ell, blk, start, shape, _copy, _index in args:
-            key = tuple(shape)
+        for _inputs, job in args:
+            key = tuple(job.shape)
             if key not in self._cache:
-                f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in shape)).astype("float32")
-                self._cache[key] = kernels.m_block(f, (1, 1, 1), (1, 1, 1), ell)
+                f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in job.shape)).astype("float32")
+                self._cache[key] = kernels.m_block(f, (1, 1, 1), (1, 1, 1), job.ell)
             stencil, fmin, fmax = self._cache[key]
-            yield blk, stencil, fmin, fmax
+            yield job.block, stencil, fmin, fmax
 
     def run_everywhere(self, fn):
         fn()
@@ -64,13 +64,15 @@ class _StandInRunner:
 def _child(size: int, ell: int, solves: int) -> None:
     import numpy as np
 
-    from chunkdic.engine import Settings, _Level, plan_meshes
+    from chunkdic.level import Level
+    from chunkdic.planning import plan_meshes
+    from chunkdic.settings import Settings
     from chunkdic.volume import ArrayRef
 
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened
     with tempfile.TemporaryDirectory() as scratch:
-        lvl = _Level(0, mesh, f_ref, f_ref, _StandInRunner(), Settings(element_size=ell), Path(scratch))
+        lvl = Level(0, mesh, f_ref, f_ref, _StandInRunner(), Settings(element_size=ell), Path(scratch))
         t0 = time.perf_counter()
         lvl.assemble_m()
         t_m = time.perf_counter() - t0

@@ -391,13 +391,10 @@ def _ref_path(ref: ArrayRef) -> str:
 
 
 def _roi_at_level(roi, level: int):
-    from .engine import parse_roi
+    from .planning import box_at_level, parse_roi
 
     box = parse_roi(roi)
-    if box is None or level == 0:
-        return box
-    f = 2**level
-    return tuple((-(-a // f), b // f) for a, b in box)
+    return box if box is None else box_at_level(box, 2**level)
 
 
 def _displacement_stats(result, t) -> dict:

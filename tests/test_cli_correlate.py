@@ -80,9 +80,9 @@ def test_no_traceback_from_the_installed_command(pair, tmp_path):
 
 
 def test_long_passes_report_blocks_rate_and_eta(pair, tmp_path, capsys, monkeypatch):
-    from chunkdic import engine, prefilter
+    from chunkdic import level, prefilter
 
-    monkeypatch.setattr(engine, "PROGRESS_SECONDS", 0.0)  # every block counts as "long"
+    monkeypatch.setattr(level, "PROGRESS_SECONDS", 0.0)  # every block counts as "long"
     monkeypatch.setattr(prefilter, "TASK_EDGE", 16)  # several prefilter tasks on this small pair
     argv = ["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(tmp_path / "r.zarr"),
             "--element-size", "8", "--block-elements", "2"]

@@ -7,7 +7,7 @@ import pytest
 
 import chunkdic
 from chunkdic import synthetic
-from chunkdic.engine import plan_meshes
+from chunkdic.planning import plan_meshes
 
 from textures import fourier_shift, smooth_noise
 
