@@ -436,11 +436,11 @@ def _shift3(shift) -> tuple[float, float, float]:
 
 def _check_plan(scan, sizes, roi, level: int, interpolation: str) -> None:
     """Every element size must fit the scan's ROI at ``level`` (checked before any output)."""
-    from .engine import plan_meshes
+    from .planning import plan_meshes
+    from .settings import Settings
 
-    if interpolation not in ("cubic", "linear"):
-        raise InputError(f"interpolation must be one of cubic, linear; got {interpolation!r}")
     for ell in sizes:
+        Settings(element_size=ell, level=level, interpolation=interpolation)  # validates each option
         plan_meshes(scan.shape(0), element_size=ell, roi=roi, level=level)
 
 

@@ -65,7 +65,7 @@ class Kind:
 
 _SYNTH = ("ref.zarr", "def.zarr", "field.json", "field.json.tmp")
 KINDS: dict[str, Kind] = {k.name: k for k in (
-    Kind("result", "store", "correlation result"),
+    Kind("result", "store", "result"),
     Kind("scan", "store", "scan"),
     Kind("corrected", "store", "corrected-image group"),
     Kind("figures", "folder", "figures folder",

@@ -63,7 +63,7 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
         cuts = {s: (cuts[s], cuts[s + 1]) for s in range(1, levels + 1)}
     for s in range(todo_from, levels + 1):
         t0 = time.perf_counter()
-        src = open_scan(path)._stored[s - 1]
+        src = open_scan(path).stored_refs()[s - 1]
         below = _ref_dask(src, chunks=tuple(min(2 * c, n) for c, n in zip(chunk0, src.shape)))
         data = coarsen_sum(below, pyramid_dtype(dtype0, s))
         _write_level(path, s, data, chunk0, progress, *cuts[s])

@@ -362,6 +362,10 @@ class Scan:
         """Levels stored complete and valid in the scan's own store."""
         return sorted(self._stored)
 
+    def stored_refs(self) -> dict[int, ArrayRef]:
+        """Level -> on-disk handle of the levels stored in the scan's own store."""
+        return dict(self._stored)
+
     # -- data ---------------------------------------------------------------------------
     def level(self, s: int):
         """Level ``s`` as a dask array: stored if complete, else 2x2x2 sums built lazily
