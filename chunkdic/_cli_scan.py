@@ -53,12 +53,17 @@ def _err(msg: str) -> None:
 
 
 class _Printer:
-    """Progress lines on stderr, every 10 %."""
+    """Progress lines on stderr, every 10 %; ``header`` is printed with the first call, once
+    the inputs and outputs have been checked (a refused run prints its error line only)."""
 
-    def __init__(self, step: str):
+    def __init__(self, step: str, header: str | None = None):
         self.step, self.next, self.t0 = step, 0.1, time.perf_counter()
+        self.header = header
 
     def __call__(self, frac: float) -> None:
+        if self.header:
+            _err(self.header)
+            self.header = None
         if frac + 1e-9 >= self.next:
             _err(f"  {self.step}: {min(frac, 1.0):4.0%}  ({time.perf_counter() - self.t0:.1f} s)")
             while self.next <= frac + 1e-9:
@@ -100,14 +105,14 @@ def _ingest(args: argparse.Namespace) -> int:
     from .formats import ingest
 
     levels = f" and pyramid levels 1..{args.levels}" if args.levels else ""
-    _err(f"ingest {args.src} -> {args.out}{levels}")
     t0 = time.perf_counter()
     # level 0 and the pyramid are written together, in a staged copy renamed into place at
     # the end (chunkdic.outputs): all or nothing
     scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
                   shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
                   dataset=args.dataset, overwrite=args.overwrite, levels=args.levels,
-                  progress=_Printer("ingest" + (" + pyramid" if args.levels else "")))
+                  progress=_Printer("ingest" + (" + pyramid" if args.levels else ""),
+                                    header=f"ingest {args.src} -> {args.out}{levels}"))
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
     return 0
 
@@ -118,11 +123,12 @@ def run_pyramid(args: argparse.Namespace) -> int:
     from .volume import open_scan
 
     before = open_scan(args.scan).stored_levels() if Path(args.scan).exists() else []
-    _err(f"pyramid {args.scan}: levels 1..{args.levels}"
-         + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
+    header = (f"pyramid {args.scan}: levels 1..{args.levels}"
+              + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
     with dask_scheduler(args.scheduler, announce=_err):
         t0 = time.perf_counter()
-        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=_Printer("pyramid"))
+        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite,
+                             progress=_Printer("pyramid", header=header))
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "pyramid from level 0 of")
     return 0
 

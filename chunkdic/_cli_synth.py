@@ -128,16 +128,17 @@ def run(args) -> int:
     plan.add(args.out_dir, "synth")  # checked before anything is written; removed if the run fails
     last = [-1]
     t0 = time.perf_counter()
+    header = [f"synth: {args.out_dir} shape {shape} {args.dtype}, field {'none' if fld is None else fld.to_json()}"]
 
     def progress(frac: float) -> None:
+        if header:  # printed once writing starts: a refused run prints its error line only
+            print(header.pop(), file=sys.stderr, flush=True)
         pct = min(100, int(100 * frac))
         if pct >= last[0] + 5 or (pct == 100 and last[0] < 100):
             last[0] = pct
             print(f"synth: {pct:3d}% ({time.perf_counter() - t0:.1f} s)", file=sys.stderr,
                   flush=True)
 
-    print(f"synth: {args.out_dir} shape {shape} {args.dtype}, field "
-          f"{'none' if fld is None else fld.to_json()}", file=sys.stderr, flush=True)
     with plan, dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr,
                                                                           flush=True)):
         res = S.synthesize(

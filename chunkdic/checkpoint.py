@@ -66,6 +66,7 @@ class Checkpoint:
         import zarr
 
         path = Path(path)
+        identities = json.loads(json.dumps(identities or {}, default=str))  # compared with their JSON form
         state = None
         if path.exists():
             attrs = _read_attrs(path)
@@ -82,7 +83,7 @@ class Checkpoint:
         else:
             root = zarr.open_group(str(path), mode="w", zarr_format=3)
             root.attrs["chunkdic"] = {"kind": "result", "complete": False, "fingerprint": print_,
-                                      "identities": identities or {}}
+                                      "identities": identities}
         ckpt = cls(path, print_)
         if state is not None:
             state = dict(state, arrays=ckpt._load_arrays(state))

@@ -234,12 +234,15 @@ def _real(path: Path) -> Path:
     return a.parent.resolve() / a.name
 
 
-def _check_location(p: Path, real: Path, kind: Kind) -> None:
-    if not p.name or p.name in (".", ".."):
-        raise InputError(f"output {_say(p)} is not a usable name: choose a new path")
+def _check_cwd(p: Path, real: Path) -> None:
     cwd = Path.cwd().resolve()
     if real == cwd or real in cwd.parents:
         raise InputError(f"output {_say(p)} is the current directory or contains it: choose a new path")
+    if not p.name or p.name in (".", ".."):
+        raise InputError(f"output {_say(p)} is not a usable name: choose a new path")
+
+
+def _check_location(p: Path, real: Path, kind: Kind) -> None:
     if kind.suffixes and real.suffix.lower() not in kind.suffixes:
         raise InputError(f"{kind.label} {_say(p)}: unknown extension {real.suffix or '(none)'!r}, "
                          f"use {' or '.join(kind.suffixes)}")
@@ -336,8 +339,9 @@ def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumab
     k = KINDS[kind]
     p = Path(path)
     real = _real(p)
-    _check_location(p, real, k)
+    _check_cwd(p, real)
     _check_inputs(p, real, input_roots(inputs))
+    _check_location(p, real, k)
     state = _check_existing(p, real, k, overwrite, resumable)
     check_writable(real.parent, f" (for output {_say(p)})")
     return state

@@ -31,7 +31,7 @@ from .errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name",
+__all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
            "reclaim_stale_partials", "LOCK_SUFFIX", "SCRATCH_MARKER"]
 
 LOCK_SUFFIX = ".chunkdic-lock"
@@ -177,6 +177,14 @@ def partial_name(final: Path) -> Path:
     me = Owner.me()
     host = re.sub(r"[^A-Za-z0-9_]", "_", me.host)
     return final.parent / f".{final.stem}{PARTIAL_TAG}{host}-{me.pid}-{uuid.uuid4().hex[:6]}{final.suffix}"
+
+
+def final_name(path) -> str:
+    """The name a staged output will have once in place (``.x.chunkdic-partial-HOST-PID-XXXXXX.zarr``
+    -> ``x.zarr``); other names unchanged. Metadata that records the store's own name uses it."""
+    name = Path(path).name
+    m = re.fullmatch(r"\.(.*)" + re.escape(PARTIAL_TAG) + r"[A-Za-z0-9_]+-\d+-[0-9a-f]{6}(\.[^.]*)?", name)
+    return name if m is None else m.group(1) + (m.group(2) or "")
 
 
 def reclaim_stale_partials(final: Path) -> list[Path]:

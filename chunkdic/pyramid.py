@@ -66,7 +66,15 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
         src = open_scan(path).stored_refs()[s - 1]
         below = _ref_dask(src, chunks=tuple(min(2 * c, n) for c, n in zip(chunk0, src.shape)))
         data = coarsen_sum(below, pyramid_dtype(dtype0, s))
-        _write_level(path, s, data, chunk0, progress, *cuts[s])
+        try:
+            _write_level(path, s, data, chunk0, progress, *cuts[s])
+        except BaseException:
+            # the level this run began goes (readers would ignore it, marked incomplete, but a
+            # refused run leaves the scan as it found it)
+            if str(s) in g:
+                del g[str(s)]
+            _update_group_metadata(path)
+            raise
         _update_group_metadata(path)
         log.info("%s: level %d %s %s built in %.1f s", path, s, data.shape, data.dtype, time.perf_counter() - t0)
     forget_open_arrays()
