@@ -42,6 +42,7 @@ from pathlib import Path
 
 from .errors import InputError
 from .ownership import partial_name, reclaim_stale_partials
+from .store import drain_zarr_io
 
 log = logging.getLogger(__name__)
 
@@ -478,6 +479,7 @@ class Outputs:
 
     def rollback(self) -> None:
         """Remove what this run created; never what was there before."""
+        drain_zarr_io()  # chunk writes still in flight would bring a removed store back
         for e in self.entries:
             try:
                 self._undo(e)

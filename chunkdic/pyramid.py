@@ -68,9 +68,9 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
         data = coarsen_sum(below, pyramid_dtype(dtype0, s))
         try:
             _write_level(path, s, data, chunk0, progress, *cuts[s])
-        except BaseException:
-            # the level this run began goes (readers would ignore it, marked incomplete, but a
-            # refused run leaves the scan as it found it)
+        except Exception:
+            # a refusal (damaged input, full disk) removes the level this run began, leaving the
+            # scan as it found it; an interrupted run leaves it marked incomplete (rebuilt later)
             if str(s) in g:
                 del g[str(s)]
             _update_group_metadata(path)
