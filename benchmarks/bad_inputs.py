@@ -582,13 +582,13 @@ class Outcome:
     seconds: float
 
 
-def _cmd(case: Case, argv: list, d: Path) -> list:
+def _cmd(case: Case, argv: list, d: Path, listing: Path) -> list:
     cmd = [sys.executable, "-m", "chunkdic", *argv]
     if case.mount:
         kind, target = case.mount.split(":")
         opts = "ro" if kind == "ro" else "size=32k"
         script = (f'mount -t tmpfs -o {opts} tmpfs "{d / target}" && "$@"; rc=$?; '
-                  f'ls -A "{d / target}" >&3; exit $rc')
+                  f'ls -A "{d / target}" > "{listing}"; exit $rc')
         cmd = ["unshare", "-m", "sh", "-c", script, "sh", *cmd]
     return cmd
 
@@ -598,15 +598,11 @@ def _run(case: Case, argv: list, d: Path, scratch: Path, extra_env=None, timeout
     env["DASK_CHUNKDIC__SCRATCH_DIRECTORY"] = str(d / case.env["SCRATCH"]) if "SCRATCH" in case.env else str(scratch)
     env.update({k: v for k, v in case.env.items() if k.startswith("DASK_")})
     env.update(extra_env or {})
-    r_fd, w_fd = os.pipe()
-    try:
-        proc = subprocess.run(_cmd(case, argv, d), cwd=d / case.cwd, env=env, capture_output=True, text=True,
-                              timeout=timeout or case.timeout, pass_fds=(w_fd,) if case.mount else (),
-                              preexec_fn=(lambda: os.dup2(w_fd, 3)) if case.mount else None)
-    finally:
-        os.close(w_fd)
-        with os.fdopen(r_fd) as fh:
-            mounted = fh.read() if case.mount else ""
+    listing = scratch.parent / f"{scratch.name}.mounted"  # what the command left on the private mount
+    proc = subprocess.run(_cmd(case, argv, d, listing), cwd=d / case.cwd, env=env, capture_output=True,
+                          text=True, timeout=timeout or case.timeout)
+    mounted = listing.read_text() if case.mount and listing.exists() else ""
+    listing.unlink(missing_ok=True)
     return proc, mounted
 
 
@@ -708,10 +704,11 @@ def _changed(case, d, scratch) -> str:
     case.change(d)
     shutil.rmtree(scratch)
     scratch.mkdir()
-    before = snapshot(d)
+    # the killed run's lock is stale: the next run may reclaim it (that is the point)
+    before = {k: v for k, v in snapshot(d).items() if not k.endswith(".chunkdic-lock")}
     proc, mounted = _run(case, case.argv, d, scratch)
-    why = _promise(proc, mounted, before, snapshot(d), scratch)
-    return why
+    after = {k: v for k, v in snapshot(d).items() if not k.endswith(".chunkdic-lock")}
+    return _promise(proc, mounted, before, after, scratch)
 
 
 def _scratch(case, d, scratch) -> str:

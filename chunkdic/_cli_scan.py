@@ -97,6 +97,8 @@ def run_ingest(args: argparse.Namespace) -> int:
         raise InputError(f"--levels must be >= 0, got {args.levels}")
     if args.chunks is not None and args.chunks < 1:
         raise InputError(f"--chunks must be a positive integer, got {args.chunks}")
+    if args.offset < 0:
+        raise InputError(f"--offset must be >= 0, got {args.offset}")
     with dask_scheduler(args.scheduler, announce=_err):
         return _ingest(args)
 

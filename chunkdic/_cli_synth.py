@@ -101,6 +101,8 @@ def _check_options(args) -> None:
     """Numeric options in range (one line naming the option), before anything is written."""
     from .inputs import number
 
+    if args.unit is not None and args.voxel_size is None:
+        raise InputError("--unit was given without --voxel-size: pass both (--voxel-size 4.91 --unit micrometer)")
     for name, kw in (("noise", dict(minimum=0)), ("cell_size", dict(above=0)), ("bead_size", dict(above=0)),
                      ("wall_width", dict(above=0)), ("lateral", dict(above=-1)), ("band_width", dict(above=0)),
                      ("strain", dict(above=-1)), ("shear", {}), ("seed", dict(minimum=0, integer=True)),

@@ -51,6 +51,7 @@ class Checkpoint:
     def __init__(self, path: Path, print_: str):
         self.path = Path(path)
         self.fingerprint = print_
+        self.saved = False  # whether this run has written a checkpoint yet
 
     @classmethod
     def start(cls, path, print_: str, *, identities: dict | None = None) -> tuple["Checkpoint", dict | None]:
@@ -108,3 +109,4 @@ class Checkpoint:
             group.create_array(f"{name}{slot}", data=np.ascontiguousarray(arr), overwrite=True)
         attrs["checkpoint"] = {**state, "slot": slot, "array_names": sorted(arrays)}
         root.attrs["chunkdic"] = attrs
+        self.saved = True

@@ -133,10 +133,13 @@ def correlate(
                 g_refs = g_scan.refs(levels, scratch / "def")
                 runner.run_everywhere(kernels.warmup)
                 result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume)
-            except InputError:
-                # bad input found by a pass (a constant or non-finite image): nothing to resume, so
-                # what this run created goes; a resumed run's checkpoint was there before and stays
-                if plan is not None and resume is None:
+            except (InputError, OSError) as exc:
+                # bad input found by a pass (a constant or non-finite image), or a full or read-only
+                # disk before the first checkpoint: nothing to resume, so what this run created goes.
+                # A checkpoint this run saved stays for a re-run to resume (marked incomplete), and
+                # so does a resumed run's, which was there before.
+                fresh = plan is not None and resume is None
+                if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
                     plan.rollback()
                 raise
             result.info.update(

@@ -441,9 +441,12 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         Figure name -> PNG path.
     """
     from .export import input_paths, input_scans, interpolation_of
+    from .inputs import check_displacement
     from .outputs import Outputs
 
     results = _as_results(results)
+    for res in results:
+        check_displacement(res.displacement, res.path)
     if interpolation not in (None, "cubic", "linear"):
         raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
     say = progress or (lambda msg: None)
@@ -451,9 +454,11 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     try:
         input_scans(results[0], ref, deformed)  # checked before anything is written
     except InputError as exc:
-        if ref is not None or deformed is not None:
-            raise
-        skip = exc
+        recorded = [p for p in (results[0].info.get("inputs") or {}).values()
+                    if isinstance(p, str) and not p.startswith("<in-memory") and Path(p).exists()]
+        if ref is not None or deformed is not None or len(recorded) == 2:
+            raise  # scans given, or on disk but unusable (damaged, another shape): refused
+        skip = exc  # scans not on disk (in-memory inputs, moved): the cuts are skipped
     inputs = [p for r in results for p in input_paths(r, ref, deformed)]
     plan = Outputs(inputs=inputs, overwrite=overwrite)
     out_dir = plan.add(out_dir, "figures").final

@@ -601,4 +601,10 @@ def _open(src) -> Scan:
         hint = " (a folder of TIFF slices? convert it with `chunkdic ingest`)" if any(
             f.suffix.lower() in (".tif", ".tiff") for f in p.iterdir()) else ""
         raise InputError(f"cannot read {p} as a Zarr store{hint}: {type(e).__name__}: {e}".splitlines()[0]) from None
-    return _scan_from_zarr(node, str(p))
+    try:
+        return _scan_from_zarr(node, str(p))
+    except InputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a damaged level's metadata (zarr.json), say
+        raise InputError(f"cannot read {p} as a Zarr store: {type(e).__name__}: {e}; the store is damaged"
+                         .splitlines()[0]) from None

@@ -426,6 +426,18 @@ def test_F2_damaged_chunk_is_named(pair, tmp_path, capsys):
     nothing_left(tmp_path / "fig")
 
 
+def test_F2_damaged_metadata_of_a_level(pair, tmp_path, capsys):
+    corrupt_chunk(pair / "s/ref.zarr/0", "zarr.json")
+    before = tree(pair / "s")
+    damaged = r"cannot read .*ref.zarr as a Zarr store: .*the store is damaged"
+    refused(correlate_args(pair / "s/ref.zarr", pair / "s/def.zarr", tmp_path / "o.zarr"), capsys, damaged)
+    nothing_left(tmp_path / "o.zarr")
+    # the result's recorded scan is on disk but unreadable: refused, not silently skipped
+    refused(["report", pair / "r.zarr", "-o", tmp_path / "fig"], capsys, damaged)
+    nothing_left(tmp_path / "fig")
+    assert tree(pair / "s") == before
+
+
 def test_F2_missing_chunk_file(pair, tmp_path, capsys):
     s = pair / "s"
     (s / "def.zarr/0/c/1/0/1").unlink()
@@ -467,12 +479,12 @@ def _unshare_ok() -> bool:
 
 
 @pytest.mark.skipif(not _unshare_ok(), reason="needs a private mount namespace (unshare -m) for a read-only/full disk")
-@pytest.mark.parametrize("case", ["read-only output", "read-only scratch", "full disk"])
+@pytest.mark.parametrize("case", ["read-only output", "read-only scratch", "full disk", "full scratch"])
 def test_F4_read_only_or_full_disk(data, tmp_path, case):
     mnt = tmp_path / "mnt"
     mnt.mkdir()
-    opts = "size=32k" if case == "full disk" else "ro"
-    out = mnt / "o.zarr" if case != "read-only scratch" else tmp_path / "o.zarr"
+    opts = "size=32k" if case.startswith("full") else "ro"
+    out = mnt / "o.zarr" if case in ("read-only output", "full disk") else tmp_path / "o.zarr"
     if case == "full disk":
         cmd = [sys.executable, "-m", "chunkdic", "ingest", str(data / "f.npy"), str(out), "--chunks", "16"]
     else:
