@@ -204,7 +204,7 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
 
     from .scheduler import open_runner
 
-    from .outputs import kind_of
+    from .kinds import kind_of
     from .ownership import partial_name
 
     t = tuple(float(v) for v in np.broadcast_to(np.asarray(t, float), (3,)))
