@@ -44,6 +44,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 HERE = Path(__file__).resolve().parent.parent
 N = 32
@@ -228,7 +229,7 @@ class Case:
     env: dict = field(default_factory=dict)
     change: object = None  # kind "changed": callable(d) applied after the kill
 
-    tree: str = str(HERE)
+    tree: ClassVar[str] = str(HERE)  # the tree under test (one per sweep)
 
     @staticmethod
     def env_for(tree: str) -> dict:
