@@ -29,6 +29,7 @@ _EXPORTS = {
     "sweep": "metrology",
     "zoi_table": "metrology",
     "fit_power_law": "metrology",
+    "score_displacement": "scoring",
     "write_corrected": "export",
     "write_vtk": "export",
 }
@@ -65,6 +66,7 @@ __all__ = [
     "PoorTextureWarning",
     "Result",
     "Scan",
+    "score_displacement",
     "Settings",
     "show_versions",
     "sweep",

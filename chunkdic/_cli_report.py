@@ -189,7 +189,7 @@ def run_strain(args: argparse.Namespace) -> int:
     from .inputs import check_displacement
 
     res = open_result(args.result)
-    check_displacement(res.displacement, res.path)
+    check_displacement(res.displacement, res.path, res.flags)
     s = mean_strain(res.displacement, res.info["element_size"], exclude_outer=not args.all_elements)
     if args.json:
         print(json.dumps({"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}, indent=2))
@@ -232,7 +232,7 @@ def run_table(args: argparse.Namespace) -> int:
 
     results = [open_result(r) for r in args.results]
     for res in results:
-        check_displacement(res.displacement, res.path)
+        check_displacement(res.displacement, res.path, res.flags)
     rows = zoi_table(results, delta_eps=read_delta_eps(args.uncertainty))
     if not args.output:
         print(write_zoi_table(rows))
@@ -266,7 +266,7 @@ def run_export(args: argparse.Namespace) -> int:
     if not (args.vtk or args.csv or args.corrected):
         raise InputError("nothing to export: give --vtk, --csv and/or --corrected")
     res = open_result(args.result)
-    check_displacement(res.displacement, res.path)
+    check_displacement(res.displacement, res.path, res.flags)
     if args.units == "physical" and not res.info.get("voxel_size"):
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
     if args.corrected:

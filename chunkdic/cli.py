@@ -58,6 +58,10 @@ def _format_event(event: dict) -> str | None:
     if stage == "blocks":
         return (f"  level {event['level']} {event['label']}: {event['done']}/{event['total']} blocks, "
                 f"{event['rate'] / 1e6:.1f} Mvoxel/s, ETA {event['eta']:.0f} s")
+    if stage == "regularization":
+        return (f"level {event['level']}: {event['kind']} regularisation length {event['length']:.1f} voxels "
+                f"(chosen from the data; L-curve corner {event['l_curve_length']:.1f}; "
+                f"noise correlation factor {event['kappa']:.1f})")
     if stage == "resume":
         return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
     if stage == "level":
@@ -74,13 +78,24 @@ def _print_progress(event: dict) -> None:
 def _summary(result, seconds: float) -> str:
     info = result.info
     u = result.displacement
-    mean = ", ".join(f"<U{c}> {u[i].mean():+.4f}" for i, c in enumerate("zyx"))
+    mean = ", ".join(f"<U{c}> {np.nanmean(u[i]):+.4f}" for i, c in enumerate("zyx"))
     roi = ",".join(f"{a}:{b}" for a, b in info["roi"])
-    return (
+    line = (
         f"{info['status']}: final gap {100 * info['final_gap']:.3f}% (initial {100 * info['initial_gap']:.3f}%, "
         f"rigid {100 * info['rigid_gap']:.3f}%); {mean} voxels of level {info['level']}; "
         f"ROI {roi}; excluded voxels {info['excluded_voxels']}; {seconds:.1f} s"
     )
+    if result.uncertainty is not None and np.isfinite(result.uncertainty).any():
+        line += f"; median nodal uncertainty {np.nanmedian(result.uncertainty):.4f} voxel"
+    missing = info.get("nodes_without_data", 0) + info.get("masked_nodes", 0)
+    if missing:
+        line += f"; {missing} nodes not measured (NaN)"
+    if info["status"] == "excluded":
+        line += (f"\n  excluded: {100 * info.get('excluded_fraction', 0):.0f}% of the ROI maps outside the deformed "
+                 "scan; the rest converged, but so large a share left out is not called converged")
+    elif info["status"] == "stalled":
+        line += "\n  stalled: neither the gap nor the increments improved for 4 passes; the best field is kept"
+    return line
 
 
 def cmd_correlate(args) -> int:
@@ -91,6 +106,8 @@ def cmd_correlate(args) -> int:
         args.ref, args.deformed, element_size=args.element_size, roi=args.roi, level=args.level,
         coarsest=args.coarsest, interpolation=args.interpolation, tolerance=args.tolerance,
         max_iterations=args.max_iterations, block_elements=args.block_elements,
+        smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
+        regularization_length=args.regularization_length, mask=args.mask,
         scheduler=args.scheduler, output=args.output, overwrite=args.overwrite, progress=_print_progress,
     )
     _say(_summary(result, time.perf_counter() - t0))
@@ -148,7 +165,18 @@ def _add_correlate(sub) -> None:
     p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels (default: centred box)")
     p.add_argument("--level", type=int, default=0, help="pyramid level correlated last (default 0)")
     p.add_argument("--coarsest", type=int, default=None, help="coarsest pyramid level (default: automatic)")
-    p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic")
+    p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic",
+                   help="interpolation of the deformed scan (default cubic B-spline; linear: the paper's)")
+    p.add_argument("--smoothing", type=float, default=1.0,
+                   help="Gaussian low-pass of both scans, voxels of each level (default 1; 0: the paper's raw images)")
+    p.add_argument("--grey-level", choices=("none", "global", "drift", "element"), default="drift",
+                   help="brightness model between the scans (default drift: a gain, a linear drift and an offset "
+                        "per element; none: the paper's plain residual)")
+    p.add_argument("--regularization", choices=("none", "tikhonov", "equilibrium-gap"), default="tikhonov",
+                   help="penalty on the field's short wavelengths (default tikhonov, on its curvature)")
+    p.add_argument("--regularization-length", type=float, default=None, metavar="L",
+                   help="its length, voxels of level 0 (default: chosen from the data and printed)")
+    p.add_argument("--mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
     p.add_argument("--tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
     p.add_argument("--max-iterations", type=int, default=30)
     p.add_argument("--block-elements", type=int, default=None, help="elements per block side")

@@ -31,6 +31,12 @@ DEFAULTS = {
         "connect-timeout": 10,
         # Seconds to wait for a first worker when a cluster has none; then refuse.
         "worker-timeout": 60,
+        # A correlation whose final pass excludes more than this fraction of the ROI's
+        # voxels (X + u(X) outside the deformed scan) is reported "excluded", not converged.
+        "max-excluded-fraction": 0.2,
+        # A node whose elements hold fewer valid voxels than this fraction of one element
+        # has no data: NaN in the result, flagged.
+        "min-node-support": 0.1,
     }
 }
 

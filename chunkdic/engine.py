@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import shutil
 import time
 import uuid
@@ -21,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import kernels
+from . import config, kernels
 from .checkpoint import Checkpoint, fingerprint
 from .errors import InputError
 from .gauss_newton import History, State, iterate, rigid_step
@@ -31,7 +32,11 @@ from .mesh import transfer
 from .outputs import Outputs
 from .ownership import OutputLock, make_scratch
 from .planning import parse_roi, plan_meshes
-from .result import Result
+from .prefilter import face_margin
+from .masks import prepare_mask
+from .noise import nodal_uncertainty
+from .regularization import choose_length
+from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result
 from .rigid import translation_task
 from .scheduler import check_scheduler, open_runner
 from .settings import Settings
@@ -50,6 +55,7 @@ def correlate(
     output=None,
     overwrite: bool = False,
     progress: Callable[[dict], None] | None = None,
+    mask=None,
     **options,
 ) -> Result:
     """Measure the displacement field between two scans by multiscale C8-DIC.
@@ -76,6 +82,10 @@ def correlate(
         (:mod:`chunkdic.outputs`).
     progress : callable, optional
         Called with a dict per event (``stage`` = "rigid", "iteration", "level", ...).
+    mask : str, Path, array, optional
+        Specimen mask of the reference's shape (any input :func:`chunkdic.open_scan`
+        reads; non-zero = material): only elements with enough material take part, nodes
+        outside are NaN (:mod:`chunkdic.masks`).
 
     Returns
     -------
@@ -100,19 +110,24 @@ def correlate(
     settings = _settings(settings, options)
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
     meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi,
-                         level=settings.level, coarsest=settings.coarsest)
+                         level=settings.level, coarsest=settings.coarsest,
+                         min_margin=face_margin(settings.smoothing))
     levels = sorted(meshes, reverse=True)
     for s in levels:
         if min(g_scan.shape(s)) < 2:
             raise InputError(f"the deformed scan is too small at level {s} ({g_scan.shape(s)})")
+    mask_scan = None if mask is None else open_scan(mask)
     plan = entry = None
     if output is not None:  # every output rule (chunkdic.outputs), nothing written yet
-        plan = Outputs(inputs=(ref, deformed), overwrite=overwrite)
+        plan = Outputs(inputs=(ref, deformed, mask), overwrite=overwrite)
         entry = plan.add(output, "result", resumable=True)
     identities = {role: _identify(src, scan) for role, src, scan in
                   (("reference", ref, f_scan), ("deformed", deformed, g_scan))}
+    if mask is not None:
+        identities["mask"] = _identify(mask, mask_scan)
     run_print = fingerprint({"settings": settings.to_json(), "roi": parse_roi(roi),
-                             "inputs": [identities["reference"], identities["deformed"]]})
+                             "inputs": [identities["reference"], identities["deformed"]],
+                             "mask": identities.get("mask")})
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
     scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
@@ -131,8 +146,10 @@ def correlate(
                 # inside the runner: with a cluster, missing levels are built by its workers
                 f_refs = f_scan.refs(levels, scratch / "ref")
                 g_refs = g_scan.refs(levels, scratch / "def")
+                mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
                 runner.run_everywhere(kernels.warmup)
-                result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume)
+                result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
+                              mask_refs)
             except (InputError, OSError) as exc:
                 # bad input found by a pass (a constant or non-finite image), or a full or read-only
                 # disk before the first checkpoint: nothing to resume, so what this run created goes.
@@ -144,11 +161,12 @@ def correlate(
                 raise
             result.info.update(
                 voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
-                inputs={"reference": _describe(ref), "deformed": _describe(deformed)},
+                inputs={"reference": _describe(ref), "deformed": _describe(deformed),
+                        "mask": None if mask is None else _describe(mask)},
                 input_shapes={"reference": list(f_scan.shape(0)), "deformed": list(g_scan.shape(0))},
             )
             if output is not None:  # replaces the checkpointed group once complete, under the lock
-                result.save(output, overwrite=True, inputs=(ref, deformed))
+                result.save(output, overwrite=True, inputs=(ref, deformed, mask))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return result
@@ -177,12 +195,16 @@ def _settings(settings: Settings | None, options: dict) -> Settings:
 
 
 def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, scratch: Path,
-         checkpoint=None, resume: dict | None = None) -> Result:
+         checkpoint=None, resume: dict | None = None, mask_refs: dict | None = None) -> Result:
     """All levels, coarsest first; resumes from ``resume`` (a checkpoint state) if given."""
     finest, coarsest = levels[-1], levels[0]
     statuses: dict[int, str] = {}
     rigid_t = initial_gap = rigid_gap = None
     state = None
+    weak = []  # poorly textured nodes of the finest level
+    masked, active = None, None  # nodes outside the mask, active elements (finest level)
+    sigma_u, noise = None, {}  # per-node uncertainty and the noise it comes from (finest level)
+    reg_length = math.nan  # regularisation length of the finest level, level-0 voxels
     history = History()
     if resume is not None:
         history = History(resume["history"])
@@ -210,35 +232,60 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         tol = settings.tolerance if s == finest else settings.coarse_tolerance
         if state is None or state.status is None:
             t0, c0 = time.perf_counter(), time.process_time()
-            lvl = Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress)
-            lvl.assemble_m()
+            if state is not None:
+                start = state.u  # resumed
+            elif s == coarsest:
+                t_int = run_one(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))
+                start = _uniform(t_int, mesh)
+            else:
+                start = transfer(u, meshes[s + 1], s + 1, mesh, s)
+            lvl = Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress,
+                        None if mask_refs is None else mask_refs[s])
+            lvl.assemble_m(start)
             emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
             if state is None:
                 if s == coarsest:
-                    t_int = run_one(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))
-                    lvl.prepare_interpolation(_uniform(t_int, mesh))
+                    lvl.prepare_interpolation(start)
                     rigid_t = rigid_step(lvl, t_int, tol, 10, history, progress)
-                    u = _uniform(rigid_t, mesh)
-                else:
-                    u = transfer(u, meshes[s + 1], s + 1, mesh, s)
-                state = State(u)
+                    start = _uniform(rigid_t, mesh)
+                state = State(start)
+            lvl.regularize(_regularization_length(settings, state, s, mesh))
             lvl.prepare_interpolation(state.u)
             if s == finest and initial_gap is None:
                 rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
-                _, initial_gap, _, _ = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape))
-                _, rigid_gap, _, _ = lvl.assemble_b(_uniform(rigid_fine, mesh))
+                initial_gap = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape)).gap
+                rigid_gap = lvl.assemble_b(_uniform(rigid_fine, mesh)).gap
                 emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
                      translation=rigid_fine.tolist())
             state = iterate(lvl, state, tol, settings.max_iterations, history, progress,
                             on_iteration=lambda st, s=s: save_checkpoint(st, s))
+            if s == finest and _choose_automatically(settings, state):
+                state = _with_chosen_regularization(lvl, state, progress)
+                state = iterate(lvl, state, tol, settings.max_iterations, history, progress,
+                                on_iteration=lambda st, s=s: save_checkpoint(st, s))
+            reg_length = lvl.regularization_length * 2**s
             lvl.release()
             statuses[s] = state.status
             save_checkpoint(state, s)
             emit(progress, stage="level", level=s, status=state.status, gap=state.gap,
                  seconds=time.perf_counter() - t0)
+            weak, masked, active = lvl.weak_nodes(), lvl.masked_nodes(), lvl.active
+            if s == finest:
+                p = lvl.last_pass
+                sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
+                noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
         final, u, state = state, state.u, None
     mesh = meshes[finest]
+    flags = node_flags(mesh, final.elements, weak, masked)
+    missing = (flags & (FLAG_NO_DATA | FLAG_MASKED))[None] > 0
+    u = np.where(missing, np.nan, u)
+    if sigma_u is not None:
+        sigma_u = np.where(missing, np.nan, sigma_u)
+    status = statuses[finest]
+    excluded_fraction = final.excluded / max(final.excluded + final.n_valid, 1)
+    if status == "converged" and excluded_fraction > config.get("max-excluded-fraction"):
+        status = statuses[finest] = "excluded"
     info = {
         "element_size": settings.element_size,
         "roi": [[r.start, r.stop] for r in mesh.roi],
@@ -247,19 +294,103 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
         "scale": 2**finest,
         "levels": levels,
         "level_status": {str(k): v for k, v in statuses.items()},
-        "status": statuses[finest],
-        "converged": statuses[finest] == "converged",
+        "status": status,
+        "converged": status == "converged",
         "initial_gap": initial_gap,
         "rigid_gap": rigid_gap,
         "final_gap": final.gap,
         "rigid_translation": (rigid_t * 2.0 ** (coarsest - finest)).tolist(),
         "excluded_voxels": int(final.excluded),
         "used_voxels": int(final.n_valid),
+        "excluded_fraction": float(excluded_fraction),
+        "nodes_without_data": int(np.count_nonzero(flags & FLAG_NO_DATA)),
+        "masked_nodes": int(np.count_nonzero(flags & FLAG_MASKED)),
+        "weak_nodes": int(np.count_nonzero(flags & FLAG_WEAK)),
+        "grey_level": _brightness_summary(settings.grey, final.elements),
+        "noise": noise,
+        "regularization": {"kind": settings.regularization,
+                           "length": None if not np.isfinite(reg_length) else float(reg_length),
+                           "automatic": settings.regularization_length is None},
         "settings": settings.to_json(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "chunkdic_version": _version(),
     }
-    return Result(u, mesh.node_coords(), history.arrays(), info)
+    brightness = None if final.elements is None else final.elements[:2]
+    return Result(u, mesh.node_coords(), history.arrays(), info, flags=flags, brightness=brightness,
+                  active=active, uncertainty=sigma_u)
+
+
+def node_flags(mesh, elements: np.ndarray | None, weak_nodes, masked: np.ndarray | None = None) -> np.ndarray:
+    """Per-node flags (:data:`chunkdic.result.FLAG_NO_DATA`, ``FLAG_WEAK``, ``FLAG_MASKED``), shape (nz, ny, nx) uint8.
+
+    A node has no data when the elements around it together hold fewer valid voxels (voxels
+    whose ``X + u(X)`` falls inside ``g``) than ``chunkdic.min-node-support`` of one element:
+    its value would be extrapolated by its neighbours, not measured.
+    """
+    flags = np.zeros(mesh.nodes_shape, np.uint8)
+    if elements is not None:
+        valid = np.pad(elements[2], 1)
+        support = sum(valid[dz:dz + flags.shape[0], dy:dy + flags.shape[1], dx:dx + flags.shape[2]]
+                      for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
+        flags[support < config.get("min-node-support") * mesh.element_size**3] |= FLAG_NO_DATA
+    for n in weak_nodes:
+        flags[tuple(n)] |= FLAG_WEAK
+    if masked is not None:
+        flags[masked] = FLAG_MASKED
+    return flags
+
+
+def _brightness_summary(model: str, elements: np.ndarray | None) -> dict:
+    out = {"model": model}
+    if elements is not None:
+        used = elements[2] > 0
+        gain, offset = elements[0][used], elements[1][used]
+        if gain.size:
+            out.update(gain=float(np.median(gain)), offset=float(np.median(offset)),
+                       offset_range=[float(offset.min()), float(offset.max())],
+                       drift=[float(v) for v in elements[3:, 0, 0, 0]])
+    return out
+
+
+#: the regularisation length before (coarse levels: instead of) the automatic choice, in element sizes
+START_LENGTH = 2.0
+
+
+def _regularization_length(settings: Settings, state: State, s: int, mesh) -> float:
+    """``ℓ_reg`` for level ``s``, voxels of the level: given, chosen (resumed), or the starting one."""
+    if settings.regularization_length is not None:
+        return settings.regularization_length / 2.0**s
+    if math.isfinite(state.reg_length):
+        return state.reg_length
+    return START_LENGTH * mesh.element_size
+
+
+def _choose_automatically(settings: Settings, state: State) -> bool:
+    return (settings.regularization != "none" and settings.regularization_length is None
+            and not math.isfinite(state.reg_length) and state.status == "converged")
+
+
+def _with_chosen_regularization(lvl: Level, state: State, progress) -> State:
+    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.regularization.choose_length`), restart."""
+    p = lvl.last_pass
+    u = np.moveaxis(state.u, 0, -1)
+
+    def solve_with(half, reg, weight, rhs):
+        from .solve import StencilSolver
+
+        solver = StencilSolver(half.copy())
+        solver.regularize(reg, weight)
+        return solver.solve(rhs)[0]
+
+    choice = choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
+                           p.kappa * p.noise_variance, solve_with)
+    scale = 2.0**lvl.s
+    emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale,
+         l_curve_length=choice.l_curve_length * scale, kind=lvl.settings.regularization, kappa=p.kappa)
+    lvl.regularize(choice.length)
+    state.reg_length = choice.length
+    state.restart()
+    return state
 
 
 def _uniform(t, mesh) -> np.ndarray:

@@ -18,10 +18,15 @@ import numpy as np
 from .level import Level, emit
 from .result import HISTORY_FIELDS
 
-#: stop as stalled after this many iterations without a lower gap
+#: stalled: this many passes with neither a lower gap nor a smaller increment
 STALL_PATIENCE = 4
-#: a gap this many times the best one so far means divergence
+#: an increment counts as smaller when below this fraction of the smallest one so far
+SHRINK = 0.9
+#: a gap this many times the best one so far means divergence...
 DIVERGENCE_FACTOR = 2.0
+#: ...when it also exceeds the best by this much (a gap at round-off level, 1e-5 of the
+#: range on exactly matching images, may double without meaning anything)
+DIVERGENCE_FLOOR = 1e-4
 
 
 def json_float(v):
@@ -63,7 +68,12 @@ class History:
 
 @dataclass
 class State:
-    """Modified Gauss–Newton state on one level: everything needed to resume exactly."""
+    """Modified Gauss–Newton state on one level: everything needed to resume exactly.
+
+    ``elements`` holds the per-element brightness gain, offset and valid voxel count of
+    the pass that measured ``u`` (shape (3, ez, ey, ex)); ``best_*`` the same for the
+    field of lowest gap.
+    """
 
     u: np.ndarray
     iteration: int = 0
@@ -73,35 +83,94 @@ class State:
     best_valid: int = 0
     since_best: int = 0
     last_delta: float = math.inf
+    best_delta: float = math.inf
+    since_smaller: int = 0
     status: str | None = None  # set once the level is finished
     gap: float = math.nan
     excluded: int = 0
     n_valid: int = 0
+    elements: np.ndarray | None = None
+    best_elements: np.ndarray | None = None
+    reg_length: float = math.nan  # automatic regularisation length once chosen (voxels of the level)
 
     SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
-               "status", "gap", "excluded", "n_valid")
-    _FLOATS = ("best_gap", "last_delta", "gap")
+               "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length")
+    _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length")
+    _ARRAYS = ("u", "best_u", "elements", "best_elements")
 
     def scalars(self) -> dict:
         return {k: json_float(getattr(self, k)) for k in self.SCALARS}
 
     def arrays(self) -> dict:
-        return {"u": self.u, "best_u": self.u if self.best_u is None else self.best_u}
+        out = {"u": self.u, "best_u": self.u if self.best_u is None else self.best_u}
+        for k in ("elements", "best_elements"):
+            if getattr(self, k) is not None:
+                out[k] = getattr(self, k)
+        return out
 
     @classmethod
     def restore(cls, scalars: dict, arrays: dict) -> "State":
-        state = cls(u=arrays["u"], best_u=arrays["best_u"])
+        state = cls(**{k: arrays.get(k) for k in cls._ARRAYS})
         for k in cls.SCALARS:
-            value = scalars[k]
+            value = scalars.get(k, getattr(state, k))
             setattr(state, k, from_json_float(value) if k in cls._FLOATS else value)
         return state
 
-    def finish(self, status: str, gap: float, excluded: int, n_valid: int, *, keep_current: bool) -> None:
+    def record(self, p, elements: np.ndarray) -> None:
+        """Keep the pass ``p`` that measured the current field; it becomes the best if its gap is lowest."""
+        self.gap, self.excluded, self.n_valid, self.elements = p.gap, p.n_excluded, p.n_valid, elements
+        if p.gap < self.best_gap * (1 - 1e-9):
+            self.best_gap, self.best_u, self.best_excluded, self.best_valid = p.gap, self.u, p.n_excluded, p.n_valid
+            self.best_elements = elements
+            self.since_best = 0
+        else:
+            self.since_best += 1
+
+    def restart(self) -> None:
+        """Iterate again from the current field with a changed objective (a new regularisation)."""
+        self.status = None
+        self.best_gap, self.best_u, self.since_best = math.inf, None, 0
+        self.last_delta, self.best_delta, self.since_smaller = math.inf, math.inf, 0
+
+    def finish(self, status: str, *, keep_current: bool) -> None:
         self.status = status
-        if keep_current:
-            self.gap, self.excluded, self.n_valid = gap, excluded, n_valid
-        else:  # diverged / stalled / out of iterations: the best field met, never "converged"
+        if not keep_current and self.best_u is not None:  # diverged / stalled: the best field met
             self.u, self.gap, self.excluded, self.n_valid = self.best_u, self.best_gap, self.best_excluded, self.best_valid
+            self.elements = self.best_elements
+
+    def step(self, delta: np.ndarray) -> None:
+        """Apply the increment ``delta`` (nz, ny, nx, 3) and track how increments shrink."""
+        self.last_delta = float(np.abs(delta).max())
+        if self.last_delta < SHRINK * self.best_delta:
+            self.best_delta, self.since_smaller = self.last_delta, 0
+        else:
+            self.since_smaller += 1
+        self.u = self.u + np.moveaxis(delta, -1, 0)
+        self.iteration += 1
+
+
+def element_fields(p) -> np.ndarray:
+    """Per-element gain, offset (at the centre), valid voxels of a pass, and the drift
+    (grey levels per voxel, z, y, x, repeated per element): shape (6, ez, ey, ex)."""
+    drift = np.broadcast_to(p.fit.drift[:, None, None, None], (3,) + p.fit.gain.shape)
+    return np.concatenate([np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element]), drift])
+
+
+def _decide(state: State, gap: float, tolerance: float, max_iterations: int) -> None:
+    """The stopping rule (docs/engine.md, "Iterations and stopping"), applied after a pass."""
+    if not math.isfinite(gap) or gap > DIVERGENCE_FACTOR * state.best_gap + DIVERGENCE_FLOOR:
+        state.finish("diverged", keep_current=False)
+    elif state.last_delta < tolerance:
+        # the converged field is returned even if round-off left its gap a hair above the best
+        state.finish("converged", keep_current=True)
+    elif state.since_best >= STALL_PATIENCE and state.since_smaller >= STALL_PATIENCE:
+        # neither the gap nor the increments improve any more: a still-improving field
+        # (increments shrinking while the gap sits at the noise floor) is never "stalled"
+        state.finish("stalled", keep_current=False)
+    elif state.iteration == max_iterations:
+        # out of iterations: the latest field if it is as good as the best (the increments
+        # were still shrinking), else the best
+        state.finish("max-iterations", keep_current=gap <= state.best_gap * (1 + 1e-6))
 
 
 def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, history: History, progress,
@@ -110,47 +179,37 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
 
     Each pass evaluates ``b`` and the gap of the current field; the increment of the
     previous pass being below ``tolerance`` means the current field is converged, so the
-    reported gap is always that of the returned field. A gap that stops decreasing is
-    *stalled*; one that grows past ``DIVERGENCE_FACTOR`` × the best is *diverged*; both
-    return the best field met, never flagged as converged. ``on_iteration(state)`` is
-    called after every pass (checkpoints).
+    reported gap is always that of the returned field. A run whose gap and increments both
+    stop improving is *stalled*; one whose gap grows past ``DIVERGENCE_FACTOR`` × the best
+    (plus ``DIVERGENCE_FLOOR``) is *diverged*; both return the best field met, never
+    flagged as converged.
+    ``on_iteration(state)`` is called after every pass (checkpoints).
     """
     while state.status is None:
         it = state.iteration
         t0, c0 = time.perf_counter(), time.process_time()
-        b, gap, n_valid, excluded = lvl.assemble_b(state.u)
+        p = lvl.assemble_b(state.u)
         cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
-        event = dict(stage="iteration", level=lvl.s, iteration=it, gap=gap, max_delta=None, excluded=excluded)
-        if not math.isfinite(gap) or gap > DIVERGENCE_FACTOR * state.best_gap:
-            state.finish("diverged", gap, excluded, n_valid, keep_current=False)
-        else:
-            if gap < state.best_gap * (1 - 1e-9):
-                state.best_gap, state.best_u, state.best_excluded, state.best_valid = gap, state.u, excluded, n_valid
-                state.since_best = 0
-            else:
-                state.since_best += 1
-            if state.last_delta < tolerance:
-                # the converged field is returned even if round-off left its gap a hair above the best
-                state.finish("converged", gap, excluded, n_valid, keep_current=True)
-            elif state.since_best >= STALL_PATIENCE:
-                state.finish("stalled", gap, excluded, n_valid, keep_current=False)
-            elif it == max_iterations:
-                state.finish("max-iterations", gap, excluded, n_valid, keep_current=False)
+        event = dict(stage="iteration", level=lvl.s, iteration=it, gap=p.gap, max_delta=None,
+                     excluded=p.n_excluded, gain=float(np.median(p.fit.gain)))
+        if math.isfinite(p.gap):
+            state.record(p, element_fields(p))
+        _decide(state, p.gap, tolerance, max_iterations)
         if state.status is not None:
-            history.add(lvl.s, it, gap, math.nan, excluded)
+            history.add(lvl.s, it, p.gap, math.nan, p.n_excluded)
             emit(progress, **event, status=state.status, seconds=time.perf_counter() - t0)
         else:
             t1 = time.perf_counter()
-            delta, cg_iterations = lvl.solver.solve(b)
+            # (M + λR) δa = b − λ R a: the penalty acts on the whole field, not the increment
+            rhs = p.b - lvl.solver.penalty_gradient(np.moveaxis(state.u, 0, -1))
+            delta, cg_iterations = lvl.solver.solve(rhs)
             t2 = time.perf_counter()
-            state.last_delta = float(np.abs(delta).max())
-            history.add(lvl.s, it, gap, state.last_delta, excluded)
+            state.step(delta)
+            history.add(lvl.s, it, p.gap, state.last_delta, p.n_excluded)
             event.update(max_delta=state.last_delta, seconds=t2 - t0, assemble_seconds=t1 - t0,
                          solve_seconds=t2 - t1, cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels,
                          assemble_cpu_seconds=cpu)
             emit(progress, **event)
-            state.u = state.u + np.moveaxis(delta, -1, 0)
-            state.iteration += 1
         if on_iteration is not None:
             on_iteration(state)
     return state
@@ -166,10 +225,10 @@ def rigid_step(lvl: Level, t0: np.ndarray, tolerance: float, max_iterations: int
     t = np.array(t0, dtype=np.float64)
     ones = np.ones((3,) + lvl.mesh.nodes_shape)
     for it in range(max_iterations):
-        b, gap, _, excluded = lvl.assemble_b(t[:, None, None, None] * ones)
-        delta = np.linalg.solve(lvl.rigid_matrix, b.sum(axis=(0, 1, 2)))
-        history.add(lvl.s, -1 - it, gap, float(np.abs(delta).max()), excluded)
-        emit(progress, stage="rigid", level=lvl.s, iteration=it, gap=gap,
+        p = lvl.assemble_b(t[:, None, None, None] * ones)
+        delta = np.linalg.solve(lvl.rigid_matrix, p.b.sum(axis=(0, 1, 2)))
+        history.add(lvl.s, -1 - it, p.gap, float(np.abs(delta).max()), p.n_excluded)
+        emit(progress, stage="rigid", level=lvl.s, iteration=it, gap=p.gap,
              max_delta=float(np.abs(delta).max()), translation=t.tolist())
         t += delta
         if np.abs(delta).max() < tolerance:

@@ -127,11 +127,19 @@ def check_scan_for_result(info: dict, scan, role: str, given: bool) -> None:
                                  f"the result's ROI {a}:{b} on axis {'zyx'[axis]}: pass the scans of this result")
 
 
-def check_displacement(displacement: np.ndarray, where: str) -> None:
-    """Refuse a result whose nodal field has NaN/inf values (strains would be garbage)."""
-    bad = ~np.isfinite(displacement)
+def check_displacement(displacement: np.ndarray, where: str, flags: np.ndarray | None = None) -> None:
+    """Refuse a result whose nodal field has NaN/inf values the result does not explain.
+
+    A node flagged as not measured (``FLAG_NO_DATA``, ``FLAG_MASKED`` in ``flags``) is NaN
+    by design; any other non-finite value is damage (strains would be garbage).
+    """
+    from .result import FLAG_MASKED, FLAG_NO_DATA
+
+    bad = (~np.isfinite(displacement)).any(axis=0)
+    if flags is not None and flags.shape == bad.shape:
+        bad &= (flags & (FLAG_NO_DATA | FLAG_MASKED)) == 0
     if bad.any():
-        n = int(bad.any(axis=0).sum())
-        node = tuple(int(v) for v in np.argwhere(bad.any(axis=0))[0])
+        n = int(bad.sum())
+        node = tuple(int(v) for v in np.argwhere(bad)[0])
         raise InputError(f"result {where}: {n} node(s) have no finite displacement (first: node {node}): "
                          "the result is damaged or was not measured there")

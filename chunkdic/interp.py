@@ -11,11 +11,11 @@ interpolations a position counts when ``0 <= p_i <= n_i - 1`` on every axis (a N
 invalid). The caller tests validity and leaves invalid voxels out; the window it reads
 (``chunkdic.kernels.g_window``) holds every sample that a valid position needs.
 
-``linear`` (:func:`_interp_linear`)
+``linear`` (:func:`interp_linear`)
     trilinear, in the weight form ``(1-t) a + t b``: exact at ``t = 0`` and ``t = 1``, so an
     integer translation gives ``r == 0`` exactly. Indices are clamped into the window for
     memory safety; at the last sample the clamped cell gives weight 1 to that sample.
-``cubic`` (:func:`_interp_cubic`)
+``cubic`` (:func:`interp_cubic`)
     cubic B-spline of a window of *coefficients*, not intensities:
     ``scipy.ndimage.spline_filter(order=3, mode="mirror")`` of ``g``, either of the whole
     level once (:mod:`chunkdic.prefilter`) or per window extended by
@@ -28,13 +28,13 @@ invalid). The caller tests validity and leaves invalid voxels out; the window it
     ``scipy.ndimage.map_coordinates(order=3, mode="mirror")``.
 
 Fast path (the hot loop, cubic above all): positions are affine along an element row
-segment (``ell`` voxels along x), so :func:`_segment_inside` tests the segment's end points,
-with a safety margin, against the per-axis interval of :func:`_fast_bounds` (every tap inside
+segment (``ell`` voxels along x), so :func:`segment_inside` tests the segment's end points,
+with a safety margin, against the per-axis interval of :func:`fast_bounds` (every tap inside
 the window and, for cubic, the volume: no clamping or mirroring, and all such positions
-valid). Those voxels go through :func:`_interp_inside`, which uses flat indexing into the
-window: :func:`_linear_fast` (bit-identical to :func:`_interp_linear`) or the hand-written
+valid). Those voxels go through :func:`interp_inside`, which uses flat indexing into the
+window: :func:`_linear_fast` (bit-identical to :func:`interp_linear`) or the hand-written
 LLVM vector kernel :func:`_cubic_taps` (numba keeps LLVM's SLP vectoriser off, so plain code
-stays scalar). :func:`_lerp` (``a + t (b - a)``, exact for a uniform field) also evaluates
+stays scalar). :func:`lerp` (``a + t (b - a)``, exact for a uniform field) also evaluates
 the displacement along the segment.
 """
 
@@ -49,21 +49,21 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-# the numba decorators of the package's kernels (chunkdic.kernels imports _jit from here)
-_jit = numba.njit(nogil=True, cache=True)
+# the numba decorators of the package's kernels (chunkdic.kernels imports jit from here)
+jit = numba.njit(nogil=True, cache=True)
 # hot per-voxel helpers: inlined at numba IR level (LLVM's own heuristics left some of them
 # as calls with ~30 arguments each, which made the voxel loop ~2x slower)
-_jit_inline = numba.njit(nogil=True, cache=True, inline="always")
+jit_inline = numba.njit(nogil=True, cache=True, inline="always")
 
 
-@_jit
-def _lerp(a, b, t):
+@jit
+def lerp(a, b, t):
     # a + t (b - a) is exact when a == b: a uniform nodal field is reproduced bit for bit
     return a + t * (b - a)
 
 
-@_jit
-def _interp_linear(g, o0, o1, o2, p0, p1, p2):
+@jit
+def interp_linear(g, o0, o1, o2, p0, p1, p2):
     """Trilinear interpolation of the window g (origin o) at absolute position p.
 
     Indices are clamped into the window for memory safety; the caller guarantees (via
@@ -94,7 +94,7 @@ def _interp_linear(g, o0, o1, o2, p0, p1, p2):
     return s0 * (s1 * c00 + t1 * c01) + t0 * (s1 * c10 + t1 * c11)
 
 
-@_jit
+@jit
 def _tap(j, n, o, nw):
     """Local window index of absolute coefficient index j, mirrored about 0 and n-1.
 
@@ -117,7 +117,7 @@ def _tap(j, n, o, nw):
     return loc
 
 
-@_jit
+@jit
 def _bspline_weights(t):
     t2 = t * t
     t3 = t2 * t
@@ -126,7 +126,7 @@ def _bspline_weights(t):
             (1.0 + 3.0 * t + 3.0 * t2 - 3.0 * t3) / 6.0, t3 / 6.0)
 
 
-@_jit
+@jit
 def _taps(k, n, o, nw):
     """Local indices of the 4 taps k .. k+3 along one axis.
 
@@ -139,7 +139,7 @@ def _taps(k, n, o, nw):
     return _tap(k, n, o, nw), _tap(k + 1, n, o, nw), _tap(k + 2, n, o, nw), _tap(k + 3, n, o, nw)
 
 
-@_jit
+@jit
 def _cubic_plane(c, zi, y0, y1, y2, y3, x0, x1, x2, x3, b0, b1, b2, b3, d0, d1, d2, d3):
     r0 = d0 * c[zi, y0, x0] + d1 * c[zi, y0, x1] + d2 * c[zi, y0, x2] + d3 * c[zi, y0, x3]
     r1 = d0 * c[zi, y1, x0] + d1 * c[zi, y1, x1] + d2 * c[zi, y1, x2] + d3 * c[zi, y1, x3]
@@ -148,8 +148,8 @@ def _cubic_plane(c, zi, y0, y1, y2, y3, x0, x1, x2, x3, b0, b1, b2, b3, d0, d1, 
     return b0 * r0 + b1 * r1 + b2 * r2 + b3 * r3
 
 
-@_jit
-def _interp_cubic(c, o0, o1, o2, n0, n1, n2, p0, p1, p2):
+@jit
+def interp_cubic(c, o0, o1, o2, n0, n1, n2, p0, p1, p2):
     """Cubic B-spline of the coefficient window c (origin o) at absolute position p.
 
     n is the shape of the whole volume: mirror reflection happens about its first and last
@@ -247,12 +247,12 @@ def _cubic_taps(typingctx, c, i, s0, s1, tz, ty, tx):
     return sig, codegen
 
 
-@_jit_inline
+@jit_inline
 def _linear_fast(g, i, s0, s1, t0, t1, t2):
     """Trilinear from the flat window g, corner at flat index i, no clamping.
 
-    Same arithmetic, in the same order, as _interp_linear: bit-identical results (for
-    windows that start inside the volume, as g_window's do; see _interp_inside).
+    Same arithmetic, in the same order, as interp_linear: bit-identical results (for
+    windows that start inside the volume, as g_window's do; see interp_inside).
     """
     # unsigned indices: numba emits no negative-index wrap-around for them
     a = np.uint64(i)
@@ -270,8 +270,8 @@ def _linear_fast(g, i, s0, s1, t0, t1, t2):
     return s0w * (s1w * c00 + t1 * c01) + t0 * (s1w * c10 + t1 * c11)
 
 
-@_jit
-def _fast_bounds(gshape, o0, o1, o2, n0, n1, n2, cubic):
+@jit
+def fast_bounds(gshape, o0, o1, o2, n0, n1, n2, cubic):
     """Per axis, the open interval (lo, hi) of positions p whose taps need no clamping or
     mirroring: linear taps floor(p), floor(p) + 1 inside the window; cubic taps
     floor(p) - 1 .. floor(p) + 2 inside the window and the volume. All such p are valid
@@ -281,13 +281,13 @@ def _fast_bounds(gshape, o0, o1, o2, n0, n1, n2, cubic):
         # first tap k = floor(p) - 1 in [max(o, 0), min(o + w, n) - 4]
         return (max(o0, 0) + 1.0, min(o0 + w0, n0) - 2.0, max(o1, 0) + 1.0,
                 min(o1 + w1, n1) - 2.0, max(o2, 0) + 1.0, min(o2 + w2, n2) - 2.0)
-    # first tap k = floor(p) in [o, o + w - 2] (window only, as _interp_linear), p <= n - 1
+    # first tap k = floor(p) in [o, o + w - 2] (window only, as interp_linear), p <= n - 1
     return (max(o0, 0) + 0.0, min(o0 + w0 - 1.0, n0 - 1.0), max(o1, 0) + 0.0,
             min(o1 + w1 - 1.0, n1 - 1.0), max(o2, 0) + 0.0, min(o2 + w2 - 1.0, n2 - 1.0))
 
 
-@_jit
-def _segment_inside(Xa, Xb, u0, u1, ta, tb, lo, hi):
+@jit
+def segment_inside(Xa, Xb, u0, u1, ta, tb, lo, hi):
     """True if the positions X + lerp(u0, u1, t) of a row segment, whose end points are
     (Xa, ta) and (Xb, tb), all lie in [lo, hi) with a safety margin.
 
@@ -295,17 +295,17 @@ def _segment_inside(Xa, Xb, u0, u1, ta, tb, lo, hi):
     (far above the few-ulp rounding of the computed positions) makes the bound rigorous.
     NaN gives False.
     """
-    pa = Xa + _lerp(u0, u1, ta)
-    pb = Xb + _lerp(u0, u1, tb)
+    pa = Xa + lerp(u0, u1, ta)
+    pb = Xb + lerp(u0, u1, tb)
     m = 1e-9 * (1.0 + abs(Xa) + abs(Xb) + abs(u0) + abs(u1))
     lo += m
     hi -= m
     return lo <= pa <= hi and lo <= pb <= hi
 
 
-@_jit_inline
-def _interp_inside(g, gf, s0, s1, o0, o1, o2, cubic, p0, p1, p2):
-    """g(p) where _fast_bounds holds: flat indexing, no clamping or mirroring."""
+@jit_inline
+def interp_inside(g, gf, s0, s1, o0, o1, o2, cubic, p0, p1, p2):
+    """g(p) where fast_bounds holds: flat indexing, no clamping or mirroring."""
     # float floor for the weights (short dependency chain), its integer for the index
     f0 = np.floor(p0)
     f1 = np.floor(p1)

@@ -32,7 +32,7 @@ class Kind:
     suffixes: tuple[str, ...] = ()  # file: required suffixes (empty: any)
 
 
-_SYNTH = ("ref.zarr", "def.zarr", "field.json", "field.json.tmp")
+_SYNTH = ("ref.zarr", "def.zarr", "field.json", "field.json.tmp", "def.fourier.tmp.zarr")
 KINDS: dict[str, Kind] = {k.name: k for k in (
     Kind("result", "store", "result"),
     Kind("scan", "store", "scan"),

@@ -434,19 +434,26 @@ def _shift3(shift) -> tuple[float, float, float]:
     return t
 
 
-def _check_plan(scan, sizes, roi, level: int, interpolation: str) -> None:
+def _check_plan(scan, sizes, roi, level: int, interpolation: str, options: dict | None = None) -> None:
     """Every element size must fit the scan's ROI at ``level`` (checked before any output)."""
     from .planning import plan_meshes
+    from .prefilter import face_margin
     from .settings import Settings
 
+    given = {k: v for k, v in {**PAPER_SETTINGS, **(options or {})}.items() if k in Settings.names()}
     for ell in sizes:
-        Settings(element_size=ell, level=level, interpolation=interpolation)  # validates each option
-        plan_meshes(scan.shape(0), element_size=ell, roi=roi, level=level)
+        settings = Settings(element_size=ell, level=level, interpolation=interpolation, **given)  # validates
+        plan_meshes(scan.shape(0), element_size=ell, roi=roi, level=level,
+                    min_margin=face_margin(settings.smoothing))
+
+
+#: the paper's analyses characterise the C8 basis itself: no regularisation unless asked for
+PAPER_SETTINGS = {"regularization": "none"}
 
 
 def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=None, level: int = 0,
                 interpolation: str = "cubic", scheduler=None, overwrite: bool = False,
-                progress: Callable[[dict], None] | None = None) -> UncertaintyReport:
+                progress: Callable[[dict], None] | None = None, options: dict | None = None) -> UncertaintyReport:
     """A-priori displacement and strain uncertainty versus element size (paper section 4.2).
 
     Parameters
@@ -474,6 +481,11 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     progress : callable(dict), optional
         Correlation events (see :func:`chunkdic.correlate`) plus ``{"stage": "shift",
         "fraction": f}`` and ``{"stage": "uncertainty", "element_size": ell, ...row}``.
+    options : dict, optional
+        More :class:`chunkdic.Settings` fields for every correlation. The analysis
+        characterises the C8 basis (the paper's power law of ``σ`` against ``ℓ``), so it runs
+        without regularisation (:data:`PAPER_SETTINGS`) unless ``options`` asks for one: a
+        regularised field's noise depends on ``ℓ_reg`` more than on ``ℓ``.
 
     Returns
     -------
@@ -493,16 +505,16 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     t = _shift3(shift)
     level = number(level, "level", minimum=0, integer=True)
     src_scan = open_scan(scan)
-    _check_plan(src_scan, sizes, roi, level, interpolation)
+    _check_plan(src_scan, sizes, roi, level, interpolation, options)
     check_scheduler(scheduler)
     plan = Outputs(inputs=[scan], overwrite=overwrite)
     out = plan.add(out_dir, "uncertainty").final
     with plan:  # a failure removes what this run wrote, never older files
-        return _uncertainty(src_scan, sizes, out, t, roi, level, interpolation, scheduler, progress)
+        return _uncertainty(src_scan, sizes, out, t, roi, level, interpolation, scheduler, progress, options)
 
 
 def _uncertainty(src_scan, sizes, out: Path, t, roi, level: int, interpolation: str, scheduler,
-                 progress) -> UncertaintyReport:
+                 progress, options) -> UncertaintyReport:
     """:func:`uncertainty` once every input is checked and ``out`` is prepared."""
     from .engine import correlate
     from .report import plot_uncertainty
@@ -520,6 +532,7 @@ def _uncertainty(src_scan, sizes, out: Path, t, roi, level: int, interpolation: 
     for ell in sizes:
         emit({"stage": "element-size", "element_size": ell})
         res = correlate(_ref_path(src), _ref_path(shifted), element_size=ell, roi=roi_arg, interpolation=interpolation,
+                        **{**PAPER_SETTINGS, **(options or {})},
                         scheduler=scheduler, output=out / f"result-ell{ell}.zarr", overwrite=True,
                         progress=progress)
         row = _displacement_stats(res, t)
@@ -614,7 +627,7 @@ def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dic
 def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, level: int = 0,
           interpolation: str = "cubic", uncertainty_from=None, a_priori: bool = True, shift=0.5,
           scheduler=None, overwrite: bool = False,
-          progress: Callable[[dict], None] | None = None) -> dict:
+          progress: Callable[[dict], None] | None = None, options: dict | None = None) -> dict:
     """The ZOI-size sweep of paper Table 1: correlate for each element size, tabulate.
 
     Parameters
@@ -636,6 +649,9 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
         for the same sizes to fill ``delta eps``; ``False`` leaves the column empty.
     overwrite : bool
     progress : callable(dict), optional
+    options : dict, optional
+        More :class:`chunkdic.Settings` fields; as for :func:`uncertainty`, the paper's
+        analysis runs without regularisation unless asked for (:data:`PAPER_SETTINGS`).
 
     Returns
     -------
@@ -652,7 +668,7 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     _shift3(shift)
     f_scan = open_scan(ref)
     open_scan(deformed)
-    _check_plan(f_scan, sizes, roi, level, interpolation)
+    _check_plan(f_scan, sizes, roi, level, interpolation, options)
     d_eps = None
     if uncertainty_from is not None:
         d_eps = read_delta_eps(uncertainty_from)  # read first: a bad table must not cost a sweep
@@ -662,11 +678,11 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     out = plan.add(out_dir, "sweep").final
     with plan:  # a failure removes what this run wrote, never older files
         return _sweep(ref, deformed, sizes, out, roi, level, interpolation, d_eps, a_priori, shift, scheduler,
-                      progress)
+                      progress, options)
 
 
 def _sweep(ref, deformed, sizes, out: Path, roi, level: int, interpolation: str, d_eps, a_priori: bool, shift,
-           scheduler, progress) -> dict:
+           scheduler, progress, options) -> dict:
     """:func:`sweep` once every input is checked and ``out`` is prepared."""
     from .engine import correlate
 
@@ -676,12 +692,14 @@ def _sweep(ref, deformed, sizes, out: Path, roi, level: int, interpolation: str,
         emit({"stage": "element-size", "element_size": ell})
         results.append(correlate(ref, deformed, element_size=ell, roi=roi, level=level,
                                  interpolation=interpolation, scheduler=scheduler,
+                                 **{**PAPER_SETTINGS, **(options or {})},
                                  output=out / f"result-ell{ell}.zarr", overwrite=True, progress=progress))
     report = None
     if d_eps is None and a_priori:
         emit({"stage": "a-priori"})
         report = uncertainty(ref, sizes, out / "uncertainty", shift=shift, roi=roi, level=level,
-                             interpolation=interpolation, scheduler=scheduler, progress=progress)
+                             interpolation=interpolation, scheduler=scheduler, progress=progress,
+                             options=options)
         d_eps = read_delta_eps(report)
     elif d_eps is None:
         d_eps = {}

@@ -56,12 +56,13 @@ def centred_mesh(box: Box, ell: int) -> Mesh | None:
     return Mesh(origin, ell, n)
 
 
-def default_margin(ell: int) -> int:
+def default_margin(ell: int, min_margin: int = 0) -> int:
     """Margin (voxels) the default ROI leaves on each side of the level."""
-    return max(2, ell // 4)
+    return max(2, ell // 4, int(min_margin))
 
 
-def plan_meshes(ref_shape0, *, element_size: int, roi=None, level: int = 0, coarsest=None) -> dict[int, Mesh]:
+def plan_meshes(ref_shape0, *, element_size: int, roi=None, level: int = 0, coarsest=None,
+                min_margin: int = 0) -> dict[int, Mesh]:
     """Meshes per pyramid level, finest (``level``) first.
 
     Parameters
@@ -73,6 +74,9 @@ def plan_meshes(ref_shape0, *, element_size: int, roi=None, level: int = 0, coar
     roi : str or sequence, optional
         ``"z0:z1,y0:y1,x0:x1"`` in level-0 voxels; default: the largest centred box of whole
         elements leaving :func:`default_margin` voxels on each side.
+    min_margin : int
+        Smallest default margin, voxels of ``level`` (the radius of the low-pass, whose
+        result is exact only that far from the faces).
     level : int
         Correlated (finest) level.
     coarsest : int, optional
@@ -89,7 +93,7 @@ def plan_meshes(ref_shape0, *, element_size: int, roi=None, level: int = 0, coar
     box0 = parse_roi(roi)
     if box0 is None:
         shape = tuple(n // 2**level for n in shape0)
-        margin = default_margin(ell)
+        margin = default_margin(ell, min_margin)
         mesh = centred_mesh(tuple((margin, n - margin) for n in shape), ell)
         if mesh is None:
             raise InputError(

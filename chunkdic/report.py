@@ -446,7 +446,7 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
 
     results = _as_results(results)
     for res in results:
-        check_displacement(res.displacement, res.path)
+        check_displacement(res.displacement, res.path, res.flags)
     if interpolation not in (None, "cubic", "linear"):
         raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
     say = progress or (lambda msg: None)

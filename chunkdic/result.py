@@ -23,6 +23,15 @@ from .mesh import Mesh
 
 HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
 
+#: node flag: the node's elements hold (almost) no voxel that maps inside ``g``; its
+#: displacement is NaN (not measured)
+FLAG_NO_DATA = 1
+#: node flag: poorly textured (its 3x3 block of ``M`` is nearly singular); regularised,
+#: its value is unreliable
+FLAG_WEAK = 2
+#: node flag: outside the specimen mask (no active element around it); NaN, not measured
+FLAG_MASKED = 4
+
 
 @dataclass
 class Result:
@@ -47,6 +56,19 @@ class Result:
     strain : ndarray, shape (3, 3, ez, ey, ex), float64, optional
         Small-strain tensor per element at the element centres (paper section 5.4), axes
         ``(z, y, x)``; ``None`` until computed (:meth:`element_strain` computes it).
+    flags : ndarray, shape (nz, ny, nx), uint8, optional
+        Per-node flags, bits :data:`FLAG_NO_DATA` (displacement NaN: not measured),
+        :data:`FLAG_WEAK` (poorly textured, regularised) and :data:`FLAG_MASKED` (outside
+        the specimen mask, NaN).
+    active : ndarray, shape (ez, ey, ex), uint8, optional
+        Elements that took part (a specimen mask's material elements, :mod:`chunkdic.masks`);
+        ``None`` without a mask.
+    uncertainty : ndarray, shape (3, nz, ny, nx), float64, optional
+        Standard deviation of each nodal displacement from the final residual's noise,
+        voxels of ``level`` (:func:`chunkdic.noise.nodal_uncertainty`); NaN where not measured.
+    brightness : ndarray, shape (2, ez, ey, ex), float64, optional
+        Per-element gain and offset of the grey-level model (:mod:`chunkdic.greylevel`):
+        ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
     """
 
     displacement: np.ndarray
@@ -55,6 +77,10 @@ class Result:
     info: dict = field(default_factory=dict)
     path: str | None = None
     strain: np.ndarray | None = None
+    flags: np.ndarray | None = None
+    brightness: np.ndarray | None = None
+    active: np.ndarray | None = None
+    uncertainty: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -106,6 +132,10 @@ class Result:
                 root.create_array(name, data=np.ascontiguousarray(arr, dtype=np.float64))
             if "element_size" in self.info:
                 root.create_array("strain", data=np.ascontiguousarray(self.element_strain(), dtype=np.float64))
+            for name, dtype in (("flags", np.uint8), ("brightness", np.float64), ("active", np.uint8),
+                                ("uncertainty", np.float64)):
+                if getattr(self, name) is not None:
+                    root.create_array(name, data=np.ascontiguousarray(getattr(self, name), dtype=dtype))
             hist = root.create_group("history")
             for name in HISTORY_FIELDS:
                 hist.create_array(name, data=np.asarray(self.history[name]))
@@ -144,14 +174,15 @@ def open_result(path: str | os.PathLike) -> Result:
         u = root["displacement"][...]
         X = root["node_coords"][...]
         history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
-        strain = root["strain"][...] if "strain" in root else None
+        optional = {name: root[name][...] if name in root else None
+                    for name in ("strain", "flags", "brightness", "active", "uncertainty")}
     except KeyError as exc:
         raise InputError(f"result {path} lacks the array {exc.args[0]!r}: a damaged result") from None
     except Exception as exc:  # noqa: BLE001 - undecodable chunks
         raise InputError(f"result {path} cannot be read ({type(exc).__name__}: {exc}"
                          .splitlines()[0] + "): a damaged result") from None
     _check_consistent(path, info, u, X, history)
-    return Result(u, X, history, info, str(path), strain)
+    return Result(u, X, history, info, str(path), **optional)
 
 
 def _check_consistent(path, info, u, X, history) -> None:

@@ -14,6 +14,8 @@ from dataclasses import asdict, dataclass, fields
 from .errors import InputError
 
 INTERPOLATIONS = ("cubic", "linear")
+GREY_MODELS = ("none", "global", "drift", "element")
+REGULARIZATIONS = ("none", "tikhonov", "equilibrium-gap")
 
 
 @dataclass(frozen=True)
@@ -31,6 +33,19 @@ class Settings:
         (:func:`chunkdic.planning.plan_meshes`).
     interpolation : {"cubic", "linear"}
         Interpolation of the deformed image (cubic B-spline, or the paper's trilinear).
+    smoothing : float
+        Standard deviation (voxels of each level, >= 0) of the Gaussian low-pass applied to
+        both scans before correlating; 0 turns it off (the paper). docs/engine.md, "Image
+        preparation".
+    grey : {"none", "global", "drift", "element"}
+        Brightness model between the scans (:mod:`chunkdic.greylevel`); ``none`` is the
+        paper's plain residual.
+    regularization : {"none", "tikhonov", "equilibrium-gap"}
+        Penalty on the short wavelengths of the field (:mod:`chunkdic.regularization`).
+    regularization_length : float or None
+        Its length ``ℓ_reg``, voxels of level 0 (> 0): wavelengths shorter than it are
+        damped, longer ones left to the images. ``None``: chosen automatically
+        (docs/engine.md, "Regularisation").
     tolerance : float
         Convergence when ``max |δa|`` falls below it (voxels of ``level``; finite, > 0).
     coarse_tolerance : float
@@ -45,6 +60,10 @@ class Settings:
     level: int = 0
     coarsest: int | None = None
     interpolation: str = "cubic"
+    smoothing: float = 1.0
+    grey: str = "drift"
+    regularization: str = "tikhonov"
+    regularization_length: float | None = None
     tolerance: float = 1e-3
     coarse_tolerance: float = 1e-2
     max_iterations: int = 30
@@ -57,6 +76,11 @@ class Settings:
         if self.coarsest is not None:
             check(self, "coarsest", _integer(self.coarsest, "coarsest level", minimum=0))
         _choice(self.interpolation, INTERPOLATIONS, "interpolation")
+        check(self, "smoothing", _nonnegative_float(self.smoothing, "smoothing"))
+        _choice(self.grey, GREY_MODELS, "grey-level model")
+        _choice(self.regularization, REGULARIZATIONS, "regularization")
+        if self.regularization_length is not None:
+            check(self, "regularization_length", _positive_float(self.regularization_length, "regularization length"))
         check(self, "tolerance", _positive_float(self.tolerance, "tolerance"))
         check(self, "coarse_tolerance", _positive_float(self.coarse_tolerance, "coarse tolerance"))
         check(self, "max_iterations", _integer(self.max_iterations, "max iterations", minimum=1))
@@ -93,6 +117,16 @@ def _positive_float(value, name: str) -> float:
         raise InputError(f"{name} must be a number, got {value!r}") from None
     if not (math.isfinite(out) and out > 0):
         raise InputError(f"{name} must be a finite number > 0, got {value!r}")
+    return out
+
+
+def _nonnegative_float(value, name: str) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not (math.isfinite(out) and out >= 0):
+        raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
     return out
 
 

@@ -1,116 +1,169 @@
-"""Client-side solve of ``M δa = b`` (paper section 3) on the nodal 27-point stencil.
+"""Client-side solve of ``(M + λR) δa = b − λ R a`` (paper section 3) on the nodal stencil.
 
 ``M`` is a weighted mass matrix: conjugate gradients with a 3×3 nodal block-Jacobi
 preconditioner converge in about a hundred iterations whatever the mesh size, where a
 direct factorisation costs seconds to minutes (shared/DESIGN.md). The stencil is used
-as is for the matrix-vector product, so ``M`` is never converted to CSR.
+as is for the matrix-vector product, never converted to CSR, and only its symmetric half
+is kept (:data:`HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
+of 2. The regularisation ``R`` (:mod:`chunkdic.regularization`) is applied matrix-free
+in the same CG.
 """
 
 from __future__ import annotations
 
 import logging
 import warnings
-from dataclasses import dataclass
 
 import numba
 import numpy as np
 
+from .errors import InputError
+from .mesh import STENCIL_OFFSETS
+from .regularization import Regularizer, add_weighted
+
 log = logging.getLogger(__name__)
 
+#: index of the node itself in the 27-point stencil
 CENTRE = 13
+#: the stored half of the stencil: entries 13 (the node) to 26; entry ``26 - k`` of the
+#: neighbour ``n + off_k`` is the transpose of entry ``k`` of node ``n``
+HALF_OFFSETS = STENCIL_OFFSETS[CENTRE:]
 
 
 class PoorTextureWarning(UserWarning):
     """Some nodes see too little image gradient to be measured reliably."""
 
 
+def half_stencil(full: np.ndarray) -> np.ndarray:
+    """The stored half ``S[..., 13:, :, :]`` of a full (…, 27, 3, 3) stencil (a view)."""
+    return full[..., CENTRE:, :, :]
+
+
 @numba.njit(nogil=True, cache=True)
-def _stencil_matvec(S, x, y):
+def _half_matvec(H, x, y):
+    """y = M x from the half stencil H (nz, ny, nx, 14, 3, 3)."""
     nz, ny, nx = x.shape[:3]
+    y[:] = 0.0
     for z in range(nz):
         for yy in range(ny):
             for xx in range(nx):
-                a0 = 0.0
-                a1 = 0.0
-                a2 = 0.0
-                for k in range(27):
+                s = H[z, yy, xx, 0]
+                c0, c1, c2 = x[z, yy, xx, 0], x[z, yy, xx, 1], x[z, yy, xx, 2]
+                y[z, yy, xx, 0] += s[0, 0] * c0 + s[0, 1] * c1 + s[0, 2] * c2
+                y[z, yy, xx, 1] += s[1, 0] * c0 + s[1, 1] * c1 + s[1, 2] * c2
+                y[z, yy, xx, 2] += s[2, 0] * c0 + s[2, 1] * c1 + s[2, 2] * c2
+                for h in range(1, 14):
+                    k = h + 13
                     z2 = z + k // 9 - 1
                     y2 = yy + (k // 3) % 3 - 1
                     x2 = xx + k % 3 - 1
                     if z2 < 0 or z2 >= nz or y2 < 0 or y2 >= ny or x2 < 0 or x2 >= nx:
                         continue
-                    v0 = x[z2, y2, x2, 0]
-                    v1 = x[z2, y2, x2, 1]
-                    v2 = x[z2, y2, x2, 2]
-                    s = S[z, yy, xx, k]
-                    a0 += s[0, 0] * v0 + s[0, 1] * v1 + s[0, 2] * v2
-                    a1 += s[1, 0] * v0 + s[1, 1] * v1 + s[1, 2] * v2
-                    a2 += s[2, 0] * v0 + s[2, 1] * v1 + s[2, 2] * v2
-                y[z, yy, xx, 0] = a0
-                y[z, yy, xx, 1] = a1
-                y[z, yy, xx, 2] = a2
+                    s = H[z, yy, xx, h]
+                    v0, v1, v2 = x[z2, y2, x2, 0], x[z2, y2, x2, 1], x[z2, y2, x2, 2]
+                    y[z, yy, xx, 0] += s[0, 0] * v0 + s[0, 1] * v1 + s[0, 2] * v2
+                    y[z, yy, xx, 1] += s[1, 0] * v0 + s[1, 1] * v1 + s[1, 2] * v2
+                    y[z, yy, xx, 2] += s[2, 0] * v0 + s[2, 1] * v1 + s[2, 2] * v2
+                    # the transposed entry of the neighbour
+                    y[z2, y2, x2, 0] += s[0, 0] * c0 + s[1, 0] * c1 + s[2, 0] * c2
+                    y[z2, y2, x2, 1] += s[0, 1] * c0 + s[1, 1] * c1 + s[2, 1] * c2
+                    y[z2, y2, x2, 2] += s[0, 2] * c0 + s[1, 2] * c1 + s[2, 2] * c2
 
 
-def stencil_matvec(S: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``y = M x`` for the stencil ``S`` (nz, ny, nx, 27, 3, 3) and ``x`` (nz, ny, nx, 3)."""
-    y = np.empty_like(x)
-    _stencil_matvec(S, np.ascontiguousarray(x), y)
+def stencil_matvec(H: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``y = M x`` for the half stencil ``H`` (nz, ny, nx, 14, 3, 3) and ``x`` (nz, ny, nx, 3)."""
+    y = np.empty(x.shape, dtype=np.float64)
+    _half_matvec(H, np.ascontiguousarray(x, dtype=np.float64), y)
     return y
 
 
-@dataclass
+def rigid_restriction(H: np.ndarray) -> np.ndarray:
+    """``Σ_ij M_ij`` (3, 3): ``M`` restricted to uniform translations (``Σ_a N_a = 1``)."""
+    centre = H[..., 0, :, :].sum(axis=(0, 1, 2), dtype=np.float64)
+    off = H[..., 1:, :, :].sum(axis=(0, 1, 2, 3), dtype=np.float64)
+    return centre + off + off.T
+
+
 class StencilSolver:
-    """Preconditioned CG on a nodal stencil; the preconditioner is built once per level.
+    """Preconditioned CG on the half stencil of ``M`` (plus an optional ``λ R``).
 
     Parameters
     ----------
-    stencil : ndarray, shape (nz, ny, nx, 27, 3, 3), float32 or float64
-        Assembled ``M`` (see docs/architecture.md for the layout); used in place.
+    half : ndarray, shape (nz, ny, nx, 14, 3, 3), float32
+        The stored half of ``M`` (:data:`HALF_OFFSETS`). The solver keeps it (no copy) and
+        adds to its diagonal blocks the small Tikhonov term of poorly textured nodes.
     weak_threshold : float
         A node is *poorly textured* when the smallest eigenvalue of its 3×3 diagonal
         block is below ``weak_threshold`` times the median over nodes of the mean
-        eigenvalue. Such nodes get a small Tikhonov term (``weak_threshold`` × that
-        median) so the system stays solvable, and a warning names them.
+        eigenvalue. Such nodes get a Tikhonov term of that size on their own block so the
+        system stays solvable, and :attr:`weak_nodes` lists them.
     rtol : float
         Relative residual tolerance of CG.
+
+    Raises
+    ------
+    InputError
+        If ``M`` has no gradient at all (nothing to correlate).
     """
 
-    stencil: np.ndarray
-    weak_threshold: float = 1e-3
-    rtol: float = 1e-7
-    maxiter: int = 2000
-
-    def __post_init__(self):
-        S = self.stencil
-        self.nodes_shape = S.shape[:3]
-        diag = S[..., CENTRE, :, :].reshape(-1, 3, 3).astype(np.float64)
+    def __init__(self, half: np.ndarray, *, weak_threshold: float = 1e-3, rtol: float = 1e-7,
+                 maxiter: int = 2000):
+        self.rtol, self.maxiter = rtol, maxiter
+        self.nodes_shape = half.shape[:3]
+        diag = half[..., 0, :, :].reshape(-1, 3, 3).astype(np.float64)
         eig = np.linalg.eigvalsh(diag)  # ascending
         scale = float(np.median(eig.mean(axis=1)))
         if not np.isfinite(scale) or scale <= 0:
-            raise ValueError("the reference image has no gradient in the ROI: nothing to correlate")
-        weak = eig[:, 0] < self.weak_threshold * scale
+            raise InputError("the reference image has no gradient in the ROI: nothing to correlate")
+        weak = eig[:, 0] < weak_threshold * scale
         self.weak_nodes = np.argwhere(weak.reshape(self.nodes_shape))
         if weak.any():
-            # Regularise in place: a Tikhonov term on the weak nodes' own block.
-            diag[weak] += self.weak_threshold * scale * np.eye(3)
-            S[..., CENTRE, :, :] = diag.reshape(S.shape[:3] + (3, 3))
-        self.block_inverse = np.linalg.inv(diag)
+            diag[weak] += weak_threshold * scale * np.eye(3)
+            half[..., 0, :, :] = diag.reshape(self.nodes_shape + (3, 3))
         self.scale = scale
         # float32 for the matrix-vector product: CG is bound by memory traffic through the
         # stencil, and M only steers the modified Gauss-Newton steps (the converged field
-        # solves b = 0 whatever M), so its round-off at 6e-8 changes nothing measurable.
-        self.matrix = S.astype(np.float32, copy=False)
-        self.stencil = None  # only the float32 matrix is kept
+        # solves b = λ R a whatever M), so its round-off at 6e-8 changes nothing measurable.
+        self.matrix = half if half.dtype == np.float32 else half.astype(np.float32)
+        self._diag = diag.reshape(self.nodes_shape + (3, 3))
+        self.regularizer: Regularizer | None = None
+        self.weight = 0.0
+        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0)
+        self.block_inverse = np.linalg.inv(self._diag)
+
+    def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
+        """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
+        self.regularizer = regularizer if weight > 0 else None
+        self.weight = float(weight) if self.regularizer is not None else 0.0
+        diag = self._diag
+        if self.regularizer is not None:
+            self._reg_args = self.regularizer.numba_args()
+            diag = diag + self.weight * self.regularizer.diagonal_blocks()
+        self.block_inverse = np.linalg.inv(diag)
+
+    def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
+        """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3); zeros without regularisation."""
+        if self.regularizer is None:
+            return np.zeros(a.shape)
+        return self.weight * self.regularizer.apply(a)
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        """``(M + λ R) x``."""
+        y = stencil_matvec(self.matrix, x)
+        if self.regularizer is not None:
+            add_weighted(*self._reg_args, self.weight, np.ascontiguousarray(x, dtype=np.float64), y)
+        return y
 
     def solve(self, b: np.ndarray) -> tuple[np.ndarray, int]:
-        """Solve ``M δa = b``; ``b`` and the result have shape (nz, ny, nx, 3).
+        """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
 
         Returns the solution and the number of CG iterations.
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
-        iterations = _pcg(self.matrix, self.block_inverse.reshape(self.nodes_shape + (3, 3)), b, x,
-                          self.rtol, self.maxiter)
+        code, Ke, Kf, sw = self._reg_args
+        iterations = _pcg(self.matrix, self.block_inverse, b, x, self.rtol, self.maxiter,
+                          code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)
@@ -130,8 +183,8 @@ def _block_jacobi(Binv, r, z):
 
 
 @numba.njit(nogil=True, cache=True)
-def _pcg(S, Binv, b, x, rtol, maxiter):
-    """Preconditioned conjugate gradients, x updated in place; -1 if not converged.
+def _pcg(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
+    """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
 
     Written out (rather than scipy's ``cg``) so that its vector operations are plain
     loops: on a busy machine, multithreaded BLAS calls on these small vectors cost more
@@ -147,7 +200,9 @@ def _pcg(S, Binv, b, x, rtol, maxiter):
     if bnorm == 0.0:
         return 0
     for it in range(1, maxiter + 1):
-        _stencil_matvec(S, p, q)
+        _half_matvec(H, p, q)
+        if code != 0:
+            add_weighted(code, Ke, Kf, sw, lam, p, q)
         alpha = rz / np.sum(p * q)
         x += alpha * p
         r -= alpha * q

@@ -182,7 +182,8 @@ class StrainSummary:
         return {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in asdict(self).items()}
 
 
-def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = True) -> StrainSummary:
+def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = True,
+                elements: np.ndarray | None = None) -> StrainSummary:
     """Mean strain of a C8 nodal field, with and without its outermost layer of elements.
 
     The mean of element strains equals the volume average of the strain, which only
@@ -198,6 +199,9 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
         Element edge ``ell``, voxels.
     exclude_outer : bool, keyword-only
         Leave out the outermost layer (on axes with at least 3 elements).
+    elements : ndarray of bool, shape (nz-1, ny-1, nx-1), keyword-only, optional
+        The elements to average (a specimen mask's active elements); elements with a NaN
+        node (not measured) are always left out.
 
     Returns
     -------
@@ -216,8 +220,12 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
     n = H.shape[2:]
     excluded = tuple(bool(exclude_outer and k >= 3) for k in n)
     inner = tuple(slice(1, k - 1) if e else slice(None) for k, e in zip(n, excluded))
-    H_all = H.mean(axis=(2, 3, 4))
-    H_in = H[(slice(None), slice(None)) + inner].mean(axis=(2, 3, 4))
+    use = np.isfinite(H).all(axis=(0, 1))
+    if elements is not None:
+        use &= np.asarray(elements, dtype=bool)
+    H = np.where(use, H, np.nan)
+    H_all = np.nanmean(H, axis=(2, 3, 4))
+    H_in = np.nanmean(H[(slice(None), slice(None)) + inner], axis=(2, 3, 4))
     factor = np.array([1.0 - 2.0 * ell / (k * ell) if e else 1.0 for k, e in zip(n, excluded)])
     mean, mean_all, corrected = _sym(H_in), _sym(H_all), _sym(H_in * factor[None, :])
     principal = principal_strains(mean)
@@ -238,5 +246,8 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
 
 
 def strain_summary(result, *, exclude_outer: bool = True) -> StrainSummary:
-    """:func:`mean_strain` of a :class:`chunkdic.Result` (element size from its info)."""
-    return mean_strain(result.displacement, result.info["element_size"], exclude_outer=exclude_outer)
+    """:func:`mean_strain` of a :class:`chunkdic.Result` (element size from its info; the
+    active elements of its mask, if any)."""
+    active = None if result.active is None else result.active > 0
+    return mean_strain(result.displacement, result.info["element_size"], exclude_outer=exclude_outer,
+                       elements=active)

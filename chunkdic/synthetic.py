@@ -69,6 +69,8 @@ __all__ = [
     "true_displacement",
     "load_field",
     "load_texture",
+    "load_specimen",
+    "standard_case",
     "warmup",
 ]
 
@@ -676,14 +678,19 @@ def _metadata(field, p: TextureParams, shape, dtype, noise) -> dict:
     }
 
 
-def synthesize(out_dir, shape, *, field: Field | None = None, seed: int = 0,
-               dtype="uint8", chunks=None, voxel_size=None, unit=None, levels: int = 0,
-               overwrite: bool = False, progress=None, cell_size: float = 8.0,
-               bead_size: float = 64.0, noise: float = 0.0, **params) -> dict:
+SPECIMEN_NAMES = ("foam", "grains", "concrete")
+_CT_ONLY = ("angles", "filter", "blur", "rings", "gain", "offset", "drift")
+
+
+def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "foam",
+               seed: int = 0, dtype=None, chunks=None, voxel_size=None, unit=None,
+               levels: int = 0, overwrite: bool = False, progress=None,
+               cell_size: float = 8.0, bead_size: float = 64.0, noise: float | None = None,
+               fourier_shift: bool = False, **params) -> dict:
     """Write a synthetic reference/deformed pair ``out_dir/ref.zarr``, ``out_dir/def.zarr``.
 
     Both scans are written chunk by chunk with :func:`chunkdic.volume.write_scan`. The field
-    JSON, seed and texture parameters go to ``attrs["chunkdic"]["synthetic"]`` of both
+    JSON, seed and specimen parameters go to ``attrs["chunkdic"]["synthetic"]`` of both
     groups and to ``out_dir/field.json`` (written last: its presence marks a complete pair).
 
     Parameters
@@ -694,27 +701,113 @@ def synthesize(out_dir, shape, *, field: Field | None = None, seed: int = 0,
         Scan shape ``(nz, ny, nx)``.
     field : Field or None
         Displacement field (``None``: a pair of identical scans up to ``noise``).
+    specimen : {"foam", "grains", "concrete"} or GrainsParams or ConcreteParams
+        ``foam`` (default): the smooth procedural foam of this module. ``grains`` /
+        ``concrete``: sharp-edged CT-like specimens imaged by simulated CT slice by slice
+        (:mod:`chunkdic.microstructure`, :mod:`chunkdic.ctsim`, docs/synthetic.md).
     dtype : str
-        ``uint8`` (default), ``uint16`` or ``float32``. Integer grey levels are rounded,
-        so ``g(X + u(X)) = f(X)`` holds to half a grey level (exactly for float32 up to
-        round-off).
+        Foam: ``uint8`` (default), ``uint16`` or ``float32``; integer grey levels are
+        rounded, so ``g(X + u(X)) = f(X)`` holds to half a grey level. CT specimens:
+        ``uint16`` (default; phase units ``[-0.5, 1.5]`` over the range) or ``float32``.
     chunks, voxel_size, unit, levels, overwrite, progress
         Passed to ``write_scan``.
-    seed, cell_size, bead_size, noise, **params
-        Texture parameters (see :func:`render`).
+    seed, cell_size, bead_size
+        Foam texture parameters (see :func:`render`); ``seed`` for every specimen.
+    noise : float, optional
+        Foam: std of additive Gaussian noise, texture units (default 0). CT specimens:
+        std of the reconstruction noise as a fraction of the phase contrast (default 0.02),
+        independent in the two scans.
+    fourier_shift : bool
+        CT specimens: the deformed scan is the stored reference translated by a Fourier
+        phase shift of ``field.t`` (a :class:`Translation`; the paper's section 4.2 test).
+    **params
+        Foam: other :class:`TextureParams` fields. CT specimens: specimen parameters
+        (:class:`~chunkdic.microstructure.GrainsParams`, ``ConcreteParams``), imaging
+        (``angles``, ``filter``, ``blur``, ``rings``) and the grey-level change of the
+        deformed scan (``gain``, ``offset``, ``drift``; :class:`~chunkdic.ctsim.GreyChange`).
 
     Returns
     -------
     dict
         ``{"reference": path, "deformed": path, "field_json": path, "field": Field,
-        "texture": TextureParams}``.
+        "texture": TextureParams or specimen parameters}``.
+
+    Examples
+    --------
+    Case (c) of docs/synthetic.md, a compression band with a grey-level change:
+
+    >>> from chunkdic.ctpair import standard_field
+    >>> fld, _ = standard_field("band", (96, 96, 96))
+    >>> synthesize("band", 96, specimen="grains", field=fld, noise=0.02,
+    ...            gain=1.1, offset=0.05, drift=0.03)  # doctest: +SKIP
     """
     from . import config
+
+    shape = _shape3(shape)
+    if chunks is None:
+        chunks = config.get("chunk-size")
+    if specimen == "foam":
+        bad = sorted(k for k in params if k in _CT_ONLY) + (["fourier_shift"] if fourier_shift else [])
+        if bad:
+            raise InputError(f"{', '.join(bad)}: only for the CT specimens (grains, concrete)")
+        p = _params(seed, cell_size, bead_size, params)
+        dt = _check_dtype("uint8" if dtype is None else dtype)
+        noise = 0.0 if noise is None else float(noise)
+        if not (np.isfinite(noise) and noise >= 0):
+            raise InputError(f"noise must be >= 0, got {noise!r}")
+        meta = _metadata(field, p, shape, dt, noise)
+
+        def make(which, ref_path, scratch):
+            return as_dask(shape, chunks=chunks, field=field, seed=p, which=which, dtype=dt,
+                           noise=noise)
+    else:
+        from .ctpair import CTSpecimen, as_dask_ct, fourier_deformed
+
+        p = CTSpecimen.build(specimen, shape, seed=seed, field=field, dtype=dtype,
+                             fourier_shift=fourier_shift, noise=noise, **params)
+        dt = np.dtype(p.dtype)
+        meta = {"field": None if field is None else field.to_json(), "seed": p.params.seed,
+                "shape": list(shape), "dtype": dt.name, "noise": p.imaging.noise,
+                **p.metadata()}
+
+        def make(which, ref_path, scratch):
+            if which == "deformed" and p.fourier_shift:
+                arr, tmp = fourier_deformed(ref_path, os.path.dirname(ref_path), p)
+                scratch.append(tmp)
+                return arr
+            return as_dask_ct(p, which)
+    out = _write_pair(out_dir, shape, make, meta, chunks=chunks, voxel_size=voxel_size,
+                      unit=unit, levels=levels, overwrite=overwrite, progress=progress)
+    return {**out, "field": field, "texture": p if specimen == "foam" else p.params}
+
+
+def standard_case(out_dir, case: str, shape=128, *, specimen: str = "grains", **kw) -> dict:
+    """Write one of the three standard test pairs in one call (docs/synthetic.md).
+
+    ``case``: ``"fourier-shift"`` (the paper's section 4.2 test: deformed = reference
+    Fourier-shifted by (0.5, 0.5, 0.5) voxel), ``"shift"`` (the same translation rendered
+    from the geometry, independent noise in each scan) or ``"band"`` (compression band at
+    mid-height: -8 % peak strain, 6 voxels wide, lateral expansion 0.3). ``kw`` goes to
+    :func:`synthesize` (``noise``, ``gain``, ``offset``, ``drift``, ``seed``, ``dtype``,
+    specimen and imaging parameters, ...).
+
+    Examples
+    --------
+    >>> standard_case("band128", "band", 128, noise=0.02, gain=1.1, offset=0.05,
+    ...               drift=0.03)  # doctest: +SKIP
+    """
+    from .ctpair import standard_field
+
+    shape = _shape3(shape)
+    fld, fourier = standard_field(case, shape)
+    return synthesize(out_dir, shape, field=fld, specimen=specimen, fourier_shift=fourier, **kw)
+
+
+def _write_pair(out_dir, shape, make, meta, *, chunks, voxel_size, unit, levels, overwrite,
+                progress) -> dict:
+    """Write ``make(which, ref_path, scratch)`` for both scans, then ``field.json``."""
     from .volume import write_scan
 
-    p = _params(seed, cell_size, bead_size, params)
-    shape = _shape3(shape)
-    dt = _check_dtype(dtype)
     out_dir = os.fspath(out_dir)
     ref, dfm = os.path.join(out_dir, "ref.zarr"), os.path.join(out_dir, "def.zarr")
     fjson = os.path.join(out_dir, "field.json")
@@ -723,18 +816,14 @@ def synthesize(out_dir, shape, *, field: Field | None = None, seed: int = 0,
         raise InputError(f"{existing[0]} exists (use overwrite=True / --overwrite)")
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise InputError(f"{out_dir} exists and is not a directory")
-    if chunks is None:
-        chunks = config.get("chunk-size")
     os.makedirs(out_dir, exist_ok=True)
     if os.path.exists(fjson):
         os.remove(fjson)  # the pair is incomplete until field.json is back
-    meta = _metadata(field, p, shape, dt, noise)
-    written = []
+    written, scratch = [], []
     try:
         for i, (which, path) in enumerate((("reference", ref), ("deformed", dfm))):
-            arr = as_dask(shape, chunks=chunks, field=field, seed=p, which=which, dtype=dt,
-                          noise=noise)
-            log.info("writing %s scan %s, shape %s, %s", which, path, shape, dt.name)
+            arr = make(which, ref, scratch)
+            log.info("writing %s scan %s, shape %s, %s", which, path, shape, arr.dtype)
             sub = None if progress is None else _sub_progress(progress, i / 2.0, (i + 1) / 2.0)
             written.append(path)
             write_scan(path, arr, voxel_size=voxel_size, unit=unit, chunks=chunks,
@@ -748,8 +837,10 @@ def synthesize(out_dir, shape, *, field: Field | None = None, seed: int = 0,
         for path in written:  # leave no half-written pair behind
             shutil.rmtree(path, ignore_errors=True)
         raise
-    return {"reference": ref, "deformed": dfm, "field_json": fjson, "field": field,
-            "texture": p}
+    finally:
+        for path in scratch:
+            shutil.rmtree(path, ignore_errors=True)
+    return {"reference": ref, "deformed": dfm, "field_json": fjson}
 
 
 def _sub_progress(progress, start: float, end: float):
@@ -797,5 +888,19 @@ def load_field(path) -> Field | None:
 
 
 def load_texture(path) -> TextureParams:
-    """The texture parameters of a synthetic pair (directory, ``field.json`` or scan group)."""
-    return TextureParams(**load_metadata(path)["texture"])
+    """The texture parameters of a synthetic foam pair (directory, ``field.json`` or scan group)."""
+    meta = load_metadata(path)
+    if "texture" not in meta:
+        raise InputError(f"{path} is a {meta.get('specimen', {}).get('specimen')} pair, not a foam")
+    return TextureParams(**meta["texture"])
+
+
+def load_specimen(path):
+    """The specimen of a synthetic pair: :class:`TextureParams` (foam) or the parameters
+    of a CT specimen (:class:`~chunkdic.microstructure.GrainsParams`, ``ConcreteParams``)."""
+    meta = load_metadata(path)
+    if "texture" in meta:
+        return TextureParams(**meta["texture"])
+    from .microstructure import specimen_params
+
+    return specimen_params(dict(meta["specimen"]))

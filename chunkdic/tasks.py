@@ -13,9 +13,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kernels
+from .greylevel import Partials, reduce_block
 from .haloed import HaloedBlocks
 from .mesh import Block, Mesh
-from .prefilter import Coefficients
+from .masks import active_elements, element_fractions
+from .prefilter import PreparedImage, check_finite, gaussian_radius, prepare_deformed, prepare_reference, prepared_halo
 from .volume import ArrayRef
 
 
@@ -59,27 +61,52 @@ class BlockJob:
 
 @dataclass(frozen=True)
 class LevelInputs:
-    """What every task of one level reads: stores and interpolation settings.
+    """What every task of one level reads: stores and the level's image settings.
 
     Attributes
     ----------
     f, g : ArrayRef
         Reference and deformed scans at the level.
     f_copy : HaloedBlocks
-        Each block's haloed ``f``, written by the ``M`` pass, read by the ``b`` passes.
+        Each block's prepared, haloed ``f``, written by the ``M`` pass, read by the ``b`` passes.
     interpolation : {"cubic", "linear"}
-    halo : int
+    sigma : float
+        Gaussian low-pass of both scans, voxels of the level (0: none).
+    grey : str
+        Brightness model (:mod:`chunkdic.greylevel`).
+    bspline_halo : int
         Extra voxels around a ``g`` window prefiltered by the task itself (cubic).
-    coefficients : Coefficients or None
-        The level's prefiltered ``g`` (cubic), when built.
+    g_margin : int
+        Voxels ``X + u(X)`` falling within this distance of a face of ``g`` are excluded:
+        there the low-pass of ``g`` sees the mirror extension instead of the specimen's
+        continuation (:func:`chunkdic.prefilter.face_margin`).
+    center : float
+        Centring constant of the brightness sums (the level's mid grey level, set by the
+        ``M`` pass).
+    prepared : PreparedImage or None
+        The level's prepared ``g``, when built.
+    level : int
+        The pyramid level.
+    mask : ArrayRef or None
+        The binary specimen mask's sums at this level (:mod:`chunkdic.masks`).
     """
 
     f: ArrayRef
     g: ArrayRef
     f_copy: HaloedBlocks
     interpolation: str
-    halo: int
-    coefficients: Coefficients | None = None
+    sigma: float
+    grey: str
+    bspline_halo: int
+    g_margin: int = 0
+    center: float = 0.0
+    prepared: PreparedImage | None = None
+    level: int = 0
+    mask: ArrayRef | None = None
+
+    @property
+    def g_needs_preparing(self) -> bool:
+        return self.interpolation == "cubic" or self.sigma > 0
 
 
 def halo_region(start, shape, full_shape, halo: int = 1):
@@ -93,53 +120,75 @@ def halo_region(start, shape, full_shape, halo: int = 1):
     return tuple(region), tuple(lo), tuple(hi)
 
 
-def m_task(inputs: LevelInputs, job: BlockJob):
-    """Task: this block's share of ``M`` (a nodal stencil) and the min/max of ``f``.
+def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
+    """Task: this block's share of ``M`` (a nodal stencil) and the min/max of the prepared ``f``.
 
-    Also keeps the block's haloed ``f`` as its chunk of ``inputs.f_copy`` for the ``b`` passes.
+    Reads the block with the halo its low-pass needs, checks it, low-passes it and keeps
+    the prepared block with its one-voxel halo as its chunk of ``inputs.f_copy`` for the
+    ``b`` passes. ``u_block``: the level's starting field on the block's nodes; voxels it
+    maps outside ``g`` are left out of ``M`` as the ``b`` passes leave them out.
     """
-    region, lo, hi = job.haloed_region(inputs.f.shape)
+    inner, lo, hi = job.haloed_region(inputs.f.shape)
+    region, _, _ = halo_region(job.start, job.shape, inputs.f.shape, 1 + gaussian_radius(inputs.sigma))
     raw = inputs.f.read(region)
-    inputs.f_copy.write(job.index, raw)
-    stencil, fmin, fmax = kernels.m_block(raw.astype(np.float32, copy=False), lo, hi, job.ell)
-    return job.block, stencil, fmin, fmax
+    check_finite(raw, "reference", region)
+    f = prepare_reference(raw, region, inner, inputs.sigma) if inputs.sigma > 0 else raw
+    inputs.f_copy.write(job.index, f)
+    f = np.asarray(f, dtype=np.float32)
+    fractions = None
+    if inputs.mask is not None:
+        fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
+    # the brightness condensation is invariant to the centring constant: the block's mean
+    # keeps its sums small
+    stencil, fmin, fmax, lags = kernels.m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
+                                                u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
+                                                margin=inputs.g_margin, with_lags=True,
+                                                active=None if fractions is None else active_elements(fractions))
+    return job.block, stencil, fmin, fmax, lags, fractions
 
 
-def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
-    """Task: this block's share of ``b``, ``Σ r²`` and the valid/excluded voxel counts.
+def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
+           active: np.ndarray | None = None) -> tuple[Block, Partials]:
+    """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.greylevel.Partials`).
 
-    ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass.
-    With cubic interpolation the window of ``g`` comes from the level's prefiltered
-    coefficients when they cover it, else it is read raw with a halo and prefiltered
-    here (same result to float32 precision, see :mod:`chunkdic.prefilter`).
+    ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass;
+    the window of ``g`` from the level's prepared store when it covers it, else it is read
+    raw with a halo and prepared here (same result to float32 precision). ``active``: the
+    block's element activity (a specimen mask), default all.
     """
     region, lo, hi = job.haloed_region(inputs.f.shape)
-    f = inputs.f_copy.read(job.index, tuple(r.stop - r.start for r in region)).astype(np.float32, copy=False)
-    g, g_origin, prefiltered = read_g_window(inputs, job, u_block)
+    f = inputs.f_copy.read(job.index, tuple(r.stop - r.start for r in region))
+    g, g_origin = read_g_window(inputs, job, u_block)
     if g is None:
-        b = np.zeros(u_block.shape[1:] + (3,))
-        return job.block, b, 0.0, 0, int(np.prod(job.shape))
-    b, ssr, n_valid, n_excluded = kernels.b_block(
-        f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
-        interpolation=inputs.interpolation, prefiltered=prefiltered,
-    )
-    return job.block, b, ssr, n_valid, n_excluded
+        # no voxel of the block maps inside g: every active voxel is excluded
+        n_off = 0 if active is None else int(np.sum(active == 0)) * job.ell**3
+        sums = kernels.ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
+                                   np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
+    else:
+        sums = kernels.b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
+                              interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
+                              margin=inputs.g_margin, active=active)
+    return job.block, reduce_block(sums, inputs.grey)
 
 
 def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
-    """The window of ``g`` a block needs for the field ``u_block``.
+    """The prepared window of ``g`` a block needs for the field ``u_block``.
 
-    Returns ``(window data, window origin, prefiltered)``, or ``(None, None, False)`` when
-    no voxel of the block can map inside ``g``.
+    Returns ``(window, origin)``: float32 samples (linear) or B-spline coefficients (cubic)
+    of the low-passed ``g``; ``(None, None)`` when no voxel of the block can map inside ``g``.
     """
     interp = inputs.interpolation
-    window = kernels.g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp)
+    window = kernels.g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp,
+                              margin=inputs.g_margin)
     if any(s.stop <= s.start for s in window):
-        return None, None, False
-    coefficients = inputs.coefficients
-    if coefficients is not None and coefficients.covers(window):
-        return coefficients.read(window), tuple(s.start for s in window), True
-    if interp == "cubic":
-        window = kernels.g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp,
-                                  halo=inputs.halo)
-    return inputs.g.read(window), tuple(s.start for s in window), False
+        return None, None
+    if inputs.prepared is not None and inputs.prepared.covers(window):
+        return inputs.prepared.read(window), tuple(s.start for s in window)
+    if not inputs.g_needs_preparing:
+        return np.asarray(inputs.g.read(window), dtype=np.float32), tuple(s.start for s in window)
+    halo = prepared_halo(inputs.sigma, interp, inputs.bspline_halo)
+    window = kernels.g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp, halo=halo,
+                              margin=inputs.g_margin)
+    raw = inputs.g.read(window)
+    check_finite(raw, "deformed", window)
+    return prepare_deformed(raw, inputs.sigma, interp), tuple(s.start for s in window)

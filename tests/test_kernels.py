@@ -15,6 +15,7 @@ import pytest
 import scipy.ndimage as ndi
 
 from chunkdic import kernels as K
+from chunkdic.kernels_numpy import nodal_field
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS, shape_table
 
 INTERPS = ("linear", "cubic")
@@ -165,13 +166,21 @@ def test_b_block_numba_equals_numpy(interpolation, block):
     g = g_vol[win]
     g_origin = tuple(s.start for s in win)
     out = {impl: K.b_block(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape,
-                           interpolation=interpolation, impl=impl) for impl in K._IMPLS}
+                           interpolation=interpolation, impl=impl) for impl in K.IMPLEMENTATIONS}
     b1, r1, n1, x1 = out["numba"]
     b2, r2, n2, x2 = out["numpy"]
     assert (n1, x1) == (n2, x2)
     assert n1 + x1 == np.prod(core) and n1 > 0
     np.testing.assert_allclose(b1, b2, rtol=0, atol=1e-10 * np.abs(b2).max())
     np.testing.assert_allclose(r1, r2, rtol=1e-10)
+    # every element sum the brightness models use (d, g', 1, element-centred coordinates)
+    sums = {impl: K.b_sums(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape, interpolation=interpolation,
+                           impl=impl, center=100.0, margin=1) for impl in K.IMPLEMENTATIONS}
+    np.testing.assert_allclose(sums["numba"].B, sums["numpy"].B, rtol=0,
+                               atol=1e-10 * np.abs(sums["numpy"].B).max())
+    np.testing.assert_allclose(sums["numba"].gram, sums["numpy"].gram, rtol=1e-10,
+                               atol=1e-10 * np.abs(sums["numpy"].gram).max())
+    assert sums["numba"].n_excluded == sums["numpy"].n_excluded
     w1, m1 = K.warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
                           interpolation=interpolation, impl="numba")
     w2, m2 = K.warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
@@ -215,7 +224,7 @@ def test_fast_and_general_paths_agree_with_whole_volume(interpolation):
                 np.testing.assert_allclose(w1[m1], want, rtol=0, atol=1e-6 * 255)
             out = {impl: K.b_block(f, lo, hi, ell, u, c0, gv[win], go, vol.shape,
                                    interpolation=interpolation, impl=impl, prefiltered=True)
-                   for impl in K._IMPLS}
+                   for impl in K.IMPLEMENTATIONS}
             b1, r1, n1, x1 = out["numba"]
             b2, r2, n2, x2 = out["numpy"]
             assert (n1, x1) == (n2, x2) == (int(m1.sum()), int((~m1).sum()))
@@ -236,10 +245,10 @@ def test_nan_displacement_excludes_voxels_in_kernel(interpolation):
     win = K.g_window(c0, core, ok, vol.shape, interpolation=interpolation, halo=12)
     go = tuple(w.start for w in win)
     cubic = interpolation == "cubic"
-    gw = K._prepare_g(vol[win], go, vol.shape, interpolation)
-    args = (ell, 2, 2, 2, K._xi(ell))
-    w, m = K._warp_kernel(*args, u, *c0, gw, *go, *vol.shape, cubic)
-    w_ok, m_ok = K._warp_kernel(*args, ok, *c0, gw, *go, *vol.shape, cubic)
+    gw = K.prepare_window(vol[win], interpolation)
+    args = (ell, 2, 2, 2, K.voxel_xi(ell))
+    w, m = K._warp_kernel(*args, u, *c0, gw, *go, *vol.shape, 0.0, cubic)
+    w_ok, m_ok = K._warp_kernel(*args, ok, *c0, gw, *go, *vol.shape, 0.0, cubic)
     bad = np.zeros(core, bool)
     bad[4:, :, :4] = True
     assert m_ok.all()
@@ -267,7 +276,7 @@ def test_nodal_field_is_sum_of_shape_functions():
     u = _smooth_nodes((3, 2, 4), amp=3.0, seed=6)
     pos = _voxel_positions(u, 5, (0, 0, 0))
     grids = np.meshgrid(*[np.arange(n) for n in pos.shape[1:]], indexing="ij")
-    np.testing.assert_allclose(K._nodal_field(u, 5), pos - np.stack(grids), atol=1e-13)
+    np.testing.assert_allclose(nodal_field(u, 5), pos - np.stack(grids), atol=1e-13)
 
 
 # ---------------------------------------------------------------------------- (4) translation
@@ -354,16 +363,20 @@ def test_cubic_window_prefilter_equals_whole_volume(impl):
 def test_voxels_leaving_g_are_excluded_and_counted(impl, interpolation):
     ell = 4
     vol = _smooth_volume((12, 12, 16), seed=11)
-    # whole volume as one block: u_x = -2.5 sends x = 0, 1, 2 below 0; u_z = +1 sends the
-    # last plane z = 11 to 12 > 11; u_y = 0.0 keeps y; a voxel landing exactly on the last
-    # sample (z = 10 -> 11) stays valid.
+    # whole volume as one block: u_x = -2.5 sends x = 0, 1, 2 below 0 (excluded) and x = 3
+    # to 0.5 (half a voxel inside: weight 0.5, the boundary taper); u_z = +1 sends z = 10
+    # onto the last sample (on the boundary: weight 0) and z = 11 beyond; u_y = 0 puts
+    # y = 0 and y = 11 on the boundary (weight 0). Every other voxel has weight 1.
     f, lo, hi, c0, core = _block(vol, (0, 0, 0), (3, 3, 4), ell)
     u = np.zeros((3, 4, 4, 5))
     u[0] = 1.0
     u[2] = -2.5
-    n_bad_x = 3 * 12 * 12
-    n_bad_z = 1 * 12 * 16
-    expected_bad = n_bad_x + n_bad_z - 3 * 12 * 1
+    weight = np.ones((12, 12, 16))
+    weight[10:] = 0.0
+    weight[:, [0, 11]] = 0.0
+    weight[:, :, :3] = 0.0
+    weight[:, :, 3] *= 0.5
+    expected_bad = int((weight == 0).sum())
     win = K.g_window(c0, core, u, vol.shape, interpolation=interpolation, halo=12)
     g_origin = tuple(w.start for w in win)
     b, ssr, nv, nx = K.b_block(f, lo, hi, ell, u, c0, vol[win], g_origin, vol.shape,
@@ -371,10 +384,10 @@ def test_voxels_leaving_g_are_excluded_and_counted(impl, interpolation):
     assert nx == expected_bad
     assert nv == 12 * 12 * 16 - expected_bad
     if interpolation == "linear":
-        # valid voxels: r = f(z, y, x) - (g(z+1, y, x-3) + g(z+1, y, x-2)) / 2, by hand
+        # r = f(z, y, x) - (g(z+1, y, x-3) + g(z+1, y, x-2)) / 2, by hand, weighted
         g = vol.astype(np.float64)
         r = vol[:11, :, 3:] - 0.5 * (g[1:, :, :-3] + g[1:, :, 1:-2])
-        np.testing.assert_allclose(ssr, np.sum(r * r), rtol=1e-12)
+        np.testing.assert_allclose(ssr, np.sum(weight[:11, :, 3:] * r * r), rtol=1e-12)
     # entirely outside: empty window, every voxel excluded, b = 0
     u_far = np.full((3, 4, 4, 5), 100.0)
     win = K.g_window(c0, core, u_far, vol.shape, interpolation=interpolation, halo=12)
@@ -388,9 +401,12 @@ def test_g_window_bounds_and_refusal():
     u = np.zeros((3, 2, 2, 2))
     u[0, 1] = 2.3
     u[2, 0] = -1.7
-    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear", halo=12)
+    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear")
     # z: [10, 13 + 2.3] -> floor 10 .. floor(15.3) + 1 = 16; x: [8.3, 13] -> 8 .. 14
     assert w == (slice(10, 17), slice(10, 15), slice(8, 15))
+    # a halo (for a window the task low-passes itself) grows it on every side, clipped
+    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear", halo=12)
+    assert w == (slice(0, 29), slice(0, 27), slice(0, 27))
     w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=2)
     assert w == (slice(7, 20), slice(7, 18), slice(5, 18))
     w = K.g_window((0, 0, 26), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=12)

@@ -1,4 +1,4 @@
-"""B-spline coefficients prefiltered once per level: equal to a whole-volume prefilter."""
+"""The prepared deformed image (low-pass, B-spline coefficients) equals a whole-volume filter."""
 
 from __future__ import annotations
 
@@ -6,24 +6,30 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from chunkdic.prefilter import build_coefficients
+from chunkdic.prefilter import build_prepared, prepared_halo
 from chunkdic.scheduler import open_runner
 from chunkdic.volume import ArrayRef
 
 
+@pytest.mark.parametrize("sigma", [0.0, 1.0], ids=["no-low-pass", "low-pass"])
 @pytest.mark.parametrize("local", [True, False], ids=["memory-mapped", "zarr"])
-def test_coefficients_equal_whole_volume_prefilter(tmp_path, noise64, local):
+def test_prepared_box_equals_whole_volume_filters(tmp_path, noise64, local, sigma):
     np.save(tmp_path / "g.npy", noise64)
     g = ArrayRef("npy", str(tmp_path / "g.npy"), "", noise64.shape, "float32")
     box = ((5, 64), (0, 64), (10, 50))  # touches the volume's faces on some sides only
+    halo = prepared_halo(sigma, "cubic", 12)
     with open_runner(None) as runner:
-        coeffs = build_coefficients(g, box, tmp_path / "c", runner.map_unordered, halo=12, local=local)
-    assert coeffs.ref.kind == ("npy" if local else "zarr")
-    whole = ndi.spline_filter(noise64.astype(np.float64), order=3, mode="mirror")
+        prep = build_prepared(g, box, tmp_path / "c", runner.map_unordered, halo=halo, local=local,
+                              sigma=sigma, interpolation="cubic")
+    assert prep.ref.kind == ("npy" if local else "zarr")
+    whole = noise64.astype(np.float64)
+    if sigma:
+        whole = ndi.gaussian_filter(whole, sigma, mode="mirror", truncate=4.0)
+    whole = ndi.spline_filter(whole, order=3, mode="mirror")
     window = (slice(5, 64), slice(0, 64), slice(10, 50))
-    assert coeffs.covers(window) and not coeffs.covers((slice(4, 10),) + window[1:])
+    assert prep.covers(window) and not prep.covers((slice(4, 10),) + window[1:])
     span = float(noise64.max() - noise64.min())
-    np.testing.assert_allclose(coeffs.read(window), whole[window], rtol=0, atol=1e-6 * span)
+    np.testing.assert_allclose(prep.read(window), whole[window], rtol=0, atol=1e-6 * span)
 
 
 @pytest.mark.skipif(not __import__("os").path.exists("/proc/self/maps"), reason="needs Linux /proc")

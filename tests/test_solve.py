@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
+
+from chunkdic.errors import InputError
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS
-from chunkdic.solve import StencilSolver, stencil_matvec
+from chunkdic.regularization import Regularizer
+from chunkdic.solve import StencilSolver, half_stencil, rigid_restriction, stencil_matvec
 
 
 def _random_system(elements=(2, 3, 2), seed=0, weak_element=None):
@@ -31,16 +35,26 @@ def _random_system(elements=(2, 3, 2), seed=0, weak_element=None):
     return dense, S
 
 
-def test_stencil_matvec_equals_dense_product():
+def _half(S):
+    return np.ascontiguousarray(half_stencil(S)).astype(np.float32)
+
+
+def test_half_stencil_matvec_equals_dense_product():
     dense, S = _random_system()
     x = np.random.default_rng(1).standard_normal(S.shape[:3] + (3,))
-    np.testing.assert_allclose(stencil_matvec(S, x).ravel(), dense @ x.ravel(), rtol=1e-12, atol=1e-12)
+    H = np.ascontiguousarray(half_stencil(S))  # float64: the product itself is exact
+    np.testing.assert_allclose(stencil_matvec(H, x).ravel(), dense @ x.ravel(), rtol=1e-12, atol=1e-12)
+    # the rigid restriction is the sum of every entry of M (uniform translations)
+    ones = np.zeros((dense.shape[0] // 3, 3, 3))
+    ones[:, np.arange(3), np.arange(3)] = 1.0
+    T = ones.reshape(-1, 3)
+    np.testing.assert_allclose(rigid_restriction(H), T.T @ dense @ T, rtol=1e-12)
 
 
 def test_cg_solves_the_system():
     dense, S = _random_system(seed=2)
     b = np.random.default_rng(3).standard_normal(S.shape[:3] + (3,))
-    x, iters = StencilSolver(S.copy()).solve(b)
+    x, iters = StencilSolver(_half(S)).solve(b)
     # the matrix-vector product uses M rounded to float32 (solve.py): agreement to ~1e-5
     exact = np.linalg.solve(dense, b.ravel())
     assert np.abs(x.ravel() - exact).max() < 1e-4 * np.abs(exact).max()
@@ -50,7 +64,31 @@ def test_cg_solves_the_system():
 def test_untextured_nodes_are_regularised_not_nan():
     # the corner node belongs to the untextured corner element only
     _, S = _random_system(elements=(3, 3, 3), seed=4, weak_element=(0, 0, 0))
-    solver = StencilSolver(S)
+    solver = StencilSolver(_half(S))
     assert [tuple(n) for n in solver.weak_nodes] == [(0, 0, 0)]
     x, _ = solver.solve(np.ones(S.shape[:3] + (3,)))
     assert np.isfinite(x).all()
+
+
+def test_regularised_cg_equals_a_dense_solve():
+    """(M + λR) x = b by CG against numpy's dense solve of the same assembled matrices."""
+    dense, S = _random_system(elements=(3, 4, 3), seed=5)
+    b = np.random.default_rng(6).standard_normal(S.shape[:3] + (3,))
+    for kind, weight in (("tikhonov", 0.7), ("equilibrium-gap", 0.05)):
+        reg = Regularizer(kind, S.shape[:3], 4.0)
+        n = dense.shape[0]
+        R = np.stack([reg.apply(e.reshape(S.shape[:3] + (3,))).ravel() for e in np.eye(n)], axis=1)
+        np.testing.assert_allclose(R, R.T, atol=1e-9 * np.abs(R).max())  # symmetric
+        solver = StencilSolver(_half(S))
+        solver.regularize(reg, weight)
+        x, _ = solver.solve(b)
+        exact = np.linalg.solve(dense + weight * R, b.ravel())
+        assert np.abs(x.ravel() - exact).max() < 1e-4 * np.abs(exact).max(), kind
+        a = np.random.default_rng(7).standard_normal(b.shape)
+        np.testing.assert_allclose(solver.penalty_gradient(a).ravel(), weight * R @ a.ravel(), rtol=1e-10,
+                                   atol=1e-12)
+
+
+def test_no_gradient_at_all_is_a_one_line_input_error():
+    with pytest.raises(InputError, match="no gradient"):
+        StencilSolver(np.zeros((3, 3, 3, 14, 3, 3), np.float32))

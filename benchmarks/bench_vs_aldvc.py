@@ -1,0 +1,552 @@
+"""chunkdic side by side with the peer code pyALDVC (al-dvc) on the same scans.
+
+For each case (a reference scan, a deformed scan and, when known, the true displacement
+field) and each node spacing ``ell``, both tools run on the same data in this session:
+
+- chunkdic: ``chunkdic.correlate(ref, def, element_size=ell)`` with its defaults, in a
+  fresh Python process, reading the Zarr scans; scored at its nodes
+  (``result.node_coords``, ``result.displacement``, level-0 voxels);
+- al-dvc: ``al-dvc run --volumes REF.npy DEF.npy --winsize 2ell --step ell`` with its
+  defaults, from its own virtual environment (created on first use, outside the
+  repository; see ``benchmarks/aldvc.py``), reading ``.npy`` copies of the same scans.
+
+Both are scored by :func:`chunkdic.score_displacement`: points at least ``ell`` voxels
+from the volume's faces; sigma pooled over the three components
+(``sqrt(mean of the three variances)``); RMS vector error; points a tool flags as failed
+are counted (``failed``), not scored. The table gives medians over ``--repeats`` runs;
+``wall`` is the tool's own correlation time (chunkdic: the ``correlate`` call; al-dvc: its
+"Done in" time, input reading included), ``proc`` the whole process (start-up included),
+``x`` = al-dvc wall / chunkdic wall. Both tools get ``--threads`` cores (default: all):
+chunkdic's embedded pool (``DASK_CHUNKDIC__NUM_THREADS``), al-dvc's ``n_threads``, and
+``NUMBA_NUM_THREADS`` / ``OMP_NUM_THREADS`` / BLAS of both children. A warm-up run of
+each tool on a 48³ pair comes first, so that neither pays for Numba compilation.
+
+Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` of
+:mod:`chunkdic.microstructure` imaged by :mod:`chunkdic.ctsim`, with independent noise
+``--noise`` in each scan; ``foam`` for the smooth synthetic foam):
+
+- ``shift``: the reference, Fourier-shifted by (0.5, 0.5, 0.5) voxel (the paper's section
+  4.2 test: both scans share the reference's noise);
+- ``noise``: a (0.5, 0.5, 0.5) translation rendered from the geometry, independent noise
+  in each scan;
+- ``band``: the standard compression band (:func:`chunkdic.ctpair.standard_field`: −8 %
+  peak strain, 6-voxel width, lateral factor 0.05 unless ``--band-lateral``), independent
+  noise in each scan. The C8 basis alone cannot follow so sharp a band: at 100³ the L2
+  projection of this field on chunkdic's meshes leaves 0.029 / 0.026 voxel RMS at the
+  scored nodes for ell = 12 / 8 (0.13 / 0.06 with a lateral factor of 0.3, which would
+  measure the basis rather than the tools);
+- ``band-grey``: ``band`` with the deformed scan's grey levels changed (gain 1.1, +5 %
+  offset, 3 % drift along z; CT specimens only).
+
+``--set KEY=VALUE`` passes settings to chunkdic (e.g. ``--set smoothing=0 --set grey=none``
+for the paper's plain C8).
+
+Usage::
+
+    python benchmarks/bench_vs_aldvc.py --selfcheck            # verify the adapter's conventions
+    python benchmarks/bench_vs_aldvc.py --sizes 128 --spacings 16 12 8 --repeats 1
+    python benchmarks/bench_vs_aldvc.py --sizes 300 --cases shift --spacings 12 --repeats 3
+    python benchmarks/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import aldvc as peer  # noqa: E402  (benchmarks/aldvc.py, next to this file)
+
+RECORDS = Path(__file__).resolve().parent / "records"
+CASE_NAMES = ("shift", "noise", "band", "band-grey")
+SHIFT = (0.5, 0.5, 0.5)
+
+
+def _error(msg: str) -> None:
+    print(f"bench_vs_aldvc: error: {msg}", file=sys.stderr)
+    sys.exit(2)
+
+
+# --------------------------------------------------------------------------- cases
+
+
+@dataclass
+class Case:
+    """One pair of scans. ``reference``/``deformed``: what chunkdic reads (Zarr);
+    ``field``: the true displacement (a :class:`chunkdic.fields.Field`) or None."""
+
+    name: str
+    reference: str
+    deformed: str
+    field: object | None
+    shape: tuple[int, int, int]
+    note: str = ""
+
+
+GREY_CHANGE = {"gain": 1.1, "offset": 0.05, "drift": 0.03}
+
+
+def _band(n: int, lateral: float | None):
+    from chunkdic.ctpair import standard_field
+
+    kw = {} if lateral is None else {"lateral": lateral}
+    return standard_field("band", (n,) * 3, **kw)[0]
+
+
+def _pair(out: Path, n: int, args, specimen: str, *, field, **extra) -> dict:
+    from chunkdic import synthetic
+
+    if (out / "field.json").exists():
+        return {"reference": str(out / "ref.zarr"), "deformed": str(out / "def.zarr")}
+    t0 = time.perf_counter()
+    kw = {"seed": args.seed, "dtype": args.dtype, "overwrite": True, "noise": args.noise}
+    if specimen != "foam":
+        kw["specimen"] = specimen
+    paths = synthetic.synthesize(out, (n,) * 3, field=field, **kw, **extra)
+    print(f"# synthesized {out.name} ({n}^3) in {time.perf_counter() - t0:.1f} s", flush=True)
+    return paths
+
+
+def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | None:
+    """Write the scans of case ``name`` at ``n``³ under ``workdir`` (kept between runs)."""
+    from chunkdic.fields import Translation
+
+    tag = f"{name}-{n}-{specimen}-{args.dtype}-n{args.noise:g}-s{args.seed}"
+    if name.startswith("band") and args.band_lateral is not None:
+        tag += f"-lat{args.band_lateral:g}"
+    out = workdir / tag
+    label = f"{name}/{specimen}"
+    if name == "shift":
+        if specimen == "foam":
+            from chunkdic.metrology import fourier_shift_scan
+            from chunkdic.volume import open_scan
+
+            paths = _pair(out, n, args, specimen, field=None)
+            shifted = out / "shifted.zarr"
+            if not shifted.exists():
+                src = open_scan(paths["reference"]).refs([0])[0]
+                fourier_shift_scan(src, shifted, SHIFT, overwrite=True)
+            return Case(label, paths["reference"], str(shifted), Translation(SHIFT), (n,) * 3,
+                        "Fourier shift of the reference")
+        paths = _pair(out, n, args, specimen, field=Translation(SHIFT), fourier_shift=True)
+        return Case(label, paths["reference"], paths["deformed"], Translation(SHIFT), (n,) * 3,
+                    "Fourier shift of the reference")
+    if name == "noise":
+        paths = _pair(out, n, args, specimen, field=Translation(SHIFT))
+        return Case(label, paths["reference"], paths["deformed"], Translation(SHIFT), (n,) * 3,
+                    f"translation, independent noise {args.noise:g}")
+    field = _band(n, args.band_lateral)
+    if name == "band":
+        paths = _pair(out, n, args, specimen, field=field)
+        return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3, "band -8 %, width 6")
+    if name == "band-grey":
+        if specimen == "foam":
+            print("# band-grey skipped on the foam (grey-level changes are a CT-specimen option)", flush=True)
+            return None
+        paths = _pair(out, n, args, specimen, field=field, **GREY_CHANGE)
+        return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
+                    "band, deformed x1.1 +5 % drift 3 %")
+    raise ValueError(name)
+
+
+def pair_case(path: str) -> Case:
+    """A synthesized pair directory (``ref.zarr``, ``def.zarr``, ``field.json``)."""
+    from chunkdic import synthetic
+    from chunkdic.volume import open_scan
+
+    d = Path(path)
+    ref, dfm = d / "ref.zarr", d / "def.zarr"
+    if not (ref.exists() and dfm.exists()):
+        _error(f"--pair {path}: expected {ref} and {dfm}")
+    field = synthetic.load_field(d) if (d / "field.json").exists() else None
+    shape = tuple(int(s) for s in open_scan(str(ref)).shape(0))
+    return Case(d.name, str(ref), str(dfm), field, shape, "pair directory")
+
+
+def npy_copies(case: Case, workdir: Path) -> tuple[Path, Path]:
+    """``.npy`` copies of a case's level-0 scans for al-dvc (slab by slab)."""
+    from chunkdic.volume import open_scan
+
+    out = []
+    for src in (case.reference, case.deformed):
+        arr = open_scan(src).refs([0])[0].open()
+        src = Path(src).resolve()
+        target = workdir / "npy" / f"{src.parent.name}-{src.stem}.npy"  # never beside a user's scans
+        target.parent.mkdir(parents=True, exist_ok=True)
+        out.append(peer.write_npy(arr, target))
+    return out[0], out[1]
+
+
+# --------------------------------------------------------------------------- chunkdic child
+
+
+def _chunkdic_child(args) -> None:
+    """One chunkdic run in this (fresh) process; writes points/u (.npz) and a JSON summary."""
+    import chunkdic
+
+    t0 = time.perf_counter()
+    options = json.loads(args.options or "{}")
+    res = chunkdic.correlate(args.ref, args.deformed, element_size=args.element_size, **options)
+    wall = time.perf_counter() - t0
+    scale = float(res.info.get("scale", 1))
+    # level-s voxels -> level-0 voxels (shared/DESIGN.md: centre offset (2^s - 1) / 2)
+    points = res.node_coords.reshape(3, -1) * scale + (scale - 1) / 2
+    u = res.displacement.reshape(3, -1) * scale
+    np.savez(args.out + ".npz", points=points, u=u)
+    hist = res.history
+    summary = {
+        "wall": wall, "status": res.info.get("status"), "converged": res.converged,
+        "final_gap": res.info.get("final_gap"), "level": res.info.get("level"), "scale": scale,
+        "iterations": int(np.sum(np.asarray(hist["level"]) == res.info.get("level"))),
+        "nodes": int(points.shape[1]), "roi": res.info.get("roi_level0"),
+    }
+    with open(args.out + ".json", "w") as fh:
+        json.dump(summary, fh)
+
+
+def run_chunkdic(case: Case, ell: int, threads: int, out: Path, timeout: float, options: dict | None = None) -> dict:
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cmd = [sys.executable, __file__, "--child", "--ref", case.reference, "--deformed", case.deformed,
+           "--element-size", str(ell), "--out", str(out), "--options", json.dumps(options or {})]
+    env = peer.child_env(threads)
+    env["DASK_CHUNKDIC__NUM_THREADS"] = str(threads)
+    t0 = time.perf_counter()
+    with open(str(out) + ".log", "w") as log:
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                env=env, start_new_session=True)
+        rc, peak = peer.wait_with_peak(proc, timeout)
+    proc_wall = time.perf_counter() - t0
+    if rc is None:
+        return {"status": "timeout", "proc": proc_wall, "peak_rss_mb": peak}
+    if rc != 0:
+        tail = Path(str(out) + ".log").read_text(errors="replace").strip().splitlines()[-3:]
+        return {"status": f"failed (exit {rc})", "proc": proc_wall, "peak_rss_mb": peak, "tail": tail}
+    summary = json.loads(Path(str(out) + ".json").read_text())
+    with np.load(str(out) + ".npz") as d:
+        summary["points"], summary["u"] = d["points"], d["u"]
+    summary.update(proc=proc_wall, peak_rss_mb=peak)
+    return summary
+
+
+# --------------------------------------------------------------------------- scoring and table
+
+
+def _score(points, u, valid, case: Case, ell: int) -> dict:
+    from chunkdic import score_displacement
+    from chunkdic.fields import true_displacement
+
+    if points is None:
+        return {}
+    if case.field is None:
+        return {"n_points": int(points.shape[1]), "no_truth": True}
+    truth = true_displacement(case.field, points[0], points[1], points[2])
+    return score_displacement(points, u, truth, case.shape, ell, valid=valid).as_dict()
+
+
+def _median(values):
+    v = [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
+    return statistics.median(v) if v else float("nan")
+
+
+def _summarise(runs: list[dict]) -> dict:
+    """Median of the numeric fields over repeats; status of the first run that was not ok."""
+    first = runs[0]
+    out = {k: v for k, v in first.items() if not isinstance(v, (int, float)) or isinstance(v, bool)}
+    for k, v in first.items():
+        if isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[k] = _median([r.get(k) for r in runs])
+    bad = [r["status"] for r in runs if r["status"] not in ("ok", "converged")]
+    out["status"] = bad[0] if bad else first["status"]
+    out["statuses"] = [r["status"] for r in runs]
+    return out
+
+
+HEADER = (f"{'size':>4} {'case':<18} {'ell':>3} {'tool':<8} {'sigma':>8} {'|bias|':>8} {'RMS':>8} "
+          f"{'max':>7} {'points':>6} {'failed':>6} {'status':<14} {'wall s':>7} {'proc s':>7} "
+          f"{'MB':>6} {'x':>5}")
+
+
+def _fmt(v, spec):
+    return "-" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+
+def row(size, case, ell, tool, m: dict, ratio=None) -> str:
+    bias = m.get("bias")
+    bnorm = float(np.linalg.norm(bias)) if bias and all(np.isfinite(bias)) else None
+    return (f"{size:>4} {case:<18} {ell:>3} {tool:<8} {_fmt(m.get('sigma'), '8.4f')} {_fmt(bnorm, '8.4f')} "
+            f"{_fmt(m.get('rms'), '8.4f')} {_fmt(m.get('max_error'), '7.3f')} "
+            f"{_fmt(m.get('n_points'), '6.0f')} {_fmt(m.get('n_failed'), '6.0f')} {m.get('status', '-'):<14} "
+            f"{_fmt(m.get('wall'), '7.1f')} {_fmt(m.get('proc'), '7.1f')} {_fmt(m.get('peak_rss_mb'), '6.0f')} "
+            f"{_fmt(ratio, '5.1f')}")
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys) -> dict:
+    """Both tools on one case at one spacing, ``--repeats`` times; scored medians."""
+    runs = {"chunkdic": [], "al-dvc": []}
+    for rep in range(args.repeats):
+        base = workdir / "runs" / f"{case.name}-{case.shape[0]}-ell{ell}-r{rep}"
+        c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout, args.options)
+        score = _score(c.pop("points", None), c.pop("u", None), None, case, ell)
+        runs["chunkdic"].append({**c, **score})
+        a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
+                           threads=args.threads, timeout=args.timeout)
+        score = _score(a.points, a.u, a.valid, case, ell)
+        # the same field scored with every node al-dvc returns, flagged ones included
+        every = _score(a.points, a.u, None, case, ell) if a.points is not None else {}
+        info = {k: v for k, v in a.info.items() if k not in ("para", "command")}
+        runs["al-dvc"].append({"status": a.status, "wall": a.pipeline_seconds, "proc": a.wall,
+                               "peak_rss_mb": a.peak_rss_mb, **score,
+                               "rms_all_nodes": every.get("rms"), "sigma_all_nodes": every.get("sigma"),
+                               "info": info})
+    return {tool: _summarise(r) | {"runs": r} for tool, r in runs.items()}
+
+
+def warm_up(exe: Path, args, workdir: Path) -> None:
+    """One untimed run of each tool on a 48³ pair: Numba caches loaded or compiled."""
+    from chunkdic.fields import Translation
+
+    class A:  # the synthesis settings of a tiny pair
+        seed, dtype, noise = 0, "uint8", 0.0
+
+    paths = _pair(workdir / "warmup-48", 48, A, "foam", field=Translation((0.3, 0.2, 0.1)))
+    case = Case("warmup", paths["reference"], paths["deformed"], None, (48,) * 3)
+    t0 = time.perf_counter()
+    c = run_chunkdic(case, 8, args.threads, workdir / "runs" / "warmup" / "chunkdic", args.timeout,
+                     args.options)
+    ref, dfm = npy_copies(case, workdir)
+    a = peer.run_aldvc(exe, ref, dfm, workdir / "runs" / "warmup" / "aldvc", winsize=16, step=8,
+                       threads=args.threads, timeout=args.timeout)
+    print(f"# warm-up: chunkdic {c['status']}, al-dvc {a.status} ({time.perf_counter() - t0:.0f} s)",
+          flush=True)
+
+
+# --------------------------------------------------------------------------- self-check
+
+
+def _affine_fit(points, u):
+    """Least-squares affine fit ``u = M q + b`` of ``u`` (3, N) at ``q`` (3, N); returns ``M``, ``b``."""
+    P = np.vstack([points, np.ones(points.shape[1])]).T
+    coef, *_ = np.linalg.lstsq(P, u.T, rcond=None)
+    return coef[:3].T, coef[3]
+
+
+def selfcheck(exe: Path, args, workdir: Path) -> int:
+    """al-dvc on known fields: integer translation (2, -1, 3) voxel and an affine field.
+
+    Prints al-dvc's raw output next to the converted one and the truth, and the error of
+    the adapter's conventions against the errors of plausible mistakes (axes not reversed,
+    sign flipped, node positions off by one voxel). For the affine field it also fits an
+    affine map to al-dvc's nodal field: the fitted gradient must match the true one, and
+    the fitted displacement at the field's centre the true translation, which pins the
+    node positions down to a fraction of a voxel. Exit status 1 when a check fails.
+    """
+    from chunkdic import score_displacement
+    from chunkdic.fields import Affine, Translation, true_displacement
+
+    class A:
+        seed, dtype, specimen, noise = 3, "float32", None, 0.0
+
+    n, ell, c = 80, 12, 39.5
+    matrix = ((-0.04, 0.01, 0.0), (0.0, 0.03, -0.01), (0.008, 0.0, 0.035))
+    fields = {
+        "translation": Translation((2.0, -1.0, 3.0)),
+        "affine": Affine(matrix=matrix, center=(c, c, c), translation=(0.3, -0.2, 0.7)),
+    }
+    ok = True
+    record = {}
+    for name, field in fields.items():
+        paths = _pair(workdir / f"selfcheck-{name}", n, A, field=field, noise=0.0)
+        case = Case(name, paths["reference"], paths["deformed"], field, (n,) * 3)
+        ref, dfm = npy_copies(case, workdir)
+        a = peer.run_aldvc(exe, ref, dfm, workdir / "runs" / f"selfcheck-{name}",
+                           winsize=2 * ell, step=ell, threads=args.threads, timeout=args.timeout)
+        if a.status != "ok":
+            print(f"{name}: al-dvc {a.status}; see {a.info.get('log')}")
+            return 1
+        with np.load(Path(a.info["log"]).with_name("aldvc.npz")) as d:
+            raw_c, raw_u = d["coordinates"], d["U_1"]
+        print(f"\n{name} {field.to_json()}\n  al-dvc --winsize {2 * ell} --step {ell} on {n}^3: grid "
+              f"{a.info['grid_shape_zyx']} (z, y, x), first node coordinates [x, y, z] = {raw_c[0].tolist()}, "
+              f"{a.info['n_flagged']} flagged")
+        t = true_displacement(field, *a.points)
+        print(f"  raw U_1 [u, v, w], mean over nodes: {np.round(raw_u.mean(axis=0), 4).tolist()}")
+        print(f"  converted (Uz, Uy, Ux), mean:       {np.round(a.u.mean(axis=1), 4).tolist()}")
+        print(f"  truth (Uz, Uy, Ux), mean:           {np.round(t.mean(axis=1), 4).tolist()}")
+        # each variant: a measured field (positions, u) scored against the truth at those positions
+        variants = {
+            "adapter (axes reversed, same sign)": (a.points, a.u),
+            "axes not reversed": (a.points, a.u[::-1]),
+            "sign flipped": (a.points, -a.u),
+        }
+        if name == "affine":
+            variants["node positions +1 voxel"] = (a.points + 1.0, a.u)
+            variants["node positions -1 voxel"] = (a.points - 1.0, a.u)
+        errs = {}
+        for label, (p, u) in variants.items():
+            s = score_displacement(p, u, true_displacement(field, *p), case.shape, ell, valid=a.valid)
+            errs[label] = s.rms
+            print(f"  {label:<36} RMS error {s.rms:.5f} voxel, max {s.max_error:.5f} "
+                  f"({s.n_points} points, {s.n_failed} failed)")
+        good = errs.pop("adapter (axes reversed, same sign)")
+        passed = all(v > 3 * good for v in errs.values())
+        rec = {"errors": {"adapter": good, **errs}, "raw_mean_U_xyz": raw_u.mean(axis=0).tolist(),
+               "converted_mean_u_zyx": a.u.mean(axis=1).tolist(), "wall": a.pipeline_seconds}
+        if name == "translation":
+            passed &= good < 0.01
+        else:
+            m, b = _affine_fit(a.points[:, a.valid] - c, a.u[:, a.valid])
+            # measured u = A (X_true - c) + t with X_true = X_reported + offset, so the fit's
+            # value at the centre is b = t + A offset
+            offset = np.linalg.solve(np.asarray(matrix), b - np.asarray(field.translation))
+            print("  fitted gradient (rows Uz, Uy, Ux; columns d/dz, d/dy, d/dx):\n"
+                  + "\n".join("    " + " ".join(f"{v:+.5f}" for v in r) for r in m)
+                  + "\n  true gradient:\n" + "\n".join("    " + " ".join(f"{v:+.5f}" for v in r) for r in matrix))
+            print(f"  fitted u at the centre {np.round(b, 4).tolist()}, true {list(field.translation)}: "
+                  f"node positions consistent to {np.round(offset, 3).tolist()} voxel (z, y, x)")
+            passed &= bool(np.abs(m - np.asarray(matrix)).max() < 0.002 and np.abs(offset).max() < 0.25)
+            rec.update(fitted_gradient=m.tolist(), fitted_centre=b.tolist(), position_offset=offset.tolist())
+        print(f"  -> {'PASS' if passed else 'FAIL'}")
+        rec["passed"] = bool(passed)
+        record[name] = rec
+        ok &= passed
+    _write_record(args, {"selfcheck": record})
+    return 0 if ok else 1
+
+
+# --------------------------------------------------------------------------- main
+
+
+def _write_record(args, payload: dict) -> None:
+    path = Path(args.record) if args.record else RECORDS / (
+        "bench_vs_aldvc_selfcheck.json" if args.selfcheck else
+        f"bench_vs_aldvc_{'-'.join(str(s) for s in args.sizes)}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "host": platform.node(), "cores": os.cpu_count(),
+            "threads": args.threads, "aldvc_version": peer.VERSION, "aldvc_settings": peer.FIXED_SETTINGS,
+            "argv": sys.argv[1:]}
+    with open(path, "w") as fh:
+        json.dump({"meta": meta, **payload}, fh, indent=1, default=_json_default)
+    print(f"# record: {path}")
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cases", nargs="+", default=list(CASE_NAMES), choices=CASE_NAMES,
+                   help="built-in cases (default: all)")
+    p.add_argument("--pair", action="append", default=[], metavar="DIR",
+                   help="also run a synthesized pair directory (ref.zarr, def.zarr, field.json); repeatable")
+    p.add_argument("--sizes", type=int, nargs="+", default=[128], help="scan edges of the built-in cases")
+    p.add_argument("--spacings", type=int, nargs="+", default=[16, 12, 8],
+                   help="ell: chunkdic element size, al-dvc --step ell --winsize 2ell")
+    p.add_argument("--repeats", type=int, default=3, help="runs per case and spacing (medians)")
+    p.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="cores given to each tool")
+    p.add_argument("--noise", type=float, default=0.02,
+                   help="acquisition noise std, texture units (grey range ~1); independent per scan")
+    p.add_argument("--band-lateral", type=float, default=None,
+                   help="lateral expansion factor of the band cases (default: the standard case's 0.05)")
+    p.add_argument("--dtype", default="uint16", choices=["uint8", "uint16", "float32"])
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--specimen", nargs="+", default=["grains", "concrete"], choices=["grains", "concrete", "foam"],
+                   help="specimens of the built-in cases (default: the CT-like grains and concrete)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a chunkdic setting for every run, e.g. --set regularization=none (repeatable)")
+    p.add_argument("--timeout", type=float, default=3600.0, help="seconds per tool run")
+    p.add_argument("--workdir", default=None, help="scans and runs (default: a new temporary directory)")
+    p.add_argument("--venv", default=str(peer.DEFAULT_VENV), help="al-dvc's virtual environment")
+    p.add_argument("--record", default=None, help="JSON record path (default: benchmarks/records/...)")
+    p.add_argument("--no-warmup", action="store_true", help="skip the untimed warm-up runs")
+    p.add_argument("--selfcheck", action="store_true",
+                   help="only verify the adapter's conventions on known fields, then exit")
+    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    for name in ("--ref", "--deformed", "--out", "--options"):
+        p.add_argument(name, help=argparse.SUPPRESS)
+    p.add_argument("--element-size", type=int, help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.child:
+        return args
+    if any(s < 4 for s in args.spacings):
+        _error("--spacings must be >= 4")
+    if any(s < 32 for s in args.sizes):
+        _error("--sizes must be >= 32")
+    if args.repeats < 1 or args.threads < 1 or args.timeout <= 0:
+        _error("--repeats, --threads and --timeout must be positive")
+    args.options = {}
+    for item in args.set:
+        key, sep, value = item.partition("=")
+        if not sep:
+            _error(f"--set {item!r}: expected KEY=VALUE")
+        try:
+            args.options[key.replace("-", "_")] = json.loads(value)
+        except json.JSONDecodeError:
+            args.options[key.replace("-", "_")] = value
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    if args.child:
+        _chunkdic_child(args)
+        return 0
+    workdir = Path(args.workdir or tempfile.mkdtemp(prefix="chunkdic-vs-aldvc-")).resolve()
+    workdir.mkdir(parents=True, exist_ok=True)
+    exe = peer.ensure_venv(Path(args.venv))
+    print(f"# al-dvc {peer.VERSION} from {exe}; settings {peer.FIXED_SETTINGS}, n_threads {args.threads}; "
+          f"chunkdic {args.threads} threads; {os.cpu_count()} cores; workdir {workdir}", flush=True)
+    if args.selfcheck:
+        return selfcheck(exe, args, workdir)
+    if not args.no_warmup:
+        warm_up(exe, args, workdir)
+    cases = []
+    for n in args.sizes:
+        for specimen in args.specimen:
+            for name in args.cases:
+                c = build_case(name, n, specimen, workdir, args)
+                if c is not None:
+                    cases.append(c)
+    cases += [pair_case(p) for p in args.pair]
+    print(f"# medians of {args.repeats} run(s); sigma pooled, RMS vector error, points >= ell from the "
+          f"faces; x = al-dvc wall / chunkdic wall\n" + HEADER, flush=True)
+    results = []
+    for case in cases:
+        npys = npy_copies(case, workdir)
+        for ell in args.spacings:
+            if min(case.shape) < 3 * ell + 11:  # al-dvc needs two nodes per axis
+                print(f"# {case.name} {case.shape[0]}^3: ell {ell} too large for this size, skipped")
+                continue
+            r = compare(case, ell, args, exe, workdir, npys)
+            c, a = r["chunkdic"], r["al-dvc"]
+            ratio = a["wall"] / c["wall"] if c.get("wall") and a.get("wall") else None
+            print(row(case.shape[0], case.name, ell, "chunkdic", c), flush=True)
+            print(row(case.shape[0], case.name, ell, "al-dvc", a, ratio), flush=True)
+            results.append({"case": case.name, "note": case.note, "shape": case.shape, "ell": ell,
+                            "field": None if case.field is None else case.field.to_json(),
+                            "chunkdic": c, "al-dvc": a, "wall_ratio": ratio})
+    _write_record(args, {"results": results})
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,58 @@
+"""Specimen masks: which elements hold material and take part in the correlation.
+
+A specimen seldom fills its scan (a cylinder in air is the usual case): elements of air
+see no texture, their nodes are poorly determined and they would count in the mean strain.
+With a mask (a scan of the reference's shape, any format :func:`chunkdic.open_scan`
+reads, non-zero = material) an element takes part only when at least
+:data:`MIN_MATERIAL` of its volume is material; the other elements are left out of ``M``,
+``b`` and the matching gap, nodes with no active element around them are *missing*
+(NaN in the result, :data:`chunkdic.result.FLAG_MASKED`), and strain means run over the
+active elements only.
+
+Out of core: the mask is binarised (0/1, uint8) and its ``2^s`` sum pyramid written chunk
+by chunk into the run's scratch directory once (:func:`prepare_mask`); on level ``s`` a
+level voxel's sum over ``8^s`` is its material fraction, and each ``M`` task reads its
+block's sums to get its elements' fractions (:func:`element_fractions`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .errors import InputError
+from .volume import ArrayRef, open_scan
+
+#: an element takes part when at least this fraction of its voxels is material
+MIN_MATERIAL = 0.5
+
+
+def prepare_mask(src, ref_shape0, levels, scratch: Path) -> dict[int, ArrayRef]:
+    """Binarise ``src`` (non-zero = material) and give its sum levels ``levels`` (ArrayRefs).
+
+    Raises :class:`InputError` if the mask is not 3-D of the reference's level-0 shape.
+    """
+    mask = open_scan(src)
+    shape = tuple(int(n) for n in mask.shape(0))
+    if shape != tuple(int(n) for n in ref_shape0):
+        raise InputError(f"the mask has shape {shape}, the reference {tuple(ref_shape0)}: they must be equal")
+    binary = open_scan((mask.level(0) != 0).astype(np.uint8))
+    return binary.refs(levels, scratch)
+
+
+def element_fractions(mask: ArrayRef, level: int, start, shape, ell: int) -> np.ndarray:
+    """Material fraction of each element of a block, shape ``(ez, ey, ex)``, float64.
+
+    ``start, shape``: the block's core (voxels of ``level``); ``mask``: the binary mask's
+    sum at that level (:func:`prepare_mask`).
+    """
+    core = mask.read(tuple(slice(a, a + n) for a, n in zip(start, shape))).astype(np.float64)
+    e = tuple(n // ell for n in shape)
+    per_element = core.reshape(e[0], ell, e[1], ell, e[2], ell).sum(axis=(1, 3, 5))
+    return per_element / (ell**3 * 8.0**level)
+
+
+def active_elements(fractions: np.ndarray) -> np.ndarray:
+    """1 for the elements that take part (material fraction at least :data:`MIN_MATERIAL`), else 0 (uint8)."""
+    return (fractions >= MIN_MATERIAL).astype(np.uint8)

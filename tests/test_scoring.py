@@ -1,0 +1,93 @@
+"""The common scoring rule (chunkdic.scoring): border exclusion, pooled sigma, RMS, failures.
+
+Every expected number below is computed by hand in the comments, not by the code.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+import chunkdic
+from chunkdic.errors import InputError
+from chunkdic.scoring import score_displacement, scored_region
+
+
+def test_border_exclusion_uses_the_outer_voxel_faces():
+    # 40 voxels per axis: faces at -0.5 and 39.5; ell = 8 keeps 7.5 <= p <= 31.5
+    shape, ell = (40, 40, 40), 8
+    z = np.array([7.5, 7.49, 31.5, 31.51, 20.0, 20.0, 20.0, 20.0])
+    y = np.array([20.0, 20.0, 20.0, 20.0, 7.4, 32.0, 20.0, 20.0])
+    x = np.array([20.0, 20.0, 20.0, 20.0, 20.0, 20.0, 7.5, 31.6])
+    inside = scored_region(np.stack([z, y, x]), shape, ell)
+    assert inside.tolist() == [True, False, True, False, False, False, True, False]
+
+
+def test_pooled_sigma_bias_rms_and_max_by_hand():
+    shape, ell = (64, 64, 64), 16
+    # four points inside (16 <= p <= 47), one outside (p = 5 along z) with a huge error
+    pts = np.array([
+        [20.0, 30.0, 40.0, 25.0, 5.0],
+        [20.0, 20.0, 20.0, 20.0, 20.0],
+        [20.0, 20.0, 20.0, 20.0, 20.0],
+    ])
+    truth = np.array([0.5, -0.25, 1.0])
+    # errors e (z, y, x) at the four inside points:
+    #   z: +0.1, -0.1, +0.1, -0.1  -> bias 0,   var 0.01
+    #   y: +0.2, +0.2, +0.2, +0.2  -> bias 0.2, var 0
+    #   x: +0.0, +0.3, +0.0, -0.3  -> bias 0,   var (0 + 0.09 + 0 + 0.09) / 4 = 0.045
+    e = np.array([
+        [0.1, -0.1, 0.1, -0.1, 50.0],
+        [0.2, 0.2, 0.2, 0.2, 0.0],
+        [0.0, 0.3, 0.0, -0.3, 0.0],
+    ])
+    s = score_displacement(pts, truth[:, None] + e, truth, shape, ell)
+    assert (s.n_points, s.n_failed, s.n_outside) == (4, 0, 1)
+    np.testing.assert_allclose(s.bias, (0.0, 0.2, 0.0), atol=1e-12)
+    np.testing.assert_allclose(s.std, (0.1, 0.0, math.sqrt(0.045)), atol=1e-12)
+    # pooled sigma = sqrt((0.01 + 0 + 0.045) / 3) = sqrt(0.055 / 3)
+    assert s.sigma == pytest.approx(math.sqrt(0.055 / 3), rel=1e-12)
+    # |e|^2 per point: 0.01 + 0.04 + 0 = 0.05; 0.01 + 0.04 + 0.09 = 0.14; 0.05; 0.14
+    # rms = sqrt(0.38 / 4) = sqrt(0.095); max = sqrt(0.14)
+    assert s.rms == pytest.approx(math.sqrt(0.095), rel=1e-12)
+    assert s.max_error == pytest.approx(math.sqrt(0.14), rel=1e-12)
+
+
+def test_failed_points_are_counted_not_scored():
+    shape, ell = (50, 50, 50), 10
+    pts = np.full((3, 5), 25.0)
+    pts[0, 4] = 2.0  # outside: neither scored nor counted as failed
+    u = np.zeros((3, 5))
+    u[:, 1] = np.nan  # tool returned NaN
+    u[0, 2] = 1000.0  # tool flagged it (valid=False): its wild value must not count
+    u[0, 3] = 0.4
+    u[:, 4] = np.nan
+    valid = np.array([True, True, False, True, True])
+    s = score_displacement(pts, u, (0.0, 0.0, 0.0), shape, ell, valid=valid)
+    assert (s.n_points, s.n_failed, s.n_outside) == (2, 2, 1)
+    # errors on z at the two scored points: 0 and 0.4 -> bias 0.2, std 0.2, rms sqrt(0.16 / 2)
+    assert s.bias[0] == pytest.approx(0.2) and s.std[0] == pytest.approx(0.2)
+    assert s.sigma == pytest.approx(0.2 / math.sqrt(3))
+    assert s.rms == pytest.approx(math.sqrt(0.08))
+    assert s.max_error == pytest.approx(0.4)
+
+
+def test_grid_shaped_input_and_no_scored_point():
+    # (3, nz, ny, nx) input, as chunkdic.Result stores it; nodes all nearer than ell
+    zz, yy, xx = np.meshgrid([1.5, 3.5], [1.5, 3.5], [1.5, 3.5], indexing="ij")
+    pts = np.stack([zz, yy, xx])
+    s = score_displacement(pts, np.zeros_like(pts), np.zeros_like(pts), (6, 6, 6), 4)
+    assert (s.n_points, s.n_failed, s.n_outside) == (0, 0, 8)
+    assert math.isnan(s.sigma) and math.isnan(s.rms)
+    assert s.as_dict()["n_outside"] == 8
+
+
+def test_public_export_and_bad_shapes():
+    assert chunkdic.score_displacement is score_displacement
+    assert "score_displacement" in chunkdic.__all__
+    with pytest.raises(InputError):
+        score_displacement(np.zeros((3, 4)), np.zeros((3, 5)), (0, 0, 0), (9, 9, 9), 1)
+    with pytest.raises(InputError):
+        score_displacement(np.zeros((2, 4)), np.zeros((2, 4)), (0, 0), (9, 9, 9), 1)
+    with pytest.raises(InputError):
+        scored_region(np.zeros((3, 4)), (9, 9), 1)
