@@ -32,7 +32,8 @@ def _common_corr(p) -> None:
     p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic")
     p.add_argument("--scheduler", default=None, help="threads (default), local[:N], or tcp://host:port")
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="output directory")
-    p.add_argument("--overwrite", action="store_true", help="reuse a non-empty output directory")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the output directory of an earlier run of the same command")
 
 
 def register(subparsers) -> None:
@@ -82,6 +83,7 @@ def register(subparsers) -> None:
     p.add_argument("results", metavar="RESULT.zarr", nargs="+")
     p.add_argument("--uncertainty", metavar="DIR|CSV", help="delta eps from a `chunkdic uncertainty` run")
     p.add_argument("-o", "--output", metavar="DIR", help="also write zoi_table.md and zoi_table.csv there")
+    p.add_argument("--overwrite", action="store_true", help="replace the tables of an earlier `table -o DIR`")
     p.set_defaults(func=run_table)
 
     p = subparsers.add_parser(
@@ -93,6 +95,7 @@ def register(subparsers) -> None:
     p.add_argument("--ref", help="reference scan (default: the path recorded in the result)")
     p.add_argument("--deformed", help="deformed scan (default: the path recorded in the result)")
     p.add_argument("--interpolation", choices=("cubic", "linear"), default=None)
+    p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
     p.set_defaults(func=run_report)
 
     p = subparsers.add_parser(
@@ -108,7 +111,7 @@ def register(subparsers) -> None:
     p.add_argument("--ref", help="reference scan for --corrected (default: recorded path)")
     p.add_argument("--deformed", help="deformed scan for --corrected (default: recorded path)")
     p.add_argument("--scheduler", default=None)
-    p.add_argument("--overwrite", action="store_true", help="replace existing outputs")
+    p.add_argument("--overwrite", action="store_true", help="replace outputs that an earlier export wrote")
     p.set_defaults(func=run_export)
 
 
@@ -183,7 +186,10 @@ def run_strain(args: argparse.Namespace) -> int:
     from .result import open_result
     from .strain import mean_strain
 
+    from .inputs import check_displacement
+
     res = open_result(args.result)
+    check_displacement(res.displacement, res.path, res.flags)
     s = mean_strain(res.displacement, res.info["element_size"], exclude_outer=not args.all_elements)
     if args.json:
         print(json.dumps({"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}, indent=2))
@@ -219,18 +225,24 @@ def run_sweep(args: argparse.Namespace) -> int:
 
 
 def run_table(args: argparse.Namespace) -> int:
-    from pathlib import Path
+    from .inputs import check_displacement
+    from .metrology import read_delta_eps, write_zoi_table, zoi_table
+    from .outputs import Outputs
+    from .result import open_result
 
-    from .metrology import _read_delta_eps, write_zoi_table, zoi_table
-
-    rows = zoi_table(args.results, delta_eps=_read_delta_eps(args.uncertainty))
-    out = None
-    if args.output:
-        out = Path(args.output)
-        if not out.parent.exists():
-            raise InputError(f"directory {out.parent} does not exist")
-        out.mkdir(exist_ok=True)
-    print(write_zoi_table(rows, out))
+    results = [open_result(r) for r in args.results]
+    for res in results:
+        check_displacement(res.displacement, res.path, res.flags)
+    rows = zoi_table(results, delta_eps=read_delta_eps(args.uncertainty))
+    if not args.output:
+        print(write_zoi_table(rows))
+        return 0
+    plan = Outputs(inputs=[*args.results, *([args.uncertainty] if args.uncertainty else [])],
+                   overwrite=args.overwrite)
+    out = plan.add(args.output, "table").final
+    with plan:
+        text = write_zoi_table(rows, out)
+    print(text)
     return 0
 
 
@@ -238,32 +250,51 @@ def run_report(args: argparse.Namespace) -> int:
     from .report import report
 
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
-                   interpolation=args.interpolation, progress=_err)
+                   interpolation=args.interpolation, overwrite=args.overwrite, progress=_err)
     for p in paths.values():
         print(p)
     return 0
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from . import export
+    from .inputs import check_displacement
+    from .outputs import Outputs
     from .result import open_result
+    from .scheduler import check_scheduler
 
     if not (args.vtk or args.csv or args.corrected):
         raise InputError("nothing to export: give --vtk, --csv and/or --corrected")
-    for path in (args.vtk, args.csv):
-        if path and Path(path).exists() and not args.overwrite:
-            raise InputError(f"output {path} exists: choose another path or pass --overwrite")
     res = open_result(args.result)
+    check_displacement(res.displacement, res.path, res.flags)
+    if args.units == "physical" and not res.info.get("voxel_size"):
+        raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
+    if args.corrected:
+        export.input_scans(res, args.ref, args.deformed)
+        check_scheduler(args.scheduler)
+    # every output checked (and every input) before the first is written; all or nothing
+    plan = Outputs(inputs=export.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
+    entries = {name: plan.add(path, kind) for name, path, kind in
+               (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"), ("corrected", args.corrected, "corrected"))
+               if path}
+    with plan:
+        _export(res, args, {k: e.work for k, e in entries.items()})
+    for name in ("vtk", "csv", "corrected"):
+        if name in entries:
+            print(getattr(args, name))
+    return 0
+
+
+def _export(res, args: argparse.Namespace, work: dict) -> None:
+    """The writes of ``chunkdic export`` into the staged paths ``work``."""
+    from . import export
+
     if args.vtk:
-        info = export.write_vtk(res, args.vtk, units=args.units)
+        info = export.write_vtk(res, work["vtk"], units=args.units)
         _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}")
-        print(args.vtk)
     if args.csv:
-        n = export.write_nodes_csv(res, args.csv, units=args.units)
+        n = export.write_nodes_csv(res, work["csv"], units=args.units)
         _err(f"{args.csv}: {n} nodes")
-        print(args.csv)
     if args.corrected:
         t0 = time.perf_counter()
         last = [0.0]
@@ -273,9 +304,7 @@ def run_export(args: argparse.Namespace) -> int:
                 last[0] = f
                 _err(f"  corrected image: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
 
-        out = export.write_corrected(res, args.corrected, ref=args.ref, deformed=args.deformed,
-                                     scheduler=args.scheduler, overwrite=args.overwrite, progress=progress)
+        out = export.write_corrected(res, work["corrected"], ref=args.ref, deformed=args.deformed,
+                                     scheduler=args.scheduler, progress=progress)
         _err(f"{args.corrected}: corrected and residual, gap {100 * out['gap']:.3f}% over {out['valid']} voxels "
              f"({out['excluded']} excluded)")
-        print(args.corrected)
-    return 0

@@ -53,12 +53,17 @@ def _err(msg: str) -> None:
 
 
 class _Printer:
-    """Progress lines on stderr, every 10 %."""
+    """Progress lines on stderr, every 10 %; ``header`` is printed with the first call, once
+    the inputs and outputs have been checked (a refused run prints its error line only)."""
 
-    def __init__(self, step: str):
+    def __init__(self, step: str, header: str | None = None):
         self.step, self.next, self.t0 = step, 0.1, time.perf_counter()
+        self.header = header
 
     def __call__(self, frac: float) -> None:
+        if self.header:
+            _err(self.header)
+            self.header = None
         if frac + 1e-9 >= self.next:
             _err(f"  {self.step}: {min(frac, 1.0):4.0%}  ({time.perf_counter() - self.t0:.1f} s)")
             while self.next <= frac + 1e-9:
@@ -92,32 +97,25 @@ def run_ingest(args: argparse.Namespace) -> int:
         raise InputError(f"--levels must be >= 0, got {args.levels}")
     if args.chunks is not None and args.chunks < 1:
         raise InputError(f"--chunks must be a positive integer, got {args.chunks}")
+    if args.offset < 0:
+        raise InputError(f"--offset must be >= 0, got {args.offset}")
     with dask_scheduler(args.scheduler, announce=_err):
         return _ingest(args)
 
 
 def _ingest(args: argparse.Namespace) -> int:
     from .formats import ingest
-    from .pyramid import build_pyramid
 
-    _err(f"[1/{2 if args.levels else 1}] ingest {args.src} -> {args.out}")
+    levels = f" and pyramid levels 1..{args.levels}" if args.levels else ""
     t0 = time.perf_counter()
+    # level 0 and the pyramid are written together, in a staged copy renamed into place at
+    # the end (chunkdic.outputs): all or nothing
     scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
                   shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
-                  dataset=args.dataset, overwrite=args.overwrite, levels=0, progress=_Printer("level 0"))
-    t1 = time.perf_counter()
-    nbytes = _nbytes(scan, 0)
-    _summary(scan, t1 - t0, nbytes, "read")
-    if args.levels:
-        _err(f"[2/2] pyramid levels 1..{args.levels}")
-        try:
-            scan = build_pyramid(args.out, args.levels, progress=_Printer("pyramid"))
-        except BaseException:
-            import shutil
-
-            shutil.rmtree(args.out, ignore_errors=True)  # ingest creates the output: all or nothing
-            raise
-        _summary(scan, time.perf_counter() - t1, nbytes, "pyramid from level 0 of")
+                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels,
+                  progress=_Printer("ingest" + (" + pyramid" if args.levels else ""),
+                                    header=f"ingest {args.src} -> {args.out}{levels}"))
+    _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
     return 0
 
 
@@ -127,11 +125,12 @@ def run_pyramid(args: argparse.Namespace) -> int:
     from .volume import open_scan
 
     before = open_scan(args.scan).stored_levels() if Path(args.scan).exists() else []
-    _err(f"pyramid {args.scan}: levels 1..{args.levels}"
-         + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
+    header = (f"pyramid {args.scan}: levels 1..{args.levels}"
+              + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
     with dask_scheduler(args.scheduler, announce=_err):
         t0 = time.perf_counter()
-        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=_Printer("pyramid"))
+        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite,
+                             progress=_Printer("pyramid", header=header))
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "pyramid from level 0 of")
     return 0
 

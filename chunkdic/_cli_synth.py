@@ -128,6 +128,26 @@ def build_field(args, shape):
                   center_y=center[1], center_x=center[2])
 
 
+def _check_options(args) -> None:
+    """Numeric options in range (one line naming the option), before anything is written."""
+    from .inputs import number
+
+    if args.unit is not None and args.voxel_size is None:
+        raise InputError("--unit was given without --voxel-size: pass both (--voxel-size 4.91 --unit micrometer)")
+    for name, kw in (("noise", dict(minimum=0)), ("cell_size", dict(above=0)), ("bead_size", dict(above=0)),
+                     ("wall_width", dict(above=0)), ("lateral", dict(above=-1)), ("band_width", dict(above=0)),
+                     ("strain", dict(above=-1)), ("shear", {}), ("seed", dict(minimum=0, integer=True)),
+                     ("levels", dict(minimum=0, integer=True)), ("chunks", dict(minimum=1, integer=True)),
+                     ("angles", dict(minimum=1, integer=True)), ("blur", dict(minimum=0)), ("rings", dict(minimum=0)),
+                     ("gain", dict(above=0)), ("offset", {}), ("drift", {})):
+        if getattr(args, name) is not None:
+            number(getattr(args, name), "--" + name.replace("_", "-"), **kw)
+    for name in ("translation", "voxel_size"):
+        if getattr(args, name) is not None:
+            for v in _floats(getattr(args, name), name.replace("_", "-"), 3):
+                number(v, "--" + name.replace("_", "-"), above=0 if name == "voxel_size" else None)
+
+
 def _specimen_options(args) -> dict:
     """The options given for the chosen specimen; options of the other kind are errors."""
     given = {k: getattr(args, k) for k in CT_OPTIONS + FOAM_OPTIONS if getattr(args, k) is not None}
@@ -142,8 +162,11 @@ def _specimen_options(args) -> dict:
 def run(args) -> int:
     """Run ``chunkdic synth``; returns the exit code."""
     from . import synthetic as S
+    from .outputs import Outputs
+    from .scheduler import check_scheduler
 
     shape = _shape(args.shape)
+    _check_options(args)
     vs = None if args.voxel_size is None else _floats(args.voxel_size, "voxel-size", 3)
     if args.chunks is not None and args.chunks < 1:
         raise InputError(f"--chunks must be positive, got {args.chunks}")
@@ -157,22 +180,27 @@ def run(args) -> int:
     if fourier and args.specimen == "foam":
         raise InputError("--case fourier-shift needs a CT specimen (--specimen grains|concrete)")
     extra = _specimen_options(args)
+    check_scheduler(args.scheduler)
+    plan = Outputs(overwrite=args.overwrite)
+    plan.add(args.out_dir, "synth")  # checked before anything is written; removed if the run fails
     last = [-1]
     t0 = time.perf_counter()
+    header = [f"synth: {args.out_dir} {args.specimen} shape {shape}, field {'none' if fld is None else fld.to_json()}"]
 
     def progress(frac: float) -> None:
+        if header:  # printed once writing starts: a refused run prints its error line only
+            print(header.pop(), file=sys.stderr, flush=True)
         pct = min(100, int(100 * frac))
         if pct >= last[0] + 5 or (pct == 100 and last[0] < 100):
             last[0] = pct
             print(f"synth: {pct:3d}% ({time.perf_counter() - t0:.1f} s)", file=sys.stderr,
                   flush=True)
 
-    print(f"synth: {args.out_dir} {args.specimen} shape {shape}, field "
-          f"{'none' if fld is None else fld.to_json()}", file=sys.stderr, flush=True)
-    with dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr, flush=True)):
+    with plan, dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr,
+                                                                          flush=True)):
         res = S.synthesize(
             args.out_dir, shape, field=fld, seed=args.seed, dtype=args.dtype, chunks=args.chunks,
-            voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=args.overwrite,
+            voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=False,
             progress=progress, specimen=args.specimen, noise=args.noise, fourier_shift=fourier,
             **extra,
         )

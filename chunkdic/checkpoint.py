@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -41,16 +40,9 @@ def _read_attrs(path: Path) -> dict | None:
         return None
 
 
-def refuse_existing(path) -> None:
-    """Raise InputError unless ``path`` is absent or holds an interrupted chunkdic run."""
-    path = Path(path)
-    if not path.exists():
-        return
-    attrs = _read_attrs(path)
-    if attrs is None or "fingerprint" not in attrs:
-        raise InputError(f"output {path} exists: choose another path or pass --overwrite")
-    if attrs.get("complete"):
-        raise InputError(f"output {path} is a complete result: choose another path or pass --overwrite")
+def _what_changed(before: dict | None, now: dict | None) -> str:
+    changed = [role for role in (now or {}) if before and role in before and before[role] != now[role]]
+    return f" (the {' and '.join(changed)} scan changed since)" if changed else ""
 
 
 class Checkpoint:
@@ -59,38 +51,40 @@ class Checkpoint:
     def __init__(self, path: Path, print_: str):
         self.path = Path(path)
         self.fingerprint = print_
+        self.saved = False  # whether this run has written a checkpoint yet
 
     @classmethod
-    def start(cls, path, print_: str, *, overwrite: bool, inputs=()) -> tuple["Checkpoint", dict | None]:
+    def start(cls, path, print_: str, *, identities: dict | None = None) -> tuple["Checkpoint", dict | None]:
         """Open the output for a run: fresh, or resumed from a matching checkpoint.
 
-        Returns the checkpoint and the saved state (``None`` for a fresh run). Refuses
-        (InputError) a complete result or a foreign path without ``overwrite``, a run made
-        with other inputs or settings, and an output that is one of the inputs.
+        The caller has checked the output (:mod:`chunkdic.outputs`: not an input, ours,
+        ``--overwrite`` rules) and holds its lock (:class:`chunkdic.ownership.OutputLock`);
+        here, under the lock, an existing group is read again. Returns the checkpoint and
+        the saved state (``None`` for a fresh run). Refuses (InputError) a result completed
+        meanwhile and a run made with other inputs or settings, naming the input whose
+        content changed (``identities``: input role -> content identity).
         """
         import zarr
 
         path = Path(path)
-        for src in inputs:
-            if isinstance(src, (str, Path)) and Path(src).resolve() == path.resolve():
-                raise InputError(f"output {path} is one of the inputs: choose another path")
+        identities = json.loads(json.dumps(identities or {}, default=str))  # compared with their JSON form
         state = None
         if path.exists():
             attrs = _read_attrs(path)
-            if overwrite:
-                shutil.rmtree(path) if path.is_dir() else path.unlink()
-            elif attrs is None or "fingerprint" not in attrs or attrs.get("complete"):
-                refuse_existing(path)
-            elif attrs["fingerprint"] != print_:
-                raise InputError(
-                    f"output {path} holds an interrupted run made with other inputs or settings: "
-                    "pass --overwrite to start again"
-                )
-            elif "checkpoint" in attrs:
-                state = attrs["checkpoint"]
-        if not path.exists():
+            if attrs is None or "fingerprint" not in attrs:
+                raise InputError(f"output {path} exists: choose another path or pass --overwrite")
+            if attrs.get("complete"):
+                raise InputError(f"output {path} is a complete result: choose another path or "
+                                 "pass --overwrite")
+            if attrs["fingerprint"] != print_:
+                raise InputError(f"output {path} holds an interrupted run made with other inputs or settings"
+                                 f"{_what_changed(attrs.get('identities'), identities)}: pass --overwrite to start "
+                                 "again")
+            state = attrs.get("checkpoint")
+        else:
             root = zarr.open_group(str(path), mode="w", zarr_format=3)
-            root.attrs["chunkdic"] = {"complete": False, "fingerprint": print_}
+            root.attrs["chunkdic"] = {"kind": "result", "complete": False, "fingerprint": print_,
+                                      "identities": identities}
         ckpt = cls(path, print_)
         if state is not None:
             state = dict(state, arrays=ckpt._load_arrays(state))
@@ -115,3 +109,4 @@ class Checkpoint:
             group.create_array(f"{name}{slot}", data=np.ascontiguousarray(arr), overwrite=True)
         attrs["checkpoint"] = {**state, "slot": slot, "array_names": sorted(arrays)}
         root.attrs["chunkdic"] = attrs
+        self.saved = True

@@ -6,6 +6,7 @@ Bad input gets one line on stderr and exit status 2, with nothing written.
 from __future__ import annotations
 
 import argparse
+import errno
 import logging
 import sys
 import time
@@ -116,20 +117,33 @@ def cmd_correlate(args) -> int:
 
 def cmd_demo(args) -> int:
     """Synthesize a foam pair with a known field, correlate it, compare with the truth."""
+    from .inputs import number
+    from .outputs import Outputs
+    from .scheduler import check_scheduler
+
+    number(args.size, "--size", minimum=16, integer=True)
+    number(args.element_size, "--element-size", minimum=2, maximum=args.size // 3, integer=True)
+    number(args.seed, "--seed", minimum=0, integer=True)
+    check_scheduler(args.scheduler)
+    plan = Outputs(overwrite=args.overwrite)
+    plan.add(args.directory, "demo")
+    with plan:  # a failure removes what the demo wrote
+        return _demo(args)
+
+
+def _demo(args) -> int:
     from . import synthetic
     from .engine import correlate
-    from .result import check_output
 
     out = Path(args.directory)
     result_path = out / "result.zarr"
-    check_output(out, overwrite=args.overwrite)
     field = synthetic.Affine(
         matrix=((-0.01, 0.0, 0.005), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0)),
         center=tuple(n / 2 for n in (args.size,) * 3),
         translation=(2.3, -1.4, 0.7),
     )
     _say(f"synthesizing a {args.size}^3 foam pair in {out} (affine field: -1% along z, 0.5% shear, translation)")
-    paths = synthetic.synthesize(out, (args.size,) * 3, field=field, seed=args.seed, overwrite=args.overwrite)
+    paths = synthetic.synthesize(out, (args.size,) * 3, field=field, seed=args.seed)
     t0 = time.perf_counter()
     result = correlate(paths["reference"], paths["deformed"], element_size=args.element_size,
                        scheduler=args.scheduler, output=result_path, progress=_print_progress)
@@ -202,6 +216,10 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     _say(f"chunkdic: warning: {message}")
 
 
+#: file-system errors reported in one line (disk full, read-only, permissions, I/O)
+_FS_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG, errno.EIO}
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -210,7 +228,14 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except InputError as exc:
-        _say(f"chunkdic: error: {exc}")
+        _say(f"chunkdic: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+        return EXIT_BAD_INPUT
+    except OSError as exc:
+        if exc.errno not in _FS_ERRORS:
+            raise
+        # the outputs of the run were removed on the way out (chunkdic.outputs)
+        where = f": {exc.filename}" if exc.filename else ""
+        _say(f"chunkdic: error: {exc.strerror or exc}{where}")
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         _say("chunkdic: interrupted")

@@ -27,6 +27,10 @@ DEFAULTS = {
         "scratch-directory": None,
         # Number of threads of the embedded scheduler (None: all cores).
         "num-threads": None,
+        # Seconds to wait for a scheduler at an address to answer (connection + handshake).
+        "connect-timeout": 10,
+        # Seconds to wait for a first worker when a cluster has none; then refuse.
+        "worker-timeout": 60,
         # A correlation whose final pass excludes more than this fraction of the ROI's
         # voxels (X + u(X) outside the deformed scan) is reported "excluded", not converged.
         "max-excluded-fraction": 0.2,

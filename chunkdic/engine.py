@@ -11,10 +11,10 @@ adds up (shared/DESIGN.md, "Out-of-core shape").
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import shutil
-import tempfile
 import time
 import uuid
 from collections.abc import Callable
@@ -23,11 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from . import config, kernels
-from .checkpoint import Checkpoint, fingerprint, refuse_existing
+from .checkpoint import Checkpoint, fingerprint
 from .errors import InputError
 from .gauss_newton import History, State, iterate, rigid_step
 from .level import Level, emit
+from .integrity import content_identity
 from .mesh import transfer
+from .outputs import Outputs
+from .ownership import OutputLock, make_scratch
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
 from .masks import prepare_mask
@@ -35,7 +38,7 @@ from .noise import nodal_uncertainty
 from .regularization import choose_length
 from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result
 from .rigid import translation_task
-from .scheduler import open_runner
+from .scheduler import check_scheduler, open_runner
 from .settings import Settings
 from .volume import open_scan
 
@@ -72,8 +75,11 @@ def correlate(
     scheduler : None, "threads", "local[:N]", address or distributed.Client
         Where tasks run (see :func:`chunkdic.scheduler.open_runner`).
     output : path, optional
-        Write the result there as a Zarr v3 group (refused if it exists, unless
-        ``overwrite``); a checkpoint after every iteration lets an interrupted run resume.
+        Write the result there as a Zarr v3 group; a checkpoint after every iteration
+        lets an interrupted run resume (same command, inputs unchanged). One run at a
+        time per output (a lock file next to it). An existing output is refused unless
+        ``overwrite``, which replaces only a result chunkdic wrote, never an input
+        (:mod:`chunkdic.outputs`).
     progress : callable, optional
         Called with a dict per event (``stage`` = "rigid", "iteration", "level", ...).
     mask : str, Path, array, optional
@@ -102,8 +108,6 @@ def correlate(
     (1.0, 'converged')
     """
     settings = _settings(settings, options)
-    if output is not None and not overwrite:
-        refuse_existing(output)  # early: before any input is opened
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
     meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi,
                          level=settings.level, coarsest=settings.coarsest,
@@ -112,39 +116,71 @@ def correlate(
     for s in levels:
         if min(g_scan.shape(s)) < 2:
             raise InputError(f"the deformed scan is too small at level {s} ({g_scan.shape(s)})")
-    ckpt = resume = None
-    run_print = fingerprint({
-        "settings": settings.to_json(), "roi": parse_roi(roi),
-        "inputs": [_identify(src, scan) for src, scan in ((ref, f_scan), (deformed, g_scan))],
-        "mask": None if mask is None else _identify(mask, open_scan(mask)),
-    })
-    if output is not None:
-        # all input checks passed: only now is anything written
-        ckpt, resume = Checkpoint.start(output, run_print, overwrite=overwrite, inputs=(ref, deformed))
-    scratch = Path(tempfile.mkdtemp(prefix="chunkdic-", dir=config.get("scratch-directory")))
+    mask_scan = None if mask is None else open_scan(mask)
+    plan = entry = None
+    if output is not None:  # every output rule (chunkdic.outputs), nothing written yet
+        plan = Outputs(inputs=(ref, deformed, mask), overwrite=overwrite)
+        entry = plan.add(output, "result", resumable=True)
+    identities = {role: _identify(src, scan) for role, src, scan in
+                  (("reference", ref, f_scan), ("deformed", deformed, g_scan))}
+    if mask is not None:
+        identities["mask"] = _identify(mask, mask_scan)
+    run_print = fingerprint({"settings": settings.to_json(), "roi": parse_roi(roi),
+                             "inputs": [identities["reference"], identities["deformed"]],
+                             "mask": identities.get("mask")})
+    check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
+    scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
-        with open_runner(scheduler) as runner:
-            emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
-                 levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
-                 requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
-                 nodes=list(meshes[settings.level].nodes_shape))
-            # inside the runner: with a cluster, missing levels are built by its workers
-            f_refs = f_scan.refs(levels, scratch / "ref")
-            g_refs = g_scan.refs(levels, scratch / "def")
-            mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
-            runner.run_everywhere(kernels.warmup)
-            result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
-                          mask_refs)
+        with contextlib.ExitStack() as stack:
+            if output is not None:
+                stack.enter_context(OutputLock(output))  # one writer per output
+            runner = stack.enter_context(open_runner(scheduler))
+            ckpt = resume = None
+            if output is not None:
+                ckpt, resume = _start_output(plan, entry, run_print, identities)
+            try:
+                emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
+                     levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
+                     requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
+                     nodes=list(meshes[settings.level].nodes_shape))
+                # inside the runner: with a cluster, missing levels are built by its workers
+                f_refs = f_scan.refs(levels, scratch / "ref")
+                g_refs = g_scan.refs(levels, scratch / "def")
+                mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
+                runner.run_everywhere(kernels.warmup)
+                result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
+                              mask_refs)
+            except (InputError, OSError) as exc:
+                # bad input found by a pass (a constant or non-finite image), or a full or read-only
+                # disk before the first checkpoint: nothing to resume, so what this run created goes.
+                # A checkpoint this run saved stays for a re-run to resume (marked incomplete), and
+                # so does a resumed run's, which was there before.
+                fresh = plan is not None and resume is None
+                if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
+                    plan.rollback()
+                raise
+            result.info.update(
+                voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
+                inputs={"reference": _describe(ref), "deformed": _describe(deformed),
+                        "mask": None if mask is None else _describe(mask)},
+                input_shapes={"reference": list(f_scan.shape(0)), "deformed": list(g_scan.shape(0))},
+            )
+            if output is not None:  # replaces the checkpointed group once complete, under the lock
+                result.save(output, overwrite=True, inputs=(ref, deformed, mask))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    result.info.update(
-        voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
-        inputs={"reference": _describe(ref), "deformed": _describe(deformed),
-                "mask": None if mask is None else _describe(mask)},
-    )
-    if output is not None:
-        result.save(output, overwrite=True)  # replaces the checkpointed group, marked complete last
     return result
+
+
+def _start_output(plan: Outputs, entry, run_print: str, identities: dict):
+    """Under the lock: replace an old result (``--overwrite``), then start or resume."""
+    if entry.state == "resume":
+        return Checkpoint.start(entry.final, run_print, identities=identities)
+    plan.__enter__()  # removes the old result that --overwrite replaces (checked: ours, a result)
+    if entry.final.exists():  # created meanwhile by another run, which has finished
+        raise InputError(f"output {entry.final} appeared while this run was starting: choose another path "
+                         "or pass --overwrite")
+    return Checkpoint.start(entry.final, run_print, identities=identities)
 
 
 def _settings(settings: Settings | None, options: dict) -> Settings:
@@ -368,9 +404,14 @@ def run_one(runner, fn, args):
 
 
 def _identify(src, scan) -> dict:
-    """What identifies an input for resuming: its path, shape and dtype (in-memory: never)."""
+    """What identifies an input for resuming: path, shape, dtype and a cheap content
+    identity of every stored level (:func:`chunkdic.integrity.content_identity`: chunk
+    list, sizes, times and a fixed sample of chunk bytes, never the scan). In-memory
+    inputs never match (no resume)."""
     if isinstance(src, (str, Path)):
-        return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0))}
+        content = {str(s): content_identity(r.kind, r.path, r.key) for s, r in sorted(scan.stored_refs().items())}
+        return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0)),
+                "content": content}
     return {"in-memory": uuid.uuid4().hex}
 
 

@@ -16,7 +16,6 @@ import contextlib
 import logging
 import math
 import shutil
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -24,7 +23,10 @@ import numpy as np
 
 from . import config, kernels
 from .errors import InputError
-from .result import Result, check_output, open_result
+from .inputs import check_scan_for_result
+from .outputs import Outputs
+from .ownership import make_scratch
+from .result import Result, open_result
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +61,23 @@ def input_scans(result: Result, ref=None, deformed=None):
                 f"the {key} scan of this result is not on disk ({src or 'unknown'}): pass it explicitly "
                 f"(--{'ref' if key == 'reference' else 'deformed'} PATH)"
             )
-        out.append(open_scan(src))
+        scan = open_scan(src)
+        check_scan_for_result(result.info, scan, key, given is not None)
+        out.append(scan)
     return tuple(out)
+
+
+def input_paths(result: Result, ref=None, deformed=None) -> list:
+    """Every on-disk input of a command that reads ``result`` and its scans (for the
+    output checks of :mod:`chunkdic.outputs`)."""
+    recorded = result.info.get("inputs") or {}
+    paths = [result.path]
+    for given, key in ((ref, "reference"), (deformed, "deformed")):
+        src = given if given is not None else recorded.get(key)
+        if isinstance(src, str) and src.startswith("<in-memory"):
+            src = None
+        paths.append(src)
+    return [p for p in paths if p is not None]
 
 
 @contextlib.contextmanager
@@ -68,7 +85,7 @@ def level_refs(result: Result, ref=None, deformed=None):
     """``(f_ref, g_ref)`` ArrayRefs of the result's level; scratch levels removed on exit."""
     f_scan, g_scan = input_scans(result, ref, deformed)
     s = int(result.info.get("level", 0))
-    scratch = Path(tempfile.mkdtemp(prefix="chunkdic-export-", dir=config.get("scratch-directory")))
+    scratch = make_scratch("chunkdic-export-")
     try:
         f_ref = f_scan.refs([s], scratch / "ref")[s]
         g_ref = g_scan.refs([s], scratch / "def")[s]
@@ -148,16 +165,25 @@ def write_corrected(result, out, *, ref=None, deformed=None, interpolation: str 
     ----------
     Paper sections 3 ("corrected deformed image") and 5.3 (mid-plane cuts, Figs. 6-8).
     """
-    import zarr
-
-    from .scheduler import open_runner
-
     result = _as_result(result)
     interpolation = interpolation or interpolation_of(result)
     if interpolation not in ("cubic", "linear"):
         raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
     out = Path(out)
-    check_output(out, overwrite=overwrite)
+    plan = Outputs(inputs=input_paths(result, ref, deformed), overwrite=overwrite)
+    entry = plan.add(out, "corrected")
+    input_scans(result, ref, deformed)  # every input checked before anything is written
+    with plan:
+        return _write_corrected(result, entry.work, out, ref, deformed, interpolation, scheduler, progress)
+
+
+def _write_corrected(result: Result, work: Path, out: Path, ref, deformed, interpolation: str, scheduler,
+                     progress) -> dict:
+    """:func:`write_corrected` into ``work`` (renamed to ``out`` by the caller)."""
+    import zarr
+
+    from .scheduler import open_runner
+
     mesh = result.mesh
     ell = mesh.element_size
     m = max(1, int(config.get("chunk-size")) // ell)
@@ -166,11 +192,9 @@ def write_corrected(result, out, *, ref=None, deformed=None, interpolation: str 
     halo = int(config.get("bspline-halo"))
     u = result.displacement
     with level_refs(result, ref, deformed) as (f_ref, g_ref):
-        if out.exists():
-            shutil.rmtree(out)
-        root = zarr.open_group(str(out), mode="w", zarr_format=3)
+        root = zarr.open_group(str(work), mode="w", zarr_format=3)
         meta = {
-            "complete": False, "result": result.path, "level": result.info.get("level", 0),
+            "kind": "corrected", "complete": False, "result": result.path, "level": result.info.get("level", 0),
             "roi": [[r.start, r.stop] for r in mesh.roi], "element_size": ell, "interpolation": interpolation,
             "voxel_size": result.info.get("voxel_size"), "unit": result.info.get("unit"),
             "description": "corrected = g(X + u(X)), residual = f(X) - g(X + u(X)) over the ROI; "
@@ -187,21 +211,17 @@ def write_corrected(result, out, *, ref=None, deformed=None, interpolation: str 
             local = tuple(e0 * ell for e0, _ in blk.elements)
             assert all(a % c == 0 for a, c in zip(local, chunk))  # each task owns one whole chunk
             args.append((f_ref, g_ref, ell, start, shape, local,
-                         np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), interpolation, halo, str(out)))
+                         np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), interpolation, halo, str(work)))
         ssr, n_valid, n_bad, fmin, fmax = 0.0, 0, 0, math.inf, -math.inf
-        try:
-            with open_runner(scheduler) as runner:
-                for done, (r2, nv, nb, lo, hi) in enumerate(runner.map_unordered(corrected_task, args), 1):
-                    ssr, n_valid, n_bad = ssr + r2, n_valid + nv, n_bad + nb
-                    fmin, fmax = min(fmin, lo), max(fmax, hi)
-                    if progress is not None:
-                        progress(done / len(args))
-        except BaseException:
-            shutil.rmtree(out, ignore_errors=True)
-            raise
+        with open_runner(scheduler) as runner:
+            for done, (r2, nv, nb, lo, hi) in enumerate(runner.map_unordered(corrected_task, args), 1):
+                ssr, n_valid, n_bad = ssr + r2, n_valid + nv, n_bad + nb
+                fmin, fmax = min(fmin, lo), max(fmax, hi)
+                if progress is not None:
+                    progress(done / len(args))
     gap = math.sqrt(ssr / n_valid) / (fmax - fmin) if n_valid and fmax > fmin else math.nan
     meta.update(complete=True, gap=gap, valid_voxels=n_valid, excluded_voxels=n_bad)
-    zarr.open_group(str(out), mode="r+").attrs["chunkdic"] = meta
+    zarr.open_group(str(work), mode="r+").attrs["chunkdic"] = meta
     log.info("corrected image and residual written to %s (gap %.4g)", out, gap)
     return {"path": str(out), "gap": gap, "valid": n_valid, "excluded": n_bad}
 
@@ -259,7 +279,7 @@ def hexahedra(nodes_shape) -> np.ndarray:
     return np.stack([c.ravel() for c in cols], axis=1).astype(np.int64)
 
 
-def write_vtk(result, path, *, units: str = "voxels") -> dict:
+def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -> dict:
     """Write the C8 mesh, nodal displacement and element strains as a VTK file (meshio).
 
     Parameters
@@ -271,6 +291,8 @@ def write_vtk(result, path, *, units: str = "voxels") -> dict:
     units : {"voxels", "physical"}, keyword-only
         Coordinates and displacements in voxels of the result's level (default), or in
         the scan's physical unit (level-0 voxel centres scaled by ``voxel_size``).
+    overwrite : bool, keyword-only
+        Replace an existing VTK file that chunkdic wrote (nothing else).
 
     Returns
     -------
@@ -289,6 +311,8 @@ def write_vtk(result, path, *, units: str = "voxels") -> dict:
     from .strain import principal_strains
 
     result = _as_result(result)
+    plan = Outputs(inputs=[result.path] if result.path else [], overwrite=overwrite)
+    entry = plan.add(path, "vtk")
     X, u, unit = _positions(result, units)
     n = X.shape[1:]
     points = np.stack([X[2].ravel(), X[1].ravel(), X[0].ravel()], axis=1)
@@ -304,30 +328,26 @@ def write_vtk(result, path, *, units: str = "voxels") -> dict:
     cell_data["max_abs_principal"] = [np.abs(principal_strains(eps)).max(axis=0).ravel()]
     point_data = {"displacement": disp, "Ux": disp[:, 0], "Uy": disp[:, 1], "Uz": disp[:, 2]}
     mesh = meshio.Mesh(points, [("hexahedron", cells)], point_data=point_data, cell_data=cell_data)
-    path = Path(path)
-    if not path.parent.exists():
-        raise InputError(f"output directory {path.parent} does not exist")
-    try:
-        mesh.write(str(path))
-    except (KeyError, ValueError) as exc:
-        raise InputError(f"cannot write {path}: {exc} (use a .vtu or .vtk suffix)") from None
+    with plan:
+        mesh.write(str(entry.work))
     return {"points": len(points), "cells": len(cells), "unit": unit}
 
 
-def write_nodes_csv(result, path, *, units: str = "voxels") -> int:
+def write_nodes_csv(result, path, *, units: str = "voxels", overwrite: bool = False) -> int:
     """One CSV line per node: ``iz, iy, ix, z, y, x, Uz, Uy, Ux`` (returns the row count).
 
     Positions and displacements in voxels of the result's level, or physical units
-    (``units="physical"``); the header says which.
+    (``units="physical"``); the header says which. ``overwrite`` replaces only a node
+    table that chunkdic wrote.
     """
     result = _as_result(result)
+    plan = Outputs(inputs=[result.path] if result.path else [], overwrite=overwrite)
+    entry = plan.add(path, "csv")
     X, u, unit = _positions(result, units)
     idx = np.indices(X.shape[1:]).reshape(3, -1).T
     data = np.column_stack([idx, X.reshape(3, -1).T, u.reshape(3, -1).T])
     header = f"# positions and displacements in {unit}\niz,iy,ix,z,y,x,Uz,Uy,Ux"
-    path = Path(path)
-    if not path.parent.exists():
-        raise InputError(f"output directory {path.parent} does not exist")
     fmt = ["%d"] * 3 + ["%.6f"] * 3 + ["%.8g"] * 3
-    np.savetxt(path, data, delimiter=",", header=header, comments="", fmt=fmt)
+    with plan:
+        np.savetxt(entry.work, data, delimiter=",", header=header, comments="", fmt=fmt)
     return len(data)

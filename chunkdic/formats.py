@@ -25,6 +25,7 @@ import dask.config
 import numpy as np
 
 from .errors import InputError
+from .inputs import check_finite
 from .ngff import _normalize_unit, _normalize_voxel_size
 from .store import _chunk_shape
 from .volume import Scan, open_scan, write_scan
@@ -51,6 +52,16 @@ class _Reader:
     label: str
 
     def __getitem__(self, region):
+        try:
+            return self._read(region)
+        except InputError:
+            raise
+        except Exception as e:  # noqa: BLE001 - a damaged or truncated file: one line naming it
+            z = region[0].indices(self.shape[0])[0]
+            raise InputError(f"{self.label}: cannot read {self.describe(z)} onwards ({type(e).__name__}: {e}"
+                             .splitlines()[0] + "); the file is damaged or truncated") from None
+
+    def _read(self, region):
         raise NotImplementedError
 
     def describe(self, z: int) -> str:
@@ -69,7 +80,7 @@ class _RawReader(_Reader):
         self.dtype = self.file_dtype.newbyteorder("=")
         self.label = path
 
-    def __getitem__(self, region):
+    def _read(self, region):
         nz, ny, nx = self.shape
         zs, ys, xs = (r.indices(n) for r, n in zip(region, self.shape))
         row = nx * self.file_dtype.itemsize
@@ -98,7 +109,7 @@ class _NpyReader(_Reader):
         self.dtype = self.file_dtype.newbyteorder("=")
         self.label = path
 
-    def __getitem__(self, region):
+    def _read(self, region):
         a = np.load(self.path, mmap_mode="r")
         return np.array(a[region], dtype=self.dtype)
 
@@ -109,7 +120,7 @@ class _H5Reader(_Reader):
         self.dtype = np.dtype(dtype).newbyteorder("=")
         self.label = f"{path}:{dataset}"
 
-    def __getitem__(self, region):
+    def _read(self, region):
         import h5py
 
         with h5py.File(self.path, "r") as f:
@@ -135,13 +146,17 @@ class _TiffSlicesReader(_Reader):
                 pass
         return tifffile.imread(path)[ys, xs]
 
-    def __getitem__(self, region):
+    def _read(self, region):
         zs, ys, xs = region
         zr = range(*zs.indices(self.shape[0]))
         out = np.empty((len(zr),) + tuple(len(range(*r.indices(n))) for r, n in zip((ys, xs), self.shape[1:])),
                        self.dtype)
         for i, z in enumerate(zr):
-            plane = self._read_plane(self.files[z], ys, xs)
+            try:
+                plane = self._read_plane(self.files[z], ys, xs)
+            except Exception as e:  # noqa: BLE001 - name the slice file
+                raise InputError(f"{self.files[z]}: cannot read slice z={z} ({type(e).__name__}: {e}"
+                                 .splitlines()[0] + "); the file is damaged or truncated") from None
             if plane.shape != out.shape[1:]:
                 raise InputError(f"{self.files[z]}: slice changed shape to {plane.shape} while reading")
             out[i] = plane
@@ -158,7 +173,7 @@ class _TiffVolumeReader(_Reader):
     def describe(self, z: int) -> str:
         return f"page z={z}"
 
-    def __getitem__(self, region):
+    def _read(self, region):
         import tifffile
 
         zs, ys, xs = region
@@ -229,6 +244,18 @@ def _tiff_voxel_size(tif) -> tuple[tuple | None, str | None]:
     return None, None
 
 
+def _check_tiff_extent(path, tif, pages) -> None:
+    """Refuse a TIFF whose image data end beyond the end of the file (truncated copy)."""
+    size = os.path.getsize(path)
+    end = 0
+    for page in pages:
+        offsets, counts = getattr(page, "dataoffsets", ()), getattr(page, "databytecounts", ())
+        if offsets and counts:
+            end = max(end, max(int(o) + int(c) for o, c in zip(offsets, counts)))
+    if end > size:
+        raise InputError(f"{path}: truncated TIFF: its image data end at byte {end} but the file has {size} bytes")
+
+
 def _open_tiff_folder(folder: Path):
     import tifffile
 
@@ -245,6 +272,7 @@ def _open_tiff_folder(folder: Path):
                 npages = len(tif.pages)
                 page = tif.pages[0]
                 shape, dtype = tuple(page.shape), np.dtype(page.dtype)
+                _check_tiff_extent(f, tif, [page])
                 if i == 0:
                     vs, unit = _tiff_voxel_size(tif)
                     memmappable = bool(page.is_memmappable)
@@ -282,6 +310,15 @@ def _open_tiff_file(path: Path):
             except Exception:  # noqa: BLE001
                 memmappable = False
             page_shape = tuple(n for n in series.pages[0].shape if n != 1) if pages else ()
+            if memmappable:
+                end = int(series.dataoffset) + int(np.prod(series.shape)) * dtype.itemsize
+                if end > os.path.getsize(path):
+                    raise InputError(f"{path}: truncated TIFF: its image data end at byte {end} but the file has "
+                                     f"{os.path.getsize(path)} bytes")
+            else:
+                _check_tiff_extent(path, tif, [p for p in tif.pages[-1:] if p is not None])
+    except InputError:
+        raise
     except Exception as e:  # noqa: BLE001
         raise InputError(f"{path}: not a readable TIFF ({type(e).__name__}: {e})".splitlines()[0]) from None
     if len(shape) != 3:
@@ -467,19 +504,9 @@ def _slab_chunks(shape, dtype, chunk_shape):
 
 
 def _check_finite(block: np.ndarray, reader=None, block_info=None) -> np.ndarray:
-    if np.isfinite(block).all():
-        return block
-    z, y, x = (int(v) for v in np.argwhere(~np.isfinite(block))[0])
-    z0, y0, x0 = (r[0] for r in block_info[0]["array-location"])
-    z, y, x = z + z0, y + y0, x + x0
-    bad = block[z - z0, y - y0, x - x0]
-    raise InputError(f"{reader.label}: {bad} value at voxel (z, y, x) = ({z}, {y}, {x}), {reader.describe(z)}: "
-                     "float input must be finite (replace NaN/inf first)")
-
-
-def _overlaps(a: Path, b: Path) -> bool:
-    a, b = a.resolve(), b.resolve()
-    return a == b or a in b.parents or b in a.parents
+    origin = tuple(r[0] for r in block_info[0]["array-location"])
+    check_finite(block, origin, reader.label, where=reader.describe)
+    return block
 
 
 def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dtype=None,
@@ -548,8 +575,6 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
     reader, meta_vs, meta_unit, in_path = _open_source(src, shape=shape, dtype=dtype, byte_order=byte_order,
                                                        offset=offset, dataset=dataset)
     out_p = Path(out)
-    if _overlaps(in_path, out_p):
-        raise InputError(f"output {out_p} overlaps the input {in_path}: choose another output path")
     if reader is None:  # a Zarr array or group
         scan = open_scan(in_path)
         data = scan.level(0)
@@ -569,7 +594,7 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
     unit_out = user_unit if user_vs is not None else meta_unit
     log.info("ingesting %s: shape %s %s, voxel size %s %s", label, data.shape, data.dtype, vs, unit_out)
     return write_scan(out_p, data, voxel_size=vs, unit=unit_out, chunks=chunks, overwrite=overwrite,
-                      levels=levels, progress=progress)
+                      levels=levels, progress=progress, inputs=[in_path])
 
 
 def _mtime(p: Path) -> int:

@@ -52,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .inputs import check_finite, number
 from .strain import mean_strain
 from .volume import ArrayRef
 
@@ -143,7 +144,8 @@ def fourier_shift_volume(volume: np.ndarray, t) -> np.ndarray:
     return np.fft.ifftn(spec).real[: f.shape[0], : f.shape[1], : f.shape[2]]
 
 
-def shift_pencil_task(src: ArrayRef, out_path: str, out_key: str, axis: int, t: float, region) -> int:
+def shift_pencil_task(src: ArrayRef, out_path: str, out_key: str, axis: int, t: float, region,
+                      check_input: bool = False) -> int:
     """Task: shift the pencil ``region`` (whole lines along ``axis``) and write it back.
 
     ``region`` covers whole chunks of the output (full extent along ``axis``, whole
@@ -152,8 +154,11 @@ def shift_pencil_task(src: ArrayRef, out_path: str, out_key: str, axis: int, t: 
     import zarr
 
     data = src.read(region)
+    if check_input:  # the first pass reads every voxel of the scan: NaN/inf cost nothing to find here
+        check_finite(data, tuple(r.start for r in region), src.path if not src.key else f"{src.path}/{src.key}")
     shifted = fourier_shift_line(data, t, axis)
-    zarr.open_array(store=out_path, path=out_key or None, mode="r+")[region] = shifted
+    arr = zarr.open_array(store=out_path, path=out_key or None, mode="r+")
+    arr.with_config({"write_empty_chunks": True})[region] = shifted  # every chunk stored (integrity.py)
     return int(shifted.size)
 
 
@@ -199,16 +204,20 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
 
     from .scheduler import open_runner
 
+    from .kinds import kind_of
+    from .ownership import partial_name
+
     t = tuple(float(v) for v in np.broadcast_to(np.asarray(t, float), (3,)))
     out = Path(out)
-    if out.exists():
+    if out.exists() or out.is_symlink():
         if not overwrite:
             raise InputError(f"output {out} exists: choose another path or pass --overwrite")
+        if kind_of(out)[0] != "shifted":
+            raise InputError(f"output {out} is not a shifted volume chunkdic wrote: refusing to replace it")
         shutil.rmtree(out)
     shape = tuple(int(n) for n in src.shape)
     chunks = tuple(min(PENCIL_EDGE, n) for n in shape)
-    tmp = out.with_name(out.name + ".passes")
-    shutil.rmtree(tmp, ignore_errors=True)
+    tmp = partial_name(out)  # intermediate passes: a hidden sibling that names its owner
     stages = [(axis, ti) for axis, ti in enumerate(t) if ti != 0.0] or [(0, 0.0)]
     names = [(str(tmp), f"pass{i}") for i in range(len(stages) - 1)] + [(str(out), "")]
     try:
@@ -217,20 +226,21 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
         for path, key in names:
             zarr.create_array(store=path, name=key or None, shape=shape, chunks=chunks, dtype="float32",
                               compressors=None, zarr_format=3, overwrite=True,
-                              attributes={"chunkdic": {"complete": False}})
+                              attributes={"chunkdic": {"kind": "shifted", "complete": False}})
         total = sum(len(list(_pencils(shape, a, PENCIL_EDGE))) for a, _ in stages)
         done = 0
         current = src
         with open_runner(scheduler) as runner:
             for (axis, ti), (path, key) in zip(stages, names):
-                args = [(current, path, key, axis, ti, r) for r in _pencils(shape, axis, PENCIL_EDGE)]
+                args = [(current, path, key, axis, ti, r, current is src)
+                        for r in _pencils(shape, axis, PENCIL_EDGE)]
                 for _ in runner.map_unordered(shift_pencil_task, args):
                     done += 1
                     if progress is not None:
                         progress(done / total)
                 current = ArrayRef("zarr", path, key, shape, "float32")
         arr = zarr.open_array(store=str(out), mode="r+")
-        arr.update_attributes({"chunkdic": {"complete": True, "fourier_shift": list(t),
+        arr.update_attributes({"chunkdic": {"kind": "shifted", "complete": True, "fourier_shift": list(t),
                                             "method": "separable mirror-extended FFT phase shift"}})
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
@@ -406,20 +416,35 @@ def _displacement_stats(result, t) -> dict:
 
 
 def _element_sizes(element_sizes) -> list[int]:
-    sizes = [int(v) for v in element_sizes]
-    if not sizes or any(v < 2 for v in sizes):
-        raise InputError(f"element sizes must be integers >= 2, got {list(element_sizes)}")
+    sizes = [number(v, "element size", minimum=2, integer=True) for v in element_sizes]
+    if not sizes:
+        raise InputError("give at least one element size")
+    if len(set(sizes)) != len(sizes):
+        raise InputError(f"element sizes must be distinct, got {list(element_sizes)}")
     return sizes
 
 
-def _prepare_dir(out_dir, overwrite: bool) -> Path:
-    out = Path(out_dir)
-    if out.exists() and any(out.iterdir()) and not overwrite:
-        raise InputError(f"output directory {out} exists and is not empty: choose another or pass --overwrite")
-    if not out.parent.exists():
-        raise InputError(f"directory {out.parent} does not exist")
-    out.mkdir(exist_ok=True)
-    return out
+def _shift3(shift) -> tuple[float, float, float]:
+    try:
+        t = tuple(float(v) for v in np.broadcast_to(np.asarray(shift, float), (3,)))
+    except (TypeError, ValueError):
+        raise InputError(f"shift must be a number or three numbers, got {shift!r}") from None
+    if not all(math.isfinite(v) for v in t):
+        raise InputError(f"shift must be finite, got {shift!r}")
+    return t
+
+
+def _check_plan(scan, sizes, roi, level: int, interpolation: str, options: dict | None = None) -> None:
+    """Every element size must fit the scan's ROI at ``level`` (checked before any output)."""
+    from .planning import plan_meshes
+    from .prefilter import face_margin
+    from .settings import Settings
+
+    given = {k: v for k, v in {**PAPER_SETTINGS, **(options or {})}.items() if k in Settings.names()}
+    for ell in sizes:
+        settings = Settings(element_size=ell, level=level, interpolation=interpolation, **given)  # validates
+        plan_meshes(scan.shape(0), element_size=ell, roi=roi, level=level,
+                    min_margin=face_margin(settings.smoothing))
 
 
 #: the paper's analyses characterise the C8 basis itself: no regularisation unless asked for
@@ -471,17 +496,29 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     Roux, Hild, Viot, Bernard, section 4.2 (Fig. 5, ``A = 2.4`` voxels, ``alpha = 1.07``)
     and 5.2 (strain uncertainty, last column of Table 1).
     """
-    from .engine import correlate
-    from .report import plot_uncertainty
     from .volume import open_scan
 
+    from .outputs import Outputs
+    from .scheduler import check_scheduler
+
     sizes = _element_sizes(element_sizes)
-    t = tuple(float(v) for v in np.broadcast_to(np.asarray(shift, float), (3,)))
-    if not all(math.isfinite(v) for v in t):
-        raise InputError(f"shift must be finite, got {shift!r}")
-    out = _prepare_dir(out_dir, overwrite)
+    t = _shift3(shift)
+    level = number(level, "level", minimum=0, integer=True)
     src_scan = open_scan(scan)
-    level = int(level)
+    _check_plan(src_scan, sizes, roi, level, interpolation, options)
+    check_scheduler(scheduler)
+    plan = Outputs(inputs=[scan], overwrite=overwrite)
+    out = plan.add(out_dir, "uncertainty").final
+    with plan:  # a failure removes what this run wrote, never older files
+        return _uncertainty(src_scan, sizes, out, t, roi, level, interpolation, scheduler, progress, options)
+
+
+def _uncertainty(src_scan, sizes, out: Path, t, roi, level: int, interpolation: str, scheduler,
+                 progress, options) -> UncertaintyReport:
+    """:func:`uncertainty` once every input is checked and ``out`` is prepared."""
+    from .engine import correlate
+    from .report import plot_uncertainty
+
     emit = progress or (lambda event: None)
     # a stored level is used in place; a missing one is written once into out_dir
     src = src_scan.refs([level], out)[level]
@@ -518,7 +555,7 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
 # --------------------------------------------------------------------------- sweep
 
 
-def _read_delta_eps(source) -> dict[int, float]:
+def read_delta_eps(source) -> dict[int, float]:
     """``{ell: delta_eps}`` from an UncertaintyReport, an uncertainty CSV or its directory."""
     if source is None:
         return {}
@@ -529,8 +566,23 @@ def _read_delta_eps(source) -> dict[int, float]:
         p = p / "uncertainty.csv"
     if not p.is_file():
         raise InputError(f"no uncertainty table at {p} (run `chunkdic uncertainty` first)")
-    with open(p, newline="") as fh:
-        return {int(r["element_size"]): float(r["delta_eps"]) for r in csv.DictReader(fh)}
+    out = {}
+    try:
+        with open(p, newline="") as fh:
+            for line, r in enumerate(csv.DictReader(fh), start=2):
+                try:
+                    ell, d = int(r["element_size"]), float(r["delta_eps"])
+                except (KeyError, TypeError, ValueError):
+                    raise InputError(f"uncertainty table {p}, line {line}: expected numbers in the columns "
+                                     "element_size and delta_eps (a table written by `chunkdic uncertainty`)") from None
+                if ell < 1 or not math.isfinite(d):
+                    raise InputError(f"uncertainty table {p}, line {line}: element_size {ell}, delta_eps {d}")
+                out[ell] = d
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise InputError(f"uncertainty table {p} cannot be read: {exc}".splitlines()[0]) from None
+    if not out:
+        raise InputError(f"uncertainty table {p} has no rows")
+    return out
 
 
 def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dict]:
@@ -607,10 +659,33 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
         ``rows`` (see :func:`zoi_table`), ``markdown``, ``csv``/``md`` paths and
         ``uncertainty`` (the report, if run).
     """
-    from .engine import correlate
+    from .outputs import Outputs
+    from .scheduler import check_scheduler
+    from .volume import open_scan
 
     sizes = _element_sizes(element_sizes)
-    out = _prepare_dir(out_dir, overwrite)
+    level = number(level, "level", minimum=0, integer=True)
+    _shift3(shift)
+    f_scan = open_scan(ref)
+    open_scan(deformed)
+    _check_plan(f_scan, sizes, roi, level, interpolation, options)
+    d_eps = None
+    if uncertainty_from is not None:
+        d_eps = read_delta_eps(uncertainty_from)  # read first: a bad table must not cost a sweep
+    check_scheduler(scheduler)
+    given = [] if uncertainty_from is None or isinstance(uncertainty_from, UncertaintyReport) else [uncertainty_from]
+    plan = Outputs(inputs=[ref, deformed, *given], overwrite=overwrite)
+    out = plan.add(out_dir, "sweep").final
+    with plan:  # a failure removes what this run wrote, never older files
+        return _sweep(ref, deformed, sizes, out, roi, level, interpolation, d_eps, a_priori, shift, scheduler,
+                      progress, options)
+
+
+def _sweep(ref, deformed, sizes, out: Path, roi, level: int, interpolation: str, d_eps, a_priori: bool, shift,
+           scheduler, progress, options) -> dict:
+    """:func:`sweep` once every input is checked and ``out`` is prepared."""
+    from .engine import correlate
+
     emit = progress or (lambda event: None)
     results = []
     for ell in sizes:
@@ -620,15 +695,13 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
                                  **{**PAPER_SETTINGS, **(options or {})},
                                  output=out / f"result-ell{ell}.zarr", overwrite=True, progress=progress))
     report = None
-    if uncertainty_from is not None:
-        d_eps = _read_delta_eps(uncertainty_from)
-    elif a_priori:
+    if d_eps is None and a_priori:
         emit({"stage": "a-priori"})
         report = uncertainty(ref, sizes, out / "uncertainty", shift=shift, roi=roi, level=level,
-                             interpolation=interpolation, scheduler=scheduler, overwrite=True, progress=progress,
+                             interpolation=interpolation, scheduler=scheduler, progress=progress,
                              options=options)
-        d_eps = _read_delta_eps(report)
-    else:
+        d_eps = read_delta_eps(report)
+    elif d_eps is None:
         d_eps = {}
     rows = zoi_table(results, delta_eps=d_eps)
     md = write_zoi_table(rows, out)
@@ -637,8 +710,9 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
 
 
 def write_zoi_table(rows: list[dict], out_dir=None) -> str:
-    """Markdown of :func:`zoi_table` rows; with ``out_dir``, also ``zoi_table.md`` and ``zoi_table.csv``
-    (the CSV adds ``volume_change_corrected`` and the result paths)."""
+    """Markdown of :func:`zoi_table` rows; with ``out_dir`` (an existing folder, prepared by
+    the caller), also ``zoi_table.md`` and ``zoi_table.csv`` (the CSV adds
+    ``volume_change_corrected`` and the result paths)."""
     csv_path = md_path = None
     if out_dir is not None:
         csv_path, md_path = Path(out_dir) / "zoi_table.csv", Path(out_dir) / "zoi_table.md"

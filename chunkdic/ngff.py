@@ -8,11 +8,11 @@ a group written by another tool.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .ownership import final_name
 
 # OME-NGFF space units (UDUNITS-2 names) and the spellings users type.
 _SPACE_UNITS = {
@@ -122,7 +122,7 @@ def _update_group_metadata(path: str) -> None:
     vs = info.get("voxel_size")
     attrs = {"chunkdic": info}
     if levels:
-        attrs["ome"] = _ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), Path(path).name)
+        attrs["ome"] = _ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(path))
     else:
         attrs["ome"] = {"version": "0.5"}
     g.update_attributes(attrs)

@@ -22,6 +22,7 @@ import numpy as np
 from .coarsen import coarsen_sum, pyramid_dtype
 from .errors import InputError
 from .ngff import _update_group_metadata
+from .outputs import check_writable
 from .volume import (
     Scan,
     _check_levels,
@@ -62,10 +63,18 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
         cuts = {s: (cuts[s], cuts[s + 1]) for s in range(1, levels + 1)}
     for s in range(todo_from, levels + 1):
         t0 = time.perf_counter()
-        src = open_scan(path)._stored[s - 1]
+        src = open_scan(path).stored_refs()[s - 1]
         below = _ref_dask(src, chunks=tuple(min(2 * c, n) for c, n in zip(chunk0, src.shape)))
         data = coarsen_sum(below, pyramid_dtype(dtype0, s))
-        _write_level(path, s, data, chunk0, progress, *cuts[s])
+        try:
+            _write_level(path, s, data, chunk0, progress, *cuts[s])
+        except Exception:
+            # a refusal (damaged input, full disk) removes the level this run began, leaving the
+            # scan as it found it; an interrupted run leaves it marked incomplete (rebuilt later)
+            if str(s) in g:
+                del g[str(s)]
+            _update_group_metadata(path)
+            raise
         _update_group_metadata(path)
         log.info("%s: level %d %s %s built in %.1f s", path, s, data.shape, data.dtype, time.perf_counter() - t0)
     forget_open_arrays()
@@ -123,4 +132,5 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
         raise InputError(f"cannot read {p} as a Zarr store: {e}".splitlines()[0]) from None
     if not isinstance(node, zarr.Group) or "chunkdic" not in node.attrs:
         raise InputError(f"{p} is not a chunkdic scan group: convert it with `chunkdic ingest {p} OUT.zarr`")
+    check_writable(p)  # the levels are written into the scan group itself
     return _build_levels(str(p), levels, rebuild=overwrite, progress=progress)

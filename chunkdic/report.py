@@ -415,7 +415,7 @@ def plot_uncertainty(report, path) -> str:
 
 
 def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None,
-           progress: Callable[[str], None] | None = None) -> dict[str, str]:
+           overwrite: bool = False, progress: Callable[[str], None] | None = None) -> dict[str, str]:
     """All figures of one or several results into ``out_dir``.
 
     Cuts and residual come from the first result (they need the scans: recorded paths, or
@@ -426,9 +426,12 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     ----------
     results : Result, path or sequence of them
     out_dir : path
-        Created if missing.
+        Created if missing; an existing folder must be empty, or a figures folder that
+        chunkdic wrote with ``overwrite`` (see :mod:`chunkdic.outputs`).
     ref, deformed : path, optional
     interpolation : {"cubic", "linear"}, optional
+    overwrite : bool
+        Replace the figures of an earlier report in ``out_dir``.
     progress : callable(str), optional
         One message per figure written (or skipped, with the reason).
 
@@ -437,21 +440,36 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     dict of str to str
         Figure name -> PNG path.
     """
+    from .export import input_paths, input_scans, interpolation_of
+    from .inputs import check_displacement
+    from .outputs import Outputs
+
     results = _as_results(results)
-    out_dir = Path(out_dir)
-    if not out_dir.parent.exists():
-        raise InputError(f"directory {out_dir.parent} does not exist")
-    out_dir.mkdir(exist_ok=True)
+    for res in results:
+        check_displacement(res.displacement, res.path, res.flags)
+    if interpolation not in (None, "cubic", "linear"):
+        raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
     say = progress or (lambda msg: None)
-    paths = {}
-    for name, fn in (("uz_map", plot_uz_maps), ("epszz_map", plot_epszz_maps), ("gap", plot_gap)):
-        paths[name] = fn(results, out_dir / f"{name}.png")
-        say(f"wrote {paths[name]}")
+    skip = None
     try:
-        paths.update(plot_cuts(results[0], out_dir, ref=ref, deformed=deformed, interpolation=interpolation,
-                               progress=say))
+        input_scans(results[0], ref, deformed)  # checked before anything is written
     except InputError as exc:
-        if ref is not None or deformed is not None:
-            raise
-        say(f"skipped the cuts and residual: {exc}")
+        recorded = [p for p in (results[0].info.get("inputs") or {}).values()
+                    if isinstance(p, str) and not p.startswith("<in-memory") and Path(p).exists()]
+        if ref is not None or deformed is not None or len(recorded) == 2:
+            raise  # scans given, or on disk but unusable (damaged, another shape): refused
+        skip = exc  # scans not on disk (in-memory inputs, moved): the cuts are skipped
+    inputs = [p for r in results for p in input_paths(r, ref, deformed)]
+    plan = Outputs(inputs=inputs, overwrite=overwrite)
+    out_dir = plan.add(out_dir, "figures").final
+    paths = {}
+    with plan:  # a failure removes the figures this run wrote, never older files
+        for name, fn in (("uz_map", plot_uz_maps), ("epszz_map", plot_epszz_maps), ("gap", plot_gap)):
+            paths[name] = fn(results, out_dir / f"{name}.png")
+            say(f"wrote {paths[name]}")
+        if skip is None:
+            paths.update(plot_cuts(results[0], out_dir, ref=ref, deformed=deformed,
+                                   interpolation=interpolation or interpolation_of(results[0]), progress=say))
+        else:
+            say(f"skipped the cuts and residual: {skip}")
     return paths

@@ -13,7 +13,6 @@ mistaken for a result.
 from __future__ import annotations
 
 import os
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -112,44 +111,49 @@ class Result:
             f"level={i.get('level')} status={i.get('status')} final_gap={i.get('final_gap', float('nan')):.4g}>"
         )
 
-    def save(self, path: str | os.PathLike, *, overwrite: bool = False) -> None:
-        """Write the result as a Zarr v3 group (complete flag set last)."""
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False, inputs=()) -> None:
+        """Write the result as a Zarr v3 group (complete flag set last).
+
+        The group is written next to ``path`` and renamed into place when complete, so an
+        existing result is replaced only by a complete one. ``overwrite`` replaces only a
+        result that chunkdic wrote (:mod:`chunkdic.outputs`); ``inputs`` (paths) may not
+        be, contain or hold ``path``.
+        """
         import zarr
 
-        path = Path(path)
-        check_output(path, overwrite=overwrite)
-        if path.exists():
-            shutil.rmtree(path)
-        root = zarr.open_group(str(path), mode="w", zarr_format=3)
-        root.attrs["chunkdic"] = {**_jsonable(self.info), "complete": False}
-        for name, arr in (("displacement", self.displacement), ("node_coords", self.node_coords)):
-            root.create_array(name, data=np.ascontiguousarray(arr, dtype=np.float64))
-        if "element_size" in self.info:
-            root.create_array("strain", data=np.ascontiguousarray(self.element_strain(), dtype=np.float64))
-        if self.flags is not None:
-            root.create_array("flags", data=np.ascontiguousarray(self.flags, dtype=np.uint8))
-        if self.brightness is not None:
-            root.create_array("brightness", data=np.ascontiguousarray(self.brightness, dtype=np.float64))
-        if self.active is not None:
-            root.create_array("active", data=np.ascontiguousarray(self.active, dtype=np.uint8))
-        if self.uncertainty is not None:
-            root.create_array("uncertainty", data=np.ascontiguousarray(self.uncertainty, dtype=np.float64))
-        hist = root.create_group("history")
-        for name in HISTORY_FIELDS:
-            hist.create_array(name, data=np.asarray(self.history[name]))
-        root.attrs["chunkdic"] = {**_jsonable(self.info), "complete": True}
+        from .outputs import Outputs
+
+        plan = Outputs(inputs=inputs, overwrite=overwrite)
+        entry = plan.add(path, "result")
+        with plan:
+            root = zarr.open_group(str(entry.work), mode="w", zarr_format=3)
+            root.attrs["chunkdic"] = {**_jsonable(self.info), "kind": "result", "complete": False}
+            for name, arr in (("displacement", self.displacement), ("node_coords", self.node_coords)):
+                root.create_array(name, data=np.ascontiguousarray(arr, dtype=np.float64))
+            if "element_size" in self.info:
+                root.create_array("strain", data=np.ascontiguousarray(self.element_strain(), dtype=np.float64))
+            for name, dtype in (("flags", np.uint8), ("brightness", np.float64), ("active", np.uint8),
+                                ("uncertainty", np.float64)):
+                if getattr(self, name) is not None:
+                    root.create_array(name, data=np.ascontiguousarray(getattr(self, name), dtype=dtype))
+            hist = root.create_group("history")
+            for name in HISTORY_FIELDS:
+                hist.create_array(name, data=np.asarray(self.history[name]))
+            root.attrs["chunkdic"] = {**_jsonable(self.info), "kind": "result", "complete": True}
         self.path = str(path)
 
 
-def check_output(path: str | os.PathLike, *, overwrite: bool) -> None:
-    """Refuse to replace an existing path unless ``overwrite`` (raises InputError)."""
-    path = Path(path)
-    if path.exists() and not overwrite:
-        raise InputError(f"output {path} exists: choose another path or pass --overwrite")
+#: attributes every result holds (``open_result`` refuses a group without them)
+REQUIRED_INFO = ("element_size", "roi", "final_gap")
 
 
 def open_result(path: str | os.PathLike) -> Result:
-    """Read a result written by :func:`chunkdic.correlate` (refuses incomplete ones)."""
+    """Read a result written by :func:`chunkdic.correlate`.
+
+    Refuses (one-line :class:`InputError`) a path that is not a result, an incomplete one
+    (interrupted run), one whose attributes, arrays or history are missing or do not
+    agree with each other, and a damaged store.
+    """
     import zarr
 
     path = Path(path)
@@ -162,10 +166,44 @@ def open_result(path: str | os.PathLike) -> Result:
         raise InputError(f"{path} is not a chunkdic result ({exc.__class__.__name__})") from None
     if not info.get("complete", False):
         raise InputError(f"result {path} is incomplete (the run that wrote it was interrupted)")
-    history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
-    optional = {name: root[name][...] if name in root else None
-                for name in ("strain", "flags", "brightness", "active", "uncertainty")}
-    return Result(root["displacement"][...], root["node_coords"][...], history, info, str(path), **optional)
+    missing = [k for k in REQUIRED_INFO if k not in info]
+    if missing:
+        raise InputError(f"result {path} lacks the attribute(s) {', '.join(missing)}: not a chunkdic result, "
+                         "or a damaged one")
+    try:
+        u = root["displacement"][...]
+        X = root["node_coords"][...]
+        history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
+        optional = {name: root[name][...] if name in root else None
+                    for name in ("strain", "flags", "brightness", "active", "uncertainty")}
+    except KeyError as exc:
+        raise InputError(f"result {path} lacks the array {exc.args[0]!r}: a damaged result") from None
+    except Exception as exc:  # noqa: BLE001 - undecodable chunks
+        raise InputError(f"result {path} cannot be read ({type(exc).__name__}: {exc}"
+                         .splitlines()[0] + "): a damaged result") from None
+    _check_consistent(path, info, u, X, history)
+    return Result(u, X, history, info, str(path), **optional)
+
+
+def _check_consistent(path, info, u, X, history) -> None:
+    """The arrays of a result agree with its attributes (else one-line InputError)."""
+    try:
+        ell = int(info["element_size"])
+        roi = [(int(a), int(b)) for a, b in info["roi"]]
+        nodes = tuple((b - a) // ell + 1 for a, b in roi)
+        ok_roi = len(roi) == 3 and ell >= 1 and all((b - a) % ell == 0 and b > a for a, b in roi)
+    except (TypeError, ValueError, KeyError):
+        ok_roi, nodes = False, None
+    if not ok_roi:
+        raise InputError(f"result {path}: attributes element_size {info.get('element_size')!r} and roi "
+                         f"{info.get('roi')!r} do not describe a mesh: a damaged result")
+    for name, a in (("displacement", u), ("node_coords", X)):
+        if a.shape != (3,) + nodes:
+            raise InputError(f"result {path}: {name} has shape {a.shape}, the mesh needs {(3,) + nodes}: "
+                             "a damaged result")
+    lengths = {name: len(v) for name, v in history.items()}
+    if len(set(lengths.values())) > 1:
+        raise InputError(f"result {path}: history arrays of different lengths {lengths}: a damaged result")
 
 
 def _jsonable(obj):

@@ -152,6 +152,89 @@ def start_local_cluster(n_workers: int | None = None, threads_per_worker: int = 
     return Client(cluster), cluster
 
 
+def _local_workers(scheduler: str) -> int | None:
+    _, _, n = scheduler.partition(":")
+    if not n:
+        return None
+    try:
+        n_workers = int(n)
+    except ValueError:
+        raise InputError(f"scheduler {scheduler!r}: expected 'local' or 'local:N'") from None
+    if n_workers < 1:
+        raise InputError(f"scheduler {scheduler!r}: a local cluster needs at least one worker (local:N, N >= 1)")
+    return n_workers
+
+
+def probe_scheduler(address: str, timeout: float | None = None) -> None:
+    """Refuse, within ``timeout`` seconds, an address where no Dask scheduler answers.
+
+    A Dask scheduler sends its handshake as soon as a connection opens: an 8-byte frame
+    length (tens of bytes). ``distributed`` itself waits for it with no time limit (an
+    HTTP server, which waits for a request, hangs it for ever) and trusts the length (the
+    first 8 bytes of another protocol's banner ask it to allocate exabytes). Plain TCP
+    only: ``tls://`` and other comms are left to the client's own timeout.
+    """
+    import socket
+    import struct
+    from urllib.parse import urlparse
+
+    if not address.startswith("tcp://"):
+        return
+    timeout = float(config.get("connect-timeout") if timeout is None else timeout)
+    url = urlparse(address)
+    host, port = url.hostname, url.port
+    if not host or port is None:
+        raise InputError(f"scheduler {address!r}: expected tcp://host:port")
+    try:
+        with socket.create_connection((host, port), timeout=timeout) as sock:
+            sock.settimeout(timeout)
+            head = b""
+            while len(head) < 8:
+                part = sock.recv(8 - len(head))
+                if not part:
+                    break
+                head += part
+    except socket.timeout:
+        raise InputError(f"scheduler {address}: something listens there but sent no Dask handshake within "
+                         f"{timeout:g} s (an HTTP server or another service?)") from None
+    except OSError as exc:
+        raise InputError(f"cannot reach scheduler {address}: {exc.strerror or exc}") from None
+    if len(head) < 8:
+        raise InputError(f"scheduler {address}: the connection was closed without a Dask handshake")
+    (nbytes,) = struct.unpack("<Q", head)
+    if nbytes > 1 << 20:
+        shown = head.decode("latin-1").encode("unicode_escape").decode()
+        raise InputError(f"scheduler {address} is not a Dask scheduler (it answered {shown!r})")
+
+
+def check_scheduler(scheduler) -> None:
+    """Check a scheduler option before any output is written: its form, and for a TCP
+    address that a Dask scheduler answers there (:func:`probe_scheduler`)."""
+    if scheduler is None or scheduler == "threads" or not isinstance(scheduler, str):
+        return
+    if scheduler.startswith("local"):
+        _local_workers(scheduler)
+        return
+    if "://" not in scheduler:
+        raise InputError(
+            f"scheduler {scheduler!r}: expected 'threads', 'local[:N]' or an address like tcp://host:8786"
+        )
+    probe_scheduler(scheduler)
+
+
+def _wait_for_workers(client, address: str) -> None:
+    """A cluster without workers would wait for ever: wait a bounded time, then refuse."""
+    if client.scheduler_info().get("workers"):
+        return
+    timeout = float(config.get("worker-timeout"))
+    log.warning("scheduler %s has no workers yet: waiting up to %g s (chunkdic.worker-timeout)", address, timeout)
+    try:
+        client.wait_for_workers(1, timeout=timeout)
+    except Exception:  # noqa: BLE001 - distributed raises its own TimeoutError subclasses
+        raise InputError(f"scheduler {address} has no workers (waited {timeout:g} s, chunkdic.worker-timeout): "
+                         "start workers or use another scheduler") from None
+
+
 @contextlib.contextmanager
 def open_runner(scheduler=None):
     """Context manager giving a runner for ``scheduler``.
@@ -167,29 +250,27 @@ def open_runner(scheduler=None):
     if scheduler is None or scheduler == "threads":
         runner = ThreadRunner()
     elif isinstance(scheduler, str) and scheduler.startswith("local"):
-        _, _, n = scheduler.partition(":")
-        try:
-            n_workers = int(n) if n else None
-        except ValueError:
-            raise InputError(f"scheduler {scheduler!r}: expected 'local' or 'local:N'") from None
-        client, cluster = start_local_cluster(n_workers)
+        client, cluster = start_local_cluster(_local_workers(scheduler))
         runner = DistributedRunner(client, cluster)
     elif isinstance(scheduler, str):
         from distributed import Client
 
-        if "://" not in scheduler:
-            raise InputError(
-                f"scheduler {scheduler!r}: expected 'threads', 'local[:N]' or an address like tcp://host:8786"
-            )
+        check_scheduler(scheduler)
+        timeout = float(config.get("connect-timeout"))
         try:
-            client = Client(scheduler, timeout="10s")
+            client = Client(scheduler, timeout=f"{timeout}s")
         except (OSError, TimeoutError) as exc:
-            raise InputError(f"cannot reach scheduler {scheduler}: {exc}") from None
+            raise InputError(f"cannot reach scheduler {scheduler}: {exc}".splitlines()[0]) from None
         except (TypeError, ValueError) as exc:  # e.g. tls:// without certificates configured
             raise InputError(
                 f"cannot connect to {scheduler} ({exc}); for tls:// set distributed.comm.tls.* "
-                "(see docs/distributed.md)"
+                "(see docs/distributed.md)".splitlines()[0]
             ) from None
+        try:
+            _wait_for_workers(client, scheduler)
+        except BaseException:
+            client.close()
+            raise
         runner = DistributedRunner(client, cluster=None)
         runner._owns_client = True
     else:

@@ -18,6 +18,35 @@ from . import config
 from .errors import InputError
 
 
+def drain_zarr_io(timeout: float = 10.0) -> None:
+    """Wait until zarr's I/O event loop has no task in flight (at most ``timeout`` s).
+
+    zarr 3 writes the chunks of one assignment concurrently on its event loop; when one
+    write fails (a full disk), the assignment raises at once while the others go on
+    (``asyncio.gather`` does not cancel them), and a store removed right then is partly
+    written again a moment later (measured: a staged output left behind under load).
+    Cleanup calls this first.
+    """
+    import asyncio
+
+    from zarr.core import sync as zsync
+
+    loop = zsync.loop[0]
+    if loop is None or not loop.is_running():
+        return
+
+    async def idle() -> None:
+        me = asyncio.current_task()
+        pending = [t for t in asyncio.all_tasks() if t is not me]
+        if pending:
+            await asyncio.wait(pending, timeout=timeout)
+
+    try:
+        asyncio.run_coroutine_threadsafe(idle(), loop).result(timeout + 1)
+    except Exception:  # noqa: BLE001 - best effort: cleanup goes on
+        pass
+
+
 def _compressors(dtype):
     """Compressor of every array chunkdic writes (measurements in docs/scans.md).
 

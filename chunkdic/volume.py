@@ -25,7 +25,6 @@ from __future__ import annotations
 import functools
 import logging
 import os
-import shutil
 import time
 import uuid
 from collections.abc import Callable
@@ -37,6 +36,8 @@ import numpy as np
 from . import config
 from .coarsen import coarsen_sum, pyramid_dtype
 from .errors import InputError
+from .integrity import check_chunks_present, damaged_read_error
+from .outputs import Outputs
 from .ngff import (
     _complete_levels,
     _normalize_unit,
@@ -103,8 +104,17 @@ class ArrayRef:
         4.3 GiB RSS (every coefficient page it had read); mapping per read holds it
         to one window.
         """
-        a = self.open()[region]
-        return np.array(a) if self.kind == "npy" else np.asarray(a)
+        try:
+            a = self.open()[region]
+            return np.array(a) if self.kind == "npy" else np.asarray(a)
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - a damaged store: name the chunk (no cost when reads succeed)
+            if self.kind == "zarr":
+                raise damaged_read_error(self.path, self.key, region, exc) from None
+            raise InputError(f"{self.path}: cannot read the region "
+                             f"{tuple((s.start, s.stop) for s in region)} ({type(exc).__name__}: {exc}); "
+                             "the file is damaged or truncated".splitlines()[0]) from None
 
     @property
     def ndim(self) -> int:
@@ -153,34 +163,8 @@ def _write_level(path: str, s: int, data, chunk_shape=None, progress=None, start
     return ArrayRef("zarr", str(path), str(s), tuple(int(n) for n in data.shape), np.dtype(data.dtype).name)
 
 
-def _is_zarr_store(path: Path) -> bool:
-    return (path / "zarr.json").exists() or (path / ".zgroup").exists() or (path / ".zarray").exists()
-
-
-def _prepare_output(path, overwrite: bool) -> Path:
-    """Refuse an existing output unless ``overwrite`` (and then only a Zarr store)."""
-    p = Path(path)
-    if p.exists() or p.is_symlink():
-        if not overwrite:
-            raise InputError(f"output {p} already exists: choose another path or pass overwrite (--overwrite)")
-        if not (p.is_dir() and _is_zarr_store(p)):
-            raise InputError(f"output {p} exists and is not a Zarr store: refusing to overwrite it, remove it yourself")
-        shutil.rmtree(p)
-    if not p.parent.exists():
-        raise InputError(f"output directory {p.parent} does not exist")
-    return p
-
-
-def _remove_partial(p: Path) -> None:
-    """Remove a half-written output (twice: tasks on remote workers may still be finishing)."""
-    shutil.rmtree(p, ignore_errors=True)
-    if p.exists():
-        time.sleep(0.5)
-        shutil.rmtree(p, ignore_errors=True)
-
-
 def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite: bool = False,
-               levels: int = 0, progress: Callable[[float], None] | None = None) -> "Scan":
+               levels: int = 0, progress: Callable[[float], None] | None = None, inputs=()) -> "Scan":
     """Write a 3-D array as a stored scan: a Zarr v3 group with OME-NGFF 0.5 metadata.
 
     Level ``"0"`` is ``data``, written chunk by chunk by Dask (``data`` is never computed
@@ -201,7 +185,8 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     chunks : int or tuple of 3 int, optional
         Zarr chunk edge; default ``chunkdic.chunk-size`` (128).
     overwrite : bool
-        Replace an existing Zarr store at ``path``.
+        Replace an existing scan that chunkdic wrote at ``path`` (nothing else is ever
+        replaced; see :mod:`chunkdic.outputs`).
     levels : int
         Number of pyramid levels to build after level 0.
     progress : callable(float), optional
@@ -235,28 +220,29 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     unit = _normalize_unit(unit)
     levels = int(levels)
     _check_levels(data.shape, levels)
-    p = _prepare_output(path, overwrite)
+    plan = Outputs(inputs=inputs, overwrite=overwrite)
+    entry = plan.add(path, "scan")  # every check before anything is written
     forget_open_arrays()
     weights = [1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)]
     cuts = np.cumsum([0.0] + weights) / sum(weights)
     t0 = time.perf_counter()
     try:
-        g = zarr.open_group(store=str(p), mode="w-", zarr_format=3)
-        g.update_attributes({"chunkdic": {"voxel_size": list(voxel_size) if voxel_size else None,
-                                          "unit": unit}, "ome": {"version": "0.5"}})
-        _write_level(str(p), 0, data, chunks, progress, cuts[0], cuts[1])
-        _update_group_metadata(str(p))
-        log.info("level 0 %s %s written to %s in %.1f s", data.shape, data.dtype, p, time.perf_counter() - t0)
-        if levels:
-            from .pyramid import _build_levels
+        with plan:  # written to a hidden sibling, renamed into place once complete
+            p = entry.work
+            g = zarr.open_group(store=str(p), mode="w-", zarr_format=3)
+            g.update_attributes({"chunkdic": {"kind": "scan", "voxel_size": list(voxel_size) if voxel_size else None,
+                                              "unit": unit}, "ome": {"version": "0.5"}})
+            _write_level(str(p), 0, data, chunks, progress, cuts[0], cuts[1])
+            _update_group_metadata(str(p))
+            log.info("level 0 %s %s written to %s in %.1f s", data.shape, data.dtype, path,
+                     time.perf_counter() - t0)
+            if levels:
+                from .pyramid import _build_levels
 
-            _build_levels(str(p), levels, rebuild=True, progress=progress, cuts=cuts)
-    except BaseException:
-        _remove_partial(p)
-        raise
+                _build_levels(str(p), levels, rebuild=True, progress=progress, cuts=cuts)
     finally:
         forget_open_arrays()
-    return open_scan(str(p))
+    return open_scan(str(path))
 
 
 def _check_levels(shape, levels: int) -> None:
@@ -376,6 +362,10 @@ class Scan:
         """Levels stored complete and valid in the scan's own store."""
         return sorted(self._stored)
 
+    def stored_refs(self) -> dict[int, ArrayRef]:
+        """Level -> on-disk handle of the levels stored in the scan's own store."""
+        return dict(self._stored)
+
     # -- data ---------------------------------------------------------------------------
     def level(self, s: int):
         """Level ``s`` as a dask array: stored if complete, else 2x2x2 sums built lazily
@@ -429,7 +419,7 @@ class Scan:
                     root.mkdir(parents=True, exist_ok=True)
                     gpath = root / f"scan-{uuid.uuid4().hex[:12]}.zarr"
                     zarr.open_group(store=str(gpath), mode="w-", zarr_format=3).update_attributes(
-                        {"chunkdic": {"voxel_size": list(self.voxel_size) if self.voxel_size else None,
+                        {"chunkdic": {"kind": "scratch", "voxel_size": list(self.voxel_size) if self.voxel_size else None,
                                       "unit": self.unit, "scratch": True}})
                     self._scratch_group = str(gpath)
                 data = self.level(s)
@@ -513,6 +503,8 @@ def _scan_from_group(g, root: str, where: str) -> Scan:
                         a.shape, a.dtype, expected, pyramid_dtype(d0, s))
             continue
         stored[s] = ArrayRef("zarr", root, key, expected, a.dtype.name)
+    for ref in stored.values():  # a missing chunk file would read as zeros (integrity.py)
+        check_chunks_present(ref.path, ref.key, ours=ours)
     vs, unit = _voxel_from_group_attrs(attrs)
     return Scan(path=os.path.join(root, prefix) if prefix else root, voxel_size=vs, unit=unit, _stored=stored)
 
@@ -533,6 +525,8 @@ def _scan_from_zarr(node, where: str) -> Scan:
         return Scan(path=None, voxel_size=None, unit=None, _base=da.from_zarr(node))
     key = node.path.strip("/")
     ref = ArrayRef("zarr", root, key, tuple(int(n) for n in node.shape), node.dtype.name)
+    level = (node.attrs.get("chunkdic") or {}).get("level") if hasattr(node.attrs, "get") else None
+    check_chunks_present(root, key, ours=level is not None)
     return Scan(path=os.path.join(root, key) if key else root, voxel_size=None, unit=None, _stored={0: ref})
 
 
@@ -607,4 +601,10 @@ def _open(src) -> Scan:
         hint = " (a folder of TIFF slices? convert it with `chunkdic ingest`)" if any(
             f.suffix.lower() in (".tif", ".tiff") for f in p.iterdir()) else ""
         raise InputError(f"cannot read {p} as a Zarr store{hint}: {type(e).__name__}: {e}".splitlines()[0]) from None
-    return _scan_from_zarr(node, str(p))
+    try:
+        return _scan_from_zarr(node, str(p))
+    except InputError:
+        raise
+    except Exception as e:  # noqa: BLE001 - a damaged level's metadata (zarr.json), say
+        raise InputError(f"cannot read {p} as a Zarr store: {type(e).__name__}: {e}; the store is damaged"
+                         .splitlines()[0]) from None

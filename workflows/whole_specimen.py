@@ -190,8 +190,10 @@ def main(argv=None) -> dict:
         from chunkdic.export import write_vtk
         from chunkdic.report import report
 
-        figures = report(result, workdir / "report", progress=lambda msg: print("  " + msg, flush=True))
-        write_vtk(result, workdir / "result.vtu")
+        # redrawn on every run: overwrite replaces only the figures and mesh an earlier run wrote
+        figures = report(result, workdir / "report", overwrite=True,
+                         progress=lambda msg: print("  " + msg, flush=True))
+        write_vtk(result, workdir / "result.vtu", overwrite=True)
         times["report"] = time.perf_counter() - t0
     else:
         figures = {}
