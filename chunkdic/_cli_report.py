@@ -95,6 +95,8 @@ def register(subparsers) -> None:
     p.add_argument("--ref", help="reference scan (default: the path recorded in the result)")
     p.add_argument("--deformed", help="deformed scan (default: the path recorded in the result)")
     p.add_argument("--interpolation", choices=("cubic", "linear"), default=None)
+    p.add_argument("--scheduler", default=None,
+                   help="where the cut planes are computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
     p.set_defaults(func=run_report)
 
@@ -248,9 +250,12 @@ def run_table(args: argparse.Namespace) -> int:
 
 def run_report(args: argparse.Namespace) -> int:
     from .report import report
+    from .scheduler import check_scheduler
 
+    check_scheduler(args.scheduler)
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
-                   interpolation=args.interpolation, overwrite=args.overwrite, progress=_err)
+                   interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
+                   progress=_err)
     for p in paths.values():
         print(p)
     return 0

@@ -33,7 +33,7 @@ from .outputs import Outputs
 from .ownership import OutputLock, make_scratch
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
-from .masks import prepare_mask
+from .masks import check_mask_shape, prepare_mask
 from .noise import nodal_uncertainty
 from .regularization import choose_length
 from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result
@@ -117,6 +117,8 @@ def correlate(
         if min(g_scan.shape(s)) < 2:
             raise InputError(f"the deformed scan is too small at level {s} ({g_scan.shape(s)})")
     mask_scan = None if mask is None else open_scan(mask)
+    if mask_scan is not None:
+        check_mask_shape(mask_scan, f_scan.shape(0))
     plan = entry = None
     if output is not None:  # every output rule (chunkdic.outputs), nothing written yet
         plan = Outputs(inputs=(ref, deformed, mask), overwrite=overwrite)

@@ -21,10 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import config, kernels
+from . import config
 from .errors import InputError
 from .inputs import check_scan_for_result
 from .outputs import Outputs
+from .correction import Correction, correct_block, element_slice
 from .ownership import make_scratch
 from .result import Result, open_result
 
@@ -101,28 +102,18 @@ def interpolation_of(result: Result) -> str:
 # --------------------------------------------------------------------------- corrected image
 
 
-def corrected_task(f_ref, g_ref, ell: int, start, shape, local, u_block, interpolation: str, halo: int,
-                   out_path: str):
-    """Task: ``g(X + u(X))`` and ``f - g(X + u(X))`` over one block, written to its own chunk.
+def corrected_task(c: Correction, block, u_block: np.ndarray, brightness, local, out_path: str):
+    """Task: the corrected image and the residual over one block, written to its own chunk.
 
-    Returns ``(Σ r², n_valid, n_excluded, min f, max f)`` over the block (float64 sums).
+    Returns ``(Σ r², n_valid, n_excluded, min f̃, max f̃)`` over the block (float64 sums;
+    ``f̃`` the reference as the engine saw it).
     """
     import zarr
 
-    core = tuple(slice(a, a + n) for a, n in zip(start, shape))
-    f = f_ref.read(core).astype(np.float32, copy=False)
-    window = kernels.g_window(start, shape, u_block, g_ref.shape, interpolation=interpolation,
-                              halo=halo if interpolation == "cubic" else 0)
-    if any(w.stop <= w.start for w in window):
-        warped = np.full(shape, np.nan, np.float32)
-        valid = np.zeros(shape, bool)
-    else:
-        g = g_ref.read(window)
-        warped, valid = kernels.warp_block(ell, u_block, start, shape, g, tuple(w.start for w in window),
-                                           g_ref.shape, interpolation=interpolation)
-    residual = (f - warped).astype(np.float32)
-    region = tuple(slice(a, a + n) for a, n in zip(local, shape))
-    for name, data in (("corrected", warped), ("residual", residual)):
+    f, corrected, valid = correct_block(c, block, u_block, brightness)
+    residual = (f - corrected).astype(np.float32)
+    region = tuple(slice(a, a + n) for a, n in zip(local, f.shape))
+    for name, data in (("corrected", corrected), ("residual", residual)):
         arr = zarr.open_array(store=out_path, path=name, mode="r+")
         arr[region] = data
     r = residual[valid].astype(np.float64)
@@ -189,16 +180,18 @@ def _write_corrected(result: Result, work: Path, out: Path, ref, deformed, inter
     m = max(1, int(config.get("chunk-size")) // ell)
     chunk = tuple(min(m, n) * ell for n in mesh.shape)  # a block of m^3 elements = one chunk
     roi_shape = tuple(n * ell for n in mesh.shape)
-    halo = int(config.get("bspline-halo"))
     u = result.displacement
     with level_refs(result, ref, deformed) as (f_ref, g_ref):
+        corr = Correction.of_result(result, f_ref, g_ref, interpolation)
         root = zarr.open_group(str(work), mode="w", zarr_format=3)
         meta = {
             "kind": "corrected", "complete": False, "result": result.path, "level": result.info.get("level", 0),
             "roi": [[r.start, r.stop] for r in mesh.roi], "element_size": ell, "interpolation": interpolation,
             "voxel_size": result.info.get("voxel_size"), "unit": result.info.get("unit"),
-            "description": "corrected = g(X + u(X)), residual = f(X) - g(X + u(X)) over the ROI; "
-                           "voxel (i, j, k) is ROI start + (i, j, k) of the reference level",
+            "smoothing": corr.inputs.sigma, "grey_level": corr.inputs.grey,
+            "description": "corrected = gain * g~(X + u(X)) + offset(X), residual = f~(X) - corrected over the "
+                           "ROI, with f~, g~ the scans low-passed as the engine did and the brightness it found "
+                           "(chunkdic.correction); voxel (i, j, k) is ROI start + (i, j, k) of the reference level",
         }
         root.attrs["chunkdic"] = meta
         for name in ("corrected", "residual"):
@@ -207,11 +200,10 @@ def _write_corrected(result: Result, work: Path, out: Path, ref, deformed, inter
         blocks = mesh.blocks(m)
         args = []
         for blk in blocks:
-            start, shape = mesh.block_core(blk)
             local = tuple(e0 * ell for e0, _ in blk.elements)
             assert all(a % c == 0 for a, c in zip(local, chunk))  # each task owns one whole chunk
-            args.append((f_ref, g_ref, ell, start, shape, local,
-                         np.ascontiguousarray(u[(slice(None), *blk.node_slices)]), interpolation, halo, str(work)))
+            args.append((corr, blk, np.ascontiguousarray(u[(slice(None), *blk.node_slices)]),
+                         element_slice(result.brightness, blk), local, str(work)))
         ssr, n_valid, n_bad, fmin, fmax = 0.0, 0, 0, math.inf, -math.inf
         with open_runner(scheduler) as runner:
             for done, (r2, nv, nb, lo, hi) in enumerate(runner.map_unordered(corrected_task, args), 1):

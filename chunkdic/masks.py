@@ -34,11 +34,16 @@ def prepare_mask(src, ref_shape0, levels, scratch: Path) -> dict[int, ArrayRef]:
     Raises :class:`InputError` if the mask is not 3-D of the reference's level-0 shape.
     """
     mask = open_scan(src)
+    check_mask_shape(mask, ref_shape0)
+    binary = open_scan((mask.level(0) != 0).astype(np.uint8))
+    return binary.refs(levels, scratch)
+
+
+def check_mask_shape(mask, ref_shape0) -> None:
+    """Raise :class:`InputError` unless the mask (a :class:`chunkdic.volume.Scan`) has the reference's level-0 shape."""
     shape = tuple(int(n) for n in mask.shape(0))
     if shape != tuple(int(n) for n in ref_shape0):
         raise InputError(f"the mask has shape {shape}, the reference {tuple(ref_shape0)}: they must be equal")
-    binary = open_scan((mask.level(0) != 0).astype(np.uint8))
-    return binary.refs(levels, scratch)
 
 
 def element_fractions(mask: ArrayRef, level: int, start, shape, ell: int) -> np.ndarray:

@@ -515,7 +515,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
 
 def _corner(misfit: np.ndarray, rough: np.ndarray) -> int:
     """Index of the largest curvature of the L-curve ``(log misfit, log roughness)``."""
-    x = np.log(np.maximum(misfit, 1e-30 * max(misfit.max(), 1e-300)))
+    x = np.log(np.maximum(misfit, max(1e-30 * float(misfit.max()), 1e-300)))  # no log(0)
     y = np.log(np.maximum(rough, 1e-300))
     if len(x) < 3:
         return 0

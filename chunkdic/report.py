@@ -24,16 +24,15 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import scipy.ndimage as ndi
 
-from . import config
+from . import correction
 from .errors import InputError
 from .result import Result, open_result
 
 log = logging.getLogger(__name__)
 
 __all__ = ["report", "plot_cuts", "plot_uz_maps", "plot_epszz_maps", "plot_gap", "plot_uncertainty",
-           "mid_planes", "corrected_plane"]
+           "mid_planes"]
 
 AXES = "zyx"
 
@@ -68,69 +67,6 @@ def mid_planes(result: Result) -> dict[str, int]:
     return {AXES[a]: (r.start + r.stop) // 2 for a, r in enumerate(result.mesh.roi)}
 
 
-def _plane_region(result: Result, normal: int, index: int):
-    roi = result.mesh.roi
-    return tuple(slice(index, index + 1) if a == normal else roi[a] for a in range(3))
-
-
-def _read_plane(ref, region) -> np.ndarray:
-    """``region`` (one voxel thick) of an on-disk array, clipped; NaN outside; float32 2-D."""
-    out = np.full(tuple(s.stop - s.start for s in region), np.nan, np.float32)
-    src, dst = [], []
-    for s, n in zip(region, ref.shape):
-        a, b = max(s.start, 0), min(s.stop, n)
-        if b <= a:
-            return out.squeeze()
-        src.append(slice(a, b))
-        dst.append(slice(a - s.start, b - s.start))
-    out[tuple(dst)] = ref.read(tuple(src))
-    return out.reshape([n for n in out.shape if n != 1] or [1])
-
-
-def corrected_plane(result: Result, g_ref, normal: int, index: int, *, interpolation: str = "cubic",
-                    halo: int | None = None) -> np.ndarray:
-    """``g(X + u(X))`` on one plane of the ROI, reading only the slab of ``g`` it needs.
-
-    Parameters
-    ----------
-    result : Result
-    g_ref : ArrayRef
-        Deformed scan at the result's level.
-    normal : int
-        Axis normal to the plane (0 = z, 1 = y, 2 = x).
-    index : int
-        Plane index along ``normal`` (level voxels).
-    interpolation : {"cubic", "linear"}
-        Cubic: the slab is read with ``halo`` extra voxels (``chunkdic.bspline-halo``) and
-        prefiltered, as the engine does.
-
-    Returns
-    -------
-    ndarray, 2-D (the two other axes in ``(z, y, x)`` order over the ROI), float32
-        Grey levels of the result's level; NaN where ``X + u(X)`` leaves ``g``.
-    """
-    mesh = result.mesh
-    region = _plane_region(result, normal, index)
-    grids = np.meshgrid(*[np.arange(s.start, s.stop, dtype=np.float64) for s in region], indexing="ij")
-    X = np.stack([g.reshape(-1) for g in grids])
-    p = X + mesh.evaluate(result.displacement, X)
-    n = np.asarray(g_ref.shape, float)[:, None]
-    valid = np.all((p >= 0) & (p <= n - 1), axis=0)
-    out = np.full(X.shape[1], np.nan, np.float32)
-    if valid.any():
-        extra = (1 + (int(config.get("bspline-halo")) if halo is None else halo)) if interpolation == "cubic" else 0
-        lo = np.maximum(np.floor(p[:, valid].min(axis=1)).astype(int) - extra, 0)
-        hi = np.minimum(np.floor(p[:, valid].max(axis=1)).astype(int) + 2 + extra, np.asarray(g_ref.shape))
-        window = g_ref.read(tuple(slice(a, b) for a, b in zip(lo, hi))).astype(np.float32)
-        local = p[:, valid] - lo[:, None]
-        if interpolation == "cubic":
-            coeffs = ndi.spline_filter(window, order=3, mode="mirror", output=np.float32)
-            out[valid] = ndi.map_coordinates(coeffs, local, order=3, mode="mirror", prefilter=False)
-        else:
-            out[valid] = ndi.map_coordinates(window, local, order=1, mode="nearest")
-    return out.reshape([s.stop - s.start for a, s in enumerate(region) if a != normal])
-
-
 def _extent(result: Result, normal: int):
     """imshow extent (columns axis, rows axis) of a plane; rows = first remaining axis."""
     roi = result.mesh.roi
@@ -147,7 +83,7 @@ def _panel(fig, ax, img, extent, title, xlabel, ylabel, cbar, **kw):
     return im
 
 
-def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | None = None,
+def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
               progress: Callable[[str], None] | None = None) -> dict[str, str]:
     """Mid-plane cuts of reference, deformed and corrected images, and the residual.
 
@@ -162,6 +98,9 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
         The scans (default: the paths recorded in the result).
     interpolation : {"cubic", "linear"}, optional
         Default: the result's.
+    scheduler
+        Where the plane tasks run, as in :func:`chunkdic.correlate`. The client only
+        receives the three planes (:func:`chunkdic.correction.planes`).
     progress : callable(str), optional
         Called with a message per figure.
 
@@ -171,6 +110,7 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
         Figure name -> path.
     """
     from .export import interpolation_of, level_refs
+    from .scheduler import open_runner
 
     result = _as_results(result)[0]
     out_dir = Path(out_dir)
@@ -178,22 +118,20 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
     planes = mid_planes(result)
     lab = _level_label(result)
     paths, residuals = {}, {}
-    with level_refs(result, ref, deformed) as (f_ref, g_ref):
+    with level_refs(result, ref, deformed) as (f_ref, g_ref), open_runner(scheduler) as runner:
         for normal in (2, 1, 0):
             name = AXES[normal]
             idx = planes[name]
-            region = _plane_region(result, normal, idx)
-            f = _read_plane(f_ref, region)
-            g = _read_plane(g_ref, region)
-            c = corrected_plane(result, g_ref, normal, idx, interpolation=interpolation)
-            residuals[name] = (f - c, f)
+            cut = correction.planes(result, f_ref, g_ref, normal, idx, runner, interpolation=interpolation)
+            f, g, c = cut["reference"], cut["deformed"], cut["corrected"]
+            residuals[name] = (cut["prepared"] - c, cut["prepared"])
             finite = np.concatenate([v[np.isfinite(v)] for v in (f, g, c)])
             vmin, vmax = np.percentile(finite, [0.5, 99.5]) if finite.size else (0, 1)
             extent, row_ax, col_ax = _extent(result, normal)
             fig = _figure(13, 4.4)
             axs = fig.subplots(1, 3)
             for ax, img, title in zip(axs, (f, g, c), ("(a) reference f", "(b) deformed g",
-                                                       "(c) corrected g(X + u(X))")):
+                                                       "(c) corrected λ g(X + u(X)) + μ")):
                 _panel(fig, ax, img, extent, title, f"{col_ax} ({lab})", f"{row_ax} ({lab})",
                        "grey level", cmap="gray", vmin=vmin, vmax=vmax)
             fig.suptitle(f"Mid-plane cut normal to {name}, {name} = {idx} ({lab}); ℓ = {result.info['element_size']}")
@@ -212,9 +150,9 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
         rng = float(np.nanmax(f) - np.nanmin(f)) or 1.0
         gap = float(np.sqrt(np.nanmean(r**2)) / rng) if np.isfinite(r).any() else float("nan")
         _panel(fig, ax, r, extent, f"normal to {name}, {name} = {planes[name]}; gap {100 * gap:.2f} %",
-               f"{col_ax} ({lab})", f"{row_ax} ({lab})", "f − g(X+u) (grey level)",
+               f"{col_ax} ({lab})", f"{row_ax} ({lab})", "f − corrected (grey level)",
                cmap="RdBu_r", vmin=-lim, vmax=lim)
-    fig.suptitle(f"Residual f − g(X + u(X)) on the ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
+    fig.suptitle(f"Residual f − (λ g(X + u(X)) + μ), scans low-passed as correlated, on the ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
     path = out_dir / "residual.png"
     fig.savefig(path)
     paths["residual"] = str(path)
@@ -414,7 +352,7 @@ def plot_uncertainty(report, path) -> str:
 # --------------------------------------------------------------------------- all
 
 
-def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None,
+def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
            overwrite: bool = False, progress: Callable[[str], None] | None = None) -> dict[str, str]:
     """All figures of one or several results into ``out_dir``.
 
@@ -430,6 +368,8 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         chunkdic wrote with ``overwrite`` (see :mod:`chunkdic.outputs`).
     ref, deformed : path, optional
     interpolation : {"cubic", "linear"}, optional
+    scheduler
+        Where the cut planes are computed (:func:`plot_cuts`).
     overwrite : bool
         Replace the figures of an earlier report in ``out_dir``.
     progress : callable(str), optional
@@ -469,7 +409,8 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
             say(f"wrote {paths[name]}")
         if skip is None:
             paths.update(plot_cuts(results[0], out_dir, ref=ref, deformed=deformed,
-                                   interpolation=interpolation or interpolation_of(results[0]), progress=say))
+                                   interpolation=interpolation or interpolation_of(results[0]), scheduler=scheduler,
+                                   progress=say))
         else:
             say(f"skipped the cuts and residual: {skip}")
     return paths

@@ -120,6 +120,20 @@ def halo_region(start, shape, full_shape, halo: int = 1):
     return tuple(region), tuple(lo), tuple(hi)
 
 
+def read_prepared_reference(inputs: LevelInputs, start, shape, halo: int = 1):
+    """The reference over a block core grown by ``halo`` voxels (clipped), checked and low-passed.
+
+    Returns ``(f, lo, hi)``: the block (float32 when low-passed, else the scan's dtype) and
+    the halo obtained on each side (:func:`halo_region`).
+    """
+    inner, lo, hi = halo_region(start, shape, inputs.f.shape, halo)
+    region, _, _ = halo_region(start, shape, inputs.f.shape, halo + gaussian_radius(inputs.sigma))
+    raw = inputs.f.read(region)
+    check_finite(raw, "reference", region)
+    f = prepare_reference(raw, region, inner, inputs.sigma) if inputs.sigma > 0 else raw
+    return f, lo, hi
+
+
 def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     """Task: this block's share of ``M`` (a nodal stencil) and the min/max of the prepared ``f``.
 
@@ -128,11 +142,7 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     ``b`` passes. ``u_block``: the level's starting field on the block's nodes; voxels it
     maps outside ``g`` are left out of ``M`` as the ``b`` passes leave them out.
     """
-    inner, lo, hi = job.haloed_region(inputs.f.shape)
-    region, _, _ = halo_region(job.start, job.shape, inputs.f.shape, 1 + gaussian_radius(inputs.sigma))
-    raw = inputs.f.read(region)
-    check_finite(raw, "reference", region)
-    f = prepare_reference(raw, region, inner, inputs.sigma) if inputs.sigma > 0 else raw
+    f, lo, hi = read_prepared_reference(inputs, job.start, job.shape, halo=1)
     inputs.f_copy.write(job.index, f)
     f = np.asarray(f, dtype=np.float32)
     fractions = None
