@@ -236,6 +236,16 @@ def open_corrected(path):
 # --------------------------------------------------------------------------- VTK / CSV
 
 
+def _nodal_uncertainty(result: Result, units: str) -> np.ndarray | None:
+    """``Result.uncertainty`` (3, nz, ny, nx) in the units of :func:`_positions` (None if absent)."""
+    if result.uncertainty is None:
+        return None
+    if units != "physical":
+        return result.uncertainty
+    scale = float(result.info.get("scale", 1))
+    return result.uncertainty * scale * np.asarray(result.info["voxel_size"], float)[:, None, None, None]
+
+
 def _positions(result: Result, units: str):
     """Node positions and displacement, shape (3, nz, ny, nx), in level voxels or physical units."""
     X, u = result.node_coords, result.displacement
@@ -319,6 +329,11 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
     cell_data["volume_change"] = [np.trace(eps).ravel()]
     cell_data["max_abs_principal"] = [np.abs(principal_strains(eps)).max(axis=0).ravel()]
     point_data = {"displacement": disp, "Ux": disp[:, 0], "Uy": disp[:, 1], "Uz": disp[:, 2]}
+    sigma = _nodal_uncertainty(result, units)
+    if sigma is not None:  # per-node standard uncertainty, same units and component order
+        point_data["uncertainty"] = np.stack([sigma[2].ravel(), sigma[1].ravel(), sigma[0].ravel()], axis=1)
+    if result.flags is not None:  # chunkdic.result.FLAG_*: no data, weak texture, masked
+        point_data["flags"] = result.flags.ravel().astype(np.int32)
     mesh = meshio.Mesh(points, [("hexahedron", cells)], point_data=point_data, cell_data=cell_data)
     with plan:
         mesh.write(str(entry.work))
@@ -337,9 +352,14 @@ def write_nodes_csv(result, path, *, units: str = "voxels", overwrite: bool = Fa
     entry = plan.add(path, "csv")
     X, u, unit = _positions(result, units)
     idx = np.indices(X.shape[1:]).reshape(3, -1).T
-    data = np.column_stack([idx, X.reshape(3, -1).T, u.reshape(3, -1).T])
-    header = f"# positions and displacements in {unit}\niz,iy,ix,z,y,x,Uz,Uy,Ux"
-    fmt = ["%d"] * 3 + ["%.6f"] * 3 + ["%.8g"] * 3
+    sigma = _nodal_uncertainty(result, units)
+    if sigma is None:
+        sigma = np.full_like(u, np.nan)
+    flags = np.zeros(X.shape[1:], np.uint8) if result.flags is None else result.flags
+    data = np.column_stack([idx, X.reshape(3, -1).T, u.reshape(3, -1).T, sigma.reshape(3, -1).T, flags.reshape(-1)])
+    header = (f"# positions, displacements and their standard uncertainties in {unit}; flags: "
+              f"1 no data, 2 weak texture, 4 masked\niz,iy,ix,z,y,x,Uz,Uy,Ux,sigma_Uz,sigma_Uy,sigma_Ux,flags")
+    fmt = ["%d"] * 3 + ["%.6f"] * 3 + ["%.8g"] * 6 + ["%d"]
     with plan:
         np.savetxt(entry.work, data, delimiter=",", header=header, comments="", fmt=fmt)
     return len(data)

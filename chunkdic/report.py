@@ -1,18 +1,21 @@
 """Figures of a correlation (paper section 5, Figs. 5-10): PNG files with colour bars and units.
 
-Every figure reads only what it shows: mid-planes of the reference and deformed scans (one
-2-D plane each), the thin slab of the deformed scan that the corrected plane
-``g(X + u(X))`` needs, and mesh-sized arrays. Figures are drawn with matplotlib's
+Every figure reads only what it shows: the cut planes are computed by worker tasks
+(:func:`chunkdic.correction.planes`, one element layer per task) and only 2-D planes and
+mesh-sized arrays reach the client. Figures are drawn with matplotlib's
 object-oriented API on an Agg canvas created inside each function (no ``pyplot``, no
 global backend switch, nothing at import).
 
 - ``cut_x.png``, ``cut_y.png``, ``cut_z.png``: mid-plane cuts of the ROI normal to x, y, z;
   reference, deformed and corrected side by side (Figs. 6-8);
-- ``residual.png``: the residual ``f - g(X + u(X))`` on the three mid-planes;
+- ``residual.png``: the residual ``f - (λ g(X + u(X)) + μ)`` on the three mid-planes (the
+  scans low-passed as correlated, the brightness found);
 - ``uz_map.png``: ``Uz`` on the mid-plane normal to x, one panel per result (Fig. 9);
 - ``epszz_map.png``: ``eps_zz`` on that plane, linearly interpolated between element
   centres (Fig. 10);
 - ``gap.png``: matching gap per iteration (section 5.1);
+- ``uncertainty_map.png``: the per-node displacement uncertainty on the mid-plane normal
+  to x, one panel per result;
 - ``uncertainty.png`` (from :func:`chunkdic.metrology.uncertainty`): log-log ``sigma_U``
   versus element size with the power-law fit (Fig. 5).
 """
@@ -32,6 +35,7 @@ from .result import Result, open_result
 log = logging.getLogger(__name__)
 
 __all__ = ["report", "plot_cuts", "plot_uz_maps", "plot_epszz_maps", "plot_gap", "plot_uncertainty",
+           "plot_uncertainty_map",
            "mid_planes"]
 
 AXES = "zyx"
@@ -174,6 +178,50 @@ def _x_plane(results: list[Result]) -> int:
     return mid_planes(results[0])["x"]
 
 
+def _x_plane_map(res: Result, nodal: np.ndarray, x: int) -> np.ndarray:
+    """A nodal field (k, nz, ny, nx) on the ROI plane normal to x, C8-interpolated: (k, Lz, Ly)."""
+    roi = res.mesh.roi
+    zz, yy = np.meshgrid(np.arange(roi[0].start, roi[0].stop, dtype=float),
+                         np.arange(roi[1].start, roi[1].stop, dtype=float), indexing="ij")
+    return res.mesh.evaluate(nodal, np.stack([zz, yy, np.full_like(zz, x)]))
+
+
+def plot_uncertainty_map(results, path, *, x: int | None = None) -> str:
+    """Per-node standard uncertainty ``σ_U`` (pooled over the three components) on the plane
+    normal to x, one panel per result (``Result.uncertainty``; docs/engine.md).
+
+    Returns ``path``; results without an uncertainty are shown as empty panels.
+    """
+    results = _as_results(results)
+    x = _x_plane(results) if x is None else int(x)
+    maps = []
+    for res in results:
+        if res.uncertainty is None:
+            maps.append(None)
+            continue
+        pooled = np.sqrt(np.mean(res.uncertainty**2, axis=0))[None]
+        maps.append(_x_plane_map(res, pooled, x)[0])
+    finite = [m[np.isfinite(m)] for m in maps if m is not None]
+    vmax = max([float(v.max()) for v in finite if v.size] or [1.0])
+    rows, cols = _grid(len(results))
+    fig = _figure(5.2 * cols, 4.4 * rows)
+    axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
+    for ax, res, m in zip(axs, results, maps):
+        extent, _, _ = _extent(res, 2)
+        lab = _level_label(res)
+        if m is None:
+            ax.set_title(f"ℓ = {res.info['element_size']}: no uncertainty in this result", fontsize=10)
+            ax.set_axis_off()
+            continue
+        _panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
+               f"σ_U ({lab})", cmap="magma", vmin=0.0, vmax=vmax)
+    for ax in axs[len(results):]:
+        ax.set_visible(False)
+    fig.suptitle(f"Per-node displacement uncertainty σ_U on the plane x = {x}")
+    fig.savefig(path)
+    return str(path)
+
+
 def plot_uz_maps(results, path, *, x: int | None = None) -> str:
     """``Uz`` on the plane normal to x, one panel per result (paper Fig. 9).
 
@@ -193,15 +241,9 @@ def plot_uz_maps(results, path, *, x: int | None = None) -> str:
     """
     results = _as_results(results)
     x = _x_plane(results) if x is None else int(x)
-    maps = []
-    for res in results:
-        roi = res.mesh.roi
-        zz, yy = np.meshgrid(np.arange(roi[0].start, roi[0].stop, dtype=float),
-                             np.arange(roi[1].start, roi[1].stop, dtype=float), indexing="ij")
-        pts = np.stack([zz, yy, np.full_like(zz, x)])
-        maps.append(res.mesh.evaluate(res.displacement, pts)[0])
-    vmin = min(float(m.min()) for m in maps)
-    vmax = max(float(m.max()) for m in maps)
+    maps = [_x_plane_map(res, res.displacement, x)[0] for res in results]
+    vmin = min(float(np.nanmin(m)) for m in maps)
+    vmax = max(float(np.nanmax(m)) for m in maps)
     rows, cols = _grid(len(results))
     fig = _figure(5.2 * cols, 4.4 * rows)
     axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
@@ -404,7 +446,8 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     out_dir = plan.add(out_dir, "figures").final
     paths = {}
     with plan:  # a failure removes the figures this run wrote, never older files
-        for name, fn in (("uz_map", plot_uz_maps), ("epszz_map", plot_epszz_maps), ("gap", plot_gap)):
+        for name, fn in (("uz_map", plot_uz_maps), ("epszz_map", plot_epszz_maps), ("gap", plot_gap),
+                         ("uncertainty_map", plot_uncertainty_map)):
             paths[name] = fn(results, out_dir / f"{name}.png")
             say(f"wrote {paths[name]}")
         if skip is None:

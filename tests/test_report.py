@@ -84,7 +84,7 @@ def _assert_png_not_blank(path):
 def test_report_figures(translation, tmp_path):
     _, res, d = translation
     assert _run(["report", str(d / "result.zarr"), "-o", str(tmp_path / "fig")]) == 0
-    names = ["cut_x", "cut_y", "cut_z", "residual", "uz_map", "epszz_map", "gap"]
+    names = ["cut_x", "cut_y", "cut_z", "residual", "uz_map", "epszz_map", "gap", "uncertainty_map"]
     for name in names:
         _assert_png_not_blank(tmp_path / "fig" / f"{name}.png")
     # several results: one panel each
@@ -100,7 +100,7 @@ def test_report_without_scans_skips_cuts(translation, tmp_path):
                           {**res.info, "inputs": {"reference": "<in-memory ndarray>"}})
     msgs = []
     paths = report(mem, tmp_path / "fig", progress=msgs.append)
-    assert set(paths) == {"uz_map", "epszz_map", "gap"}
+    assert set(paths) == {"uz_map", "epszz_map", "gap", "uncertainty_map"}
     assert any("skipped" in m for m in msgs)
 
 
@@ -119,9 +119,14 @@ def test_vtk_and_csv_export(translation, tmp_path):
     assert np.allclose(m.point_data["displacement"][7], res.displacement[::-1].reshape(3, -1)[:, 7])
     assert m.point_data["displacement"][0] == pytest.approx(T[::-1], abs=0.02)
     assert m.cell_data["strain"][0].shape == (len(m.cells_dict["hexahedron"]), 9)
+    # the per-node uncertainty travels with the field (VTK (x, y, z) order; CSV z, y, x)
+    assert np.allclose(m.point_data["uncertainty"][7], res.uncertainty[::-1].reshape(3, -1)[:, 7])
+    assert np.array_equal(m.point_data["flags"], res.flags.ravel())
     table = np.loadtxt(csv_path, delimiter=",", skiprows=2)
-    assert table.shape == (np.prod(nodes), 9)
-    assert np.allclose(table[:, 6:], res.displacement.reshape(3, -1).T, atol=1e-6)
+    assert table.shape == (np.prod(nodes), 13)
+    assert np.allclose(table[:, 6:9], res.displacement.reshape(3, -1).T, atol=1e-6)
+    assert np.allclose(table[:, 9:12], res.uncertainty.reshape(3, -1).T, rtol=1e-6)
+    assert np.array_equal(table[:, 12], res.flags.ravel())
     with pytest.raises(InputError):
         _run(["export", str(d / "result.zarr"), "--vtk", str(vtu)])  # exists, no --overwrite
 
