@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import errno
 import logging
+import math
 import sys
 import time
 import warnings
@@ -59,9 +60,10 @@ def _format_event(event: dict) -> str | None:
         return (f"  level {event['level']} {event['label']}: {event['done']}/{event['total']} blocks, "
                 f"{event['rate'] / 1e6:.1f} Mvoxel/s, ETA {event['eta']:.0f} s")
     if stage == "regularization":
+        corner = event.get("l_curve_length")
+        corner = f"; L-curve corner {corner:.1f}" if corner is not None and math.isfinite(corner) else ""
         return (f"level {event['level']}: {event['kind']} regularisation length {event['length']:.1f} voxels "
-                f"(chosen from the data; L-curve corner {event['l_curve_length']:.1f}; "
-                f"noise correlation factor {event['kappa']:.1f})")
+                f"(chosen from the data{corner}; noise correlation factor {event['kappa']:.1f})")
     if stage == "resume":
         return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
     if stage == "level":

@@ -387,8 +387,9 @@ def _with_chosen_regularization(lvl: Level, state: State, progress) -> State:
     choice = choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
                            p.kappa * p.noise_variance, solve_with)
     scale = 2.0**lvl.s
-    emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale,
-         l_curve_length=choice.l_curve_length * scale, kind=lvl.settings.regularization, kappa=p.kappa)
+    corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
+    emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale, l_curve_length=corner,
+         kind=lvl.settings.regularization, kappa=p.kappa)
     lvl.regularize(choice.length)
     state.reg_length = choice.length
     state.restart()

@@ -21,7 +21,8 @@ from chunkdic.cli import main
 from chunkdic.errors import InputError
 from chunkdic.planning import plan_meshes
 from chunkdic.prefilter import face_margin
-from chunkdic.regularization import Regularizer, plane_wave_weight, plane_waves, reference_wavelength
+from chunkdic.regularization import (CANDIDATES, Regularizer, choose_length, plane_wave_weight, plane_waves,
+                                     reference_wavelength, regions)
 from chunkdic.result import FLAG_MASKED, FLAG_WEAK
 from chunkdic.scoring import scored_region
 from chunkdic.solve import half_stencil, stencil_matvec
@@ -201,6 +202,65 @@ def test_regularised_result_does_not_depend_on_block_size(band_foam_pair, kind):
     np.testing.assert_allclose(one.displacement, three.displacement, rtol=0, atol=1e-6)
     plain = chunkdic.correlate(f, g, block_elements=3, **dict(kw, regularization="none", regularization_length=None))
     assert np.abs(plain.displacement - one.displacement).max() > 0.05  # the penalty acts
+
+
+# ------------------------------------------------------------------ the automatic length
+
+
+def test_choice_regions_do_not_repeat_the_same_box():
+    """25 nodes per axis: one central 24-node box (two would overlap by 23); 60: two apart."""
+    assert regions((25, 25, 25), 24) == [(slice(0, 24),) * 3]
+    assert regions((10, 25, 30), 24) == [(slice(0, 10), slice(0, 24), slice(3, 27))]
+    boxes = regions((60, 60, 60), 24)
+    assert len(boxes) == 8 and len(set((b[0].start, b[1].start, b[2].start) for b in boxes)) == 8
+    assert sorted({b[0].start for b in boxes}) == [3, 33]  # centred on the quarters 15 and 45
+
+
+def _identity_stencil(shape, c=1.0):
+    half = np.zeros(tuple(shape) + (14, 3, 3), np.float32)
+    half[..., 0, :, :] = c * np.eye(3)
+    return half
+
+
+def _direct_solve(half, reg, weight, rhs):
+    """``(c I + λ R) x = rhs`` by a dense solve (the truth for the CG-free check)."""
+    n = rhs.size
+    c = float(half[0, 0, 0, 0, 0, 0])
+    A = np.stack([reg.apply(e.reshape(rhs.shape)).ravel() for e in np.eye(n)], axis=1)
+    return np.linalg.solve(c * np.eye(n) + weight * A, rhs.ravel()).reshape(rhs.shape)
+
+
+def test_automatic_length_keeps_a_linear_field_and_shortens_for_a_bump():
+    """With ``M = I`` and ``b = 0`` the misfit of a candidate is ``|x - a|²``, exactly.
+
+    A linear field is in ``R``'s null space: no misfit at any length, the longest candidate
+    (32 ℓ) is chosen. A Gaussian bump of width 1.5 ℓ: the misfit grows with the length; the
+    pick is the longest candidate whose misfit (by a dense solve) is within the budget,
+    for budgets placed between consecutive candidates.
+    """
+    shape, ell = (7, 7, 7), 4.0
+    half = _identity_stencil(shape)
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij")
+    linear = np.stack([0.01 * z + 0.2, -0.02 * y, 0.03 * x + 0.01 * z], axis=-1)
+    zero = np.zeros_like(linear)
+    pick = choose_length("tikhonov", half, ell, linear, zero, 1e-12, _direct_solve)
+    assert pick.length == pytest.approx(CANDIDATES[-1] * ell)
+
+    bump = np.exp(-((z - 3) ** 2 + (y - 3) ** 2 + (x - 3) ** 2) / (2 * 1.5**2))[..., None] * [0.3, 0.2, 0.1]
+    reg = Regularizer("tikhonov", shape, ell)
+    misfit = []
+    for c in CANDIDATES:
+        xs = _direct_solve(half, reg, plane_wave_weight(reg, lambda v: v.copy(), c * ell), bump)
+        misfit.append(float(np.sum((xs - bump) ** 2)))
+    increase = np.array(misfit) - misfit[0]
+    assert np.all(np.diff(increase) > 0)  # what the bisection relies on
+    n_unknowns = 3 * int(np.prod(shape))
+    for k in range(1, len(CANDIDATES) - 1):
+        budget = 0.5 * (increase[k] + increase[k + 1])
+        pick = choose_length("tikhonov", half, ell, bump, zero, budget / n_unknowns, _direct_solve)
+        assert pick.length == pytest.approx(CANDIDATES[k] * ell), k
+        swept = choose_length("tikhonov", half, ell, bump, zero, budget / n_unknowns, _direct_solve, sweep=True)
+        assert swept.length == pick.length and np.allclose(swept.misfit, misfit, rtol=1e-9)
 
 
 # -------------------------------------------------------------------------------- masks
