@@ -174,7 +174,7 @@ def _decide(state: State, gap: float, tolerance: float, max_iterations: int) -> 
 
 
 def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, history: History, progress,
-            on_iteration=None) -> State:
+            on_iteration=None, first_pass=None) -> State:
     """Modified Gauss–Newton on one level (paper section 3), from ``state``.
 
     Each pass evaluates ``b`` and the gap of the current field; the increment of the
@@ -183,12 +183,14 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
     stop improving is *stalled*; one whose gap grows past ``DIVERGENCE_FACTOR`` × the best
     (plus ``DIVERGENCE_FLOOR``) is *diverged*; both return the best field met, never
     flagged as converged.
-    ``on_iteration(state)`` is called after every pass (checkpoints).
+    ``on_iteration(state)`` is called after every pass (checkpoints). ``first_pass``: the
+    pass already evaluated at ``state.u`` (``b`` and the gap depend on the images and the
+    field only, not on the regularisation), used instead of evaluating it again.
     """
     while state.status is None:
         it = state.iteration
         t0, c0 = time.perf_counter(), time.process_time()
-        p = lvl.assemble_b(state.u)
+        p, first_pass = (lvl.assemble_b(state.u) if first_pass is None else first_pass), None
         cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
         event = dict(stage="iteration", level=lvl.s, iteration=it, gap=p.gap, max_delta=None,
                      excluded=p.n_excluded, gain=float(np.median(p.fit.gain)))
