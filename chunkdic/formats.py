@@ -9,7 +9,7 @@ Nothing is read whole: a small picklable *reader* (a path and a layout) is wrapp
 Dask array whose blocks are slabs of whole Zarr chunks (``chunk`` slices deep, full rows
 if they fit ``chunkdic.ingest-slab-bytes``, 32 MiB by default); each task opens the file
 by path, reads its slab (page range, ``pread`` rows, HDF5 hyperslab, memory map) and
-writes it with :func:`chunkdic.volume.write_scan`. Float input is checked for NaN and
+writes it with :func:`chunkdic.scanwrite.write_scan`. Float input is checked for NaN and
 infinity slab by slab during the write; a failure removes the half-written output.
 """
 
@@ -26,9 +26,10 @@ import numpy as np
 
 from .errors import InputError
 from .inputs import check_finite
-from .ngff import _normalize_unit, _normalize_voxel_size
-from .store import _chunk_shape
-from .volume import Scan, open_scan, write_scan
+from .ngff import normalize_unit, normalize_voxel_size
+from .store import chunk_shape_for
+from .scanwrite import write_scan
+from .volume import Scan, open_scan
 
 log = logging.getLogger(__name__)
 
@@ -204,7 +205,7 @@ def _tiff_unit(u) -> str | None:
         return None
     u = str(u).replace("\\u00B5", "µ").replace("\\u00b5", "µ")
     try:
-        return _normalize_unit(u)
+        return normalize_unit(u)
     except InputError:
         return None
 
@@ -390,7 +391,7 @@ def _open_hdf5(path: Path, dataset):
                     unit = _tiff_unit(u.decode() if isinstance(u, bytes) else u)
                     break
         try:
-            vs = _normalize_voxel_size(np.asarray(vs, float).tolist()) if vs is not None else None
+            vs = normalize_voxel_size(np.asarray(vs, float).tolist()) if vs is not None else None
         except (InputError, TypeError, ValueError):
             vs, unit = None, None
         return _H5Reader(str(path), dataset, d.shape, d.dtype), vs, unit
@@ -472,13 +473,10 @@ def _open_source(src, *, shape, dtype, byte_order, offset, dataset):
         return (*_open_tiff_file(p), p)
     if suffix == ".npy":
         return (*_open_npy(p), p)
-    try:
-        import h5py
+    import h5py
 
-        if h5py.is_hdf5(p):
-            return (*_open_hdf5(p, None), p)
-    except ImportError:  # pragma: no cover
-        pass
+    if h5py.is_hdf5(p):
+        return (*_open_hdf5(p, None), p)
     return (*_open_raw(p, shape, dtype, byte_order, offset), p)
 
 
@@ -568,8 +566,8 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
     """
     import dask.array as da
 
-    user_vs = _normalize_voxel_size(voxel_size)
-    user_unit = _normalize_unit(unit)
+    user_vs = normalize_voxel_size(voxel_size)
+    user_unit = normalize_unit(unit)
     if user_unit is not None and user_vs is None:
         raise InputError("a unit was given without a voxel size: pass both (--voxel-size 4.91 --unit micrometer)")
     reader, meta_vs, meta_unit, in_path = _open_source(src, shape=shape, dtype=dtype, byte_order=byte_order,
@@ -582,7 +580,7 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
         label = str(in_path)
     else:
         label = reader.label
-        cshape = _chunk_shape(reader.shape, chunks)
+        cshape = chunk_shape_for(reader.shape, chunks)
         slab = _slab_chunks(reader.shape, reader.dtype, cshape)
         name = "ingest-" + dask.base.tokenize(reader, slab, _mtime(in_path))
         data = da.from_array(reader, chunks=slab, name=name, asarray=False,

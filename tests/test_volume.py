@@ -12,8 +12,10 @@ import zarr
 
 from chunkdic.coarsen import coarsen_sum, pyramid_dtype
 from chunkdic.errors import InputError
-from chunkdic.store import _store, check_write_alignment
-from chunkdic.volume import ArrayRef, open_scan, write_scan
+from chunkdic.store import store_array, check_write_alignment
+from chunkdic.handles import ArrayRef
+from chunkdic.scanwrite import write_scan
+from chunkdic.volume import open_scan
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:
@@ -149,14 +151,14 @@ def test_chunk_alignment_violation_is_caught(tmp_path):
     check_write_alignment(((8, 8), (16,), (10,)), (16, 16, 10), (8, 8, 8))
     arr = zarr.create_array(str(tmp_path / "x.zarr"), shape=(16, 16, 16), chunks=(8, 8, 8), dtype="uint8")
     with pytest.raises(InputError, match="own whole chunks"):
-        _store(da.ones((16, 16, 16), dtype="uint8", chunks=(5, 16, 16)), str(tmp_path / "x.zarr"), "")
+        store_array(da.ones((16, 16, 16), dtype="uint8", chunks=(5, 16, 16)), str(tmp_path / "x.zarr"), "")
     assert int(np.asarray(arr[:]).sum()) == 0  # nothing written
     # sharded arrays: the write unit is the shard
     sharded = zarr.create_array(str(tmp_path / "s.zarr"), shape=(16, 16, 16), chunks=(4, 4, 4),
                                 shards=(8, 8, 8), dtype="uint8")
     with pytest.raises(InputError, match="multiples of 8"):
-        _store(da.ones((16, 16, 16), dtype="uint8", chunks=4), str(tmp_path / "s.zarr"), "")
-    _store(da.ones((16, 16, 16), dtype="uint8", chunks=8), str(tmp_path / "s.zarr"), "")
+        store_array(da.ones((16, 16, 16), dtype="uint8", chunks=4), str(tmp_path / "s.zarr"), "")
+    store_array(da.ones((16, 16, 16), dtype="uint8", chunks=8), str(tmp_path / "s.zarr"), "")
     assert int(np.asarray(sharded[:]).sum()) == 16**3
 
 
