@@ -39,13 +39,35 @@ def mark_complete(path: str, s: int) -> None:
 
 
 def write_level(path: str, s: int, data, chunk_shape=None, progress=None, start=0.0, end=1.0) -> ArrayRef:
-    """Create level ``s`` in group ``path``, store ``data`` chunk by chunk, mark complete."""
+    """Create level ``s`` in group ``path``, store ``data`` chunk by chunk, mark complete.
+
+    ``data`` is a Dask array (written by tasks, :func:`chunkdic.store.store_array`) or an
+    array already in this process's memory (a NumPy array, an in-memory Zarr array),
+    written from here chunk by chunk: wrapping it in a Dask graph would ship the whole
+    array to a distributed scheduler inside the graph.
+    """
     chunk_shape = chunk_shape_for(data.shape, chunk_shape)
     create_level(path, s, data.shape, data.dtype, chunk_shape)
-    store_array(aligned(data, chunk_shape), path, str(s), progress, start, end)
+    if hasattr(data, "dask"):
+        store_array(aligned(data, chunk_shape), path, str(s), progress, start, end)
+    else:
+        _write_from_memory(data, path, str(s), chunk_shape, progress, start, end)
     mark_complete(path, s)
     forget_open_arrays()
     return ArrayRef("zarr", str(path), str(s), tuple(int(n) for n in data.shape), np.dtype(data.dtype).name)
+
+
+def _write_from_memory(data, path: str, key: str, chunk_shape, progress, start: float, end: float) -> None:
+    """Write an in-memory array into ``path``/``key`` one chunk row (z slab) at a time."""
+    import zarr
+
+    arr = zarr.open_array(store=path, path=key, mode="r+").with_config({"write_empty_chunks": True})
+    nz = data.shape[0]
+    for z0 in range(0, nz, chunk_shape[0]):
+        z1 = min(z0 + chunk_shape[0], nz)
+        arr[z0:z1] = np.asarray(data[z0:z1])
+        if progress is not None:
+            progress(start + (end - start) * z1 / nz)
 
 
 def check_levels(shape, levels: int) -> None:

@@ -19,7 +19,6 @@ from .levels import check_levels, write_level
 from .ngff import normalize_unit, normalize_voxel_size, update_group_metadata
 from .outputs import Outputs
 from .pyramid import build_levels
-from .store import chunk_shape_for
 from .volume import Scan, open_scan
 
 log = logging.getLogger(__name__)
@@ -67,12 +66,11 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     >>> scan.stored_levels(), scan.shape(1), scan.dtype(1).name
     ([0, 1], (4, 4, 4), 'uint16')
     """
-    import dask.array as da
     import zarr
 
-    if isinstance(data, np.ndarray):
-        data = da.from_array(data, chunks=chunk_shape_for(data.shape, chunks))
-    if not hasattr(data, "dask") or getattr(data, "ndim", None) != 3:
+    # A NumPy array stays as it is: write_level writes it from this process chunk by chunk
+    # (in a Dask graph it would travel whole to a distributed scheduler).
+    if (not isinstance(data, np.ndarray) and not hasattr(data, "dask")) or getattr(data, "ndim", None) != 3:
         raise InputError(f"write_scan needs a 3-D dask or numpy array, got {type(data).__name__} "
                          f"of shape {getattr(data, 'shape', '?')}")
     if min(data.shape) < 1:

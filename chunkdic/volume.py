@@ -115,7 +115,7 @@ class Scan:
         if s == 0:
             if self._base is None:
                 raise InputError("level 0 of this scan is not available")
-            if isinstance(self._base, np.ndarray):
+            if self._in_memory():
                 return da.from_array(self._base, chunks=chunk_shape_for(self._base.shape, None))
             return self._base
         k = self._source_level(s)
@@ -125,9 +125,17 @@ class Scan:
             a = coarsen_sum(a, self.dtype(t), chunk=c)
         return a
 
+    def _in_memory(self) -> bool:
+        """Level 0 is an array in this process's memory (NumPy, in-memory Zarr), not a graph."""
+        return self._base is not None and not hasattr(self._base, "dask")
+
     def refs(self, levels, scratch_dir=None) -> dict[int, ArrayRef]:
         """On-disk handles for ``levels``: stored levels directly; others written chunk by
         chunk into a Zarr group under ``scratch_dir`` (each from the finest level on disk).
+
+        A level 0 held in memory is written to scratch first, from this process: the
+        levels built from it then read it by path, so no task graph ever carries voxels
+        (a distributed scheduler would otherwise receive the whole array in the graph).
 
         Parameters
         ----------
@@ -143,7 +151,10 @@ class Scan:
         import zarr
 
         out = {}
-        for s in sorted({int(v) for v in levels}):
+        wanted = {int(v) for v in levels}
+        if self._in_memory() and 0 not in self._scratch:
+            wanted.add(0)
+        for s in sorted(wanted):
             ref = self._stored.get(s) or self._scratch.get(s)
             if ref is None:
                 if self._scratch_group is None:
@@ -156,12 +167,12 @@ class Scan:
                         {"chunkdic": {"kind": "scratch", "voxel_size": list(self.voxel_size) if self.voxel_size else None,
                                       "unit": self.unit, "scratch": True}})
                     self._scratch_group = str(gpath)
-                data = self.level(s)
+                data = self._base if s == 0 and self._in_memory() else self.level(s)
                 ref = write_level(self._scratch_group, s, data)
                 self._scratch[s] = ref
                 log.info("level %d %s written to scratch %s", s, ref.shape, self._scratch_group)
             out[s] = ref
-        return out
+        return {s: out[s] for s in sorted({int(v) for v in levels})}
 
 
 # --------------------------------------------------------------------------------------
@@ -244,7 +255,6 @@ def _scan_from_group(g, root: str, where: str) -> Scan:
 
 
 def _scan_from_zarr(node, where: str) -> Scan:
-    import dask.array as da
     import zarr
 
     root = _local_root(node.store)
@@ -256,7 +266,7 @@ def _scan_from_zarr(node, where: str) -> Scan:
     _check_3d(node.shape, where)
     pyramid_dtype(node.dtype, 0)
     if root is None:  # in-memory or remote store: treat as a lazy array
-        return Scan(path=None, voxel_size=None, unit=None, _base=da.from_zarr(node))
+        return Scan(path=None, voxel_size=None, unit=None, _base=node)
     key = node.path.strip("/")
     ref = ArrayRef("zarr", root, key, tuple(int(n) for n in node.shape), node.dtype.name)
     level = (node.attrs.get("chunkdic") or {}).get("level") if hasattr(node.attrs, "get") else None
