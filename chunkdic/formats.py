@@ -187,8 +187,22 @@ class _TiffVolumeReader(_Reader):
                 data = tif.asarray(key=range(z0, z1, step), series=self.series)
                 data = data.reshape((-1,) + self.shape[1:])
                 return np.asarray(data[:, ys, xs], dtype=self.dtype)
-            # a single volumetric page: no cheaper access than reading the series
-            return np.asarray(tif.series[self.series].asarray().reshape(self.shape)[region], dtype=self.dtype)
+            # compressed volumetric page(s): through tifffile's chunked store, so that a slab
+            # decodes only the tiles / strips it overlaps, not the whole series
+            arr = _tiff_as_zarr(tif, self.series)
+            return np.asarray(arr[_unsqueezed(arr.shape, region)], dtype=self.dtype)
+
+
+def _tiff_as_zarr(tif, series: int):
+    import zarr
+
+    return zarr.open_array(tif.aszarr(series=series), mode="r")
+
+
+def _unsqueezed(shape, region) -> tuple:
+    """``region`` over the squeezed 3-D shape as an index of the stored ``shape`` (singleton axes 0)."""
+    it = iter(region)
+    return tuple(0 if n == 1 else next(it) for n in shape)
 
 
 # --------------------------------------------------------------------------------------
@@ -296,6 +310,24 @@ def _open_tiff_folder(folder: Path):
     return _TiffSlicesReader([str(f) for f in files], shape3, ref_dtype, memmappable), vs, unit
 
 
+#: a compressed TIFF whose smallest decodable unit (tile or strip) spans every slice is
+#: refused above this size: each slab task would decode the whole volume
+WHOLE_VOLUME_TIFF_LIMIT = 256 * 2**20
+
+
+def _check_tiff_chunking(path: Path, shape, dtype) -> None:
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        arr = _tiff_as_zarr(tif, 0)
+        depth = [c for c, n in zip(arr.chunks, arr.shape) if n != 1][0]
+    nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    if depth >= shape[0] and nbytes > WHOLE_VOLUME_TIFF_LIMIT:
+        raise InputError(f"{path}: compressed volumetric TIFF stored as one block of {nbytes / 2**30:.1f} GiB: "
+                         "every slab would decode the whole file; save it as one page per slice, tiled, "
+                         "or uncompressed (e.g. tifffile.imwrite(..., tile=(64, 256, 256), volumetric=True))")
+
+
 def _open_tiff_file(path: Path):
     import tifffile
 
@@ -329,7 +361,7 @@ def _open_tiff_file(path: Path):
         raise InputError(f"{path}: unsupported TIFF sample type {dtype}")
     by_pages = pages == shape[0] and page_shape == shape[1:]
     if not memmappable and not by_pages:
-        log.warning("%s: compressed volumetric TIFF without one page per slice: each slab reads the whole series", path)
+        _check_tiff_chunking(path, shape, dtype)
     return _TiffVolumeReader(str(path), shape, dtype, 0, memmappable, by_pages), vs, unit
 
 
