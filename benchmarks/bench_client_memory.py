@@ -67,7 +67,7 @@ def _child(size: int, ell: int, solves: int) -> None:
     from chunkdic.level import Level
     from chunkdic.planning import plan_meshes
     from chunkdic.settings import Settings
-    from chunkdic.volume import ArrayRef
+    from chunkdic.handles import ArrayRef
 
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened

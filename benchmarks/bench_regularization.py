@@ -42,9 +42,9 @@ def _sweeping_choice() -> None:
     """
     import functools
 
-    from chunkdic import engine, regularization
+    from chunkdic import engine, regchoice
 
-    engine.choose_length = functools.partial(regularization.choose_length, sweep=True)
+    engine.choose_length = functools.partial(regchoice.choose_length, sweep=True)
 
 
 def run(pair: dict, ell: int, **options) -> dict:

@@ -22,7 +22,7 @@ _EXPORTS = {
     "ingest": "formats",
     "open_result": "result",
     "open_scan": "volume",
-    "write_scan": "volume",
+    "write_scan": "scanwrite",
     "element_strain": "strain",
     "mean_strain": "strain",
     "uncertainty": "metrology",

@@ -24,7 +24,7 @@ from .mesh import Block, Mesh
 from .prefilter import face_margin
 from .result import Result
 from .tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
-from .volume import ArrayRef
+from .handles import ArrayRef
 
 __all__ = ["Correction", "correct_block", "element_slice", "plane_jobs", "plane_task", "assemble_plane", "planes"]
 

@@ -3,7 +3,7 @@
 A scan of a CT specimen is computed in slabs of whole z-slices (each slice is one CT
 reconstruction, :mod:`chunkdic.ctsim`), from the phase map of :mod:`chunkdic.microstructure`
 (reference: ``phase(x)``; deformed: ``phase(field.inverse(x))``). Each slab is one Dask
-task of ``SLAB`` slices; :func:`chunkdic.volume.write_scan` regroups slabs into whole Zarr
+task of ``SLAB`` slices; :func:`chunkdic.scanwrite.write_scan` regroups slabs into whole Zarr
 chunks (every writing task owns whole chunks). Memory per task: the slab in the output
 dtype plus one slice's working set (phase map and its coordinates, projections filtered
 in place, reconstruction: measured peak ``48 N^2`` bytes for an ``N x N`` slice); the
@@ -200,7 +200,7 @@ def fourier_deformed(ref_scan_path: str, out_dir: str, spec: CTSpecimen, schedul
     import zarr
 
     from .metrology import fourier_shift_scan
-    from .volume import ArrayRef
+    from .handles import ArrayRef
 
     scratch = os.path.join(out_dir, "def.fourier.tmp.zarr")
     shutil.rmtree(scratch, ignore_errors=True)

@@ -35,7 +35,7 @@ from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
 from .masks import check_mask_shape, prepare_mask
 from .noise import nodal_uncertainty
-from .regularization import choose_length
+from .regchoice import choose_length
 from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result
 from .rigid import translation_task
 from .scheduler import check_scheduler, open_runner
@@ -373,7 +373,7 @@ def _choose_automatically(settings: Settings, state: State) -> bool:
 
 
 def _with_chosen_regularization(lvl: Level, state: State, progress) -> State:
-    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.regularization.choose_length`), restart."""
+    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.regchoice.choose_length`), restart."""
     p = lvl.last_pass
     u = np.moveaxis(state.u, 0, -1)
 

@@ -9,7 +9,7 @@ Nothing is read whole: a small picklable *reader* (a path and a layout) is wrapp
 Dask array whose blocks are slabs of whole Zarr chunks (``chunk`` slices deep, full rows
 if they fit ``chunkdic.ingest-slab-bytes``, 32 MiB by default); each task opens the file
 by path, reads its slab (page range, ``pread`` rows, HDF5 hyperslab, memory map) and
-writes it with :func:`chunkdic.volume.write_scan`. Float input is checked for NaN and
+writes it with :func:`chunkdic.scanwrite.write_scan`. Float input is checked for NaN and
 infinity slab by slab during the write; a failure removes the half-written output.
 """
 
@@ -26,9 +26,10 @@ import numpy as np
 
 from .errors import InputError
 from .inputs import check_finite
-from .ngff import _normalize_unit, _normalize_voxel_size
-from .store import _chunk_shape
-from .volume import Scan, open_scan, write_scan
+from .ngff import normalize_unit, normalize_voxel_size
+from .store import chunk_shape_for
+from .scanwrite import write_scan
+from .volume import Scan, open_scan
 
 log = logging.getLogger(__name__)
 
@@ -186,8 +187,22 @@ class _TiffVolumeReader(_Reader):
                 data = tif.asarray(key=range(z0, z1, step), series=self.series)
                 data = data.reshape((-1,) + self.shape[1:])
                 return np.asarray(data[:, ys, xs], dtype=self.dtype)
-            # a single volumetric page: no cheaper access than reading the series
-            return np.asarray(tif.series[self.series].asarray().reshape(self.shape)[region], dtype=self.dtype)
+            # compressed volumetric page(s): through tifffile's chunked store, so that a slab
+            # decodes only the tiles / strips it overlaps, not the whole series
+            arr = _tiff_as_zarr(tif, self.series)
+            return np.asarray(arr[_unsqueezed(arr.shape, region)], dtype=self.dtype)
+
+
+def _tiff_as_zarr(tif, series: int):
+    import zarr
+
+    return zarr.open_array(tif.aszarr(series=series), mode="r")
+
+
+def _unsqueezed(shape, region) -> tuple:
+    """``region`` over the squeezed 3-D shape as an index of the stored ``shape`` (singleton axes 0)."""
+    it = iter(region)
+    return tuple(0 if n == 1 else next(it) for n in shape)
 
 
 # --------------------------------------------------------------------------------------
@@ -204,7 +219,7 @@ def _tiff_unit(u) -> str | None:
         return None
     u = str(u).replace("\\u00B5", "µ").replace("\\u00b5", "µ")
     try:
-        return _normalize_unit(u)
+        return normalize_unit(u)
     except InputError:
         return None
 
@@ -295,6 +310,24 @@ def _open_tiff_folder(folder: Path):
     return _TiffSlicesReader([str(f) for f in files], shape3, ref_dtype, memmappable), vs, unit
 
 
+#: a compressed TIFF whose smallest decodable unit (tile or strip) spans every slice is
+#: refused above this size: each slab task would decode the whole volume
+WHOLE_VOLUME_TIFF_LIMIT = 256 * 2**20
+
+
+def _check_tiff_chunking(path: Path, shape, dtype) -> None:
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        arr = _tiff_as_zarr(tif, 0)
+        depth = [c for c, n in zip(arr.chunks, arr.shape) if n != 1][0]
+    nbytes = int(np.prod(shape)) * np.dtype(dtype).itemsize
+    if depth >= shape[0] and nbytes > WHOLE_VOLUME_TIFF_LIMIT:
+        raise InputError(f"{path}: compressed volumetric TIFF stored as one block of {nbytes / 2**30:.1f} GiB: "
+                         "every slab would decode the whole file; save it as one page per slice, tiled, "
+                         "or uncompressed (e.g. tifffile.imwrite(..., tile=(64, 256, 256), volumetric=True))")
+
+
 def _open_tiff_file(path: Path):
     import tifffile
 
@@ -328,7 +361,7 @@ def _open_tiff_file(path: Path):
         raise InputError(f"{path}: unsupported TIFF sample type {dtype}")
     by_pages = pages == shape[0] and page_shape == shape[1:]
     if not memmappable and not by_pages:
-        log.warning("%s: compressed volumetric TIFF without one page per slice: each slab reads the whole series", path)
+        _check_tiff_chunking(path, shape, dtype)
     return _TiffVolumeReader(str(path), shape, dtype, 0, memmappable, by_pages), vs, unit
 
 
@@ -390,7 +423,7 @@ def _open_hdf5(path: Path, dataset):
                     unit = _tiff_unit(u.decode() if isinstance(u, bytes) else u)
                     break
         try:
-            vs = _normalize_voxel_size(np.asarray(vs, float).tolist()) if vs is not None else None
+            vs = normalize_voxel_size(np.asarray(vs, float).tolist()) if vs is not None else None
         except (InputError, TypeError, ValueError):
             vs, unit = None, None
         return _H5Reader(str(path), dataset, d.shape, d.dtype), vs, unit
@@ -472,13 +505,10 @@ def _open_source(src, *, shape, dtype, byte_order, offset, dataset):
         return (*_open_tiff_file(p), p)
     if suffix == ".npy":
         return (*_open_npy(p), p)
-    try:
-        import h5py
+    import h5py
 
-        if h5py.is_hdf5(p):
-            return (*_open_hdf5(p, None), p)
-    except ImportError:  # pragma: no cover
-        pass
+    if h5py.is_hdf5(p):
+        return (*_open_hdf5(p, None), p)
     return (*_open_raw(p, shape, dtype, byte_order, offset), p)
 
 
@@ -568,8 +598,8 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
     """
     import dask.array as da
 
-    user_vs = _normalize_voxel_size(voxel_size)
-    user_unit = _normalize_unit(unit)
+    user_vs = normalize_voxel_size(voxel_size)
+    user_unit = normalize_unit(unit)
     if user_unit is not None and user_vs is None:
         raise InputError("a unit was given without a voxel size: pass both (--voxel-size 4.91 --unit micrometer)")
     reader, meta_vs, meta_unit, in_path = _open_source(src, shape=shape, dtype=dtype, byte_order=byte_order,
@@ -582,7 +612,7 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
         label = str(in_path)
     else:
         label = reader.label
-        cshape = _chunk_shape(reader.shape, chunks)
+        cshape = chunk_shape_for(reader.shape, chunks)
         slab = _slab_chunks(reader.shape, reader.dtype, cshape)
         name = "ingest-" + dask.base.tokenize(reader, slab, _mtime(in_path))
         data = da.from_array(reader, chunks=slab, name=name, asarray=False,

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .volume import _open_zarr_array
+from .handles import open_zarr_array
 
 __all__ = ["HaloedBlocks"]
 
@@ -70,5 +70,5 @@ class HaloedBlocks:
 
     def read(self, index: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
         """Task side: block ``index``'s haloed region of ``shape`` voxels, stored dtype."""
-        chunk = np.asarray(_open_zarr_array(self.path, "")[tuple(index)])
+        chunk = np.asarray(open_zarr_array(self.path, "")[tuple(index)])
         return chunk[tuple(slice(0, n) for n in shape)]

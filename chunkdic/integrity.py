@@ -168,7 +168,7 @@ def content_identity(kind: str, path: str, key: str = "") -> str:
     ----------
     kind : {"zarr", "npy"}
     path, key : str
-        As in :class:`chunkdic.volume.ArrayRef`.
+        As in :class:`chunkdic.handles.ArrayRef`.
 
     Returns
     -------

@@ -31,7 +31,7 @@ from .settings import Settings
 from .regularization import Regularizer, plane_wave_weight
 from .solve import PoorTextureWarning, StencilSolver, rigid_restriction, stencil_matvec
 from .tasks import BlockJob, LevelInputs, b_task, m_task
-from .volume import ArrayRef, forget_open_arrays
+from .handles import ArrayRef, forget_open_arrays
 
 log = logging.getLogger(__name__)
 

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .volume import ArrayRef, open_scan
+from .handles import ArrayRef
+from .volume import open_scan
 
 #: an element takes part when at least this fraction of its voxels is material
 MIN_MATERIAL = 0.5

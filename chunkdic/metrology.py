@@ -54,13 +54,12 @@ import numpy as np
 from .errors import InputError
 from .inputs import check_finite, number
 from .strain import mean_strain
-from .volume import ArrayRef
+from .handles import ArrayRef
 
 log = logging.getLogger(__name__)
 
 __all__ = [
     "fourier_shift_line",
-    "fourier_shift_volume",
     "fourier_shift_scan",
     "fit_power_law",
     "PowerLaw",
@@ -120,28 +119,6 @@ def fourier_shift_line(a: np.ndarray, t: float, axis: int) -> np.ndarray:
     spec *= _shift_factors(n, t).astype(spec.dtype).reshape(shape)
     out = sfft.irfft(spec, n=2 * n, axis=axis, workers=1)
     return np.take(out, np.arange(n), axis=axis).astype(dtype, copy=False)
-
-
-def fourier_shift_volume(volume: np.ndarray, t) -> np.ndarray:
-    """In-memory reference: ``g(x) = f(x - t)`` by one 3-D FFT of the mirror-extended volume.
-
-    Same convention as :func:`fourier_shift_scan` (mirror extension, real Nyquist factor);
-    used by the tests to measure the pencil-wise version. Needs ``64 x`` the volume in RAM.
-    """
-    f = np.asarray(volume, dtype=np.float64)
-    ext = f
-    for axis in range(3):
-        ext = np.concatenate([ext, np.flip(ext, axis=axis)], axis=axis)
-    spec = np.fft.fftn(ext)
-    for axis, ti in enumerate(np.broadcast_to(np.asarray(t, float), (3,))):
-        m = ext.shape[axis]
-        k = np.fft.fftfreq(m) * m
-        phase = np.exp(-2j * np.pi * k * ti / m)
-        phase[m // 2] = np.cos(np.pi * ti)  # numpy puts the Nyquist bin at index m/2
-        shape = [1, 1, 1]
-        shape[axis] = -1
-        spec *= phase.reshape(shape)
-    return np.fft.ifftn(spec).real[: f.shape[0], : f.shape[1], : f.shape[2]]
 
 
 def shift_pencil_task(src: ArrayRef, out_path: str, out_key: str, axis: int, t: float, region,
@@ -247,7 +224,7 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
         raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    from .volume import forget_open_arrays
+    from .handles import forget_open_arrays
 
     forget_open_arrays()
     return ArrayRef("zarr", str(out), "", shape, "float32")

@@ -30,7 +30,7 @@ _UNIT_ALIASES = {
 }
 
 
-def _normalize_unit(unit) -> str | None:
+def normalize_unit(unit) -> str | None:
     """Return the OME-NGFF spelling of ``unit`` (``"um"`` -> ``"micrometer"``)."""
     if unit is None:
         return None
@@ -47,7 +47,7 @@ def _normalize_unit(unit) -> str | None:
     return low
 
 
-def _normalize_voxel_size(voxel_size) -> tuple[float, float, float] | None:
+def normalize_voxel_size(voxel_size) -> tuple[float, float, float] | None:
     """``4.9`` or ``(vz, vy, vx)`` -> a tuple of 3 positive floats (or ``None``)."""
     if voxel_size is None:
         return None
@@ -98,7 +98,7 @@ def _ngff_attrs(levels, voxel_size, unit, name) -> dict:
     }
 
 
-def _complete_levels(group) -> list[int]:
+def complete_levels(group) -> list[int]:
     out = []
     for name in sorted((k for k in group.array_keys() if k.isdigit()), key=int):
         info = group[name].attrs.get("chunkdic") or {}
@@ -107,13 +107,13 @@ def _complete_levels(group) -> list[int]:
     return out
 
 
-def _update_group_metadata(path: str) -> None:
+def update_group_metadata(path: str) -> None:
     """Rewrite the NGFF ``multiscales`` of group ``path`` to list its complete levels 0..k."""
     import zarr
 
     g = zarr.open_group(store=path, mode="r+")
     info = dict(g.attrs.get("chunkdic") or {})
-    complete = _complete_levels(g)
+    complete = complete_levels(g)
     levels = []
     for s in complete:
         if s != len(levels):
@@ -128,7 +128,7 @@ def _update_group_metadata(path: str) -> None:
     g.update_attributes(attrs)
 
 
-def _voxel_from_group_attrs(attrs) -> tuple:
+def voxel_from_group_attrs(attrs) -> tuple:
     info = attrs.get("chunkdic") or {}
     if "voxel_size" in info:
         vs = info.get("voxel_size")

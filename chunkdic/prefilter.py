@@ -35,7 +35,7 @@ import scipy.ndimage as ndi
 from .errors import InputError
 from .kernels import prepare_window
 from .mesh import Mesh
-from .volume import ArrayRef
+from .handles import ArrayRef
 
 #: chunk edge of the prepared store: small, so a block's window reads little extra
 CHUNK = 64

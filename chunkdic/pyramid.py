@@ -21,28 +21,23 @@ import numpy as np
 
 from .coarsen import coarsen_sum, pyramid_dtype
 from .errors import InputError
-from .ngff import _update_group_metadata
+from .ngff import update_group_metadata
 from .outputs import check_writable
-from .volume import (
-    Scan,
-    _check_levels,
-    forget_open_arrays,
-    _ref_dask,
-    _write_level,
-    open_scan,
-)
+from .handles import forget_open_arrays, ref_dask
+from .levels import check_levels, write_level
+from .volume import Scan, open_scan
 
 log = logging.getLogger(__name__)
 
 
-def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None, cuts=None) -> Scan:
+def build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None, cuts=None) -> Scan:
     """Add levels ``1..levels`` to the scan group ``path`` (see :func:`build_pyramid`)."""
     import zarr
 
     forget_open_arrays()
     scan = open_scan(path)
     shape0, dtype0 = scan.shape(0), scan.dtype(0)
-    _check_levels(shape0, levels)
+    check_levels(shape0, levels)
     stored = set(scan.stored_levels())
     todo_from = next((s for s in range(1, levels + 1) if rebuild or s not in stored), None)
     if todo_from is None:
@@ -53,7 +48,7 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
     # (or were interrupted): drop them all before writing anything.
     for name in [k for k in g.array_keys() if k.isdigit() and int(k) >= todo_from]:
         del g[name]
-    _update_group_metadata(path)
+    update_group_metadata(path)
     chunk0 = tuple(g["0"].chunks)
     if cuts is None:
         w = [8.0 ** -(s - 1) for s in range(todo_from, levels + 1)]
@@ -64,18 +59,18 @@ def _build_levels(path: str, levels: int, *, rebuild: bool = False, progress=Non
     for s in range(todo_from, levels + 1):
         t0 = time.perf_counter()
         src = open_scan(path).stored_refs()[s - 1]
-        below = _ref_dask(src, chunks=tuple(min(2 * c, n) for c, n in zip(chunk0, src.shape)))
+        below = ref_dask(src, chunks=tuple(min(2 * c, n) for c, n in zip(chunk0, src.shape)))
         data = coarsen_sum(below, pyramid_dtype(dtype0, s))
         try:
-            _write_level(path, s, data, chunk0, progress, *cuts[s])
+            write_level(path, s, data, chunk0, progress, *cuts[s])
         except Exception:
             # a refusal (damaged input, full disk) removes the level this run began, leaving the
             # scan as it found it; an interrupted run leaves it marked incomplete (rebuilt later)
             if str(s) in g:
                 del g[str(s)]
-            _update_group_metadata(path)
+            update_group_metadata(path)
             raise
-        _update_group_metadata(path)
+        update_group_metadata(path)
         log.info("%s: level %d %s %s built in %.1f s", path, s, data.shape, data.dtype, time.perf_counter() - t0)
     forget_open_arrays()
     return open_scan(path)
@@ -110,7 +105,7 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
     Examples
     --------
     >>> import dask.array as da, tempfile, os
-    >>> from chunkdic.volume import write_scan
+    >>> from chunkdic.scanwrite import write_scan
     >>> p = os.path.join(tempfile.mkdtemp(), "s.zarr")
     >>> _ = write_scan(p, da.ones((8, 8, 8), dtype="uint8", chunks=4))
     >>> build_pyramid(p, 2).stored_levels()
@@ -133,4 +128,4 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
     if not isinstance(node, zarr.Group) or "chunkdic" not in node.attrs:
         raise InputError(f"{p} is not a chunkdic scan group: convert it with `chunkdic ingest {p} OUT.zarr`")
     check_writable(p)  # the levels are written into the scan group itself
-    return _build_levels(str(p), levels, rebuild=overwrite, progress=progress)
+    return build_levels(str(p), levels, rebuild=overwrite, progress=progress)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .volume import ArrayRef
+from .handles import ArrayRef
 
 #: largest box edge (voxels) used for phase correlation; a central sub-box beyond that
 #: (enough for a mean translation, and it bounds the task's memory to ~100 MB)

@@ -47,7 +47,7 @@ def drain_zarr_io(timeout: float = 10.0) -> None:
         pass
 
 
-def _compressors(dtype):
+def compressors(dtype):
     """Compressor of every array chunkdic writes (measurements in docs/scans.md).
 
     ``chunkdic.compressor`` (dask config): ``"auto"`` (default: zstd level 1 for 1-byte
@@ -70,7 +70,7 @@ def _compressors(dtype):
     raise InputError(f"chunkdic.compressor={name!r}: use auto, zstd, lz4 or none")
 
 
-def _chunk_shape(shape, chunks) -> tuple[int, int, int]:
+def chunk_shape_for(shape, chunks) -> tuple[int, int, int]:
     if chunks is None:
         chunks = config.get("chunk-size")
     c = tuple(int(v) for v in np.broadcast_to(np.asarray(chunks), (3,)))
@@ -212,7 +212,7 @@ def _compute_on_client(client, x, progress, start: float, end: float) -> None:
         progress(end)
 
 
-def _store(data, path: str, key: str, progress=None, start=0.0, end=1.0) -> None:
+def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0) -> None:
     """Write dask array ``data`` into the existing Zarr array ``path``/``key``, block by block.
 
     Each task owns whole chunks (shards): checked up front.
@@ -230,7 +230,7 @@ def _store(data, path: str, key: str, progress=None, start=0.0, end=1.0) -> None
     _compute(done, progress, start, end)
 
 
-def _aligned(data, chunk_shape):
+def aligned(data, chunk_shape):
     """``data`` unchanged if its blocks own whole chunks, else rechunked to the chunk grid."""
     try:
         check_write_alignment(data.chunks, data.shape, chunk_shape)

@@ -531,10 +531,7 @@ def _check_dtype(dtype) -> np.dtype:
 def _quantise(v: np.ndarray, dt: np.dtype) -> np.ndarray:
     if dt.kind == "f":
         return v.astype(dt, copy=False)
-    info = np.iinfo(dt)
-    top = float(info.max)
-    if dt.kind == "i":  # signed: use the positive half
-        top = float(info.max)
+    top = float(np.iinfo(dt).max)  # signed types: the positive half only (0 .. max)
     lo, hi = _INT_LO * top, _INT_HI * top
     q = np.rint(lo + v.astype(np.float64) * (hi - lo))
     return np.clip(q, 0, top).astype(dt)
@@ -689,7 +686,7 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
                fourier_shift: bool = False, **params) -> dict:
     """Write a synthetic reference/deformed pair ``out_dir/ref.zarr``, ``out_dir/def.zarr``.
 
-    Both scans are written chunk by chunk with :func:`chunkdic.volume.write_scan`. The field
+    Both scans are written chunk by chunk with :func:`chunkdic.scanwrite.write_scan`. The field
     JSON, seed and specimen parameters go to ``attrs["chunkdic"]["synthetic"]`` of both
     groups and to ``out_dir/field.json`` (written last: its presence marks a complete pair).
 
@@ -806,7 +803,7 @@ def standard_case(out_dir, case: str, shape=128, *, specimen: str = "grains", **
 def _write_pair(out_dir, shape, make, meta, *, chunks, voxel_size, unit, levels, overwrite,
                 progress) -> dict:
     """Write ``make(which, ref_path, scratch)`` for both scans, then ``field.json``."""
-    from .volume import write_scan
+    from .scanwrite import write_scan
 
     out_dir = os.fspath(out_dir)
     ref, dfm = os.path.join(out_dir, "ref.zarr"), os.path.join(out_dir, "def.zarr")

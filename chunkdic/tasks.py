@@ -18,7 +18,7 @@ from .haloed import HaloedBlocks
 from .mesh import Block, Mesh
 from .masks import active_elements, element_fractions
 from .prefilter import PreparedImage, check_finite, gaussian_radius, prepare_deformed, prepare_reference, prepared_halo
-from .volume import ArrayRef
+from .handles import ArrayRef
 
 
 @dataclass(frozen=True)

@@ -1,17 +1,12 @@
-"""Scans on disk: picklable array handles, ``open_scan``, lazy pyramid levels, safe writes.
-
-Tasks never receive voxels: they receive an :class:`ArrayRef` (a path and a key) and read
-the region they need straight from the store.
+"""Reading scans: ``open_scan`` and the :class:`Scan` with its lazy pyramid levels.
 
 A stored scan is one Zarr v3 group with arrays ``"0"``, ``"1"``, ... (level ``s`` is the
 sum over ``2^s`` voxels per axis of level 0, odd trailing voxels trimmed) and OME-NGFF 0.5
-``multiscales`` metadata. Every level array is created with
-``attrs["chunkdic"] = {"level": s, "complete": False}``, filled region by region by Dask
-tasks that each own whole Zarr chunks, and only then marked ``complete``; readers ignore
-levels that are not complete.
-
-The 2x2x2 sums live in :mod:`chunkdic.coarsen`, the chunk-aligned Zarr writes in
-:mod:`chunkdic.store` and the OME-NGFF metadata in :mod:`chunkdic.ngff`.
+``multiscales`` metadata; only levels marked complete are read (:mod:`chunkdic.levels`).
+A level that is not stored is built lazily by 2x2x2 sums (:mod:`chunkdic.coarsen`), and
+written to scratch when tasks need it on disk (:meth:`Scan.refs`). Writing scans is
+:mod:`chunkdic.scanwrite` and :mod:`chunkdic.pyramid`; the handles tasks receive are
+:mod:`chunkdic.handles`.
 
 References
 ----------
@@ -22,12 +17,9 @@ which is pyramid level 2 here).
 
 from __future__ import annotations
 
-import functools
 import logging
 import os
-import time
 import uuid
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,273 +28,15 @@ import numpy as np
 from . import config
 from .coarsen import coarsen_sum, pyramid_dtype
 from .errors import InputError
-from .integrity import check_chunks_present, damaged_read_error
-from .outputs import Outputs
-from .ngff import (
-    _complete_levels,
-    _normalize_unit,
-    _normalize_voxel_size,
-    _update_group_metadata,
-    _voxel_from_group_attrs,
-)
-from .store import _aligned, _chunk_shape, _compressors, _store
+from .handles import ArrayRef, ref_dask
+from .integrity import check_chunks_present
+from .levels import write_level
+from .ngff import complete_levels, normalize_unit, normalize_voxel_size, voxel_from_group_attrs
+from .store import chunk_shape_for
 
 log = logging.getLogger(__name__)
 
 Region = tuple[slice, slice, slice]
-
-
-@functools.lru_cache(maxsize=64)
-def _open_zarr_array(path: str, key: str):
-    import zarr
-
-    return zarr.open_array(store=path, path=key or None, mode="r")
-
-
-@dataclass(frozen=True)
-class ArrayRef:
-    """A 3-D array on disk that any process can open by path.
-
-    Parameters
-    ----------
-    kind : {"zarr", "npy"}
-        Storage kind.
-    path : str
-        File-system path of the Zarr store root, or of the ``.npy`` file.
-    key : str
-        Path of the array inside the Zarr store (``""`` for a root array).
-    shape : tuple of 3 int
-        Array shape ``(nz, ny, nx)``.
-    dtype : str
-        NumPy dtype name.
-    """
-
-    kind: str
-    path: str
-    key: str
-    shape: tuple[int, int, int]
-    dtype: str
-
-    def open(self):
-        """Return the opened array, supporting ``[...]`` slicing.
-
-        Zarr handles are cached per process. A ``.npy`` file is mapped anew on every
-        call: a mapping kept open counts every page it ever touched in the process's
-        RSS, which is what Dask's nanny watches (see :meth:`read`).
-        """
-        if self.kind == "zarr":
-            return _open_zarr_array(self.path, self.key)
-        if self.kind == "npy":
-            return np.load(self.path, mmap_mode="r")
-        raise ValueError(f"unknown array kind {self.kind!r}")
-
-    def read(self, region: Region) -> np.ndarray:
-        """Read ``region`` (slices clipped to the array by the caller) as a NumPy array.
-
-        The result is a copy; a ``.npy`` mapping is dropped on return. A worker that
-        kept one mapping across the tasks of a level-0 correlation of 1024³ reached
-        4.3 GiB RSS (every coefficient page it had read); mapping per read holds it
-        to one window.
-        """
-        try:
-            a = self.open()[region]
-            return np.array(a) if self.kind == "npy" else np.asarray(a)
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - a damaged store: name the chunk (no cost when reads succeed)
-            if self.kind == "zarr":
-                raise damaged_read_error(self.path, self.key, region, exc) from None
-            raise InputError(f"{self.path}: cannot read the region "
-                             f"{tuple((s.start, s.stop) for s in region)} ({type(exc).__name__}: {exc}); "
-                             "the file is damaged or truncated".splitlines()[0]) from None
-
-    @property
-    def ndim(self) -> int:
-        return 3
-
-
-def forget_open_arrays() -> None:
-    """Forget cached handles in this process (a store may have been rewritten)."""
-    _open_zarr_array.cache_clear()
-
-
-# --------------------------------------------------------------------------------------
-# Groups and levels
-# --------------------------------------------------------------------------------------
-
-
-
-def _create_level(path: str, s: int, shape, dtype, chunk_shape):
-    """(Re)create level array ``s`` of group ``path``, flagged incomplete."""
-    import zarr
-
-    g = zarr.open_group(store=path, mode="r+")
-    if str(s) in g:
-        del g[str(s)]
-    g.create_array(
-        str(s), shape=tuple(int(n) for n in shape), dtype=np.dtype(dtype), chunks=tuple(chunk_shape),
-        compressors=_compressors(dtype), fill_value=0, dimension_names=("z", "y", "x"),
-        attributes={"chunkdic": {"level": s, "complete": False}},
-    )
-
-
-def _mark_complete(path: str, s: int) -> None:
-    import zarr
-
-    arr = zarr.open_array(store=path, path=str(s), mode="r+")
-    arr.update_attributes({"chunkdic": {"level": s, "complete": True}})
-
-
-def _write_level(path: str, s: int, data, chunk_shape=None, progress=None, start=0.0, end=1.0) -> ArrayRef:
-    """Create level ``s`` in group ``path``, store ``data`` chunk by chunk, mark complete."""
-    chunk_shape = _chunk_shape(data.shape, chunk_shape)
-    _create_level(path, s, data.shape, data.dtype, chunk_shape)
-    _store(_aligned(data, chunk_shape), path, str(s), progress, start, end)
-    _mark_complete(path, s)
-    forget_open_arrays()
-    return ArrayRef("zarr", str(path), str(s), tuple(int(n) for n in data.shape), np.dtype(data.dtype).name)
-
-
-def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite: bool = False,
-               levels: int = 0, progress: Callable[[float], None] | None = None, inputs=()) -> "Scan":
-    """Write a 3-D array as a stored scan: a Zarr v3 group with OME-NGFF 0.5 metadata.
-
-    Level ``"0"`` is ``data``, written chunk by chunk by Dask (``data`` is never computed
-    whole); then ``levels`` pyramid levels are added, each from the stored level below.
-    A level is marked complete only after all its chunks are written; if anything fails,
-    the output is removed.
-
-    Parameters
-    ----------
-    path : str or Path
-        Group to create (e.g. ``"scan.zarr"``).
-    data : dask.array.Array or numpy.ndarray, shape (nz, ny, nx)
-        Intensities (integer or float; float data must be finite).
-    voxel_size : float or tuple of 3 float, optional
-        Physical size of a level-0 voxel ``(z, y, x)`` in ``unit``.
-    unit : str, optional
-        Length unit (OME-NGFF name, ``"um"``/``"mm"`` accepted).
-    chunks : int or tuple of 3 int, optional
-        Zarr chunk edge; default ``chunkdic.chunk-size`` (128).
-    overwrite : bool
-        Replace an existing scan that chunkdic wrote at ``path`` (nothing else is ever
-        replaced; see :mod:`chunkdic.outputs`).
-    levels : int
-        Number of pyramid levels to build after level 0.
-    progress : callable(float), optional
-        Called with the fraction done (0..1), on the threaded scheduler as tasks finish
-        and on a distributed client (the current one) as the chunk writes finish.
-
-    Returns
-    -------
-    Scan
-
-    Examples
-    --------
-    >>> import dask.array as da, tempfile, os
-    >>> d = tempfile.mkdtemp()
-    >>> scan = write_scan(os.path.join(d, "s.zarr"), da.ones((9, 8, 8), dtype="uint8", chunks=4), levels=1)
-    >>> scan.stored_levels(), scan.shape(1), scan.dtype(1).name
-    ([0, 1], (4, 4, 4), 'uint16')
-    """
-    import dask.array as da
-    import zarr
-
-    if isinstance(data, np.ndarray):
-        data = da.from_array(data, chunks=_chunk_shape(data.shape, chunks))
-    if not hasattr(data, "dask") or getattr(data, "ndim", None) != 3:
-        raise InputError(f"write_scan needs a 3-D dask or numpy array, got {type(data).__name__} "
-                         f"of shape {getattr(data, 'shape', '?')}")
-    if min(data.shape) < 1:
-        raise InputError(f"cannot write an empty scan of shape {data.shape}")
-    pyramid_dtype(data.dtype, 0)  # dtype check
-    voxel_size = _normalize_voxel_size(voxel_size)
-    unit = _normalize_unit(unit)
-    levels = int(levels)
-    _check_levels(data.shape, levels)
-    plan = Outputs(inputs=inputs, overwrite=overwrite)
-    entry = plan.add(path, "scan")  # every check before anything is written
-    forget_open_arrays()
-    weights = [1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)]
-    cuts = np.cumsum([0.0] + weights) / sum(weights)
-    t0 = time.perf_counter()
-    try:
-        with plan:  # written to a hidden sibling, renamed into place once complete
-            p = entry.work
-            g = zarr.open_group(store=str(p), mode="w-", zarr_format=3)
-            g.update_attributes({"chunkdic": {"kind": "scan", "voxel_size": list(voxel_size) if voxel_size else None,
-                                              "unit": unit}, "ome": {"version": "0.5"}})
-            _write_level(str(p), 0, data, chunks, progress, cuts[0], cuts[1])
-            _update_group_metadata(str(p))
-            log.info("level 0 %s %s written to %s in %.1f s", data.shape, data.dtype, path,
-                     time.perf_counter() - t0)
-            if levels:
-                from .pyramid import _build_levels
-
-                _build_levels(str(p), levels, rebuild=True, progress=progress, cuts=cuts)
-    finally:
-        forget_open_arrays()
-    return open_scan(str(path))
-
-
-def _check_levels(shape, levels: int) -> None:
-    if levels < 0:
-        raise InputError(f"levels must be >= 0, got {levels}")
-    deepest = 0
-    n = min(shape)
-    while n // 2 >= 1:
-        n //= 2
-        deepest += 1
-    if levels > deepest:
-        raise InputError(f"{levels} pyramid levels requested but a scan of shape {tuple(shape)} "
-                         f"allows at most {deepest} (level {levels} would be empty)")
-
-
-# --------------------------------------------------------------------------------------
-# Reading
-# --------------------------------------------------------------------------------------
-
-
-class _RefReader:
-    """Array-like over an :class:`ArrayRef` for ``dask.array.from_array`` (small, picklable)."""
-
-    def __init__(self, ref: ArrayRef):
-        self.ref = ref
-        self.shape = tuple(ref.shape)
-        self.dtype = np.dtype(ref.dtype)
-        self.ndim = 3
-
-    def __getitem__(self, region):
-        return self.ref.read(region)
-
-
-def _ref_chunks(ref: ArrayRef):
-    if ref.kind == "zarr":
-        try:
-            return tuple(ref.open().chunks)
-        except Exception:  # noqa: BLE001 - fall back to the default edge
-            pass
-    return _chunk_shape(ref.shape, None)
-
-
-def _ref_dask(ref: ArrayRef, chunks=None):
-    """Lazy dask array over an on-disk array (tasks open it by path)."""
-    import dask.array as da
-    from dask.base import tokenize
-
-    chunks = _ref_chunks(ref) if chunks is None else chunks
-    name = "scan-" + tokenize(ref.kind, ref.path, ref.key, ref.shape, ref.dtype, _mtime(ref))
-    return da.from_array(_RefReader(ref), chunks=chunks, name=name, asarray=False,
-                         meta=np.empty((0, 0, 0), np.dtype(ref.dtype)))
-
-
-def _mtime(ref: ArrayRef) -> float:
-    p = Path(ref.path)
-    target = p / ref.key / "zarr.json" if ref.kind == "zarr" else p
-    try:
-        return target.stat().st_mtime_ns
-    except OSError:
-        return 0
 
 
 @dataclass
@@ -377,12 +111,12 @@ class Scan:
             raise InputError(f"pyramid level must be >= 0, got {s}")
         ref = self._stored.get(s) or self._scratch.get(s)
         if ref is not None:
-            return _ref_dask(ref)
+            return ref_dask(ref)
         if s == 0:
             if self._base is None:
                 raise InputError("level 0 of this scan is not available")
-            if isinstance(self._base, np.ndarray):
-                return da.from_array(self._base, chunks=_chunk_shape(self._base.shape, None))
+            if self._in_memory():
+                return da.from_array(self._base, chunks=chunk_shape_for(self._base.shape, None))
             return self._base
         k = self._source_level(s)
         a = self.level(k)
@@ -391,9 +125,17 @@ class Scan:
             a = coarsen_sum(a, self.dtype(t), chunk=c)
         return a
 
+    def _in_memory(self) -> bool:
+        """Level 0 is an array in this process's memory (NumPy, in-memory Zarr), not a graph."""
+        return self._base is not None and not hasattr(self._base, "dask")
+
     def refs(self, levels, scratch_dir=None) -> dict[int, ArrayRef]:
         """On-disk handles for ``levels``: stored levels directly; others written chunk by
         chunk into a Zarr group under ``scratch_dir`` (each from the finest level on disk).
+
+        A level 0 held in memory is written to scratch first, from this process: the
+        levels built from it then read it by path, so no task graph ever carries voxels
+        (a distributed scheduler would otherwise receive the whole array in the graph).
 
         Parameters
         ----------
@@ -409,7 +151,10 @@ class Scan:
         import zarr
 
         out = {}
-        for s in sorted({int(v) for v in levels}):
+        wanted = {int(v) for v in levels}
+        if self._in_memory() and 0 not in self._scratch:
+            wanted.add(0)
+        for s in sorted(wanted):
             ref = self._stored.get(s) or self._scratch.get(s)
             if ref is None:
                 if self._scratch_group is None:
@@ -422,12 +167,12 @@ class Scan:
                         {"chunkdic": {"kind": "scratch", "voxel_size": list(self.voxel_size) if self.voxel_size else None,
                                       "unit": self.unit, "scratch": True}})
                     self._scratch_group = str(gpath)
-                data = self.level(s)
-                ref = _write_level(self._scratch_group, s, data)
+                data = self._base if s == 0 and self._in_memory() else self.level(s)
+                ref = write_level(self._scratch_group, s, data)
                 self._scratch[s] = ref
                 log.info("level %d %s written to scratch %s", s, ref.shape, self._scratch_group)
             out[s] = ref
-        return out
+        return {s: out[s] for s in sorted({int(v) for v in levels})}
 
 
 # --------------------------------------------------------------------------------------
@@ -466,7 +211,7 @@ def _scan_from_group(g, root: str, where: str) -> Scan:
     ours = "chunkdic" in attrs or any("chunkdic" in g[k].attrs for k in names)
     stored = {}
     if ours:
-        complete = _complete_levels(g)
+        complete = complete_levels(g)
         if 0 not in complete:
             raise InputError(f"{where}: level 0 is missing or incomplete (interrupted write?): "
                              "write or ingest the scan again")
@@ -505,12 +250,11 @@ def _scan_from_group(g, root: str, where: str) -> Scan:
         stored[s] = ArrayRef("zarr", root, key, expected, a.dtype.name)
     for ref in stored.values():  # a missing chunk file would read as zeros (integrity.py)
         check_chunks_present(ref.path, ref.key, ours=ours)
-    vs, unit = _voxel_from_group_attrs(attrs)
+    vs, unit = voxel_from_group_attrs(attrs)
     return Scan(path=os.path.join(root, prefix) if prefix else root, voxel_size=vs, unit=unit, _stored=stored)
 
 
 def _scan_from_zarr(node, where: str) -> Scan:
-    import dask.array as da
     import zarr
 
     root = _local_root(node.store)
@@ -522,7 +266,7 @@ def _scan_from_zarr(node, where: str) -> Scan:
     _check_3d(node.shape, where)
     pyramid_dtype(node.dtype, 0)
     if root is None:  # in-memory or remote store: treat as a lazy array
-        return Scan(path=None, voxel_size=None, unit=None, _base=da.from_zarr(node))
+        return Scan(path=None, voxel_size=None, unit=None, _base=node)
     key = node.path.strip("/")
     ref = ArrayRef("zarr", root, key, tuple(int(n) for n in node.shape), node.dtype.name)
     level = (node.attrs.get("chunkdic") or {}).get("level") if hasattr(node.attrs, "get") else None
@@ -561,9 +305,9 @@ def open_scan(src, *, voxel_size=None, unit=None) -> Scan:
     """
     scan = _open(src)
     if voxel_size is not None:
-        scan.voxel_size = _normalize_voxel_size(voxel_size)
+        scan.voxel_size = normalize_voxel_size(voxel_size)
     if unit is not None:
-        scan.unit = _normalize_unit(unit)
+        scan.unit = normalize_unit(unit)
     return scan
 
 

@@ -79,6 +79,31 @@ def test_3d_tiff_compressed_pages(tmp_path, vol16):
     _roundtrip(ingest(tmp_path / "v.tif", tmp_path / "o.zarr", chunks=8, voxel_size=2), vol16, (2.0,) * 3)
 
 
+def test_tiled_volumetric_tiff_reads_only_the_tiles_a_slab_needs(tmp_path, vol16, monkeypatch):
+    """One compressed volumetric page of 3-D tiles: read through tifffile's chunked store;
+    a slab decodes the tiles it overlaps (counted), never the whole series."""
+    import chunkdic.formats as formats
+
+    tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(4, 16, 16), volumetric=True, compression="zlib")
+    monkeypatch.setattr(tifffile.TiffPageSeries, "asarray", lambda *a, **k: pytest.fail("whole series read"))
+    reader = formats._open_tiff_file(tmp_path / "v.tif")[0]
+    np.testing.assert_array_equal(reader[(slice(2, 9), slice(0, 17), slice(3, 19))], vol16[2:9, :, 3:])
+    _roundtrip(ingest(tmp_path / "v.tif", tmp_path / "o.zarr", chunks=8), vol16)
+
+
+def test_compressed_tiff_stored_as_one_block_is_refused_when_large(tmp_path, vol16, monkeypatch):
+    import chunkdic.formats as formats
+
+    # one zlib tile holding every slice of a (13, 17, 19) volume: fine while small...
+    tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(16, 32, 32), volumetric=True, compression="zlib")
+    _roundtrip(ingest(tmp_path / "v.tif", tmp_path / "o.zarr", chunks=8), vol16)
+    # ...refused, with a hint, above the limit
+    monkeypatch.setattr(formats, "WHOLE_VOLUME_TIFF_LIMIT", 1000)
+    with pytest.raises(InputError, match="one block .* every slab would decode the whole file"):
+        ingest(tmp_path / "v.tif", tmp_path / "o2.zarr", chunks=8)
+    assert not (tmp_path / "o2.zarr").exists()
+
+
 def test_raw_big_endian_with_offset(tmp_path, vol16):
     with open(tmp_path / "v.vol", "wb") as f:
         f.write(b"HEADER" * 10)

@@ -8,7 +8,7 @@ import scipy.ndimage as ndi
 
 from chunkdic.prefilter import build_prepared, prepared_halo
 from chunkdic.scheduler import open_runner
-from chunkdic.volume import ArrayRef
+from chunkdic.handles import ArrayRef
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1.0], ids=["no-low-pass", "low-pass"])

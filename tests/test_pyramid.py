@@ -9,10 +9,11 @@ import pytest
 import zarr
 
 import chunkdic.store as store
-import chunkdic.volume as volume
+import chunkdic.levels as levels
 from chunkdic.errors import InputError
 from chunkdic.pyramid import build_pyramid
-from chunkdic.volume import open_scan, write_scan
+from chunkdic.scanwrite import write_scan
+from chunkdic.volume import open_scan
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:
@@ -50,8 +51,8 @@ def test_rerun_skips_complete_levels_and_rebuilds_incomplete(scan_path, monkeypa
     build_pyramid(p, 2)
     stamp = {s: (p / str(s) / "zarr.json").stat().st_mtime_ns for s in (1, 2)}
     calls = []
-    original = volume._write_level
-    monkeypatch.setattr("chunkdic.pyramid._write_level", lambda *a, **k: calls.append(a[1]) or original(*a, **k))
+    original = levels.write_level
+    monkeypatch.setattr("chunkdic.pyramid.write_level", lambda *a, **k: calls.append(a[1]) or original(*a, **k))
     build_pyramid(p, 2)
     assert calls == []
     assert all((p / str(s) / "zarr.json").stat().st_mtime_ns == stamp[s] for s in (1, 2))

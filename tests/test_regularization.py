@@ -21,8 +21,8 @@ from chunkdic.cli import main
 from chunkdic.errors import InputError
 from chunkdic.planning import plan_meshes
 from chunkdic.prefilter import face_margin
-from chunkdic.regularization import (CANDIDATES, Regularizer, choose_length, plane_wave_weight, plane_waves,
-                                     reference_wavelength, regions)
+from chunkdic.regchoice import CANDIDATES, choose_length, regions
+from chunkdic.regularization import Regularizer, plane_wave_weight, plane_waves, reference_wavelength
 from chunkdic.result import FLAG_MASKED, FLAG_WEAK
 from chunkdic.scoring import scored_region
 from chunkdic.solve import half_stencil, stencil_matvec

@@ -12,8 +12,10 @@ import zarr
 
 from chunkdic.coarsen import coarsen_sum, pyramid_dtype
 from chunkdic.errors import InputError
-from chunkdic.store import _store, check_write_alignment
-from chunkdic.volume import ArrayRef, open_scan, write_scan
+from chunkdic.store import store_array, check_write_alignment
+from chunkdic.handles import ArrayRef
+from chunkdic.scanwrite import write_scan
+from chunkdic.volume import open_scan
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:
@@ -149,14 +151,14 @@ def test_chunk_alignment_violation_is_caught(tmp_path):
     check_write_alignment(((8, 8), (16,), (10,)), (16, 16, 10), (8, 8, 8))
     arr = zarr.create_array(str(tmp_path / "x.zarr"), shape=(16, 16, 16), chunks=(8, 8, 8), dtype="uint8")
     with pytest.raises(InputError, match="own whole chunks"):
-        _store(da.ones((16, 16, 16), dtype="uint8", chunks=(5, 16, 16)), str(tmp_path / "x.zarr"), "")
+        store_array(da.ones((16, 16, 16), dtype="uint8", chunks=(5, 16, 16)), str(tmp_path / "x.zarr"), "")
     assert int(np.asarray(arr[:]).sum()) == 0  # nothing written
     # sharded arrays: the write unit is the shard
     sharded = zarr.create_array(str(tmp_path / "s.zarr"), shape=(16, 16, 16), chunks=(4, 4, 4),
                                 shards=(8, 8, 8), dtype="uint8")
     with pytest.raises(InputError, match="multiples of 8"):
-        _store(da.ones((16, 16, 16), dtype="uint8", chunks=4), str(tmp_path / "s.zarr"), "")
-    _store(da.ones((16, 16, 16), dtype="uint8", chunks=8), str(tmp_path / "s.zarr"), "")
+        store_array(da.ones((16, 16, 16), dtype="uint8", chunks=4), str(tmp_path / "s.zarr"), "")
+    store_array(da.ones((16, 16, 16), dtype="uint8", chunks=8), str(tmp_path / "s.zarr"), "")
     assert int(np.asarray(sharded[:]).sum()) == 16**3
 
 
@@ -260,3 +262,41 @@ def test_public_names_are_the_functions_whatever_was_imported_first():
         except ModuleNotFoundError:
             pass
         assert not inspect.ismodule(getattr(chunkdic, name)), name
+
+
+@pytest.mark.parametrize("kind", ["numpy", "in-memory zarr"])
+def test_in_memory_inputs_never_travel_inside_a_graph(tmp_path, monkeypatch, kind):
+    """A NumPy (or in-memory Zarr) level 0 on a distributed client: written to scratch from
+    the client chunk by chunk, the coarser levels then built by tasks whose graphs hold
+    only handles (pickled graph under 1 kB, against 512 kB of voxels), exact sums."""
+    import pickle
+
+    from distributed import Client
+
+    import chunkdic.levels as levels
+
+    x = np.random.default_rng(3).integers(0, 60000, size=(64, 64, 64), dtype=np.uint16)
+    if kind == "numpy":
+        src = x
+    else:
+        src = zarr.create_array(zarr.storage.MemoryStore(), shape=x.shape, chunks=(32, 32, 32), dtype=x.dtype)
+        src[...] = x
+    sizes = []
+    original = levels.store_array
+    monkeypatch.setattr(levels, "store_array", lambda data, *a, **k: sizes.append(
+        len(pickle.dumps(dict(data.__dask_graph__())))) or original(data, *a, **k))
+    with Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0"):
+        refs = open_scan(src).refs([0, 1, 2], tmp_path / "scratch")
+    assert sizes and max(sizes) < 100_000, sizes  # measured 0.8 kB per graph (the voxels: 512 kB)
+    np.testing.assert_array_equal(refs[0].read((slice(None),) * 3), x)
+    np.testing.assert_array_equal(refs[2].read((slice(None),) * 3), block_sums(x, 2))
+
+
+def test_write_scan_of_a_numpy_array_writes_it_from_the_client(tmp_path, monkeypatch):
+    """No Dask graph at all for a NumPy level 0 (it would carry the array)."""
+    import chunkdic.levels as levels
+
+    monkeypatch.setattr(levels, "store_array", lambda *a, **k: pytest.fail("a graph was built"))
+    x = np.arange(20 * 18 * 16, dtype=np.uint16).reshape(20, 18, 16)
+    scan = write_scan(tmp_path / "s.zarr", x, chunks=8)
+    np.testing.assert_array_equal(scan.level(0).compute(), x)
