@@ -81,7 +81,7 @@ def test_affine_field_on_procedural_texture():
     assert res.converged
     truth = np.einsum("ij,j...->i...", A, res.node_coords - c[:, None, None]) + t[:, None, None]
     rms = np.sqrt(((res.displacement - truth) ** 2).mean())
-    assert rms < 0.03, rms  # measured 0.005
+    assert rms < 0.03, rms  # measured 0.006
 
 
 def test_large_translation_through_the_pyramid():
