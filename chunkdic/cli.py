@@ -199,7 +199,7 @@ def _add_demo(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import _cli_report, _cli_scan, _cli_synth
+    from . import _cli_q4, _cli_report, _cli_scan, _cli_synth
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.")
     parser.add_argument("-v", "--verbose", action="store_true", help="log details")
@@ -208,6 +208,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_scan.register(sub)
     _cli_synth.register(sub)
     _cli_report.register(sub)
+    _cli_q4.register(sub)
     _add_demo(sub)
     p = sub.add_parser("versions", help="print versions for bug reports")
     p.set_defaults(func=lambda args: print(__import__("chunkdic").show_versions()) or 0)
