@@ -11,6 +11,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -94,7 +95,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="directory for the PNG files")
     p.add_argument("--ref", help="reference scan (default: the path recorded in the result)")
     p.add_argument("--deformed", help="deformed scan (default: the path recorded in the result)")
-    p.add_argument("--interpolation", choices=("cubic", "linear"), default=None)
+    p.add_argument("--interpolation", choices=("cubic", "linear"), default=None,
+                   help="interpolation of the deformed scan in the cuts (default: the result's)")
     p.add_argument("--scheduler", default=None,
                    help="where the cut planes are computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
@@ -102,8 +104,11 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser(
         "export", help="VTK mesh (ParaView), node CSV, corrected image and residual volumes",
-        description="--vtk: C8 mesh as VTK hexahedra with nodal displacement and element strains; --csv: one "
-                    "line per node; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as Zarr arrays.")
+        description="--vtk: C8 mesh as VTK hexahedra with nodal displacement and element strains (a .vtu "
+                    "also holds element size, level, voxel size, unit, gap, status and version as field "
+                    "data); --csv: one line per node under one header line (pandas.read_csv reads it), "
+                    "metadata in NODES.csv.json; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as "
+                    "Zarr arrays.")
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
@@ -112,7 +117,8 @@ def register(subparsers) -> None:
                    help="coordinates of --vtk/--csv: voxels of the result's level (default) or physical")
     p.add_argument("--ref", help="reference scan for --corrected (default: recorded path)")
     p.add_argument("--deformed", help="deformed scan for --corrected (default: recorded path)")
-    p.add_argument("--scheduler", default=None)
+    p.add_argument("--scheduler", default=None,
+                   help="where --corrected is computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--overwrite", action="store_true", help="replace outputs that an earlier export wrote")
     p.set_defaults(func=run_export)
 
@@ -280,7 +286,9 @@ def run_export(args: argparse.Namespace) -> int:
     # every output checked (and every input) before the first is written; all or nothing
     plan = Outputs(inputs=export.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
     entries = {name: plan.add(path, kind) for name, path, kind in
-               (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"), ("corrected", args.corrected, "corrected"))
+               (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
+                ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
+                ("corrected", args.corrected, "corrected"))
                if path}
     with plan:
         _export(res, args, {k: e.work for k, e in entries.items()})
@@ -296,10 +304,12 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
 
     if args.vtk:
         info = export.write_vtk(res, work["vtk"], units=args.units)
-        _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}")
+        _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}"
+             + ("; run facts in its field data" if str(args.vtk).lower().endswith(".vtu") else ""))
     if args.csv:
-        n = export.write_nodes_csv(res, work["csv"], units=args.units)
-        _err(f"{args.csv}: {n} nodes")
+        n = export._write_nodes_csv(res, work["csv"], work["csv-meta"], units=args.units,
+                                    name=Path(args.csv).name)
+        _err(f"{args.csv}: {n} nodes (metadata in {export.csv_sidecar(args.csv)})")
     if args.corrected:
         t0 = time.perf_counter()
         last = [0.0]

@@ -27,8 +27,76 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
 
 
+class _HelpFormatter(argparse.HelpFormatter):
+    """Every option's default in its help, unless the help already names it.
+
+    Unlike ``argparse.ArgumentDefaultsHelpFormatter`` this leaves alone a help that says
+    ``default`` itself (many say what ``None`` means: "default: automatic"), flags, and
+    required options; an option without help still gets its default.
+    """
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (action.default is argparse.SUPPRESS or action.required or action.nargs == 0
+                or (not action.option_strings and action.nargs != "?") or "default" in text.lower()):
+            return text
+        shown = "none" if action.default is None else "%(default)s"
+        return f"{text} (default: {shown})".strip()
+
+
 def _say(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
+
+
+class _QuietStderr:
+    """``-q``: stderr keeps only chunkdic's own error and warning lines (``chunkdic: …``);
+    progress and summaries are dropped. Results still go to stdout."""
+
+    def __init__(self, stream):
+        self.stream, self.pending = stream, ""
+
+    def write(self, text: str) -> int:
+        self.pending += text
+        *lines, self.pending = self.pending.split("\n")
+        for line in lines:
+            if line.startswith("chunkdic: "):
+                self.stream.write(line + "\n")
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def __getattr__(self, name):  # fileno, isatty, encoding, ... of the real stream
+        return getattr(self.stream, name)
+
+
+#: what the progress lines of the current run have explained already, and the last rigid
+#: gap per level (a rigid step that raises the gap is explained)
+_RUN: dict = {"explained": set(), "rigid_gap": {}}
+
+#: one-line explanations of terms that appear in progress lines and summaries
+EXPLAIN = {
+    "stalled": "stalled: neither the gap nor the increments improved for {patience} passes; the best field "
+               "so far is kept and not called converged (try a larger --element-size or regularisation)",
+    "excluded": "excluded: voxels whose X + u(X) falls outside the deformed scan; they are left out of the "
+                "sums (a large share means the ROI reaches past what the deformed scan shows)",
+    "diverged": "diverged: the gap grew far above its best; the best field so far is kept, not converged",
+    "max-iterations": "max-iterations: --max-iterations reached before max|da| fell under --tolerance",
+    "rigid-rise": "the gap rose: the previous rigid step overshot; this uniform translation is only the "
+                  "starting estimate, which the C8 iterations refine",
+    "rigid-worse": "a single mean translation fits this field worse than no motion (strain or rotation "
+                   "dominate); it is only a starting estimate, which the C8 iterations refine",
+}
+
+
+def _explain(term: str) -> str:
+    """The explanation of ``term`` on a line of its own, the first time in this run."""
+    if term not in EXPLAIN or term in _RUN["explained"]:
+        return ""
+    _RUN["explained"].add(term)
+    from .gauss_newton import STALL_PATIENCE
+
+    return "\n  (" + EXPLAIN[term].format(patience=STALL_PATIENCE) + ")"
 
 
 def _format_event(event: dict) -> str | None:
@@ -47,14 +115,21 @@ def _format_event(event: dict) -> str | None:
         return f"level {event['level']}: M built over {event['blocks']} blocks in {event['seconds']:.1f} s ({rate:.1f} Mvoxel/s)"
     if stage == "rigid":
         t = ", ".join(f"{v:+.3f}" for v in event["translation"])
-        return f"level {event['level']} rigid {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {event['max_delta']:.2e}  t=({t})"
+        before = _RUN["rigid_gap"].get(event["level"]) if event["iteration"] else None
+        _RUN["rigid_gap"][event["level"]] = event["gap"]
+        rose = _explain("rigid-rise") if before is not None and event["gap"] > before else ""
+        return (f"level {event['level']} rigid {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  "
+                f"max|da| {event['max_delta']:.2e}  t=({t})" + rose)
     if stage == "gaps":
-        return f"level {event['level']}: initial gap {100 * event['initial_gap']:.3f}%, after rigid translation {100 * event['rigid_gap']:.3f}%"
+        worse = _explain("rigid-worse") if event["rigid_gap"] > event["initial_gap"] else ""
+        return (f"level {event['level']}: initial gap {100 * event['initial_gap']:.3f}%, after rigid translation "
+                f"{100 * event['rigid_gap']:.3f}%" + worse)
     if stage == "iteration":
         d = event.get("status", "final") if event["max_delta"] is None else f"{event['max_delta']:.2e}"
+        notes = (_explain("excluded") if event["excluded"] else "") + _explain(event.get("status") or "")
         return (
             f"level {event['level']} iter {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {d}"
-            f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)"
+            f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)" + notes
         )
     if stage == "blocks":
         return (f"  level {event['level']} {event['label']}: {event['done']}/{event['total']} blocks, "
@@ -67,7 +142,8 @@ def _format_event(event: dict) -> str | None:
     if stage == "resume":
         return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
     if stage == "level":
-        return f"level {event['level']}: {event['status']}, gap {100 * event['gap']:.3f}% ({event['seconds']:.1f} s)"
+        return (f"level {event['level']}: {event['status']}, gap {100 * event['gap']:.3f}% "
+                f"({event['seconds']:.1f} s)" + _explain(event["status"]))
     return None
 
 
@@ -95,8 +171,12 @@ def _summary(result, seconds: float) -> str:
     if info["status"] == "excluded":
         line += (f"\n  excluded: {100 * info.get('excluded_fraction', 0):.0f}% of the ROI maps outside the deformed "
                  "scan; the rest converged, but so large a share left out is not called converged")
-    elif info["status"] == "stalled":
-        line += "\n  stalled: neither the gap nor the increments improved for 4 passes; the best field is kept"
+    elif info["status"] in ("stalled", "diverged", "max-iterations"):
+        from .gauss_newton import STALL_PATIENCE
+
+        line += "\n  " + EXPLAIN[info["status"]].format(patience=STALL_PATIENCE)
+    if info["excluded_voxels"] and info["status"] != "excluded":
+        line += "\n  " + EXPLAIN["excluded"]
     return line
 
 
@@ -159,7 +239,13 @@ def _demo(args) -> int:
 
 
 def _add_correlate(sub) -> None:
-    p = sub.add_parser("correlate", help="measure the displacement field between two scans (C8-DIC)")
+    p = sub.add_parser(
+        "correlate", help="measure the displacement field between two scans (C8-DIC)",
+        description="Global C8 digital volume correlation of DEFORMED against REF (cubic 8-node elements of "
+                    "edge --element-size), coarse to fine over the scans' 2^s sum pyramid, out of core. "
+                    "Writes a Zarr v3 result (xarray.open_zarr reads it); progress on stderr, the result "
+                    "path on stdout; exit 0 when converged, 1 otherwise, 2 on bad input. An interrupted run "
+                    "resumes when the same command runs again.")
     p.add_argument("ref", help="reference scan: Zarr group/array, .npy")
     p.add_argument("deformed", help="deformed scan: Zarr group/array, .npy")
     p.add_argument("-o", "--output", required=True, help="result path (Zarr v3 group)")
@@ -180,38 +266,66 @@ def _add_correlate(sub) -> None:
                    help="its length, voxels of level 0 (default: chosen from the data and printed)")
     p.add_argument("--mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
     p.add_argument("--tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
-    p.add_argument("--max-iterations", type=int, default=30)
-    p.add_argument("--block-elements", type=int, default=None, help="elements per block side")
+    p.add_argument("--max-iterations", type=int, default=30, help="Gauss-Newton iterations per level at most")
+    p.add_argument("--block-elements", type=int, default=None,
+                   help="elements per block side (default: automatic, blocks of about chunkdic.chunk-size voxels)")
     p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_correlate)
 
 
 def _add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="run the whole pipeline on a built-in synthetic foam specimen")
+    p = sub.add_parser(
+        "demo", help="run the whole pipeline on a built-in synthetic foam specimen",
+        description="Synthesize a foam pair with a known affine field (-1% along z, 0.5% shear, a "
+                    "translation), correlate it and print the RMS nodal error against the truth.")
     p.add_argument("directory", nargs="?", default="chunkdic-demo", help="where to write (default ./chunkdic-demo)")
     p.add_argument("--size", type=int, default=96, help="edge of the synthetic scans, voxels")
-    p.add_argument("--element-size", type=int, default=12)
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--element-size", type=int, default=12, help="element edge, voxels")
+    p.add_argument("--seed", type=int, default=1, help="seed of the synthetic texture")
     p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier demo folder")
     p.set_defaults(func=cmd_demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import _cli_report, _cli_scan, _cli_synth
+    from . import __version__, _cli_report, _cli_scan, _cli_synth
 
-    parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log details")
+    parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
+                     formatter_class=_HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"chunkdic {__version__}")
+    _verbosity(parser, 0)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_correlate(sub)
     _cli_scan.register(sub)
     _cli_synth.register(sub)
     _cli_report.register(sub)
     _add_demo(sub)
-    p = sub.add_parser("versions", help="print versions for bug reports")
+    p = sub.add_parser("versions", help="print versions for bug reports",
+                       description="Print the versions of Python, chunkdic and its dependencies, for bug reports.")
     p.set_defaults(func=lambda args: print(__import__("chunkdic").show_versions()) or 0)
+    _polish(sub)
     return parser
+
+
+def _verbosity(parser: argparse.ArgumentParser, default) -> None:
+    """``-v`` / ``-q`` on ``parser`` (the last one given wins)."""
+    parser.add_argument("-v", "--verbose", dest="verbosity", action="store_const", const=1, default=default,
+                        help="log details")
+    parser.add_argument("-q", "--quiet", dest="verbosity", action="store_const", const=-1, default=default,
+                        help="no progress or summary on stderr: only errors, warnings and the results on stdout")
+
+
+def _polish(sub) -> None:
+    """Every subcommand: ``-v``/``-q`` also after its name, defaults shown in its help, a
+    description (its one-line help when it has none)."""
+    helps = {a.dest: a.help for a in sub._choices_actions}
+    for name, p in sub.choices.items():
+        # SUPPRESS: absent after the subcommand, the value given before it (or 0) stays
+        _verbosity(p, argparse.SUPPRESS)
+        p.formatter_class = _HelpFormatter
+        if not p.description:
+            p.description = (helps.get(name) or name)[:1].upper() + (helps.get(name) or name)[1:] + "."
 
 
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
@@ -225,8 +339,21 @@ _FS_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    level = {1: logging.INFO, 0: logging.WARNING, -1: logging.ERROR}[args.verbosity]
+    logging.basicConfig(level=level, format="%(message)s")
     warnings.showwarning = _one_line_warning
+    _RUN["explained"].clear()
+    _RUN["rigid_gap"].clear()
+    stderr = sys.stderr
+    if args.verbosity < 0:
+        sys.stderr = _QuietStderr(stderr)
+    try:
+        return _dispatch(args)
+    finally:
+        sys.stderr = stderr
+
+
+def _dispatch(args) -> int:
     try:
         return args.func(args)
     except InputError as exc:
