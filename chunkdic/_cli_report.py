@@ -173,8 +173,12 @@ def format_strain(summary, result) -> str:
     used = "x".join(str(k) for k in summary.elements)
     excl = "without the outermost layer" if any(summary.excluded) else "all elements"
     f = ", ".join(f"{v:.4f}" for v in summary.factor)
+    length = result.voxel_length()
+    size = "" if length is None else (" = " + "x".join(f"{ell * v:.4g}" for v in dict.fromkeys(length.tolist()))
+                                      + f" {result.info.get('unit') or 'unit'}")
     return "\n".join([
-        f"{result.path}: {'x'.join(map(str, n))} elements of ell = {ell} voxels (level {result.info.get('level', 0)})",
+        f"{result.path}: {'x'.join(map(str, n))} elements of ell = {ell} voxels{size} "
+        f"(level {result.info.get('level', 0)})",
         f"mean strain over {used} elements ({excl}), axes (z, y, x):",
         _fmt_tensor(summary.mean),
         f"  tr(eps) = {summary.volume_change:+.5f}   eps_zz = {summary.eps_zz:+.5f}",
@@ -200,7 +204,12 @@ def run_strain(args: argparse.Namespace) -> int:
     check_displacement(res.displacement, res.path, res.flags)
     s = mean_strain(res.displacement, res.info["element_size"], exclude_outer=not args.all_elements)
     if args.json:
-        print(json.dumps({"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}, indent=2))
+        out = {"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}
+        length = res.voxel_length()
+        if length is not None:  # strains are dimensionless; the element's size in the scan's unit
+            out.update(element_size_physical=(res.info["element_size"] * length).tolist(),
+                       voxel_size=list(res.info["voxel_size"]), unit=res.info.get("unit"))
+        print(json.dumps(out, indent=2))
     else:
         print(format_strain(s, res))
     return 0

@@ -158,13 +158,21 @@ def _summary(result, seconds: float) -> str:
     u = result.displacement
     mean = ", ".join(f"<U{c}> {np.nanmean(u[i]):+.4f}" for i, c in enumerate("zyx"))
     roi = ",".join(f"{a}:{b}" for a, b in info["roi"])
+    length = result.voxel_length()  # physical size of a level voxel, (z, y, x); None without a voxel size
+    unit = info.get("unit") or "unit"
+    physical = ""
+    if length is not None:  # the same means in the scan's unit (issue 13: physical units end to end)
+        physical = " (" + ", ".join(f"{np.nanmean(u[i]) * length[i]:+.4g}" for i in range(3)) + f" {unit})"
     line = (
         f"{info['status']}: final gap {100 * info['final_gap']:.3f}% (initial {100 * info['initial_gap']:.3f}%, "
-        f"rigid {100 * info['rigid_gap']:.3f}%); {mean} voxels of level {info['level']}; "
+        f"rigid {100 * info['rigid_gap']:.3f}%); {mean} voxels of level {info['level']}{physical}; "
         f"ROI {roi}; excluded voxels {info['excluded_voxels']}; {seconds:.1f} s"
     )
     if result.uncertainty is not None and np.isfinite(result.uncertainty).any():
-        line += f"; median nodal uncertainty {np.nanmedian(result.uncertainty):.4f} voxel"
+        sigma = np.nanmedian(result.uncertainty)
+        line += f"; median nodal uncertainty {sigma:.4f} voxel"
+        if length is not None:
+            line += f" ({sigma * float(np.mean(length)):.3g} {unit})"
     missing = info.get("nodes_without_data", 0) + info.get("masked_nodes", 0)
     if missing:
         line += f"; {missing} nodes not measured (NaN)"
@@ -183,9 +191,10 @@ def _summary(result, seconds: float) -> str:
 def cmd_correlate(args) -> int:
     from .engine import correlate
 
+    element_size, roi = _physical_options(args)
     t0 = time.perf_counter()
     result = correlate(
-        args.ref, args.deformed, element_size=args.element_size, roi=args.roi, level=args.level,
+        args.ref, args.deformed, element_size=element_size, roi=roi, level=args.level,
         coarsest=args.coarsest, interpolation=args.interpolation, tolerance=args.tolerance,
         max_iterations=args.max_iterations, block_elements=args.block_elements,
         smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
@@ -195,6 +204,26 @@ def cmd_correlate(args) -> int:
     _say(_summary(result, time.perf_counter() - t0))
     print(args.output)
     return 0 if result.converged else 1
+
+
+def _physical_options(args):
+    """``--element-size`` and ``--roi`` in voxels, converted when given in a physical unit
+    (``60um``, ``--roi-unit um``) with the reference scan's voxel size (:mod:`chunkdic.units`)."""
+    from .units import element_size_voxels, parse_length, roi_voxels
+
+    physical = parse_length(args.element_size)[1] is not None or args.roi_unit is not None or (
+        args.roi is not None and not args.roi.strip()[-1:].isdigit())
+    scan = None
+    if physical:
+        from .volume import open_scan
+
+        scan = open_scan(args.ref)
+    ell, note = element_size_voxels(args.element_size, scan, args.level)
+    roi, roi_note = (None, None) if args.roi is None else roi_voxels(args.roi, scan, args.roi_unit)
+    for line in (note, roi_note):
+        if line:
+            _say(line)
+    return ell, roi
 
 
 def cmd_demo(args) -> int:
@@ -249,8 +278,13 @@ def _add_correlate(sub) -> None:
     p.add_argument("ref", help="reference scan: Zarr group/array, .npy")
     p.add_argument("deformed", help="deformed scan: Zarr group/array, .npy")
     p.add_argument("-o", "--output", required=True, help="result path (Zarr v3 group)")
-    p.add_argument("--element-size", "-l", type=int, required=True, help="element edge, voxels of --level")
-    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels (default: centred box)")
+    p.add_argument("--element-size", "-l", required=True, metavar="ELL",
+                   help="element edge, voxels of --level, or a physical length such as 60um (converted with "
+                        "the reference scan's voxel size and rounded to whole voxels)")
+    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels, or in --roi-unit, or with a unit suffix "
+                                 "(0:500,0:500,0:500um) (default: centred box)")
+    p.add_argument("--roi-unit", default=None, metavar="UNIT",
+                   help="length unit of --roi, e.g. um (default: voxels)")
     p.add_argument("--level", type=int, default=0, help="pyramid level correlated last (default 0)")
     p.add_argument("--coarsest", type=int, default=None, help="coarsest pyramid level (default: automatic)")
     p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic",

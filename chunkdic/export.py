@@ -35,7 +35,7 @@ from .result import Result, _jsonable, open_result
 log = logging.getLogger(__name__)
 
 __all__ = ["write_corrected", "open_corrected", "write_vtk", "write_nodes_csv", "read_vtk_metadata",
-           "csv_sidecar", "CSV_COLUMNS", "VTK_HEX_ORDER"]
+           "csv_sidecar", "CSV_COLUMNS", "CSV_PHYSICAL_COLUMNS", "VTK_HEX_ORDER"]
 
 #: local nodes ``(dz, dy, dx)`` in VTK_HEXAHEDRON order: bottom face (z0) counter-clockwise
 #: seen from +z starting at the origin, then the top face (z1) in the same order
@@ -308,7 +308,8 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
     Notes
     -----
     VTK orders vector components ``(x, y, z)``: points are ``(x, y, z)``; point data
-    ``displacement`` is ``(Ux, Uy, Uz)`` plus scalars ``Ux, Uy, Uz``; cell data ``strain``
+    ``displacement`` is ``(Ux, Uy, Uz)`` plus scalars ``Ux, Uy, Uz`` (in voxels, when the
+    scan has a voxel size also ``displacement_physical`` in its unit); cell data ``strain``
     is the 9-component tensor in ``(x, y, z)`` order, plus scalars ``eps_xx`` … ``eps_xy``,
     ``volume_change`` = tr(eps) and ``max_abs_principal``.
     """
@@ -333,6 +334,8 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
     cell_data["volume_change"] = [np.trace(eps).ravel()]
     cell_data["max_abs_principal"] = [np.abs(principal_strains(eps)).max(axis=0).ravel()]
     point_data = {"displacement": disp, "Ux": disp[:, 0], "Uy": disp[:, 1], "Uz": disp[:, 2]}
+    if units == "voxels" and result.voxel_length() is not None:  # the scan's unit too (issue 13)
+        point_data["displacement_physical"] = disp * result.voxel_length()[::-1]
     sigma = _nodal_uncertainty(result, units)
     if sigma is not None:  # per-node standard uncertainty, same units and component order
         point_data["uncertainty"] = np.stack([sigma[2].ravel(), sigma[1].ravel(), sigma[0].ravel()], axis=1)
@@ -447,6 +450,9 @@ def read_vtk_metadata(path) -> dict:
 #: columns of the node table (after ``iz, iy, ix``: positions, displacements, their standard
 #: uncertainties, flags); its first line, by which :mod:`chunkdic.kinds` recognises it
 CSV_COLUMNS = ("iz", "iy", "ix", "z", "y", "x", "Uz", "Uy", "Ux", "sigma_Uz", "sigma_Uy", "sigma_Ux", "flags")
+#: columns added when the table is in voxels and the scan has a voxel size: positions
+#: (level-0 voxel centres) and displacements in the scan's unit
+CSV_PHYSICAL_COLUMNS = ("z_physical", "y_physical", "x_physical", "Uz_physical", "Uy_physical", "Ux_physical")
 
 
 def csv_sidecar(path) -> Path:
@@ -462,9 +468,10 @@ def write_nodes_csv(result, path, *, units: str = "voxels", overwrite: bool = Fa
     ----------
     result : Result or path
     path : path
-        The table: a single header line (:data:`CSV_COLUMNS`) and one line per node, in C
-        order over ``(iz, iy, ix)``; ``pandas.read_csv(path)`` reads it as is. NaN for a
-        node that was not measured.
+        The table: a single header line (:data:`CSV_COLUMNS`, then
+        :data:`CSV_PHYSICAL_COLUMNS` when ``units="voxels"`` and the scan has a voxel
+        size) and one line per node, in C order over ``(iz, iy, ix)``;
+        ``pandas.read_csv(path)`` reads it as is. NaN for a node that was not measured.
     units : {"voxels", "physical"}, keyword-only
         Positions, displacements and uncertainties in voxels of the result's level
         (default) or in the scan's physical unit.
@@ -495,8 +502,16 @@ def _write_nodes_csv(result: Result, csv_path: Path, json_path: Path, *, units: 
     flags = np.zeros(X.shape[1:], np.uint8) if result.flags is None else result.flags
     data = np.column_stack([idx, X.reshape(3, -1).T, u.reshape(3, -1).T, sigma.reshape(3, -1).T, flags.reshape(-1)])
     fmt = ["%d"] * 3 + ["%.6f"] * 3 + ["%.8g"] * 6 + ["%d"]
-    np.savetxt(csv_path, data, delimiter=",", header=",".join(CSV_COLUMNS), comments="", fmt=fmt)
-    json_path.write_text(json.dumps(_jsonable(_csv_metadata(result, unit, name)), indent=2) + "\n")
+    columns = CSV_COLUMNS
+    if units == "voxels" and result.voxel_length() is not None:  # the scan's unit too
+        Xp, up, _ = _positions(result, "physical")
+        data = np.column_stack([data, Xp.reshape(3, -1).T, up.reshape(3, -1).T])
+        fmt += ["%.8g"] * 6
+        columns = CSV_COLUMNS + CSV_PHYSICAL_COLUMNS
+    np.savetxt(csv_path, data, delimiter=",", header=",".join(columns), comments="", fmt=fmt)
+    meta = _csv_metadata(result, unit, name)
+    meta["columns"].update({c: result.info.get("unit") or "unit" for c in columns[len(CSV_COLUMNS):]})
+    json_path.write_text(json.dumps(_jsonable(meta), indent=2) + "\n")
     return len(data)
 
 

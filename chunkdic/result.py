@@ -199,6 +199,16 @@ class Result:
                                             self._var_attrs(name, HISTORY_LAYOUT))
         return xr.Dataset(data_vars, coords=coords, attrs=self.summary_attrs())
 
+    def voxel_length(self) -> np.ndarray | None:
+        """Physical length of one voxel of the correlated level per axis ``(z, y, x)``, in
+        ``info["unit"]`` (``scale`` level-0 voxels times the scan's voxel size); ``None``
+        when the scan had no voxel size. A displacement in level voxels times this is a
+        displacement in the physical unit."""
+        vs = self.info.get("voxel_size")
+        if not vs:
+            return None
+        return float(self.info.get("scale", 1)) * np.asarray(vs, dtype=np.float64)
+
     def _physical_coords(self, arrays: dict) -> dict:
         """Node positions in the scan's physical unit, ``{"z_physical": ("z", …), …}``
         (empty without a voxel size)."""

@@ -109,3 +109,70 @@ def test_terms_are_explained_once_where_they_appear():
     gaps = cli._format_event({"stage": "gaps", "level": 0, "initial_gap": 0.01, "rigid_gap": 0.02,
                               "translation": [0, 0, 0]})
     assert "worse than no motion" in gaps
+
+
+# --------------------------------------------------------------------------- physical units (item 4, part)
+
+
+class _Scan:
+    def __init__(self, voxel_size, unit):
+        self.voxel_size, self.unit = voxel_size, unit
+
+
+def test_lengths_in_physical_units_hand_values():
+    from chunkdic.errors import InputError
+    from chunkdic.units import element_size_voxels, parse_length, roi_voxels
+
+    assert parse_length("60um") == (60.0, "micrometer") and parse_length("60 µm") == (60.0, "micrometer")
+    assert parse_length("0.06mm") == (0.06, "millimeter") and parse_length("12") == (12.0, None)
+    scan = _Scan((4.91, 4.91, 4.91), "micrometer")
+    assert element_size_voxels("12", scan) == (12, None)
+    ell, note = element_size_voxels("60um", scan)  # 60 / 4.91 = 12.22
+    assert ell == 12 and "12.220" in note and "58.92 micrometer" in note
+    assert element_size_voxels("0.06mm", scan)[0] == 12  # 60 um
+    assert element_size_voxels("60um", scan, level=1)[0] == 6  # 60 / 9.82 = 6.11
+    roi, note = roi_voxels("0:491,49.1:982,98.2:491", scan, "um")
+    assert roi == "0:100,10:200,20:100"
+    assert roi_voxels("0:491,49.1:982,98.2:491um", scan)[0] == "0:100,10:200,20:100"
+    assert roi_voxels("0:0.491,0:0.491,0:0.491", scan, "mm")[0] == "0:100,0:100,0:100"
+    assert roi_voxels("1:9,1:9,1:9", scan) == ("1:9,1:9,1:9", None)
+    for bad, scan_, match in [("60um", _Scan(None, None), "no voxel size"),
+                              ("60um", _Scan((1.0, 2.0, 2.0), "micrometer"), "not the same"),
+                              ("12.5", scan, "whole number"), ("abc", scan, "expected a number"),
+                              ("60parsecs", scan, "unknown length unit")]:
+        with pytest.raises(InputError, match=match):
+            element_size_voxels(bad, scan_)
+
+
+def test_correlate_summary_strain_and_exports_in_physical_units(tmp_path, capsys):
+    import json
+
+    import pandas as pd
+
+    from chunkdic import synthetic
+
+    t = (1.0, 0.5, -0.5)
+    pair = synthetic.synthesize(tmp_path / "s", (40, 40, 40), field=synthetic.Translation(t), seed=2,
+                                dtype="float32", voxel_size=2.5, unit="um")
+    out = tmp_path / "r.zarr"
+    assert main(["correlate", pair["reference"], pair["deformed"], "-o", str(out), "-l", "30um",
+                 "--roi", "10:90,10:90,10:90um", "--max-iterations", "10"]) in (0, 1)
+    err = capsys.readouterr().err
+    assert "--element-size 30um = 12.000 voxels of level 0: using 12 (30 micrometer)" in err
+    assert "= 4:36,4:36,4:36 in level-0 voxels" in err
+    assert "(+2.5, +1.25, -1.25 micrometer)" in err  # <U> times 2.5 um, rounded by %.4g
+    res = chunkdic.open_result(out)
+    assert res.info["roi"] == [[8, 32]] * 3  # 4:36 (32 voxels) trimmed to 2 whole elements of 12, centred
+    assert main(["strain", str(out), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["element_size_physical"] == [30.0, 30.0, 30.0] and s["unit"] == "micrometer"
+    assert main(["export", str(out), "--csv", str(tmp_path / "n.csv"), "--vtk", str(tmp_path / "m.vtu")]) == 0
+    table = pd.read_csv(tmp_path / "n.csv")
+    assert np.allclose(table["Uz_physical"], 2.5 * table["Uz"], rtol=1e-7)
+    assert np.allclose(table["x_physical"], 2.5 * table["x"], rtol=1e-7)
+    side = json.loads((tmp_path / "n.csv.json").read_text())
+    assert side["columns"]["Ux_physical"] == "micrometer" and side["columns"]["Ux"] == "voxel, level 0"
+    import meshio
+
+    m = meshio.read(tmp_path / "m.vtu")
+    assert np.allclose(m.point_data["displacement_physical"], 2.5 * m.point_data["displacement"])
