@@ -20,11 +20,11 @@ METERS = {"angstrom": 1e-10, "picometer": 1e-12, "nanometer": 1e-9, "micrometer"
 _NUMBER_UNIT = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s.:,+-][^\s:,]*)?\s*$")
 
 
-def parse_length(text) -> tuple[float, str | None]:
+def parse_length(text, what: str = "--element-size") -> tuple[float, str | None]:
     """``"60um"`` -> ``(60.0, "micrometer")``; ``"12"`` -> ``(12.0, None)`` (voxels)."""
     m = _NUMBER_UNIT.match(str(text))
     if m is None:
-        raise InputError(f"{text!r}: expected a number, optionally with a length unit (12, 60um, 0.06mm)")
+        raise InputError(f"{what} {text!r}: expected a number, optionally with a length unit (12, 60um, 0.06mm)")
     unit = m.group(2)
     if unit is not None and unit.lower() in ("vx", "voxel", "voxels"):
         unit = None
