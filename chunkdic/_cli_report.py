@@ -11,6 +11,7 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -94,7 +95,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="directory for the PNG files")
     p.add_argument("--ref", help="reference scan (default: the path recorded in the result)")
     p.add_argument("--deformed", help="deformed scan (default: the path recorded in the result)")
-    p.add_argument("--interpolation", choices=("cubic", "linear"), default=None)
+    p.add_argument("--interpolation", choices=("cubic", "linear"), default=None,
+                   help="interpolation of the deformed scan in the cuts (default: the result's)")
     p.add_argument("--scheduler", default=None,
                    help="where the cut planes are computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
@@ -102,8 +104,11 @@ def register(subparsers) -> None:
 
     p = subparsers.add_parser(
         "export", help="VTK mesh (ParaView), node CSV, corrected image and residual volumes",
-        description="--vtk: C8 mesh as VTK hexahedra with nodal displacement and element strains; --csv: one "
-                    "line per node; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as Zarr arrays.")
+        description="--vtk: C8 mesh as VTK hexahedra with nodal displacement and element strains (a .vtu "
+                    "also holds element size, level, voxel size, unit, gap, status and version as field "
+                    "data); --csv: one line per node under one header line (pandas.read_csv reads it), "
+                    "metadata in NODES.csv.json; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as "
+                    "Zarr arrays.")
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
@@ -112,7 +117,8 @@ def register(subparsers) -> None:
                    help="coordinates of --vtk/--csv: voxels of the result's level (default) or physical")
     p.add_argument("--ref", help="reference scan for --corrected (default: recorded path)")
     p.add_argument("--deformed", help="deformed scan for --corrected (default: recorded path)")
-    p.add_argument("--scheduler", default=None)
+    p.add_argument("--scheduler", default=None,
+                   help="where --corrected is computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--overwrite", action="store_true", help="replace outputs that an earlier export wrote")
     p.set_defaults(func=run_export)
 
@@ -131,7 +137,7 @@ def _shift(text: str):
 
 
 def _progress(event: dict) -> None:
-    from .cli import _format_event
+    from ._cli_common import format_event
 
     stage = event.get("stage")
     if stage == "shift":
@@ -150,7 +156,7 @@ def _progress(event: dict) -> None:
              f"{event['bias_x']:+.4f}) std ({event['std_z']:.4f}, {event['std_y']:.4f}, {event['std_x']:.4f}) voxel, "
              f"delta eps {event['delta_eps']:.2e}, gap {event['final_gap_percent']:.3f}%")
         return
-    line = _format_event(event)
+    line = format_event(event)
     if line:
         _err("  " + line)
 
@@ -167,8 +173,12 @@ def format_strain(summary, result) -> str:
     used = "x".join(str(k) for k in summary.elements)
     excl = "without the outermost layer" if any(summary.excluded) else "all elements"
     f = ", ".join(f"{v:.4f}" for v in summary.factor)
+    length = result.voxel_length()
+    size = "" if length is None else (" = " + "x".join(f"{ell * v:.4g}" for v in dict.fromkeys(length.tolist()))
+                                      + f" {result.info.get('unit') or 'unit'}")
     return "\n".join([
-        f"{result.path}: {'x'.join(map(str, n))} elements of ell = {ell} voxels (level {result.info.get('level', 0)})",
+        f"{result.path}: {'x'.join(map(str, n))} elements of ell = {ell} voxels{size} "
+        f"(level {result.info.get('level', 0)})",
         f"mean strain over {used} elements ({excl}), axes (z, y, x):",
         _fmt_tensor(summary.mean),
         f"  tr(eps) = {summary.volume_change:+.5f}   eps_zz = {summary.eps_zz:+.5f}",
@@ -194,7 +204,12 @@ def run_strain(args: argparse.Namespace) -> int:
     check_displacement(res.displacement, res.path, res.flags)
     s = mean_strain(res.displacement, res.info["element_size"], exclude_outer=not args.all_elements)
     if args.json:
-        print(json.dumps({"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}, indent=2))
+        out = {"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}
+        length = res.voxel_length()
+        if length is not None:  # strains are dimensionless; the element's size in the scan's unit
+            out.update(element_size_physical=(res.info["element_size"] * length).tolist(),
+                       voxel_size=list(res.info["voxel_size"]), unit=res.info.get("unit"))
+        print(json.dumps(out, indent=2))
     else:
         print(format_strain(s, res))
     return 0
@@ -280,7 +295,9 @@ def run_export(args: argparse.Namespace) -> int:
     # every output checked (and every input) before the first is written; all or nothing
     plan = Outputs(inputs=export.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
     entries = {name: plan.add(path, kind) for name, path, kind in
-               (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"), ("corrected", args.corrected, "corrected"))
+               (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
+                ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
+                ("corrected", args.corrected, "corrected"))
                if path}
     with plan:
         _export(res, args, {k: e.work for k, e in entries.items()})
@@ -296,10 +313,12 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
 
     if args.vtk:
         info = export.write_vtk(res, work["vtk"], units=args.units)
-        _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}")
+        _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}"
+             + ("; run facts in its field data" if str(args.vtk).lower().endswith(".vtu") else ""))
     if args.csv:
-        n = export.write_nodes_csv(res, work["csv"], units=args.units)
-        _err(f"{args.csv}: {n} nodes")
+        n = export._write_nodes_csv(res, work["csv"], work["csv-meta"], units=args.units,
+                                    name=Path(args.csv).name)
+        _err(f"{args.csv}: {n} nodes (metadata in {export.csv_sidecar(args.csv)})")
     if args.corrected:
         t0 = time.perf_counter()
         last = [0.0]

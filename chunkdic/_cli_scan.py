@@ -21,7 +21,7 @@ def register(subparsers) -> None:
                     "(with --shape and --dtype), file.h5:/path/to/dataset, .npy, or a Zarr array/group.",
     )
     p.add_argument("src", metavar="SRC")
-    p.add_argument("out", metavar="OUT.zarr")
+    p.add_argument("out", metavar="OUT.zarr", help="scan group to create (missing parent directories are made)")
     p.add_argument("--voxel-size", metavar="V", help="voxel size: one number or Z,Y,X (default: from metadata)")
     p.add_argument("--unit", help="length unit of --voxel-size, e.g. micrometer (um), millimeter (mm)")
     p.add_argument("--chunks", type=int, metavar="N", help="Zarr chunk edge in voxels (default 128)")

@@ -57,10 +57,10 @@ def register(subparsers) -> None:
                    help="default uint8 (foam), uint16 (CT specimens)")
     p.add_argument("--chunks", type=int, default=None, help="chunk edge (default 128)")
     p.add_argument("--levels", type=int, default=0, help="pyramid levels to build")
-    p.add_argument("--voxel-size", default=None, help="s or sz,sy,sx (physical units)")
+    p.add_argument("--voxel-size", default=None, help="s or sz,sy,sx (physical units; default: none, sizes in voxels)")
     p.add_argument("--unit", default=None, help="length unit, e.g. micrometer")
-    p.add_argument("--cell-size", type=float, default=None, help="foam: mean cell size, voxels (8)")
-    p.add_argument("--bead-size", type=float, default=None, help="foam: mean bead size, voxels (64)")
+    p.add_argument("--cell-size", type=float, default=None, help="foam: mean cell size, voxels (default 8)")
+    p.add_argument("--bead-size", type=float, default=None, help="foam: mean bead size, voxels (default 64)")
     p.add_argument("--wall-width", type=float, default=None,
                    help="foam: cell wall FWHM, voxels (default 2.5)")
     p.add_argument("--noise", type=float, default=None,

@@ -106,7 +106,10 @@ class Checkpoint:
         slot = 1 - attrs.get("checkpoint", {}).get("slot", 1)
         group = root.require_group("checkpoint")
         for name, arr in arrays.items():
-            group.create_array(f"{name}{slot}", data=np.ascontiguousarray(arr), overwrite=True)
+            arr = np.ascontiguousarray(arr)
+            # named dimensions, as every array of a result group (xarray reads them)
+            group.create_array(f"{name}{slot}", data=arr, overwrite=True,
+                               dimension_names=tuple(f"{name}_{i}" for i in range(arr.ndim)))
         attrs["checkpoint"] = {**state, "slot": slot, "array_names": sorted(arrays)}
         root.attrs["chunkdic"] = attrs
         self.saved = True

@@ -8,7 +8,6 @@ from __future__ import annotations
 import argparse
 import errno
 import logging
-import math
 import sys
 import time
 import warnings
@@ -16,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._cli_common import EXPLAIN, new_run, print_progress, say
 from .errors import InputError
 from .scheduler import SCHEDULER_HELP
 
@@ -27,54 +27,43 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message}\n")
 
 
-def _say(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+class _HelpFormatter(argparse.HelpFormatter):
+    """Every option's default in its help, unless the help already names it.
+
+    Unlike ``argparse.ArgumentDefaultsHelpFormatter`` this leaves alone a help that says
+    ``default`` itself (many say what ``None`` means: "default: automatic"), flags, and
+    required options; an option without help still gets its default.
+    """
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        if (action.default is argparse.SUPPRESS or action.required or action.nargs == 0
+                or (not action.option_strings and action.nargs != "?") or "default" in text.lower()):
+            return text
+        shown = "none" if action.default is None else "%(default)s"
+        return f"{text} (default: {shown})".strip()
 
 
-def _format_event(event: dict) -> str | None:
-    stage = event["stage"]
-    if stage == "start":
-        dash = ""  # the runner's description already names its dashboard
-        roi = ",".join(f"{a}:{b}" for a, b in event["roi"])
-        nodes = "x".join(str(n) for n in event["nodes"])
-        line = f"running on {event['scheduler']}{dash}; levels {event['levels']}; ROI {roi} (level voxels); {nodes} nodes"
-        if event.get("requested_roi"):
-            asked = ",".join(f"{a}:{b}" for a, b in event["requested_roi"])
-            line += f" (requested {asked} in level-0 voxels, trimmed to whole elements)"
-        return line
-    if stage == "matrix":
-        rate = event["voxels"] / max(event["seconds"], 1e-9) / 1e6
-        return f"level {event['level']}: M built over {event['blocks']} blocks in {event['seconds']:.1f} s ({rate:.1f} Mvoxel/s)"
-    if stage == "rigid":
-        t = ", ".join(f"{v:+.3f}" for v in event["translation"])
-        return f"level {event['level']} rigid {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {event['max_delta']:.2e}  t=({t})"
-    if stage == "gaps":
-        return f"level {event['level']}: initial gap {100 * event['initial_gap']:.3f}%, after rigid translation {100 * event['rigid_gap']:.3f}%"
-    if stage == "iteration":
-        d = event.get("status", "final") if event["max_delta"] is None else f"{event['max_delta']:.2e}"
-        return (
-            f"level {event['level']} iter {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {d}"
-            f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)"
-        )
-    if stage == "blocks":
-        return (f"  level {event['level']} {event['label']}: {event['done']}/{event['total']} blocks, "
-                f"{event['rate'] / 1e6:.1f} Mvoxel/s, ETA {event['eta']:.0f} s")
-    if stage == "regularization":
-        corner = event.get("l_curve_length")
-        corner = f"; L-curve corner {corner:.1f}" if corner is not None and math.isfinite(corner) else ""
-        return (f"level {event['level']}: {event['kind']} regularisation length {event['length']:.1f} voxels "
-                f"(chosen from the data{corner}; noise correlation factor {event['kappa']:.1f})")
-    if stage == "resume":
-        return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
-    if stage == "level":
-        return f"level {event['level']}: {event['status']}, gap {100 * event['gap']:.3f}% ({event['seconds']:.1f} s)"
-    return None
+class _QuietStderr:
+    """``-q``: stderr keeps only chunkdic's own error and warning lines (``chunkdic: …``);
+    progress and summaries are dropped. Results still go to stdout."""
 
+    def __init__(self, stream):
+        self.stream, self.pending = stream, ""
 
-def _print_progress(event: dict) -> None:
-    line = _format_event(event)
-    if line:
-        _say(line)
+    def write(self, text: str) -> int:
+        self.pending += text
+        *lines, self.pending = self.pending.split("\n")
+        for line in lines:
+            if line.startswith("chunkdic: "):
+                self.stream.write(line + "\n")
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+    def __getattr__(self, name):  # fileno, isatty, encoding, ... of the real stream
+        return getattr(self.stream, name)
 
 
 def _summary(result, seconds: float) -> str:
@@ -82,39 +71,72 @@ def _summary(result, seconds: float) -> str:
     u = result.displacement
     mean = ", ".join(f"<U{c}> {np.nanmean(u[i]):+.4f}" for i, c in enumerate("zyx"))
     roi = ",".join(f"{a}:{b}" for a, b in info["roi"])
+    length = result.voxel_length()  # physical size of a level voxel, (z, y, x); None without a voxel size
+    unit = info.get("unit") or "unit"
+    physical = ""
+    if length is not None:  # the same means in the scan's unit (issue 13: physical units end to end)
+        physical = " (" + ", ".join(f"{np.nanmean(u[i]) * length[i]:+.4g}" for i in range(3)) + f" {unit})"
     line = (
         f"{info['status']}: final gap {100 * info['final_gap']:.3f}% (initial {100 * info['initial_gap']:.3f}%, "
-        f"rigid {100 * info['rigid_gap']:.3f}%); {mean} voxels of level {info['level']}; "
+        f"rigid {100 * info['rigid_gap']:.3f}%); {mean} voxels of level {info['level']}{physical}; "
         f"ROI {roi}; excluded voxels {info['excluded_voxels']}; {seconds:.1f} s"
     )
     if result.uncertainty is not None and np.isfinite(result.uncertainty).any():
-        line += f"; median nodal uncertainty {np.nanmedian(result.uncertainty):.4f} voxel"
+        sigma = np.nanmedian(result.uncertainty)
+        line += f"; median nodal uncertainty {sigma:.4f} voxel"
+        if length is not None:
+            line += f" ({sigma * float(np.mean(length)):.3g} {unit})"
     missing = info.get("nodes_without_data", 0) + info.get("masked_nodes", 0)
     if missing:
         line += f"; {missing} nodes not measured (NaN)"
     if info["status"] == "excluded":
         line += (f"\n  excluded: {100 * info.get('excluded_fraction', 0):.0f}% of the ROI maps outside the deformed "
                  "scan; the rest converged, but so large a share left out is not called converged")
-    elif info["status"] == "stalled":
-        line += "\n  stalled: neither the gap nor the increments improved for 4 passes; the best field is kept"
+    elif info["status"] in ("stalled", "diverged", "max-iterations"):
+        from .gauss_newton import STALL_PATIENCE
+
+        line += "\n  " + EXPLAIN[info["status"]].format(patience=STALL_PATIENCE)
+    if info["excluded_voxels"] and info["status"] != "excluded":
+        line += "\n  " + EXPLAIN["excluded"]
     return line
 
 
 def cmd_correlate(args) -> int:
     from .engine import correlate
 
+    element_size, roi = _physical_options(args)
     t0 = time.perf_counter()
     result = correlate(
-        args.ref, args.deformed, element_size=args.element_size, roi=args.roi, level=args.level,
+        args.ref, args.deformed, element_size=element_size, roi=roi, level=args.level,
         coarsest=args.coarsest, interpolation=args.interpolation, tolerance=args.tolerance,
         max_iterations=args.max_iterations, block_elements=args.block_elements,
         smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
         regularization_length=args.regularization_length, mask=args.mask,
-        scheduler=args.scheduler, output=args.output, overwrite=args.overwrite, progress=_print_progress,
+        scheduler=args.scheduler, output=args.output, overwrite=args.overwrite, progress=print_progress,
     )
-    _say(_summary(result, time.perf_counter() - t0))
+    say(_summary(result, time.perf_counter() - t0))
     print(args.output)
     return 0 if result.converged else 1
+
+
+def _physical_options(args):
+    """``--element-size`` and ``--roi`` in voxels, converted when given in a physical unit
+    (``60um``, ``--roi-unit um``) with the reference scan's voxel size (:mod:`chunkdic.units`)."""
+    from .units import element_size_voxels, parse_length, roi_voxels
+
+    physical = parse_length(args.element_size)[1] is not None or args.roi_unit is not None or (
+        args.roi is not None and not args.roi.strip()[-1:].isdigit())
+    scan = None
+    if physical:
+        from .volume import open_scan
+
+        scan = open_scan(args.ref)
+    ell, note = element_size_voxels(args.element_size, scan, args.level)
+    roi, roi_note = (None, None) if args.roi is None else roi_voxels(args.roi, scan, args.roi_unit)
+    for line in (note, roi_note):
+        if line:
+            say(line)
+    return ell, roi
 
 
 def cmd_demo(args) -> int:
@@ -144,27 +166,38 @@ def _demo(args) -> int:
         center=tuple(n / 2 for n in (args.size,) * 3),
         translation=(2.3, -1.4, 0.7),
     )
-    _say(f"synthesizing a {args.size}^3 foam pair in {out} (affine field: -1% along z, 0.5% shear, translation)")
+    say(f"synthesizing a {args.size}^3 foam pair in {out} (affine field: -1% along z, 0.5% shear, translation)")
     paths = synthetic.synthesize(out, (args.size,) * 3, field=field, seed=args.seed)
     t0 = time.perf_counter()
     result = correlate(paths["reference"], paths["deformed"], element_size=args.element_size,
-                       scheduler=args.scheduler, output=result_path, progress=_print_progress)
-    _say(_summary(result, time.perf_counter() - t0))
+                       scheduler=args.scheduler, output=result_path, progress=print_progress)
+    say(_summary(result, time.perf_counter() - t0))
     truth = field.displacement(*result.node_coords)
     err = result.displacement - truth
     rms = np.sqrt((err**2).mean(axis=(1, 2, 3)))
-    _say("RMS nodal error vs the known field: " + ", ".join(f"U{c} {v:.4f}" for c, v in zip("zyx", rms)) + " voxel")
+    say("RMS nodal error vs the known field: " + ", ".join(f"U{c} {v:.4f}" for c, v in zip("zyx", rms)) + " voxel")
     print(result_path)
     return 0 if result.converged else 1
 
 
 def _add_correlate(sub) -> None:
-    p = sub.add_parser("correlate", help="measure the displacement field between two scans (C8-DIC)")
+    p = sub.add_parser(
+        "correlate", help="measure the displacement field between two scans (C8-DIC)",
+        description="Global C8 digital volume correlation of DEFORMED against REF (cubic 8-node elements of "
+                    "edge --element-size), coarse to fine over the scans' 2^s sum pyramid, out of core. "
+                    "Writes a Zarr v3 result (xarray.open_zarr reads it); progress on stderr, the result "
+                    "path on stdout; exit 0 when converged, 1 otherwise, 2 on bad input. An interrupted run "
+                    "resumes when the same command runs again.")
     p.add_argument("ref", help="reference scan: Zarr group/array, .npy")
     p.add_argument("deformed", help="deformed scan: Zarr group/array, .npy")
     p.add_argument("-o", "--output", required=True, help="result path (Zarr v3 group)")
-    p.add_argument("--element-size", "-l", type=int, required=True, help="element edge, voxels of --level")
-    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels (default: centred box)")
+    p.add_argument("--element-size", "-l", required=True, metavar="ELL",
+                   help="element edge, voxels of --level, or a physical length such as 60um (converted with "
+                        "the reference scan's voxel size and rounded to whole voxels)")
+    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels, or in --roi-unit, or with a unit suffix "
+                                 "(0:500,0:500,0:500um) (default: centred box)")
+    p.add_argument("--roi-unit", default=None, metavar="UNIT",
+                   help="length unit of --roi, e.g. um (default: voxels)")
     p.add_argument("--level", type=int, default=0, help="pyramid level correlated last (default 0)")
     p.add_argument("--coarsest", type=int, default=None, help="coarsest pyramid level (default: automatic)")
     p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic",
@@ -180,29 +213,35 @@ def _add_correlate(sub) -> None:
                    help="its length, voxels of level 0 (default: chosen from the data and printed)")
     p.add_argument("--mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
     p.add_argument("--tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
-    p.add_argument("--max-iterations", type=int, default=30)
-    p.add_argument("--block-elements", type=int, default=None, help="elements per block side")
+    p.add_argument("--max-iterations", type=int, default=30, help="Gauss-Newton iterations per level at most")
+    p.add_argument("--block-elements", type=int, default=None,
+                   help="elements per block side (default: automatic, blocks of about chunkdic.chunk-size voxels)")
     p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_correlate)
 
 
 def _add_demo(sub) -> None:
-    p = sub.add_parser("demo", help="run the whole pipeline on a built-in synthetic foam specimen")
+    p = sub.add_parser(
+        "demo", help="run the whole pipeline on a built-in synthetic foam specimen",
+        description="Synthesize a foam pair with a known affine field (-1% along z, 0.5% shear, a "
+                    "translation), correlate it and print the RMS nodal error against the truth.")
     p.add_argument("directory", nargs="?", default="chunkdic-demo", help="where to write (default ./chunkdic-demo)")
     p.add_argument("--size", type=int, default=96, help="edge of the synthetic scans, voxels")
-    p.add_argument("--element-size", type=int, default=12)
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--element-size", type=int, default=12, help="element edge, voxels")
+    p.add_argument("--seed", type=int, default=1, help="seed of the synthetic texture")
     p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
-    p.add_argument("--overwrite", action="store_true")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier demo folder")
     p.set_defaults(func=cmd_demo)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import _cli_q4, _cli_report, _cli_scan, _cli_synth
+    from . import __version__, _cli_q4, _cli_report, _cli_scan, _cli_synth
 
-    parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.")
-    parser.add_argument("-v", "--verbose", action="store_true", help="log details")
+    parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
+                     formatter_class=_HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"chunkdic {__version__}")
+    _verbosity(parser, 0)
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
     _add_correlate(sub)
     _cli_scan.register(sub)
@@ -210,13 +249,35 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_report.register(sub)
     _cli_q4.register(sub)
     _add_demo(sub)
-    p = sub.add_parser("versions", help="print versions for bug reports")
+    p = sub.add_parser("versions", help="print versions for bug reports",
+                       description="Print the versions of Python, chunkdic and its dependencies, for bug reports.")
     p.set_defaults(func=lambda args: print(__import__("chunkdic").show_versions()) or 0)
+    _polish(sub)
     return parser
 
 
+def _verbosity(parser: argparse.ArgumentParser, default) -> None:
+    """``-v`` / ``-q`` on ``parser`` (the last one given wins)."""
+    parser.add_argument("-v", "--verbose", dest="verbosity", action="store_const", const=1, default=default,
+                        help="log details")
+    parser.add_argument("-q", "--quiet", dest="verbosity", action="store_const", const=-1, default=default,
+                        help="no progress or summary on stderr: only errors, warnings and the results on stdout")
+
+
+def _polish(sub) -> None:
+    """Every subcommand: ``-v``/``-q`` also after its name, defaults shown in its help, a
+    description (its one-line help when it has none)."""
+    helps = {a.dest: a.help for a in sub._choices_actions}
+    for name, p in sub.choices.items():
+        # SUPPRESS: absent after the subcommand, the value given before it (or 0) stays
+        _verbosity(p, argparse.SUPPRESS)
+        p.formatter_class = _HelpFormatter
+        if not p.description:
+            p.description = (helps.get(name) or name)[:1].upper() + (helps.get(name) or name)[1:] + "."
+
+
 def _one_line_warning(message, category, filename, lineno, file=None, line=None):
-    _say(f"chunkdic: warning: {message}")
+    say(f"chunkdic: warning: {message}")
 
 
 #: file-system errors reported in one line (disk full, read-only, permissions, I/O)
@@ -226,22 +287,34 @@ _FS_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING, format="%(message)s")
+    level = {1: logging.INFO, 0: logging.WARNING, -1: logging.ERROR}[args.verbosity]
+    logging.basicConfig(level=level, format="%(message)s")
     warnings.showwarning = _one_line_warning
+    new_run()
+    stderr = sys.stderr
+    if args.verbosity < 0:
+        sys.stderr = _QuietStderr(stderr)
+    try:
+        return _dispatch(args)
+    finally:
+        sys.stderr = stderr
+
+
+def _dispatch(args) -> int:
     try:
         return args.func(args)
     except InputError as exc:
-        _say(f"chunkdic: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+        say(f"chunkdic: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
         return EXIT_BAD_INPUT
     except OSError as exc:
         if exc.errno not in _FS_ERRORS:
             raise
         # the outputs of the run were removed on the way out (chunkdic.outputs)
         where = f": {exc.filename}" if exc.filename else ""
-        _say(f"chunkdic: error: {exc.strerror or exc}{where}")
+        say(f"chunkdic: error: {exc.strerror or exc}{where}")
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
-        _say("chunkdic: interrupted")
+        say("chunkdic: interrupted")
         return 130
 
 

@@ -39,11 +39,9 @@ import json
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
-from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
 from .q4 import Q4Result, correlate2d
 from .result import Result, open_result
 

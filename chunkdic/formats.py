@@ -541,7 +541,7 @@ def _check_finite(block: np.ndarray, reader=None, block_info=None) -> np.ndarray
 
 def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dtype=None,
            byte_order: str = "little", offset: int = 0, dataset: str | None = None,
-           overwrite: bool = False, levels: int = 0,
+           overwrite: bool = False, levels: int = 0, parents: bool = True,
            progress: Callable[[float], None] | None = None) -> Scan:
     """Convert a scan file or folder into a stored scan group (Zarr v3, OME-NGFF 0.5).
 
@@ -573,6 +573,9 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
         Replace an existing Zarr store at ``out``.
     levels : int
         Pyramid levels to build after level 0 (2 = the paper's 4^3 compression).
+    parents : bool
+        Create missing parent directories of ``out`` (default; like ``mkdir -p``, never
+        inside an input or a Zarr store; removed again if the run fails).
     progress : callable(float), optional
         Called with the fraction done.
 
@@ -624,7 +627,7 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
     unit_out = user_unit if user_vs is not None else meta_unit
     log.info("ingesting %s: shape %s %s, voxel size %s %s", label, data.shape, data.dtype, vs, unit_out)
     return write_scan(out_p, data, voxel_size=vs, unit=unit_out, chunks=chunks, overwrite=overwrite,
-                      levels=levels, progress=progress, inputs=[in_path])
+                      levels=levels, progress=progress, inputs=[in_path], parents=parents)
 
 
 def _mtime(p: Path) -> int:

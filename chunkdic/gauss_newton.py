@@ -156,7 +156,7 @@ def element_fields(p) -> np.ndarray:
     return np.concatenate([np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element]), drift])
 
 
-def _decide(state: State, gap: float, tolerance: float, max_iterations: int) -> None:
+def decide(state: State, gap: float, tolerance: float, max_iterations: int) -> None:
     """The stopping rule (docs/engine.md, "Iterations and stopping"), applied after a pass."""
     if not math.isfinite(gap) or gap > DIVERGENCE_FACTOR * state.best_gap + DIVERGENCE_FLOOR:
         state.finish("diverged", keep_current=False)
@@ -196,7 +196,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
                      excluded=p.n_excluded, gain=float(np.median(p.fit.gain)))
         if math.isfinite(p.gap):
             state.record(p, element_fields(p))
-        _decide(state, p.gap, tolerance, max_iterations)
+        decide(state, p.gap, tolerance, max_iterations)
         if state.status is not None:
             history.add(lvl.s, it, p.gap, math.nan, p.n_excluded)
             emit(progress, **event, status=state.status, seconds=time.perf_counter() - t0)

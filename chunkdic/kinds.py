@@ -3,7 +3,8 @@
 Stores carry ``attrs["chunkdic"]["kind"]`` in their ``zarr.json`` (results and scans
 written before the attribute existed are recognised by their other attributes); folders
 carry a marker file (:data:`MARKER`, JSON ``{"kind": ..., "complete": ...}``); files are
-recognised by their header. :mod:`chunkdic.outputs` replaces (``--overwrite``) only what
+recognised by their header (a node table by its column line, its JSON sidecar by its
+``kind``). :mod:`chunkdic.outputs` replaces (``--overwrite``) only what
 :func:`kind_of` recognises as the same kind.
 """
 
@@ -49,7 +50,12 @@ KINDS: dict[str, Kind] = {k.name: k for k in (
     Kind("demo", "folder", "demo folder", _SYNTH + ("result.zarr",)),
     Kind("vtk", "file", "VTK file", suffixes=(".vtu", ".vtk")),
     Kind("csv", "file", "node table"),
+    Kind("csv-meta", "file", "node table sidecar", suffixes=(".json",)),
 )}
+
+#: first line of a node table (``chunkdic.export.CSV_COLUMNS``); tables written before the
+#: JSON sidecar began with a comment line ``# positions …``
+CSV_HEADER = b"iz,iy,ix,z,y,x,Uz,Uy,Ux,"
 
 
 # --------------------------------------------------------------------------- what is there
@@ -119,9 +125,22 @@ def _file_kind(path: Path) -> str | None:
         return None
     if path.suffix.lower() in (".vtu", ".vtk") and b"meshio" in head:
         return "vtk"
-    if head.startswith(b"# positions and displacements in"):
+    if head.startswith(CSV_HEADER) or head.startswith(b"# positions"):
         return "csv"
+    if path.suffix.lower() == ".json" and _json_kind(path) == "csv-meta":
+        return "csv-meta"
     return None
+
+
+def _json_kind(path: Path) -> str | None:
+    """``kind`` of a small JSON object file (the node table's sidecar), else None."""
+    try:
+        if path.stat().st_size > 1 << 20:
+            return None
+        d = json.loads(path.read_text())
+    except (OSError, ValueError, UnicodeDecodeError):
+        return None
+    return d.get("kind") if isinstance(d, dict) and isinstance(d.get("kind"), str) else None
 
 
 def kind_of(path) -> tuple[str | None, bool]:

@@ -7,7 +7,8 @@ The rules, checked for all outputs of a command before the first byte is written
 - An output is never an input, never inside one and never contains one (symbolic links
   resolved; a Zarr input counts as its whole store, so ``def.zarr/1`` is inside the input
   ``def.zarr/0``). It is never the current directory or one of its parents, never inside
-  a Zarr store, never under a regular file, and its directory must exist and be writable.
+  a Zarr store, never under a regular file, and its directory must exist and be writable
+  (``ingest`` may create missing parent directories: ``parents=True``).
 - An existing output is refused unless ``overwrite``. Even then only something chunkdic
   wrote, of the same kind, is replaced: stores carry ``attrs["chunkdic"]["kind"]``,
   folders a marker file (:data:`chunkdic.kinds.MARKER`), files are recognised by their header. A user's
@@ -116,20 +117,36 @@ def _check_cwd(p: Path, real: Path) -> None:
         raise InputError(f"output {_say(p)} is not a usable name: choose a new path")
 
 
-def _check_location(p: Path, real: Path, kind: Kind) -> None:
+def _check_location(p: Path, real: Path, kind: Kind, parents: bool = False) -> None:
     if kind.suffixes and real.suffix.lower() not in kind.suffixes:
         raise InputError(f"{kind.label} {_say(p)}: unknown extension {real.suffix or '(none)'!r}, "
                          f"use {' or '.join(kind.suffixes)}")
-    anc = Path(os.path.abspath(p)).parent
-    while not anc.exists() and anc != anc.parent:
-        anc = anc.parent
+    anc = _existing_ancestor(p)
     if anc.exists() and not anc.is_dir():
         raise InputError(f"output {_say(p)} lies under the file {anc}, which is not a directory")
-    if not real.parent.is_dir():
+    if not real.parent.is_dir() and not parents:
         raise InputError(f"output directory {real.parent} does not exist")
     for parent in real.parents:
         if (parent / "zarr.json").is_file() or (parent / ".zgroup").is_file() or (parent / ".zarray").is_file():
             raise InputError(f"output {_say(p)} lies inside the Zarr store {parent}: choose a path outside it")
+
+
+def _existing_ancestor(p: Path) -> Path:
+    """The nearest ancestor of ``p`` that exists (maybe a file: refused by the caller)."""
+    anc = Path(os.path.abspath(p)).parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    return anc
+
+
+def _missing_parents(p: Path) -> list[Path]:
+    """The directories above ``p`` that do not exist yet, outermost first."""
+    missing = []
+    parent = Path(os.path.abspath(p)).parent
+    while not parent.exists() and parent != parent.parent:
+        missing.append(parent)
+        parent = parent.parent
+    return missing[::-1]
 
 
 def _check_inputs(p: Path, real: Path, roots: list[Path]) -> None:
@@ -184,7 +201,8 @@ def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable:
     return "replace"
 
 
-def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumable: bool = False) -> str:
+def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumable: bool = False,
+                 parents: bool = False) -> str:
     """Check one output against every rule (module docstring); no side effects.
 
     Parameters
@@ -199,6 +217,9 @@ def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumab
         Allow replacing an existing output of the same kind that chunkdic wrote.
     resumable : bool
         An interrupted output of this kind may be continued (the correlation result).
+    parents : bool
+        Missing parent directories may be created (``ingest``); the nearest existing
+        ancestor must then be a writable directory outside every Zarr store.
 
     Returns
     -------
@@ -215,9 +236,9 @@ def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumab
     real = _real(p)
     _check_cwd(p, real)
     _check_inputs(p, real, input_roots(inputs))
-    _check_location(p, real, k)
+    _check_location(p, real, k, parents)
     state = _check_existing(p, real, k, overwrite, resumable)
-    check_writable(real.parent, f" (for output {_say(p)})")
+    check_writable(real.parent if real.parent.is_dir() else _existing_ancestor(p), f" (for output {_say(p)})")
     return state
 
 
@@ -235,6 +256,8 @@ class Entry:
     work: Path = None  # type: ignore[assignment]
     created: bool = False
     keep: set = field(default_factory=set)
+    parents: list = field(default_factory=list)  # missing directories to create, outermost first
+    made: list = field(default_factory=list)  # the directories this run created
 
 
 class Outputs:
@@ -258,8 +281,13 @@ class Outputs:
         self.entries: list[Entry] = []
         self._open = False
 
-    def add(self, path, kind: str, *, staged: bool | None = None, resumable: bool = False) -> Entry:
-        """Declare and check one output; nothing is written yet."""
+    def add(self, path, kind: str, *, staged: bool | None = None, resumable: bool = False,
+            parents: bool = False) -> Entry:
+        """Declare and check one output; nothing is written yet.
+
+        ``parents``: create missing parent directories when writing begins (removed again
+        if the run fails).
+        """
         if path is None or os.fspath(path) == "":
             raise InputError(f"empty path for the {KINDS[kind].label}")
         k = KINDS[kind]
@@ -271,10 +299,11 @@ class Outputs:
                                  "choose different paths")
             if other in real.parents or real in other.parents:
                 raise InputError(f"outputs {_say(e.final)} and {_say(path)} overlap: choose separate paths")
-        state = check_output(path, kind, inputs=self.inputs, overwrite=self.overwrite, resumable=resumable)
+        state = check_output(path, kind, inputs=self.inputs, overwrite=self.overwrite, resumable=resumable,
+                             parents=parents)
         if staged is None:
             staged = k.form != "folder" and not resumable
-        entry = Entry(Path(path), k, staged, state)
+        entry = Entry(Path(path), k, staged, state, parents=_missing_parents(Path(path)) if parents else [])
         entry.work = entry.final
         self.entries.append(entry)
         if self._open:
@@ -283,6 +312,10 @@ class Outputs:
 
     # -- side effects -----------------------------------------------------------------
     def _begin(self, e: Entry) -> None:
+        for d in e.parents:
+            if not d.exists():
+                d.mkdir()
+                e.made.append(d)
         reclaim_stale_partials(e.final)
         if e.staged:
             e.work = partial_name(e.final)
@@ -343,6 +376,8 @@ class Outputs:
         for e in self.entries:
             try:
                 self._undo(e)
+                for d in reversed(e.made):  # only if still empty: never what another process put there
+                    d.rmdir()
             except OSError as exc:  # a full or read-only disk must not hide the first error
                 log.warning("could not remove %s: %s", e.work, exc)
 

@@ -43,7 +43,7 @@ import scipy.sparse.linalg as spla
 
 from .errors import InputError
 from .gauss_newton import State
-from .gauss_newton import _decide as decide  # the engine's stopping rule, shared on purpose
+from .gauss_newton import decide  # the engine's stopping rule, shared on purpose
 from .mesh import level_to_level
 from .planning import MIN_COARSE_EDGE, box_at_level, default_margin
 from .rigid import phase_correlation

@@ -5,9 +5,16 @@ The group holds small arrays only (mesh-sized): ``displacement`` and ``node_coor
 ``history/level``, ``history/iteration``, ``history/gap``, ``history/max_delta``,
 ``history/excluded``, and the element strains ``strain`` ``(3, 3, ez, ey, ex)`` float64
 (dimensionless, :mod:`chunkdic.strain`; computed from ``displacement`` when the result
-is saved, absent from results written before it existed). Everything else is in ``attrs["chunkdic"]``. The group is created
-with ``complete: false`` and marked complete last, so an interrupted write is never
-mistaken for a result.
+is saved, absent from results written before it existed). Everything else is in
+``attrs["chunkdic"]``. The group is created with ``complete: false`` and marked complete
+last, so an interrupted write is never mistaken for a result.
+
+Every array carries Zarr v3 ``dimension_names`` and ``units`` / ``long_name`` attributes
+(:data:`LAYOUT`), and the group holds the 1-D node and element-centre positions ``z, y,
+x`` and ``ez, ey, ex`` as coordinate arrays, so that ``xarray.open_zarr(path)`` reads a
+result as a labelled Dataset (``displacement`` on ``("component", "z", "y", "x")``).
+Results written before this carry no dimension names: :meth:`Result.to_xarray` works on
+every result.
 """
 
 from __future__ import annotations
@@ -31,6 +38,35 @@ FLAG_NO_DATA = 1
 FLAG_WEAK = 2
 #: node flag: outside the specimen mask (no active element around it); NaN, not measured
 FLAG_MASKED = 4
+
+#: dimension names, unit and description of every array of a result group (the ``units``
+#: follow CF usage: ``"1"`` is dimensionless; ``"voxel"`` is a voxel of the correlated level)
+LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
+    "displacement": (("component", "z", "y", "x"), "voxel", "nodal displacement, components (Uz, Uy, Ux)"),
+    "node_coords": (("component", "z", "y", "x"), "voxel", "node position, components (z, y, x)"),
+    "uncertainty": (("component", "z", "y", "x"), "voxel",
+                    "standard uncertainty of the nodal displacement, components (z, y, x)"),
+    "strain": (("component_i", "component_j", "ez", "ey", "ex"), "1",
+               "small-strain tensor at the element centres, axes (z, y, x)"),
+    "flags": (("z", "y", "x"), "1", "node flags (bits): 1 no data, 2 weak texture, 4 masked"),
+    "active": (("ez", "ey", "ex"), "1", "element took part (specimen mask)"),
+    "brightness": (("gain_offset", "ez", "ey", "ex"), "1",
+                   "per-element gain (dimensionless) and offset (grey levels of the level): f = gain g + offset"),
+    "z": (("z",), "voxel", "node position along z"),
+    "y": (("y",), "voxel", "node position along y"),
+    "x": (("x",), "voxel", "node position along x"),
+    "ez": (("ez",), "voxel", "element centre along z"),
+    "ey": (("ey",), "voxel", "element centre along y"),
+    "ex": (("ex",), "voxel", "element centre along x"),
+}
+#: the same for the arrays of the ``history`` group (one entry per level and iteration)
+HISTORY_LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
+    "level": (("step",), "1", "pyramid level"),
+    "iteration": (("step",), "1", "iteration (negative: rigid-translation steps)"),
+    "gap": (("step",), "1", "matching gap rms(r) / (max f - min f) (paper 5.1)"),
+    "max_delta": (("step",), "voxel", "max |da| of the update that followed (NaN: final evaluation)"),
+    "excluded": (("step",), "voxel", "voxels left out (X + u(X) outside the deformed scan); a count"),
+}
 
 
 @dataclass
@@ -104,6 +140,103 @@ class Result:
             self.strain = element_strain(self.displacement, self.info["element_size"])
         return self.strain
 
+    def _arrays(self) -> dict[str, np.ndarray]:
+        """Every array of the result group, by name (:data:`LAYOUT`), with the 1-D node and
+        element-centre positions taken from the regular mesh."""
+        X = self.node_coords
+        arrays = {"displacement": self.displacement, "node_coords": X}
+        if "element_size" in self.info:
+            arrays["strain"] = self.element_strain()
+        for name in ("flags", "brightness", "active", "uncertainty"):
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
+        for axis, name in enumerate("zyx"):  # the mesh is regular: one position per node index
+            line = X[(axis,) + tuple(slice(None) if a == axis else 0 for a in range(3))]
+            arrays[name] = line
+            arrays["e" + name] = (line[1:] + line[:-1]) / 2
+        return arrays
+
+    def _var_attrs(self, name: str, layout=None) -> dict:
+        _, units, text = (layout or LAYOUT)[name]
+        level = int(self.info.get("level", 0))
+        long_name = text + (f" (voxels of level {level})" if units == "voxel" and level else "")
+        return {"units": units, "long_name": long_name}
+
+    def to_xarray(self):
+        """The result as an :class:`xarray.Dataset` (xarray is an optional dependency).
+
+        Returns
+        -------
+        xarray.Dataset
+            ``displacement``, ``node_coords``, ``uncertainty`` on ``("component", "z",
+            "y", "x")``, ``strain`` on ``("component_i", "component_j", "ez", "ey", "ex")``,
+            ``flags``, ``active``, ``brightness`` when present, and the iteration history
+            (``history_gap`` …) on ``("step",)``. Coordinates: ``component`` (``"z", "y",
+            "x"``), node positions ``z, y, x`` and element centres ``ez, ey, ex`` in voxels
+            of the correlated level; when the scan has a voxel size, also ``z_physical`` …
+            (level-0 voxel centres times the voxel size, in ``unit``). Each variable has
+            ``units`` and ``long_name`` attributes; the Dataset's attributes hold the
+            scalar facts of the run (element size, level, status, gap, voxel size, unit).
+
+        Examples
+        --------
+        >>> ds = chunkdic.open_result("result.zarr").to_xarray()  # doctest: +SKIP
+        >>> ds.displacement.sel(component="z").isel(x=0).plot()  # doctest: +SKIP
+        """
+        try:
+            import xarray as xr
+        except ImportError:
+            raise ImportError("Result.to_xarray needs xarray: pip install xarray") from None
+        arrays = self._arrays()
+        coords = {"component": ("component", np.array(["z", "y", "x"]))}
+        data_vars = {}
+        for name, arr in arrays.items():
+            entry = (LAYOUT[name][0], np.asarray(arr), self._var_attrs(name))
+            (coords if name in ("z", "y", "x", "ez", "ey", "ex") else data_vars)[name] = entry
+        coords.update(self._physical_coords(arrays))
+        for name, arr in self.history.items():
+            data_vars["history_" + name] = (HISTORY_LAYOUT[name][0], np.asarray(arr),
+                                            self._var_attrs(name, HISTORY_LAYOUT))
+        return xr.Dataset(data_vars, coords=coords, attrs=self.summary_attrs())
+
+    def voxel_length(self) -> np.ndarray | None:
+        """Physical length of one voxel of the correlated level per axis ``(z, y, x)``, in
+        ``info["unit"]`` (``scale`` level-0 voxels times the scan's voxel size); ``None``
+        when the scan had no voxel size. A displacement in level voxels times this is a
+        displacement in the physical unit."""
+        vs = self.info.get("voxel_size")
+        if not vs:
+            return None
+        return float(self.info.get("scale", 1)) * np.asarray(vs, dtype=np.float64)
+
+    def _physical_coords(self, arrays: dict) -> dict:
+        """Node positions in the scan's physical unit, ``{"z_physical": ("z", …), …}``
+        (empty without a voxel size)."""
+        vs = self.info.get("voxel_size")
+        if not vs:
+            return {}
+        scale = float(self.info.get("scale", 1))
+        unit = self.info.get("unit") or "unit"
+        out = {}
+        for axis, name in enumerate("zyx"):
+            level0 = scale * np.asarray(arrays[name]) + (scale - 1) / 2  # DESIGN.md voxel centres
+            out[f"{name}_physical"] = (name, level0 * float(vs[axis]),
+                                       {"units": unit, "long_name": f"node position along {name}"})
+        return out
+
+    def summary_attrs(self) -> dict:
+        """Scalar facts of the run (JSON- and netCDF-friendly): element size, level, scale,
+        status, gaps, voxel size and unit (when known), chunkdic version."""
+        from . import __version__
+
+        keys = ("element_size", "level", "scale", "status", "converged", "initial_gap", "final_gap",
+                "voxel_size", "unit")
+        attrs = {k: _jsonable(self.info[k]) for k in keys if self.info.get(k) is not None}
+        if "converged" in attrs:
+            attrs["converged"] = int(bool(attrs["converged"]))  # netCDF has no booleans
+        attrs["chunkdic_version"] = self.info.get("chunkdic_version") or __version__
+        return attrs
+
     def __repr__(self) -> str:
         i = self.info
         return (
@@ -128,17 +261,14 @@ class Result:
         with plan:
             root = zarr.open_group(str(entry.work), mode="w", zarr_format=3)
             root.attrs["chunkdic"] = {**_jsonable(self.info), "kind": "result", "complete": False}
-            for name, arr in (("displacement", self.displacement), ("node_coords", self.node_coords)):
-                root.create_array(name, data=np.ascontiguousarray(arr, dtype=np.float64))
-            if "element_size" in self.info:
-                root.create_array("strain", data=np.ascontiguousarray(self.element_strain(), dtype=np.float64))
-            for name, dtype in (("flags", np.uint8), ("brightness", np.float64), ("active", np.uint8),
-                                ("uncertainty", np.float64)):
-                if getattr(self, name) is not None:
-                    root.create_array(name, data=np.ascontiguousarray(getattr(self, name), dtype=dtype))
+            for name, arr in self._arrays().items():
+                dtype = np.uint8 if name in ("flags", "active") else np.float64
+                root.create_array(name, data=np.ascontiguousarray(arr, dtype=dtype),
+                                  dimension_names=LAYOUT[name][0], attributes=self._var_attrs(name))
             hist = root.create_group("history")
             for name in HISTORY_FIELDS:
-                hist.create_array(name, data=np.asarray(self.history[name]))
+                hist.create_array(name, data=np.asarray(self.history[name]), dimension_names=HISTORY_LAYOUT[name][0],
+                                  attributes=self._var_attrs(name, HISTORY_LAYOUT))
             root.attrs["chunkdic"] = {**_jsonable(self.info), "kind": "result", "complete": True}
         self.path = str(path)
 

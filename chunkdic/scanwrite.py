@@ -25,7 +25,8 @@ log = logging.getLogger(__name__)
 
 
 def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite: bool = False,
-               levels: int = 0, progress: Callable[[float], None] | None = None, inputs=()) -> "Scan":
+               levels: int = 0, progress: Callable[[float], None] | None = None, inputs=(),
+               parents: bool = False) -> "Scan":
     """Write a 3-D array as a stored scan: a Zarr v3 group with OME-NGFF 0.5 metadata.
 
     Level ``"0"`` is ``data``, written chunk by chunk by Dask (``data`` is never computed
@@ -48,6 +49,8 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     overwrite : bool
         Replace an existing scan that chunkdic wrote at ``path`` (nothing else is ever
         replaced; see :mod:`chunkdic.outputs`).
+    parents : bool
+        Create missing parent directories of ``path`` (removed again if the write fails).
     levels : int
         Number of pyramid levels to build after level 0.
     progress : callable(float), optional
@@ -81,7 +84,7 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     levels = int(levels)
     check_levels(data.shape, levels)
     plan = Outputs(inputs=inputs, overwrite=overwrite)
-    entry = plan.add(path, "scan")  # every check before anything is written
+    entry = plan.add(path, "scan", parents=parents)  # every check before anything is written
     forget_open_arrays()
     weights = [1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)]
     cuts = np.cumsum([0.0] + weights) / sum(weights)

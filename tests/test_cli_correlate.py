@@ -27,7 +27,9 @@ def pair(tmp_path_factory):
 
 def test_correlate_command_writes_a_result(pair, tmp_path, capsys):
     out = tmp_path / "res.zarr"
-    code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size", "8"])
+    # -v after the subcommand, as before it (issue 13)
+    code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size", "8",
+                 "-v"])
     assert code == 0
     err = capsys.readouterr().err
     assert "iter" in err and "converged" in err
@@ -57,6 +59,15 @@ def test_bad_input_is_one_line_exit_2_nothing_written(pair, tmp_path, capsys, ar
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and message in err, err
     assert not out.exists()
+
+
+def test_quiet_run_prints_the_result_path_only(pair, tmp_path, capsys):
+    out = tmp_path / "res.zarr"
+    assert main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "-l", "8", "-q"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and captured.out.strip() == str(out)
+    assert main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "-l", "8", "-q"]) == 2
+    assert capsys.readouterr().err.startswith("chunkdic: error: output")  # errors still shown
 
 
 def test_existing_output_is_refused_without_overwrite(pair, tmp_path, capsys):

@@ -270,14 +270,14 @@ def _interrupt_at(monkeypatch, iteration: int):
     """Make the CLI's progress printer raise KeyboardInterrupt at a level-0 iteration."""
     from chunkdic import cli
 
-    real = cli._print_progress
+    real = cli.print_progress
 
     def printer(event):
         real(event)
         if event.get("stage") == "iteration" and event.get("level") == 0 and event["iteration"] == iteration:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(cli, "_print_progress", printer)
+    monkeypatch.setattr(cli, "print_progress", printer)
 
 
 def test_B2_resume_refuses_a_changed_input(data, tmp_path, capsys, monkeypatch):

@@ -122,7 +122,7 @@ def test_vtk_and_csv_export(translation, tmp_path):
     # the per-node uncertainty travels with the field (VTK (x, y, z) order; CSV z, y, x)
     assert np.allclose(m.point_data["uncertainty"][7], res.uncertainty[::-1].reshape(3, -1)[:, 7])
     assert np.array_equal(m.point_data["flags"], res.flags.ravel())
-    table = np.loadtxt(csv_path, delimiter=",", skiprows=2)
+    table = np.loadtxt(csv_path, delimiter=",", skiprows=1)  # one header line (metadata: NODES.csv.json)
     assert table.shape == (np.prod(nodes), 13)
     assert np.allclose(table[:, 6:9], res.displacement.reshape(3, -1).T, atol=1e-6)
     assert np.allclose(table[:, 9:12], res.uncertainty.reshape(3, -1).T, rtol=1e-6)
@@ -147,3 +147,106 @@ def test_strain_command(translation, capsys):
     assert _run(["strain", str(d / "result.zarr")]) == 0
     out = capsys.readouterr().out
     assert "tr(eps)" in out and "principal" in out and "(1 - 2 ell / L)" in out
+
+
+# --------------------------------------------------------------------------- tools of the ecosystem (issue 13, item 3)
+
+
+def test_result_opens_in_xarray_with_named_dimensions(translation):
+    xr = pytest.importorskip("xarray")
+    _, res, d = translation
+    ds = xr.open_zarr(d / "result.zarr", consolidated=False)
+    u = ds["displacement"]
+    assert u.dims == ("component", "z", "y", "x")
+    assert np.array_equal(u.values, res.displacement)  # the stored field, bit for bit
+    assert u.attrs["units"] == "voxel"
+    assert ds["strain"].dims == ("component_i", "component_j", "ez", "ey", "ex")
+    assert np.array_equal(ds["flags"].values, res.flags)
+    # node positions as coordinates: node k at ROI start + k ell - 0.5 (DESIGN.md)
+    (z0, _), (y0, _), (x0, _) = res.info["roi"]
+    ell = res.info["element_size"]
+    assert np.array_equal(ds["z"].values, z0 + ell * np.arange(ds.sizes["z"]) - 0.5)
+    assert np.array_equal(ds["x"].values, x0 + ell * np.arange(ds.sizes["x"]) - 0.5)
+    assert np.array_equal(ds["ey"].values, y0 + ell * np.arange(ds.sizes["ey"]) + ell / 2 - 0.5)
+    for name, var in ds.variables.items():
+        assert "units" in var.attrs, name
+    hist = xr.open_zarr(d / "result.zarr", group="history", consolidated=False)
+    assert np.array_equal(hist["gap"].values, res.history["gap"]) and hist["gap"].dims == ("step",)
+    # the in-memory twin
+    mem = res.to_xarray()
+    assert np.array_equal(mem["displacement"].sel(component="x").values, res.displacement[2])
+    assert mem.attrs["element_size"] == ell and mem.attrs["status"] == "converged"
+    assert "z_physical" not in mem.coords  # no voxel size on this pair
+    assert np.array_equal(mem["history_gap"].values, res.history["gap"])
+
+
+def test_to_xarray_physical_coordinates_and_missing_xarray(translation, monkeypatch):
+    pytest.importorskip("xarray")
+    _, res, _ = translation
+    at_level1 = chunkdic.Result(res.displacement, res.node_coords, res.history,
+                                {**res.info, "voxel_size": [2.0, 3.0, 4.0], "unit": "micrometer", "scale": 2})
+    ds = at_level1.to_xarray()
+    # level-1 node at coordinate c sits at level-0 coordinate 2 c + 0.5 (voxel centres, DESIGN.md)
+    assert np.allclose(ds["y_physical"].values, (2 * ds["y"].values + 0.5) * 3.0)
+    assert ds["y_physical"].attrs["units"] == "micrometer"
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_xarray(name, *args, **kwargs):
+        if name == "xarray":
+            raise ImportError("no module named xarray")
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_xarray)
+    with pytest.raises(ImportError, match="pip install xarray"):
+        res.to_xarray()
+
+
+def test_vtu_field_data_and_csv_for_pandas(translation, tmp_path):
+    import json
+
+    import meshio
+
+    from chunkdic.export import CSV_COLUMNS, read_vtk_metadata
+
+    pd = pytest.importorskip("pandas")
+    _, res, d = translation
+    vtu, csv_path = tmp_path / "mesh.vtu", tmp_path / "nodes.csv"
+    assert _run(["export", str(d / "result.zarr"), "--vtk", str(vtu), "--csv", str(csv_path)]) == 0
+    fd = meshio.read(vtu).field_data
+    assert fd["element_size"].tolist() == [12.0] and fd["level"].tolist() == [0]
+    assert fd["final_gap"][0] == pytest.approx(res.final_gap, rel=1e-12)
+    meta = read_vtk_metadata(vtu)
+    assert meta["status"] == "converged" and meta["converged"] == 1
+    assert meta["coordinates"] == "voxel, level 0" and meta["chunkdic_version"] == chunkdic.__version__
+    assert "voxel_size" not in meta and "unit" not in meta  # this pair has none
+    # a plain pandas.read_csv: one header line, the result's values
+    table = pd.read_csv(csv_path)
+    assert tuple(table.columns) == CSV_COLUMNS
+    assert np.allclose(table[["Uz", "Uy", "Ux"]].to_numpy().T, res.displacement.reshape(3, -1), atol=5e-8)
+    assert np.allclose(table[["z", "y", "x"]].to_numpy().T, res.node_coords.reshape(3, -1))
+    assert table["iz"].max() == res.displacement.shape[1] - 1
+    side = json.loads((tmp_path / "nodes.csv.json").read_text())
+    assert side["kind"] == "csv-meta" and side["table"] == "nodes.csv" and side["element_size"] == 12
+    assert side["columns"]["Ux"] == "voxel, level 0" and side["columns"]["flags"] == "1"
+    assert side["status"] == "converged" and side["final_gap"] == pytest.approx(res.final_gap)
+    # both files are chunkdic's: --overwrite replaces them, a user's CSV is refused
+    assert _run(["export", str(d / "result.zarr"), "--csv", str(csv_path), "--overwrite"]) == 0
+    user = tmp_path / "mine.csv"
+    user.write_text("a,b\n1,2\n")
+    with pytest.raises(InputError, match="did not write"):
+        _run(["export", str(d / "result.zarr"), "--csv", str(user), "--overwrite"])
+    assert user.read_text() == "a,b\n1,2\n" and not (tmp_path / "mine.csv.json").exists()
+
+
+def test_vtu_field_data_with_a_voxel_size(translation, tmp_path):
+    from chunkdic.export import read_vtk_metadata, write_vtk
+
+    _, res, _ = translation
+    phys = chunkdic.Result(res.displacement, res.node_coords, res.history,
+                           {**res.info, "voxel_size": [2.0, 3.0, 4.0], "unit": "micrometer"})
+    write_vtk(phys, tmp_path / "m.vtu", units="physical")
+    meta = read_vtk_metadata(tmp_path / "m.vtu")
+    assert meta["voxel_size"] == (4.0, 3.0, 2.0)  # VTK order (x, y, z)
+    assert meta["unit"] == "micrometer" and meta["coordinates"] == "micrometer"
