@@ -215,7 +215,8 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     planes = mid_planes(res)
     with plan:  # a failure removes what this run wrote
         cuts, fields = [], []
-        with level_refs(res, ref, deformed) as (f_ref, g_ref), open_runner(scheduler) as runner:
+        # the runner first: a level missing from the scans is then built by its workers
+        with open_runner(scheduler) as runner, level_refs(res, ref, deformed) as (f_ref, g_ref):
             for normal in range(3):
                 idx = planes[AXES[normal]]
                 cut = correction.planes(res, f_ref, g_ref, normal, idx, runner, interpolation=interpolation_of(res))
