@@ -96,11 +96,11 @@ def _texture_half_stencil(shape, ell, seed=1):
     """The half stencil of ``M`` of a smooth isotropic random texture over a mesh of ``shape`` nodes."""
     import scipy.ndimage as ndi
 
-    from chunkdic import kernels
+    from chunkdic.kernels_m import m_block
 
     core = tuple((n - 1) * ell for n in shape)
     v = ndi.gaussian_filter(np.random.default_rng(seed).random(tuple(c + 2 for c in core)), 1.0)
-    S, _, _ = kernels.m_block((v / v.std() * 1000).astype(np.float32), (1, 1, 1), (1, 1, 1), ell)
+    S, _, _ = m_block((v / v.std() * 1000).astype(np.float32), (1, 1, 1), (1, 1, 1), ell)
     return np.ascontiguousarray(half_stencil(S))
 
 
