@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic import _cli_report, metrology, synthetic
+from chunkdic import _cli_report, foam, metrology, synthetic
 from chunkdic.errors import InputError
 from chunkdic.metrology import PowerLaw, fit_power_law
 from chunkdic.handles import ArrayRef
@@ -73,7 +73,7 @@ def test_pencil_fourier_shift_of_a_mirror_symmetric_cosine_product_is_exact(tmp_
 
 
 def test_fourier_shift_sign_and_integer_shift(tmp_path):
-    f = synthetic.render((32, 32, 32), seed=4)
+    f = foam.render((32, 32, 32), seed=4)
     out = metrology.fourier_shift_scan(_stored(tmp_path, f), tmp_path / "g.zarr", (2, 0, -1))
     g = out.read((slice(None),) * 3)
     # g(x) = f(x - t): away from the mirrored borders an integer shift is a plain roll
