@@ -55,14 +55,14 @@ FIXTURE = r"""
 import json, sys, numpy as np
 from pathlib import Path
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 d = Path(sys.argv[1]); N = %d; T = %r
 synthetic.synthesize(d / "s", (N,) * 3, field=synthetic.Translation(T), seed=4, chunks=16)
 synthetic.synthesize(d / "other", (N,) * 3, field=synthetic.Translation(T), seed=5, chunks=16)
 chunkdic.correlate(str(d / "s/ref.zarr"), str(d / "s/def.zarr"), element_size=8, output=str(d / "r.zarr"))
-np.save(d / "f.npy", synthetic.render((N,) * 3, seed=4).astype(np.float32))
-np.save(d / "g.npy", synthetic.render((N,) * 3, seed=4, field=synthetic.Translation(T),
-                                      which="deformed").astype(np.float32))
+np.save(d / "f.npy", foam.render((N,) * 3, seed=4).astype(np.float32))
+np.save(d / "g.npy", foam.render((N,) * 3, seed=4, field=synthetic.Translation(T),
+                                 which="deformed").astype(np.float32))
 """ % (N, T)
 
 VERIFY = r"""

@@ -6,7 +6,7 @@ block-Jacobi preconditioner and solves. Its memory is therefore set by the mesh,
 can be measured on the real client code (``level.Level.assemble_m`` and the solver)
 with the tasks replaced by a stand-in runner that returns, for every block, the stencil
 of a random texture block of the right shape (computed once per shape by the real
-``kernels.m_block``; ``f`` is never read and no scan is needed).
+``kernels_m.m_block``; ``f`` is never read and no scan is needed).
 
 Prints, for each ``--size`` (level-0 edge, ``--element-size`` on level 0): nodes, blocks,
 assembly and preconditioner time, the time and CG iterations of ``--solves`` solves with
@@ -47,13 +47,13 @@ class _StandInRunner:
         self._cache: dict = {}
 
     def map_unordered(self, fn, args):
-        from chunkdic import kernels
+        from chunkdic.kernels_m import m_block
 
         for _inputs, job in args:
             key = tuple(job.shape)
             if key not in self._cache:
                 f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in job.shape)).astype("float32")
-                self._cache[key] = kernels.m_block(f, (1, 1, 1), (1, 1, 1), job.ell)
+                self._cache[key] = m_block(f, (1, 1, 1), (1, 1, 1), job.ell)
             stencil, fmin, fmax = self._cache[key]
             yield job.block, stencil, fmin, fmax
 

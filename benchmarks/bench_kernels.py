@@ -29,7 +29,11 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import scipy.ndimage as ndi  # noqa: E402
 
-from chunkdic import kernels as K  # noqa: E402
+from chunkdic.kernels import warmup  # noqa: E402
+from chunkdic.kernels_b import b_block  # noqa: E402
+from chunkdic.kernels_m import m_block  # noqa: E402
+from chunkdic.kernels_warp import warp_block  # noqa: E402
+from chunkdic.kernels_window import g_window, prepare_window  # noqa: E402
 
 
 def _median_time(fn, repeat):
@@ -69,7 +73,7 @@ def main(argv=None):
     # B-spline coefficients of the whole deformed volume, float32 (computed once)
     coef = ndi.spline_filter(g8.astype(np.float32), order=3, mode="mirror",
                              output=np.float32)
-    K.warmup()
+    warmup()
     nvox = n**3
     print(f"block {n}^3, ell {ell}, one core, median of {args.repeat} runs")
     print(f"  {'kernel':<42s} {'Mvox/s':>8s} {'(cpu)':>8s}   wall ms")
@@ -83,40 +87,40 @@ def main(argv=None):
 
     impls = ["numba"] + (["numpy"] if args.numpy else [])
     for impl in impls:
-        bench(f"M build        f float32  [{impl}]", lambda: K.m_block(f32, lo, hi, ell,
+        bench(f"M build        f float32  [{impl}]", lambda: m_block(f32, lo, hi, ell,
                                                                           impl=impl))
-        bench(f"M build        f uint8    [{impl}]", lambda: K.m_block(f8, lo, hi, ell,
+        bench(f"M build        f uint8    [{impl}]", lambda: m_block(f8, lo, hi, ell,
                                                                           impl=impl))
         for interp in ("linear", "cubic"):
-            win = K.g_window(c0, core, u, shape, interpolation=interp, halo=halo)
+            win = g_window(c0, core, u, shape, interpolation=interp, halo=halo)
             gw = g8[win]
             go = tuple(w.start for w in win)
             bench(f"b pass {interp:<7s} f float32  [{impl}]",
-                  lambda: K.b_block(f32, lo, hi, ell, u, c0, gw, go, shape,
+                  lambda: b_block(f32, lo, hi, ell, u, c0, gw, go, shape,
                                     interpolation=interp, impl=impl))
             bench(f"b pass {interp:<7s} f uint8    [{impl}]",
-                  lambda: K.b_block(f8, lo, hi, ell, u, c0, gw, go, shape,
+                  lambda: b_block(f8, lo, hi, ell, u, c0, gw, go, shape,
                                     interpolation=interp, impl=impl))
             bench(f"warp   {interp:<7s}            [{impl}]",
-                  lambda: K.warp_block(ell, u, c0, core, gw, go, shape,
+                  lambda: warp_block(ell, u, c0, core, gw, go, shape,
                                        interpolation=interp, impl=impl))
         # cubic on precomputed coefficients (the engine's path): prefilter not timed
-        win = K.g_window(c0, core, u, shape, interpolation="cubic", halo=halo)
+        win = g_window(c0, core, u, shape, interpolation="cubic", halo=halo)
         cw = coef[win]
         go = tuple(w.start for w in win)
         bench(f"b pass cubic pf f float32  [{impl}]",
-              lambda: K.b_block(f32, lo, hi, ell, u, c0, cw, go, shape,
+              lambda: b_block(f32, lo, hi, ell, u, c0, cw, go, shape,
                                 interpolation="cubic", impl=impl, prefiltered=True))
         bench(f"b pass cubic pf f uint8    [{impl}]",
-              lambda: K.b_block(f8, lo, hi, ell, u, c0, cw, go, shape,
+              lambda: b_block(f8, lo, hi, ell, u, c0, cw, go, shape,
                                 interpolation="cubic", impl=impl, prefiltered=True))
         bench(f"warp   cubic pf            [{impl}]",
-              lambda: K.warp_block(ell, u, c0, core, cw, go, shape, interpolation="cubic",
+              lambda: warp_block(ell, u, c0, core, cw, go, shape, interpolation="cubic",
                                    impl=impl, prefiltered=True))
         gw = g8[win]
         if impl == "numba":
             bench("  (cubic prefilter alone, window incl. halo)",
-                  lambda: K.prepare_window(gw, "cubic"))
+                  lambda: prepare_window(gw, "cubic"))
         by = {name: (wall, cpu) for name, wall, cpu in rows}
         lin = by[f"b pass linear  f float32  [{impl}]"]
         cub = by[f"b pass cubic pf f float32  [{impl}]"]

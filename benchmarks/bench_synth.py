@@ -32,16 +32,16 @@ def _peak_rss_mb() -> float:
 
 
 def kernel_rates(field, n: int = 128, repeat: int = 3) -> dict:
-    from chunkdic import synthetic as S
+    from chunkdic import foam
 
-    S.render((8, 8, 8), field=field, which="deformed")  # compile / load the cache
-    S.render((8, 8, 8))
+    foam.render((8, 8, 8), field=field, which="deformed")  # compile / load the cache
+    foam.render((8, 8, 8))
     out = {}
     for which in ("reference", "deformed"):
         rates = []
         for _ in range(repeat):
             t0 = time.process_time()
-            S.render((n, n, n), field=field, which=which)
+            foam.render((n, n, n), field=field, which=which)
             rates.append(n ** 3 / (time.process_time() - t0) / 1e6)
         out[which] = statistics.median(rates)
     return out
@@ -80,6 +80,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from chunkdic import synthetic as S
+    from chunkdic import foam
 
     def field_for(n):
         c = (n - 1) / 2.0
@@ -91,7 +92,7 @@ def main(argv=None) -> int:
                       center_x=c)
 
     print(f"python {sys.version.split()[0]}, {os.cpu_count()} cores, texture "
-          f"{S.TextureParams().to_json()}")
+          f"{foam.TextureParams().to_json()}")
     k = kernel_rates(field_for(128))
     print(f"texture kernel, one thread, 128^3: reference {k['reference']:.2f} Mvoxel/s, "
           f"deformed ({args.field}) {k['deformed']:.2f} Mvoxel/s (per CPU second)", flush=True)

@@ -130,7 +130,7 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
     label = f"{name}/{specimen}"
     if name == "shift":
         if specimen == "foam":
-            from chunkdic.metrology import fourier_shift_scan
+            from chunkdic.fourier_shift import fourier_shift_scan
             from chunkdic.volume import open_scan
 
             paths = _pair(out, n, args, specimen, field=None)

@@ -229,7 +229,7 @@ def run_uncertainty(args: argparse.Namespace) -> int:
 
 
 def run_sweep(args: argparse.Namespace) -> int:
-    from .metrology import sweep
+    from .zoisweep import sweep
 
     t0 = time.perf_counter()
     out = sweep(args.ref, args.deformed, args.element_sizes, args.output, roi=args.roi, level=args.level,
@@ -243,7 +243,7 @@ def run_sweep(args: argparse.Namespace) -> int:
 
 def run_table(args: argparse.Namespace) -> int:
     from .inputs import check_displacement
-    from .metrology import read_delta_eps, write_zoi_table, zoi_table
+    from .zoisweep import read_delta_eps, write_zoi_table, zoi_table
     from .outputs import Outputs
     from .result import open_result
 

@@ -3,7 +3,7 @@
 A result's residual is ``r = f̃(X) - (λ g̃(X + u(X)) + μ(X))`` (paper section 3, with the
 image preparation and brightness model of docs/engine.md): ``f̃``, ``g̃`` are the scans
 low-passed as the engine did (:mod:`chunkdic.prefilter`), ``g̃`` interpolated as the engine
-did (same window reads, same kernel: :func:`chunkdic.kernels.warp_block`), and ``λ``, ``μ``
+did (same window reads, same kernel: :func:`chunkdic.kernels_warp.warp_block`), and ``λ``, ``μ``
 the brightness the engine found (:mod:`chunkdic.greylevel`: a gain and an offset per
 element, plus a linear drift). This module computes it for one block of whole elements, in
 a task, and is the one place that knows how: the corrected volume of
@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import config, kernels
+from . import config
+from .kernels_warp import warp_block
 from .blocks import voxel_xi
 from .mesh import Block, Mesh
 from .prefilter import face_margin
@@ -91,9 +92,9 @@ def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: 
     g, g_origin = read_g_window(c.inputs, job, u_block)
     if g is None:
         return np.asarray(f, np.float32), np.full(shape, np.nan, np.float32), np.zeros(shape, bool)
-    warped, valid = kernels.warp_block(ell, u_block, start, shape, g, g_origin, c.inputs.g.shape,
-                                       interpolation=c.inputs.interpolation, prefiltered=True,
-                                       margin=c.inputs.g_margin)
+    warped, valid = warp_block(ell, u_block, start, shape, g, g_origin, c.inputs.g.shape,
+                               interpolation=c.inputs.interpolation, prefiltered=True,
+                               margin=c.inputs.g_margin)
     if brightness is not None:
         # per voxel: the element's gain and centre offset, plus drift · (X - X_e)
         gain, offset = (np.repeat(np.repeat(np.repeat(b, ell, 0), ell, 1), ell, 2) for b in brightness)

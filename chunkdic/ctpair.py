@@ -18,7 +18,7 @@ margins hold the FBP overshoot at edges (up to ~0.2) and noise (at noise 0.02 a 
 clips only 14 sigma beyond the worst overshoot). ``float32`` keeps phase units.
 
 The deformed scan of a ``fourier_shift`` pair is not rendered: it is the stored reference
-translated by a Fourier phase shift (:func:`chunkdic.metrology.fourier_shift_scan`, the
+translated by a Fourier phase shift (:func:`chunkdic.fourier_shift.fourier_shift_scan`, the
 paper's section 4.2 test), rounded to the reference's dtype.
 """
 
@@ -199,7 +199,7 @@ def fourier_deformed(ref_scan_path: str, out_dir: str, spec: CTSpecimen, schedul
     import dask.array as da
     import zarr
 
-    from .metrology import fourier_shift_scan
+    from .fourier_shift import fourier_shift_scan
     from .handles import ArrayRef
 
     scratch = os.path.join(out_dir, "def.fourier.tmp.zarr")

@@ -1,7 +1,7 @@
 """Analytic displacement fields of the synthetic specimens, in voxels.
 
 A :class:`Field` gives the displacement ``u(X)`` in the reference (Lagrangian) frame and
-its inverse ``X(x)`` with ``X + u(X) = x``; :mod:`chunkdic.synthetic` renders a deformed
+its inverse ``X(x)`` with ``X + u(X) = x``; :mod:`chunkdic.foam` renders a deformed
 scan as ``g(x) = f(X(x))``. Fields: :class:`Translation` (rigid), :class:`Affine` (exact
 inverse) and :class:`Band`, the paper's localized compression band (inverse by Newton to
 1e-13). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips

@@ -23,7 +23,7 @@ from one pass over the voxels (:class:`chunkdic.blocks.ElementSums`): each block
 reduces its element sums with :func:`reduce_block` (the per-element unknowns in full) and
 the client finishes the global ones with :func:`combine`. The Gauss–Newton matrix of the
 per-element models is ``M`` minus the Schur complement of their per-element unknowns,
-built in the ``M`` pass (:func:`chunkdic.kernels.m_block`; the few global unknowns are left
+built in the ``M`` pass (:func:`chunkdic.kernels_m.m_block`; the few global unknowns are left
 out of it, as their coupling with the nodal field is weak). With ``α = λ - 1`` and
 ``g' = g(X+u) - c``, ``r = d - α g' - μ'`` (``d = f - g(X+u)``); the returned gain and offset
 are in the usual form ``f ≈ gain · g(X + u) + offset`` (offset at the element centre, plus
@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .blocks import LAGS, ElementSums
-from .kernels import element_to_nodes
+from .kernels_b import element_to_nodes
 
 MODELS = ("none", "global", "drift", "element")
 #: bounds of a per-element gain (``element`` model)

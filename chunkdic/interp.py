@@ -9,7 +9,7 @@ functions below are serial ``nogil`` numba helpers; arithmetic is float64 on flo
 Validity domain (docs/architecture.md, "Gradients and interpolation"): for both
 interpolations a position counts when ``0 <= p_i <= n_i - 1`` on every axis (a NaN makes it
 invalid). The caller tests validity and leaves invalid voxels out; the window it reads
-(``chunkdic.kernels.g_window``) holds every sample that a valid position needs.
+(``chunkdic.kernels_window.g_window``) holds every sample that a valid position needs.
 
 ``linear`` (:func:`interp_linear`)
     trilinear, in the weight form ``(1-t) a + t b``: exact at ``t = 0`` and ``t = 1``, so an
@@ -49,7 +49,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-# the numba decorators of the package's kernels (chunkdic.kernels imports jit from here)
+# the numba decorators of the package's kernels (chunkdic.kernels_* import jit from here)
 jit = numba.njit(nogil=True, cache=True)
 # hot per-voxel helpers: inlined at numba IR level (LLVM's own heuristics left some of them
 # as calls with ~30 arguments each, which made the voxel loop ~2x slower)

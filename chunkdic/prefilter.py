@@ -33,7 +33,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from .errors import InputError
-from .kernels import prepare_window
+from .kernels_window import prepare_window
 from .mesh import Mesh
 from .handles import ArrayRef
 

@@ -12,7 +12,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kernels
+from .blocks import ElementSums
+from .kernels_b import b_sums
+from .kernels_m import m_block
+from .kernels_window import g_window
 from .greylevel import Partials, reduce_block
 from .haloed import HaloedBlocks
 from .mesh import Block, Mesh
@@ -150,10 +153,10 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
         fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
     # the brightness condensation is invariant to the centring constant: the block's mean
     # keeps its sums small
-    stencil, fmin, fmax, lags = kernels.m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
-                                                u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
-                                                margin=inputs.g_margin, with_lags=True,
-                                                active=None if fractions is None else active_elements(fractions))
+    stencil, fmin, fmax, lags = m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
+                                        u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
+                                        margin=inputs.g_margin, with_lags=True,
+                                        active=None if fractions is None else active_elements(fractions))
     return job.block, stencil, fmin, fmax, lags, fractions
 
 
@@ -172,12 +175,12 @@ def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
     if g is None:
         # no voxel of the block maps inside g: every active voxel is excluded
         n_off = 0 if active is None else int(np.sum(active == 0)) * job.ell**3
-        sums = kernels.ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
-                                   np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
+        sums = ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
+                           np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
     else:
-        sums = kernels.b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
-                              interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
-                              margin=inputs.g_margin, active=active)
+        sums = b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
+                      interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
+                      margin=inputs.g_margin, active=active)
     return job.block, reduce_block(sums, inputs.grey)
 
 
@@ -188,8 +191,8 @@ def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     of the low-passed ``g``; ``(None, None)`` when no voxel of the block can map inside ``g``.
     """
     interp = inputs.interpolation
-    window = kernels.g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp,
-                              margin=inputs.g_margin)
+    window = g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp,
+                      margin=inputs.g_margin)
     if any(s.stop <= s.start for s in window):
         return None, None
     if inputs.prepared is not None and inputs.prepared.covers(window):
@@ -197,8 +200,8 @@ def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     if not inputs.g_needs_preparing:
         return np.asarray(inputs.g.read(window), dtype=np.float32), tuple(s.start for s in window)
     halo = prepared_halo(inputs.sigma, interp, inputs.bspline_halo)
-    window = kernels.g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp, halo=halo,
-                              margin=inputs.g_margin)
+    window = g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp, halo=halo,
+                      margin=inputs.g_margin)
     raw = inputs.g.read(window)
     check_finite(raw, "deformed", window)
     return prepare_deformed(raw, inputs.sigma, interp), tuple(s.start for s in window)

@@ -28,7 +28,7 @@ import tifffile
 import zarr
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 from chunkdic.cli import main
 from chunkdic.integrity import MissingChunksWarning
 
@@ -87,9 +87,9 @@ def data(tmp_path_factory):
     pair = synthetic.synthesize(d / "s", (N,) * 3, field=synthetic.Translation(T), seed=4, chunks=16)
     res = chunkdic.correlate(pair["reference"], pair["deformed"], element_size=8, output=d / "r.zarr")
     assert res.converged and np.abs(res.displacement - np.array(T)[:, None, None, None]).max() < 0.1
-    np.save(d / "f.npy", synthetic.render((N,) * 3, seed=4).astype(np.float32))
-    np.save(d / "g.npy", synthetic.render((N,) * 3, seed=4, field=synthetic.Translation(T),
-                                          which="deformed").astype(np.float32))
+    np.save(d / "f.npy", foam.render((N,) * 3, seed=4).astype(np.float32))
+    np.save(d / "g.npy", foam.render((N,) * 3, seed=4, field=synthetic.Translation(T),
+                                     which="deformed").astype(np.float32))
     (d / "notes.txt").write_text("a user's notes\n")
     return d
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 from chunkdic.planning import plan_meshes
 
 from textures import fourier_shift, smooth_noise
@@ -50,8 +50,8 @@ def test_affine_field_on_foam_texture():
         center=(n / 2, n / 2, n / 2),
         translation=(0.3, -0.2, 0.4),
     )
-    f = synthetic.render((n, n, n), seed=2)
-    g = synthetic.render((n, n, n), seed=2, field=field, which="deformed")
+    f = foam.render((n, n, n), seed=2)
+    g = foam.render((n, n, n), seed=2, field=field, which="deformed")
     res = chunkdic.correlate(f, g, element_size=12)
     assert res.converged
     truth = field.displacement(*res.node_coords)
@@ -62,8 +62,8 @@ def test_affine_field_on_foam_texture():
 def test_large_translation_through_multiscale():
     n = 96
     field = synthetic.Translation((9.3, 0.0, 0.0))
-    f = synthetic.render((n, n, n), seed=4)
-    g = synthetic.render((n, n, n), seed=4, field=field, which="deformed")
+    f = foam.render((n, n, n), seed=4)
+    g = foam.render((n, n, n), seed=4, field=field, which="deformed")
     res = chunkdic.correlate(f, g, element_size=16)
     assert res.info["levels"][0] > 0  # started on a coarser level
     assert res.converged
@@ -91,8 +91,8 @@ def invariance_pair():
         matrix=((0.01, 0.0, 0.0), (0.004, -0.005, 0.0), (0.0, 0.0, 0.0)),
         center=(n / 2, n / 2, n / 2), translation=(1.2, -0.7, 0.4),
     )
-    f = synthetic.render((n, n, n), seed=11)
-    g = synthetic.render((n, n, n), seed=11, field=field, which="deformed")
+    f = foam.render((n, n, n), seed=11)
+    g = foam.render((n, n, n), seed=11, field=field, which="deformed")
     ref = chunkdic.correlate(f, g, element_size=8, block_elements=4, coarsest=0)
     return f, g, ref
 

@@ -1,4 +1,4 @@
-"""Known-answer and oracle tests of the per-block kernels (chunkdic/kernels.py).
+"""Known-answer and oracle tests of the per-block kernels (chunkdic/kernels_*.py).
 
 Truths used: a hand-computed element matrix, ``np.gradient`` of the whole volume,
 ``scipy.ndimage.map_coordinates`` on the whole volume, integer translations (exact
@@ -14,7 +14,13 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from chunkdic import kernels as K
+from chunkdic import kernels_warp
+from chunkdic.blocks import gradient_block, voxel_xi
+from chunkdic.kernels import warmup
+from chunkdic.kernels_b import b_block, b_sums
+from chunkdic.kernels_m import m_block
+from chunkdic.kernels_warp import warp_block
+from chunkdic.kernels_window import IMPLEMENTATIONS, g_window, prepare_window
 from chunkdic.kernels_numpy import nodal_field
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS, shape_table
 
@@ -98,7 +104,7 @@ def test_element_matrix_by_hand(impl):
     c = np.array([2.0, -1.0, 3.0])
     X = np.meshgrid(*[np.arange(4.0)] * 3, indexing="ij")
     f = (c[0] * X[0] + c[1] * X[1] + c[2] * X[2] + 10.0).astype(np.float32)
-    S, fmin, fmax = K.m_block(f, (1, 1, 1), (1, 1, 1), 2, impl=impl)
+    S, fmin, fmax = m_block(f, (1, 1, 1), (1, 1, 1), 2, impl=impl)
     assert S.shape == (2, 2, 2, 27, 3, 3)
     core = f[1:3, 1:3, 1:3]
     assert (fmin, fmax) == (core.min(), core.max())
@@ -133,7 +139,7 @@ def test_gradient_block_matches_whole_volume():
         lo = tuple(1 if c0[i] > 0 else 0 for i in range(3))
         hi = tuple(1 if c1[i] < vol.shape[i] else 0 for i in range(3))
         f = vol[tuple(slice(c0[i] - lo[i], c1[i] + hi[i]) for i in range(3))]
-        g = K.gradient_block(f, lo, hi)
+        g = gradient_block(f, lo, hi)
         assert g.dtype == np.float32
         want = ref[(slice(None),) + tuple(slice(c0[i], c1[i]) for i in range(3))]
         np.testing.assert_array_equal(g, want)
@@ -147,8 +153,8 @@ def test_gradient_block_matches_whole_volume():
 def test_m_block_numba_equals_numpy(block):
     vol = _smooth_volume((12, 12, 12), seed=2)
     f, lo, hi, _, _ = _block(vol, *block, ell=4)
-    S1, a1, b1 = K.m_block(f, lo, hi, 4, impl="numba")
-    S2, a2, b2 = K.m_block(f, lo, hi, 4, impl="numpy")
+    S1, a1, b1 = m_block(f, lo, hi, 4, impl="numba")
+    S2, a2, b2 = m_block(f, lo, hi, 4, impl="numpy")
     np.testing.assert_allclose(S1, S2, rtol=0, atol=1e-10 * np.abs(S2).max())
     assert (a1, b1) == (a2, b2)
 
@@ -162,11 +168,11 @@ def test_b_block_numba_equals_numpy(interpolation, block):
     g_vol = _smooth_volume((12, 12, 12), seed=4).astype(np.uint8)  # any dtype for g
     f, lo, hi, c0, core = _block(f_vol, *block, ell=ell)
     u = _smooth_nodes(tuple(n // ell + 1 for n in core), amp=2.5, seed=5)
-    win = K.g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=3)
+    win = g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=3)
     g = g_vol[win]
     g_origin = tuple(s.start for s in win)
-    out = {impl: K.b_block(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape,
-                           interpolation=interpolation, impl=impl) for impl in K.IMPLEMENTATIONS}
+    out = {impl: b_block(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape,
+                           interpolation=interpolation, impl=impl) for impl in IMPLEMENTATIONS}
     b1, r1, n1, x1 = out["numba"]
     b2, r2, n2, x2 = out["numpy"]
     assert (n1, x1) == (n2, x2)
@@ -174,16 +180,16 @@ def test_b_block_numba_equals_numpy(interpolation, block):
     np.testing.assert_allclose(b1, b2, rtol=0, atol=1e-10 * np.abs(b2).max())
     np.testing.assert_allclose(r1, r2, rtol=1e-10)
     # every element sum the brightness models use (d, g', 1, element-centred coordinates)
-    sums = {impl: K.b_sums(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape, interpolation=interpolation,
-                           impl=impl, center=100.0, margin=1) for impl in K.IMPLEMENTATIONS}
+    sums = {impl: b_sums(f, lo, hi, ell, u, c0, g, g_origin, g_vol.shape, interpolation=interpolation,
+                           impl=impl, center=100.0, margin=1) for impl in IMPLEMENTATIONS}
     np.testing.assert_allclose(sums["numba"].B, sums["numpy"].B, rtol=0,
                                atol=1e-10 * np.abs(sums["numpy"].B).max())
     np.testing.assert_allclose(sums["numba"].gram, sums["numpy"].gram, rtol=1e-10,
                                atol=1e-10 * np.abs(sums["numpy"].gram).max())
     assert sums["numba"].n_excluded == sums["numpy"].n_excluded
-    w1, m1 = K.warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
+    w1, m1 = warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
                           interpolation=interpolation, impl="numba")
-    w2, m2 = K.warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
+    w2, m2 = warp_block(ell, u, c0, core, g, g_origin, g_vol.shape,
                           interpolation=interpolation, impl="numpy")
     np.testing.assert_array_equal(m1, m2)
     np.testing.assert_allclose(w1[m1], w2[m2], rtol=1e-6, atol=1e-4)
@@ -208,9 +214,9 @@ def test_fast_and_general_paths_agree_with_whole_volume(interpolation):
         f, lo, hi, c0, core = _block(vol, e0, e1, ell)
         u = _smooth_nodes(tuple(n // ell + 1 for n in core), amp=amp, seed=30 + k)
         for halo in (12, 0):
-            win = K.g_window(c0, core, u, vol.shape, interpolation=interpolation, halo=halo)
+            win = g_window(c0, core, u, vol.shape, interpolation=interpolation, halo=halo)
             go = tuple(w.start for w in win)
-            w1, m1 = K.warp_block(ell, u, c0, core, gv[win], go, vol.shape,
+            w1, m1 = warp_block(ell, u, c0, core, gv[win], go, vol.shape,
                                   interpolation=interpolation, prefiltered=True)
             pos = _voxel_positions(u, ell, c0)
             want_mask = np.all((pos >= 0) & (pos <= np.array(vol.shape)[:, None, None, None]
@@ -222,9 +228,9 @@ def test_fast_and_general_paths_agree_with_whole_volume(interpolation):
                                            mode="mirror", prefilter=False)
                 # warp output is float32
                 np.testing.assert_allclose(w1[m1], want, rtol=0, atol=1e-6 * 255)
-            out = {impl: K.b_block(f, lo, hi, ell, u, c0, gv[win], go, vol.shape,
+            out = {impl: b_block(f, lo, hi, ell, u, c0, gv[win], go, vol.shape,
                                    interpolation=interpolation, impl=impl, prefiltered=True)
-                   for impl in K.IMPLEMENTATIONS}
+                   for impl in IMPLEMENTATIONS}
             b1, r1, n1, x1 = out["numba"]
             b2, r2, n2, x2 = out["numpy"]
             assert (n1, x1) == (n2, x2) == (int(m1.sum()), int((~m1).sum()))
@@ -242,13 +248,13 @@ def test_nan_displacement_excludes_voxels_in_kernel(interpolation):
     u = _smooth_nodes((3, 3, 3), amp=1.0, seed=22)
     ok = u.copy()
     u[1, 2, 1, 0] = np.nan  # a node of the 2 elements (ez, ey, ex) = (1, 0|1, 0)
-    win = K.g_window(c0, core, ok, vol.shape, interpolation=interpolation, halo=12)
+    win = g_window(c0, core, ok, vol.shape, interpolation=interpolation, halo=12)
     go = tuple(w.start for w in win)
     cubic = interpolation == "cubic"
-    gw = K.prepare_window(vol[win], interpolation)
-    args = (ell, 2, 2, 2, K.voxel_xi(ell))
-    w, m = K._warp_kernel(*args, u, *c0, gw, *go, *vol.shape, 0.0, cubic)
-    w_ok, m_ok = K._warp_kernel(*args, ok, *c0, gw, *go, *vol.shape, 0.0, cubic)
+    gw = prepare_window(vol[win], interpolation)
+    args = (ell, 2, 2, 2, voxel_xi(ell))
+    w, m = kernels_warp._warp_kernel(*args, u, *c0, gw, *go, *vol.shape, 0.0, cubic)
+    w_ok, m_ok = kernels_warp._warp_kernel(*args, ok, *c0, gw, *go, *vol.shape, 0.0, cubic)
     bad = np.zeros(core, bool)
     bad[4:, :, :4] = True
     assert m_ok.all()
@@ -262,11 +268,11 @@ def test_prefiltered_window_equals_prefilter_inside():
     vol = _smooth_volume((20, 20, 20), seed=23)
     f, lo, hi, c0, core = _block(vol, (1, 1, 1), (3, 4, 3), ell)
     u = _smooth_nodes((3, 4, 3), amp=2.0, seed=24)
-    win = K.g_window(c0, core, u, vol.shape, interpolation="cubic", halo=12)
+    win = g_window(c0, core, u, vol.shape, interpolation="cubic", halo=12)
     go = tuple(w.start for w in win)
     coef = ndi.spline_filter(vol[win], order=3, mode="mirror", output=np.float32)
-    a = K.b_block(f, lo, hi, ell, u, c0, vol[win], go, vol.shape, interpolation="cubic")
-    b = K.b_block(f, lo, hi, ell, u, c0, coef, go, vol.shape, interpolation="cubic",
+    a = b_block(f, lo, hi, ell, u, c0, vol[win], go, vol.shape, interpolation="cubic")
+    b = b_block(f, lo, hi, ell, u, c0, coef, go, vol.shape, interpolation="cubic",
                   prefiltered=True)
     np.testing.assert_array_equal(a[0], b[0])
     assert a[1:] == b[1:]
@@ -296,12 +302,12 @@ def test_integer_translation_gives_zero_residual(impl, interpolation):
               a[2] - s[2]:a[2] - s[2] + n]
     f, lo, hi, c0, core = _block(f_vol, (1, 1, 1), (3, 3, 3), ell)
     u = np.broadcast_to(s[:, None, None, None], (3, 3, 3, 3)).astype(np.float64)
-    win = K.g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=12)
+    win = g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=12)
     g_origin = tuple(w.start for w in win)
-    b, ssr, nv, nx = K.b_block(f, lo, hi, ell, u, c0, g_vol[win], g_origin, g_vol.shape,
+    b, ssr, nv, nx = b_block(f, lo, hi, ell, u, c0, g_vol[win], g_origin, g_vol.shape,
                                interpolation=interpolation, impl=impl)
     assert (nv, nx) == (8 * 8 * 8, 0)
-    warped, mask = K.warp_block(ell, u, c0, core, g_vol[win], g_origin, g_vol.shape,
+    warped, mask = warp_block(ell, u, c0, core, g_vol[win], g_origin, g_vol.shape,
                                 interpolation=interpolation, impl=impl)
     fc = f[1:-1, 1:-1, 1:-1]
     assert mask.all()
@@ -312,7 +318,7 @@ def test_integer_translation_gives_zero_residual(impl, interpolation):
         # the spline reproduces samples to float32 precision (intensity range 255)
         assert np.abs(warped - fc).max() < 1e-5 * 255
         assert np.sqrt(ssr / nv) < 1e-5 * 255
-        S, _, _ = K.m_block(f, lo, hi, ell)
+        S, _, _ = m_block(f, lo, hi, ell)
         scale = np.sqrt(np.abs(S).max() * nv)  # |b| <= |grad f| |r| sums
         assert np.abs(b).max() < 1e-5 * scale
 
@@ -334,9 +340,9 @@ def test_cubic_window_prefilter_equals_whole_volume(impl):
     for k, (e0, e1) in enumerate(blocks):
         f, lo, hi, c0, core = _block(f_vol, e0, e1, ell)
         u = _smooth_nodes(tuple(n // ell + 1 for n in core), amp=3.0, seed=10 + k)
-        win = K.g_window(c0, core, u, g_vol.shape, interpolation="cubic", halo=12)
+        win = g_window(c0, core, u, g_vol.shape, interpolation="cubic", halo=12)
         g_origin = tuple(w.start for w in win)
-        warped, mask = K.warp_block(ell, u, c0, core, g_vol[win], g_origin, g_vol.shape,
+        warped, mask = warp_block(ell, u, c0, core, g_vol[win], g_origin, g_vol.shape,
                                     interpolation="cubic", impl=impl)
         pos = _voxel_positions(u, ell, c0)
         want_mask = np.all((pos >= 0) & (pos <= np.array(g_vol.shape)[:, None, None, None] - 1),
@@ -348,8 +354,8 @@ def test_cubic_window_prefilter_equals_whole_volume(impl):
     # sanity: without the halo the interior window differs visibly (the test has teeth)
     f, lo, hi, c0, core = _block(f_vol, *blocks[0], ell)
     u = np.zeros((3, 4, 4, 4))
-    win = K.g_window(c0, core, u, g_vol.shape, interpolation="cubic", halo=0)
-    warped, _ = K.warp_block(ell, u + 0.5, c0, core, g_vol[win], tuple(w.start for w in win),
+    win = g_window(c0, core, u, g_vol.shape, interpolation="cubic", halo=0)
+    warped, _ = warp_block(ell, u + 0.5, c0, core, g_vol[win], tuple(w.start for w in win),
                              g_vol.shape, interpolation="cubic", impl=impl)
     pos = _voxel_positions(u + 0.5, ell, c0)
     assert np.abs(warped - whole(pos)).max() / rng_range > 1e-4
@@ -377,9 +383,9 @@ def test_voxels_leaving_g_are_excluded_and_counted(impl, interpolation):
     weight[:, :, :3] = 0.0
     weight[:, :, 3] *= 0.5
     expected_bad = int((weight == 0).sum())
-    win = K.g_window(c0, core, u, vol.shape, interpolation=interpolation, halo=12)
+    win = g_window(c0, core, u, vol.shape, interpolation=interpolation, halo=12)
     g_origin = tuple(w.start for w in win)
-    b, ssr, nv, nx = K.b_block(f, lo, hi, ell, u, c0, vol[win], g_origin, vol.shape,
+    b, ssr, nv, nx = b_block(f, lo, hi, ell, u, c0, vol[win], g_origin, vol.shape,
                                interpolation=interpolation, impl=impl)
     assert nx == expected_bad
     assert nv == 12 * 12 * 16 - expected_bad
@@ -390,9 +396,9 @@ def test_voxels_leaving_g_are_excluded_and_counted(impl, interpolation):
         np.testing.assert_allclose(ssr, np.sum(weight[:11, :, 3:] * r * r), rtol=1e-12)
     # entirely outside: empty window, every voxel excluded, b = 0
     u_far = np.full((3, 4, 4, 5), 100.0)
-    win = K.g_window(c0, core, u_far, vol.shape, interpolation=interpolation, halo=12)
+    win = g_window(c0, core, u_far, vol.shape, interpolation=interpolation, halo=12)
     assert all(w.stop - w.start == 0 for w in win)
-    b, ssr, nv, nx = K.b_block(f, lo, hi, ell, u_far, c0, vol[win], (0, 0, 0), vol.shape,
+    b, ssr, nv, nx = b_block(f, lo, hi, ell, u_far, c0, vol[win], (0, 0, 0), vol.shape,
                                interpolation=interpolation, impl=impl)
     assert (nv, nx, ssr) == (0, 12 * 12 * 16, 0.0) and not b.any()
 
@@ -401,23 +407,23 @@ def test_g_window_bounds_and_refusal():
     u = np.zeros((3, 2, 2, 2))
     u[0, 1] = 2.3
     u[2, 0] = -1.7
-    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear")
+    w = g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear")
     # z: [10, 13 + 2.3] -> floor 10 .. floor(15.3) + 1 = 16; x: [8.3, 13] -> 8 .. 14
     assert w == (slice(10, 17), slice(10, 15), slice(8, 15))
     # a halo (for a window the task low-passes itself) grows it on every side, clipped
-    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear", halo=12)
+    w = g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="linear", halo=12)
     assert w == (slice(0, 29), slice(0, 27), slice(0, 27))
-    w = K.g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=2)
+    w = g_window((10, 10, 10), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=2)
     assert w == (slice(7, 20), slice(7, 18), slice(5, 18))
-    w = K.g_window((0, 0, 26), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=12)
+    w = g_window((0, 0, 26), (4, 4, 4), u, (30, 30, 30), interpolation="cubic", halo=12)
     # z: [0, 5.3] -> 0 .. 5 + 2 + 13 = 20; x: [24.3, 29] -> 24 - 13 = 11 .. clipped 30
     assert w == (slice(0, 20), slice(0, 18), slice(11, 30))
     f = np.zeros((5, 5, 5), np.float32)
     with pytest.raises(ValueError, match="does not cover"):
-        K.b_block(f, (1, 0, 0), (0, 1, 1), 4, u, (10, 10, 10), np.zeros((3, 3, 3)),
+        b_block(f, (1, 0, 0), (0, 1, 1), 4, u, (10, 10, 10), np.zeros((3, 3, 3)),
                   (10, 10, 10), (30, 30, 30), interpolation="linear")
     with pytest.raises(ValueError, match="multiple"):
-        K.m_block(np.zeros((6, 6, 6)), (0, 0, 0), (0, 0, 0), 4)
+        m_block(np.zeros((6, 6, 6)), (0, 0, 0), (0, 0, 0), 4)
 
 
 # ---------------------------------------------------------------------------- (7) symmetry
@@ -427,7 +433,7 @@ def test_g_window_bounds_and_refusal():
 def test_stencil_symmetry(impl):
     vol = _smooth_volume((12, 8, 12), seed=12)
     f, lo, hi, _, _ = _block(vol, (0, 0, 1), (3, 2, 3), 4)
-    S, _, _ = K.m_block(f, lo, hi, 4, impl=impl)
+    S, _, _ = m_block(f, lo, hi, 4, impl=impl)
     off = STENCIL_OFFSETS
     nn = np.array(S.shape[:3])
     n_checked = 0
@@ -466,11 +472,11 @@ def test_block_partials_add_up_to_whole(interpolation):
         e1 = (splits[0][iz + 1], splits[1][iy + 1], splits[2][ix + 1])
         f, lo, hi, c0, core = _block(f_vol, e0, e1, ell)
         nodes = tuple(slice(e0[i], e1[i] + 1) for i in range(3))
-        S, _, _ = K.m_block(f, lo, hi, ell)
+        S, _, _ = m_block(f, lo, hi, ell)
         S_all[nodes] += S
         un = u[(slice(None),) + nodes]
-        win = K.g_window(c0, core, un, g_vol.shape, interpolation=interpolation, halo=12)
-        b, ssr, nv, nx = K.b_block(f, lo, hi, ell, un, c0, g_vol[win],
+        win = g_window(c0, core, un, g_vol.shape, interpolation=interpolation, halo=12)
+        b, ssr, nv, nx = b_block(f, lo, hi, ell, un, c0, g_vol[win],
                                    tuple(w.start for w in win), g_vol.shape,
                                    interpolation=interpolation)
         b_all[nodes] += b
@@ -478,9 +484,9 @@ def test_block_partials_add_up_to_whole(interpolation):
         nv_all += nv
         nx_all += nx
     f, lo, hi, c0, core = _block(f_vol, (0, 0, 0), ne, ell)
-    S, _, _ = K.m_block(f, lo, hi, ell)
-    win = K.g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=12)
-    b, ssr, nv, nx = K.b_block(f, lo, hi, ell, u, c0, g_vol[win], tuple(w.start for w in win),
+    S, _, _ = m_block(f, lo, hi, ell)
+    win = g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=12)
+    b, ssr, nv, nx = b_block(f, lo, hi, ell, u, c0, g_vol[win], tuple(w.start for w in win),
                                g_vol.shape, interpolation=interpolation)
     np.testing.assert_allclose(S_all, S, rtol=0, atol=1e-12 * np.abs(S).max())
     # cubic: per-window prefilters agree to float32 precision only
@@ -513,13 +519,13 @@ def test_gauss_newton_recovers_subvoxel_translation(interpolation):
     s = np.array([0.4, -0.7, 0.25])
     f_vol, g_vol = _shifted_pair(n, s, sigma=2.0, seed=16)
     f, lo, hi, c0, core = _block(f_vol, (0, 0, 0), (1, 1, 1), ell, origin=(8, 8, 8))
-    S, _, _ = K.m_block(f, lo, hi, ell)
+    S, _, _ = m_block(f, lo, hi, ell)
     M = _dense(S)
     u = np.zeros((3, 2, 2, 2))
     ssr = []
     for _ in range(6):
-        win = K.g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=12)
-        b, r2, nv, nx = K.b_block(f, lo, hi, ell, u, c0, g_vol[win],
+        win = g_window(c0, core, u, g_vol.shape, interpolation=interpolation, halo=12)
+        b, r2, nv, nx = b_block(f, lo, hi, ell, u, c0, g_vol[win],
                                   tuple(w.start for w in win), g_vol.shape,
                                   interpolation=interpolation)
         ssr.append(r2)
@@ -539,4 +545,4 @@ def test_gauss_newton_recovers_subvoxel_translation(interpolation):
 
 
 def test_warmup_runs():
-    K.warmup()
+    warmup()

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic import _cli_report, metrology, synthetic
+from chunkdic import _cli_report, foam, fourier_shift, metrology, synthetic, zoisweep
 from chunkdic.errors import InputError
 from chunkdic.metrology import PowerLaw, fit_power_law
 from chunkdic.handles import ArrayRef
@@ -53,7 +53,7 @@ def test_pencil_fourier_shift_of_a_mirror_symmetric_cosine_product_is_exact(tmp_
     """Analytic truth: ``Π cos(π k_a (x_a + ½) / n_a)`` is a DCT-II mode, so with the
     half-sample mirror extension (period ``2n``) the shift ``f(x - t)`` is that product at
     ``x - t``, to round-off, whatever ``t``. Several pencils per pass, partial ones at the ends."""
-    monkeypatch.setattr(metrology, "PENCIL_EDGE", 16)
+    monkeypatch.setattr(fourier_shift, "PENCIL_EDGE", 16)
     shape, k, t = (40, 48, 36), (3, 5, 2), (0.5, -0.3, 0.25)
 
     def product(shift):
@@ -64,7 +64,7 @@ def test_pencil_fourier_shift_of_a_mirror_symmetric_cosine_product_is_exact(tmp_
         return out
 
     f = (1000.0 + 500.0 * product((0, 0, 0))).astype(np.float32)
-    out = metrology.fourier_shift_scan(_stored(tmp_path, f), tmp_path / "g.zarr", t)
+    out = fourier_shift.fourier_shift_scan(_stored(tmp_path, f), tmp_path / "g.zarr", t)
     g = out.read((slice(None),) * 3)
     err = np.abs(g - (1000.0 + 500.0 * product(t))).max() / 1000.0
     assert err < 2e-6, err  # measured 5.1e-7 (float32 storage); the wrong sign of t gives 0.4
@@ -73,8 +73,8 @@ def test_pencil_fourier_shift_of_a_mirror_symmetric_cosine_product_is_exact(tmp_
 
 
 def test_fourier_shift_sign_and_integer_shift(tmp_path):
-    f = synthetic.render((32, 32, 32), seed=4)
-    out = metrology.fourier_shift_scan(_stored(tmp_path, f), tmp_path / "g.zarr", (2, 0, -1))
+    f = foam.render((32, 32, 32), seed=4)
+    out = fourier_shift.fourier_shift_scan(_stored(tmp_path, f), tmp_path / "g.zarr", (2, 0, -1))
     g = out.read((slice(None),) * 3)
     # g(x) = f(x - t): away from the mirrored borders an integer shift is a plain roll
     expect = np.roll(f, (2, 0, -1), axis=(0, 1, 2))
@@ -124,8 +124,8 @@ def test_uncertainty_refuses_bad_input(affine_pair, tmp_path):
 
 
 def test_sweep_table(affine_pair, uncertainty_dir, tmp_path):
-    out = metrology.sweep(affine_pair["reference"], affine_pair["deformed"], [16, 8], tmp_path / "sweep",
-                          uncertainty_from=uncertainty_dir)
+    out = zoisweep.sweep(affine_pair["reference"], affine_pair["deformed"], [16, 8], tmp_path / "sweep",
+                         uncertainty_from=uncertainty_dir)
     rows = out["rows"]
     assert [r["element_size"] for r in rows] == [16, 8]
     for r in rows:

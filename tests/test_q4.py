@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 from chunkdic.cli import main
 from chunkdic.crosscheck import correlation_length
 from chunkdic.q4 import Mesh2D, correlate2d, read_image
@@ -73,10 +73,10 @@ def test_affine_field_on_procedural_texture():
     A = np.array([[-0.01, 0.005], [0.003, 0.008]])
     c, t = np.array([n / 2, n / 2]), np.array([0.3, -0.2])  # u(X) = A (X - c) + t
     Y, X = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
-    f = synthetic.texture(z, Y, X, seed=2)
+    f = foam.texture(z, Y, X, seed=2)
     x = np.stack([Y, X]).reshape(2, -1)
     pre = np.linalg.solve(np.eye(2) + A, x - t[:, None] + (A @ c)[:, None]).reshape(2, n, n)
-    g = synthetic.texture(z, pre[0], pre[1], seed=2)  # g(X + u(X)) = f(X)
+    g = foam.texture(z, pre[0], pre[1], seed=2)  # g(X + u(X)) = f(X)
     res = correlate2d(f, g, element_size=12)
     assert res.converged
     truth = np.einsum("ij,j...->i...", A, res.node_coords - c[:, None, None]) + t[:, None, None]

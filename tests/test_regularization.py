@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 from chunkdic.cli import main
 from chunkdic.errors import InputError
 from chunkdic.planning import plan_meshes
@@ -96,11 +96,11 @@ def _texture_half_stencil(shape, ell, seed=1):
     """The half stencil of ``M`` of a smooth isotropic random texture over a mesh of ``shape`` nodes."""
     import scipy.ndimage as ndi
 
-    from chunkdic import kernels
+    from chunkdic.kernels_m import m_block
 
     core = tuple((n - 1) * ell for n in shape)
     v = ndi.gaussian_filter(np.random.default_rng(seed).random(tuple(c + 2 for c in core)), 1.0)
-    S, _, _ = kernels.m_block((v / v.std() * 1000).astype(np.float32), (1, 1, 1), (1, 1, 1), ell)
+    S, _, _ = m_block((v / v.std() * 1000).astype(np.float32), (1, 1, 1), (1, 1, 1), ell)
     return np.ascontiguousarray(half_stencil(S))
 
 
@@ -181,8 +181,8 @@ def band_foam_pair():
     n = 40
     field = synthetic.Band(center_z=(n - 1) / 2, width=6.0, strain=-0.05, lateral=0.05,
                            center_y=(n - 1) / 2, center_x=(n - 1) / 2)
-    f = synthetic.render((n, n, n), seed=11)
-    g = synthetic.render((n, n, n), seed=11, field=field, which="deformed")
+    f = foam.render((n, n, n), seed=11)
+    g = foam.render((n, n, n), seed=11, field=field, which="deformed")
     return f, g
 
 
@@ -274,8 +274,8 @@ def _cylinder_pair(n=64, radius=24.0):
     the edge moves with the material (a binary edge would jump by whole voxels).
     """
     field = synthetic.Affine(matrix=((-0.02, 0, 0), (0, 0.006, 0), (0, 0, 0.006)), center=(n / 2,) * 3)
-    f0 = synthetic.render((n,) * 3, seed=3, cell_size=5.0)
-    g0 = synthetic.render((n,) * 3, seed=3, cell_size=5.0, field=field, which="deformed")
+    f0 = foam.render((n,) * 3, seed=3, cell_size=5.0)
+    g0 = foam.render((n,) * 3, seed=3, cell_size=5.0, field=field, which="deformed")
     Z, Y, X = np.indices((n,) * 3).astype(float)
     c = (n - 1) / 2
 

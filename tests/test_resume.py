@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 from chunkdic.cli import main
 
 
@@ -22,8 +22,8 @@ def pair(tmp_path_factory):
     n = 64
     field = synthetic.Affine(matrix=((-0.01, 0, 0.005), (0, 0.004, 0), (0, 0, 0)), center=(32, 32, 32),
                              translation=(0.6, -0.4, 0.3))
-    np.save(d / "f.npy", synthetic.render((n, n, n), seed=21))
-    np.save(d / "g.npy", synthetic.render((n, n, n), seed=21, field=field, which="deformed"))
+    np.save(d / "f.npy", foam.render((n, n, n), seed=21))
+    np.save(d / "g.npy", foam.render((n, n, n), seed=21, field=field, which="deformed"))
     return d
 
 

@@ -52,7 +52,7 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
 
     import numpy as np
 
-    from chunkdic import synthetic
+    from chunkdic import foam
     from chunkdic.cli import main
     from chunkdic.volume import open_scan
 
@@ -65,7 +65,7 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
     assert len(set(percents)) >= 5 and percents == sorted(percents) and percents[-1] == 100
     ref = out / "ref.zarr"
     level0 = open_scan(str(ref)).level(0).compute()
-    np.testing.assert_array_equal(level0, synthetic.render((32, 32, 32), seed=3, dtype="uint16"))
+    np.testing.assert_array_equal(level0, foam.render((32, 32, 32), seed=3, dtype="uint16"))
 
     assert main(["pyramid", str(ref), "--levels", "2", "--scheduler", "local:2"]) == 0
     err = capsys.readouterr().err

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from chunkdic import synthetic as S
+from chunkdic import foam, foam_kernels
 from chunkdic.errors import InputError
 
 FIELDS = {
@@ -21,15 +22,15 @@ FIELDS = {
 
 
 def test_texture_point_wise_equals_grid():
-    f = S.render((12, 13, 14), origin=(-5, 3, 100), seed=7)
+    f = foam.render((12, 13, 14), origin=(-5, 3, 100), seed=7)
     z, y, x = np.meshgrid(np.arange(-5, 7.0), np.arange(3, 16.0), np.arange(100, 114.0),
                           indexing="ij")
-    assert np.array_equal(S.texture(z, y, x, seed=7), f)
+    assert np.array_equal(foam.texture(z, y, x, seed=7), f)
     # broadcasting and arbitrary visiting order
     rng = np.random.default_rng(0)
     idx = rng.permutation(f.size)[:300]
     zi, yi, xi = np.unravel_index(idx, f.shape)
-    v = S.texture(zi - 5.0, yi + 3.0, xi + 100.0, seed=7)
+    v = foam.texture(zi - 5.0, yi + 3.0, xi + 100.0, seed=7)
     assert np.array_equal(v, f[zi, yi, xi])
 
 
@@ -39,20 +40,20 @@ def test_caches_do_not_change_values():
     the grid visited in random order."""
     shape, origin = (24, 26, 28), (-40, 17, 3)
     kw = dict(seed=13, cell_size=6.0, bead_size=24.0)
-    f = S.render(shape, origin=origin, **kw)
+    f = foam.render(shape, origin=origin, **kw)
     rng = np.random.default_rng(2)
     for _ in range(150):
         i = tuple(int(rng.integers(0, n)) for n in shape)
-        v = S.texture(*(float(i[a] + origin[a]) for a in range(3)), **kw)
+        v = foam.texture(*(float(i[a] + origin[a]) for a in range(3)), **kw)
         assert v == f[i]
     idx = rng.permutation(f.size)
     zi, yi, xi = np.unravel_index(idx, shape)
-    v = S.texture(zi + float(origin[0]), yi + float(origin[1]), xi + float(origin[2]), **kw)
+    v = foam.texture(zi + float(origin[0]), yi + float(origin[1]), xi + float(origin[2]), **kw)
     assert np.array_equal(v, f[zi, yi, xi])
     for _ in range(6):
         o = [int(rng.integers(0, n - 4)) for n in shape]
         s = [int(rng.integers(1, n - oo)) for n, oo in zip(shape, o)]
-        part = S.render(s, origin=[a + b for a, b in zip(origin, o)], **kw)
+        part = foam.render(s, origin=[a + b for a, b in zip(origin, o)], **kw)
         assert np.array_equal(part, f[o[0]:o[0] + s[0], o[1]:o[1] + s[1], o[2]:o[2] + s[2]])
 
 
@@ -101,7 +102,7 @@ def _unit(h):
 def _texture_reference(p, tp):
     """Plain-Python twin of the texture formula at one point (smooth noise off)."""
     fwhm = 2 * np.sqrt(1 - 0.5 ** 0.25)
-    keys = [int(S._channel_key(tp.seed, ch)) for ch in (1, 2)]
+    keys = [int(foam_kernels.channel_key(tp.seed, ch)) for ch in (1, 2)]
     wc, hc = _wall_reference(p / tp.cell_size, keys[0], tp.wall_width / fwhm / tp.cell_size)
     wb, hb = _wall_reference(p / tp.bead_size, keys[1], tp.skin_width / fwhm / tp.bead_size)
     interior = 0.08 + 0.22 * _unit(hc)
@@ -110,10 +111,10 @@ def _texture_reference(p, tp):
 
 
 def test_texture_matches_plain_python_twin():
-    tp = S.TextureParams(seed=21, cell_size=7.0, bead_size=20.0, noise_amplitude=0.0)
+    tp = foam.TextureParams(seed=21, cell_size=7.0, bead_size=20.0, noise_amplitude=0.0)
     rng = np.random.default_rng(5)
     pts = rng.uniform(-60.0, 60.0, size=(3, 60))
-    v = S.texture(*pts, seed=tp)
+    v = foam.texture(*pts, seed=tp)
     ref = [_texture_reference(pts[:, i], tp) for i in range(pts.shape[1])]
     np.testing.assert_allclose(v, ref, rtol=0, atol=2e-6)
     walls = np.array(ref)
@@ -121,13 +122,13 @@ def test_texture_matches_plain_python_twin():
 
 
 def test_chunks_agree_with_larger_render():
-    big = S.render((40, 44, 48), seed=3, origin=(10, -20, 5))
-    part = S.render((17, 9, 23), seed=3, origin=(10 + 11, -20 + 30, 5 + 7))
+    big = foam.render((40, 44, 48), seed=3, origin=(10, -20, 5))
+    part = foam.render((17, 9, 23), seed=3, origin=(10 + 11, -20 + 30, 5 + 7))
     assert np.array_equal(part, big[11:28, 30:39, 7:30])
     fld = FIELDS["band"]
-    bigd = S.render((40, 44, 48), seed=3, field=fld, which="deformed", dtype="uint16")
-    partd = S.render((13, 20, 9), seed=3, field=fld, which="deformed", dtype="uint16",
-                     origin=(5, 21, 33))
+    bigd = foam.render((40, 44, 48), seed=3, field=fld, which="deformed", dtype="uint16")
+    partd = foam.render((13, 20, 9), seed=3, field=fld, which="deformed", dtype="uint16",
+                        origin=(5, 21, 33))
     assert np.array_equal(partd, bigd[5:18, 21:41, 33:42])
 
 
@@ -135,9 +136,9 @@ def test_chunks_agree_with_larger_render():
 def test_as_dask_equals_render(which):
     fld = FIELDS["affine"]
     kw = dict(field=fld, seed=11, which=which, dtype="uint8", noise=0.02)
-    one = S.render((37, 30, 33), **kw)
+    one = foam.render((37, 30, 33), **kw)
     for chunks in [(16, 16, 16), (10, 30, 7), 37]:
-        arr = S.as_dask((37, 30, 33), chunks=chunks, **kw)
+        arr = foam.as_dask((37, 30, 33), chunks=chunks, **kw)
         assert np.array_equal(arr.compute(scheduler="threads"), one)
     # the graph carries parameters only
     assert all(not isinstance(v, np.ndarray) for v in dict(arr.dask).values())
@@ -153,14 +154,14 @@ def test_deformed_matches_reference_exactly(name):
     x = X + u
     back = fld.inverse(*x)
     assert np.abs(back - X).max() < 1e-6
-    f = S.texture(*X, seed=5)
-    g = S.texture(*fld.inverse(*x), seed=5)  # deformed scan evaluated at x = X + u(X)
+    f = foam.texture(*X, seed=5)
+    g = foam.texture(*fld.inverse(*x), seed=5)  # deformed scan evaluated at x = X + u(X)
     np.testing.assert_allclose(g, f, rtol=0, atol=1e-6)
     # and on the grid: render(deformed) at integer x equals texture at inverse(x)
-    gd = S.render((8, 9, 10), seed=5, field=fld, which="deformed", origin=(12, 14, 16))
+    gd = foam.render((8, 9, 10), seed=5, field=fld, which="deformed", origin=(12, 14, 16))
     zz, yy, xx = np.meshgrid(np.arange(12, 20.0), np.arange(14, 23.0), np.arange(16, 26.0),
                              indexing="ij")
-    assert np.array_equal(gd, S.texture(*fld.inverse(zz, yy, xx), seed=5))
+    assert np.array_equal(gd, foam.texture(*fld.inverse(zz, yy, xx), seed=5))
 
 
 def test_translation_and_affine_inverse_exact():
@@ -189,7 +190,7 @@ def test_band_shape():
 
 
 def test_texture_is_rich_and_smooth():
-    f = S.render((64, 64, 64), seed=0).astype(np.float64)
+    f = foam.render((64, 64, 64), seed=0).astype(np.float64)
     assert 0.15 < f.std() < 0.4
     assert 0.3 < f.mean() < 0.7
     wall = (f > 0.55).mean()
@@ -206,17 +207,17 @@ def test_texture_is_rich_and_smooth():
     p = spec.mean(axis=(0, 1))
     assert p[-1] < 0.05 * p[1:8].max()
     # different seeds give different specimens
-    assert not np.array_equal(S.render((8, 8, 8), seed=1), S.render((8, 8, 8), seed=2))
+    assert not np.array_equal(foam.render((8, 8, 8), seed=1), foam.render((8, 8, 8), seed=2))
 
 
 def test_integer_dtypes_and_noise():
-    v = S.render((16, 16, 16), seed=2)
-    q = S.render((16, 16, 16), seed=2, dtype="uint8")
+    v = foam.render((16, 16, 16), seed=2)
+    q = foam.render((16, 16, 16), seed=2, dtype="uint8")
     assert q.dtype == np.uint8
     np.testing.assert_array_equal(q, np.clip(np.rint(20 + v.astype(np.float64) * 215), 0, 255))
-    n = S.render((16, 16, 16), seed=2, noise=0.05)
+    n = foam.render((16, 16, 16), seed=2, noise=0.05)
     assert 0.04 < np.std(n - v) < 0.06
-    nd = S.render((16, 16, 16), seed=2, noise=0.05, which="deformed")
+    nd = foam.render((16, 16, 16), seed=2, noise=0.05, which="deformed")
     assert not np.array_equal(n, nd)  # independent acquisition noise in the two scans
 
 
@@ -245,11 +246,11 @@ def test_synthesize_writes_pair(tmp_path):
         scan = open_scan(res[key])
         lvl0 = np.asarray(scan.level(0))
         np.testing.assert_array_equal(
-            lvl0, S.render((24, 20, 28), field=fld, seed=4, which=which, dtype="uint8"))
+            lvl0, foam.render((24, 20, 28), field=fld, seed=4, which=which, dtype="uint8"))
     assert S.load_field(out) == fld
     assert S.load_field(res["deformed"]) == fld
     assert S.load_field(os.path.join(out, "field.json")) == fld
-    assert S.load_texture(out) == S.TextureParams(seed=4)
+    assert S.load_texture(out) == foam.TextureParams(seed=4)
     with pytest.raises(InputError):
         S.synthesize(out, (8, 8, 8))  # exists, no overwrite
     S.synthesize(out, (8, 8, 8), overwrite=True, chunks=8)

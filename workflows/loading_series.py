@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 
 
 def show(event: dict) -> None:
@@ -95,8 +95,8 @@ def write_series(workdir: Path, size: int, fields, overwrite: bool) -> list[Path
                 raise chunkdic.InputError("redo")
             chunkdic.open_scan(path)
         except chunkdic.InputError:
-            lazy = synthetic.as_dask((size,) * 3, chunks=64, field=field, seed=5,
-                                     which="reference" if field is None else "deformed", dtype="uint8")
+            lazy = foam.as_dask((size,) * 3, chunks=64, field=field, seed=5,
+                                which="reference" if field is None else "deformed", dtype="uint8")
             chunkdic.write_scan(path, lazy, overwrite=True)
         scans.append(path)
     return scans

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic import foam, synthetic
 
 
 def show(event: dict) -> None:
@@ -73,9 +73,9 @@ def write_synthetic_raw(path: Path, shape, field, *, which: str, dtype: str, see
     tmp = path.with_suffix(".part")
     with open(tmp, "wb") as fh:
         for z0 in range(0, nz, slab):
-            block = synthetic.render((min(slab, nz - z0), ny, nx), origin=(z0, 0, 0), field=field,
-                                     which=which, dtype=dtype, seed=seed, cell_size=cell_size,
-                                     bead_size=8 * cell_size)
+            block = foam.render((min(slab, nz - z0), ny, nx), origin=(z0, 0, 0), field=field,
+                                which=which, dtype=dtype, seed=seed, cell_size=cell_size,
+                                bead_size=8 * cell_size)
             fh.write(np.ascontiguousarray(block, dtype=np.dtype(dtype).newbyteorder("<")).tobytes())
     tmp.replace(path)
 
