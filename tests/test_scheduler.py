@@ -127,7 +127,7 @@ def test_numpy_inputs_on_a_two_worker_local_cluster_send_no_voxels_in_any_graph(
     f = smooth_noise((n, n, n), sigma=2.0, seed=5)
     k = np.meshgrid(*[np.fft.fftfreq(n) for _ in range(3)], indexing="ij", sparse=True)
     g = np.fft.ifftn(np.fft.fftn(f) * np.exp(-2j * np.pi * sum(ki * ti for ki, ti in zip(k, t)))).real
-    f, g = (1000 + 300 * a / f.std()).astype(np.float32), (1000 + 300 * g / f.std()).astype(np.float32)
+    f, g = (1000 + 300 * f / f.std()).astype(np.float32), (1000 + 300 * g / f.std()).astype(np.float32)
     with dask.config.set({"distributed.admin.large-graph-warning-threshold": "2MiB"}), warnings.catch_warnings():
         warnings.filterwarnings("error", message="Sending large graph")
         res = chunkdic.correlate(f, g, element_size=16, scheduler="local:2", regularization="none")
