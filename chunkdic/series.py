@@ -57,7 +57,7 @@ from .settings import Settings
 from .strain import mean_strain
 from .volume import open_scan
 
-__all__ = ["series", "SeriesResult", "compose", "MODES"]
+__all__ = ["series", "open_series", "SeriesResult", "compose", "MODES"]
 
 MODES = ("both", "incremental", "cumulative")
 
@@ -203,6 +203,32 @@ def series(
             raise
         _finish(out, result.rows)
     return result
+
+
+def open_series(path) -> SeriesResult:
+    """Read a complete series written by :func:`series` (its summary and cumulative fields).
+
+    Raises
+    ------
+    InputError
+        Not a chunkdic series, or an interrupted one (run the same command again).
+    """
+    import zarr
+
+    from .kinds import kind_of
+
+    path = Path(path)
+    found, complete = kind_of(path)
+    if found != "series":
+        raise InputError(f"{path} is not a chunkdic loading series")
+    if not complete:
+        raise InputError(f"series {path} is incomplete (run the same command again to resume it)")
+    rows = list(zarr.open_group(str(path), mode="r").attrs["chunkdic"]["summary"])
+    cumulative = {}
+    for r in rows:  # per step, the last field from the reference: cumulative > composed > first increment
+        if r["pair"].startswith("0→"):
+            cumulative[r["step"]] = r["group"]
+    return SeriesResult(str(path), rows, {k: open_result(path / g) for k, g in sorted(cumulative.items())})
 
 
 def _create(out: Path, print_: str, scans, settings: Settings, mode: str) -> None:

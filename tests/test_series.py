@@ -172,3 +172,11 @@ def test_cli_incremental_series(run, tmp_path, capsys):
     err = inner(composed.displacement - field(2).displacement(*composed.node_coords))
     assert np.sqrt((err**2).mean()) < 0.01
     shutil.rmtree(out)
+
+
+def test_open_series_reads_the_summary_and_fields(run):
+    s = chunkdic.open_series(run["dir"] / "series.zarr")
+    assert s.rows == run["series"].rows
+    np.testing.assert_array_equal(s.cumulative[2].displacement, run["series"].cumulative[2].displacement)
+    with pytest.raises(chunkdic.InputError, match="not a chunkdic loading series"):
+        chunkdic.open_series(run["scans"][0])
