@@ -35,6 +35,7 @@ it starts from (``init``), so a step is never resumed from another start.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import time
@@ -195,8 +196,8 @@ def series(
             plan.__enter__()  # removes the old series that --overwrite replaces (checked: ours)
             _create(out, series_print, scans, settings, mode)
         try:
-            with inside(out):
-                result = _run(scans, out, settings, mode, roi, scheduler, progress, mask)
+            with inside(out), _one_cluster(scheduler) as sched:
+                result = _run(scans, out, settings, mode, roi, sched, progress, mask)
         except InputError:
             if fresh:  # a refused step: nothing of this run stays (docs/safety.md)
                 plan.rollback()
@@ -229,6 +230,22 @@ def open_series(path) -> SeriesResult:
         if r["pair"].startswith("0→"):
             cumulative[r["step"]] = r["group"]
     return SeriesResult(str(path), rows, {k: open_result(path / g) for k, g in sorted(cumulative.items())})
+
+
+@contextlib.contextmanager
+def _one_cluster(scheduler):
+    """``local[:N]``: one LocalCluster for the whole series (each correlation would start its own)."""
+    if not (isinstance(scheduler, str) and scheduler.startswith("local")):
+        yield scheduler
+        return
+    from .scheduler import _local_workers, start_local_cluster
+
+    client, cluster = start_local_cluster(_local_workers(scheduler))
+    try:
+        yield client
+    finally:
+        client.close()
+        cluster.close()
 
 
 def _create(out: Path, print_: str, scans, settings: Settings, mode: str) -> None:
