@@ -60,7 +60,7 @@ def register(subparsers) -> None:
 
 
 def run_series(args: argparse.Namespace) -> int:
-    from .series import series
+    from .loadseries import series
 
     t0 = time.perf_counter()
     res = series(args.scans, args.output, mode=args.mode, element_size=args.element_size, roi=args.roi,

@@ -10,7 +10,7 @@ not add::
 
     u_{0,n}(X) = u_{0,n-1}(X) + u_{n-1,n}(X + u_{0,n-1}(X))
 
-(:func:`chunkdic.series.compose`). The script compares, at every step, the composed field
+(:func:`chunkdic.loadseries.compose`). The script compares, at every step, the composed field
 with the correlated cumulative one, and both with the truth when the scans are synthetic.
 
 Run here (scans 0..3 of a 64³ synthetic specimen under growing compression)::
