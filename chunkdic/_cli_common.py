@@ -87,6 +87,12 @@ def format_event(event: dict) -> str | None:
         corner = f"; L-curve corner {corner:.1f}" if corner is not None and math.isfinite(corner) else ""
         return (f"level {event['level']}: {event['kind']} regularisation length {event['length']:.1f} voxels "
                 f"(chosen from the data{corner}; noise correlation factor {event['kappa']:.1f})")
+    if stage == "init":
+        mean = ", ".join(f"{v:+.3f}" for v in event["mean"])
+        return f"level {event['level']}: starting from the field of {event['path']} (mean {mean} voxels of the level)"
+    if stage == "series-step":
+        what = {"computed": "correlating", "resumed": "resuming", "done before": "done before, skipped:"}[event["run"]]
+        return f"series: {what} {event['group']} (scans {event['pair']})"
     if stage == "resume":
         return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
     if stage == "level":

@@ -111,7 +111,7 @@ def cmd_correlate(args) -> int:
         coarsest=args.coarsest, interpolation=args.interpolation, tolerance=args.tolerance,
         max_iterations=args.max_iterations, block_elements=args.block_elements,
         smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
-        regularization_length=args.regularization_length, mask=args.mask,
+        regularization_length=args.regularization_length, mask=args.mask, init=args.init,
         scheduler=args.scheduler, output=args.output, overwrite=args.overwrite, progress=print_progress,
     )
     say(_summary(result, time.perf_counter() - t0))
@@ -212,6 +212,10 @@ def _add_correlate(sub) -> None:
     p.add_argument("--regularization-length", type=float, default=None, metavar="L",
                    help="its length, voxels of level 0 (default: chosen from the data and printed)")
     p.add_argument("--mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
+    p.add_argument("--init", default=None, metavar="RESULT",
+                   help="start from this earlier result's field instead of the rigid translation (any element "
+                        "size, ROI or level of the same reference; the run then starts on --level unless "
+                        "--coarsest is given)")
     p.add_argument("--tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
     p.add_argument("--max-iterations", type=int, default=30, help="Gauss-Newton iterations per level at most")
     p.add_argument("--block-elements", type=int, default=None,
@@ -236,7 +240,7 @@ def _add_demo(sub) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__, _cli_q4, _cli_report, _cli_scan, _cli_synth
+    from . import __version__, _cli_q4, _cli_report, _cli_scan, _cli_series, _cli_synth
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
                      formatter_class=_HelpFormatter)
@@ -248,6 +252,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_synth.register(sub)
     _cli_report.register(sub)
     _cli_q4.register(sub)
+    _cli_series.register(sub)
     _add_demo(sub)
     p = sub.add_parser("versions", help="print versions for bug reports",
                        description="Print the versions of Python, chunkdic and its dependencies, for bug reports.")

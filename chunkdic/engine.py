@@ -27,6 +27,7 @@ from .checkpoint import Checkpoint, fingerprint
 from .errors import InputError
 from .gauss_newton import History, State, iterate, rigid_step
 from .level import Level, emit
+from .initial import init_identity, open_init, start_field
 from .integrity import content_identity
 from .mesh import transfer
 from .outputs import Outputs
@@ -56,6 +57,7 @@ def correlate(
     overwrite: bool = False,
     progress: Callable[[dict], None] | None = None,
     mask=None,
+    init=None,
     **options,
 ) -> Result:
     """Measure the displacement field between two scans by multiscale C8-DIC.
@@ -86,6 +88,13 @@ def correlate(
         Specimen mask of the reference's shape (any input :func:`chunkdic.open_scan`
         reads; non-zero = material): only elements with enough material take part, nodes
         outside are NaN (:mod:`chunkdic.masks`).
+    init : str, Path or Result, optional
+        An earlier result to start from instead of the rigid translation (a previous
+        step of a loading series, another element size, ROI or level): its field is
+        evaluated at this run's nodes on the level the run starts on, which is the
+        finest level unless ``coarsest`` is given (:mod:`chunkdic.initial`). Checked
+        before any output (a result of the same reference shape); recorded in
+        ``info["init"]`` and in the resume fingerprint.
 
     Returns
     -------
@@ -109,8 +118,11 @@ def correlate(
     """
     settings = _settings(settings, options)
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
+    init_result = None if init is None else open_init(init, f_scan.shape(0))
+    # with a start field, no coarse level is needed to find the large displacements (chunkdic.initial)
+    coarsest = settings.level if init is not None and settings.coarsest is None else settings.coarsest
     meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi,
-                         level=settings.level, coarsest=settings.coarsest,
+                         level=settings.level, coarsest=coarsest,
                          min_margin=face_margin(settings.smoothing))
     levels = sorted(meshes, reverse=True)
     for s in levels:
@@ -121,15 +133,20 @@ def correlate(
         check_mask_shape(mask_scan, f_scan.shape(0))
     plan = entry = None
     if output is not None:  # every output rule (chunkdic.outputs), nothing written yet
-        plan = Outputs(inputs=(ref, deformed, mask), overwrite=overwrite)
+        plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
         entry = plan.add(output, "result", resumable=True)
     identities = {role: _identify(src, scan) for role, src, scan in
                   (("reference", ref, f_scan), ("deformed", deformed, g_scan))}
     if mask is not None:
         identities["mask"] = _identify(mask, mask_scan)
-    run_print = fingerprint({"settings": settings.to_json(), "roi": parse_roi(roi),
-                             "inputs": [identities["reference"], identities["deformed"]],
-                             "mask": identities.get("mask")})
+    described = {"settings": settings.to_json(), "roi": parse_roi(roi),
+                 "inputs": [identities["reference"], identities["deformed"]], "mask": identities.get("mask")}
+    init_id = None
+    if init_result is not None:  # absent otherwise: fingerprints of runs without init are unchanged
+        init_id = described["init"] = init_identity(init_result)
+        if init_result.path is None:  # an in-memory result never resumes, as in-memory scans
+            init_id["in-memory"] = uuid.uuid4().hex
+    run_print = fingerprint(described)
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
     scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
@@ -151,7 +168,7 @@ def correlate(
                 mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
                 runner.run_everywhere(kernels.warmup)
                 result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
-                              mask_refs)
+                              mask_refs, init_result)
             except (InputError, OSError) as exc:
                 # bad input found by a pass (a constant or non-finite image), or a full or read-only
                 # disk before the first checkpoint: nothing to resume, so what this run created goes.
@@ -166,9 +183,12 @@ def correlate(
                 inputs={"reference": _describe(ref), "deformed": _describe(deformed),
                         "mask": None if mask is None else _describe(mask)},
                 input_shapes={"reference": list(f_scan.shape(0)), "deformed": list(g_scan.shape(0))},
+                init=init_id,
             )
+            if init_id is not None:
+                result.info["settings"] = dict(result.info["settings"], init=init_id)
             if output is not None:  # replaces the checkpointed group once complete, under the lock
-                result.save(output, overwrite=True, inputs=(ref, deformed, mask))
+                result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return result
@@ -196,9 +216,18 @@ def _settings(settings: Settings | None, options: dict) -> Settings:
     return dataclasses.replace(settings, **options)
 
 
+def _init_path(init_result: Result | None):
+    """The earlier result's path as an input of the output rules (it may not be the output)."""
+    return None if init_result is None else init_result.path
+
+
 def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, scratch: Path,
-         checkpoint=None, resume: dict | None = None, mask_refs: dict | None = None) -> Result:
-    """All levels, coarsest first; resumes from ``resume`` (a checkpoint state) if given."""
+         checkpoint=None, resume: dict | None = None, mask_refs: dict | None = None,
+         init: Result | None = None) -> Result:
+    """All levels, coarsest first; resumes from ``resume`` (a checkpoint state) if given.
+
+    ``init``: an earlier result whose field is the start on the coarsest level, instead of
+    the rigid translation (:mod:`chunkdic.initial`)."""
     finest, coarsest = levels[-1], levels[0]
     statuses: dict[int, str] = {}
     rigid_t = initial_gap = rigid_gap = None
@@ -236,6 +265,10 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             t0, c0 = time.perf_counter(), time.process_time()
             if state is not None:
                 start = state.u  # resumed
+            elif s == coarsest and init is not None:
+                start = start_field(init, mesh, s)
+                emit(progress, stage="init", level=s, path=init.path,
+                     mean=[float(v) for v in start.mean(axis=(1, 2, 3))])
             elif s == coarsest:
                 t_int = run_one(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))
                 start = _uniform(t_int, mesh)
@@ -247,7 +280,9 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
             if state is None:
-                if s == coarsest:
+                if s == coarsest and init is not None:
+                    rigid_t = start.mean(axis=(1, 2, 3))  # reported as the run's mean start translation
+                elif s == coarsest:
                     lvl.prepare_interpolation(start)
                     rigid_t = rigid_step(lvl, t_int, tol, 10, history, progress)
                     start = _uniform(rigid_t, mesh)

@@ -32,6 +32,8 @@ never removing what was there before:
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import logging
 import os
 import shutil
@@ -46,7 +48,34 @@ from .store import drain_zarr_io
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Outputs", "check_output", "check_writable", "input_roots"]
+__all__ = ["Outputs", "check_output", "check_writable", "input_roots", "inside"]
+
+#: the Zarr store (resolved path) of a container this process is writing, whose members
+#: may be outputs (a loading series' step results) and inputs (the step that initialises
+#: the next one); ``None``: no output may lie inside any Zarr store
+_CONTAINER: contextvars.ContextVar[Path | None] = contextvars.ContextVar("chunkdic_container", default=None)
+
+
+@contextlib.contextmanager
+def inside(container):
+    """Allow outputs inside the chunkdic store ``container`` while the block runs.
+
+    Used by :func:`chunkdic.series` only, for the step results it writes into its own
+    ``series`` store (checked by :class:`Outputs` as a whole first). Within it, a member
+    group counts as an input on its own (not as the whole store), so one step may
+    initialise the next. Every other rule still holds.
+    """
+    token = _CONTAINER.set(Path(os.path.abspath(container)).resolve())
+    try:
+        yield
+    finally:
+        _CONTAINER.reset(token)
+
+
+def _in_container(path: Path) -> bool:
+    box = _CONTAINER.get()
+    return box is not None and (path == box or box in path.parents)
+
 
 # --------------------------------------------------------------------------- inputs
 
@@ -67,6 +96,8 @@ def input_roots(inputs) -> list[Path]:
         # a Zarr node: its whole store (the outermost directory of the hierarchy)
         top = p
         for parent in p.parents:
+            if _in_container(parent):
+                break  # a member of the container being written counts as itself (inside())
             if (parent / "zarr.json").is_file() or (parent / ".zgroup").is_file():
                 top = parent
             else:
@@ -127,6 +158,8 @@ def _check_location(p: Path, real: Path, kind: Kind, parents: bool = False) -> N
     if not real.parent.is_dir() and not parents:
         raise InputError(f"output directory {real.parent} does not exist")
     for parent in real.parents:
+        if _in_container(parent):
+            continue  # the container this process writes (inside())
         if (parent / "zarr.json").is_file() or (parent / ".zgroup").is_file() or (parent / ".zarray").is_file():
             raise InputError(f"output {_say(p)} lies inside the Zarr store {parent}: choose a path outside it")
 

@@ -239,9 +239,10 @@ class Result:
 
     def __repr__(self) -> str:
         i = self.info
+        gap = i.get("final_gap")  # None: a field composed from others (chunkdic.series), no gap of its own
         return (
             f"<chunkdic.Result {self.displacement.shape[1:]} nodes, ell={i.get('element_size')} "
-            f"level={i.get('level')} status={i.get('status')} final_gap={i.get('final_gap', float('nan')):.4g}>"
+            f"level={i.get('level')} status={i.get('status')} final_gap={float('nan') if gap is None else gap:.4g}>"
         )
 
     def save(self, path: str | os.PathLike, *, overwrite: bool = False, inputs=()) -> None:

@@ -1,18 +1,17 @@
 """Loading-series workflow: scans 0..n of one specimen, incremental and cumulative fields.
 
-In an interrupted test (the paper's drop-tower impacts, a scan after each) every scan
-``k`` is correlated against the previous one (incremental field ``u_{k-1,k}``) and against
-the reference (direct field ``u_{0,k}``). Large cumulative deformations defeat a direct
-correlation sooner than small increments, so the cumulative field is also built from the
-increments. All fields are Lagrangian (in the frame of their own reference scan), so the
-increments compose, they do not add::
+A thin copy of :func:`chunkdic.series` (``chunkdic series SCAN0 SCAN1 ... -o series.zarr``):
+in an interrupted test (the paper's drop-tower impacts, a scan after each) every scan
+``k`` is correlated against the previous one (incremental field ``u_{k-1,k}``, started
+from the previous increment) and against the reference (cumulative ``u_{0,k}``, started
+from the previous cumulative field composed with the new increment). Fields are
+Lagrangian (in the frame of their own reference scan), so increments compose, they do
+not add::
 
     u_{0,n}(X) = u_{0,n-1}(X) + u_{n-1,n}(X + u_{0,n-1}(X))
 
-the increment being evaluated at the current position of the material point with the
-C8 shape functions (``Result.mesh.evaluate``; points slightly outside its mesh take the
-linear extension of the nearest element). The script compares the composed and the
-direct fields at every step, and both against the truth when the scans are synthetic.
+(:func:`chunkdic.loadseries.compose`). The script compares, at every step, the composed field
+with the correlated cumulative one, and both with the truth when the scans are synthetic.
 
 Run here (scans 0..3 of a 64³ synthetic specimen under growing compression)::
 
@@ -23,8 +22,9 @@ On real scans (stored scan groups, in loading order, the reference first)::
     python workflows/loading_series.py scan0.zarr scan1.zarr scan2.zarr scan3.zarr \\
         --element-size 8 --level 2 --scheduler local:4 --workdir series
 
-Each correlation is written to ``WORKDIR/results/u_<i>_<k>.zarr`` and skipped when it is
-already complete (re-run after an interruption to continue; ``--overwrite`` redoes all).
+Everything goes to ``WORKDIR/series.zarr`` (steps/001-incremental, composed/002,
+steps/002-cumulative, ...); re-run after an interruption to continue (finished steps are
+skipped, the interrupted one resumes from its checkpoint); ``--overwrite`` redoes all.
 With one ``--scheduler local:N`` the cluster is started once and kept for the series.
 """
 
@@ -42,30 +42,14 @@ from chunkdic import foam, synthetic
 
 
 def show(event: dict) -> None:
-    """Print one line per finished level (``chunkdic correlate`` prints richer progress)."""
-    if event["stage"] == "level":
+    """Print one line per step and per finished level (``chunkdic series`` prints richer progress)."""
+    if event["stage"] == "series-step":
+        print(f"  {event['group']} (scans {event['pair']}): {event['run']}", flush=True)
+    elif event["stage"] == "level":
         print(f"    level {event['level']}: {event['status']}, gap {100 * event['gap']:.3f} % "
               f"({event['seconds']:.1f} s)", flush=True)
     elif event["stage"] == "resume":
         print(f"    resuming from the checkpoint: level {event['level']}, iteration {event['iteration']}", flush=True)
-
-
-def compose(cumulative, increment) -> np.ndarray:
-    """``u_{0,n}`` at the nodes of ``cumulative`` from ``u_{0,n-1}`` and ``u_{n-1,n}``.
-
-    Parameters
-    ----------
-    cumulative : Result or (node_coords, displacement)
-        ``u_{0,n-1}``: nodes ``X`` and nodal values, shape (3, nz, ny, nx), voxels.
-    increment : Result
-        ``u_{n-1,n}`` on its own mesh (same pyramid level), evaluated at ``X + u_{0,n-1}(X)``.
-
-    Returns
-    -------
-    ndarray, shape (3, nz, ny, nx), float64, voxels
-    """
-    X, u = cumulative
-    return u + increment.mesh.evaluate(increment.displacement, X + u)
 
 
 def series_fields(n_steps: int, size: int, step_strain: float, kind: str):
@@ -137,60 +121,52 @@ def main(argv=None) -> dict:
         scheduler, cluster = start_local_cluster(int(n) if n else None)
         print(f"LocalCluster on 127.0.0.1, dashboard {scheduler.dashboard_link}")
 
-    def run(i: int, k: int):
-        out = workdir / "results" / f"u_{i}_{k}.zarr"
-        out.parent.mkdir(exist_ok=True)
-        try:
-            if args.overwrite:
-                raise chunkdic.InputError("redo")
-            return chunkdic.open_result(out)
-        except chunkdic.InputError:  # absent, interrupted (resumed) or --overwrite
-            print(f"  correlating scan {i} -> scan {k}", flush=True)
-            return chunkdic.correlate(scans[i], scans[k], element_size=args.element_size, level=args.level,
-                                      roi=args.roi, scheduler=scheduler, output=out, overwrite=args.overwrite,
-                                      progress=show)
-
-    rows = []
     f = 2.0**args.level
     t0 = time.perf_counter()
     try:
-        first = run(0, 1)
-        X = first.node_coords
-        cumulative = first.displacement
-        for k in range(1, len(scans)):
-            direct = first if k == 1 else run(0, k)
-            naive = cumulative
-            if k > 1:
-                increment = run(k - 1, k)
-                naive = cumulative + increment.displacement  # wrong: ignores where the point has moved
-                cumulative = compose((X, cumulative), increment)
-            diff = cumulative - direct.displacement
-            row = {"step": k, "direct_status": direct.info["status"],
-                   "cumulative_vs_direct_rms": float(np.sqrt((diff**2).sum(axis=0).mean())),
-                   "cumulative_vs_direct_max": float(np.sqrt((diff**2).sum(axis=0)).max()),
-                   "naive_sum_vs_direct_rms": float(np.sqrt(((naive - direct.displacement) ** 2).sum(axis=0).mean())),
-                   "mean_uz": float(cumulative[0].mean())}
-            if fields is not None:
-                truth = fields[k - 1].displacement(*(f * X + (f - 1) / 2)) / f
-                for name, u in (("cumulative", cumulative), ("direct", direct.displacement)):
-                    e = np.sqrt(((u - truth) ** 2).sum(axis=0))
-                    row[f"{name}_error_rms"] = float(np.sqrt((e**2).mean()))
-                    row[f"{name}_error_max"] = float(e.max())
-            rows.append(row)
-            print(f"step {k}: |cumulative - direct| RMS {row['cumulative_vs_direct_rms']:.4f}, "
-                  f"max {row['cumulative_vs_direct_max']:.4f} voxel (plain sum of the increments: RMS "
-                  f"{row['naive_sum_vs_direct_rms']:.4f})"
-                  + (f"; error vs truth RMS cumulative {row['cumulative_error_rms']:.4f}, direct "
-                     f"{row['direct_error_rms']:.4f} voxel" if fields is not None else ""), flush=True)
-            np.save(workdir / "results" / f"cumulative_0_{k}.npy", cumulative)
+        try:  # done before: read it (a re-run continues an interrupted series; --overwrite redoes it)
+            if args.overwrite:
+                raise chunkdic.InputError("redo")
+            out = chunkdic.open_series(workdir / "series.zarr")
+        except chunkdic.InputError:
+            out = chunkdic.series(scans, workdir / "series.zarr", element_size=args.element_size, level=args.level,
+                                  roi=args.roi, scheduler=scheduler, overwrite=args.overwrite, progress=show)
     finally:
         if cluster is not None:
             scheduler.close()
             cluster.close()
+    print(out.table())
+    first = out.cumulative[1]
+    X = first.node_coords
+    rows = []
+    for k in range(1, len(scans)):
+        # composed from the increments (step 1: the increment itself) vs the correlated cumulative field
+        composed = first if k == 1 else chunkdic.open_result(workdir / "series.zarr" / "composed" / f"{k:03d}")
+        direct = out.cumulative[k]
+        naive = sum(chunkdic.open_result(workdir / "series.zarr" / "steps" / f"{i:03d}-incremental").displacement
+                    for i in range(1, k + 1))  # wrong: ignores where the point has moved
+        diff = composed.displacement - direct.displacement
+        row = {"step": k, "direct_status": direct.info["status"],
+               "cumulative_vs_direct_rms": float(np.sqrt((diff**2).sum(axis=0).mean())),
+               "cumulative_vs_direct_max": float(np.sqrt((diff**2).sum(axis=0)).max()),
+               "naive_sum_vs_direct_rms": float(np.sqrt(((naive - direct.displacement) ** 2).sum(axis=0).mean())),
+               "mean_uz": float(composed.displacement[0].mean())}
+        if fields is not None:
+            truth = fields[k - 1].displacement(*(f * X + (f - 1) / 2)) / f
+            for name, u in (("cumulative", composed.displacement), ("direct", direct.displacement)):
+                e = np.sqrt(((u - truth) ** 2).sum(axis=0))
+                row[f"{name}_error_rms"] = float(np.sqrt((e**2).mean()))
+                row[f"{name}_error_max"] = float(e.max())
+        rows.append(row)
+        print(f"step {k}: |composed - cumulative| RMS {row['cumulative_vs_direct_rms']:.4f}, "
+              f"max {row['cumulative_vs_direct_max']:.4f} voxel (plain sum of the increments: RMS "
+              f"{row['naive_sum_vs_direct_rms']:.4f})"
+              + (f"; error vs truth RMS composed {row['cumulative_error_rms']:.4f}, cumulative "
+                 f"{row['direct_error_rms']:.4f} voxel" if fields is not None else ""), flush=True)
     (workdir / "series.json").write_text(json.dumps(rows, indent=1))
     print(f"{len(scans) - 1} steps in {time.perf_counter() - t0:.1f} s; table in {workdir / 'series.json'}; "
-          f"cumulative fields (nodes of u_0_1.zarr) in {workdir / 'results'}")
-    return {"rows": rows, "node_coords": X, "cumulative": cumulative}
+          f"every field in {workdir / 'series.zarr'}")
+    return {"rows": rows, "node_coords": X, "cumulative": out.cumulative[len(scans) - 1].displacement}
 
 
 if __name__ == "__main__":
