@@ -58,6 +58,11 @@ def format_event(event: dict) -> str | None:
             asked = ",".join(f"{a}:{b}" for a, b in event["requested_roi"])
             line += f" (requested {asked} in level-0 voxels, trimmed to whole elements)"
         return line
+    if stage == "compile":
+        if not event["done"]:
+            return ("compiling the numba kernels (first run on this machine, about 20 s; "
+                    "later runs load them from the cache)")
+        return f"kernels compiled in {event['seconds']:.1f} s"
     if stage == "matrix":
         rate = event["voxels"] / max(event["seconds"], 1e-9) / 1e6
         return f"level {event['level']}: M built over {event['blocks']} blocks in {event['seconds']:.1f} s ({rate:.1f} Mvoxel/s)"

@@ -166,7 +166,7 @@ def correlate(
                 f_refs = f_scan.refs(levels, scratch / "ref")
                 g_refs = g_scan.refs(levels, scratch / "def")
                 mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
-                runner.run_everywhere(kernels.warmup)
+                _compile_kernels(runner, progress)
                 result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
                               mask_refs, init_result)
             except (InputError, OSError) as exc:
@@ -400,6 +400,24 @@ def _regularization_length(settings: Settings, state: State, s: int, mesh) -> fl
     if math.isfinite(state.reg_length):
         return state.reg_length
     return START_LENGTH * mesh.element_size
+
+
+def _compile_kernels(runner, progress) -> None:
+    """Compile (or load from numba's cache) the workers' block kernels and the client's solver.
+
+    The first run on a machine compiles for ~20 s before the first iteration: say so first,
+    and report the time (the stage timings would otherwise hide it).
+    """
+    from . import solve
+
+    cold = not kernels.compiled_on_disk()
+    if cold:
+        emit(progress, stage="compile", done=False)
+    t0 = time.perf_counter()
+    runner.run_everywhere(kernels.warmup)
+    solve.warmup()
+    if cold:
+        emit(progress, stage="compile", done=True, seconds=time.perf_counter() - t0)
 
 
 def _choose_automatically(settings: Settings, state: State) -> bool:

@@ -70,7 +70,7 @@ from .kernels_m import m_block
 from .kernels_warp import warp_block
 from .kernels_window import INTERPOLATIONS
 
-__all__ = ["warmup"]
+__all__ = ["warmup", "compiled_on_disk"]
 
 
 def warmup() -> None:
@@ -91,3 +91,21 @@ def warmup() -> None:
         sums = b_sums(f, lo, hi, ell, u, (1, 1, 1), f, (0, 0, 0), f.shape, interpolation=interp)
         element_to_nodes(sums.B[..., 0, :, :])
         warp_block(ell, u, (1, 1, 1), (2, 2, 2), f, (0, 0, 0), f.shape, interpolation=interp)
+
+
+def compiled_on_disk() -> bool:
+    """Whether numba's on-disk cache already holds the block kernels (a later run loads them).
+
+    A first run on a machine compiles them (tens of seconds); callers say so before the
+    wait. Reads numba's cache locator, not a public API: any surprise there answers True
+    (no notice), never an error.
+    """
+    import os
+
+    from .kernels_b import _b_kernel
+    from .kernels_m import _m_kernel
+
+    try:
+        return all(os.path.exists(d._cache._cache_file._index_path) for d in (_b_kernel, _m_kernel))
+    except Exception:  # noqa: BLE001 - numba internals changed: assume cached
+        return True
