@@ -113,7 +113,7 @@ def correlate(
     >>> f = rng.random((40, 40, 40)).astype(np.float32)
     >>> g = np.roll(f, 1, axis=0)  # g(x) = f(x - (1, 0, 0))
     >>> res = chunkdic.correlate(f, g, element_size=16, coarsest=0)
-    >>> np.round(res.displacement[0].mean(), 3), res.info["status"]
+    >>> round(float(res.displacement[0].mean()), 3), res.info["status"]
     (1.0, 'converged')
     """
     settings = _settings(settings, options)

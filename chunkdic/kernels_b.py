@@ -322,7 +322,9 @@ def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g
 
     Examples
     --------
-    Identical images and a zero field give a zero right-hand side:
+    Identical images and a zero field give a zero right-hand side; the voxels of the
+    volume's outer layer sit where the weight tapers to zero (:func:`chunkdic.kernels_rows.taper`), so they are
+    counted as excluded (216 valid of 512):
 
     >>> from chunkdic.kernels_window import g_window
     >>> vol = np.random.default_rng(0).random((8, 8, 8)).astype(np.float32)
@@ -331,8 +333,8 @@ def b_block(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g
     >>> b, ssr, n_valid, n_excluded = b_block(
     ...     vol, (0, 0, 0), (0, 0, 0), 4, u, (0, 0, 0), vol[win],
     ...     tuple(s.start for s in win), vol.shape, interpolation="linear")
-    >>> bool(np.all(b == 0)), ssr, n_valid, n_excluded
-    (True, 0.0, 512, 0)
+    >>> bool(np.all(b == 0)), float(ssr), int(n_valid), int(n_excluded)
+    (True, 0.0, 216, 296)
     """
     sums = b_sums(f, lo, hi, ell, u_nodes, core_origin, g, g_origin, g_shape, interpolation=interpolation,
                   impl=impl, prefiltered=prefiltered)
