@@ -49,13 +49,13 @@ class _StandInRunner:
     def map_unordered(self, fn, args):
         from chunkdic.kernels_m import m_block
 
-        for _inputs, job in args:
+        for _inputs, job, _u in args:
             key = tuple(job.shape)
             if key not in self._cache:
                 f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in job.shape)).astype("float32")
-                self._cache[key] = m_block(f, (1, 1, 1), (1, 1, 1), job.ell)
-            stencil, fmin, fmax = self._cache[key]
-            yield job.block, stencil, fmin, fmax
+                self._cache[key] = m_block(f, (1, 1, 1), (1, 1, 1), job.ell, with_lags=True)
+            stencil, fmin, fmax, lags = self._cache[key]
+            yield job.block, stencil, fmin, fmax, lags, None
 
     def run_everywhere(self, fn):
         fn()
@@ -74,7 +74,7 @@ def _child(size: int, ell: int, solves: int) -> None:
     with tempfile.TemporaryDirectory() as scratch:
         lvl = Level(0, mesh, f_ref, f_ref, _StandInRunner(), Settings(element_size=ell), Path(scratch))
         t0 = time.perf_counter()
-        lvl.assemble_m()
+        lvl.assemble_m(np.zeros((3,) + mesh.nodes_shape))
         t_m = time.perf_counter() - t0
         rng = np.random.default_rng(1)
         times, its = [], []
