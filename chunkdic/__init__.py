@@ -35,7 +35,7 @@ _EXPORTS = {
     "zoi_table": "zoisweep",
     "fit_power_law": "metrology",
     "score_displacement": "scoring",
-    "write_corrected": "export",
+    "write_corrected": "corrected",
     "write_vtk": "export",
 }
 

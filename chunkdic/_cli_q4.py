@@ -63,7 +63,8 @@ def _fmt(v: float, spec: str = ".4f") -> str:
 
 def run_correlate2d(args: argparse.Namespace) -> int:
     from .inputs import number
-    from .q4 import correlate2d, read_image
+    from .q4 import correlate2d
+    from .q4mesh import read_image
 
     number(args.element_size, "--element-size", minimum=2, integer=True)  # before reading anything
     f, g = read_image(args.ref), read_image(args.deformed)

@@ -277,7 +277,7 @@ def run_report(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from . import export
+    from . import export, resultscans
     from .inputs import check_displacement
     from .outputs import Outputs
     from .result import open_result
@@ -290,10 +290,10 @@ def run_export(args: argparse.Namespace) -> int:
     if args.units == "physical" and not res.info.get("voxel_size"):
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
     if args.corrected:
-        export.input_scans(res, args.ref, args.deformed)
+        resultscans.input_scans(res, args.ref, args.deformed)
         check_scheduler(args.scheduler)
     # every output checked (and every input) before the first is written; all or nothing
-    plan = Outputs(inputs=export.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
+    plan = Outputs(inputs=resultscans.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
     entries = {name: plan.add(path, kind) for name, path, kind in
                (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
                 ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
@@ -310,14 +310,15 @@ def run_export(args: argparse.Namespace) -> int:
 def _export(res, args: argparse.Namespace, work: dict) -> None:
     """The writes of ``chunkdic export`` into the staged paths ``work``."""
     from . import export
+    from .corrected import write_corrected
 
     if args.vtk:
         info = export.write_vtk(res, work["vtk"], units=args.units)
         _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}"
              + ("; run facts in its field data" if str(args.vtk).lower().endswith(".vtu") else ""))
     if args.csv:
-        n = export._write_nodes_csv(res, work["csv"], work["csv-meta"], units=args.units,
-                                    name=Path(args.csv).name)
+        n = export.write_nodes_csv_files(res, work["csv"], work["csv-meta"], units=args.units,
+                                         name=Path(args.csv).name)
         _err(f"{args.csv}: {n} nodes (metadata in {export.csv_sidecar(args.csv)})")
     if args.corrected:
         t0 = time.perf_counter()
@@ -328,7 +329,7 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
                 last[0] = f
                 _err(f"  corrected image: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
 
-        out = export.write_corrected(res, work["corrected"], ref=args.ref, deformed=args.deformed,
-                                     scheduler=args.scheduler, progress=progress)
+        out = write_corrected(res, work["corrected"], ref=args.ref, deformed=args.deformed,
+                              scheduler=args.scheduler, progress=progress)
         _err(f"{args.corrected}: corrected and residual, gap {100 * out['gap']:.3f}% over {out['valid']} voxels "
              f"({out['excluded']} excluded)")

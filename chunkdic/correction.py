@@ -7,7 +7,7 @@ did (same window reads, same kernel: :func:`chunkdic.kernels_warp.warp_block`), 
 the brightness the engine found (:mod:`chunkdic.greylevel`: a gain and an offset per
 element, plus a linear drift). This module computes it for one block of whole elements, in
 a task, and is the one place that knows how: the corrected volume of
-:func:`chunkdic.export.write_corrected`, the cuts of :mod:`chunkdic.report` and anything
+:func:`chunkdic.corrected.write_corrected`, the cuts of :mod:`chunkdic.report` and anything
 else that shows ``g(X + u(X))`` go through :func:`correct_block`. The client never reads
 voxels: a plane of the corrected image is assembled from the planes the tasks return.
 """

@@ -198,10 +198,10 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     Roux, Hild, Viot, Bernard, section 5.3 ("Check of correction from mid-plane cuts").
     """
     from . import correction
-    from .export import input_paths, input_scans, interpolation_of, level_refs
+    from .figures import mid_planes
     from .inputs import check_displacement
     from .outputs import Outputs
-    from .report import mid_planes
+    from .resultscans import input_paths, input_scans, interpolation_of, level_refs
     from .scheduler import check_scheduler, open_runner
 
     res = result if isinstance(result, Result) else open_result(result)
@@ -239,12 +239,12 @@ def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path)
     Axes in voxels of the result's level, in the scan's frame; the title of each panel gives
     the cut's figures.
     """
-    from .report import _figure
+    from .figures import figure
 
     roi = result.mesh.roi
     lengths = [np.sqrt((q.displacement**2).sum(axis=0)) for q in fields]
     vmax = max(max(float(m.max()) for m in lengths), THRESHOLD)
-    fig = _figure(5.0 * len(cuts), 4.6)
+    fig = figure(5.0 * len(cuts), 4.6)
     axs = np.atleast_1d(fig.subplots(1, len(cuts)))
     lab = f"voxel, level {int(result.info.get('level', 0))}"
     for ax, c, q, m in zip(axs, cuts, fields, lengths):

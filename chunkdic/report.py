@@ -30,7 +30,8 @@ import numpy as np
 
 from . import correction
 from .errors import InputError
-from .result import Result, open_result
+from .figures import AXES, as_results, figure, level_label, mid_planes, panel, plane_extent
+from .result import Result
 
 log = logging.getLogger(__name__)
 
@@ -38,53 +39,8 @@ __all__ = ["report", "plot_cuts", "plot_uz_maps", "plot_epszz_maps", "plot_gap",
            "plot_uncertainty_map",
            "mid_planes"]
 
-AXES = "zyx"
 
-
-def _figure(width: float, height: float):
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(width, height), dpi=110, layout="constrained")
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _as_results(results) -> list[Result]:
-    if isinstance(results, (Result, str, Path)):
-        results = [results]
-    out = [r if isinstance(r, Result) else open_result(r) for r in results]
-    if not out:
-        raise InputError("no result given")
-    return out
-
-
-def _level_label(result: Result) -> str:
-    return f"voxel, level {int(result.info.get('level', 0))}"
-
-
-# --------------------------------------------------------------------------- planes
-
-
-def mid_planes(result: Result) -> dict[str, int]:
-    """Index (level voxels) of the ROI mid-plane normal to each axis: ``{"z": .., "y": .., "x": ..}``."""
-    return {AXES[a]: (r.start + r.stop) // 2 for a, r in enumerate(result.mesh.roi)}
-
-
-def _extent(result: Result, normal: int):
-    """imshow extent (columns axis, rows axis) of a plane; rows = first remaining axis."""
-    roi = result.mesh.roi
-    a, b = [k for k in range(3) if k != normal]
-    return [roi[b].start - 0.5, roi[b].stop - 0.5, roi[a].start - 0.5, roi[a].stop - 0.5], AXES[a], AXES[b]
-
-
-def _panel(fig, ax, img, extent, title, xlabel, ylabel, cbar, **kw):
-    im = ax.imshow(img, origin="lower", extent=extent, interpolation="nearest", **kw)
-    ax.set_title(title, fontsize=10)
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel(ylabel)
-    fig.colorbar(im, ax=ax, shrink=0.8, label=cbar)
-    return im
+# --------------------------------------------------------------------------- cuts
 
 
 def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
@@ -113,16 +69,17 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
     dict of str to str
         Figure name -> path.
     """
-    from .export import interpolation_of, level_refs
+    from .resultscans import interpolation_of, level_refs
     from .scheduler import open_runner
 
-    result = _as_results(result)[0]
+    result = as_results(result)[0]
     out_dir = Path(out_dir)
     interpolation = interpolation or interpolation_of(result)
     planes = mid_planes(result)
-    lab = _level_label(result)
+    lab = level_label(result)
     paths, residuals = {}, {}
-    with level_refs(result, ref, deformed) as (f_ref, g_ref), open_runner(scheduler) as runner:
+    # the runner first: with a cluster, missing levels are then written to scratch by its workers
+    with open_runner(scheduler) as runner, level_refs(result, ref, deformed) as (f_ref, g_ref):
         for normal in (2, 1, 0):
             name = AXES[normal]
             idx = planes[name]
@@ -131,31 +88,31 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
             residuals[name] = (cut["prepared"] - c, cut["prepared"])
             finite = np.concatenate([v[np.isfinite(v)] for v in (f, g, c)])
             vmin, vmax = np.percentile(finite, [0.5, 99.5]) if finite.size else (0, 1)
-            extent, row_ax, col_ax = _extent(result, normal)
-            fig = _figure(13, 4.4)
+            extent, row_ax, col_ax = plane_extent(result, normal)
+            fig = figure(13, 4.4)
             axs = fig.subplots(1, 3)
             for ax, img, title in zip(axs, (f, g, c), ("(a) reference f", "(b) deformed g",
                                                        "(c) corrected λ g(X + u(X)) + μ")):
-                _panel(fig, ax, img, extent, title, f"{col_ax} ({lab})", f"{row_ax} ({lab})",
-                       "grey level", cmap="gray", vmin=vmin, vmax=vmax)
+                panel(fig, ax, img, extent, title, f"{col_ax} ({lab})", f"{row_ax} ({lab})",
+                      "grey level", cmap="gray", vmin=vmin, vmax=vmax)
             fig.suptitle(f"Mid-plane cut normal to {name}, {name} = {idx} ({lab}); ℓ = {result.info['element_size']}")
             path = out_dir / f"cut_{name}.png"
             fig.savefig(path)
             paths[f"cut_{name}"] = str(path)
             if progress:
                 progress(f"wrote {path}")
-    fig = _figure(13, 4.4)
+    fig = figure(13, 4.4)
     axs = fig.subplots(1, 3)
     lim = max([np.nanpercentile(np.abs(r), 99.5) for r, _ in residuals.values() if np.isfinite(r).any()] or [1.0])
     for ax, normal in zip(axs, (2, 1, 0)):
         name = AXES[normal]
         r, f = residuals[name]
-        extent, row_ax, col_ax = _extent(result, normal)
+        extent, row_ax, col_ax = plane_extent(result, normal)
         rng = float(np.nanmax(f) - np.nanmin(f)) or 1.0
         gap = float(np.sqrt(np.nanmean(r**2)) / rng) if np.isfinite(r).any() else float("nan")
-        _panel(fig, ax, r, extent, f"normal to {name}, {name} = {planes[name]}; gap {100 * gap:.2f} %",
-               f"{col_ax} ({lab})", f"{row_ax} ({lab})", "f − corrected (grey level)",
-               cmap="RdBu_r", vmin=-lim, vmax=lim)
+        panel(fig, ax, r, extent, f"normal to {name}, {name} = {planes[name]}; gap {100 * gap:.2f} %",
+              f"{col_ax} ({lab})", f"{row_ax} ({lab})", "f − corrected (grey level)",
+              cmap="RdBu_r", vmin=-lim, vmax=lim)
     fig.suptitle(f"Residual f − (λ g(X + u(X)) + μ), scans low-passed as correlated, on the ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
     path = out_dir / "residual.png"
     fig.savefig(path)
@@ -192,7 +149,7 @@ def plot_uncertainty_map(results, path, *, x: int | None = None) -> str:
 
     Returns ``path``; results without an uncertainty are shown as empty panels.
     """
-    results = _as_results(results)
+    results = as_results(results)
     x = _x_plane(results) if x is None else int(x)
     maps = []
     for res in results:
@@ -204,17 +161,17 @@ def plot_uncertainty_map(results, path, *, x: int | None = None) -> str:
     finite = [m[np.isfinite(m)] for m in maps if m is not None]
     vmax = max([float(v.max()) for v in finite if v.size] or [1.0])
     rows, cols = _grid(len(results))
-    fig = _figure(5.2 * cols, 4.4 * rows)
+    fig = figure(5.2 * cols, 4.4 * rows)
     axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     for ax, res, m in zip(axs, results, maps):
-        extent, _, _ = _extent(res, 2)
-        lab = _level_label(res)
+        extent, _, _ = plane_extent(res, 2)
+        lab = level_label(res)
         if m is None:
             ax.set_title(f"ℓ = {res.info['element_size']}: no uncertainty in this result", fontsize=10)
             ax.set_axis_off()
             continue
-        _panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
-               f"σ_U ({lab})", cmap="magma", vmin=0.0, vmax=vmax)
+        panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
+              f"σ_U ({lab})", cmap="magma", vmin=0.0, vmax=vmax)
     for ax in axs[len(results):]:
         ax.set_visible(False)
     fig.suptitle(f"Per-node displacement uncertainty σ_U on the plane x = {x}")
@@ -239,19 +196,19 @@ def plot_uz_maps(results, path, *, x: int | None = None) -> str:
     str
         ``path``.
     """
-    results = _as_results(results)
+    results = as_results(results)
     x = _x_plane(results) if x is None else int(x)
     maps = [_x_plane_map(res, res.displacement, x)[0] for res in results]
     vmin = min(float(np.nanmin(m)) for m in maps)
     vmax = max(float(np.nanmax(m)) for m in maps)
     rows, cols = _grid(len(results))
-    fig = _figure(5.2 * cols, 4.4 * rows)
+    fig = figure(5.2 * cols, 4.4 * rows)
     axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     for ax, res, m in zip(axs, results, maps):
-        extent, row_ax, col_ax = _extent(res, 2)
-        lab = _level_label(res)
-        _panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
-               f"Uz ({lab})", cmap="viridis", vmin=vmin, vmax=vmax)
+        extent, row_ax, col_ax = plane_extent(res, 2)
+        lab = level_label(res)
+        panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
+              f"Uz ({lab})", cmap="viridis", vmin=vmin, vmax=vmax)
     for ax in axs[len(results):]:
         ax.set_visible(False)
     fig.suptitle(f"Uz on the plane x = {x}")
@@ -296,7 +253,7 @@ def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5) -
     """
     from scipy.interpolate import RegularGridInterpolator
 
-    results = _as_results(results)
+    results = as_results(results)
     x = _x_plane(results) if x is None else int(x)
     maps = []
     for res in results:
@@ -312,10 +269,10 @@ def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5) -
         maps.append((img, [yy[0], yy[-1], zz[0], zz[-1]]))
     lim = max(float(np.abs(m).max()) for m, _ in maps) or 1e-6
     rows, cols = _grid(len(results))
-    fig = _figure(5.2 * cols, 4.4 * rows)
+    fig = figure(5.2 * cols, 4.4 * rows)
     axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
     for ax, res, (img, extent) in zip(axs, results, maps):
-        lab = _level_label(res)
+        lab = level_label(res)
         im = ax.imshow(img, origin="lower", extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim,
                        interpolation="bilinear")
         ax.set_title(f"ℓ = {res.info['element_size']}", fontsize=10)
@@ -335,8 +292,8 @@ def plot_gap(results, path) -> str:
     Rigid-translation steps come first (open markers), then Gauss-Newton iterations
     (filled markers), level by level from the coarsest.
     """
-    results = _as_results(results)
-    fig = _figure(7.5, 4.5)
+    results = as_results(results)
+    fig = figure(7.5, 4.5)
     ax = fig.subplots()
     for res in results:
         h = res.history
@@ -369,7 +326,7 @@ def plot_uncertainty(report, path) -> str:
     """
     rows = report.rows
     ell = np.array([r["element_size"] for r in rows], float)
-    fig = _figure(6.5, 4.8)
+    fig = figure(6.5, 4.8)
     ax = fig.subplots()
     for key, mark, lab in (("std_z", "v", "σ(Uz)"), ("std_y", "^", "σ(Uy)"), ("std_x", "s", "σ(Ux)")):
         ax.loglog(ell, [max(r[key], 1e-12) for r in rows], mark, ms=4, alpha=0.5, label=lab)
@@ -422,11 +379,11 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     dict of str to str
         Figure name -> PNG path.
     """
-    from .export import input_paths, input_scans, interpolation_of
+    from .resultscans import input_paths, input_scans, interpolation_of
     from .inputs import check_displacement
     from .outputs import Outputs
 
-    results = _as_results(results)
+    results = as_results(results)
     for res in results:
         check_displacement(res.displacement, res.path, res.flags)
     if interpolation not in (None, "cubic", "linear"):

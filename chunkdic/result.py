@@ -231,7 +231,7 @@ class Result:
 
         keys = ("element_size", "level", "scale", "status", "converged", "initial_gap", "final_gap",
                 "voxel_size", "unit")
-        attrs = {k: _jsonable(self.info[k]) for k in keys if self.info.get(k) is not None}
+        attrs = {k: jsonable(self.info[k]) for k in keys if self.info.get(k) is not None}
         if "converged" in attrs:
             attrs["converged"] = int(bool(attrs["converged"]))  # netCDF has no booleans
         attrs["chunkdic_version"] = self.info.get("chunkdic_version") or __version__
@@ -261,7 +261,7 @@ class Result:
         entry = plan.add(path, "result")
         with plan:
             root = zarr.open_group(str(entry.work), mode="w", zarr_format=3)
-            root.attrs["chunkdic"] = {**_jsonable(self.info), "kind": "result", "complete": False}
+            root.attrs["chunkdic"] = {**jsonable(self.info), "kind": "result", "complete": False}
             for name, arr in self._arrays().items():
                 dtype = np.uint8 if name in ("flags", "active") else np.float64
                 root.create_array(name, data=np.ascontiguousarray(arr, dtype=dtype),
@@ -270,7 +270,7 @@ class Result:
             for name in HISTORY_FIELDS:
                 hist.create_array(name, data=np.asarray(self.history[name]), dimension_names=HISTORY_LAYOUT[name][0],
                                   attributes=self._var_attrs(name, HISTORY_LAYOUT))
-            root.attrs["chunkdic"] = {**_jsonable(self.info), "kind": "result", "complete": True}
+            root.attrs["chunkdic"] = {**jsonable(self.info), "kind": "result", "complete": True}
         self.path = str(path)
 
 
@@ -337,11 +337,11 @@ def _check_consistent(path, info, u, X, history) -> None:
         raise InputError(f"result {path}: history arrays of different lengths {lengths}: a damaged result")
 
 
-def _jsonable(obj):
+def jsonable(obj):
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, np.ndarray):

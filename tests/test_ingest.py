@@ -11,7 +11,8 @@ import tifffile
 
 from chunkdic import _cli_scan
 from chunkdic.errors import InputError
-from chunkdic.formats import _natural_key, _slab_chunks, ingest
+from chunkdic.formats import ingest, slab_chunks
+from chunkdic.openers import natural_key
 
 SHAPE = (13, 17, 19)
 
@@ -31,8 +32,8 @@ def _roundtrip(scan, expected, voxel_size=None, unit=None):
 
 def test_natural_sort():
     names = ["slice_10.tif", "slice_2.tif", "slice_1.tif", "Slice_100.tif", "slice_11.tif"]
-    assert sorted(names, key=_natural_key) == ["slice_1.tif", "slice_2.tif", "slice_10.tif", "slice_11.tif",
-                                               "Slice_100.tif"]
+    assert sorted(names, key=natural_key) == ["slice_1.tif", "slice_2.tif", "slice_10.tif", "slice_11.tif",
+                                              "Slice_100.tif"]
 
 
 def test_tiff_folder(tmp_path, vol16):
@@ -82,23 +83,23 @@ def test_3d_tiff_compressed_pages(tmp_path, vol16):
 def test_tiled_volumetric_tiff_reads_only_the_tiles_a_slab_needs(tmp_path, vol16, monkeypatch):
     """One compressed volumetric page of 3-D tiles: read through tifffile's chunked store;
     a slab decodes the tiles it overlaps (counted), never the whole series."""
-    import chunkdic.formats as formats
+    from chunkdic.openers import open_tiff_file
 
     tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(4, 16, 16), volumetric=True, compression="zlib")
     monkeypatch.setattr(tifffile.TiffPageSeries, "asarray", lambda *a, **k: pytest.fail("whole series read"))
-    reader = formats._open_tiff_file(tmp_path / "v.tif")[0]
+    reader = open_tiff_file(tmp_path / "v.tif")[0]
     np.testing.assert_array_equal(reader[(slice(2, 9), slice(0, 17), slice(3, 19))], vol16[2:9, :, 3:])
     _roundtrip(ingest(tmp_path / "v.tif", tmp_path / "o.zarr", chunks=8), vol16)
 
 
 def test_compressed_tiff_stored_as_one_block_is_refused_when_large(tmp_path, vol16, monkeypatch):
-    import chunkdic.formats as formats
+    import chunkdic.openers as openers
 
     # one zlib tile holding every slice of a (13, 17, 19) volume: fine while small...
     tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(16, 32, 32), volumetric=True, compression="zlib")
     _roundtrip(ingest(tmp_path / "v.tif", tmp_path / "o.zarr", chunks=8), vol16)
     # ...refused, with a hint, above the limit
-    monkeypatch.setattr(formats, "WHOLE_VOLUME_TIFF_LIMIT", 1000)
+    monkeypatch.setattr(openers, "WHOLE_VOLUME_TIFF_LIMIT", 1000)
     with pytest.raises(InputError, match="one block .* every slab would decode the whole file"):
         ingest(tmp_path / "v.tif", tmp_path / "o2.zarr", chunks=8)
     assert not (tmp_path / "o2.zarr").exists()
@@ -142,10 +143,10 @@ def test_npy_and_zarr(tmp_path, vol16):
 
 def test_slab_chunks_bounded():
     # whole Zarr chunks, whole planes when they fit the budget (32 MiB), else bands
-    assert _slab_chunks((1000, 512, 512), np.uint8, (128, 128, 128)) == (128, 512, 512)
+    assert slab_chunks((1000, 512, 512), np.uint8, (128, 128, 128)) == (128, 512, 512)
     for shape, dtype in [((1000, 1024, 1024), np.uint8), ((900, 2048, 2048), np.uint16),
                          ((500, 4096, 4096), np.uint16)]:
-        cz, cy, cx = _slab_chunks(shape, dtype, (128, 128, 128))
+        cz, cy, cx = slab_chunks(shape, dtype, (128, 128, 128))
         assert cz == 128 and cy % 128 == 0 and (cx % 128 == 0 or cx == shape[2])
         assert cz * cy * cx * np.dtype(dtype).itemsize <= 32 * 2**20
 

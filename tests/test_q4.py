@@ -11,7 +11,8 @@ import chunkdic
 from chunkdic import foam, synthetic
 from chunkdic.cli import main
 from chunkdic.crosscheck import correlation_length
-from chunkdic.q4 import Mesh2D, correlate2d, read_image
+from chunkdic.q4 import correlate2d
+from chunkdic.q4mesh import Mesh2D, read_image
 
 from textures import fourier_shift, smooth_noise
 
@@ -148,8 +149,8 @@ def test_cutcheck_flags_a_wrong_field(synthetic_result):
     res = chunkdic.open_result(d / "wrong.zarr")
     from chunkdic import correction
     from chunkdic.crosscheck import check_cut
-    from chunkdic.export import level_refs
-    from chunkdic.report import mid_planes
+    from chunkdic.figures import mid_planes
+    from chunkdic.resultscans import level_refs
     from chunkdic.scheduler import open_runner
 
     with level_refs(res) as (f, g), open_runner(None) as runner:

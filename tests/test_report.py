@@ -11,7 +11,8 @@ import pytest
 import chunkdic
 from chunkdic import _cli_report, synthetic
 from chunkdic.errors import InputError
-from chunkdic.export import VTK_HEX_ORDER, hexahedra, open_corrected, write_corrected
+from chunkdic.corrected import open_corrected, write_corrected
+from chunkdic.export import VTK_HEX_ORDER, hexahedra
 from chunkdic.report import plot_epszz_maps, plot_uz_maps, report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
