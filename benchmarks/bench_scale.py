@@ -223,9 +223,9 @@ def _stage_line(row: dict) -> str:
 
 
 def _print_event(event: dict) -> None:
-    from chunkdic.cli import _format_event
+    from chunkdic._cli_common import format_event
 
-    line = _format_event(event)
+    line = format_event(event)
     if line:
         print("   " + line, flush=True)
 

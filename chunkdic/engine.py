@@ -116,7 +116,7 @@ def correlate(
     >>> round(float(res.displacement[0].mean()), 3), res.info["status"]
     (1.0, 'converged')
     """
-    settings = _settings(settings, options)
+    settings = settings_from(settings, options)
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
     init_result = None if init is None else open_init(init, f_scan.shape(0))
     # with a start field, no coarse level is needed to find the large displacements (chunkdic.initial)
@@ -135,10 +135,10 @@ def correlate(
     if output is not None:  # every output rule (chunkdic.outputs), nothing written yet
         plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
         entry = plan.add(output, "result", resumable=True)
-    identities = {role: _identify(src, scan) for role, src, scan in
+    identities = {role: identify_input(src, scan) for role, src, scan in
                   (("reference", ref, f_scan), ("deformed", deformed, g_scan))}
     if mask is not None:
-        identities["mask"] = _identify(mask, mask_scan)
+        identities["mask"] = identify_input(mask, mask_scan)
     described = {"settings": settings.to_json(), "roi": parse_roi(roi),
                  "inputs": [identities["reference"], identities["deformed"]], "mask": identities.get("mask")}
     init_id = None
@@ -205,7 +205,8 @@ def _start_output(plan: Outputs, entry, run_print: str, identities: dict):
     return Checkpoint.start(entry.final, run_print, identities=identities)
 
 
-def _settings(settings: Settings | None, options: dict) -> Settings:
+def settings_from(settings: Settings | None, options: dict) -> Settings:
+    """``settings`` (default ``Settings()``) with the keyword ``options`` of a call applied, checked."""
     unknown = set(options) - set(Settings.names())
     if unknown:
         raise TypeError(f"correlate() got unexpected keyword arguments {sorted(unknown)}")
@@ -461,7 +462,7 @@ def run_one(runner, fn, args):
     return next(iter(runner.map_unordered(fn, [args])))
 
 
-def _identify(src, scan) -> dict:
+def identify_input(src, scan) -> dict:
     """What identifies an input for resuming: path, shape, dtype and a cheap content
     identity of every stored level (:func:`chunkdic.integrity.content_identity`: chunk
     list, sizes, times and a fixed sample of chunk bytes, never the scan). In-memory

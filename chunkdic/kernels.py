@@ -102,10 +102,10 @@ def compiled_on_disk() -> bool:
     """
     import os
 
-    from .kernels_b import _b_kernel
-    from .kernels_m import _m_kernel
+    from .kernels_b import b_kernel
+    from .kernels_m import m_kernel
 
     try:
-        return all(os.path.exists(d._cache._cache_file._index_path) for d in (_b_kernel, _m_kernel))
+        return all(os.path.exists(d._cache._cache_file._index_path) for d in (b_kernel, m_kernel))
     except Exception:  # noqa: BLE001 - numba internals changed: assume cached
         return True

@@ -72,7 +72,7 @@ def _symmetrize(G):
 
 
 @jit
-def _b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
+def b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
               scx, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n2, vm_lo, cubic, center, active):
     """One fused sweep: ``g(X + u)``, ``d``, ``g'`` and the per-element sums (ElementSums).
 
@@ -304,7 +304,7 @@ def b_sums(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g:
         return kernels_numpy.b_sums_numpy(f32, lo, hi, ell, st.u_nodes, st.core_origin, st.gw, st.g_origin,
                                           st.g_shape, interpolation, float(center), int(margin), active)
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
-    B, gram, lags, nbad = _b_kernel(f32, lo[0], lo[1], lo[2], ell, *st.elems, *idx[0], *idx[1], *idx[2],
+    B, gram, lags, nbad = b_kernel(f32, lo[0], lo[1], lo[2], ell, *st.elems, *idx[0], *idx[1], *idx[2],
                              voxel_xi(ell), st.u_nodes, *st.core_origin, st.gw, *st.g_origin, *st.g_shape,
                              float(margin), interpolation == "cubic", float(center), active)
     return ElementSums(B, gram, int(nbad), lags)

@@ -26,7 +26,7 @@ _SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]], dtype=np.int64)
 
 
 @jit
-def _m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
+def m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
               scx, psi, xi, center, u, c0, c1, c2, n0, n1, n2, vm_lo, masked, active):
     """Element tensor moments T, element brightness couplings C and moments K; min / max.
 
@@ -290,7 +290,7 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
     xi = voxel_xi(ell)
     psi = np.stack([(1.0 - xi) ** 2, xi * (1.0 - xi), xi**2])  # psi_p, p = d_a + d_b
-    T, C, K, lags, fmin, fmax = _m_kernel(f32, lo[0], lo[1], lo[2], ell, *elems, *idx[0], *idx[1], *idx[2],
+    T, C, K, lags, fmin, fmax = m_kernel(f32, lo[0], lo[1], lo[2], ell, *elems, *idx[0], *idx[1], *idx[2],
                                           psi, xi, float(center), u, *origin, *shape, float(margin), masked,
                                           active)
     if with_lags:

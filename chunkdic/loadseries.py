@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from .checkpoint import fingerprint
-from .engine import _identify, _settings, correlate
+from .engine import correlate, identify_input, settings_from
 from .errors import InputError
 from .initial import filled
 from .outputs import Outputs, inside
@@ -160,7 +160,7 @@ def series(
     >>> s = chunkdic.series(["s0.zarr", "s1.zarr", "s2.zarr"], "series.zarr", element_size=8)  # doctest: +SKIP
     >>> print(s.table())  # doctest: +SKIP
     """
-    settings = _settings(settings, options)
+    settings = settings_from(settings, options)
     if mode not in MODES:
         raise InputError(f"series mode must be one of {', '.join(MODES)}, got {mode!r}")
     scans = list(scans)
@@ -184,9 +184,9 @@ def series(
     check_scheduler(scheduler)
     plan = Outputs(inputs=(*scans, mask), overwrite=overwrite)
     entry = plan.add(output, "series", resumable=True)
-    identities = [_identify(s, sc) for s, sc in zip(scans, opened)]
+    identities = [identify_input(s, sc) for s, sc in zip(scans, opened)]
     series_print = fingerprint({"scans": identities, "settings": settings.to_json(), "roi": parse_roi(roi),
-                                "mode": mode, "mask": None if mask is None else _identify(mask, open_scan(mask))})
+                                "mode": mode, "mask": None if mask is None else identify_input(mask, open_scan(mask))})
     out = Path(output)
     with OutputLock(out):
         fresh = entry.state != "resume"
@@ -238,9 +238,9 @@ def _one_cluster(scheduler):
     if not (isinstance(scheduler, str) and scheduler.startswith("local")):
         yield scheduler
         return
-    from .scheduler import _local_workers, start_local_cluster
+    from .scheduler import local_workers, start_local_cluster
 
-    client, cluster = start_local_cluster(_local_workers(scheduler))
+    client, cluster = start_local_cluster(local_workers(scheduler))
     try:
         yield client
     finally:

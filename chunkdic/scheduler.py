@@ -152,7 +152,8 @@ def start_local_cluster(n_workers: int | None = None, threads_per_worker: int = 
     return Client(cluster), cluster
 
 
-def _local_workers(scheduler: str) -> int | None:
+def local_workers(scheduler: str) -> int | None:
+    """The worker count of a ``"local:N"`` scheduler string (None without ``:N``)."""
     _, _, n = scheduler.partition(":")
     if not n:
         return None
@@ -213,7 +214,7 @@ def check_scheduler(scheduler) -> None:
     if scheduler is None or scheduler == "threads" or not isinstance(scheduler, str):
         return
     if scheduler.startswith("local"):
-        _local_workers(scheduler)
+        local_workers(scheduler)
         return
     if "://" not in scheduler:
         raise InputError(
@@ -250,7 +251,7 @@ def open_runner(scheduler=None):
     if scheduler is None or scheduler == "threads":
         runner = ThreadRunner()
     elif isinstance(scheduler, str) and scheduler.startswith("local"):
-        client, cluster = start_local_cluster(_local_workers(scheduler))
+        client, cluster = start_local_cluster(local_workers(scheduler))
         runner = DistributedRunner(client, cluster)
     elif isinstance(scheduler, str):
         from distributed import Client
