@@ -18,11 +18,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+import uuid
 from pathlib import Path
 
 import numpy as np
 
 from .errors import InputError
+from .integrity import content_identity
 
 
 def fingerprint(description: dict) -> str:
@@ -113,3 +115,15 @@ class Checkpoint:
         attrs["checkpoint"] = {**state, "slot": slot, "array_names": sorted(arrays)}
         root.attrs["chunkdic"] = attrs
         self.saved = True
+
+
+def identify_input(src, scan) -> dict:
+    """What identifies an input for resuming: path, shape, dtype and a cheap content
+    identity of every stored level (:func:`chunkdic.integrity.content_identity`: chunk
+    list, sizes, times and a fixed sample of chunk bytes, never the scan). In-memory
+    inputs never match (no resume)."""
+    if isinstance(src, (str, Path)):
+        content = {str(s): content_identity(r.kind, r.path, r.key) for s, r in sorted(scan.stored_refs().items())}
+        return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0)),
+                "content": content}
+    return {"in-memory": uuid.uuid4().hex}

@@ -23,12 +23,11 @@ from pathlib import Path
 import numpy as np
 
 from . import config, kernels
-from .checkpoint import Checkpoint, fingerprint
+from .checkpoint import Checkpoint, fingerprint, identify_input
 from .errors import InputError
 from .gauss_newton import History, State, iterate, rigid_step
 from .level import Level, emit
 from .initial import init_identity, open_init, start_field
-from .integrity import content_identity
 from .mesh import transfer
 from .outputs import Outputs
 from .ownership import OutputLock, make_scratch
@@ -37,7 +36,7 @@ from .prefilter import face_margin
 from .masks import check_mask_shape, prepare_mask
 from .noise import nodal_uncertainty
 from .regchoice import choose_length
-from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result
+from .result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from .rigid import translation_task
 from .scheduler import check_scheduler, open_runner
 from .settings import Settings
@@ -358,26 +357,6 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                   active=active, uncertainty=sigma_u)
 
 
-def node_flags(mesh, elements: np.ndarray | None, weak_nodes, masked: np.ndarray | None = None) -> np.ndarray:
-    """Per-node flags (:data:`chunkdic.result.FLAG_NO_DATA`, ``FLAG_WEAK``, ``FLAG_MASKED``), shape (nz, ny, nx) uint8.
-
-    A node has no data when the elements around it together hold fewer valid voxels (voxels
-    whose ``X + u(X)`` falls inside ``g``) than ``chunkdic.min-node-support`` of one element:
-    its value would be extrapolated by its neighbours, not measured.
-    """
-    flags = np.zeros(mesh.nodes_shape, np.uint8)
-    if elements is not None:
-        valid = np.pad(elements[2], 1)
-        support = sum(valid[dz:dz + flags.shape[0], dy:dy + flags.shape[1], dx:dx + flags.shape[2]]
-                      for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
-        flags[support < config.get("min-node-support") * mesh.element_size**3] |= FLAG_NO_DATA
-    for n in weak_nodes:
-        flags[tuple(n)] |= FLAG_WEAK
-    if masked is not None:
-        flags[masked] = FLAG_MASKED
-    return flags
-
-
 def _brightness_summary(model: str, elements: np.ndarray | None) -> dict:
     out = {"model": model}
     if elements is not None:
@@ -460,18 +439,6 @@ def _uniform(t, mesh) -> np.ndarray:
 def run_one(runner, fn, args):
     """Run one task on the runner and return its result."""
     return next(iter(runner.map_unordered(fn, [args])))
-
-
-def identify_input(src, scan) -> dict:
-    """What identifies an input for resuming: path, shape, dtype and a cheap content
-    identity of every stored level (:func:`chunkdic.integrity.content_identity`: chunk
-    list, sizes, times and a fixed sample of chunk bytes, never the scan). In-memory
-    inputs never match (no resume)."""
-    if isinstance(src, (str, Path)):
-        content = {str(s): content_identity(r.kind, r.path, r.key) for s, r in sorted(scan.stored_refs().items())}
-        return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0)),
-                "content": content}
-    return {"in-memory": uuid.uuid4().hex}
 
 
 def _describe(src) -> str:

@@ -44,8 +44,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .checkpoint import fingerprint
-from .engine import correlate, identify_input, settings_from
+from .checkpoint import fingerprint, identify_input
+from .engine import correlate, settings_from
 from .errors import InputError
 from .initial import filled
 from .outputs import Outputs, inside

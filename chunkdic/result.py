@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import config
 from .errors import InputError
 from .mesh import Mesh
 
@@ -349,3 +350,23 @@ def jsonable(obj):
     if isinstance(obj, float) and not np.isfinite(obj):
         return None
     return obj
+
+
+def node_flags(mesh, elements: np.ndarray | None, weak_nodes, masked: np.ndarray | None = None) -> np.ndarray:
+    """Per-node flags (:data:`chunkdic.result.FLAG_NO_DATA`, ``FLAG_WEAK``, ``FLAG_MASKED``), shape (nz, ny, nx) uint8.
+
+    A node has no data when the elements around it together hold fewer valid voxels (voxels
+    whose ``X + u(X)`` falls inside ``g``) than ``chunkdic.min-node-support`` of one element:
+    its value would be extrapolated by its neighbours, not measured.
+    """
+    flags = np.zeros(mesh.nodes_shape, np.uint8)
+    if elements is not None:
+        valid = np.pad(elements[2], 1)
+        support = sum(valid[dz:dz + flags.shape[0], dy:dy + flags.shape[1], dx:dx + flags.shape[2]]
+                      for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
+        flags[support < config.get("min-node-support") * mesh.element_size**3] |= FLAG_NO_DATA
+    for n in weak_nodes:
+        flags[tuple(n)] |= FLAG_WEAK
+    if masked is not None:
+        flags[masked] = FLAG_MASKED
+    return flags
