@@ -36,6 +36,7 @@ _EXPORTS = {
     "fit_power_law": "metrology",
     "score_displacement": "scoring",
     "write_corrected": "corrected",
+    "write_fields": "fields_export",
     "write_vtk": "export",
 }
 
@@ -82,6 +83,7 @@ __all__ = [
     "sweep",
     "uncertainty",
     "write_corrected",
+    "write_fields",
     "write_scan",
     "write_vtk",
     "zoi_table",

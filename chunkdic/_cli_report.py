@@ -103,22 +103,26 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_report)
 
     p = subparsers.add_parser(
-        "export", help="VTK mesh (ParaView), node CSV, corrected image and residual volumes",
+        "export", help="VTK mesh (ParaView), node CSV, corrected image and residual volumes, fields for viewers",
         description="--vtk: C8 mesh as VTK hexahedra with nodal displacement and element strains (a .vtu "
                     "also holds element size, level, voxel size, unit, gap, status and version as field "
                     "data); --csv: one line per node under one header line (pandas.read_csv reads it), "
                     "metadata in NODES.csv.json; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as "
-                    "Zarr arrays.")
+                    "Zarr arrays; --fields: Uz, Uy, Ux, |U|, eps_zz, equivalent strain and residual as one "
+                    "OME-NGFF multiscale image on the scan's level-0 grid (napari, neuroglancer).")
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
     p.add_argument("--corrected", metavar="OUT.zarr", help="Zarr group with arrays corrected and residual")
+    p.add_argument("--fields", metavar="OUT.zarr",
+                   help="OME-NGFF image (channels Uz, Uy, Ux, |U|, eps_zz, eps_eq, residual) on the scan's grid")
     p.add_argument("--units", choices=("voxels", "physical"), default="voxels",
-                   help="coordinates of --vtk/--csv: voxels of the result's level (default) or physical")
-    p.add_argument("--ref", help="reference scan for --corrected (default: recorded path)")
-    p.add_argument("--deformed", help="deformed scan for --corrected (default: recorded path)")
+                   help="coordinates of --vtk/--csv (voxels of the result's level) and displacement of --fields "
+                        "(level-0 voxels): voxels (default) or physical")
+    p.add_argument("--ref", help="reference scan for --corrected/--fields (default: recorded path)")
+    p.add_argument("--deformed", help="deformed scan for --corrected/--fields (default: recorded path)")
     p.add_argument("--scheduler", default=None,
-                   help="where --corrected is computed: threads (default), local[:N], or tcp://host:port")
+                   help="where --corrected/--fields are computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--overwrite", action="store_true", help="replace outputs that an earlier export wrote")
     p.set_defaults(func=run_export)
 
@@ -283,13 +287,13 @@ def run_export(args: argparse.Namespace) -> int:
     from .result import open_result
     from .scheduler import check_scheduler
 
-    if not (args.vtk or args.csv or args.corrected):
-        raise InputError("nothing to export: give --vtk, --csv and/or --corrected")
+    if not (args.vtk or args.csv or args.corrected or args.fields):
+        raise InputError("nothing to export: give --vtk, --csv, --corrected and/or --fields")
     res = open_result(args.result)
     check_displacement(res.displacement, res.path, res.flags)
     if args.units == "physical" and not res.info.get("voxel_size"):
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
-    if args.corrected:
+    if args.corrected or args.fields:
         resultscans.input_scans(res, args.ref, args.deformed)
         check_scheduler(args.scheduler)
     # every output checked (and every input) before the first is written; all or nothing
@@ -297,11 +301,11 @@ def run_export(args: argparse.Namespace) -> int:
     entries = {name: plan.add(path, kind) for name, path, kind in
                (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
                 ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
-                ("corrected", args.corrected, "corrected"))
+                ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"))
                if path}
     with plan:
         _export(res, args, {k: e.work for k, e in entries.items()})
-    for name in ("vtk", "csv", "corrected"):
+    for name in ("vtk", "csv", "corrected", "fields"):
         if name in entries:
             print(getattr(args, name))
     return 0
@@ -333,3 +337,23 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
                               scheduler=args.scheduler, progress=progress)
         _err(f"{args.corrected}: corrected and residual, gap {100 * out['gap']:.3f}% over {out['valid']} voxels "
              f"({out['excluded']} excluded)")
+    if args.fields:
+        _export_fields(res, args, work["fields"])
+
+
+def _export_fields(res, args: argparse.Namespace, work) -> None:
+    """``export --fields``: the fields image into the staged path ``work``, with progress lines."""
+    from .fields_export import CHANNELS, write_fields
+
+    t0 = time.perf_counter()
+    last = {}
+
+    def progress(stage, f):
+        if f >= 1 or f - last.get(stage, 0.0) >= 0.1:
+            last[stage] = f
+            _err(f"  {stage}: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
+
+    out = write_fields(res, work, ref=args.ref, deformed=args.deformed, units=args.units,
+                       scheduler=args.scheduler, progress=progress)
+    _err(f"{args.fields}: {', '.join(CHANNELS)} on {len(out['levels'])} levels "
+         f"({'x'.join(map(str, out['levels'][0]))} voxels at level 0, {out['voxels']} in the ROI)")

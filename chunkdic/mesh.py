@@ -154,6 +154,55 @@ class Mesh:
             out += w * u[:, idx[0] + dz, idx[1] + dy, idx[2] + dx]
         return out
 
+    def element_index(self, axis: int, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Element index along ``axis`` of ``positions`` and their local coordinate in it.
+
+        Parameters
+        ----------
+        axis : int
+            0, 1, 2 for ``z, y, x``.
+        positions : ndarray, shape (n,), float64, voxels of this level
+
+        Returns
+        -------
+        k : ndarray, shape (n,), int64
+            Element index, clipped to ``0 … shape[axis] - 1`` (outside points take the
+            nearest element, as in :meth:`evaluate`).
+        frac : ndarray, shape (n,), float64
+            ``(position - node k) / ell`` (in ``[0, 1]`` inside the mesh).
+        """
+        t = (np.asarray(positions, np.float64) - (self.origin[axis] - 0.5)) / self.element_size
+        k = np.clip(np.floor(t), 0, self.shape[axis] - 1).astype(np.int64)
+        return k, t - k
+
+    def evaluate_grid(self, u: np.ndarray, axes) -> np.ndarray:
+        """Evaluate the C8 field on the grid ``axes[0] × axes[1] × axes[2]`` (separably).
+
+        Same values as :meth:`evaluate` on the meshgrid of ``axes``, but the trilinear
+        interpolation is done one axis at a time (x, then y, then z), so the cost is that
+        of three 1-D interpolations and no index array of the grid's size is built.
+
+        Parameters
+        ----------
+        u : ndarray, shape (3, nz+1, ny+1, nx+1), float64, voxels
+            Nodal displacement.
+        axes : sequence of 3 ndarray, shapes (gz,), (gy,), (gx,), float64
+            Grid positions along ``z, y, x``, voxels of this level.
+
+        Returns
+        -------
+        ndarray, shape (3, gz, gy, gx), float64
+        """
+        out = np.asarray(u, np.float64)
+        for axis in (2, 1, 0):
+            k, frac = self.element_index(axis, axes[axis])
+            shape = [1] * 4
+            shape[axis + 1] = -1
+            frac = frac.reshape(shape)
+            out = (np.take(out, k, axis=axis + 1) * (1.0 - frac)
+                   + np.take(out, k + 1, axis=axis + 1) * frac)
+        return out
+
 
 def level_to_level(coords: np.ndarray, from_level: int, to_level: int) -> np.ndarray:
     """Convert positions between pyramid levels (DESIGN.md half-voxel offset).

@@ -66,3 +66,14 @@ def test_transfer_of_an_affine_field_is_exact():
 
     u1 = field_at_level(coarse, 1)
     np.testing.assert_allclose(transfer(u1, coarse, 1, fine, 0), field_at_level(fine, 0), atol=1e-12)
+
+
+def test_evaluate_grid_equals_pointwise_evaluation():
+    """The separable grid evaluation (fields export) equals Mesh.evaluate on the meshgrid,
+    inside the mesh and in its linear extension outside."""
+    rng = np.random.default_rng(0)
+    mesh = Mesh((3, 2, 5), 4, (2, 3, 2))
+    u = rng.normal(size=(3, *mesh.nodes_shape))
+    axes = [np.linspace(o - 3.0, o + n * 4 + 2.0, 11) for o, n in zip(mesh.origin, mesh.shape)]
+    pts = np.stack(np.meshgrid(*axes, indexing="ij"))
+    assert np.allclose(mesh.evaluate_grid(u, axes), mesh.evaluate(u, pts), atol=1e-12)
