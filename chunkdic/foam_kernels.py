@@ -13,17 +13,16 @@ import math
 import numpy as np
 from numba import njit
 
+# the hash streams are boolean.py's (splitmix64): one implementation for both specimens
+from .boolean import hash3, mix64
+from .boolean import stream_key as channel_key
+
 __all__ = ["CH_ACQ_DEF", "CH_ACQ_REF", "CH_BEAD", "CH_CELL", "CH_NOISE", "FWHM_R", "NPRM", "add_gaussian_noise",
            "channel_key", "texture_grid", "texture_points"]
 
 # --------------------------------------------------------------------------- hashing
 
-_M1 = np.uint64(0xBF58476D1CE4E5B9)
-_M2 = np.uint64(0x94D049BB133111EB)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
-_S30 = np.uint64(30)
-_S27 = np.uint64(27)
-_S31 = np.uint64(31)
 _S43 = np.uint64(43)
 _S22 = np.uint64(22)
 _S1 = np.uint64(1)
@@ -36,37 +35,6 @@ _INV53 = 1.0 / (1 << 53)
 CH_CELL, CH_BEAD, CH_NOISE, CH_ACQ_REF, CH_ACQ_DEF = 1, 2, 3, 4, 5
 _JITTER = 0.8  # feature points within the central 80 % of their lattice cell
 FWHM_R = 2.0 * math.sqrt(1.0 - 0.5 ** 0.25)  # FWHM / R of the profile (1 - d^2/R^2)^4
-
-
-@njit(nogil=True, cache=True)
-def _mix(h):
-    # splitmix64 finaliser
-    h = h ^ (h >> _S30)
-    h = h * _M1
-    h = h ^ (h >> _S27)
-    h = h * _M2
-    h = h ^ (h >> _S31)
-    return h
-
-
-@njit(nogil=True, cache=True)
-def _hash3(i, j, k, key):
-    h = _mix(key ^ np.uint64(i))
-    h = _mix(h ^ np.uint64(j))
-    return _mix(h ^ np.uint64(k))
-
-
-def channel_key(seed: int, channel: int) -> np.uint64:
-    """64-bit key of one hash stream (NumPy twin of the kernel arithmetic)."""
-    mask = (1 << 64) - 1
-    h = ((int(seed) & mask) * 0x9E3779B97F4A7C15 + channel * 0xD1B54A32D192ED03) & mask
-    for _ in range(2):  # splitmix64 finaliser, twice
-        h ^= h >> 30
-        h = (h * 0xBF58476D1CE4E5B9) & mask
-        h ^= h >> 27
-        h = (h * 0x94D049BB133111EB) & mask
-        h ^= h >> 31
-    return np.uint64(h)
 
 
 # --------------------------------------------------------------------------- kernels
@@ -90,7 +58,7 @@ def _min_value(work, n):
 
 @njit(nogil=True, cache=True, inline="always")
 def _feature(fc, fh, n, i, j, k, key, jit):
-    h = _hash3(i, j, k, key)
+    h = hash3(i, j, k, key)
     fz = np.float64((h >> _S43) & _MASK21) * _INV21
     fy = np.float64((h >> _S22) & _MASK21) * _INV21
     fx = np.float64((h >> _S1) & _MASK21) * _INV21
@@ -217,14 +185,14 @@ def _value_noise(qz, qy, qx, key, vc, ckey):
         if ckey[3] == 1 and ckey[0] == iz and ckey[1] == iy and ckey[2] + 1 == ix:
             for m in range(4):  # shift along x: reuse 4 of the 8 corners
                 vc[2 * m] = vc[2 * m + 1]
-                h = _hash3(iz + m // 2, iy + m % 2, ix + 1, key)
+                h = hash3(iz + m // 2, iy + m % 2, ix + 1, key)
                 vc[2 * m + 1] = np.float64(h >> _S11) * _INV53 * 2.0 - 1.0
         else:
             n = 0
             for dz in range(2):
                 for dy in range(2):
                     for dx in range(2):
-                        h = _hash3(iz + dz, iy + dy, ix + dx, key)
+                        h = hash3(iz + dz, iy + dy, ix + dx, key)
                         vc[n] = np.float64(h >> _S11) * _INV53 * 2.0 - 1.0
                         n += 1
         ckey[0] = iz
@@ -246,7 +214,7 @@ def _value_noise(qz, qy, qx, key, vc, ckey):
 @njit(nogil=True, cache=True)
 def _unit(h, m):
     # a second float in [0, 1) derived from a feature hash
-    return np.float64(_mix(h ^ m) >> _S11) * _INV53
+    return np.float64(mix64(h ^ m) >> _S11) * _INV53
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -331,8 +299,8 @@ def add_gaussian_noise(out, o0, o1, o2, key, std):
     for i in range(nz):
         for j in range(ny):
             for k in range(nx):
-                h = _hash3(o0 + i, o1 + j, o2 + k, key)
+                h = hash3(o0 + i, o1 + j, o2 + k, key)
                 u1 = (np.float64(h >> _S11) + 0.5) * _INV53
-                u2 = np.float64(_mix(h ^ _GOLD) >> _S11) * _INV53
+                u2 = np.float64(mix64(h ^ _GOLD) >> _S11) * _INV53
                 g = math.sqrt(-2.0 * math.log(u1)) * math.cos(2.0 * math.pi * u2)
                 out[i, j, k] += std * g
