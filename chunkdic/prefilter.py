@@ -39,8 +39,9 @@ from .handles import ArrayRef
 
 #: chunk edge of the prepared store: small, so a block's window reads little extra
 CHUNK = 64
-#: edge of the region one preparation task computes (a multiple of CHUNK: whole chunks)
-TASK_EDGE = 128
+#: largest edge of the region one preparation task computes; the box is split into equal
+#: parts no longer than this (multiples of CHUNK when the store is Zarr: whole chunks)
+TASK_EDGE = 160
 #: the Gaussian low-pass is truncated at this many standard deviations
 TRUNCATE = 4.0
 
@@ -146,6 +147,19 @@ def prepare_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int, sigma: 
     return int(np.prod([r.stop - r.start for r in region]))
 
 
+def task_edge(extent: int, unit: int) -> int:
+    """Edge of the preparation tasks along an axis of ``extent`` voxels: equal parts of at
+    most :data:`TASK_EDGE`, rounded up to a multiple of ``unit``.
+
+    Each task reads ``prepared_halo`` (16 voxels at σ = 1, cubic) more per side, so small
+    remainder tasks are costly: a 316-voxel axis cut 128 + 128 + 60 filtered 1.30× its
+    voxels per axis (2.2× in 3-D); cut 158 + 158, 1.20× (1.73×).
+    """
+    parts = max(1, -(-int(extent) // TASK_EDGE))
+    edge = -(-int(extent) // parts)
+    return -(-edge // unit) * unit
+
+
 def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, local: bool, sigma: float = 0.0,
                    interpolation: str = "cubic") -> PreparedImage:
     """Prepare ``box`` of ``g`` into a new float32 array at ``path``.
@@ -170,9 +184,10 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
         zarr.create_array(str(path), shape=shape, chunks=(CHUNK,) * 3, dtype="float32",
                           compressors=None, zarr_format=3, overwrite=True)
         out = ArrayRef("zarr", str(path), "", shape, "float32")
-    starts = [range(a, b, TASK_EDGE) for a, b in box]
+    edges = [task_edge(b - a, 1 if local else CHUNK) for a, b in box]
+    starts = [range(a, b, e) for (a, b), e in zip(box, edges)]
     regions = [
-        tuple(slice(s, min(s + TASK_EDGE, b)) for s, (_, b) in zip(corner, box))
+        tuple(slice(s, min(s + e, b)) for s, e, (_, b) in zip(corner, edges, box))
         for corner in ((z, y, x) for z in starts[0] for y in starts[1] for x in starts[2])
     ]
     args = [(g_ref, out, box, r, halo, float(sigma), interpolation) for r in regions]
