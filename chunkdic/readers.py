@@ -53,6 +53,14 @@ class Reader:
 
 
 class RawReader(Reader):
+    """Rows of a raw volume read with ``os.preadv`` into one buffer per slab.
+
+    Not ``np.memmap``: a mapping kept by a worker counts every page it touched in the
+    process's RSS, which Dask's nanny watches (the ``.npy`` reads of
+    :class:`chunkdic.handles.ArrayRef` reached 4.3 GiB at 1024³ that way); explicit reads
+    hold a worker to its slab.
+    """
+
     def __init__(self, path: str, shape, dtype: np.dtype, offset: int):
         self.path, self.shape, self.file_dtype, self.offset = path, tuple(shape), np.dtype(dtype), int(offset)
         self.dtype = self.file_dtype.newbyteorder("=")
