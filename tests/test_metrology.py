@@ -128,11 +128,13 @@ def test_sweep_table(affine_pair, uncertainty_dir, tmp_path):
                          uncertainty_from=uncertainty_dir)
     rows = out["rows"]
     assert [r["element_size"] for r in rows] == [16, 8]
+    with open(uncertainty_dir / "uncertainty.csv", newline="") as fh:  # what `uncertainty` measured per ell
+        measured = {int(r["element_size"]): float(r["delta_eps"]) for r in csv.DictReader(fh)}
     for r in rows:
         assert r["status"] == "converged"
         assert r["eps_zz"] == pytest.approx(-0.01, abs=1.5e-3)
         assert r["volume_change"] == pytest.approx(-0.006, abs=2e-3)  # -1 % along z, +0.4 % along x
-        assert r["delta_eps"] is not None and r["delta_eps"] >= 0
+        assert r["delta_eps"] == pytest.approx(measured[r["element_size"]], rel=1e-12) and r["delta_eps"] > 0
         assert r["mean_ux"] == pytest.approx(0.2, abs=0.05)
     md = (tmp_path / "sweep" / "zoi_table.md").read_text()
     assert "⟨Uz⟩" in md and "δε" in md and md.count("\n| ") >= 3
