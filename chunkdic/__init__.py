@@ -18,6 +18,7 @@ _EXPORTS = {
     "Scan": "volume",
     "Settings": "engine",
     "build_pyramid": "pyramid",
+    "write_display": "display",
     "correlate": "engine",
     "correlate2d": "q4",
     "series": "loadseries",
@@ -60,6 +61,7 @@ __version__ = "0.1.0"
 __all__ = [
     "ArrayRef",
     "build_pyramid",
+    "write_display",
     "correlate",
     "correlate2d",
     "cutcheck",

@@ -113,7 +113,7 @@ def register(subparsers) -> None:
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
-    p.add_argument("--corrected", metavar="OUT.zarr", help="Zarr group with arrays corrected and residual")
+    p.add_argument("--corrected", metavar="OUT.zarr", help="OME-NGFF image (channels corrected, residual) on the scan's grid at the result's level")
     p.add_argument("--fields", metavar="OUT.zarr",
                    help="OME-NGFF image (channels Uz, Uy, Ux, |U|, eps_zz, eps_eq, residual) on the scan's grid")
     p.add_argument("--units", choices=("voxels", "physical"), default="voxels",

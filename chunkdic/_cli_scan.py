@@ -44,6 +44,9 @@ def register(subparsers) -> None:
     q.add_argument("scan", metavar="SCAN.zarr")
     q.add_argument("--levels", type=int, required=True, metavar="N")
     q.add_argument("--overwrite", action="store_true", help="rebuild levels that are already complete")
+    q.add_argument("--display", action="store_true",
+                   help="also write SCAN.zarr/display: levels 1..N as means (sums / 8^s) for viewers, "
+                        "one contrast window for every level (default: off)")
     q.add_argument("--scheduler", default=None, help=SCHEDULER_HELP + "; its workers must see SCAN.zarr")
     q.set_defaults(func=run_pyramid)
 
@@ -131,6 +134,11 @@ def run_pyramid(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite,
                              progress=_Printer("pyramid", header=header))
+        if args.display:
+            from .display import write_display
+
+            shown = write_display(args.scan)
+            _err(f"{args.scan}/display: levels {shown} as means (sums / 8^s), one contrast window")
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "pyramid from level 0 of")
     return 0
 

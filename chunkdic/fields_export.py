@@ -39,10 +39,9 @@ import numpy as np
 
 from . import config
 from .errors import InputError
-from .fields_levels import CHANNELS, coarsen_task, contrast_windows, field_levels, ngff_attrs, scan_frame
+from .fields_levels import CHANNELS, build_mean_levels, contrast_windows, field_levels, image_name, ngff_attrs, scan_frame
 from .mesh import Block, Mesh
 from .outputs import Outputs
-from .ownership import final_name
 from .result import Result
 
 log = logging.getLogger(__name__)
@@ -354,37 +353,18 @@ def _write(result: Result, work: Path, out: Path, ref, deformed, residual: bool,
             voxels += n
             if progress is not None:
                 progress("fields", done / len(args))
-        for t in range(1, len(shapes)):
-            cs = tuple(min(c, n) for n in shapes[t])
-            regions = [((z, min(z + cs[0], shapes[t][0])), (y, min(y + cs[1], shapes[t][1])),
-                        (x, min(x + cs[2], shapes[t][2])))
-                       for z in range(0, shapes[t][0], cs[0]) for y in range(0, shapes[t][1], cs[1])
-                       for x in range(0, shapes[t][2], cs[2])]
-            # one task per chunk and channel: a level of a few chunks still keeps every core busy
-            tasks = [(str(work), t, r, ch) for r in regions for ch in range(len(CHANNELS))]
-            for done, _ in enumerate(runner.map_unordered(coarsen_task, tasks), 1):
-                if progress is not None:
-                    progress(f"level {t}", done / len(tasks))
+        build_mean_levels(runner, str(work), shapes, len(CHANNELS), c, progress)
     coarsest = np.asarray(zarr.open_array(store=str(work), path=str(len(shapes) - 1), mode="r")[...])
     windows = contrast_windows(coarsest)
     scale0, shift0, unit = frame
     meta.update(complete=True, voxels=voxels)
     root = zarr.open_group(str(work), mode="r+")
-    root.update_attributes({"chunkdic": meta, "ome": ngff_attrs(_store_name(work), scale0, shift0, unit,
+    root.update_attributes({"chunkdic": meta, "ome": ngff_attrs(image_name(work), scale0, shift0, unit,
                                                                  len(shapes), windows, disp_unit)})
     seconds = time.perf_counter() - t0
     log.info("fields written to %s (%d levels, %.1f s)", out, len(shapes), seconds)
     return {"path": str(out), "levels": shapes, "voxels": voxels,
             "windows": dict(zip(CHANNELS, windows)), "seconds": seconds}
-
-
-def _store_name(work: Path) -> str:
-    """The name the image will have once in place: the CLI stages all its outputs and
-    calls :func:`write_fields` on its staged path, which stages again (two partial tags)."""
-    name, prev = Path(work).name, None
-    while name != prev:
-        name, prev = final_name(name), name
-    return name
 
 
 def open_fields(path):

@@ -1,13 +1,19 @@
-"""The pyramid and OME-NGFF metadata of a fields image (:mod:`chunkdic.fields_export`).
+"""The pyramid and OME-NGFF metadata of the float images chunkdic writes for viewers.
 
-Coarser levels are NaN-aware 2×2×2 means written one chunk of one channel per task;
-the metadata places level 0 on the reference scan's grid (same scale, unit, origin) and
-gives each channel a contrast window from the coarsest level.
+Used by the fields image (:mod:`chunkdic.fields_export`) and the corrected image
+(:mod:`chunkdic.corrected`): coarser levels are NaN-aware 2×2×2 means written one chunk
+of one channel per task (:func:`build_mean_levels`); the metadata places level 0 on the
+reference scan's grid (same scale, unit, origin) and gives each channel a contrast window
+from the coarsest level.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
+
+from .ownership import final_name
 
 #: channel labels of the image, in order (``|U|`` is the displacement's norm)
 CHANNELS = ("Uz", "Uy", "Ux", "|U|", "eps_zz", "eps_eq", "residual")
@@ -44,6 +50,25 @@ def coarsen_task(out: str, level: int, region, channel: int) -> None:
         with np.errstate(invalid="ignore", divide="ignore"):
             result[a - z0:b - z0] = total / count
     dest[channel, z0:z1, y0:y1, x0:x1] = result
+
+
+def build_mean_levels(runner, out: str, shapes, n_channels: int, chunk: int, progress=None) -> None:
+    """Fill levels ``1..k`` of the image ``out`` (arrays ``"1"``…, created beforehand with
+    chunks ``(1, chunk, chunk, chunk)``), level by level, with :func:`coarsen_task`.
+
+    One task per chunk and channel, so that a level of a few chunks still keeps every core
+    busy; ``progress(stage, fraction)`` with stage ``"level t"``.
+    """
+    for t in range(1, len(shapes)):
+        cs = tuple(min(chunk, n) for n in shapes[t])
+        regions = [((z, min(z + cs[0], shapes[t][0])), (y, min(y + cs[1], shapes[t][1])),
+                    (x, min(x + cs[2], shapes[t][2])))
+                   for z in range(0, shapes[t][0], cs[0]) for y in range(0, shapes[t][1], cs[1])
+                   for x in range(0, shapes[t][2], cs[2])]
+        tasks = [(str(out), t, r, ch) for r in regions for ch in range(n_channels)]
+        for done, _ in enumerate(runner.map_unordered(coarsen_task, tasks), 1):
+            if progress is not None:
+                progress(f"level {t}", done / len(tasks))
 
 
 def field_levels(shape0, levels: int | None = None) -> list[tuple[int, int, int]]:
@@ -86,38 +111,62 @@ def scan_frame(scan, info: dict) -> tuple[list[float], list[float], str | None]:
     return ([float(v) for v in vs] if vs else [1.0] * 3), [0.0] * 3, (unit if vs else None)
 
 
-def ngff_attrs(name: str, scale0, shift0, unit, n_levels: int, windows, disp_unit: str) -> dict:
-    """OME-NGFF 0.5 ``ome`` attributes of the fields image: axes ``c, z, y, x``, level
-    ``t`` at scale ``scale0 * 2^t`` and translation ``shift0 + scale0 (2^t - 1) / 2`` (the
-    scan's own pyramid frame), ``omero`` channels with their contrast windows."""
+def level_frame(scale0, shift0, level: int) -> tuple[list[float], list[float]]:
+    """Scale and translation of pyramid level ``level`` of a grid whose level 0 has
+    ``scale0``, ``shift0``: ``scale0 * 2^s`` and ``shift0 + scale0 (2^s - 1) / 2``
+    (the voxel-centre offset of shared/DESIGN.md)."""
+    f = 2**int(level)
+    return [v * f for v in scale0], [o + v * (f - 1) / 2 for o, v in zip(shift0, scale0)]
+
+
+def image_attrs(name: str, scale0, shift0, unit, n_levels: int, channels, windows, description: str,
+                method: str = "chunkdic.fields_levels.coarsen_task") -> dict:
+    """OME-NGFF 0.5 ``ome`` attributes of a float image for viewers: axes ``c, z, y, x``,
+    level ``t`` at scale ``scale0 * 2^t`` and translation ``shift0 + scale0 (2^t - 1) / 2``
+    (:func:`level_frame`: the scan's own pyramid frame), ``omero`` channels labelled
+    ``channels`` with their contrast windows ``(start, end, min, max)``; the first one active."""
     axes = [{"name": "c", "type": "channel"}]
     axes += [{"name": a, "type": "space", **({"unit": unit} if unit else {})} for a in "zyx"]
     datasets = []
     for t in range(n_levels):
-        f = 2**t
+        scale, shift = level_frame(scale0, shift0, t)
         datasets.append({"path": str(t), "coordinateTransformations": [
-            {"type": "scale", "scale": [1.0] + [v * f for v in scale0]},
-            {"type": "translation", "translation": [0.0] + [o + v * (f - 1) / 2 for o, v in zip(shift0, scale0)]},
+            {"type": "scale", "scale": [1.0] + scale},
+            {"type": "translation", "translation": [0.0] + shift},
         ]})
-    channels = []
-    for i, (label, (lo, hi, vmin, vmax)) in enumerate(zip(CHANNELS, windows)):
-        channels.append({"label": label, "active": i == 0, "color": "FFFFFF", "coefficient": 1.0,
-                         "family": "linear", "inverted": False,
-                         "window": {"start": lo, "end": hi, "min": vmin, "max": vmax}})
+    omero = []
+    for i, (label, (lo, hi, vmin, vmax)) in enumerate(zip(channels, windows)):
+        omero.append({"label": label, "active": i == 0, "color": "FFFFFF", "coefficient": 1.0,
+                      "family": "linear", "inverted": False,
+                      "window": {"start": lo, "end": hi, "min": vmin, "max": vmax}})
     return {
         "version": "0.5",
         "multiscales": [{
             "name": name, "axes": axes, "datasets": datasets, "type": "mean",
-            "metadata": {
-                "description": f"channels {', '.join(CHANNELS)}: displacement ({disp_unit}), its norm, eps_zz and "
-                               "the von Mises equivalent strain (per element, dimensionless), residual f - "
-                               "corrected g (grey levels of the result's level); NaN outside the ROI. Level t is "
-                               "the NaN-aware mean over 2^t voxels per axis of level 0",
-                "method": "chunkdic.fields_levels.coarsen_task",
-            },
+            "metadata": {"description": description, "method": method},
         }],
-        "omero": {"name": name, "channels": channels, "rdefs": {"model": "greyscale", "defaultZ": 0}},
+        "omero": {"name": name, "channels": omero, "rdefs": {"model": "greyscale", "defaultZ": 0}},
     }
+
+
+def ngff_attrs(name: str, scale0, shift0, unit, n_levels: int, windows, disp_unit: str) -> dict:
+    """:func:`image_attrs` of the fields image (channels :data:`CHANNELS`)."""
+    return image_attrs(
+        name, scale0, shift0, unit, n_levels, CHANNELS, windows,
+        f"channels {', '.join(CHANNELS)}: displacement ({disp_unit}), its norm, eps_zz and "
+        "the von Mises equivalent strain (per element, dimensionless), residual f - "
+        "corrected g (grey levels of the result's level); NaN outside the ROI. Level t is "
+        "the NaN-aware mean over 2^t voxels per axis of level 0")
+
+
+def image_name(work) -> str:
+    """The name an image staged at ``work`` will have once in place: the CLI stages all
+    its outputs and calls the writer on its staged path, which stages again (two partial
+    tags)."""
+    name, prev = Path(work).name, None
+    while name != prev:
+        name, prev = final_name(name), name
+    return name
 
 
 def contrast_windows(coarsest: np.ndarray) -> list[tuple[float, float, float, float]]:

@@ -123,6 +123,11 @@ def update_group_metadata(path: str) -> None:
     attrs = {"chunkdic": info}
     if levels:
         attrs["ome"] = _ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(path))
+        if info.get("display_window") and len(levels) > 1:
+            from .display import omero
+
+            # the level-0 window (chunkdic.display): what a viewer uses on every level
+            attrs["ome"]["omero"] = omero(info["display_window"])
     else:
         attrs["ome"] = {"version": "0.5"}
     g.update_attributes(attrs)

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .coarsen import coarsen_sum, pyramid_dtype
+from .display import DISPLAY_GROUP, store_window
 from .errors import InputError
 from .ngff import update_group_metadata
 from .outputs import check_writable
@@ -42,12 +43,16 @@ def build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None
     todo_from = next((s for s in range(1, levels + 1) if rebuild or s not in stored), None)
     if todo_from is None:
         log.info("%s: levels 1..%d already complete", path, levels)
+        if not (zarr.open_group(store=path, mode="r").attrs.get("chunkdic") or {}).get("display_window"):
+            store_window(path)
         return scan
     g = zarr.open_group(store=path, mode="r+")
     # Levels at or above the first rebuilt one were built from data that is being replaced
     # (or were interrupted): drop them all before writing anything.
     for name in [k for k in g.array_keys() if k.isdigit() and int(k) >= todo_from]:
         del g[name]
+    if DISPLAY_GROUP in g:  # means of the levels being replaced
+        del g[DISPLAY_GROUP]
     update_group_metadata(path)
     chunk0 = tuple(g["0"].chunks)
     if cuts is None:
@@ -72,6 +77,7 @@ def build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None
             raise
         update_group_metadata(path)
         log.info("%s: level %d %s %s built in %.1f s", path, s, data.shape, data.dtype, time.perf_counter() - t0)
+    store_window(path)  # the level-0 contrast window of the scan's omero metadata
     forget_open_arrays()
     return open_scan(path)
 

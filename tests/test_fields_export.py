@@ -191,3 +191,65 @@ def test_cli_export_fields_and_refusals(affine, tmp_path, capsys):
     assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"] and (mine / "notes.txt").read_text() == "mine"
     assert not (d / "result.zarr" / "f.zarr").exists()
     assert not [p for p in tmp_path.iterdir() if "partial" in p.name]
+
+
+def _frames(node):
+    return [{x["type"]: x[x["type"]] for x in t} for t in node.metadata["coordinateTransformations"]]
+
+
+def test_corrected_is_an_image_on_the_scan_grid(affine, tmp_path):
+    """``export --corrected``: an OME-NGFF image on the scan's grid whose channels are the
+    corrected image and residual of one whole-ROI block (independent of the chunking)
+    and whose residual is the fields image's."""
+    from chunkdic.correction import Correction, correct_block
+    from chunkdic.mesh import Block
+    from chunkdic.resultscans import level_refs
+
+    pair, res, d, _ = affine
+    with dask.config.set({"chunkdic.chunk-size": 16}):  # 27 tasks; the ROI [6, 42) cuts chunks
+        out = write_corrected(res, tmp_path / "c.zarr")
+    assert out["gap"] == pytest.approx(res.final_gap, rel=1e-3) and out["excluded"] == 0
+    node, scan = _read(tmp_path / "c.zarr"), _read(pair["reference"])
+    assert _frames(node) == [{"scale": [1.0] + f["scale"], "translation": [0.0] + f["translation"]}
+                             for f in _frames(scan)]
+    assert [a.get("unit") for a in node.metadata["axes"][1:]] == ["micrometer"] * 3
+    assert node.metadata["channel_names"] == ["corrected", "residual"]
+    vol = np.asarray(node.data[0])
+    inside = np.zeros((48,) * 3, bool)
+    inside[6:42, 6:42, 6:42] = True
+    assert vol.shape == (2, 48, 48, 48) and np.isfinite(vol[:, inside]).all() and np.isnan(vol[:, ~inside]).all()
+    # oracle: the whole ROI corrected as one block
+    with level_refs(res) as (f_ref, g_ref):
+        corr = Correction.of_result(res, f_ref, g_ref)
+        f, c, valid = correct_block(corr, Block(((0, 3),) * 3), res.displacement, res.brightness)
+    assert valid.all()
+    roi = (slice(6, 42),) * 3
+    assert np.abs(vol[0][roi] - c).max() < 1e-5 * np.abs(c).max()
+    assert np.abs(vol[1][roi] - (f - c)).max() < 1e-5 * np.abs(c).max()
+    fields = np.asarray(open_fields(d / "fields.zarr")[0][0][6])
+    assert np.abs(vol[1] - fields)[inside].max() < 1e-5 * np.abs(c).max()
+    # open_corrected: the ROI of level 0; level 1 the NaN-aware mean
+    corrected, residual, meta = open_corrected(tmp_path / "c.zarr")
+    assert np.array_equal(np.asarray(corrected), vol[0][roi]) and np.array_equal(np.asarray(residual), vol[1][roi])
+    assert meta["kind"] == "corrected" and meta["complete"] is True
+    blocks = vol.reshape(2, 24, 2, 24, 2, 24, 2)
+    with np.errstate(invalid="ignore"):
+        expect = np.nansum(blocks, axis=(2, 4, 6)) / np.isfinite(blocks).sum(axis=(2, 4, 6))
+    assert np.allclose(np.asarray(node.data[1]), expect, equal_nan=True, atol=1e-4)
+
+
+def test_corrected_of_a_level_1_result_lies_on_scan_level_1(affine, tmp_path):
+    pair, res, _, _ = affine
+    mesh = Mesh((3, 3, 3), 6, (3, 3, 3))  # level-1 ROI [3, 21)
+    nodes1 = mesh.node_coords()
+    info = {**res.info, "level": 1, "scale": 2, "element_size": 6, "roi": [[3, 21]] * 3}
+    fake = chunkdic.Result(_affine(2.0 * nodes1 + 0.5) / 2.0, nodes1, res.history, info)
+    write_corrected(fake, tmp_path / "c1.zarr")
+    node, scan = _read(tmp_path / "c1.zarr"), _read(pair["reference"])
+    frames = _frames(scan)[1:]  # the scan's levels 1 and 2
+    assert _frames(node)[:2] == [{"scale": [1.0] + f["scale"], "translation": [0.0] + f["translation"]}
+                                 for f in frames]
+    assert _frames(node)[0]["translation"][1:] == pytest.approx([VOXEL / 2] * 3)
+    vol = np.asarray(node.data[0])
+    assert vol.shape == (2, 24, 24, 24)
+    assert np.isfinite(vol[:, 3:21, 3:21, 3:21]).all() and np.isnan(vol[:, :3]).all() and np.isnan(vol[:, 21:]).all()

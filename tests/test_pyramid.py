@@ -138,3 +138,35 @@ def test_refusals(tmp_path, scan_path):
     with pytest.raises(InputError, match="ingest"):
         build_pyramid(tmp_path / "arr.zarr", 1)
     assert open_scan(str(p)).stored_levels() == [0]
+
+
+def test_level0_window_and_mean_display_pyramid(scan_path, capsys):
+    """Sum levels grow 8x per level: the scan's omero window is level 0's (from the coarsest
+    level / 8^k) and SCAN/display holds sums / 8^s, one window fitting every level."""
+    from ome_zarr.io import parse_url
+    from ome_zarr.reader import Reader
+
+    from chunkdic.cli import main
+
+    p, x = scan_path
+    assert main(["pyramid", str(p), "--levels", "2", "--display"]) == 0
+    capsys.readouterr()
+    means = block_sums(x, 2) / 64.0  # level-0 means over 4^3 cubes
+    lo, hi = np.percentile(means, [1, 99])
+    attrs = json.loads((p / "zarr.json").read_text())["attributes"]
+    window = attrs["ome"]["omero"]["channels"][0]["window"]
+    assert (window["start"], window["end"]) == pytest.approx((lo, hi))
+    assert (window["min"], window["max"]) == pytest.approx((means.min(), means.max()))
+    assert x.min() <= window["start"] < window["end"] <= x.max()  # a level-0 window, not a sum's
+    g = zarr.open_group(str(p / "display"), mode="r")
+    assert sorted(g.array_keys()) == ["1", "2"]
+    for s in (1, 2):
+        assert g[str(s)].dtype == np.float32
+        assert np.array_equal(g[str(s)][...], block_sums(x, s) / 8.0**s)  # exact
+    node = list(Reader(parse_url(str(p / "display")))())[0]
+    scan = list(Reader(parse_url(str(p)))())[0]
+    assert node.metadata["coordinateTransformations"] == scan.metadata["coordinateTransformations"][1:]
+    assert node.metadata["contrast_limits"] == [[window["start"], window["end"]]]
+    assert open_scan(p).stored_levels() == [0, 1, 2]  # the subgroup is not a level
+    build_pyramid(p, 2, overwrite=True)  # rebuilt sums: the stale display goes
+    assert not (p / "display").exists()
