@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .figures import DEFAULT_DPI, FORMATS
 
 
 def _err(msg: str) -> None:
@@ -88,9 +89,12 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_table)
 
     p = subparsers.add_parser(
-        "report", help="PNG figures of one or several results (cuts, Uz and eps_zz maps, residual, gap)",
-        description="Mid-plane cuts of reference/deformed/corrected images, residual, Uz and eps_zz maps on "
-                    "the mid-plane normal to x (one panel per result), gap per iteration (paper Figs. 6-10).")
+        "report", help="figures of one or several results (cuts, U and eps_zz maps, eps_zz(z) profile, residual, gap)",
+        description="Mid-plane cuts of reference/deformed/corrected images with f - g and f - corrected, "
+                    "residual, Uz/Uy/Ux and eps_zz maps on the mid-plane normal to x (one panel per result, "
+                    "one colour bar), the eps_zz(z) profile per element layer (with the truth for a synthetic "
+                    "pair; numbers in epszz_profile.csv), gap per iteration and level (paper Figs. 6-10). "
+                    "Axes in the scan's unit when it has a voxel size.")
     p.add_argument("results", metavar="RESULT.zarr", nargs="+")
     p.add_argument("-o", "--output", required=True, metavar="DIR", help="directory for the PNG files")
     p.add_argument("--ref", help="reference scan (default: the path recorded in the result)")
@@ -99,6 +103,12 @@ def register(subparsers) -> None:
                    help="interpolation of the deformed scan in the cuts (default: the result's)")
     p.add_argument("--scheduler", default=None,
                    help="where the cut planes are computed: threads (default), local[:N], or tcp://host:port")
+    p.add_argument("--cuts-from", metavar="RESULT.zarr", default=None,
+                   help="the result (one of those given) whose field the cut figures use (default: the first)")
+    p.add_argument("--format", dest="fmt", choices=FORMATS, default="png",
+                   help="file format of every figure (default png)")
+    p.add_argument("--dpi", type=int, default=DEFAULT_DPI,
+                   help=f"resolution of every figure, dots per inch (default {DEFAULT_DPI})")
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
     p.set_defaults(func=run_report)
 
@@ -274,7 +284,7 @@ def run_report(args: argparse.Namespace) -> int:
     check_scheduler(args.scheduler)
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
                    interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
-                   progress=_err)
+                   progress=_err, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi)
     for p in paths.values():
         print(p)
     return 0

@@ -1,20 +1,27 @@
-"""Figures of a correlation (paper section 5, Figs. 5-10): PNG files with colour bars and units.
+"""Figures of a correlation (paper section 5, Figs. 5-10), with colour bars and units.
 
 Every figure reads only what it shows: the cut planes are computed by worker tasks
 (:func:`chunkdic.correction.planes`, one element layer per task) and only 2-D planes and
 mesh-sized arrays reach the client. Figures are drawn with matplotlib's
 object-oriented API on an Agg canvas created inside each function (no ``pyplot``, no
-global backend switch, nothing at import).
+global backend switch, nothing at import). Every figure is written as PNG, PDF or SVG
+(``fmt``) at a chosen resolution (``dpi``); axes are in the scan's physical unit when the
+result carries a voxel size (:func:`chunkdic.figures.frame`), else in voxels of its level.
 
-- ``cut_x.png``, ``cut_y.png``, ``cut_z.png``: mid-plane cuts of the ROI normal to x, y, z;
-  reference, deformed and corrected side by side (Figs. 6-8);
-- ``residual.png``: the residual ``f - (λ g(X + u(X)) + μ)`` on the three mid-planes (the
+- ``cut_x``, ``cut_y``, ``cut_z``: mid-plane cuts of the ROI normal to x, y, z of one result
+  (``cuts_from``); top row reference, deformed and corrected (Figs. 6-8, one grey scale),
+  bottom row ``f − g`` (before correction) and ``f − corrected`` (one diverging scale);
+- ``residual``: the residual ``f - (λ g(X + u(X)) + μ)`` on the three mid-planes (the
   scans low-passed as correlated, the brightness found);
-- ``uz_map.png``: ``Uz`` on the mid-plane normal to x, one panel per result (Fig. 9);
-- ``epszz_map.png``: ``eps_zz`` on that plane, linearly interpolated between element
+- ``uz_map``, ``uy_map``, ``ux_map``: displacement components on the mid-plane normal to x,
+  one panel per result, common extent and colour bar, diverging map centred on 0 (Fig. 9;
+  :mod:`chunkdic.maps`);
+- ``epszz_map``: ``eps_zz`` on that plane, linearly interpolated between element
   centres (Fig. 10);
-- ``gap.png``: matching gap per iteration (section 5.1);
-- ``uncertainty_map.png``: the per-node displacement uncertainty on the mid-plane normal
+- ``epszz_profile`` (and ``epszz_profile.csv``): mean ``eps_zz`` per element layer along z,
+  one curve per result, with the truth for a synthetic pair (:mod:`chunkdic.profile`);
+- ``gap``: matching gap per iteration, one curve per result and level (section 5.1);
+- ``uncertainty_map``: the per-node displacement uncertainty on the mid-plane normal
   to x, one panel per result;
 - ``uncertainty.png`` (from :func:`chunkdic.metrology.uncertainty`): log-log ``sigma_U``
   versus element size with the power-law fit (Fig. 5).
@@ -23,6 +30,7 @@ global backend switch, nothing at import).
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -30,25 +38,28 @@ import numpy as np
 
 from . import correction
 from .errors import InputError
-from .figures import AXES, as_results, figure, level_label, mid_planes, panel, plane_extent
+from .figures import (AXES, FORMATS, as_results, common_frame, figure, frame, mid_planes, panel, plane_extent,
+                      save, shared_colorbar, symmetric_limit)
+from .maps import plot_epszz_maps, plot_u_maps, plot_uncertainty_map, plot_uz_maps
 from .result import Result
 
 log = logging.getLogger(__name__)
 
-__all__ = ["report", "plot_cuts", "plot_uz_maps", "plot_epszz_maps", "plot_gap", "plot_uncertainty",
-           "plot_uncertainty_map",
-           "mid_planes"]
+__all__ = ["report", "plot_cuts", "plot_u_maps", "plot_uz_maps", "plot_epszz_maps", "plot_epszz_profile",
+           "plot_gap", "gap_figure", "plot_uncertainty", "plot_uncertainty_map", "mid_planes"]
 
 
 # --------------------------------------------------------------------------- cuts
 
 
 def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
-              progress: Callable[[str], None] | None = None) -> dict[str, str]:
+              progress: Callable[[str], None] | None = None, fmt: str = "png",
+              dpi: int | None = None) -> dict[str, str]:
     """Mid-plane cuts of reference, deformed and corrected images, and the residual.
 
-    Writes ``cut_z.png``, ``cut_y.png``, ``cut_x.png`` (three panels each, shared grey scale,
-    paper Figs. 6-8) and ``residual.png`` (three panels) into ``out_dir``.
+    Writes ``cut_z``, ``cut_y``, ``cut_x`` (paper Figs. 6-8: reference, deformed and
+    corrected on one grey scale; below, ``f − g`` before correction and ``f − corrected``
+    on one diverging scale) and ``residual`` (three panels) into ``out_dir``.
 
     Parameters
     ----------
@@ -63,6 +74,8 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
         receives the three planes (:func:`chunkdic.correction.planes`).
     progress : callable(str), optional
         Called with a message per figure.
+    fmt : {"png", "pdf", "svg"}
+    dpi : int, optional
 
     Returns
     -------
@@ -76,7 +89,8 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
     out_dir = Path(out_dir)
     interpolation = interpolation or interpolation_of(result)
     planes = mid_planes(result)
-    lab = level_label(result)
+    fr = frame(result)
+    lab = fr.unit
     paths, residuals = {}, {}
     # the runner first: with a cluster, missing levels are then written to scratch by its workers
     with open_runner(scheduler) as runner, level_refs(result, ref, deformed) as (f_ref, g_ref):
@@ -86,236 +100,172 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
             cut = correction.planes(result, f_ref, g_ref, normal, idx, runner, interpolation=interpolation)
             f, g, c = cut["reference"], cut["deformed"], cut["corrected"]
             residuals[name] = (cut["prepared"] - c, cut["prepared"])
-            finite = np.concatenate([v[np.isfinite(v)] for v in (f, g, c)])
-            vmin, vmax = np.percentile(finite, [0.5, 99.5]) if finite.size else (0, 1)
-            extent, row_ax, col_ax = plane_extent(result, normal)
-            fig = figure(13, 4.4)
-            axs = fig.subplots(1, 3)
-            for ax, img, title in zip(axs, (f, g, c), ("(a) reference f", "(b) deformed g",
-                                                       "(c) corrected λ g(X + u(X)) + μ")):
-                panel(fig, ax, img, extent, title, f"{col_ax} ({lab})", f"{row_ax} ({lab})",
-                      "grey level", cmap="gray", vmin=vmin, vmax=vmax)
-            fig.suptitle(f"Mid-plane cut normal to {name}, {name} = {idx} ({lab}); ℓ = {result.info['element_size']}")
-            path = out_dir / f"cut_{name}.png"
-            fig.savefig(path)
-            paths[f"cut_{name}"] = str(path)
+            paths[f"cut_{name}"] = _cut_figure(result, normal, idx, cut, fr, out_dir / f"cut_{name}.{fmt}", dpi)
             if progress:
-                progress(f"wrote {path}")
+                progress(f"wrote {paths[f'cut_{name}']}")
     fig = figure(13, 4.4)
     axs = fig.subplots(1, 3)
     lim = max([np.nanpercentile(np.abs(r), 99.5) for r, _ in residuals.values() if np.isfinite(r).any()] or [1.0])
     for ax, normal in zip(axs, (2, 1, 0)):
         name = AXES[normal]
         r, f = residuals[name]
-        extent, row_ax, col_ax = plane_extent(result, normal)
+        extent, row_ax, col_ax = plane_extent(result, normal, fr)
         rng = float(np.nanmax(f) - np.nanmin(f)) or 1.0
         gap = float(np.sqrt(np.nanmean(r**2)) / rng) if np.isfinite(r).any() else float("nan")
         panel(fig, ax, r, extent, f"normal to {name}, {name} = {planes[name]}; gap {100 * gap:.2f} %",
               f"{col_ax} ({lab})", f"{row_ax} ({lab})", "f − corrected (grey level)",
               cmap="RdBu_r", vmin=-lim, vmax=lim)
     fig.suptitle(f"Residual f − (λ g(X + u(X)) + μ), scans low-passed as correlated, on the ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
-    path = out_dir / "residual.png"
-    fig.savefig(path)
-    paths["residual"] = str(path)
+    paths["residual"] = save(fig, out_dir / f"residual.{fmt}", dpi)
     if progress:
-        progress(f"wrote {path}")
+        progress(f"wrote {paths['residual']}")
     return paths
 
 
-# --------------------------------------------------------------------------- maps
+def _cut_figure(result: Result, normal: int, idx: int, cut: dict, fr, path, dpi) -> str:
+    """One cut figure: f, g, corrected (grey) over f − g and f − corrected (diverging)."""
+    name = AXES[normal]
+    f, g, c = cut["reference"], cut["deformed"], cut["corrected"]
+    finite = np.concatenate([v[np.isfinite(v)] for v in (f, g, c)])
+    vmin, vmax = np.percentile(finite, [0.5, 99.5]) if finite.size else (0, 1)
+    # before correction the raw scans (what a user sees), after it the residual the engine
+    # minimised (low-passed reference as correlated); one scale so the drop is visible
+    diffs = (f - g, cut["prepared"] - c)
+    lim = symmetric_limit(diffs, 99.5)
+    extent, row_ax, col_ax = plane_extent(result, normal, fr)
+    xl, yl = f"{col_ax} ({fr.unit})", f"{row_ax} ({fr.unit})"
+    fig = figure(13.5, 8.4)
+    axs = fig.subplots(2, 3)
+    top = [panel(fig, ax, img, extent, title, xl, yl, None, cmap="gray", vmin=vmin, vmax=vmax)
+           for ax, img, title in zip(axs[0], (f, g, c), ("(a) reference f", "(b) deformed g",
+                                                          "(c) corrected λ g(X + u(X)) + μ"))]
+    shared_colorbar(fig, top[0], axs[0], "grey level")
+    bottom = [panel(fig, ax, img, extent, title, xl, yl, None, cmap="RdBu_r", vmin=-lim, vmax=lim)
+              for ax, img, title in zip(axs[1, :2], diffs, ("(d) f − g, before correction",
+                                                            "(e) f − corrected (residual, low-passed f)"))]
+    shared_colorbar(fig, bottom[0], axs[1, :2], "difference (grey level)")
+    axs[1, 2].set_visible(False)
+    fig.suptitle(f"Mid-plane cut normal to {name}, {name} = {idx} (voxel of level {result.info.get('level', 0)}); "
+                 f"ℓ = {result.info['element_size']}")
+    return save(fig, path, dpi)
 
 
-def _grid(n: int):
-    cols = min(n, 2 if n == 4 else 3)
-    return (n + cols - 1) // cols, cols
+# --------------------------------------------------------------------------- gap and ε_zz(z)
 
 
-def _x_plane(results: list[Result]) -> int:
-    """Mid-plane normal to x of the first result (the paper's x = 100 voxels)."""
-    return mid_planes(results[0])["x"]
+def _percent(v, _pos=None) -> str:
+    """A tick label in plain percent: ``0.5 %``, ``2 %`` (no ``1e-2`` offsets)."""
+    return f"{v:.4g} %"
 
 
-def _x_plane_map(res: Result, nodal: np.ndarray, x: int) -> np.ndarray:
-    """A nodal field (k, nz, ny, nx) on the ROI plane normal to x, C8-interpolated: (k, Lz, Ly)."""
-    roi = res.mesh.roi
-    zz, yy = np.meshgrid(np.arange(roi[0].start, roi[0].stop, dtype=float),
-                         np.arange(roi[1].start, roi[1].stop, dtype=float), indexing="ij")
-    return res.mesh.evaluate(nodal, np.stack([zz, yy, np.full_like(zz, x)]))
+def gap_figure(results):
+    """The matching-gap figure (section 5.1): one curve per result and pyramid level.
 
-
-def plot_uncertainty_map(results, path, *, x: int | None = None) -> str:
-    """Per-node standard uncertainty ``σ_U`` (pooled over the three components) on the plane
-    normal to x, one panel per result (``Result.uncertainty``; docs/engine.md).
-
-    Returns ``path``; results without an uncertainty are shown as empty panels.
-    """
-    results = as_results(results)
-    x = _x_plane(results) if x is None else int(x)
-    maps = []
-    for res in results:
-        if res.uncertainty is None:
-            maps.append(None)
-            continue
-        pooled = np.sqrt(np.mean(res.uncertainty**2, axis=0))[None]
-        maps.append(_x_plane_map(res, pooled, x)[0])
-    finite = [m[np.isfinite(m)] for m in maps if m is not None]
-    vmax = max([float(v.max()) for v in finite if v.size] or [1.0])
-    rows, cols = _grid(len(results))
-    fig = figure(5.2 * cols, 4.4 * rows)
-    axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
-    for ax, res, m in zip(axs, results, maps):
-        extent, _, _ = plane_extent(res, 2)
-        lab = level_label(res)
-        if m is None:
-            ax.set_title(f"ℓ = {res.info['element_size']}: no uncertainty in this result", fontsize=10)
-            ax.set_axis_off()
-            continue
-        panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
-              f"σ_U ({lab})", cmap="magma", vmin=0.0, vmax=vmax)
-    for ax in axs[len(results):]:
-        ax.set_visible(False)
-    fig.suptitle(f"Per-node displacement uncertainty σ_U on the plane x = {x}")
-    fig.savefig(path)
-    return str(path)
-
-
-def plot_uz_maps(results, path, *, x: int | None = None) -> str:
-    """``Uz`` on the plane normal to x, one panel per result (paper Fig. 9).
-
-    Parameters
-    ----------
-    results : Result, path or sequence of them
-        Results of the same pair (e.g. several element sizes), same level.
-    path : path
-        PNG file.
-    x : int, optional
-        Plane index, voxels of the level (default: mid-plane of the first result's ROI).
+    Each level's iterations form one labelled curve ("level s (ℓ = …)"), from the
+    coarsest; the rigid-translation steps that open a level are drawn as black open squares
+    (one legend entry), the Gauss-Newton iterations as filled dots. The y axis is
+    logarithmic with plain percent ticks.
 
     Returns
     -------
-    str
-        ``path``.
+    matplotlib.figure.Figure
+        Not yet written (:func:`plot_gap` saves it); its legend labels are the curves'.
     """
-    results = as_results(results)
-    x = _x_plane(results) if x is None else int(x)
-    maps = [_x_plane_map(res, res.displacement, x)[0] for res in results]
-    vmin = min(float(np.nanmin(m)) for m in maps)
-    vmax = max(float(np.nanmax(m)) for m in maps)
-    rows, cols = _grid(len(results))
-    fig = figure(5.2 * cols, 4.4 * rows)
-    axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
-    for ax, res, m in zip(axs, results, maps):
-        extent, row_ax, col_ax = plane_extent(res, 2)
-        lab = level_label(res)
-        panel(fig, ax, m, extent, f"ℓ = {res.info['element_size']}", f"y ({lab})", f"z ({lab})",
-              f"Uz ({lab})", cmap="viridis", vmin=vmin, vmax=vmax)
-    for ax in axs[len(results):]:
-        ax.set_visible(False)
-    fig.suptitle(f"Uz on the plane x = {x}")
-    fig.savefig(path)
-    return str(path)
+    from matplotlib.ticker import FuncFormatter, LogLocator
 
-
-def _epszz_plane(res: Result, x: float):
-    """eps_zz on the plane ``x`` at the element centres (linear along x between centre
-    layers) and the centre coordinates ``(cz, cy)``."""
-    mesh = res.mesh
-    eps = res.element_strain()[0, 0]  # (ez, ey, ex)
-    ell = mesh.element_size
-    centres = [o + ell * (np.arange(n) + 0.5) - 0.5 for o, n in zip(mesh.origin, mesh.shape)]
-    cx = centres[2]
-    if len(cx) == 1:
-        layer = eps[:, :, 0]
-    else:
-        k = int(np.clip(np.searchsorted(cx, x) - 1, 0, len(cx) - 2))
-        w = float(np.clip((x - cx[k]) / ell, 0.0, 1.0))
-        layer = (1 - w) * eps[:, :, k] + w * eps[:, :, k + 1]
-    return layer, centres[0], centres[1]
-
-
-def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5) -> str:
-    """``eps_zz`` on the plane normal to x, interpolated linearly between element centres
-    (paper Fig. 10: "linearly interpolated between element centers where the element strain
-    has been imposed"), one panel per result.
-
-    The map covers the hull of the element centres (half an element inside the ROI);
-    along x, the two nearest layers of centres are interpolated linearly too.
-
-    Parameters
-    ----------
-    results : Result, path or sequence of them
-    path : path
-        PNG file.
-    x : int, optional
-        Plane index (default: mid-plane of the first result's ROI).
-    step : float
-        Pixel size of the rendered map, voxels.
-    """
-    from scipy.interpolate import RegularGridInterpolator
-
-    results = as_results(results)
-    x = _x_plane(results) if x is None else int(x)
-    maps = []
-    for res in results:
-        layer, cz, cy = _epszz_plane(res, x)
-        if len(cz) < 2 or len(cy) < 2:
-            zz, yy = cz, cy
-            img = layer
-        else:
-            zz = np.arange(cz[0], cz[-1] + 1e-9, step)
-            yy = np.arange(cy[0], cy[-1] + 1e-9, step)
-            interp = RegularGridInterpolator((cz, cy), layer, method="linear")
-            img = interp(np.stack(np.meshgrid(zz, yy, indexing="ij"), axis=-1))
-        maps.append((img, [yy[0], yy[-1], zz[0], zz[-1]]))
-    lim = max(float(np.abs(m).max()) for m, _ in maps) or 1e-6
-    rows, cols = _grid(len(results))
-    fig = figure(5.2 * cols, 4.4 * rows)
-    axs = np.atleast_1d(fig.subplots(rows, cols)).ravel()
-    for ax, res, (img, extent) in zip(axs, results, maps):
-        lab = level_label(res)
-        im = ax.imshow(img, origin="lower", extent=extent, cmap="RdBu_r", vmin=-lim, vmax=lim,
-                       interpolation="bilinear")
-        ax.set_title(f"ℓ = {res.info['element_size']}", fontsize=10)
-        ax.set_xlabel(f"y ({lab})")
-        ax.set_ylabel(f"z ({lab})")
-        fig.colorbar(im, ax=ax, shrink=0.8, label="ε_zz (–)")
-    for ax in axs[len(results):]:
-        ax.set_visible(False)
-    fig.suptitle(f"ε_zz on the plane x = {x}, linear between element centres")
-    fig.savefig(path)
-    return str(path)
-
-
-def plot_gap(results, path) -> str:
-    """Matching gap (%) per iteration, every level, one line per result (section 5.1).
-
-    Rigid-translation steps come first (open markers), then Gauss-Newton iterations
-    (filled markers), level by level from the coarsest.
-    """
     results = as_results(results)
     fig = figure(7.5, 4.5)
     ax = fig.subplots()
+    rigid_done = False
     for res in results:
         h = res.history
         gap = 100 * np.asarray(h["gap"], float)
         step = np.arange(len(gap))
-        line, = ax.semilogy(step, gap, "-", lw=1, label=f"ℓ = {res.info['element_size']}")
-        rigid = np.asarray(h["iteration"]) < 0
-        ax.semilogy(step[rigid], gap[rigid], "o", mfc="none", color=line.get_color())
-        ax.semilogy(step[~rigid], gap[~rigid], "o", ms=4, color=line.get_color())
         levels = np.asarray(h["level"])
-        for k in np.nonzero(np.diff(levels))[0]:
-            ax.axvline(k + 0.5, color=line.get_color(), lw=0.5, ls=":")
-    ax.set_xlabel("evaluation (rigid steps ○, then Gauss–Newton iterations ●; dotted: next level)")
-    ax.set_ylabel("matching gap R (%)")
+        rigid = np.asarray(h["iteration"]) < 0
+        for lev in dict.fromkeys(levels.tolist()):  # order of appearance: coarsest first
+            on = levels == lev
+            line, = ax.plot(step[on & ~rigid], gap[on & ~rigid], "o-", ms=4, lw=1.2,
+                            label=f"level {lev} (ℓ = {res.info['element_size']})")
+            if (on & rigid).any():
+                ax.plot(step[on & rigid], gap[on & rigid], "s", ms=8, mfc="none", mec="k", mew=1.2,
+                        label=None if rigid_done else "rigid translation steps")
+                rigid_done = True
+                # join the rigid steps to the level's first iteration, thin and in the level's colour
+                k = np.nonzero(on)[0]
+                ax.plot(step[k], gap[k], "-", lw=0.6, color=line.get_color())
+    ax.set_yscale("log")
+    ax.yaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_minor_locator(LogLocator(base=10, subs=np.arange(1, 10)))
+    ax.yaxis.set_major_formatter(FuncFormatter(_percent))
+    ax.yaxis.set_minor_formatter(FuncFormatter(lambda v, p: ""))
+    ax.set_xlabel("evaluation (rigid steps □, then Gauss–Newton iterations ●, level by level)")
+    ax.set_ylabel("matching gap R")
     ax.set_title("Matching gap per iteration")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    fig.savefig(path)
-    return str(path)
+    ax.legend(fontsize=8)
+    return fig
 
 
-def plot_uncertainty(report, path) -> str:
+def plot_gap(results, path, *, dpi: int | None = None) -> str:
+    """Write :func:`gap_figure` to ``path`` (``.png``, ``.pdf`` or ``.svg``); returns ``path``."""
+    return save(gap_figure(results), path, dpi)
+
+
+def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | None = None) -> dict[str, str]:
+    """ε_zz(z): mean ``eps_zz`` per element layer along z, one curve per result, and the truth
+    when the pair is synthetic (:mod:`chunkdic.profile`); the numbers go to a CSV next to
+    the figure (same name, ``.csv``; columns :data:`chunkdic.profile.PROFILE_COLUMNS`).
+
+    Parameters
+    ----------
+    results : Result, path or sequence of them
+    path : path
+        Figure file (``.png``, ``.pdf`` or ``.svg``).
+    ref, deformed : path, optional
+        The scans, when not at the paths recorded in the results (where the synthetic
+        truth is looked for).
+    dpi : int, optional
+
+    Returns
+    -------
+    dict
+        ``{"epszz_profile": figure path, "epszz_profile_csv": CSV path}``.
+    """
+    from .profile import epszz_profile, synthetic_field, true_curve, write_profile_csv
+
+    results = as_results(results)
+    frames = common_frame(results)
+    rows, truth = [], None
+    for res, fr in zip(results, frames):
+        fld = synthetic_field(res, ref, deformed)
+        rows.append((res, epszz_profile(res, fld), fr))
+        if fld is not None and truth is None:
+            zt, et = true_curve(res, fld)
+            truth = (fr.position(0, zt), et)
+    fig = figure(6.0, 5.2)
+    ax = fig.subplots()
+    if truth is not None:
+        ax.plot(truth[1], truth[0], "-", color="0.3", lw=1, label="truth ∂Uz/∂Z (plane mean)")
+    for res, prof, fr in rows:
+        line, = ax.plot(prof.eps_zz, fr.position(0, prof.z), "o-", ms=5,
+                        label=f"ℓ = {res.info['element_size']} (level {res.info.get('level', 0)})")
+        if prof.eps_zz_true is not None:
+            ax.plot(prof.eps_zz_true, fr.position(0, prof.z), "x", ms=7, color=line.get_color(),
+                    label=f"truth per layer, ℓ = {res.info['element_size']}")
+    ax.axvline(0.0, color="k", lw=0.5)
+    ax.xaxis.get_major_formatter().set_useOffset(False)
+    ax.set_xlabel("mean ε_zz per element layer (–)")
+    ax.set_ylabel(f"z ({frames[0].unit})")
+    ax.set_title("ε_zz(z) profile")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=8)
+    out = {"epszz_profile": save(fig, path, dpi)}
+    out["epszz_profile_csv"] = write_profile_csv(rows, Path(path).with_suffix(".csv"))
+    return out
+
+
+def plot_uncertainty(report, path, *, dpi: int | None = None) -> str:
     """Log-log ``sigma_U`` versus element size with the power-law fit (paper Fig. 5).
 
     Parameters
@@ -344,20 +294,40 @@ def plot_uncertainty(report, path) -> str:
     ax.set_title(f"A-priori uncertainty, Fourier shift ({t}) voxel")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
-    fig.savefig(path)
-    return str(path)
+    return save(fig, path, dpi)
 
 
 # --------------------------------------------------------------------------- all
 
 
+def _cuts_result(results: list[Result], cuts_from) -> Result:
+    """The result whose field the cuts use: ``cuts_from`` (a Result among ``results``, or the
+    path of one), default the first."""
+    if cuts_from is None:
+        return results[0]
+    if isinstance(cuts_from, Result):
+        for res in results:
+            if res is cuts_from:
+                return res
+    else:
+        want = os.path.realpath(os.fspath(cuts_from))
+        for res in results:
+            if res.path is not None and os.path.realpath(res.path) == want:
+                return res
+    given = cuts_from.path if isinstance(cuts_from, Result) else cuts_from
+    raise InputError(f"--cuts-from {given}: not one of the results given "
+                     f"({', '.join(str(r.path) for r in results)})")
+
+
 def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
-           overwrite: bool = False, progress: Callable[[str], None] | None = None) -> dict[str, str]:
+           overwrite: bool = False, progress: Callable[[str], None] | None = None, cuts_from=None,
+           fmt: str = "png", dpi: int | None = None) -> dict[str, str]:
     """All figures of one or several results into ``out_dir``.
 
-    Cuts and residual come from the first result (they need the scans: recorded paths, or
-    ``ref``/``deformed``); ``Uz``, ``eps_zz`` maps and the gap plot show every result
-    (one panel or line each, e.g. one per element size as in paper Figs. 9-10).
+    Cuts and residual come from one result (``cuts_from``, default the first; they need the
+    scans: recorded paths, or ``ref``/``deformed``); the maps, the ε_zz(z) profile and the
+    gap plot show every result (one panel or curve each, e.g. one per element size as in
+    paper Figs. 9-10).
 
     Parameters
     ----------
@@ -373,11 +343,18 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         Replace the figures of an earlier report in ``out_dir``.
     progress : callable(str), optional
         One message per figure written (or skipped, with the reason).
+    cuts_from : Result or path, optional
+        The result whose field the cuts use; must be one of ``results``.
+    fmt : {"png", "pdf", "svg"}
+        File format of every figure.
+    dpi : int, optional
+        Resolution of every figure, dots per inch (default
+        :data:`chunkdic.figures.DEFAULT_DPI`; a PNG's pixel size scales with it).
 
     Returns
     -------
     dict of str to str
-        Figure name -> PNG path.
+        Figure name -> path (and ``epszz_profile_csv`` -> the profile's numbers).
     """
     from .resultscans import input_paths, input_scans, interpolation_of
     from .inputs import check_displacement
@@ -388,12 +365,17 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         check_displacement(res.displacement, res.path, res.flags)
     if interpolation not in (None, "cubic", "linear"):
         raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
+    if fmt not in FORMATS:
+        raise InputError(f"figure format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    if dpi is not None and not (isinstance(dpi, (int, np.integer)) and 10 <= dpi <= 2400):
+        raise InputError(f"dpi must be an integer from 10 to 2400, got {dpi!r}")
+    cut_res = _cuts_result(results, cuts_from)
     say = progress or (lambda msg: None)
     skip = None
     try:
-        input_scans(results[0], ref, deformed)  # checked before anything is written
+        input_scans(cut_res, ref, deformed)  # checked before anything is written
     except InputError as exc:
-        recorded = [p for p in (results[0].info.get("inputs") or {}).values()
+        recorded = [p for p in (cut_res.info.get("inputs") or {}).values()
                     if isinstance(p, str) and not p.startswith("<in-memory") and Path(p).exists()]
         if ref is not None or deformed is not None or len(recorded) == 2:
             raise  # scans given, or on disk but unusable (damaged, another shape): refused
@@ -402,15 +384,24 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     plan = Outputs(inputs=inputs, overwrite=overwrite)
     out_dir = plan.add(out_dir, "figures").final
     paths = {}
+
+    def done(name, path):
+        paths[name] = path
+        say(f"wrote {path}")
+
     with plan:  # a failure removes the figures this run wrote, never older files
-        for name, fn in (("uz_map", plot_uz_maps), ("epszz_map", plot_epszz_maps), ("gap", plot_gap),
+        for comp in "zyx":
+            done(f"u{comp}_map", plot_u_maps(results, out_dir / f"u{comp}_map.{fmt}", comp, dpi=dpi))
+        for name, fn in (("epszz_map", plot_epszz_maps), ("gap", plot_gap),
                          ("uncertainty_map", plot_uncertainty_map)):
-            paths[name] = fn(results, out_dir / f"{name}.png")
-            say(f"wrote {paths[name]}")
+            done(name, fn(results, out_dir / f"{name}.{fmt}", dpi=dpi))
+        for name, path in plot_epszz_profile(results, out_dir / f"epszz_profile.{fmt}", ref=ref,
+                                             deformed=deformed, dpi=dpi).items():
+            done(name, path)
         if skip is None:
-            paths.update(plot_cuts(results[0], out_dir, ref=ref, deformed=deformed,
-                                   interpolation=interpolation or interpolation_of(results[0]), scheduler=scheduler,
-                                   progress=say))
+            paths.update(plot_cuts(cut_res, out_dir, ref=ref, deformed=deformed,
+                                   interpolation=interpolation or interpolation_of(cut_res), scheduler=scheduler,
+                                   progress=say, fmt=fmt, dpi=dpi))
         else:
             say(f"skipped the cuts and residual: {skip}")
     return paths

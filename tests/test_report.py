@@ -85,7 +85,8 @@ def _assert_png_not_blank(path):
 def test_report_figures(translation, tmp_path):
     _, res, d = translation
     assert _run(["report", str(d / "result.zarr"), "-o", str(tmp_path / "fig")]) == 0
-    names = ["cut_x", "cut_y", "cut_z", "residual", "uz_map", "epszz_map", "gap", "uncertainty_map"]
+    names = ["cut_x", "cut_y", "cut_z", "residual", "uz_map", "uy_map", "ux_map", "epszz_map", "epszz_profile",
+             "gap", "uncertainty_map"]
     for name in names:
         _assert_png_not_blank(tmp_path / "fig" / f"{name}.png")
     # several results: one panel each
@@ -101,7 +102,8 @@ def test_report_without_scans_skips_cuts(translation, tmp_path):
                           {**res.info, "inputs": {"reference": "<in-memory ndarray>"}})
     msgs = []
     paths = report(mem, tmp_path / "fig", progress=msgs.append)
-    assert set(paths) == {"uz_map", "epszz_map", "gap", "uncertainty_map"}
+    assert set(paths) == {"uz_map", "uy_map", "ux_map", "epszz_map", "epszz_profile", "epszz_profile_csv", "gap",
+                          "uncertainty_map"}
     assert any("skipped" in m for m in msgs)
 
 
@@ -251,3 +253,189 @@ def test_vtu_field_data_with_a_voxel_size(translation, tmp_path):
     meta = read_vtk_metadata(tmp_path / "m.vtu")
     assert meta["voxel_size"] == (4.0, 3.0, 2.0)  # VTK order (x, y, z)
     assert meta["unit"] == "micrometer" and meta["coordinates"] == "micrometer"
+
+
+# --------------------------------------------------------------------------- figures a researcher can use (issue 13, item 6)
+
+A_ZZ = -0.01  # the affine pair's axial strain
+
+
+@pytest.fixture(scope="module")
+def affine(tmp_path_factory):
+    """An affine pair (1 % axial compression, shear, lateral stretch; exact deformed image)."""
+    d = tmp_path_factory.mktemp("affine")
+    field = synthetic.Affine(matrix=((A_ZZ, 0.0, 0.004), (0.0, 0.003, 0.0), (0.0, 0.0, 0.0)),
+                             center=(24.0, 24.0, 24.0), translation=(0.3, -0.2, 0.1))
+    pair = synthetic.synthesize(d, (48, 48, 48), field=field, seed=5, dtype="float32")
+    res = chunkdic.correlate(pair["reference"], pair["deformed"], element_size=12, output=d / "result.zarr")
+    assert res.converged
+    return pair, res, d
+
+
+def _profile_rows(path):
+    import csv
+
+    from chunkdic.profile import PROFILE_COLUMNS
+
+    with open(path, newline="") as fh:
+        rows = list(csv.DictReader(fh))
+    assert rows and tuple(rows[0]) == PROFILE_COLUMNS
+    return rows
+
+
+def _in_memory(res):
+    """The result with its scans 'not on disk': the report skips the cuts (fast)."""
+    return chunkdic.Result(res.displacement, res.node_coords, res.history,
+                           {**res.info, "inputs": {"reference": "<in-memory ndarray>"}}, strain=res.strain)
+
+
+def test_epszz_profile_csv_against_strains_and_truth(affine, translation, tmp_path):
+    _, res, d = affine
+    _, res_t, d_t = translation
+    out = tmp_path / "fig"
+    assert _run(["report", str(d / "result.zarr"), str(d_t / "result.zarr"), "-o", str(out),
+                 "--format", "svg", "--cuts-from", str(d / "result.zarr")]) == 0
+    rows = _profile_rows(out / "epszz_profile.csv")
+    for r, truth in ((res, A_ZZ), (res_t, 0.0)):
+        mine = [row for row in rows if row["result"] == r.path]
+        # independent: the stored element strains, averaged per element layer
+        eps = np.asarray(r.strain)[0, 0]
+        expect = eps.mean(axis=(1, 2))
+        assert [int(row["layer"]) for row in mine] == list(range(eps.shape[0]))
+        assert np.allclose([float(row["eps_zz"]) for row in mine], expect, rtol=0, atol=1e-14)
+        assert all(int(row["elements"]) == eps.shape[1] * eps.shape[2] for row in mine)
+        # element-layer centres: z0 + (k + 1/2) ell - 1/2 (level voxels)
+        z0, ell = r.info["roi"][0][0], r.info["element_size"]
+        assert np.allclose([float(row["z"]) for row in mine], z0 + ell * (np.arange(eps.shape[0]) + 0.5) - 0.5)
+        # the synthetic truth found from the scans' attributes: the imposed dUz/dZ, exactly
+        true = np.array([float(row["eps_zz_true"]) for row in mine])
+        assert np.allclose(true, truth, atol=1e-12)
+        # and the measurement within a bound of it (measured: 6e-6 on the affine pair)
+        assert np.abs(expect - truth).max() < 1e-4, expect
+    # every figure in SVG, the cuts from the affine result
+    for name in ("gap", "uz_map", "uy_map", "ux_map", "epszz_map", "epszz_profile", "cut_x", "residual"):
+        head = (out / f"{name}.svg").read_bytes()[:400]
+        assert head.startswith(b"<?xml") and b"<svg" in head, name
+    assert not list(out.glob("*.png"))
+    assert "ℓ = 12" in (out / "cut_z.svg").read_text()
+
+
+def test_true_layer_strain_of_a_band_against_quadrature(affine):
+    """The profile's truth on a band (Uz depends on z only) equals the integral of the
+    analytic strain profile over each element layer, at level 0 and at level 1."""
+    from scipy.integrate import quad
+
+    from chunkdic.profile import true_layer_strain
+
+    _, res, _ = affine
+    band = synthetic.Band(center_z=22.0, width=10.0, strain=-0.05, lateral=0.3, center_y=20.0, center_x=25.0)
+    e, h = band.width / 8, band.width / 2
+
+    def p(s):  # dUz/dZ = strain * p(s), written out (fields.Band docstring)
+        return band.strain * 0.5 * (np.tanh((s + h) / e) - np.tanh((s - h) / e))
+
+    for scale in (1, 2):
+        r = chunkdic.Result(res.displacement, res.node_coords, res.history, {**res.info, "scale": scale})
+        t = true_layer_strain(r, band)
+        z0, ell = r.info["roi"][0][0], r.info["element_size"]
+        for k in range(t.shape[0]):
+            a, b = (scale * (z0 - 0.5 + np.array([k, k + 1]) * ell) + (scale - 1) / 2) - band.center_z
+            expect = quad(p, a, b, epsabs=1e-13)[0] / (b - a)
+            assert np.allclose(t[k], expect, atol=1e-10), (scale, k)
+
+
+def test_gap_figure_labels_levels_and_plain_percent(translation):
+    from chunkdic.report import gap_figure
+
+    _, res, _ = translation
+    fig = gap_figure([res])
+    ax = fig.axes[0]
+    labels = [t.get_text() for t in ax.get_legend().get_texts()]
+    levels = list(dict.fromkeys(np.asarray(res.history["level"]).tolist()))
+    expect = [f"level {s} (ℓ = 12)" for s in levels]
+    if (np.asarray(res.history["iteration"]) < 0).any():
+        expect.insert(1, "rigid translation steps")
+    assert labels == expect
+    # one curve per level: its points are that level's Gauss-Newton iterations
+    lines = {ln.get_label(): ln for ln in ax.get_lines()}
+    lev, it = np.asarray(res.history["level"]), np.asarray(res.history["iteration"])
+    for s in levels:
+        ys = lines[f"level {s} (ℓ = 12)"].get_ydata()
+        assert np.allclose(ys, 100 * np.asarray(res.history["gap"])[(lev == s) & (it >= 0)])
+    fmt = ax.yaxis.get_major_formatter()
+    assert fmt(0.5, 0) == "0.5 %" and fmt(20.0, 0) == "20 %"
+    assert ax.get_yscale() == "log"
+
+
+def test_report_format_and_dpi(translation, tmp_path):
+    import struct
+
+    _, res, _ = translation
+    mem = _in_memory(res)
+    widths = {}
+    for dpi in (50, 100):
+        paths = report(mem, tmp_path / f"d{dpi}", dpi=dpi)
+        data = open(paths["gap"], "rb").read(24)
+        assert data[:8] == PNG_MAGIC
+        widths[dpi] = struct.unpack(">II", data[16:24])  # IHDR width, height
+    gap_w = 7.5  # inches (gap_figure)
+    assert widths[50][0] == round(gap_w * 50) and widths[100][0] == round(gap_w * 100)
+    assert abs(widths[100][1] - 2 * widths[50][1]) <= 1
+    paths = report(mem, tmp_path / "pdf", fmt="pdf")
+    for name, path in paths.items():
+        if name != "epszz_profile_csv":
+            assert path.endswith(".pdf") and open(path, "rb").read(5) == b"%PDF-", name
+    with pytest.raises(InputError, match="format"):
+        report(mem, tmp_path / "bad", fmt="jpg")
+    assert not (tmp_path / "bad").exists()
+
+
+def test_cuts_from_must_be_one_of_the_results(translation, affine, tmp_path):
+    from chunkdic.cli import main
+
+    _, _, d = translation
+    _, _, d_a = affine
+    out = tmp_path / "fig"
+    assert main(["report", str(d / "result.zarr"), "-o", str(out), "--cuts-from", str(d_a / "result.zarr")]) == 2
+    assert not out.exists()
+
+
+def test_maps_share_extent_colour_bar_and_centre(translation, tmp_path):
+    """Results of different ROIs: every panel on the same extent, one colour bar, limits
+    symmetric about 0; with a voxel size the axes are in the scan's unit."""
+    import matplotlib.figure
+
+    from chunkdic import maps
+
+    _, res, _ = translation
+    small = chunkdic.Result(res.displacement[:, :3, :3, :3], res.node_coords[:, :3, :3, :3], res.history,
+                            {**res.info, "roi": [[a, a + 24] for a, _ in res.info["roi"]]})
+    figs = []
+    real_save = maps.save
+    maps.save = lambda fig, path, dpi=None: figs.append(fig) or real_save(fig, path, dpi)
+    try:
+        maps.plot_u_maps([res, small], tmp_path / "uy.png", "y")
+    finally:
+        maps.save = real_save
+    fig = figs[0]
+    assert isinstance(fig, matplotlib.figure.Figure)
+    panels = [ax for ax in fig.axes if ax.get_images()]
+    assert len(panels) == 2 and len(fig.axes) == 3  # two panels, one colour bar
+    assert panels[0].get_xlim() == panels[1].get_xlim() and panels[0].get_ylim() == panels[1].get_ylim()
+    lo, hi = panels[0].get_images()[0].get_clim()
+    assert lo == -hi and hi == pytest.approx(np.abs(res.displacement[1]).max(), rel=0.05)
+    assert panels[0].get_images()[0].get_cmap().name == "RdBu_r"
+    # physical unit: level-0 voxel c at c * voxel size; Uy in the unit
+    phys = chunkdic.Result(res.displacement, res.node_coords, res.history,
+                           {**res.info, "voxel_size": [2.0, 3.0, 4.0], "unit": "micrometer"})
+    figs.clear()
+    maps.save = lambda fig, path, dpi=None: figs.append(fig) or real_save(fig, path, dpi)
+    try:
+        maps.plot_u_maps(phys, tmp_path / "uyp.png", "y")
+    finally:
+        maps.save = real_save
+    ax = [a for a in figs[0].axes if a.get_images()][0]
+    (y0, y1), (z0, z1) = res.info["roi"][1], res.info["roi"][0]
+    assert ax.get_images()[0].get_extent() == pytest.approx([3.0 * (y0 - 0.5), 3.0 * (y1 - 0.5),
+                                                             2.0 * (z0 - 0.5), 2.0 * (z1 - 0.5)])
+    assert ax.get_xlabel() == "y (µm)" and ax.get_images()[0].get_clim()[1] == pytest.approx(3.0 * hi)
