@@ -28,7 +28,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["scan_window", "store_window", "write_display", "omero", "DISPLAY_GROUP", "WINDOW_SAMPLES"]
+__all__ = ["scan_window", "store_window", "write_display", "DISPLAY_GROUP", "WINDOW_SAMPLES"]
 
 #: subgroup of a scan group holding the mean display pyramid
 DISPLAY_GROUP = "display"
@@ -104,7 +104,7 @@ def write_display(path: str, *, progress=None) -> list[int]:
 
     from .errors import InputError
     from .handles import ref_dask
-    from .ngff import _ngff_attrs
+    from .ngff import ngff_attrs, omero
     from .ownership import final_name
     from .store import compressors
     from .volume import open_scan
@@ -131,7 +131,7 @@ def write_display(path: str, *, progress=None) -> list[int]:
             progress((i + 1) / len(levels))
     info = dict(root.attrs.get("chunkdic") or {})
     vs = info.get("voxel_size")
-    ome = _ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(str(path)) + "/display")
+    ome = ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(str(path)) + "/display")
     ome["multiscales"][0].update(type="mean", metadata={
         "description": "level s of the scan divided by 8^s (the mean over 2^s voxels per axis), float32, "
                        "on the scan's level-s frame; level 0 is the scan's own (not copied)",
@@ -141,13 +141,3 @@ def write_display(path: str, *, progress=None) -> list[int]:
         ome["omero"] = omero(window)
     g.update_attributes({"ome": ome, "chunkdic": {"kind": "display", "levels": levels, "complete": True}})
     return levels
-
-
-def omero(window) -> dict:
-    """OME-NGFF ``omero`` metadata of a one-channel grey image with ``window``
-    ``[start, end, min, max]``."""
-    lo, hi, vmin, vmax = window
-    return {"channels": [{"label": "grey", "active": True, "color": "FFFFFF", "coefficient": 1.0,
-                          "family": "linear", "inverted": False,
-                          "window": {"start": lo, "end": hi, "min": vmin, "max": vmax}}],
-            "rdefs": {"model": "greyscale", "defaultZ": 0}}

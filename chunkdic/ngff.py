@@ -64,7 +64,7 @@ def normalize_voxel_size(voxel_size) -> tuple[float, float, float] | None:
     return tuple(values)
 
 
-def _ngff_attrs(levels, voxel_size, unit, name) -> dict:
+def ngff_attrs(levels, voxel_size, unit, name) -> dict:
     vs = voxel_size or (1.0, 1.0, 1.0)
     axes = []
     for ax in "zyx":
@@ -122,10 +122,8 @@ def update_group_metadata(path: str) -> None:
     vs = info.get("voxel_size")
     attrs = {"chunkdic": info}
     if levels:
-        attrs["ome"] = _ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(path))
+        attrs["ome"] = ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(path))
         if info.get("display_window") and len(levels) > 1:
-            from .display import omero
-
             # the level-0 window (chunkdic.display): what a viewer uses on every level
             attrs["ome"]["omero"] = omero(info["display_window"])
     else:
@@ -156,3 +154,13 @@ def voxel_from_group_attrs(attrs) -> tuple:
         return tuple(float(v) for v in scale), unit
     except (KeyError, IndexError, TypeError, ValueError):
         return None, None
+
+
+def omero(window) -> dict:
+    """OME-NGFF ``omero`` metadata of a one-channel grey image with ``window``
+    ``[start, end, min, max]``."""
+    lo, hi, vmin, vmax = window
+    return {"channels": [{"label": "grey", "active": True, "color": "FFFFFF", "coefficient": 1.0,
+                          "family": "linear", "inverted": False,
+                          "window": {"start": lo, "end": hi, "min": vmin, "max": vmax}}],
+            "rdefs": {"model": "greyscale", "defaultZ": 0}}

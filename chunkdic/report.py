@@ -98,8 +98,7 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
             name = AXES[normal]
             idx = planes[name]
             cut = correction.planes(result, f_ref, g_ref, normal, idx, runner, interpolation=interpolation)
-            f, g, c = cut["reference"], cut["deformed"], cut["corrected"]
-            residuals[name] = (cut["prepared"] - c, cut["prepared"])
+            residuals[name] = (cut["prepared"] - cut["corrected"], cut["prepared"])
             paths[f"cut_{name}"] = _cut_figure(result, normal, idx, cut, fr, out_dir / f"cut_{name}.{fmt}", dpi)
             if progress:
                 progress(f"wrote {paths[f'cut_{name}']}")

@@ -253,3 +253,29 @@ def test_corrected_of_a_level_1_result_lies_on_scan_level_1(affine, tmp_path):
     vol = np.asarray(node.data[0])
     assert vol.shape == (2, 24, 24, 24)
     assert np.isfinite(vol[:, 3:21, 3:21, 3:21]).all() and np.isnan(vol[:, :3]).all() and np.isnan(vol[:, 21:]).all()
+
+
+def test_napari_layers_place_the_fields_on_the_scan(affine):
+    """napari-ome-zarr's own reader (no window): every field layer has the scan's level-0
+    scale and translation, so napari overlays it voxel on voxel."""
+    pytest.importorskip("napari_ome_zarr")
+    from napari_ome_zarr._reader import napari_get_reader
+
+    pair, res, d, out = affine
+
+    def layers(path):
+        return napari_get_reader(str(path))(str(path))
+
+    (scan_data, scan_kw, _), = layers(pair["reference"])
+    scale = np.asarray(scan_kw["scale"], float)
+    shift = np.asarray(scan_kw.get("translate", (0.0,) * 3), float)
+    np.testing.assert_allclose(scale, (VOXEL,) * 3)
+    fields = layers(d / "fields.zarr")
+    assert fields
+    for data, kw, kind in fields:
+        assert kind == "image"
+        np.testing.assert_allclose(np.asarray(kw["scale"], float)[-3:], scale)
+        np.testing.assert_allclose(np.asarray(kw.get("translate", (0.0,) * 3), float)[-3:], shift)
+        assert tuple(data[0].shape[-3:]) == tuple(scan_data[0].shape)
+    names = fields[0][1].get("name")  # one layer per channel, "fields.zarr: Uz", ...
+    assert [str(n).split(": ")[-1] for n in names] == list(CHANNELS)
