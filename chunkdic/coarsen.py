@@ -135,6 +135,10 @@ def _even_chunks(chunks: tuple[int, ...], n: int, target: int) -> tuple[int, ...
 def coarsen_sum(a, dtype=None, *, chunk: int | None = None):
     """Sum over 2x2x2 voxels (one pyramid step), odd trailing voxels trimmed.
 
+    ``dask.array.coarsen(np.sum, ...)`` does the same bookkeeping but sums by NumPy
+    reshapes; the numba kernel here is ~10x faster (4 GB/s against 0.3-0.4 GB/s per core,
+    :func:`_sum2_numba`) and accumulates integers exactly in int64.
+
     Parameters
     ----------
     a : dask.array.Array or numpy.ndarray, shape (nz, ny, nx)

@@ -170,7 +170,8 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
 
     ``local``: every task runs on this machine, so the store is a memory-mapped ``.npy``
     file, whose windows read 3-4x cheaper than from Zarr chunks (no chunk assembly; it
-    is on the hot path of every iteration). Otherwise an uncompressed Zarr array, safe
+    is on the hot path of every iteration). (Hence tasks that write into it rather than
+    ``dask.array.map_overlap``, whose result would still have to be stored, as Zarr.) Otherwise an uncompressed Zarr array, safe
     for workers on other hosts sharing the file system.
     """
     shape = tuple(b - a for a, b in box)
