@@ -10,12 +10,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
-
-
-def _err(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
+from ._cli_common import say
 
 
 def register(subparsers) -> None:
@@ -90,7 +86,7 @@ def run_cutcheck(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     cuts = cutcheck(args.result, args.output, ref=args.ref, deformed=args.deformed, scheduler=args.scheduler,
-                    overwrite=args.overwrite, progress=_err)
+                    overwrite=args.overwrite, progress=say)
     if args.json:
         print(json.dumps([c.as_dict() for c in cuts], indent=2))
     else:
@@ -98,6 +94,6 @@ def run_cutcheck(args: argparse.Namespace) -> int:
         for c in cuts:
             print(f"{c.axis:>3}  {c.index:5d}  {_fmt(c.mean)}  {_fmt(c.std)}  {_fmt(c.max)}  {_fmt(c.correlation_length, '10.1f')}"
                   f"    {c.status:<11}  {'ok' if c.passed else 'FAILED'}")
-    _err(f"cut check: {'passed' if all(c.passed for c in cuts) else 'FAILED'} (mean and std below {THRESHOLD} "
+    say(f"cut check: {'passed' if all(c.passed for c in cuts) else 'FAILED'} (mean and std below {THRESHOLD} "
          f"pixel, correlation length below one element, on every cut; {time.perf_counter() - t0:.1f} s)")
     return 0 if all(c.passed for c in cuts) else 1

@@ -9,18 +9,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ._cli_common import say
 from .errors import InputError
 from .figures import DEFAULT_DPI, FORMATS
-
-
-def _err(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
 
 
 def _sizes_arg(p) -> None:
@@ -157,22 +153,22 @@ def _progress(event: dict) -> None:
     if stage == "shift":
         f = event["fraction"]
         if f >= 1 or int(10 * f) != int(10 * (f - 1e-9)):
-            _err(f"  Fourier shift: {f:4.0%} ({event['seconds']:.1f} s)")
+            say(f"  Fourier shift: {f:4.0%} ({event['seconds']:.1f} s)")
         return
     if stage == "element-size":
-        _err(f"== element size {event['element_size']} ==")
+        say(f"== element size {event['element_size']} ==")
         return
     if stage == "a-priori":
-        _err("== a-priori uncertainty (Fourier-shifted reference) ==")
+        say("== a-priori uncertainty (Fourier-shifted reference) ==")
         return
     if stage == "uncertainty":
-        _err(f"ell {event['element_size']}: bias ({event['bias_z']:+.4f}, {event['bias_y']:+.4f}, "
+        say(f"ell {event['element_size']}: bias ({event['bias_z']:+.4f}, {event['bias_y']:+.4f}, "
              f"{event['bias_x']:+.4f}) std ({event['std_z']:.4f}, {event['std_y']:.4f}, {event['std_x']:.4f}) voxel, "
              f"delta eps {event['delta_eps']:.2e}, gap {event['final_gap_percent']:.3f}%")
         return
     line = format_event(event)
     if line:
-        _err("  " + line)
+        say("  " + line)
 
 
 def _fmt_tensor(t) -> str:
@@ -237,7 +233,7 @@ def run_uncertainty(args: argparse.Namespace) -> int:
                       level=args.level, interpolation=args.interpolation, scheduler=args.scheduler,
                       overwrite=args.overwrite, progress=_progress)
     print(rep.markdown())
-    _err(f"wrote {rep.files['csv']}, {rep.files['markdown']}, {rep.files['plot']} "
+    say(f"wrote {rep.files['csv']}, {rep.files['markdown']}, {rep.files['plot']} "
          f"({time.perf_counter() - t0:.1f} s)")
     return 0 if all(r["status"] == "converged" for r in rep.rows) else 1
 
@@ -251,7 +247,7 @@ def run_sweep(args: argparse.Namespace) -> int:
                 a_priori=not args.no_a_priori, shift=_shift(args.shift), scheduler=args.scheduler,
                 overwrite=args.overwrite, progress=_progress)
     print(out["markdown"])
-    _err(f"wrote {out['md']}, {out['csv']} ({time.perf_counter() - t0:.1f} s)")
+    say(f"wrote {out['md']}, {out['csv']} ({time.perf_counter() - t0:.1f} s)")
     return 0 if all(r["status"] == "converged" for r in out["rows"]) else 1
 
 
@@ -284,7 +280,7 @@ def run_report(args: argparse.Namespace) -> int:
     check_scheduler(args.scheduler)
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
                    interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
-                   progress=_err, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi)
+                   progress=say, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi)
     for p in paths.values():
         print(p)
     return 0
@@ -328,12 +324,12 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
 
     if args.vtk:
         info = export.write_vtk(res, work["vtk"], units=args.units)
-        _err(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}"
+        say(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}"
              + ("; run facts in its field data" if str(args.vtk).lower().endswith(".vtu") else ""))
     if args.csv:
         n = export.write_nodes_csv_files(res, work["csv"], work["csv-meta"], units=args.units,
                                          name=Path(args.csv).name)
-        _err(f"{args.csv}: {n} nodes (metadata in {export.csv_sidecar(args.csv)})")
+        say(f"{args.csv}: {n} nodes (metadata in {export.csv_sidecar(args.csv)})")
     if args.corrected:
         t0 = time.perf_counter()
         last = [0.0]
@@ -341,11 +337,11 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
         def progress(f):
             if f >= 1 or f - last[0] >= 0.1:
                 last[0] = f
-                _err(f"  corrected image: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
+                say(f"  corrected image: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
 
         out = write_corrected(res, work["corrected"], ref=args.ref, deformed=args.deformed,
                               scheduler=args.scheduler, progress=progress)
-        _err(f"{args.corrected}: corrected and residual, gap {100 * out['gap']:.3f}% over {out['valid']} voxels "
+        say(f"{args.corrected}: corrected and residual, gap {100 * out['gap']:.3f}% over {out['valid']} voxels "
              f"({out['excluded']} excluded)")
     if args.fields:
         _export_fields(res, args, work["fields"])
@@ -361,9 +357,9 @@ def _export_fields(res, args: argparse.Namespace, work) -> None:
     def progress(stage, f):
         if f >= 1 or f - last.get(stage, 0.0) >= 0.1:
             last[stage] = f
-            _err(f"  {stage}: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
+            say(f"  {stage}: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
 
     out = write_fields(res, work, ref=args.ref, deformed=args.deformed, units=args.units,
                        scheduler=args.scheduler, progress=progress)
-    _err(f"{args.fields}: {', '.join(CHANNELS)} on {len(out['levels'])} levels "
+    say(f"{args.fields}: {', '.join(CHANNELS)} on {len(out['levels'])} levels "
          f"({'x'.join(map(str, out['levels'][0]))} voxels at level 0, {out['voxels']} in the ROI)")

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 from pathlib import Path
 
 from .errors import InputError
 from .scheduler import SCHEDULER_HELP, dask_scheduler
+from ._cli_common import say
 
 
 def register(subparsers) -> None:
@@ -51,10 +51,6 @@ def register(subparsers) -> None:
     q.set_defaults(func=run_pyramid)
 
 
-def _err(msg: str) -> None:
-    print(msg, file=sys.stderr, flush=True)
-
-
 class _Printer:
     """Progress lines on stderr, every 10 %; ``header`` is printed with the first call, once
     the inputs and outputs have been checked (a refused run prints its error line only)."""
@@ -65,10 +61,10 @@ class _Printer:
 
     def __call__(self, frac: float) -> None:
         if self.header:
-            _err(self.header)
+            say(self.header)
             self.header = None
         if frac + 1e-9 >= self.next:
-            _err(f"  {self.step}: {min(frac, 1.0):4.0%}  ({time.perf_counter() - self.t0:.1f} s)")
+            say(f"  {self.step}: {min(frac, 1.0):4.0%}  ({time.perf_counter() - self.t0:.1f} s)")
             while self.next <= frac + 1e-9:
                 self.next += 0.1
 
@@ -89,7 +85,7 @@ def _summary(scan, seconds: float, nbytes_in: int, what: str) -> None:
     shapes = ", ".join(f"{s}:{'x'.join(map(str, scan.shape(s)))} {scan.dtype(s)}" for s in levels)
     size = _du(Path(scan.path)) if scan.path else 0
     vs = f"{scan.voxel_size} {scan.unit or ''}".strip() if scan.voxel_size else "none"
-    _err(f"{scan.path}: levels {shapes}; voxel size {vs}; {size / 1e6:.1f} MB on disk (all levels); "
+    say(f"{scan.path}: levels {shapes}; voxel size {vs}; {size / 1e6:.1f} MB on disk (all levels); "
          f"{what} {nbytes_in / 1e6:.1f} MB in {seconds:.1f} s "
          f"= {nbytes_in / 1e6 / max(seconds, 1e-9):.1f} MB/s")
 
@@ -102,7 +98,7 @@ def run_ingest(args: argparse.Namespace) -> int:
         raise InputError(f"--chunks must be a positive integer, got {args.chunks}")
     if args.offset < 0:
         raise InputError(f"--offset must be >= 0, got {args.offset}")
-    with dask_scheduler(args.scheduler, announce=_err):
+    with dask_scheduler(args.scheduler, announce=say):
         return _ingest(args)
 
 
@@ -130,7 +126,7 @@ def run_pyramid(args: argparse.Namespace) -> int:
     before = open_scan(args.scan).stored_levels() if Path(args.scan).exists() else []
     header = (f"pyramid {args.scan}: levels 1..{args.levels}"
               + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
-    with dask_scheduler(args.scheduler, announce=_err):
+    with dask_scheduler(args.scheduler, announce=say):
         t0 = time.perf_counter()
         scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite,
                              progress=_Printer("pyramid", header=header))
@@ -138,7 +134,7 @@ def run_pyramid(args: argparse.Namespace) -> int:
             from .display import write_display
 
             shown = write_display(args.scan)
-            _err(f"{args.scan}/display: levels {shown} as means (sums / 8^s), one contrast window")
+            say(f"{args.scan}/display: levels {shown} as means (sums / 8^s), one contrast window")
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "pyramid from level 0 of")
     return 0
 
