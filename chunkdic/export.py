@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .mesh import level0_position
 from .outputs import Outputs
 from .result import Result, jsonable
 from .resultscans import as_result
@@ -51,7 +52,7 @@ def _positions(result: Result, units: str):
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
     scale = float(result.info.get("scale", 1))
     v = np.asarray(vs, float)[:, None, None, None]
-    level0 = scale * X + (scale - 1) / 2  # level-s voxel centre in level-0 voxels (DESIGN.md)
+    level0 = level0_position(X, scale)
     return level0 * v, u * scale * v, result.info.get("unit") or "unit"
 
 

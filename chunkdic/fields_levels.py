@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .mesh import level0_position
 from .ownership import final_name
 
 #: channel labels of the image, in order (``|U|`` is the displacement's norm)
@@ -116,7 +117,7 @@ def level_frame(scale0, shift0, level: int) -> tuple[list[float], list[float]]:
     ``scale0``, ``shift0``: ``scale0 * 2^s`` and ``shift0 + scale0 (2^s - 1) / 2``
     (the voxel-centre offset of shared/DESIGN.md)."""
     f = 2**int(level)
-    return [v * f for v in scale0], [o + v * (f - 1) / 2 for o, v in zip(shift0, scale0)]
+    return [v * f for v in scale0], [o + v * float(level0_position(0.0, f)) for o, v in zip(shift0, scale0)]
 
 
 def image_attrs(name: str, scale0, shift0, unit, n_levels: int, channels, windows, description: str,

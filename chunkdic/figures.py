@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .mesh import level0_position
 from .result import Result, open_result
 
 __all__ = ["AXES", "FORMATS", "DEFAULT_DPI", "Frame", "frame", "figure", "panel", "save", "shared_colorbar",
@@ -98,7 +99,8 @@ def frame(result: Result, *, physical: bool = True) -> Frame:
     scale = float(result.info.get("scale", 1))
     vs = np.asarray(result.info["voxel_size"], dtype=np.float64)
     unit = result.info.get("unit") or "unit"
-    return Frame(tuple((scale - 1) / 2 * vs), tuple(scale * vs), tuple(length), _SHORT_UNITS.get(unit, unit), True)
+    return Frame(tuple(level0_position(0.0, scale) * vs), tuple(scale * vs), tuple(length),
+                 _SHORT_UNITS.get(unit, unit), True)
 
 
 def common_frame(results: list[Result]) -> list[Frame]:

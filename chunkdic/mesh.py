@@ -204,15 +204,20 @@ class Mesh:
         return out
 
 
-def level_to_level(coords: np.ndarray, from_level: int, to_level: int) -> np.ndarray:
-    """Convert positions between pyramid levels (DESIGN.md half-voxel offset).
+def level0_position(coords, scale: float):
+    """Level-0 coordinates of positions ``coords`` on a level ``scale = 2^s`` times coarser.
 
-    A voxel ``j`` of level ``s`` has its centre at level-0 coordinate
-    ``2^s j + (2^s - 1) / 2``.
+    A voxel ``j`` of level ``s`` has its centre at level-0 coordinate ``2^s j + (2^s - 1) / 2``
+    (shared/DESIGN.md): the one place this offset is written. Physical positions are this
+    times the level-0 voxel size.
     """
-    s0, s1 = 2.0**from_level, 2.0**to_level
-    level0 = s0 * coords + (s0 - 1) / 2
-    return (level0 - (s1 - 1) / 2) / s1
+    return scale * np.asarray(coords, dtype=np.float64) + (scale - 1) / 2
+
+
+def level_to_level(coords: np.ndarray, from_level: int, to_level: int) -> np.ndarray:
+    """Convert positions between pyramid levels (:func:`level0_position` both ways)."""
+    s1 = 2.0**to_level
+    return (level0_position(coords, 2.0**from_level) - (s1 - 1) / 2) / s1
 
 
 def transfer(u: np.ndarray, coarse: Mesh, coarse_level: int, fine: Mesh, fine_level: int) -> np.ndarray:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .errors import InputError
+from .mesh import level0_position
 from .ownership import final_name
 
 # OME-NGFF space units (UDUNITS-2 names) and the spellings users type.
@@ -79,7 +80,7 @@ def ngff_attrs(levels, voxel_size, unit, name) -> dict:
             "path": str(s),
             "coordinateTransformations": [
                 {"type": "scale", "scale": [v * f for v in vs]},
-                {"type": "translation", "translation": [v * (f - 1) / 2 for v in vs]},
+                {"type": "translation", "translation": [v * float(level0_position(0.0, f)) for v in vs]},
             ],
         })
     return {

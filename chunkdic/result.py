@@ -27,7 +27,7 @@ import numpy as np
 
 from . import config
 from .errors import InputError
-from .mesh import Mesh
+from .mesh import Mesh, level0_position
 
 HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
 
@@ -220,7 +220,7 @@ class Result:
         unit = self.info.get("unit") or "unit"
         out = {}
         for axis, name in enumerate("zyx"):
-            level0 = scale * np.asarray(arrays[name]) + (scale - 1) / 2  # DESIGN.md voxel centres
+            level0 = level0_position(arrays[name], scale)
             out[f"{name}_physical"] = (name, level0 * float(vs[axis]),
                                        {"units": unit, "long_name": f"node position along {name}"})
         return out
