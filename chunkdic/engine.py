@@ -295,7 +295,12 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                 rigid_gap = lvl.assemble_b(_uniform(rigid_fine, mesh)).gap
                 emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
                      translation=rigid_fine.tolist())
-            state = iterate(lvl, state, tol, settings.max_iterations, history, progress,
+            # With the length still to choose, iterate only to the coarse levels' tolerance
+            # first: the choice linearises around the field anyway, and the regularised
+            # iterations that follow converge it to `tol` (one b pass fewer, same lengths)
+            choosing = s == finest and _length_to_choose(settings, state)
+            state = iterate(lvl, state, max(tol, settings.coarse_tolerance) if choosing else tol,
+                            settings.max_iterations, history, progress,
                             on_iteration=lambda st, s=s: save_checkpoint(st, s))
             if s == finest and _choose_automatically(settings, state):
                 state = _with_chosen_regularization(lvl, state, progress)
@@ -400,9 +405,13 @@ def _compile_kernels(runner, progress) -> None:
         emit(progress, stage="compile", done=True, seconds=time.perf_counter() - t0)
 
 
-def _choose_automatically(settings: Settings, state: State) -> bool:
+def _length_to_choose(settings: Settings, state: State) -> bool:
     return (settings.regularization != "none" and settings.regularization_length is None
-            and not math.isfinite(state.reg_length) and state.status == "converged")
+            and not math.isfinite(state.reg_length))
+
+
+def _choose_automatically(settings: Settings, state: State) -> bool:
+    return _length_to_choose(settings, state) and state.status == "converged"
 
 
 def _with_chosen_regularization(lvl: Level, state: State, progress) -> State:
