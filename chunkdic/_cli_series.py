@@ -10,8 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._cli_common import print_progress, say
-from .scheduler import SCHEDULER_HELP
+from ._cli_common import add_engine_options, engine_options, print_progress, say
 
 
 def register(subparsers) -> None:
@@ -36,25 +35,10 @@ def register(subparsers) -> None:
                        help="only each scan against the first (each started from the previous cumulative field)")
     p.set_defaults(mode="both")
     p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels, the same for every step (default: centred box)")
-    p.add_argument("--level", type=int, default=0, help="pyramid level correlated last")
-    p.add_argument("--coarsest", type=int, default=None,
-                   help="coarsest pyramid level (default: automatic for the first step; later steps start "
-                        "from the previous field on --level)")
-    p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic",
-                   help="interpolation of the deformed scan")
-    p.add_argument("--smoothing", type=float, default=1.0, help="Gaussian low-pass of both scans, voxels")
-    p.add_argument("--grey-level", choices=("none", "global", "drift", "element"), default="drift",
-                   help="brightness model between the scans")
-    p.add_argument("--regularization", choices=("none", "tikhonov", "equilibrium-gap"), default="tikhonov",
-                   help="penalty on the field's short wavelengths")
-    p.add_argument("--regularization-length", type=float, default=None, metavar="L",
-                   help="its length, voxels of level 0 (default: chosen from the data at every step)")
-    p.add_argument("--mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
-    p.add_argument("--tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
-    p.add_argument("--max-iterations", type=int, default=30, help="Gauss-Newton iterations per level at most")
-    p.add_argument("--block-elements", type=int, default=None,
-                   help="elements per block side (default: automatic)")
-    p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
+    add_engine_options(
+        p, coarsest="coarsest pyramid level (default: automatic for the first step; later steps start from the "
+                    "previous field on --level)",
+        regularization_length="its length, voxels of level 0 (default: chosen from the data at every step)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing series (one chunkdic wrote)")
     p.set_defaults(func=run_series)
 
@@ -64,11 +48,7 @@ def run_series(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     res = series(args.scans, args.output, mode=args.mode, element_size=args.element_size, roi=args.roi,
-                 level=args.level, coarsest=args.coarsest, interpolation=args.interpolation,
-                 smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
-                 regularization_length=args.regularization_length, tolerance=args.tolerance,
-                 max_iterations=args.max_iterations, block_elements=args.block_elements, mask=args.mask,
-                 scheduler=args.scheduler, overwrite=args.overwrite, progress=print_progress)
+                 overwrite=args.overwrite, progress=print_progress, **engine_options(args))
     say(res.table())
     say(f"series of {len(args.scans)} scans in {time.perf_counter() - t0:.1f} s; mean displacements in voxels of "
         f"level {args.level}, eps_zz without the outer layer of elements (table in the group attributes)")

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._cli_common import EXPLAIN, new_run, print_progress, say
+from ._cli_common import EXPLAIN, add_engine_options, engine_options, new_run, print_progress, say
 from .errors import InputError
 from .scheduler import SCHEDULER_HELP
 
@@ -106,14 +106,9 @@ def cmd_correlate(args) -> int:
 
     element_size, roi = _physical_options(args)
     t0 = time.perf_counter()
-    result = correlate(
-        args.ref, args.deformed, element_size=element_size, roi=roi, level=args.level,
-        coarsest=args.coarsest, interpolation=args.interpolation, tolerance=args.tolerance,
-        max_iterations=args.max_iterations, block_elements=args.block_elements,
-        smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
-        regularization_length=args.regularization_length, mask=args.mask, init=args.init,
-        scheduler=args.scheduler, output=args.output, overwrite=args.overwrite, progress=print_progress,
-    )
+    result = correlate(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init,
+                       output=args.output, overwrite=args.overwrite, progress=print_progress,
+                       **engine_options(args))
     say(_summary(result, time.perf_counter() - t0))
     print(args.output)
     return 0 if result.converged else 1
@@ -223,29 +218,11 @@ def _add_correlate(sub) -> None:
                                  "(0:500,0:500,0:500um) (default: centred box)")
     p.add_argument("--roi-unit", default=None, metavar="UNIT",
                    help="length unit of --roi, e.g. um (default: voxels)")
-    p.add_argument("--level", type=int, default=0, help="pyramid level correlated last (default 0)")
-    p.add_argument("--coarsest", type=int, default=None, help="coarsest pyramid level (default: automatic)")
-    p.add_argument("--interpolation", choices=("cubic", "linear"), default="cubic",
-                   help="interpolation of the deformed scan (default cubic B-spline; linear: the paper's)")
-    p.add_argument("--smoothing", type=float, default=1.0,
-                   help="Gaussian low-pass of both scans, voxels of each level (default 1; 0: the paper's raw images)")
-    p.add_argument("--grey-level", choices=("none", "global", "drift", "element"), default="drift",
-                   help="brightness model between the scans (default drift: a gain, a linear drift and an offset "
-                        "per element; none: the paper's plain residual)")
-    p.add_argument("--regularization", choices=("none", "tikhonov", "equilibrium-gap"), default="tikhonov",
-                   help="penalty on the field's short wavelengths (default tikhonov, on its curvature)")
-    p.add_argument("--regularization-length", type=float, default=None, metavar="L",
-                   help="its length, voxels of level 0 (default: chosen from the data and printed)")
-    p.add_argument("--mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
+    add_engine_options(p)
     p.add_argument("--init", default=None, metavar="RESULT",
                    help="start from this earlier result's field instead of the rigid translation (any element "
                         "size, ROI or level of the same reference; the run then starts on --level unless "
                         "--coarsest is given)")
-    p.add_argument("--tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
-    p.add_argument("--max-iterations", type=int, default=30, help="Gauss-Newton iterations per level at most")
-    p.add_argument("--block-elements", type=int, default=None,
-                   help="elements per block side (default: automatic, blocks of about chunkdic.chunk-size voxels)")
-    p.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.set_defaults(func=cmd_correlate)
 

@@ -212,8 +212,8 @@ def _write_corrected(result: Result, work: Path, out: Path, ref, deformed, f_sca
         build_mean_levels(runner, str(work), shapes, len(CORRECTED_CHANNELS), c)
     windows = contrast_windows(np.asarray(zarr.open_array(store=str(work), path=str(len(shapes) - 1), mode="r")[...]))
     gap = math.sqrt(ssr / n_valid) / (fmax - fmin) if n_valid and fmax > fmin else math.nan
-    scale_s, shift_s = level_frame(*scan_frame(f_scan, result.info)[:2], s)
-    unit = scan_frame(f_scan, result.info)[2]
+    scale0, shift0, unit = scan_frame(f_scan, result.info)
+    scale_s, shift_s = level_frame(scale0, shift0, s)
     meta.update(complete=True, gap=gap, valid_voxels=n_valid, excluded_voxels=n_bad)
     ome = image_attrs(image_name(work), scale_s, shift_s, unit, len(shapes), CORRECTED_CHANNELS, windows,
                       f"channels corrected (gain * g~(X + u(X)) + offset) and residual (f~ - corrected), grey "

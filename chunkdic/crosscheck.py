@@ -42,12 +42,12 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from .figures import AXES, level_label
 from .q4 import Q4Result, correlate2d
 from .result import Result, open_result
 
 __all__ = ["Cut", "cutcheck", "correlation_length", "plot_cutcheck"]
 
-AXES = "zyx"
 #: the paper's bound on the cut-check displacement, pixels (section 5.3)
 THRESHOLD = 0.02
 
@@ -246,7 +246,7 @@ def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path)
     vmax = max(max(float(m.max()) for m in lengths), THRESHOLD)
     fig = figure(5.0 * len(cuts), 4.6)
     axs = np.atleast_1d(fig.subplots(1, len(cuts)))
-    lab = f"voxel, level {int(result.info.get('level', 0))}"
+    lab = level_label(result)
     for ax, c, q, m in zip(axs, cuts, fields, lengths):
         rows, cols = (AXES.index(a) for a in c.components)
         # the cut's pixel (0, 0) is the ROI's first voxel: node positions in the scan's frame

@@ -99,14 +99,13 @@ def write_display(path: str, *, progress=None) -> list[int]:
     Each level is written by dask tasks, one per chunk of the scan's level (each task owns
     its chunk); the group's OME-NGFF metadata is written last.
     """
-    import dask.array as da
     import zarr
 
     from .errors import InputError
     from .handles import ref_dask
     from .ngff import ngff_attrs, omero
     from .ownership import final_name
-    from .store import compressors
+    from .store import compressors, store_array
     from .volume import open_scan
 
     scan = open_scan(path)
@@ -122,13 +121,12 @@ def write_display(path: str, *, progress=None) -> list[int]:
     for i, s in enumerate(levels):
         ref = refs[s]
         chunks = tuple(min(c, n) for c, n in zip(chunk0, ref.shape))
-        dest = g.create_array(str(s), shape=ref.shape, chunks=chunks, dtype="float32",
+        g.create_array(str(s), shape=ref.shape, chunks=chunks, dtype="float32",
                               compressors=compressors("float32"), dimension_names=("z", "y", "x"))
         # a power of two: the division is exact in float64, the float32 cast exact below 2^24
         means = (ref_dask(ref, chunks=chunks).astype(np.float64) / 8.0**s).astype(np.float32)
-        da.store(means, dest, lock=False, compute=True)
-        if progress is not None:
-            progress((i + 1) / len(levels))
+        # the one chunk writer: tasks own whole chunks (checked), progress from futures too
+        store_array(means, str(path), f"{DISPLAY_GROUP}/{s}", progress, i / len(levels), (i + 1) / len(levels))
     info = dict(root.attrs.get("chunkdic") or {})
     vs = info.get("voxel_size")
     ome = ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(str(path)) + "/display")

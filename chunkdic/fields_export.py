@@ -40,7 +40,7 @@ import numpy as np
 from . import config
 from .errors import InputError
 from .fields_levels import CHANNELS, build_mean_levels, contrast_windows, field_levels, image_name, ngff_attrs, scan_frame
-from .mesh import Block, Mesh
+from .mesh import Block, Mesh, level_to_level
 from .outputs import Outputs
 from .result import Result
 
@@ -102,8 +102,7 @@ def _chunk_elements(job: FieldsJob, region) -> tuple | None:
 
 def _level_positions(x0: np.ndarray, level: int) -> np.ndarray:
     """Level-``s`` position of level-0 voxel centres ``x0`` (DESIGN.md half-voxel offset)."""
-    f = 2.0**level
-    return (np.asarray(x0, np.float64) + 0.5) / f - 0.5
+    return level_to_level(np.asarray(x0, np.float64), 0, level)
 
 
 def chunk_tasks(job: FieldsJob, result: Result, chunks: tuple[int, int, int]) -> list[tuple]:

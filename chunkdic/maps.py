@@ -43,9 +43,9 @@ def _x_plane(results: list[Result]) -> int:
 def _x_plane_map(res: Result, nodal: np.ndarray, x: int) -> np.ndarray:
     """A nodal field (k, nz, ny, nx) on the ROI plane normal to x, C8-interpolated: (k, Lz, Ly)."""
     roi = res.mesh.roi
-    zz, yy = np.meshgrid(np.arange(roi[0].start, roi[0].stop, dtype=float),
-                         np.arange(roi[1].start, roi[1].stop, dtype=float), indexing="ij")
-    return res.mesh.evaluate(nodal, np.stack([zz, yy, np.full_like(zz, x)]))
+    axes = (np.arange(roi[0].start, roi[0].stop, dtype=float), np.arange(roi[1].start, roi[1].stop, dtype=float),
+            np.array([float(x)]))
+    return res.mesh.evaluate_grid(nodal, axes)[..., 0]
 
 
 def _panels(results, maps, extents, frames, title, path, *, cbar, cmap, vmin, vmax, dpi, suptitle,
@@ -145,14 +145,13 @@ def _epszz_plane(res: Result, x: float):
     layers) and the centre coordinates ``(cz, cy)``, level voxels."""
     mesh = res.mesh
     eps = res.element_strain()[0, 0]  # (ez, ey, ex)
-    ell = mesh.element_size
-    centres = [o + ell * (np.arange(n) + 0.5) - 0.5 for o, n in zip(mesh.origin, mesh.shape)]
+    centres = mesh.element_axes()
     cx = centres[2]
     if len(cx) == 1:
         layer = eps[:, :, 0]
     else:
         k = int(np.clip(np.searchsorted(cx, x) - 1, 0, len(cx) - 2))
-        w = float(np.clip((x - cx[k]) / ell, 0.0, 1.0))
+        w = float(np.clip((x - cx[k]) / mesh.element_size, 0.0, 1.0))
         layer = (1 - w) * eps[:, :, k] + w * eps[:, :, k + 1]
     return layer, centres[0], centres[1]
 

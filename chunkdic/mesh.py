@@ -102,6 +102,10 @@ class Mesh:
         ell = self.element_size
         return tuple(o + ell * np.arange(n + 1) - 0.5 for o, n in zip(self.origin, self.shape))
 
+    def element_axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Element-centre coordinates along each axis, ``origin + (k + 1/2) ell - 0.5`` (float64, voxels)."""
+        return tuple((nodes[1:] + nodes[:-1]) / 2 for nodes in self.node_axes())
+
     def node_coords(self) -> np.ndarray:
         """Node positions, shape ``(3, nz+1, ny+1, nx+1)``, float64, voxels of the level."""
         return np.stack(np.meshgrid(*self.node_axes(), indexing="ij"))
@@ -137,13 +141,7 @@ class Mesh:
             Field values. Points outside the mesh take the linear extension of the
             nearest element, which is what a level transfer needs at the rim.
         """
-        ell = self.element_size
-        idx, frac = [], []
-        for axis in range(3):
-            t = (points[axis] - (self.origin[axis] - 0.5)) / ell
-            k = np.clip(np.floor(t), 0, self.shape[axis] - 1).astype(np.int64)
-            idx.append(k)
-            frac.append(t - k)
+        idx, frac = zip(*(self.element_index(axis, points[axis]) for axis in range(3)))
         out = np.zeros((3,) + points.shape[1:])
         for dz, dy, dx in LOCAL_NODES:
             w = (
@@ -161,14 +159,14 @@ class Mesh:
         ----------
         axis : int
             0, 1, 2 for ``z, y, x``.
-        positions : ndarray, shape (n,), float64, voxels of this level
+        positions : ndarray, any shape, float64, voxels of this level
 
         Returns
         -------
-        k : ndarray, shape (n,), int64
+        k : ndarray, shape of ``positions``, int64
             Element index, clipped to ``0 … shape[axis] - 1`` (outside points take the
             nearest element, as in :meth:`evaluate`).
-        frac : ndarray, shape (n,), float64
+        frac : ndarray, shape of ``positions``, float64
             ``(position - node k) / ell`` (in ``[0, 1]`` inside the mesh).
         """
         t = (np.asarray(positions, np.float64) - (self.origin[axis] - 0.5)) / self.element_size

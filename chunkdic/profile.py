@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from .fields import Field
+from .mesh import level0_position
 from .result import Result
 
 __all__ = ["LayerProfile", "epszz_profile", "synthetic_field", "true_layer_strain", "write_profile_csv",
@@ -88,8 +89,7 @@ def synthetic_field(result: Result, ref=None, deformed=None) -> Field | None:
 
 def _level0(result: Result, c):
     """Level-0 voxel coordinate of level coordinate ``c`` (DESIGN.md voxel centres)."""
-    s = float(result.info.get("scale", 1))
-    return s * np.asarray(c, dtype=np.float64) + (s - 1) / 2
+    return level0_position(c, float(result.info.get("scale", 1)))
 
 
 def true_layer_strain(result: Result, field: Field) -> np.ndarray:
@@ -140,7 +140,7 @@ def epszz_profile(result: Result, field: Field | None = None) -> LayerProfile:
         if field is not None:
             t = true_layer_strain(result, field)
             true = np.where(use, t, 0.0).sum(axis=(1, 2)) / np.where(n > 0, n, np.nan)
-    z = mesh.origin[0] + mesh.element_size * (np.arange(mesh.shape[0]) + 0.5) - 0.5
+    z = mesh.element_axes()[0]
     return LayerProfile(z, mean, n.astype(int), true)
 
 

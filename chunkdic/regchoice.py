@@ -121,6 +121,8 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     lengths = np.array([c * ell for c in CANDIDATES])
     best, best_index = None, len(lengths) - 1
     for sub in regions(half.shape[:3]):
+        if best_index == 0 and not sweep:
+            break  # the shortest candidate already: no region can choose shorter
         H = np.ascontiguousarray(half[sub])
         reg = Regularizer(kind, H.shape[:3], ell)
         matvec = lambda v, H=H: stencil_matvec(H, v)  # noqa: E731
