@@ -291,17 +291,18 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             lvl.prepare_interpolation(state.u)
             if s == finest and initial_gap is None:
                 rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
-                initial_gap = lvl.assemble_b(np.zeros((3,) + mesh.nodes_shape)).gap
-                rigid_gap = lvl.assemble_b(_uniform(rigid_fine, mesh)).gap
+                initial_gap = lvl.gap(np.zeros((3,) + mesh.nodes_shape))
+                rigid_gap = lvl.gap(_uniform(rigid_fine, mesh))
                 emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
                      translation=rigid_fine.tolist())
             # With the length still to choose, iterate only to the coarse levels' tolerance
-            # first: the choice linearises around the field anyway, and the regularised
-            # iterations that follow converge it to `tol` (one b pass fewer, same lengths)
+            # first, and stop at the pass whose increment is below it without applying it:
+            # the choice linearises around that pass's field and `b` anyway, and the
+            # regularised iterations that follow converge it to `tol` (each a b pass fewer)
             choosing = s == finest and _length_to_choose(settings, state)
             state = iterate(lvl, state, max(tol, settings.coarse_tolerance) if choosing else tol,
                             settings.max_iterations, history, progress,
-                            on_iteration=lambda st, s=s: save_checkpoint(st, s))
+                            on_iteration=lambda st, s=s: save_checkpoint(st, s), resolve=choosing)
             if s == finest and _choose_automatically(settings, state):
                 state = _with_chosen_regularization(lvl, state, progress)
                 state = iterate(lvl, state, tol, settings.max_iterations, history, progress,

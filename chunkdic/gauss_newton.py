@@ -92,10 +92,12 @@ class State:
     elements: np.ndarray | None = None
     best_elements: np.ndarray | None = None
     reg_length: float = math.nan  # automatic regularisation length once chosen (voxels of the level)
+    largest_rhs: float = 0.0  # the level solver's CG reference (StencilSolver.largest_rhs)
 
     SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
-               "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length")
-    _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length")
+               "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length",
+               "largest_rhs")
+    _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length", "largest_rhs")
     _ARRAYS = ("u", "best_u", "elements", "best_elements")
 
     def scalars(self) -> dict:
@@ -174,7 +176,7 @@ def decide(state: State, gap: float, tolerance: float, max_iterations: int) -> N
 
 
 def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, history: History, progress,
-            on_iteration=None, first_pass=None) -> State:
+            on_iteration=None, first_pass=None, resolve: bool = False) -> State:
     """Modified Gauss–Newton on one level (paper section 3), from ``state``.
 
     Each pass evaluates ``b`` and the gap of the current field; the increment of the
@@ -186,6 +188,10 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
     ``on_iteration(state)`` is called after every pass (checkpoints). ``first_pass``: the
     pass already evaluated at ``state.u`` (``b`` and the gap depend on the images and the
     field only, not on the regularisation), used instead of evaluating it again.
+    ``resolve``: the caller solves again from the last pass with another operator (the
+    regularisation about to be chosen), so an increment below ``tolerance`` ends the level
+    *unapplied*: the field stays the one that pass measured, and no pass is spent confirming
+    a field the next solve replaces.
     """
     while state.status is None:
         it = state.iteration
@@ -204,9 +210,16 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             t1 = time.perf_counter()
             # (M + λR) δa = b − λ R a: the penalty acts on the whole field, not the increment
             rhs = p.b - lvl.solver.penalty_gradient(np.moveaxis(state.u, 0, -1))
+            lvl.solver.largest_rhs = max(lvl.solver.largest_rhs, state.largest_rhs)  # as before a resume
             delta, cg_iterations = lvl.solver.solve(rhs)
+            state.largest_rhs = lvl.solver.largest_rhs
             t2 = time.perf_counter()
-            state.step(delta)
+            if resolve and float(np.abs(delta).max()) < tolerance:
+                state.last_delta = float(np.abs(delta).max())
+                state.finish("converged", keep_current=True)
+                event.update(status=state.status)
+            else:
+                state.step(delta)
             history.add(lvl.s, it, p.gap, state.last_delta, p.n_excluded)
             event.update(max_delta=state.last_delta, seconds=t2 - t0, assemble_seconds=t1 - t0,
                          solve_seconds=t2 - t1, cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels,

@@ -107,6 +107,14 @@ def b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
             yy = y + lo1
             ty = xi[y - ey * ell]
             X1 = c1 + y
+            # a row whose elements are all inactive (a mask, the sampled gap) costs nothing
+            row_active = False
+            for ex in range(nex):
+                if active[ez, ey, ex] != 0:
+                    row_active = True
+                    break
+            if not row_active:
+                continue
             # flat offsets (unsigned: no wrap-around code) of the rows of f used by d and
             # the centred differences; contiguous loops that LLVM vectorises
             rc = np.uint64(zz * fs0 + yy * fs1 + lo2)

@@ -114,7 +114,9 @@ class StencilSolver:
     def __init__(self, half: np.ndarray, *, weak_threshold: float = 1e-3, rtol: float = 1e-7,
                  maxiter: int = 2000):
         self.rtol, self.maxiter = rtol, maxiter
-        self._largest_rhs = 0.0  # norm of the largest right-hand side solved so far
+        #: norm of the largest right-hand side solved so far (kept by checkpoints: a
+        #: resumed run stops CG where the uninterrupted one did)
+        self.largest_rhs = 0.0
         self.nodes_shape = half.shape[:3]
         diag = half[..., 0, :, :].reshape(-1, 3, 3).astype(np.float64)
         eig = np.linalg.eigvalsh(diag)  # ascending
@@ -169,8 +171,8 @@ class StencilSolver:
         x = np.zeros_like(b)
         code, Ke, Kf, sw = self._reg_args
         norm = float(np.sqrt(np.sum(b * b)))
-        self._largest_rhs = max(self._largest_rhs, norm)
-        rtol = self.rtol * self._largest_rhs / norm if norm > 0 else self.rtol
+        self.largest_rhs = max(self.largest_rhs, norm)
+        rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
         iterations = _pcg(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
                           code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
         if iterations < 0:
