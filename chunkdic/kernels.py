@@ -68,6 +68,7 @@ import numpy as np
 from .kernels_b import b_sums, element_to_nodes
 from .kernels_m import m_block
 from .kernels_warp import warp_block
+from .kernels_prefilter import lowpass_bspline
 from .kernels_window import INTERPOLATIONS
 
 __all__ = ["warmup", "compiled_on_disk"]
@@ -87,6 +88,7 @@ def warmup() -> None:
         m_block(f, lo, hi, ell, grey=grey)
     m_block(f, lo, hi, ell, with_lags=True, active=np.ones((1, 1, 1), np.uint8))
     m_block(f, lo, hi, ell, u_nodes=u, core_origin=(1, 1, 1), g_shape=f.shape)
+    lowpass_bspline(f, 1.0, True)
     for interp in INTERPOLATIONS:
         sums = b_sums(f, lo, hi, ell, u, (1, 1, 1), f, (0, 0, 0), f.shape, interpolation=interp)
         element_to_nodes(sums.B[..., 0, :, :])

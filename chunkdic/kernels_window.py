@@ -13,9 +13,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.ndimage as ndi
 
 from .blocks import check_nodes, elements_of
+from .kernels_prefilter import lowpass_bspline
 
 __all__ = ["IMPLEMENTATIONS", "INTERPOLATIONS", "KernelSetup", "check_choice", "element_activity", "g_window",
            "kernel_setup", "prepare_window"]
@@ -97,12 +97,13 @@ def prepare_window(g: np.ndarray, interpolation: str) -> np.ndarray:
     float32 coefficients: the images are float32 (architecture.md) and the B-spline
     reproduces samples with relative error ~1e-7 of the intensity range either way; float32
     halves the memory and bandwidth of the 64-tap gather, the hot loop of the cubic pass.
-    The prefilter is ``scipy.ndimage.spline_filter(order=3, mode="mirror")``: it equals a
+    The prefilter is that of ``scipy.ndimage.spline_filter(order=3, mode="mirror")``
+    (:func:`chunkdic.kernels_prefilter.lowpass_bspline`, to float32 round-off): it equals a
     whole-volume prefilter where the window carries ``chunkdic.bspline-halo`` voxels or
     touches the volume boundary.
     """
     if interpolation == "cubic" and g.size:
-        return ndi.spline_filter(np.asarray(g, dtype=np.float32), order=3, mode="mirror", output=np.float32)
+        return lowpass_bspline(g, 0.0, True)
     return np.ascontiguousarray(g, dtype=np.float32)
 
 

@@ -30,10 +30,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import scipy.ndimage as ndi
 
 from .errors import InputError
-from .kernels_window import prepare_window
+from .kernels_prefilter import TRUNCATE, lowpass_bspline
 from .mesh import Mesh
 from .handles import ArrayRef
 
@@ -42,8 +41,6 @@ CHUNK = 64
 #: largest edge of the region one preparation task computes; the box is split into equal
 #: parts no longer than this (multiples of CHUNK when the store is Zarr: whole chunks)
 TASK_EDGE = 160
-#: the Gaussian low-pass is truncated at this many standard deviations
-TRUNCATE = 4.0
 
 
 def gaussian_radius(sigma: float) -> int:
@@ -76,11 +73,12 @@ def check_finite(data: np.ndarray, what: str, region) -> None:
 
 
 def lowpass(data: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian low-pass (σ in voxels, mirror boundary) in float32; a float32 copy if σ = 0."""
-    data = np.asarray(data, dtype=np.float32)
-    if sigma <= 0:
-        return data
-    return ndi.gaussian_filter(data, sigma, mode="mirror", truncate=TRUNCATE, output=np.float32)
+    """Gaussian low-pass (σ in voxels, mirror boundary) in float32; a float32 copy if σ = 0.
+
+    :func:`scipy.ndimage.gaussian_filter` to float32 round-off, by the kernel that also
+    prefilters ``g`` (:mod:`chunkdic.kernels_prefilter`).
+    """
+    return lowpass_bspline(data, sigma, False)
 
 
 def prepare_reference(raw: np.ndarray, region, inner, sigma: float) -> np.ndarray:
@@ -90,8 +88,9 @@ def prepare_reference(raw: np.ndarray, region, inner, sigma: float) -> np.ndarra
 
 
 def prepare_deformed(raw: np.ndarray, sigma: float, interpolation: str) -> np.ndarray:
-    """Low-pass a window of ``g`` and, for cubic, prefilter it into B-spline coefficients."""
-    return prepare_window(lowpass(raw, sigma), interpolation)
+    """Low-pass a window of ``g`` and, for cubic, prefilter it into B-spline coefficients
+    (both filters in one sweep per axis: :func:`chunkdic.kernels_prefilter.lowpass_bspline`)."""
+    return lowpass_bspline(raw, sigma, interpolation == "cubic")
 
 
 @dataclass(frozen=True)
