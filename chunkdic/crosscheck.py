@@ -206,7 +206,7 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
 
     res = result if isinstance(result, Result) else open_result(result)
     check_displacement(res.displacement, res.path, res.flags)
-    input_scans(res, ref, deformed)  # every input checked before anything is written
+    scans = input_scans(res, ref, deformed)  # every input checked before anything is written
     check_scheduler(scheduler)
     plan = Outputs(inputs=input_paths(res, ref, deformed), overwrite=overwrite)
     out = plan.add(output, "cutcheck").final if output is not None else None
@@ -216,7 +216,7 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     with plan:  # a failure removes what this run wrote
         cuts, fields = [], []
         # the runner first: a level missing from the scans is then built by its workers
-        with open_runner(scheduler) as runner, level_refs(res, ref, deformed) as (f_ref, g_ref):
+        with open_runner(scheduler) as runner, level_refs(res, scans=scans) as (f_ref, g_ref):
             for normal in range(3):
                 idx = planes[AXES[normal]]
                 cut = correction.planes(res, f_ref, g_ref, normal, idx, runner, interpolation=interpolation_of(res))
