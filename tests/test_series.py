@@ -154,7 +154,7 @@ def test_bad_inputs_exit_2_nothing_written(run, tmp_path, capsys):
     _refused([*c, "--init", tmp_path / "nope.zarr"], capsys, "does not exist")
     other = tmp_path / "other.zarr"
     chunkdic.correlate(small, small, element_size=ELL, coarsest=0, regularization="none", output=other)
-    _refused([*c, "--init", other], capsys, "reference of shape (40, 40, 40)")
+    _refused([*c, "--init", other], capsys, "computed on one of shape (40, 40, 40)")
     _refused([*c, "--init", out.parent], capsys, "not a chunkdic result")
     _nothing_at(out)
 
