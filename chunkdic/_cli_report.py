@@ -206,13 +206,13 @@ def format_strain(summary, result) -> str:
 
 def run_strain(args: argparse.Namespace) -> int:
     from .result import open_result
-    from .strain import mean_strain
+    from .strain import strain_summary
 
     from .inputs import check_displacement
 
     res = open_result(args.result)
     check_displacement(res.displacement, res.path, res.flags)
-    s = mean_strain(res.displacement, res.info["element_size"], exclude_outer=not args.all_elements)
+    s = strain_summary(res, exclude_outer=not args.all_elements)  # a mask's active elements only
     if args.json:
         out = {"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}
         length = res.voxel_length()

@@ -58,7 +58,7 @@ from .prefilter import face_margin
 from .result import HISTORY_FIELDS, Result, open_result
 from .scheduler import check_scheduler
 from .settings import Settings
-from .strain import mean_strain
+from .strain import strain_summary
 from .volume import open_scan
 
 __all__ = ["series", "open_series", "SeriesResult", "compose", "MODES"]
@@ -363,9 +363,9 @@ def _complete(path: Path) -> bool:
 def _row(res: Result, k: int, pair: str, kind: str, group: str, run: str, seconds: float) -> dict:
     u = res.displacement
     gap = res.info.get("final_gap")
-    try:
-        eps_zz = float(mean_strain(u, res.info["element_size"]).eps_zz)
-    except Exception:  # noqa: BLE001 - a field without a measured element has no mean strain
+    try:  # over the mask's active elements only
+        eps_zz = float(strain_summary(res).eps_zz)
+    except InputError:  # no measured element: no mean strain
         eps_zz = float("nan")
     return {"step": k, "pair": pair, "kind": kind, "group": group, "status": str(res.info.get("status")),
             "run": run, "gap": None if gap is None or not np.isfinite(gap) else float(gap),
