@@ -146,6 +146,17 @@ def length_options(args, ref) -> tuple[int, str | None]:
     return ell, roi
 
 
+def add_figure_options(p) -> None:
+    """``--format png|pdf|svg`` and ``--dpi`` of the commands that write figures (``report``,
+    ``cutcheck``), declared once; both go to :func:`chunkdic.figures.save`."""
+    from .figures import DEFAULT_DPI, FORMATS
+
+    p.add_argument("--format", dest="fmt", choices=FORMATS, default="png",
+                   help="file format of every figure (default png)")
+    p.add_argument("--dpi", type=int, default=DEFAULT_DPI,
+                   help=f"resolution of every figure, dots per inch (default {DEFAULT_DPI})")
+
+
 def add_engine_options(p, **helps) -> None:
     """The correlation settings every correlating command takes, declared once.
 
