@@ -688,7 +688,8 @@ def _concurrent(case, d, scratch) -> str:
         first.kill()
     err = proc.stderr.strip().splitlines()
     if "Traceback" in proc.stderr or proc.returncode != 2 or len(err) != 1:
-        return f"second run: exit {proc.returncode}, {len(err)} lines ({err[-1] if err else ''})"
+        # the whole stderr (repr: line separators shown), so that a failure is diagnosable
+        return f"second run: exit {proc.returncode}, {len(err)} lines: {proc.stderr!r}"
     if rc not in (0, 1):
         return f"first run: exit {rc} after the second"
     check = subprocess.run([sys.executable, "-c", VERIFY, str(d / "out.zarr")], env=Case.env_for(case.tree),

@@ -112,6 +112,51 @@ def print_progress(event: dict) -> None:
         say(line)
 
 
+def add_length_options(p, *, every_step: str = "") -> None:
+    """``--element-size``, ``--roi`` and ``--roi-unit``, in voxels or a physical unit
+    (:mod:`chunkdic.units`), declared once (``correlate``, ``series``); ``every_step``: a
+    note appended to their help."""
+    p.add_argument("--element-size", "-l", required=True, metavar="ELL",
+                   help="element edge, voxels of --level, or a physical length such as 60um (converted with "
+                        "the reference scan's voxel size and rounded to whole voxels)" + every_step)
+    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels, or in --roi-unit, or with a unit suffix "
+                                 "(0:500,0:500,0:500um) (default: centred box)" + every_step)
+    p.add_argument("--roi-unit", default=None, metavar="UNIT",
+                   help="length unit of --roi, e.g. um (default: voxels)")
+
+
+def length_options(args, ref) -> tuple[int, str | None]:
+    """``--element-size`` and ``--roi`` (:func:`add_length_options`) in voxels, converted
+    when given in a physical unit (``60um``, ``--roi-unit um``) with the voxel size of the
+    reference scan ``ref`` (opened only then); each conversion said on stderr."""
+    from .units import element_size_voxels, parse_length, roi_voxels
+
+    physical = parse_length(args.element_size)[1] is not None or args.roi_unit is not None or (
+        args.roi is not None and not args.roi.strip()[-1:].isdigit())
+    scan = None
+    if physical:
+        from .volume import open_scan
+
+        scan = open_scan(ref)
+    ell, note = element_size_voxels(args.element_size, scan, args.level)
+    roi, roi_note = (None, None) if args.roi is None else roi_voxels(args.roi, scan, args.roi_unit)
+    for line in (note, roi_note):
+        if line:
+            say(line)
+    return ell, roi
+
+
+def add_figure_options(p) -> None:
+    """``--format png|pdf|svg`` and ``--dpi`` of the commands that write figures (``report``,
+    ``cutcheck``), declared once; both go to :func:`chunkdic.figures.save`."""
+    from .figures import DEFAULT_DPI, FORMATS
+
+    p.add_argument("--format", dest="fmt", choices=FORMATS, default="png",
+                   help="file format of every figure (default png)")
+    p.add_argument("--dpi", type=int, default=DEFAULT_DPI,
+                   help=f"resolution of every figure, dots per inch (default {DEFAULT_DPI})")
+
+
 def add_engine_options(p, **helps) -> None:
     """The correlation settings every correlating command takes, declared once.
 

@@ -11,7 +11,7 @@ import argparse
 import json
 import math
 import time
-from ._cli_common import say
+from ._cli_common import add_figure_options, say
 
 
 def register(subparsers) -> None:
@@ -41,14 +41,15 @@ def register(subparsers) -> None:
                     "mid-planes (normal to z, y, x), with the result's element size. Per cut: mean, standard "
                     "deviation and maximum of the 2-D displacement (pixels) and its correlation length. A "
                     "converged result gives a field below 0.02 pixel, white-noise-like (exit 0); otherwise "
-                    "exit 1. Writes cutcheck.png and cutcheck.json into DIR.")
+                    "exit 1. Writes cutcheck.png (or .pdf, .svg: --format) and cutcheck.json into DIR.")
     p.add_argument("result", metavar="RESULT.zarr")
-    p.add_argument("-o", "--output", required=True, metavar="DIR", help="directory for cutcheck.png/.json")
+    p.add_argument("-o", "--output", required=True, metavar="DIR", help="directory for the figure and cutcheck.json")
     p.add_argument("--ref", help="reference scan (default: the path recorded in the result)")
     p.add_argument("--deformed", help="deformed scan (default: the path recorded in the result)")
     p.add_argument("--scheduler", default=None,
                    help="where the cut planes are computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--json", action="store_true", help="print one JSON object per cut (a list)")
+    add_figure_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier cut check in DIR")
     p.set_defaults(func=run_cutcheck)
 
@@ -86,7 +87,7 @@ def run_cutcheck(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     cuts = cutcheck(args.result, args.output, ref=args.ref, deformed=args.deformed, scheduler=args.scheduler,
-                    overwrite=args.overwrite, progress=say)
+                    overwrite=args.overwrite, progress=say, fmt=args.fmt, dpi=args.dpi)
     if args.json:
         print(json.dumps([c.as_dict() for c in cuts], indent=2))
     else:

@@ -14,9 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._cli_common import say
+from ._cli_common import add_figure_options, say
 from .errors import InputError
-from .figures import DEFAULT_DPI, FORMATS
 
 
 def _sizes_arg(p) -> None:
@@ -101,10 +100,7 @@ def register(subparsers) -> None:
                    help="where the cut planes are computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--cuts-from", metavar="RESULT.zarr", default=None,
                    help="the result (one of those given) whose field the cut figures use (default: the first)")
-    p.add_argument("--format", dest="fmt", choices=FORMATS, default="png",
-                   help="file format of every figure (default png)")
-    p.add_argument("--dpi", type=int, default=DEFAULT_DPI,
-                   help=f"resolution of every figure, dots per inch (default {DEFAULT_DPI})")
+    add_figure_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
     p.set_defaults(func=run_report)
 
@@ -206,13 +202,13 @@ def format_strain(summary, result) -> str:
 
 def run_strain(args: argparse.Namespace) -> int:
     from .result import open_result
-    from .strain import mean_strain
+    from .strain import strain_summary
 
     from .inputs import check_displacement
 
     res = open_result(args.result)
     check_displacement(res.displacement, res.path, res.flags)
-    s = mean_strain(res.displacement, res.info["element_size"], exclude_outer=not args.all_elements)
+    s = strain_summary(res, exclude_outer=not args.all_elements)  # a mask's active elements only
     if args.json:
         out = {"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}
         length = res.voxel_length()

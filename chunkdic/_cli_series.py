@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from ._cli_common import add_engine_options, engine_options, print_progress, say
+from ._cli_common import add_engine_options, add_length_options, engine_options, length_options, print_progress, say
 
 
 def register(subparsers) -> None:
@@ -26,15 +26,13 @@ def register(subparsers) -> None:
                     "Exit 0 when every correlation converged, 1 otherwise, 2 on bad input.")
     p.add_argument("scans", nargs="+", metavar="SCAN", help="scans in loading order (Zarr groups/arrays, .npy)")
     p.add_argument("-o", "--output", required=True, help="series path (Zarr v3 group)")
-    p.add_argument("--element-size", "-l", type=int, required=True, metavar="ELL",
-                   help="element edge, voxels of --level (the same for every step)")
+    add_length_options(p, every_step=" (the same for every step)")
     which = p.add_mutually_exclusive_group()
     which.add_argument("--incremental", dest="mode", action="store_const", const="incremental",
                        help="only each scan against the previous one (cumulative fields composed from them)")
     which.add_argument("--cumulative", dest="mode", action="store_const", const="cumulative",
                        help="only each scan against the first (each started from the previous cumulative field)")
     p.set_defaults(mode="both")
-    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels, the same for every step (default: centred box)")
     add_engine_options(
         p, coarsest="coarsest pyramid level (default: automatic for the first step; later steps start from the "
                     "previous field on --level)",
@@ -46,8 +44,9 @@ def register(subparsers) -> None:
 def run_series(args: argparse.Namespace) -> int:
     from .loadseries import series
 
+    element_size, roi = length_options(args, args.scans[0])
     t0 = time.perf_counter()
-    res = series(args.scans, args.output, mode=args.mode, element_size=args.element_size, roi=args.roi,
+    res = series(args.scans, args.output, mode=args.mode, element_size=element_size, roi=roi,
                  overwrite=args.overwrite, progress=print_progress, **engine_options(args))
     say(res.table())
     say(f"series of {len(args.scans)} scans in {time.perf_counter() - t0:.1f} s; mean displacements in voxels of "

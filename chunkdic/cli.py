@@ -15,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._cli_common import EXPLAIN, add_engine_options, engine_options, new_run, print_progress, say
+from ._cli_common import (EXPLAIN, add_engine_options, add_length_options, engine_options, length_options, new_run,
+                          print_progress, say)
 from .errors import InputError
 from .scheduler import SCHEDULER_HELP
 
@@ -104,7 +105,7 @@ def _summary(result, seconds: float) -> str:
 def cmd_correlate(args) -> int:
     from .engine import correlate
 
-    element_size, roi = _physical_options(args)
+    element_size, roi = length_options(args, args.ref)
     t0 = time.perf_counter()
     result = correlate(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init,
                        output=args.output, overwrite=args.overwrite, progress=print_progress,
@@ -112,26 +113,6 @@ def cmd_correlate(args) -> int:
     say(_summary(result, time.perf_counter() - t0))
     print(args.output)
     return 0 if result.converged else 1
-
-
-def _physical_options(args):
-    """``--element-size`` and ``--roi`` in voxels, converted when given in a physical unit
-    (``60um``, ``--roi-unit um``) with the reference scan's voxel size (:mod:`chunkdic.units`)."""
-    from .units import element_size_voxels, parse_length, roi_voxels
-
-    physical = parse_length(args.element_size)[1] is not None or args.roi_unit is not None or (
-        args.roi is not None and not args.roi.strip()[-1:].isdigit())
-    scan = None
-    if physical:
-        from .volume import open_scan
-
-        scan = open_scan(args.ref)
-    ell, note = element_size_voxels(args.element_size, scan, args.level)
-    roi, roi_note = (None, None) if args.roi is None else roi_voxels(args.roi, scan, args.roi_unit)
-    for line in (note, roi_note):
-        if line:
-            say(line)
-    return ell, roi
 
 
 def cmd_demo(args) -> int:
@@ -211,13 +192,7 @@ def _add_correlate(sub) -> None:
     p.add_argument("ref", help="reference scan: Zarr group/array, .npy")
     p.add_argument("deformed", help="deformed scan: Zarr group/array, .npy")
     p.add_argument("-o", "--output", required=True, help="result path (Zarr v3 group)")
-    p.add_argument("--element-size", "-l", required=True, metavar="ELL",
-                   help="element edge, voxels of --level, or a physical length such as 60um (converted with "
-                        "the reference scan's voxel size and rounded to whole voxels)")
-    p.add_argument("--roi", help="z0:z1,y0:y1,x0:x1 in level-0 voxels, or in --roi-unit, or with a unit suffix "
-                                 "(0:500,0:500,0:500um) (default: centred box)")
-    p.add_argument("--roi-unit", default=None, metavar="UNIT",
-                   help="length unit of --roi, e.g. um (default: voxels)")
+    add_length_options(p)
     add_engine_options(p)
     p.add_argument("--init", default=None, metavar="RESULT",
                    help="start from this earlier result's field instead of the rigid translation (any element "

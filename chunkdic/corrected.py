@@ -12,9 +12,9 @@ grey levels the engine compared (level-``s`` sums), at ``8^-s`` of the storage.
 
 Chunk by chunk: one task per chunk of the level-``s`` grid that meets the ROI; it corrects
 the elements its chunk touches and writes that chunk of both channels (it owns it). The
-pyramid levels ``1..k`` are NaN-aware 2×2×2 means by tasks
-(:func:`chunkdic.fields_levels.build_mean_levels`); arrays created first, marked complete
-last (shared/DESIGN.md, "Out-of-core shape"; paper section 5.3, Figs. 6-8).
+pyramid levels ``1..k`` are NaN-aware 2×2×2 means by tasks, the contrast windows come
+from a bounded sample read by tasks (:func:`chunkdic.fields_levels.write_image`, the writer
+shared with the fields image); arrays created first, marked complete last (shared/DESIGN.md, "Out-of-core shape"; paper section 5.3, Figs. 6-8).
 :func:`open_corrected` reads the ROI back.
 """
 
@@ -151,33 +151,35 @@ def write_corrected(result, out, *, ref=None, deformed=None, interpolation: str 
     out = Path(out)
     plan = Outputs(inputs=input_paths(result, ref, deformed), overwrite=overwrite)
     entry = plan.add(out, "corrected")
-    f_scan, _ = input_scans(result, ref, deformed)  # every input checked before anything is written
+    scans = input_scans(result, ref, deformed)  # every input checked before anything is written
     with plan:
-        return _write_corrected(result, entry.work, out, ref, deformed, f_scan, interpolation, levels,
-                                scheduler, progress)
+        return _write_corrected(result, entry.work, out, scans, interpolation, levels, scheduler, progress)
 
 
-def _write_corrected(result: Result, work: Path, out: Path, ref, deformed, f_scan, interpolation: str,
-                     levels, scheduler, progress) -> dict:
-    """:func:`write_corrected` into ``work`` (renamed to ``out`` by the caller)."""
-    import zarr
-
-    from .fields_levels import build_mean_levels, contrast_windows, field_levels, image_attrs, image_name
-    from .fields_levels import level_frame, scan_frame
+def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation: str, levels, scheduler,
+                     progress) -> dict:
+    """:func:`write_corrected` into ``work`` (renamed to ``out`` by the caller); ``scans``:
+    the result's reference and deformed scans, opened and checked."""
+    from .fields_levels import field_levels, scan_frame, write_image
+    from .ngff import level_frame
     from .scheduler import open_runner
-    from .store import compressors
 
     mesh = result.mesh
     s = int(result.info.get("level", 0))
     c = int(config.get("chunk-size"))
     u = result.displacement
+    scale0, shift0, unit = scan_frame(scans[0], result.info)
+    # the image's level 0 is the scan's level s: its frame
+    frame = (*level_frame(scale0, shift0, s), unit)
+    description = (f"channels corrected (gain * g~(X + u(X)) + offset) and residual (f~ - corrected), grey "
+                   f"levels of pyramid level {s} (2^{s} sums); NaN outside the ROI. Level 0 lies on the "
+                   f"reference scan's level {s}; level t is the NaN-aware mean over 2^t voxels per axis")
+    level0 = None if progress is None else (lambda stage, f: progress(f) if stage == "corrected" else None)
     # the runner first: with a cluster, missing levels are then written to scratch by its
     # workers, not by the client (as crosscheck and the engine do)
-    with open_runner(scheduler) as runner, level_refs(result, ref, deformed) as (f_ref, g_ref):
+    with open_runner(scheduler) as runner, level_refs(result, scans=scans) as (f_ref, g_ref):
         corr = Correction.of_result(result, f_ref, g_ref, interpolation)
         shape = tuple(int(n) for n in f_ref.shape)
-        shapes = field_levels(shape, levels)
-        root = zarr.open_group(str(work), mode="w", zarr_format=3)
         meta = {
             "kind": "corrected", "complete": False, "result": result.path, "level": s,
             "roi": [[r.start, r.stop] for r in mesh.roi], "element_size": mesh.element_size,
@@ -189,11 +191,6 @@ def _write_corrected(result: Result, work: Path, out: Path, ref, deformed, f_sca
                            "(chunkdic.correction); image level 0 is the reference scan's level `level` (same "
                            "shape and frame), NaN outside the ROI; `roi` in voxels of that level",
         }
-        root.attrs["chunkdic"] = meta
-        for t, shp in enumerate(shapes):
-            root.create_array(str(t), shape=(2,) + shp, chunks=(1,) + tuple(min(c, n) for n in shp),
-                              dtype="float32", fill_value=float("nan"), compressors=compressors("float32"),
-                              dimension_names=("c", "z", "y", "x"))
         args = []
         for z in range(0, shape[0], c):
             for y in range(0, shape[1], c):
@@ -203,25 +200,23 @@ def _write_corrected(result: Result, work: Path, out: Path, ref, deformed, f_sca
                     if blk is not None:  # a chunk outside the ROI keeps the fill value (NaN)
                         args.append((corr, region, blk, np.ascontiguousarray(u[(slice(None), *blk.node_slices)]),
                                      element_slice(result.brightness, blk), str(work)))
-        ssr, n_valid, n_bad, fmin, fmax = 0.0, 0, 0, math.inf, -math.inf
-        for done, (r2, nv, nb, lo, hi) in enumerate(runner.map_unordered(corrected_task, args), 1):
-            ssr, n_valid, n_bad = ssr + r2, n_valid + nv, n_bad + nb
-            fmin, fmax = min(fmin, lo), max(fmax, hi)
-            if progress is not None:
-                progress(done / len(args))
-        build_mean_levels(runner, str(work), shapes, len(CORRECTED_CHANNELS), c)
-    windows = contrast_windows(np.asarray(zarr.open_array(store=str(work), path=str(len(shapes) - 1), mode="r")[...]))
+        shapes = field_levels(shape, levels)
+        write_image(runner, work, corrected_task, args, meta=meta, channels=CORRECTED_CHANNELS, shapes=shapes,
+                    chunk=c, frame=frame, description=description, summarize=_gap, progress=level0,
+                    stage="corrected")
+    log.info("corrected image and residual written to %s (gap %.4g)", out, meta["gap"])
+    return {"path": str(out), "gap": meta["gap"], "valid": meta["valid_voxels"], "excluded": meta["excluded_voxels"],
+            "levels": shapes}
+
+
+def _gap(results: list) -> dict:
+    """The matching gap (paper 5.1) and voxel counts from the tasks' ``(Σ r², n_valid,
+    n_excluded, min f̃, max f̃)`` (:func:`corrected_task`)."""
+    ssr = sum(r[0] for r in results)
+    n_valid, n_bad = sum(r[1] for r in results), sum(r[2] for r in results)
+    fmin, fmax = min((r[3] for r in results), default=math.inf), max((r[4] for r in results), default=-math.inf)
     gap = math.sqrt(ssr / n_valid) / (fmax - fmin) if n_valid and fmax > fmin else math.nan
-    scale0, shift0, unit = scan_frame(f_scan, result.info)
-    scale_s, shift_s = level_frame(scale0, shift0, s)
-    meta.update(complete=True, gap=gap, valid_voxels=n_valid, excluded_voxels=n_bad)
-    ome = image_attrs(image_name(work), scale_s, shift_s, unit, len(shapes), CORRECTED_CHANNELS, windows,
-                      f"channels corrected (gain * g~(X + u(X)) + offset) and residual (f~ - corrected), grey "
-                      f"levels of pyramid level {s} (2^{s} sums); NaN outside the ROI. Level 0 lies on the "
-                      f"reference scan's level {s}; level t is the NaN-aware mean over 2^t voxels per axis")
-    zarr.open_group(str(work), mode="r+").update_attributes({"chunkdic": meta, "ome": ome})
-    log.info("corrected image and residual written to %s (gap %.4g)", out, gap)
-    return {"path": str(out), "gap": gap, "valid": n_valid, "excluded": n_bad, "levels": shapes}
+    return {"gap": gap, "valid_voxels": n_valid, "excluded_voxels": n_bad}
 
 
 def open_corrected(path):

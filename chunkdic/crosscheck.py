@@ -168,7 +168,8 @@ def check_cut(prepared: np.ndarray, corrected: np.ndarray, element_size: int, no
 
 
 def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, overwrite: bool = False,
-             progress: Callable[[str], None] | None = None) -> list[Cut]:
+             progress: Callable[[str], None] | None = None, fmt: str = "png",
+             dpi: int | None = None) -> list[Cut]:
     """Run the paper's cut check (section 5.3) on a correlation result.
 
     Parameters
@@ -176,8 +177,8 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     result : Result or path
         A result of :func:`chunkdic.correlate` whose scans are on disk.
     output : path, optional
-        Folder for ``cutcheck.png`` (one panel per cut: the length of the 2-D displacement
-        at the nodes) and ``cutcheck.json`` (the numbers); written through
+        Folder for ``cutcheck.png`` (``.pdf``, ``.svg`` with ``fmt``; one panel per cut: the
+        length of the 2-D displacement at the nodes) and ``cutcheck.json`` (the numbers); written through
         :class:`chunkdic.outputs.Outputs` (kind ``cutcheck``). None: nothing is written.
     ref, deformed : path, optional
         The scans (default: the paths recorded in the result).
@@ -187,6 +188,10 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
         Replace the files of an earlier cut check in ``output``.
     progress : callable(str), optional
         One message per cut.
+    fmt : {"png", "pdf", "svg"}, keyword-only
+        File format of the figure.
+    dpi : int, keyword-only, optional
+        Its resolution, dots per inch (default :data:`chunkdic.figures.DEFAULT_DPI`).
 
     Returns
     -------
@@ -198,7 +203,7 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     Roux, Hild, Viot, Bernard, section 5.3 ("Check of correction from mid-plane cuts").
     """
     from . import correction
-    from .figures import mid_planes
+    from .figures import check_figure_options, mid_planes
     from .inputs import check_displacement
     from .outputs import Outputs
     from .resultscans import input_paths, input_scans, interpolation_of, level_refs
@@ -206,8 +211,9 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
 
     res = result if isinstance(result, Result) else open_result(result)
     check_displacement(res.displacement, res.path, res.flags)
-    input_scans(res, ref, deformed)  # every input checked before anything is written
+    scans = input_scans(res, ref, deformed)  # every input checked before anything is written
     check_scheduler(scheduler)
+    check_figure_options(fmt, dpi)
     plan = Outputs(inputs=input_paths(res, ref, deformed), overwrite=overwrite)
     out = plan.add(output, "cutcheck").final if output is not None else None
     say = progress or (lambda msg: None)
@@ -216,7 +222,7 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     with plan:  # a failure removes what this run wrote
         cuts, fields = [], []
         # the runner first: a level missing from the scans is then built by its workers
-        with open_runner(scheduler) as runner, level_refs(res, ref, deformed) as (f_ref, g_ref):
+        with open_runner(scheduler) as runner, level_refs(res, scans=scans) as (f_ref, g_ref):
             for normal in range(3):
                 idx = planes[AXES[normal]]
                 cut = correction.planes(res, f_ref, g_ref, normal, idx, runner, interpolation=interpolation_of(res))
@@ -226,20 +232,21 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
                 say(f"cut normal to {c.axis} at {c.axis} = {idx}: mean {c.mean:.4f}, std {c.std:.4f}, "
                     f"max {c.max:.4f} pixel, correlation length {c.correlation_length:.1f} pixel ({c.status})")
         if out is not None:
-            plot_cutcheck(res, cuts, fields, out / "cutcheck.png")
+            figure_path = plot_cutcheck(res, cuts, fields, out / f"cutcheck.{fmt}", dpi=dpi)
             (out / "cutcheck.json").write_text(json.dumps([c.as_dict() for c in cuts], indent=2) + "\n")
-            say(f"wrote {out / 'cutcheck.png'}, {out / 'cutcheck.json'}")
+            say(f"wrote {figure_path}, {out / 'cutcheck.json'}")
     return cuts
 
 
-def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path) -> str:
+def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path, *, dpi: int | None = None) -> str:
     """One panel per cut: the length of the 2-D displacement at the nodes (common colour
     scale) with arrows showing its direction (auto-scaled per panel).
 
     Axes in voxels of the result's level, in the scan's frame; the title of each panel gives
-    the cut's figures.
+    the cut's figures. Written by :func:`chunkdic.figures.save` (format from the extension
+    of ``path``, resolution ``dpi``).
     """
-    from .figures import figure
+    from .figures import figure, save
 
     roi = result.mesh.roi
     lengths = [np.sqrt((q.displacement**2).sum(axis=0)) for q in fields]
@@ -262,5 +269,4 @@ def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path)
         fig.colorbar(im, ax=ax, shrink=0.8, label="|u| of the 2-D Q4 field (pixel)")
     fig.suptitle(f"Cut check (paper 5.3): Q4-DIC of reference vs corrected cuts, ℓ = {result.info['element_size']}; "
                  f"a converged 3-D field gives < {THRESHOLD} pixel, white-noise-like")
-    fig.savefig(path)
-    return str(path)
+    return save(fig, path, dpi)

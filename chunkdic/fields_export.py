@@ -12,7 +12,8 @@ Everything voxel-sized is made by tasks, one per output chunk (shared/DESIGN.md,
 "Out-of-core shape"): a task receives the nodes, element values and brightness of the
 elements its chunk touches (kilobytes) and writes its chunk of every channel; the
 pyramid levels ``1..k`` are 2×2×2 means (NaN-aware) made by tasks from the level below;
-the client reads only the coarsest level, for the contrast windows.
+the contrast windows come from a bounded sample of the coarsest level, read by tasks
+(:func:`chunkdic.fields_levels.write_image`, the writer shared with the corrected image).
 
 - Displacement: the C8 field (trilinear shape functions) at level-0 voxel centres. A
   level-0 voxel ``x0`` lies at level-``s`` position ``(x0 + 0.5) / 2^s - 0.5``
@@ -39,7 +40,7 @@ import numpy as np
 
 from . import config
 from .errors import InputError
-from .fields_levels import CHANNELS, build_mean_levels, contrast_windows, field_levels, image_name, ngff_attrs, scan_frame
+from .fields_levels import field_levels, scan_frame, write_image
 from .mesh import Block, Mesh, level_to_level
 from .outputs import Outputs
 from .result import Result
@@ -48,6 +49,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["CHANNELS", "write_fields", "open_fields", "field_levels"]
 
+#: channel labels of the image, in order (``|U|`` is the displacement's norm)
+CHANNELS = ("Uz", "Uy", "Ux", "|U|", "eps_zz", "eps_eq", "residual")
 
 
 @dataclass(frozen=True)
@@ -275,7 +278,8 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
         raise InputError(f"units must be voxels or physical, got {units!r}")
     if levels is not None and (int(levels) != levels or levels < 0):
         raise InputError(f"levels must be a whole number >= 0, got {levels!r}")
-    f_scan = _reference(result, ref, deformed, residual)
+    scans = _scans(result, ref, deformed, residual)
+    f_scan = scans[0]
     shape0 = tuple(int(n) for n in (f_scan.shape(0) if f_scan is not None
                                     else result.info["input_shapes"]["reference"]))
     scale0, shift0, unit = scan_frame(f_scan, result.info)
@@ -290,79 +294,56 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
     plan = Outputs(inputs=input_paths(result, ref, deformed), overwrite=overwrite)
     entry = plan.add(out, "fields")
     with plan:
-        return _write(result, entry.work, Path(out), ref, deformed, residual, shape0, (scale0, shift0, unit),
+        return _write(result, entry.work, Path(out), scans if residual else None, shape0, (scale0, shift0, unit),
                       factor, disp_unit, field_levels(shape0, levels), scheduler, progress)
 
 
-def _reference(result: Result, ref, deformed, residual: bool):
-    """The reference scan (both scans checked when the residual needs them); None when the
-    residual is off and the scan is not on disk but the result recorded its shape."""
-    from .resultscans import input_scans
-    from .inputs import check_scan_for_result
-    from .volume import open_scan
+def _scans(result: Result, ref, deformed, residual: bool) -> tuple:
+    """The scans, opened and checked once: both when the residual needs them, else the
+    reference alone, or None when it is not on disk but the result recorded its shape."""
+    from .resultscans import input_scan, input_scans
 
     if residual:
-        return input_scans(result, ref, deformed)[0]
-    src = ref if ref is not None else (result.info.get("inputs") or {}).get("reference")
-    if src is None or (isinstance(src, str) and (src.startswith("<in-memory") or not Path(src).exists())):
-        if (result.info.get("input_shapes") or {}).get("reference") is None:
-            raise InputError("the reference scan of this result is not on disk: pass it (--ref PATH)")
-        return None
-    scan = open_scan(src)
-    check_scan_for_result(result.info, scan, "reference", ref is not None)
-    return scan
+        return input_scans(result, ref, deformed)
+    known = (result.info.get("input_shapes") or {}).get("reference") is not None
+    return input_scan(result, "reference", ref, optional=known), None
 
 
-def _write(result: Result, work: Path, out: Path, ref, deformed, residual: bool, shape0, frame, factor,
-           disp_unit: str, shapes, scheduler, progress) -> dict:
-    """:func:`write_fields` into ``work`` (renamed to ``out`` by the caller)."""
+def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, disp_unit: str, shapes,
+           scheduler, progress) -> dict:
+    """:func:`write_fields` into ``work`` (renamed to ``out`` by the caller); ``scans``:
+    the result's scans for the residual (None: no residual)."""
     import contextlib
-
-    import zarr
 
     from .correction import Correction
     from .resultscans import interpolation_of, level_refs
     from .scheduler import open_runner
-    from .store import compressors
 
     t0 = time.perf_counter()
     c = int(config.get("chunk-size"))
-    chunks = tuple(min(c, n) for n in shape0)
-    root = zarr.open_group(str(work), mode="w", zarr_format=3)
     mesh, s = result.mesh, int(result.info.get("level", 0))
     meta = {"kind": "fields", "complete": False, "result": result.path, "level": s,
             "element_size": mesh.element_size, "roi_level0": [list(r) for r in roi_level0(mesh, s)],
-            "channels": list(CHANNELS), "displacement_unit": disp_unit, "residual": bool(residual),
+            "channels": list(CHANNELS), "displacement_unit": disp_unit, "residual": scans is not None,
             "strain": "per element (C8 gradient at the element centre), constant over the element"}
-    root.attrs["chunkdic"] = meta
-    for t, shape in enumerate(shapes):
-        root.create_array(str(t), shape=(len(CHANNELS),) + shape, chunks=(1,) + tuple(min(c, n) for n in shape),
-                          dtype="float32", fill_value=float("nan"), compressors=compressors("float32"),
-                          dimension_names=("c", "z", "y", "x"))
-    voxels = 0
+    description = (
+        f"channels {', '.join(CHANNELS)}: displacement ({disp_unit}), its norm, eps_zz and the von Mises "
+        "equivalent strain (per element, dimensionless), residual f - corrected g (grey levels of the "
+        "result's level); NaN outside the ROI. Level t is the NaN-aware mean over 2^t voxels per axis of level 0")
     with contextlib.ExitStack() as stack:
         runner = stack.enter_context(open_runner(scheduler))
         corr = None
-        if residual:
-            f_ref, g_ref = stack.enter_context(level_refs(result, ref, deformed))
+        if scans is not None:
+            f_ref, g_ref = stack.enter_context(level_refs(result, scans=scans))
             corr = Correction.of_result(result, f_ref, g_ref, interpolation_of(result))
         job = FieldsJob(mesh, s, shape0, factor, str(work), corr)
-        args = chunk_tasks(job, result, chunks)
-        for done, n in enumerate(runner.map_unordered(fields_task, args), 1):
-            voxels += n
-            if progress is not None:
-                progress("fields", done / len(args))
-        build_mean_levels(runner, str(work), shapes, len(CHANNELS), c, progress)
-    coarsest = np.asarray(zarr.open_array(store=str(work), path=str(len(shapes) - 1), mode="r")[...])
-    windows = contrast_windows(coarsest)
-    scale0, shift0, unit = frame
-    meta.update(complete=True, voxels=voxels)
-    root = zarr.open_group(str(work), mode="r+")
-    root.update_attributes({"chunkdic": meta, "ome": ngff_attrs(image_name(work), scale0, shift0, unit,
-                                                                 len(shapes), windows, disp_unit)})
+        counts, windows = write_image(
+            runner, work, fields_task, chunk_tasks(job, result, tuple(min(c, n) for n in shape0)), meta=meta,
+            channels=CHANNELS, shapes=shapes, chunk=c, frame=frame, description=description,
+            summarize=lambda counts: {"voxels": sum(counts)}, progress=progress, stage="fields")
     seconds = time.perf_counter() - t0
     log.info("fields written to %s (%d levels, %.1f s)", out, len(shapes), seconds)
-    return {"path": str(out), "levels": shapes, "voxels": voxels,
+    return {"path": str(out), "levels": shapes, "voxels": sum(counts),
             "windows": dict(zip(CHANNELS, windows)), "seconds": seconds}
 
 

@@ -1,23 +1,24 @@
-"""The pyramid and OME-NGFF metadata of the float images chunkdic writes for viewers.
+"""The float images chunkdic writes for viewers: one writer, their pyramid and frame.
 
 Used by the fields image (:mod:`chunkdic.fields_export`) and the corrected image
-(:mod:`chunkdic.corrected`): coarser levels are NaN-aware 2×2×2 means written one chunk
-of one channel per task (:func:`build_mean_levels`); the metadata places level 0 on the
-reference scan's grid (same scale, unit, origin) and gives each channel a contrast window
-from the coarsest level.
+(:mod:`chunkdic.corrected`). :func:`write_image` writes one OME-NGFF 0.5 multi-channel
+image chunk by chunk in tasks: level 0 by the caller's task (one per chunk, writing that
+chunk of every channel), coarser levels as NaN-aware 2×2×2 means written one chunk of one
+channel per task (:func:`build_mean_levels`), a contrast window per channel from a bounded
+sample read by tasks (:func:`chunkdic.display.windows`), and the metadata last, placing
+level 0 on the reference scan's grid (:func:`scan_frame`; same scale, unit, origin) with
+:func:`chunkdic.ngff.image_attrs`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-from .mesh import level0_position
 from .ownership import final_name
 
-#: channel labels of the image, in order (``|U|`` is the displacement's norm)
-CHANNELS = ("Uz", "Uy", "Ux", "|U|", "eps_zz", "eps_eq", "residual")
 #: the coarsest pyramid level keeps every axis at least this long (voxels)
 MIN_COARSE_EDGE = 8
 #: coarse planes a pyramid task computes at a time (bounds its memory)
@@ -112,54 +113,6 @@ def scan_frame(scan, info: dict) -> tuple[list[float], list[float], str | None]:
     return ([float(v) for v in vs] if vs else [1.0] * 3), [0.0] * 3, (unit if vs else None)
 
 
-def level_frame(scale0, shift0, level: int) -> tuple[list[float], list[float]]:
-    """Scale and translation of pyramid level ``level`` of a grid whose level 0 has
-    ``scale0``, ``shift0``: ``scale0 * 2^s`` and ``shift0 + scale0 (2^s - 1) / 2``
-    (the voxel-centre offset of shared/DESIGN.md)."""
-    f = 2**int(level)
-    return [v * f for v in scale0], [o + v * float(level0_position(0.0, f)) for o, v in zip(shift0, scale0)]
-
-
-def image_attrs(name: str, scale0, shift0, unit, n_levels: int, channels, windows, description: str,
-                method: str = "chunkdic.fields_levels.coarsen_task") -> dict:
-    """OME-NGFF 0.5 ``ome`` attributes of a float image for viewers: axes ``c, z, y, x``,
-    level ``t`` at scale ``scale0 * 2^t`` and translation ``shift0 + scale0 (2^t - 1) / 2``
-    (:func:`level_frame`: the scan's own pyramid frame), ``omero`` channels labelled
-    ``channels`` with their contrast windows ``(start, end, min, max)``; the first one active."""
-    axes = [{"name": "c", "type": "channel"}]
-    axes += [{"name": a, "type": "space", **({"unit": unit} if unit else {})} for a in "zyx"]
-    datasets = []
-    for t in range(n_levels):
-        scale, shift = level_frame(scale0, shift0, t)
-        datasets.append({"path": str(t), "coordinateTransformations": [
-            {"type": "scale", "scale": [1.0] + scale},
-            {"type": "translation", "translation": [0.0] + shift},
-        ]})
-    omero = []
-    for i, (label, (lo, hi, vmin, vmax)) in enumerate(zip(channels, windows)):
-        omero.append({"label": label, "active": i == 0, "color": "FFFFFF", "coefficient": 1.0,
-                      "family": "linear", "inverted": False,
-                      "window": {"start": lo, "end": hi, "min": vmin, "max": vmax}})
-    return {
-        "version": "0.5",
-        "multiscales": [{
-            "name": name, "axes": axes, "datasets": datasets, "type": "mean",
-            "metadata": {"description": description, "method": method},
-        }],
-        "omero": {"name": name, "channels": omero, "rdefs": {"model": "greyscale", "defaultZ": 0}},
-    }
-
-
-def ngff_attrs(name: str, scale0, shift0, unit, n_levels: int, windows, disp_unit: str) -> dict:
-    """:func:`image_attrs` of the fields image (channels :data:`CHANNELS`)."""
-    return image_attrs(
-        name, scale0, shift0, unit, n_levels, CHANNELS, windows,
-        f"channels {', '.join(CHANNELS)}: displacement ({disp_unit}), its norm, eps_zz and "
-        "the von Mises equivalent strain (per element, dimensionless), residual f - "
-        "corrected g (grey levels of the result's level); NaN outside the ROI. Level t is "
-        "the NaN-aware mean over 2^t voxels per axis of level 0")
-
-
 def image_name(work) -> str:
     """The name an image staged at ``work`` will have once in place: the CLI stages all
     its outputs and calls the writer on its staged path, which stages again (two partial
@@ -170,17 +123,85 @@ def image_name(work) -> str:
     return name
 
 
-def contrast_windows(coarsest: np.ndarray) -> list[tuple[float, float, float, float]]:
-    """Per channel ``(1st percentile, 99th percentile, min, max)`` of the finite voxels of
-    the coarsest level (``(0, 1, 0, 1)`` for an all-NaN channel)."""
-    out = []
-    for c in coarsest:
-        v = c[np.isfinite(c)]
-        if v.size == 0:
-            out.append((0.0, 1.0, 0.0, 1.0))
-            continue
-        lo, hi = (float(q) for q in np.percentile(v, [1, 99]))
-        if hi <= lo:  # a constant channel (a pure translation's strain)
-            lo, hi = lo - 0.5 * abs(lo) - 1e-6, hi + 0.5 * abs(hi) + 1e-6
-        out.append((lo, hi, float(v.min()), float(v.max())))
-    return out
+# --------------------------------------------------------------------------- writer
+
+
+def write_image(runner, work, task: Callable, args: list, *, meta: dict, channels, shapes, chunk: int, frame,
+                description: str, summarize: Callable[[list], dict] | None = None,
+                progress: Callable[[str, float], None] | None = None, stage: str = "level 0") -> tuple[list, list]:
+    """Write one OME-NGFF 0.5 multi-channel float image for viewers, chunk by chunk in tasks.
+
+    In order: the group ``work`` with ``attrs["chunkdic"] = meta`` (``complete`` false) and
+    its level arrays ``"0"``…``"k"`` (float32, NaN fill, chunks ``(1, chunk, chunk, chunk)``,
+    axes ``c, z, y, x``); level 0 by ``task(*a)`` for every ``a`` in ``args`` (each task
+    writes the chunk it owns, in every channel, and returns what ``summarize`` reads); the
+    mean levels (:func:`build_mean_levels`); a contrast window per channel from the
+    coarsest level (:func:`chunkdic.display.windows`: a bounded sample, read by tasks);
+    last, ``meta`` updated with ``summarize(results)`` and ``complete = True`` and the
+    ``ome`` attributes (:func:`chunkdic.ngff.image_attrs`).
+
+    Parameters
+    ----------
+    runner
+        A runner of :mod:`chunkdic.scheduler` (open: the caller's inputs live in it).
+    work : path
+        The group to create (a staged path: its metadata names the final one, :func:`image_name`).
+    task : callable
+        The level-0 task.
+    args : list of tuple
+        Its arguments, one tuple per chunk that holds data (the others keep the fill, NaN).
+    meta : dict
+        The ``chunkdic`` attributes (``kind`` …); updated in place.
+    channels : sequence of str
+        Channel labels, in order.
+    shapes : list of tuple of 3 int
+        The levels' shapes ``(nz, ny, nx)`` (:func:`field_levels`).
+    chunk : int
+        Chunk edge (voxels).
+    frame : tuple
+        ``(scale0, shift0, unit)`` of the image's level 0 (:func:`scan_frame`,
+        :func:`chunkdic.ngff.level_frame`).
+    description : str
+        What the channels hold (the NGFF ``metadata.description``).
+    summarize : callable(list) -> dict, optional
+        Extra ``chunkdic`` attributes from the tasks' results.
+    progress : callable(str, float), optional
+        ``(stage, fraction)``: ``stage`` for level 0, then ``"level t"``.
+    stage : str
+        The name of the level-0 stage in ``progress``.
+
+    Returns
+    -------
+    results : list
+        The level-0 tasks' results (in completion order).
+    windows : list of (start, end, min, max)
+        Per channel.
+    """
+    import zarr
+
+    from .display import windows as channel_windows
+    from .ngff import image_attrs
+    from .store import compressors
+
+    root = zarr.open_group(str(work), mode="w", zarr_format=3)
+    root.attrs["chunkdic"] = meta
+    for t, shape in enumerate(shapes):
+        root.create_array(str(t), shape=(len(channels),) + tuple(shape),
+                          chunks=(1,) + tuple(min(chunk, n) for n in shape), dtype="float32",
+                          fill_value=float("nan"), compressors=compressors("float32"),
+                          dimension_names=("c", "z", "y", "x"))
+    results = []
+    for done, r in enumerate(runner.map_unordered(task, args), 1):
+        results.append(r)
+        if progress is not None:
+            progress(stage, done / len(args))
+    build_mean_levels(runner, str(work), shapes, len(channels), chunk, progress)
+    found = channel_windows(str(work), str(len(shapes) - 1), channels=range(len(channels)), runner=runner)
+    wins = [tuple(w) if w is not None else (0.0, 1.0, 0.0, 1.0) for w in found]  # an all-NaN channel: (0, 1)
+    meta.update(summarize(results) if summarize is not None else {})
+    meta["complete"] = True
+    scale0, shift0, unit = frame
+    root = zarr.open_group(str(work), mode="r+")
+    root.update_attributes({"chunkdic": meta, "ome": image_attrs(image_name(work), scale0, shift0, unit,
+                                                                 len(shapes), channels, wins, description)})
+    return results, wins

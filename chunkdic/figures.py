@@ -20,7 +20,8 @@ from .errors import InputError
 from .mesh import level0_position
 from .result import Result, open_result
 
-__all__ = ["AXES", "FORMATS", "DEFAULT_DPI", "Frame", "frame", "figure", "panel", "save", "shared_colorbar",
+__all__ = ["AXES", "FORMATS", "DEFAULT_DPI", "Frame", "frame", "figure", "panel", "save", "check_figure_options",
+           "shared_colorbar",
            "symmetric_limit", "common_frame", "as_results", "level_label", "mid_planes", "plane_extent"]
 
 AXES = "zyx"
@@ -135,6 +136,15 @@ def symmetric_limit(arrays, percentile: float = 100.0) -> float:
 def shared_colorbar(fig, image, axes, label: str):
     """One colour bar for all ``axes`` (their images share ``image``'s norm and map)."""
     return fig.colorbar(image, ax=list(np.ravel(axes)), shrink=0.8, label=label)
+
+
+def check_figure_options(fmt: str, dpi: int | None) -> None:
+    """Refuse a figure format not in :data:`FORMATS` or a resolution outside 10..2400 dpi
+    (before any output is written)."""
+    if fmt not in FORMATS:
+        raise InputError(f"figure format must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    if dpi is not None and not (isinstance(dpi, (int, np.integer)) and 10 <= dpi <= 2400):
+        raise InputError(f"dpi must be an integer from 10 to 2400, got {dpi!r}")
 
 
 def save(fig, path, dpi: int | None = None) -> str:

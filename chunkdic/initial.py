@@ -4,15 +4,17 @@ Instead of the rigid translation found on the coarsest level, a correlation may 
 from the displacement field of an earlier result: the previous step of a loading series,
 a coarser or finer element size, another ROI or another pyramid level. The earlier C8
 field is evaluated with its own shape functions at the new mesh's nodes, positions and
-values converted between levels with the half-voxel offset of shared/DESIGN.md
-(:func:`chunkdic.mesh.level_to_level`), as the engine carries a field between levels.
+values converted between levels with the half-voxel offset of shared/DESIGN.md, by
+:func:`chunkdic.mesh.carry_field`, the function that carries a field between levels in
+the engine and composes the increments of a loading series.
 
 Choices (docs/analysis.md, "Starting from an earlier result"):
 
 - **Outside the earlier ROI** the field takes the linear extension of the nearest
   element up to one element beyond the earlier mesh, and beyond that the value at that
-  limit (positions are clamped): a start field that keeps growing far from the data
-  would only make the first iterations worse.
+  limit (``carry_field(..., clamp=True)``, the policy of :func:`chunkdic.loadseries.compose`
+  too): a start field that keeps growing far from the data would only make the first
+  iterations worse.
 - **Nodes the earlier run did not measure** (NaN: no data, masked) take the mean of the
   measured nodes, per component, before evaluation.
 - With ``init`` the run starts on the finest level (``coarsest = level``) unless
@@ -34,7 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .mesh import Mesh, level_to_level
+from .inputs import check_shape_for_result
+from .mesh import Mesh, carry_field
 from .result import Result, open_result
 
 __all__ = ["open_init", "init_identity", "start_field"]
@@ -71,15 +74,11 @@ def open_init(init, ref_shape) -> Result:
             res = open_result(path)
         except InputError as exc:
             raise InputError(f"--init: {exc}") from None
-    recorded = (res.info.get("input_shapes") or {}).get("reference")
-    shape = tuple(int(n) for n in ref_shape)
-    if recorded is not None and tuple(int(n) for n in recorded) != shape:
-        raise InputError(f"--init {res.path}: that result was computed on a reference of shape {tuple(recorded)}, "
-                         f"this reference has shape {shape}: pass a result of this specimen's scans")
-    if recorded is None:  # older results: at least its ROI must lie in this reference
-        scale = 2 ** int(res.info.get("level", 0))
-        if any(b * scale > n for (_, b), n in zip(res.info["roi"], shape)):
-            raise InputError(f"--init {res.path}: its ROI {res.info['roi']} does not fit this reference {shape}")
+    try:  # the shape it was computed on (older results: its ROI must lie in this reference)
+        check_shape_for_result(res.info, ref_shape, "reference", what="this reference",
+                               hint="pass a result of this specimen's scans")
+    except InputError as exc:
+        raise InputError(f"--init {res.path}: {exc}") from None
     if not np.isfinite(res.displacement).all(axis=0).any():
         raise InputError(f"--init {res.path}: the result has no measured node (all displacements NaN)")
     return res
@@ -106,16 +105,6 @@ def filled(u: np.ndarray) -> np.ndarray:
     return out
 
 
-def evaluate_clamped(mesh: Mesh, u: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """The C8 field ``u`` of ``mesh`` at ``points`` (3, ...) (voxels of its level): linear
-    extension up to one element outside the mesh, constant beyond (module docstring)."""
-    clamped = np.empty_like(points, dtype=np.float64)
-    for axis, nodes in enumerate(mesh.node_axes()):
-        ell = mesh.element_size
-        clamped[axis] = np.clip(points[axis], nodes[0] - ell, nodes[-1] + ell)
-    return mesh.evaluate(u, clamped)
-
-
 def start_field(res: Result, mesh: Mesh, level: int) -> np.ndarray:
     """The earlier field at the nodes of ``mesh`` (level ``level``), voxels of that level.
 
@@ -132,6 +121,5 @@ def start_field(res: Result, mesh: Mesh, level: int) -> np.ndarray:
     -------
     ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
     """
-    old_level = int(res.info.get("level", 0))
-    at = level_to_level(mesh.node_coords(), level, old_level)
-    return evaluate_clamped(res.mesh, filled(res.displacement), at) * 2.0 ** (old_level - level)
+    return carry_field(filled(res.displacement), res.mesh, int(res.info.get("level", 0)), mesh.node_coords(), level,
+                       clamp=True)

@@ -8,8 +8,9 @@ these first, then declare their outputs (:mod:`chunkdic.outputs`), then compute.
 - :func:`check_finite` / :func:`non_finite_error`: NaN and infinite voxels, with one
   wording for every command (ingest, the Fourier shift of ``uncertainty``, and the
   correlation passes, which see every voxel of ``f`` anyway).
-- :func:`check_scan_for_result`: a scan given to ``export``/``report`` for a result must
-  be the shape the result was computed on (or at least hold its ROI).
+- :func:`check_scan_for_result` / :func:`check_shape_for_result`: a scan given to
+  ``export``/``report`` for a result, or the reference of a run started from a result
+  (``--init``), must be the shape the result was computed on (or at least hold its ROI).
 - :func:`check_displacement`: a result read back must hold finite displacements before
   strains or exports are derived from it.
 """
@@ -22,7 +23,8 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["number", "check_finite", "non_finite_error", "check_scan_for_result", "check_displacement"]
+__all__ = ["number", "check_finite", "non_finite_error", "check_scan_for_result", "check_shape_for_result",
+           "check_displacement"]
 
 
 def number(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
@@ -111,20 +113,40 @@ def check_scan_for_result(info: dict, scan, role: str, given: bool) -> None:
     given : bool
         The user passed the scan (``--ref``/``--deformed``) rather than the recorded path.
     """
-    level = int(info.get("level", 0))
     opt = "--ref" if role == "reference" else "--deformed"
-    how = f" ({opt})" if given else ""
+    check_shape_for_result(info, scan.shape(0), role, what=f"the {role} scan" + (f" ({opt})" if given else ""))
+
+
+def check_shape_for_result(info: dict, shape0, role: str, *, what: str,
+                           hint: str = "pass the scans of this result") -> None:
+    """Refuse a level-0 shape that cannot be the one of the ``role`` scan of a result:
+    another shape than the one recorded (``input_shapes``), or, for older results that
+    did not record it, a reference too small for the result's ROI.
+
+    Parameters
+    ----------
+    info : dict
+        The result's ``info``.
+    shape0 : tuple of 3 int
+        The level-0 shape of the scan offered.
+    role : {"reference", "deformed"}
+    what : str, keyword-only
+        How the message names that scan (``"the reference scan (--ref)"``).
+    hint : str, keyword-only
+        What the message tells the user to do.
+    """
+    level = int(info.get("level", 0))
     recorded = (info.get("input_shapes") or {}).get(role)
-    shape0 = tuple(int(n) for n in scan.shape(0))
+    shape0 = tuple(int(n) for n in shape0)
     if recorded is not None and tuple(int(n) for n in recorded) != shape0:
-        raise InputError(f"the {role} scan{how} has shape {shape0} but the result was computed on one of shape "
-                         f"{tuple(recorded)}: pass the scans of this result")
+        raise InputError(f"{what} has shape {shape0} but the result was computed on one of shape "
+                         f"{tuple(int(n) for n in recorded)}: {hint}")
     if role == "reference":
-        shape = scan.shape(level)
+        shape = tuple(n // 2**level for n in shape0)  # the pyramid's level shape (odd voxels trimmed)
         for axis, ((a, b), n) in enumerate(zip(info["roi"], shape)):
             if a < 0 or b > n:
-                raise InputError(f"the {role} scan{how} has shape {tuple(shape)} at level {level}, too small for "
-                                 f"the result's ROI {a}:{b} on axis {'zyx'[axis]}: pass the scans of this result")
+                raise InputError(f"{what} has shape {shape} at level {level}, too small for the result's ROI "
+                                 f"{a}:{b} on axis {'zyx'[axis]}: {hint}")
 
 
 def check_displacement(displacement: np.ndarray, where: str, flags: np.ndarray | None = None) -> None:

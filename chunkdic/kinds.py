@@ -43,7 +43,7 @@ KINDS: dict[str, Kind] = {k.name: k for k in (
     Kind("figures", "folder", "figures folder",
          ("cut_x.png", "cut_y.png", "cut_z.png", "residual.png", "uz_map.png", "epszz_map.png", "gap.png")),
     Kind("table", "folder", "table folder", ("zoi_table.md", "zoi_table.csv")),
-    Kind("cutcheck", "folder", "cut-check folder", ("cutcheck.png", "cutcheck.json")),
+    Kind("cutcheck", "folder", "cut-check folder", ("cutcheck.png", "cutcheck.pdf", "cutcheck.svg", "cutcheck.json")),
     Kind("uncertainty", "folder", "uncertainty folder",
          ("uncertainty.csv", "uncertainty.md", "uncertainty.png", "shifted.zarr", "shifted.zarr.passes",
           "result-ell*.zarr", "scan-*.zarr")),

@@ -9,8 +9,10 @@ reference frame, at the reference mesh's nodes ``X``::
     u_{0→k}(X) = u_{0→k-1}(X) + u_{k-1→k}(X + u_{0→k-1}(X))
 
 the increment evaluated with its C8 shape functions at the current position of each
-node (linear extension of the nearest element just outside its mesh; nodes it did not
-measure take the mean of the measured ones, :mod:`chunkdic.initial`).
+node, by :func:`chunkdic.mesh.carry_field` with the policy of a start field
+(:mod:`chunkdic.initial`): outside the increment's mesh the linear extension of the
+nearest element up to one element beyond, constant further out; nodes it did not
+measure take the mean of the measured ones.
 
 Layout of the output, one Zarr v3 group ``attrs["chunkdic"] = {"kind": "series", ...}``::
 
@@ -48,6 +50,7 @@ from .checkpoint import fingerprint, identify_input
 from .engine import correlate, settings_from
 from .errors import InputError
 from .initial import filled
+from .mesh import carry_field
 from .outputs import Outputs, inside
 from .ownership import OutputLock
 from .planning import parse_roi, plan_meshes
@@ -55,7 +58,7 @@ from .prefilter import face_margin
 from .result import HISTORY_FIELDS, Result, open_result
 from .scheduler import check_scheduler
 from .settings import Settings
-from .strain import mean_strain
+from .strain import strain_summary
 from .volume import open_scan
 
 __all__ = ["series", "open_series", "SeriesResult", "compose", "MODES"]
@@ -114,7 +117,9 @@ def compose(cumulative: Result, increment: Result) -> np.ndarray:
     if int(cumulative.info.get("level", 0)) != int(increment.info.get("level", 0)):
         raise InputError("compose: both fields must be on the same pyramid level")
     X, u = cumulative.node_coords, cumulative.displacement
-    return u + increment.mesh.evaluate(filled(increment.displacement), X + np.nan_to_num(u))
+    level = int(increment.info.get("level", 0))
+    return u + carry_field(filled(increment.displacement), increment.mesh, level, X + np.nan_to_num(u), level,
+                           clamp=True)
 
 
 def series(
@@ -358,9 +363,9 @@ def _complete(path: Path) -> bool:
 def _row(res: Result, k: int, pair: str, kind: str, group: str, run: str, seconds: float) -> dict:
     u = res.displacement
     gap = res.info.get("final_gap")
-    try:
-        eps_zz = float(mean_strain(u, res.info["element_size"]).eps_zz)
-    except Exception:  # noqa: BLE001 - a field without a measured element has no mean strain
+    try:  # over the mask's active elements only
+        eps_zz = float(strain_summary(res).eps_zz)
+    except InputError:  # no measured element: no mean strain
         eps_zz = float("nan")
     return {"step": k, "pair": pair, "kind": kind, "group": group, "status": str(res.info.get("status")),
             "run": run, "gap": None if gap is None or not np.isfinite(gap) else float(gap),

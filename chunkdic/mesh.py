@@ -218,13 +218,44 @@ def level_to_level(coords: np.ndarray, from_level: int, to_level: int) -> np.nda
     return (level0_position(coords, 2.0**from_level) - (s1 - 1) / 2) / s1
 
 
-def transfer(u: np.ndarray, coarse: Mesh, coarse_level: int, fine: Mesh, fine_level: int) -> np.ndarray:
-    """Carry a nodal field from a coarse level's mesh to a finer level's mesh.
+def carry_field(u: np.ndarray, source: Mesh, source_level: int, points: np.ndarray, level: int, *,
+                clamp: bool = False) -> np.ndarray:
+    """The C8 field ``u`` of ``source`` at ``points`` of another level or mesh: the one way
+    chunkdic carries a nodal field onto other nodes (level transfer, start fields, composed
+    increments).
 
-    The coarse field is evaluated at the fine nodes (positions converted with the
-    half-voxel offset) and scaled by ``2^(coarse_level - fine_level)`` because
-    displacements are in voxels of their level (paper section 3, multiscale).
+    Positions are converted between levels with the half-voxel offset and the values
+    scaled by ``2^(source_level - level)``, because displacements are in voxels of their
+    level (paper section 3, multiscale).
+
+    Parameters
+    ----------
+    u : ndarray, shape (3, nz+1, ny+1, nx+1), float64, voxels of ``source_level``
+        Nodal field of ``source`` (no NaN: see :func:`chunkdic.initial.filled`).
+    source : Mesh
+    source_level : int
+    points : ndarray, shape (3, ...), float64, voxels of ``level``
+    level : int
+    clamp : bool, keyword-only
+        Where ``points`` leave the source mesh: False, the linear extension of the nearest
+        element however far (:meth:`Mesh.evaluate`; a level transfer, whose points lie
+        within one element of the mesh); True, that extension up to one element beyond
+        the mesh's outer nodes and the value at that limit further out (positions clamped:
+        a start field that kept growing far from the data would only mislead).
+
+    Returns
+    -------
+    ndarray, shape (3, ...), float64, voxels of ``level``
     """
-    fine_nodes = fine.node_coords()
-    at = level_to_level(fine_nodes, fine_level, coarse_level)
-    return coarse.evaluate(u, at) * 2.0 ** (coarse_level - fine_level)
+    at = level_to_level(points, level, source_level)
+    if clamp:
+        ell = source.element_size
+        at = np.stack([np.clip(at[axis], nodes[0] - ell, nodes[-1] + ell)
+                       for axis, nodes in enumerate(source.node_axes())])
+    return source.evaluate(u, at) * 2.0 ** (source_level - level)
+
+
+def transfer(u: np.ndarray, coarse: Mesh, coarse_level: int, fine: Mesh, fine_level: int) -> np.ndarray:
+    """Carry a nodal field from a coarse level's mesh to a finer level's mesh: the coarse
+    field at the fine nodes (:func:`carry_field`, not clamped)."""
+    return carry_field(u, coarse, coarse_level, fine.node_coords(), fine_level)

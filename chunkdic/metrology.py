@@ -30,7 +30,7 @@ import numpy as np
 from .errors import InputError
 from .fourier_shift import fourier_shift_scan
 from .inputs import number
-from .strain import mean_strain
+from .strain import strain_summary
 from .handles import ArrayRef
 
 log = logging.getLogger(__name__)
@@ -185,7 +185,7 @@ def _displacement_stats(result, t) -> dict:
     u = result.displacement.reshape(3, -1)
     err = u - np.asarray(t, float)[:, None]
     bias, std = err.mean(axis=1), u.std(axis=1)
-    s = mean_strain(result.displacement, result.info["element_size"])
+    s = strain_summary(result)
     return {
         "element_size": int(result.info["element_size"]),
         "bias_z": float(bias[0]), "bias_y": float(bias[1]), "bias_x": float(bias[2]),

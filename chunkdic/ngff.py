@@ -65,38 +65,70 @@ def normalize_voxel_size(voxel_size) -> tuple[float, float, float] | None:
     return tuple(values)
 
 
-def ngff_attrs(levels, voxel_size, unit, name) -> dict:
-    vs = voxel_size or (1.0, 1.0, 1.0)
-    axes = []
-    for ax in "zyx":
-        a = {"name": ax, "type": "space"}
-        if unit and voxel_size is not None:
-            a["unit"] = unit
-        axes.append(a)
+def level_frame(scale0, shift0, level: int) -> tuple[list[float], list[float]]:
+    """Scale and translation of pyramid level ``level`` of a grid whose level 0 has
+    ``scale0``, ``shift0``: ``scale0 * 2^s`` and ``shift0 + scale0 (2^s - 1) / 2``
+    (the voxel-centre offset of shared/DESIGN.md)."""
+    f = 2**int(level)
+    return [v * f for v in scale0], [o + v * float(level0_position(0.0, f)) for o, v in zip(shift0, scale0)]
+
+
+def multiscales(name: str, levels, scale0, shift0, unit, *, kind: str, description: str, method: str,
+                channels: bool = False) -> dict:
+    """OME-NGFF 0.5 ``ome`` attributes of a pyramid: one ``multiscales`` entry.
+
+    Parameters
+    ----------
+    name : str
+        The image's name (the store's final name).
+    levels : sequence of int
+        The levels listed (array paths ``"s"``); level ``s`` is placed by :func:`level_frame`.
+    scale0, shift0 : sequence of 3 float
+        Level-0 scale and translation ``(z, y, x)``, in ``unit``.
+    unit : str or None
+        The space axes' unit (None: no unit written).
+    kind, description, method : str
+        The ``type`` and ``metadata`` of the pyramid (``"sum"``, ``"mean"``).
+    channels : bool, keyword-only
+        A leading channel axis ``c`` (scale 1, translation 0).
+    """
+    axes = [{"name": "c", "type": "channel"}] if channels else []
+    axes += [{"name": a, "type": "space", **({"unit": unit} if unit else {})} for a in "zyx"]
+    lead = [1.0] if channels else []
     datasets = []
     for s in levels:
-        f = 2**s
-        datasets.append({
-            "path": str(s),
-            "coordinateTransformations": [
-                {"type": "scale", "scale": [v * f for v in vs]},
-                {"type": "translation", "translation": [v * float(level0_position(0.0, f)) for v in vs]},
-            ],
-        })
-    return {
-        "version": "0.5",
-        "multiscales": [{
-            "name": name,
-            "axes": axes,
-            "datasets": datasets,
-            "type": "sum",
-            "metadata": {
-                "description": "level s is the sum over 2^s voxels per axis of level 0 (odd trailing voxels "
-                               "trimmed); voxel centre of level s at level-0 coordinate 2^s*j + (2^s-1)/2",
-                "method": "chunkdic.coarsen.coarsen_sum",
-            },
-        }],
-    }
+        scale, shift = level_frame(scale0, shift0, s)
+        datasets.append({"path": str(s), "coordinateTransformations": [
+            {"type": "scale", "scale": lead + scale},
+            {"type": "translation", "translation": [0.0] * len(lead) + shift},
+        ]})
+    return {"version": "0.5", "multiscales": [{
+        "name": name, "axes": axes, "datasets": datasets, "type": kind,
+        "metadata": {"description": description, "method": method},
+    }]}
+
+
+def ngff_attrs(levels, voxel_size, unit, name) -> dict:
+    """:func:`multiscales` of a scan group: the ``2^s`` sum pyramid, level 0 at the voxel
+    size (1 without one, and then no unit) and origin 0."""
+    vs = [float(v) for v in voxel_size] if voxel_size is not None else [1.0] * 3
+    return multiscales(
+        name, levels, vs, [0.0] * 3, unit if voxel_size is not None else None, kind="sum",
+        description="level s is the sum over 2^s voxels per axis of level 0 (odd trailing voxels trimmed); "
+                    "voxel centre of level s at level-0 coordinate 2^s*j + (2^s-1)/2",
+        method="chunkdic.coarsen.coarsen_sum")
+
+
+def image_attrs(name: str, scale0, shift0, unit, n_levels: int, channels, windows, description: str,
+                method: str = "chunkdic.fields_levels.coarsen_task") -> dict:
+    """OME-NGFF 0.5 ``ome`` attributes of a float image for viewers (fields, corrected image):
+    axes ``c, z, y, x``, levels ``0..n_levels-1`` on the frame of level 0 (``scale0``,
+    ``shift0``: the scan's own pyramid frame), NaN-aware means, and ``omero`` channels
+    labelled ``channels`` with their contrast windows ``(start, end, min, max)``."""
+    ome = multiscales(name, range(n_levels), scale0, shift0, unit, kind="mean", description=description,
+                      method=method, channels=True)
+    ome["omero"] = omero(windows, channels, name=name)
+    return ome
 
 
 def complete_levels(group) -> list[int]:
@@ -126,7 +158,7 @@ def update_group_metadata(path: str) -> None:
         attrs["ome"] = ngff_attrs(levels, tuple(vs) if vs else None, info.get("unit"), final_name(path))
         if info.get("display_window") and len(levels) > 1:
             # the level-0 window (chunkdic.display): what a viewer uses on every level
-            attrs["ome"]["omero"] = omero(info["display_window"])
+            attrs["ome"]["omero"] = omero([info["display_window"]])
     else:
         attrs["ome"] = {"version": "0.5"}
     g.update_attributes(attrs)
@@ -157,11 +189,11 @@ def voxel_from_group_attrs(attrs) -> tuple:
         return None, None
 
 
-def omero(window) -> dict:
-    """OME-NGFF ``omero`` metadata of a one-channel grey image with ``window``
-    ``[start, end, min, max]``."""
-    lo, hi, vmin, vmax = window
-    return {"channels": [{"label": "grey", "active": True, "color": "FFFFFF", "coefficient": 1.0,
-                          "family": "linear", "inverted": False,
-                          "window": {"start": lo, "end": hi, "min": vmin, "max": vmax}}],
-            "rdefs": {"model": "greyscale", "defaultZ": 0}}
+def omero(windows, labels=("grey",), name: str | None = None) -> dict:
+    """OME-NGFF ``omero`` metadata of grey channels ``labels`` with their ``windows``
+    ``[start, end, min, max]`` (the first channel active)."""
+    channels = [{"label": label, "active": i == 0, "color": "FFFFFF", "coefficient": 1.0, "family": "linear",
+                 "inverted": False, "window": {"start": lo, "end": hi, "min": vmin, "max": vmax}}
+                for i, (label, (lo, hi, vmin, vmax)) in enumerate(zip(labels, windows))]
+    out = {} if name is None else {"name": name}
+    return {**out, "channels": channels, "rdefs": {"model": "greyscale", "defaultZ": 0}}

@@ -38,8 +38,8 @@ import numpy as np
 
 from . import correction
 from .errors import InputError
-from .figures import (AXES, FORMATS, as_results, common_frame, figure, frame, mid_planes, panel, plane_extent,
-                      save, shared_colorbar, symmetric_limit)
+from .figures import (AXES, as_results, check_figure_options, common_frame, figure, frame, mid_planes, panel,
+                      plane_extent, save, shared_colorbar, symmetric_limit)
 from .maps import plot_epszz_maps, plot_u_maps, plot_uncertainty_map, plot_uz_maps
 from .result import Result
 
@@ -364,10 +364,7 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         check_displacement(res.displacement, res.path, res.flags)
     if interpolation not in (None, "cubic", "linear"):
         raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
-    if fmt not in FORMATS:
-        raise InputError(f"figure format must be one of {', '.join(FORMATS)}, got {fmt!r}")
-    if dpi is not None and not (isinstance(dpi, (int, np.integer)) and 10 <= dpi <= 2400):
-        raise InputError(f"dpi must be an integer from 10 to 2400, got {dpi!r}")
+    check_figure_options(fmt, dpi)
     cut_res = _cuts_result(results, cuts_from)
     say = progress or (lambda msg: None)
     skip = None

@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import contextlib
 import shutil
+from pathlib import Path
 
 from .errors import InputError
 from .inputs import check_scan_for_result
 from .ownership import make_scratch
 from .result import Result, open_result
 
-__all__ = ["as_result", "input_scans", "input_paths", "level_refs", "interpolation_of"]
+__all__ = ["as_result", "input_scan", "input_scans", "input_paths", "level_refs", "interpolation_of"]
 
 
 def as_result(result) -> Result:
@@ -27,27 +28,34 @@ def as_result(result) -> Result:
     return result if isinstance(result, Result) else open_result(result)
 
 
-def input_scans(result: Result, ref=None, deformed=None):
-    """The reference and deformed :class:`~chunkdic.Scan` of a result.
+def input_scan(result: Result, role: str, given=None, *, optional: bool = False):
+    """The ``role`` scan (``"reference"`` or ``"deformed"``) of a result, opened and checked.
 
-    ``ref`` / ``deformed`` override the paths recorded in ``result.info["inputs"]`` (needed
-    when the result was computed from in-memory arrays, or the scans moved).
+    ``given`` (a path or an array) overrides the path recorded in ``result.info["inputs"]``
+    (needed when the result was computed from in-memory arrays, or the scans moved); it is
+    checked against the result (:func:`chunkdic.inputs.check_scan_for_result`).
+    ``optional``: None instead of a refusal when nothing is given and the recorded scan is
+    not on disk (in memory, moved).
     """
     from .volume import open_scan
 
-    inputs = result.info.get("inputs") or {}
-    out = []
-    for given, key in ((ref, "reference"), (deformed, "deformed")):
-        src = given if given is not None else inputs.get(key)
-        if src is None or (isinstance(src, str) and src.startswith("<in-memory")):
-            raise InputError(
-                f"the {key} scan of this result is not on disk ({src or 'unknown'}): pass it explicitly "
-                f"(--{'ref' if key == 'reference' else 'deformed'} PATH)"
-            )
-        scan = open_scan(src)
-        check_scan_for_result(result.info, scan, key, given is not None)
-        out.append(scan)
-    return tuple(out)
+    src = given if given is not None else (result.info.get("inputs") or {}).get(role)
+    missing = src is None or (isinstance(src, str) and src.startswith("<in-memory"))
+    if optional and given is None and (missing or not Path(src).exists()):
+        return None
+    if missing:
+        raise InputError(
+            f"the {role} scan of this result is not on disk ({src or 'unknown'}): pass it explicitly "
+            f"(--{'ref' if role == 'reference' else 'deformed'} PATH)"
+        )
+    scan = open_scan(src)
+    check_scan_for_result(result.info, scan, role, given is not None)
+    return scan
+
+
+def input_scans(result: Result, ref=None, deformed=None) -> tuple:
+    """The reference and deformed :class:`~chunkdic.Scan` of a result (:func:`input_scan`)."""
+    return input_scan(result, "reference", ref), input_scan(result, "deformed", deformed)
 
 
 def input_paths(result: Result, ref=None, deformed=None) -> list:
@@ -64,9 +72,13 @@ def input_paths(result: Result, ref=None, deformed=None) -> list:
 
 
 @contextlib.contextmanager
-def level_refs(result: Result, ref=None, deformed=None):
-    """``(f_ref, g_ref)`` ArrayRefs of the result's level; scratch levels removed on exit."""
-    f_scan, g_scan = input_scans(result, ref, deformed)
+def level_refs(result: Result, ref=None, deformed=None, *, scans=None):
+    """``(f_ref, g_ref)`` ArrayRefs of the result's level; scratch levels removed on exit.
+
+    ``scans``: the ``(reference, deformed)`` scans already opened and checked by
+    :func:`input_scans` (then ``ref`` and ``deformed`` are not used); default: opened here.
+    """
+    f_scan, g_scan = scans if scans is not None else input_scans(result, ref, deformed)
     s = int(result.info.get("level", 0))
     scratch = make_scratch("chunkdic-export-")
     try:

@@ -132,6 +132,15 @@ def _sym(H: np.ndarray) -> np.ndarray:
     return 0.5 * (H + H.T)
 
 
+def _element_mean(H: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Mean of ``H`` (3, 3, ez, ey, ex) over the elements ``use``; NaN where there is none
+    (without the warning of ``nanmean``, which the CLI would print)."""
+    count = int(use.sum())
+    if count == 0:
+        return np.full((3, 3), np.nan)
+    return np.where(use, H, 0.0).sum(axis=(2, 3, 4)) / count
+
+
 @dataclass(frozen=True)
 class StrainSummary:
     """Mean strain of a C8 field over its ROI (paper sections 5.2 and 5.4).
@@ -206,6 +215,13 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
     Returns
     -------
     StrainSummary
+        ``mean`` (and what derives from it) is NaN when no averaged element is left once
+        the outer layer is removed.
+
+    Raises
+    ------
+    InputError
+        No element to average (every one masked out or with a NaN node).
 
     Examples
     --------
@@ -223,12 +239,14 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
     use = np.isfinite(H).all(axis=(0, 1))
     if elements is not None:
         use &= np.asarray(elements, dtype=bool)
-    H = np.where(use, H, np.nan)
-    H_all = np.nanmean(H, axis=(2, 3, 4))
-    H_in = np.nanmean(H[(slice(None), slice(None)) + inner], axis=(2, 3, 4))
+    if not use.any():
+        raise InputError("no element to average the strain over: every element is masked out or has an "
+                         "unmeasured (NaN) node")
+    H_all = _element_mean(H, use)
+    H_in = _element_mean(H[(slice(None), slice(None)) + inner], use[inner])
     factor = np.array([1.0 - 2.0 * ell / (k * ell) if e else 1.0 for k, e in zip(n, excluded)])
     mean, mean_all, corrected = _sym(H_in), _sym(H_all), _sym(H_in * factor[None, :])
-    principal = principal_strains(mean)
+    principal = principal_strains(mean) if np.isfinite(mean).all() else np.full(3, np.nan)
     return StrainSummary(
         mean=mean,
         mean_all=mean_all,
@@ -247,7 +265,8 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
 
 def strain_summary(result, *, exclude_outer: bool = True) -> StrainSummary:
     """:func:`mean_strain` of a :class:`chunkdic.Result` (element size from its info; the
-    active elements of its mask, if any)."""
+    active elements of its mask, if any): what every mean strain of a result uses, so that
+    elements a mask excludes never count."""
     active = None if result.active is None else result.active > 0
     return mean_strain(result.displacement, result.info["element_size"], exclude_outer=exclude_outer,
                        elements=active)

@@ -24,7 +24,7 @@ from .metrology import (
     uncertainty,
     write_table,
 )
-from .strain import mean_strain
+from .strain import strain_summary
 
 __all__ = ["read_delta_eps", "sweep", "write_zoi_table", "zoi_table"]
 
@@ -92,7 +92,7 @@ def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dic
     for r in results:
         res = r if isinstance(r, Result) else open_result(r)
         ell = int(res.info["element_size"])
-        s = mean_strain(res.displacement, ell)
+        s = strain_summary(res)
         u = res.displacement
         rows.append({
             "element_size": ell,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from chunkdic.mesh import Mesh, level_to_level, shape_table, transfer
+from chunkdic.mesh import Mesh, carry_field, level_to_level, shape_table, transfer
 
 
 def test_shape_table_values_by_hand():
@@ -77,3 +77,19 @@ def test_evaluate_grid_equals_pointwise_evaluation():
     axes = [np.linspace(o - 3.0, o + n * 4 + 2.0, 11) for o, n in zip(mesh.origin, mesh.shape)]
     pts = np.stack(np.meshgrid(*axes, indexing="ij"))
     assert np.allclose(mesh.evaluate_grid(u, axes), mesh.evaluate(u, pts), atol=1e-12)
+
+
+def test_carry_field_clamped_extends_one_element_then_holds():
+    """``clamp=True`` (start fields, composed increments): an affine field stays exact up to
+    one element beyond the outer nodes and keeps the value at that limit further out;
+    unclamped it keeps growing (the level transfer's linear extension)."""
+    A = np.array([[0.02, 0.0, 0.0], [0.0, -0.01, 0.0], [0.0, 0.0, 0.03]])
+    mesh = Mesh((4, 4, 4), 8, (2, 2, 2))  # nodes at 3.5, 11.5, 19.5 on every axis
+    u = np.einsum("ij,j...->i...", A, mesh.node_coords())
+    pts = np.array([[19.5 + 8, 3.5 - 8, 11.0], [19.5 + 30, 3.5 - 30, 11.0], [11.0, 11.0, 11.0]]).T  # (3, 3)
+    limit = np.array([[27.5, -4.5, 11.0], [27.5, -4.5, 11.0], [11.0, 11.0, 11.0]]).T
+    np.testing.assert_allclose(carry_field(u, mesh, 0, pts, 0, clamp=True), A @ limit, atol=1e-12)
+    np.testing.assert_allclose(carry_field(u, mesh, 0, pts, 0), A @ pts, atol=1e-12)
+    # between levels: positions and values of level 1 (X1 = (X0 - 0.5) / 2, u1 = u0 / 2)
+    p1 = (pts - 0.5) / 2
+    np.testing.assert_allclose(carry_field(u, mesh, 0, p1, 1, clamp=True), A @ limit / 2, atol=1e-12)

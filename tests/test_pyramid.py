@@ -170,3 +170,24 @@ def test_level0_window_and_mean_display_pyramid(scan_path, capsys):
     assert open_scan(p).stored_levels() == [0, 1, 2]  # the subgroup is not a level
     build_pyramid(p, 2, overwrite=True)  # rebuilt sums: the stale display goes
     assert not (p / "display").exists()
+
+
+def test_window_from_a_bounded_sample_read_by_tasks(tmp_path):
+    """The one window helper: extremes exact, percentiles from the array's ``[::step]^3``
+    grid of at most ``samples`` voxels (gathered chunk by chunk from tasks), channels apart,
+    an all-NaN channel None."""
+    from chunkdic.display import sample_step, windows
+
+    rng = np.random.default_rng(3)
+    x = rng.normal(size=(2, 30, 29, 31)).astype(np.float32)
+    x[1] = np.nan
+    zarr.create_array(str(tmp_path / "a.zarr"), data=x, chunks=(1, 8, 8, 8))
+    step = sample_step(x.shape[1:], 1000)
+    grid = x[0, ::step, ::step, ::step]
+    assert grid.size <= 1000 < x[0, ::step - 1, ::step - 1, ::step - 1].size  # the smallest stride that fits
+    got = windows(str(tmp_path / "a.zarr"), "", channels=(0, 1), scale=0.5, samples=1000)
+    lo, hi = np.percentile(grid.astype(np.float64) * 0.5, [1, 99])
+    assert got[0] == pytest.approx([lo, hi, 0.5 * x[0].min(), 0.5 * x[0].max()], rel=1e-12)
+    assert got[1] is None
+    full = windows(str(tmp_path / "a.zarr"), "", channels=(0,))[0]  # under the default bound: every voxel
+    assert full[:2] == pytest.approx(np.percentile(x[0].astype(np.float64), [1, 99]), rel=1e-12)

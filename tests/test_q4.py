@@ -174,6 +174,22 @@ def test_cutcheck_flags_a_wrong_field(synthetic_result):
 # --------------------------------------------------------------------------- CLI
 
 
+def test_cli_cutcheck_figure_format_and_resolution(synthetic_result, tmp_path, capsys):
+    """``cutcheck --format/--dpi``, as ``report``: the PNG's width is the figure's 15 inches
+    (3 panels of 5) times the dpi; ``--overwrite`` with another format replaces the PNG."""
+    from PIL import Image
+
+    out = tmp_path / "check"
+    good = str(synthetic_result / "good.zarr")
+    assert main(["cutcheck", good, "-o", str(out), "--dpi", "40"]) == 0
+    assert Image.open(out / "cutcheck.png").size[0] == 15 * 40
+    assert main(["cutcheck", good, "-o", str(out), "--format", "svg", "--overwrite"]) == 0
+    assert (out / "cutcheck.svg").read_text().lstrip().startswith("<?xml")
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == ["cutcheck.json", "cutcheck.svg"]
+    capsys.readouterr()
+
+
+
 def test_cli_correlate2d_on_image_files(tmp_path, shifted, capsys):
     from PIL import Image
     import tifffile
@@ -204,7 +220,8 @@ def test_cli_bad_input_is_one_line_and_writes_nothing(tmp_path, synthetic_result
                  ["cutcheck", str(tmp_path / "missing.zarr"), "-o", str(tmp_path / "out")],
                  ["cutcheck", str(a), "-o", str(tmp_path / "out")],
                  ["cutcheck", str(synthetic_result / "good.zarr"), "-o", str(tmp_path / "out"),
-                  "--ref", str(tmp_path / "missing.zarr")]):
+                  "--ref", str(tmp_path / "missing.zarr")],
+                 ["cutcheck", str(synthetic_result / "good.zarr"), "-o", str(tmp_path / "out"), "--dpi", "5"]):
         assert main(argv) == 2, argv
         err = capsys.readouterr().err
         assert err.startswith("chunkdic: error:") and err.count("\n") == 1, err

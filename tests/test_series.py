@@ -154,7 +154,7 @@ def test_bad_inputs_exit_2_nothing_written(run, tmp_path, capsys):
     _refused([*c, "--init", tmp_path / "nope.zarr"], capsys, "does not exist")
     other = tmp_path / "other.zarr"
     chunkdic.correlate(small, small, element_size=ELL, coarsest=0, regularization="none", output=other)
-    _refused([*c, "--init", other], capsys, "reference of shape (40, 40, 40)")
+    _refused([*c, "--init", other], capsys, "computed on one of shape (40, 40, 40)")
     _refused([*c, "--init", out.parent], capsys, "not a chunkdic result")
     _nothing_at(out)
 
@@ -180,3 +180,21 @@ def test_open_series_reads_the_summary_and_fields(run):
     np.testing.assert_array_equal(s.cumulative[2].displacement, run["series"].cumulative[2].displacement)
     with pytest.raises(chunkdic.InputError, match="not a chunkdic loading series"):
         chunkdic.open_series(run["scans"][0])
+
+
+def test_series_takes_lengths_in_physical_units(tmp_path, capsys):
+    """``series -l 30um --roi ... --roi-unit um``: converted as ``correlate`` does, with the
+    first scan's voxel size (2.5 um: 12 voxels, ROI 4:36 trimmed to 2 elements, 8:32)."""
+    pair = synthetic.synthesize(tmp_path / "s", (40, 40, 40), field=synthetic.Translation((1.0, 0.5, -0.5)),
+                                seed=2, dtype="float32", voxel_size=2.5, unit="um")
+    out = tmp_path / "series.zarr"
+    assert main(["series", str(pair["reference"]), str(pair["deformed"]), "-o", str(out), "-l", "30um",
+                 "--roi", "10:90,10:90,10:90", "--roi-unit", "um", "--regularization", "none",
+                 "--max-iterations", "10"]) in (0, 1)
+    err = capsys.readouterr().err
+    assert "--element-size 30um = 12.000 voxels of level 0: using 12 (30 micrometer)" in err
+    assert "= 4:36,4:36,4:36 in level-0 voxels" in err
+    step = chunkdic.open_result(out / "steps" / "001-incremental")
+    assert step.info["element_size"] == 12 and step.info["roi"] == [[8, 32]] * 3
+    _refused(["series", pair["reference"], pair["deformed"], "-o", tmp_path / "x.zarr", "-l", "30 parsecs"],
+             capsys, "unknown length unit")

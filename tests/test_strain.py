@@ -94,3 +94,43 @@ def test_strain_stored_with_result(tmp_path):
     r = open_result(tmp_path / "r.zarr")
     assert r.strain.shape == (3, 3, 3, 3, 3)
     assert np.allclose(r.strain[0, 0], -0.02) and np.allclose(r.strain[1, 1], 0.01)
+
+
+def test_mean_strain_of_a_masked_result_counts_its_active_elements_only(tmp_path, capsys):
+    """A mask's inactive elements never count: ``strain`` (CLI), the series table's
+    ``eps_zz`` and ``table`` give the prescribed strain of the active elements, which the
+    inactive ones (their nodes measured, at the mask's rim) would change."""
+    import json
+
+    from chunkdic.cli import main
+    from chunkdic.loadseries import _row
+    from chunkdic.strain import strain_summary
+    from chunkdic.zoisweep import zoi_table
+
+    mesh = Mesh((0, 0, 0), 8, (6, 6, 6))
+    z = mesh.node_coords()[0]
+    # eps_zz = -0.01 in element layers 0..3 (the material), +0.05 in layers 4..5 (outside it)
+    knee = mesh.node_axes()[0][4]
+    uz = np.where(z <= knee, -0.01 * z, -0.01 * knee + 0.05 * (z - knee))
+    u = np.stack([uz, np.zeros_like(z), np.zeros_like(z)])
+    active = np.zeros((6, 6, 6), np.uint8)
+    active[:4] = 1
+    hist = {k: np.zeros(1) for k in ("level", "iteration", "gap", "max_delta", "excluded")}
+    info = {"element_size": 8, "roi": [[0, 48]] * 3, "level": 0, "final_gap": 0.01, "status": "converged"}
+    res = Result(u, mesh.node_coords(), hist, info, active=active)
+    # the inner layers 1..4: without the mask (3 * -0.01 + 0.05) / 4 = +0.005
+    assert mean_strain(u, 8).eps_zz == pytest.approx(0.005, abs=1e-12)
+    assert strain_summary(res).eps_zz == pytest.approx(-0.01, abs=1e-12)
+    assert _row(res, 1, "0→1", "incremental", "steps/001-incremental", "computed", 0.0)["eps_zz"] == \
+        pytest.approx(-0.01, abs=1e-12)
+    res.save(tmp_path / "r.zarr")
+    assert main(["strain", str(tmp_path / "r.zarr"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["eps_zz"] == pytest.approx(-0.01, abs=1e-12)
+    assert zoi_table([tmp_path / "r.zarr"])[0]["eps_zz"] == pytest.approx(-0.01, abs=1e-12)
+    # no active element left: one line, no traceback; the series row says NaN
+    res.active = np.zeros_like(active)
+    assert np.isnan(_row(res, 1, "0→1", "incremental", "x", "computed", 0.0)["eps_zz"])
+    res.save(tmp_path / "none.zarr")
+    assert main(["strain", str(tmp_path / "none.zarr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no element to average" in err[0]
