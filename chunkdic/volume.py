@@ -17,8 +17,10 @@ which is pyramid level 2 here).
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import sys
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,6 +34,7 @@ from .handles import ArrayRef, ref_dask
 from .integrity import check_chunks_present
 from .levels import write_level
 from .ngff import complete_levels, normalize_unit, normalize_voxel_size, voxel_from_group_attrs
+from .scratch_levels import build_level
 from .store import chunk_shape_for
 
 log = logging.getLogger(__name__)
@@ -129,13 +132,15 @@ class Scan:
         """Level 0 is an array in this process's memory (NumPy, in-memory Zarr), not a graph."""
         return self._base is not None and not hasattr(self._base, "dask")
 
-    def refs(self, levels, scratch_dir=None) -> dict[int, ArrayRef]:
+    def refs(self, levels, scratch_dir=None, runner=None) -> dict[int, ArrayRef]:
         """On-disk handles for ``levels``: stored levels directly; others written chunk by
-        chunk into a Zarr group under ``scratch_dir`` (each from the finest level on disk).
+        chunk into a Zarr group under ``scratch_dir``, each from the finest level on disk
+        below it, by tasks on ``runner`` (:mod:`chunkdic.scratch_levels`).
 
         A level 0 held in memory is written to scratch first, from this process: the
-        levels built from it then read it by path, so no task graph ever carries voxels
-        (a distributed scheduler would otherwise receive the whole array in the graph).
+        levels built from it then read it by path, so no task ever carries voxels (a
+        distributed scheduler would otherwise receive the whole array). A level 0 given as
+        a Dask array has no path: its levels are its own graph, summed and stored by Dask.
 
         Parameters
         ----------
@@ -143,36 +148,89 @@ class Scan:
         scratch_dir : str or Path, optional
             Directory for the scratch group (created if needed); default
             ``chunkdic.scratch-directory`` or the system temporary directory.
+        runner : ThreadRunner or DistributedRunner, optional
+            Where the tasks run (:func:`chunkdic.scheduler.open_runner`); default the
+            current ``distributed`` client if there is one (as for Dask collections),
+            else an embedded thread pool for this call.
 
         Returns
         -------
         dict of int to ArrayRef
         """
-        import zarr
-
-        out = {}
         wanted = {int(v) for v in levels}
         if self._in_memory() and 0 not in self._scratch:
             wanted.add(0)
-        for s in sorted(wanted):
-            ref = self._stored.get(s) or self._scratch.get(s)
-            if ref is None:
-                if self._scratch_group is None:
-                    import tempfile
+        missing = [s for s in sorted(wanted) if s not in self._stored and s not in self._scratch]
+        if missing:
+            group = self._make_scratch_group(scratch_dir)
+            with _task_runner(runner) as run:
+                for s in missing:
+                    self._scratch[s] = self._write_scratch(group, s, run)
+                    log.info("level %d %s written to scratch %s", s, self._scratch[s].shape, group)
+        on_disk = {**self._scratch, **self._stored}
+        return {s: on_disk[s] for s in sorted({int(v) for v in levels})}
 
-                    root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
-                    root.mkdir(parents=True, exist_ok=True)
-                    gpath = root / f"scan-{uuid.uuid4().hex[:12]}.zarr"
-                    zarr.open_group(store=str(gpath), mode="w-", zarr_format=3).update_attributes(
-                        {"chunkdic": {"kind": "scratch", "voxel_size": list(self.voxel_size) if self.voxel_size else None,
-                                      "unit": self.unit, "scratch": True}})
-                    self._scratch_group = str(gpath)
-                data = self._base if s == 0 and self._in_memory() else self.level(s)
-                ref = write_level(self._scratch_group, s, data)
-                self._scratch[s] = ref
-                log.info("level %d %s written to scratch %s", s, ref.shape, self._scratch_group)
-            out[s] = ref
-        return {s: out[s] for s in sorted({int(v) for v in levels})}
+    def _make_scratch_group(self, scratch_dir) -> str:
+        """The scan's scratch group (created on first use)."""
+        import zarr
+
+        if self._scratch_group is None:
+            import tempfile
+
+            root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
+            root.mkdir(parents=True, exist_ok=True)
+            gpath = root / f"scan-{uuid.uuid4().hex[:12]}.zarr"
+            zarr.open_group(store=str(gpath), mode="w-", zarr_format=3).update_attributes(
+                {"chunkdic": {"kind": "scratch", "voxel_size": list(self.voxel_size) if self.voxel_size else None,
+                              "unit": self.unit, "scratch": True}})
+            self._scratch_group = str(gpath)
+        return self._scratch_group
+
+    def _write_scratch(self, group: str, s: int, runner) -> ArrayRef:
+        """Level ``s`` written into the scratch group: from memory, by tasks, or by Dask."""
+        if s == 0 and self._in_memory():
+            return write_level(group, 0, self._base)
+        on_disk = [k for k in {**self._scratch, **self._stored} if k < s]
+        if on_disk:
+            k = max(on_disk)
+            src = self._scratch.get(k) or self._stored[k]
+            dtypes = [self.dtype(t) for t in range(k + 1, s + 1)]
+            return build_level(group, s, src, s - k, dtypes, runner)
+        return write_level(group, s, self.level(s))  # a Dask level 0: its own graph computes it
+
+
+@contextlib.contextmanager
+def _task_runner(runner):
+    """``runner``, else the current ``distributed`` client's, else a thread pool for the call.
+
+    ``distributed`` is only asked when already imported (a client exists only then):
+    importing it, as ``dask.base.get_scheduler`` does, costs about a second.
+    """
+    if runner is not None:
+        yield runner
+        return
+    from .scheduler import DistributedRunner, ThreadRunner
+
+    client = _current_client()
+    if client is not None:
+        yield DistributedRunner(client)
+        return
+    pool = ThreadRunner()
+    try:
+        yield pool
+    finally:
+        pool.close()
+
+
+def _current_client():
+    """The ``distributed.Client`` Dask collections would compute on now, or None."""
+    if "distributed" not in sys.modules:
+        return None
+    from dask.base import get_scheduler
+    from distributed import Client
+
+    client = getattr(get_scheduler(), "__self__", None)
+    return client if isinstance(client, Client) else None
 
 
 # --------------------------------------------------------------------------------------

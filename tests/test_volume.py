@@ -267,13 +267,15 @@ def test_public_names_are_the_functions_whatever_was_imported_first():
 @pytest.mark.parametrize("kind", ["numpy", "in-memory zarr"])
 def test_in_memory_inputs_never_travel_inside_a_graph(tmp_path, monkeypatch, kind):
     """A NumPy (or in-memory Zarr) level 0 on a distributed client: written to scratch from
-    the client chunk by chunk, the coarser levels then built by tasks whose graphs hold
-    only handles (pickled graph under 1 kB, against 512 kB of voxels), exact sums."""
+    the client chunk by chunk (no graph), the coarser levels then built by the client's
+    tasks whose arguments hold only handles (pickled under 1 kB, against 512 kB of
+    voxels), exact sums."""
     import pickle
 
     from distributed import Client
 
     import chunkdic.levels as levels
+    from chunkdic.scheduler import DistributedRunner
 
     x = np.random.default_rng(3).integers(0, 60000, size=(64, 64, 64), dtype=np.uint16)
     if kind == "numpy":
@@ -281,15 +283,94 @@ def test_in_memory_inputs_never_travel_inside_a_graph(tmp_path, monkeypatch, kin
     else:
         src = zarr.create_array(zarr.storage.MemoryStore(), shape=x.shape, chunks=(32, 32, 32), dtype=x.dtype)
         src[...] = x
+    monkeypatch.setattr(levels, "store_array", lambda *a, **k: pytest.fail("a Dask graph was built"))
     sizes = []
-    original = levels.store_array
-    monkeypatch.setattr(levels, "store_array", lambda data, *a, **k: sizes.append(
-        len(pickle.dumps(dict(data.__dask_graph__())))) or original(data, *a, **k))
+    original = DistributedRunner.map_unordered
+
+    def recording(self, fn, args):
+        args = list(args)
+        sizes.extend(len(pickle.dumps(a)) for a in args)
+        return original(self, fn, args)
+
+    monkeypatch.setattr(DistributedRunner, "map_unordered", recording)
     with Client(processes=False, n_workers=1, threads_per_worker=2, dashboard_address=":0"):
         refs = open_scan(src).refs([0, 1, 2], tmp_path / "scratch")
-    assert sizes and max(sizes) < 100_000, sizes  # measured 0.8 kB per graph (the voxels: 512 kB)
+    assert sizes and max(sizes) < 1_000, sizes  # the tasks ran on the client; measured ~0.5 kB each
     np.testing.assert_array_equal(refs[0].read((slice(None),) * 3), x)
     np.testing.assert_array_equal(refs[2].read((slice(None),) * 3), block_sums(x, 2))
+
+
+def float32_sums(x: np.ndarray, s: int) -> np.ndarray:
+    """Oracle of a float32 pyramid: each step a NumPy reshape-sum in float64 rounded to
+    float32 (exact sums for the data below: float32 values of a narrow range)."""
+    for _ in range(s):
+        n = [k // 2 for k in x.shape]
+        x = (x[: 2 * n[0], : 2 * n[1], : 2 * n[2]].astype(np.float64).reshape(n[0], 2, n[1], 2, n[2], 2)
+             .sum(axis=(1, 3, 5)).astype(np.float32))
+    return x
+
+
+@pytest.mark.parametrize("dtype", ["uint8", "uint16", "float32"])
+def test_scratch_levels_by_tasks_equal_the_lazy_levels(tmp_path, dtype):
+    """The scratch levels of ``refs`` (tasks, chunkdic.scratch_levels) equal bit for bit the
+    lazy Dask levels and an independent NumPy reshape-sum, on an odd shape cut into 8³
+    chunks (many tasks, trailing partial chunks, trimmed odd voxels); also levels asked
+    alone (built from level 0 in one task per chunk, intermediate levels never stored)."""
+    import dask.config
+
+    rng = np.random.default_rng(11)
+    shape = (37, 22, 51)
+    if dtype == "float32":
+        x = (rng.integers(0, 65536, shape) / 16).astype(np.float32)
+    else:
+        x = rng.integers(0, np.iinfo(dtype).max, shape, endpoint=True).astype(dtype)
+    with dask.config.set({"chunkdic.chunk-size": 8}):
+        write_scan(tmp_path / "s.zarr", x, chunks=8)
+        refs = open_scan(str(tmp_path / "s.zarr")).refs([1, 2, 3, 4], tmp_path / "a")
+        alone = open_scan(str(tmp_path / "s.zarr")).refs([3, 4], tmp_path / "b")
+        lazy = {s: open_scan(str(tmp_path / "s.zarr")).level(s).compute() for s in range(1, 5)}
+    assert refs[1].open().chunks == (8, 8, 8) and not any(r.path.startswith(str(tmp_path / "s.zarr"))
+                                                          for r in refs.values())
+    for s in range(1, 5):
+        got = refs[s].read((slice(None),) * 3)
+        oracle = float32_sums(x, s) if dtype == "float32" else block_sums(x, s)
+        assert got.dtype == pyramid_dtype(dtype, s) == lazy[s].dtype
+        np.testing.assert_array_equal(got, lazy[s])
+        np.testing.assert_array_equal(got, oracle)
+        if s in alone:
+            np.testing.assert_array_equal(alone[s].read((slice(None),) * 3), got)
+
+
+def test_refs_of_an_empty_level(tmp_path):
+    """A level with an empty axis is still created (and complete): shape (0, 2, 3)."""
+    x = np.ones((3, 9, 13), np.uint8)
+    ref = open_scan(str(write_scan(tmp_path / "s.zarr", x).path)).refs([2], tmp_path / "scratch")[2]
+    assert ref.shape == (0, 2, 3) and ref.read((slice(None),) * 3).shape == (0, 2, 3)
+
+
+def test_correlation_of_zarr_scans_never_imports_dask_array(tmp_path):
+    """``import dask.array`` costs ~1 s (it imports xarray and pandas when installed): a
+    correlation of two Zarr scans without stored levels builds its scratch levels by
+    tasks and never imports it (a fresh interpreter, as a user's script)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import chunkdic
+
+    x = (np.random.default_rng(2).random((64, 64, 64)) * 4000).astype(np.uint16)
+    write_scan(tmp_path / "f.zarr", x)  # level 0 only: levels 1 and 2 go to scratch
+    f = str(tmp_path / "f.zarr")
+    code = ("import sys, chunkdic\n"
+            f"r = chunkdic.correlate({f!r}, {f!r}, element_size=8, coarsest=2)\n"
+            "assert r.info['levels'] == [2, 1, 0], r.info['levels']\n"
+            "print(sorted(m for m in ('dask.array', 'pandas', 'xarray') if m in sys.modules))\n")
+    here = str(Path(chunkdic.__file__).parent.parent)  # this chunkdic, whether installed or not
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (here, os.environ.get("PYTHONPATH")) if p)}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().splitlines()[-1] == "[]", out.stdout
 
 
 def test_write_scan_of_a_numpy_array_writes_it_from_the_client(tmp_path, monkeypatch):
