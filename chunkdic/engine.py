@@ -162,8 +162,8 @@ def correlate(
                      requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
                      nodes=list(meshes[settings.level].nodes_shape))
                 # inside the runner: with a cluster, missing levels are built by its workers
-                f_refs = f_scan.refs(levels, scratch / "ref")
-                g_refs = g_scan.refs(levels, scratch / "def")
+                f_refs = f_scan.refs(levels, scratch / "ref", runner=runner)
+                g_refs = g_scan.refs(levels, scratch / "def", runner=runner)
                 mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
                 _compile_kernels(runner, progress)
                 result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
