@@ -179,9 +179,11 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             on_iteration=None, first_pass=None, resolve: bool = False) -> State:
     """Modified Gauss–Newton on one level (paper section 3), from ``state``.
 
-    Each pass evaluates ``b`` and the gap of the current field; the increment of the
-    previous pass being below ``tolerance`` means the current field is converged, so the
-    reported gap is always that of the returned field. A run whose gap and increments both
+    Each pass evaluates ``b`` and the gap of the current field and solves for an increment;
+    an increment below ``tolerance`` is applied and ends the level as converged, without a
+    pass to confirm it: the reported gap is that of the last pass, whose field differs from
+    the returned one by less than ``tolerance`` (the gap by the square of that, relative).
+    A run whose gap and increments both
     stop improving is *stalled*; one whose gap grows past ``DIVERGENCE_FACTOR`` × the best
     (plus ``DIVERGENCE_FLOOR``) is *diverged*; both return the best field met, never
     flagged as converged.
@@ -190,8 +192,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
     field only, not on the regularisation), used instead of evaluating it again.
     ``resolve``: the caller solves again from the last pass with another operator (the
     regularisation about to be chosen), so an increment below ``tolerance`` ends the level
-    *unapplied*: the field stays the one that pass measured, and no pass is spent confirming
-    a field the next solve replaces.
+    *unapplied*: the field stays the one that pass measured, which the next solve starts from.
     """
     while state.status is None:
         it = state.iteration
@@ -214,12 +215,17 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             delta, cg_iterations = lvl.solver.solve(rhs)
             state.largest_rhs = lvl.solver.largest_rhs
             t2 = time.perf_counter()
-            if resolve and float(np.abs(delta).max()) < tolerance:
-                state.last_delta = float(np.abs(delta).max())
+            if float(np.abs(delta).max()) >= tolerance:
+                state.step(delta)
+            else:
+                # converged: no pass confirms a field that moved by less than the tolerance
+                # (its gap differs from this pass's to second order in the increment)
+                if resolve:
+                    state.last_delta = float(np.abs(delta).max())
+                else:
+                    state.step(delta)
                 state.finish("converged", keep_current=True)
                 event.update(status=state.status)
-            else:
-                state.step(delta)
             history.add(lvl.s, it, p.gap, state.last_delta, p.n_excluded)
             event.update(max_delta=state.last_delta, seconds=t2 - t0, assemble_seconds=t1 - t0,
                          solve_seconds=t2 - t1, cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels,
