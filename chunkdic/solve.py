@@ -23,6 +23,12 @@ from .regularization import Regularizer, add_weighted
 
 log = logging.getLogger(__name__)
 
+#: multigrid replaces block-Jacobi (Tikhonov only) from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii``
+#: (medians over nodes): from about 7ℓ, where block-Jacobi CG needs ~100 iterations and
+#: the V-cycle 9 (docs/engine.md, "Solve"). The equilibrium gap keeps block-Jacobi: its
+#: large non-smooth near-null space (every field in equilibrium) defeats the point
+#: smoother, and the V-cycle saved iterations but not time (measured).
+MULTIGRID_FROM = 100.0
 #: index of the node itself in the 27-point stencil
 CENTRE = 13
 #: the stored half of the stencil: entries 13 (the node) to 26; entry ``26 - k`` of the
@@ -104,6 +110,13 @@ class StencilSolver:
         asked ever more CG iterations of an increment nobody uses (measured at 300³ with a
         long regularisation length: 1 281 iterations, 3.1 s, for a step of max 3e-6 voxel).
         The increments then carry an error of at most ``rtol`` times the first step's size.
+    maxiter : int
+        CG iterations before giving up with a warning.
+    multigrid : bool or None
+        Precondition with a multigrid V-cycle (:mod:`chunkdic.multigrid`) instead of
+        block-Jacobi: ``None`` (default) when it pays, i.e. with Tikhonov regularisation
+        whose weight makes ``λ R`` dominate ``M`` (:data:`MULTIGRID_FROM`); ``True`` whenever
+        regularised, ``False`` never.
 
     Raises
     ------
@@ -112,7 +125,7 @@ class StencilSolver:
     """
 
     def __init__(self, half: np.ndarray, *, weak_threshold: float = 1e-3, rtol: float = 1e-7,
-                 maxiter: int = 2000):
+                 maxiter: int = 2000, multigrid: bool | None = None):
         self.rtol, self.maxiter = rtol, maxiter
         self._largest_rhs = 0.0  # norm of the largest right-hand side solved so far
         self.nodes_shape = half.shape[:3]
@@ -136,6 +149,9 @@ class StencilSolver:
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0)
         self.block_inverse = np.linalg.inv(self._diag)
+        self.multigrid = multigrid
+        self._matrices = None  # the Galerkin coarse M (chunkdic.multigrid), built on first use
+        self._vcycle = None
 
     def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
         """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
@@ -144,8 +160,28 @@ class StencilSolver:
         diag = self._diag
         if self.regularizer is not None:
             self._reg_args = self.regularizer.numba_args()
-            diag = diag + self.weight * self.regularizer.diagonal_blocks()
+            reg_diag = self.regularizer.diagonal_blocks()
+            diag = diag + self.weight * reg_diag
+            self._regularizer_diagonal = float(np.median(np.trace(reg_diag, axis1=-2, axis2=-1)))
+            self._matrix_diagonal = float(np.median(np.trace(self._diag, axis1=-2, axis2=-1)))
         self.block_inverse = np.linalg.inv(diag)
+        self._vcycle = None
+        if self._use_multigrid():
+            from .multigrid import VCycle, matrix_hierarchy
+
+            if self._matrices is None:
+                self._matrices = matrix_hierarchy(self.matrix)
+            self._vcycle = VCycle(self._matrices, self.block_inverse, self.regularizer, self.weight)
+
+    def _use_multigrid(self) -> bool:
+        """Whether :meth:`regularize` builds a V-cycle (:data:`MULTIGRID_FROM`)."""
+        if self.regularizer is None or self.multigrid is False:
+            return False
+        if self.multigrid:
+            return True
+        if self.regularizer.kind != "tikhonov":
+            return False
+        return self.weight * self._regularizer_diagonal >= MULTIGRID_FROM * self._matrix_diagonal
 
     def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
         """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3); zeros without regularisation."""
@@ -171,8 +207,11 @@ class StencilSolver:
         norm = float(np.sqrt(np.sum(b * b)))
         self._largest_rhs = max(self._largest_rhs, norm)
         rtol = self.rtol * self._largest_rhs / norm if norm > 0 else self.rtol
-        iterations = _pcg(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
-                          code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
+        if self._vcycle is not None:
+            iterations = _pcg_preconditioned(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
+        else:
+            iterations = _pcg(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
+                              code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)
@@ -238,6 +277,37 @@ def _pcg(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
         beta = rz_new / rz
         for k in range(pf.size):  # p = z + β p
             pf[k] = zf[k] + beta * pf[k]
+        rz = rz_new
+    return -1
+
+
+def _pcg_preconditioned(matvec, precondition, b, x, rtol, maxiter) -> int:
+    """:func:`_pcg` with any symmetric positive definite preconditioner ``precondition(r) -> z``.
+
+    Written in Python around the numba vector kernels: with a V-cycle per iteration, a few
+    tens of iterations, the interpreter's share is negligible.
+    """
+    r = b.copy()
+    rf, xf = r.reshape(-1), x.reshape(-1)
+    bnorm = np.sqrt(_dot(b.reshape(-1), b.reshape(-1)))
+    if bnorm == 0.0:
+        return 0
+    z = precondition(r)
+    p = z.copy()
+    pf = p.reshape(-1)
+    rz = _dot(rf, z.reshape(-1))
+    for it in range(1, maxiter + 1):
+        q = matvec(p)
+        alpha = rz / _dot(pf, q.reshape(-1))
+        _axpy(alpha, pf, xf)
+        _axpy(-alpha, q.reshape(-1), rf)
+        if np.sqrt(_dot(rf, rf)) <= rtol * bnorm:
+            return it
+        z = precondition(r)
+        rz_new = _dot(rf, z.reshape(-1))
+        beta = rz_new / rz
+        p *= beta
+        p += z
         rz = rz_new
     return -1
 
