@@ -6,7 +6,9 @@ direct factorisation costs seconds to minutes (shared/DESIGN.md). The stencil is
 as is for the matrix-vector product, never converted to CSR, and only its symmetric half
 is kept (:data:`HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
 of 2. The regularisation ``R`` (:mod:`chunkdic.regularization`) is applied matrix-free
-in the same CG.
+in the same CG. A long Tikhonov length makes ``M + λ R`` a fourth-order operator whose
+smooth modes block-Jacobi cannot reach (hundreds to thousands of iterations): there a
+multigrid V-cycle (:mod:`chunkdic.multigrid`) preconditions the same CG instead.
 """
 
 from __future__ import annotations
@@ -220,7 +222,7 @@ class StencilSolver:
 
 
 def warmup() -> None:
-    """Compile the client's solver kernels (CG with and without regularisation) on a tiny system."""
+    """Compile the client's solver kernels (CG with and without regularisation, the V-cycle) on tiny systems."""
     from .regularization import Regularizer
 
     half = np.zeros((3, 3, 3, 14, 3, 3), np.float32)
@@ -229,6 +231,11 @@ def warmup() -> None:
     solver.solve(np.ones((3, 3, 3, 3)))
     solver.regularize(Regularizer("tikhonov", (3, 3, 3), 2.0), 1.0)
     solver.solve(np.ones((3, 3, 3, 3)))
+    half = np.zeros((7, 7, 7, 14, 3, 3), np.float32)  # two multigrid levels
+    half[..., 0, :, :] = np.eye(3)
+    solver = StencilSolver(half, multigrid=True)
+    solver.regularize(Regularizer("tikhonov", (7, 7, 7), 2.0), 1.0)
+    solver.solve(np.ones((7, 7, 7, 3)))
 
 
 @numba.njit(nogil=True, cache=True)
