@@ -579,7 +579,7 @@ class VCycle:
         k = self.levels.index(lev)
         rng = np.random.default_rng(0)
         b = rng.standard_normal(lev.shape + (3,))
-        r, x = b.copy(), np.zeros_like(b)
+        r = b.copy()  # CG from x = 0: only its coefficients are used
         z, q = np.empty_like(b), np.empty_like(b)
         _block_jacobi(lev.Binv, r, z)
         p = z.copy()
