@@ -10,7 +10,10 @@ of a random texture block of the right shape (computed once per shape by the rea
 
 Prints, for each ``--size`` (level-0 edge, ``--element-size`` on level 0): nodes, blocks,
 assembly and preconditioner time, the time and CG iterations of ``--solves`` solves with
-a random right-hand side, and the client's peak RSS (``VmHWM``). The default, 2048 with
+a random right-hand side, and the client's peak RSS (``VmHWM``). With ``--regularize K``
+the solves are of ``M + λ R``, Tikhonov over ``K`` element sizes (its setup, the
+multigrid V-cycle's included, counted in the solve time); ``--no-multigrid`` keeps
+block-Jacobi there. The default, 2048 with
 ell 16, is the mesh of a level-0 run of the scale benchmark (128³ nodes).
 
 Usage::
@@ -61,7 +64,7 @@ class _StandInRunner:
         fn()
 
 
-def _child(size: int, ell: int, solves: int) -> None:
+def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid: bool = True) -> None:
     import numpy as np
 
     from chunkdic.level import Level
@@ -78,9 +81,13 @@ def _child(size: int, ell: int, solves: int) -> None:
         t_m = time.perf_counter() - t0
         rng = np.random.default_rng(1)
         times, its = [], []
+        if not multigrid:
+            lvl.solver.multigrid = False
         for _ in range(solves):
             b = rng.normal(size=mesh.nodes_shape + (3,))
             t0 = time.perf_counter()
+            if regularize:
+                lvl.regularize(regularize * ell)
             _, it = lvl.solver.solve(b)
             times.append(time.perf_counter() - t0)
             its.append(it)
@@ -94,15 +101,18 @@ def main(argv=None) -> None:
     p.add_argument("--sizes", type=int, nargs="+", default=[2048])
     p.add_argument("--element-size", type=int, default=16)
     p.add_argument("--solves", type=int, default=3)
+    p.add_argument("--regularize", type=float, default=0.0, help="Tikhonov length, element sizes (0: none)")
+    p.add_argument("--no-multigrid", action="store_true", help="block-Jacobi even where the V-cycle would be used")
     p.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
-        _child(args.child, args.element_size, args.solves)
+        _child(args.child, args.element_size, args.solves, args.regularize, not args.no_multigrid)
         return
     print("  size  ell      nodes  blocks  M assembly s   solve s  CG it  client peak MiB")
     for size in args.sizes:  # one process per size: each peak is its own
         subprocess.run([sys.executable, __file__, "--child", str(size), "--element-size", str(args.element_size),
-                        "--solves", str(args.solves)], check=True)
+                        "--solves", str(args.solves), "--regularize", str(args.regularize)]
+                       + (["--no-multigrid"] if args.no_multigrid else []), check=True)
 
 
 if __name__ == "__main__":

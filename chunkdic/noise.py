@@ -99,7 +99,7 @@ def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray
     local_diag = np.diagonal(local, axis1=-2, axis2=-1)  # (nz, ny, nx, 3)
     # the factor c on a central sub-mesh
     sub = tuple(slice(max((k - PROBE_EDGE) // 2, 0), max((k - PROBE_EDGE) // 2, 0) + min(k, PROBE_EDGE)) for k in n)
-    small = StencilSolver(np.ascontiguousarray(H[sub]).copy())
+    small = StencilSolver(np.ascontiguousarray(H[sub]).copy(), multigrid=False)  # matvec only
     if solver.regularizer is not None:
         from .regularization import Regularizer
 

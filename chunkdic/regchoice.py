@@ -90,7 +90,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     data), so the longest admissible candidate is found by bisection: 3 to 5 solves per
     region instead of 11, and a later region only searches below the best so far. Solves
     at long lengths are the slow ones (block-Jacobi CG needs ~45× more iterations at 32ℓ
-    than at ℓ on a 24³ sub-mesh, measured), so the search starts in the middle; starting
+    than at ℓ on a 24³ sub-mesh, measured; the multigrid preconditioner that
+    :class:`~chunkdic.solve.StencilSolver` switches to there still costs ~5× a
+    block-Jacobi iteration), so the search starts in the middle; starting
     CG from the solution of a neighbouring candidate did not save iterations (measured:
     the slow modes are the smooth ones the two solutions differ by).
 
@@ -108,6 +110,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         (:mod:`chunkdic.noise`).
     solve_with : callable
         ``solve_with(half, regularizer, weight, rhs) -> x``: the solver of ``(M + λ R) x = rhs``.
+        Every call of one region passes the same ``half`` and ``regularizer`` objects, so
+        it may keep a solver per region (the engine does: the coarse ``M`` of the V-cycle
+        are built once per region).
     sweep : bool
         Solve every candidate on every region (the whole L-curve, and its corner in
         :attr:`Choice.l_curve_length`) instead of bisecting; for benchmarks.

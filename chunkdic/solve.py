@@ -6,7 +6,9 @@ direct factorisation costs seconds to minutes (shared/DESIGN.md). The stencil is
 as is for the matrix-vector product, never converted to CSR, and only its symmetric half
 is kept (:data:`HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
 of 2. The regularisation ``R`` (:mod:`chunkdic.regularization`) is applied matrix-free
-in the same CG.
+in the same CG. A long Tikhonov length makes ``M + λ R`` a fourth-order operator whose
+smooth modes block-Jacobi cannot reach (hundreds to thousands of iterations): there a
+multigrid V-cycle (:mod:`chunkdic.multigrid`) preconditions the same CG instead.
 """
 
 from __future__ import annotations
@@ -23,6 +25,12 @@ from .regularization import Regularizer, add_weighted
 
 log = logging.getLogger(__name__)
 
+#: multigrid replaces block-Jacobi (Tikhonov only) from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii``
+#: (medians over nodes): from about 7ℓ, where block-Jacobi CG needs ~100 iterations and
+#: the V-cycle 9 (docs/engine.md, "Solve"). The equilibrium gap keeps block-Jacobi: its
+#: large non-smooth near-null space (every field in equilibrium) defeats the point
+#: smoother, and the V-cycle saved iterations but not time (measured).
+MULTIGRID_FROM = 100.0
 #: index of the node itself in the 27-point stencil
 CENTRE = 13
 #: the stored half of the stencil: entries 13 (the node) to 26; entry ``26 - k`` of the
@@ -104,6 +112,13 @@ class StencilSolver:
         asked ever more CG iterations of an increment nobody uses (measured at 300³ with a
         long regularisation length: 1 281 iterations, 3.1 s, for a step of max 3e-6 voxel).
         The increments then carry an error of at most ``rtol`` times the first step's size.
+    maxiter : int
+        CG iterations before giving up with a warning.
+    multigrid : bool or None
+        Precondition with a multigrid V-cycle (:mod:`chunkdic.multigrid`) instead of
+        block-Jacobi: ``None`` (default) when it pays, i.e. with Tikhonov regularisation
+        whose weight makes ``λ R`` dominate ``M`` (:data:`MULTIGRID_FROM`); ``True`` whenever
+        regularised, ``False`` never.
 
     Raises
     ------
@@ -112,7 +127,7 @@ class StencilSolver:
     """
 
     def __init__(self, half: np.ndarray, *, weak_threshold: float = 1e-3, rtol: float = 1e-7,
-                 maxiter: int = 2000):
+                 maxiter: int = 2000, multigrid: bool | None = None):
         self.rtol, self.maxiter = rtol, maxiter
         #: norm of the largest right-hand side solved so far (kept by checkpoints: a
         #: resumed run stops CG where the uninterrupted one did)
@@ -138,6 +153,9 @@ class StencilSolver:
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0)
         self.block_inverse = np.linalg.inv(self._diag)
+        self.multigrid = multigrid
+        self._matrices = None  # the Galerkin coarse M (chunkdic.multigrid), built on first use
+        self._vcycle = None
 
     def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
         """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
@@ -146,8 +164,28 @@ class StencilSolver:
         diag = self._diag
         if self.regularizer is not None:
             self._reg_args = self.regularizer.numba_args()
-            diag = diag + self.weight * self.regularizer.diagonal_blocks()
+            reg_diag = self.regularizer.diagonal_blocks()
+            diag = diag + self.weight * reg_diag
+            self._regularizer_diagonal = float(np.median(np.trace(reg_diag, axis1=-2, axis2=-1)))
+            self._matrix_diagonal = float(np.median(np.trace(self._diag, axis1=-2, axis2=-1)))
         self.block_inverse = np.linalg.inv(diag)
+        self._vcycle = None
+        if self._use_multigrid():
+            from .multigrid import VCycle, matrix_hierarchy
+
+            if self._matrices is None:
+                self._matrices = matrix_hierarchy(self.matrix)
+            self._vcycle = VCycle(self._matrices, self.block_inverse, self.regularizer, self.weight)
+
+    def _use_multigrid(self) -> bool:
+        """Whether :meth:`regularize` builds a V-cycle (:data:`MULTIGRID_FROM`)."""
+        if self.regularizer is None or self.multigrid is False:
+            return False
+        if self.multigrid:
+            return True
+        if self.regularizer.kind != "tikhonov":
+            return False
+        return self.weight * self._regularizer_diagonal >= MULTIGRID_FROM * self._matrix_diagonal
 
     def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
         """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3); zeros without regularisation."""
@@ -173,8 +211,11 @@ class StencilSolver:
         norm = float(np.sqrt(np.sum(b * b)))
         self.largest_rhs = max(self.largest_rhs, norm)
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
-        iterations = _pcg(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
-                          code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
+        if self._vcycle is not None:
+            iterations = _pcg_preconditioned(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
+        else:
+            iterations = _pcg(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
+                              code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)
@@ -183,7 +224,7 @@ class StencilSolver:
 
 
 def warmup() -> None:
-    """Compile the client's solver kernels (CG with and without regularisation) on a tiny system."""
+    """Compile the client's solver kernels (CG with and without regularisation, the V-cycle) on tiny systems."""
     from .regularization import Regularizer
 
     half = np.zeros((3, 3, 3, 14, 3, 3), np.float32)
@@ -192,6 +233,11 @@ def warmup() -> None:
     solver.solve(np.ones((3, 3, 3, 3)))
     solver.regularize(Regularizer("tikhonov", (3, 3, 3), 2.0), 1.0)
     solver.solve(np.ones((3, 3, 3, 3)))
+    half = np.zeros((7, 7, 7, 14, 3, 3), np.float32)  # two multigrid levels
+    half[..., 0, :, :] = np.eye(3)
+    solver = StencilSolver(half, multigrid=True)
+    solver.regularize(Regularizer("tikhonov", (7, 7, 7), 2.0), 1.0)
+    solver.solve(np.ones((7, 7, 7, 3)))
 
 
 @numba.njit(nogil=True, cache=True)
@@ -240,6 +286,37 @@ def _pcg(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
         beta = rz_new / rz
         for k in range(pf.size):  # p = z + β p
             pf[k] = zf[k] + beta * pf[k]
+        rz = rz_new
+    return -1
+
+
+def _pcg_preconditioned(matvec, precondition, b, x, rtol, maxiter) -> int:
+    """:func:`_pcg` with any symmetric positive definite preconditioner ``precondition(r) -> z``.
+
+    Written in Python around the numba vector kernels: with a V-cycle per iteration, a few
+    tens of iterations, the interpreter's share is negligible.
+    """
+    r = b.copy()
+    rf, xf = r.reshape(-1), x.reshape(-1)
+    bnorm = np.sqrt(_dot(b.reshape(-1), b.reshape(-1)))
+    if bnorm == 0.0:
+        return 0
+    z = precondition(r)
+    p = z.copy()
+    pf = p.reshape(-1)
+    rz = _dot(rf, z.reshape(-1))
+    for it in range(1, maxiter + 1):
+        q = matvec(p)
+        alpha = rz / _dot(pf, q.reshape(-1))
+        _axpy(alpha, pf, xf)
+        _axpy(-alpha, q.reshape(-1), rf)
+        if np.sqrt(_dot(rf, rf)) <= rtol * bnorm:
+            return it
+        z = precondition(r)
+        rz_new = _dot(rf, z.reshape(-1))
+        beta = rz_new / rz
+        p *= beta
+        p += z
         rz = rz_new
     return -1
 
