@@ -110,9 +110,16 @@ def axis_transfer(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarra
 
 
 @numba.njit(nogil=True, cache=True)
-def _prolong_add(xc, iz, wz, iy, wy, ix, wx, x):
-    """``x += P xc``: trilinear interpolation of the coarse nodal field ``xc`` (…, 3)."""
-    nz, ny, nx = x.shape[0], x.shape[1], x.shape[2]
+def transfer(fine, iz, wz, iy, wy, ix, wx, coarse, restrict):
+    """Trilinear transfer between a fine nodal field and a coarse one, both (…, 3).
+
+    ``restrict`` False: ``fine += P coarse`` (prolongation: trilinear interpolation of the
+    coarse nodal values); True: ``coarse = Pᵀ fine`` (restriction, its transpose). One loop
+    for both, so the two stay transposes of each other.
+    """
+    if restrict:
+        coarse[:] = 0.0
+    nz, ny, nx = fine.shape[0], fine.shape[1], fine.shape[2]
     for z in range(nz):
         for y in range(ny):
             for xx in range(nx):
@@ -128,32 +135,12 @@ def _prolong_add(xc, iz, wz, iy, wy, ix, wx, x):
                             f = fb * wx[xx, c]
                             if f == 0.0:
                                 continue
-                            for k in range(3):
-                                x[z, y, xx, k] += f * xc[iz[z, a], iy[y, b], ix[xx, c], k]
-
-
-@numba.njit(nogil=True, cache=True)
-def _restrict(r, iz, wz, iy, wy, ix, wx, rc):
-    """``rc = Pᵀ r`` (the transpose of :func:`_prolong_add`)."""
-    rc[:] = 0.0
-    nz, ny, nx = r.shape[0], r.shape[1], r.shape[2]
-    for z in range(nz):
-        for y in range(ny):
-            for xx in range(nx):
-                for a in range(2):
-                    fa = wz[z, a]
-                    if fa == 0.0:
-                        continue
-                    for b in range(2):
-                        fb = fa * wy[y, b]
-                        if fb == 0.0:
-                            continue
-                        for c in range(2):
-                            f = fb * wx[xx, c]
-                            if f == 0.0:
-                                continue
-                            for k in range(3):
-                                rc[iz[z, a], iy[y, b], ix[xx, c], k] += f * r[z, y, xx, k]
+                            i, j, k = iz[z, a], iy[y, b], ix[xx, c]
+                            for q in range(3):
+                                if restrict:
+                                    coarse[i, j, k, q] += f * fine[z, y, xx, q]
+                                else:
+                                    fine[z, y, xx, q] += f * coarse[i, j, k, q]
 
 
 # --- class stencils ------------------------------------------------------------------
@@ -653,8 +640,8 @@ class VCycle:
         tables = lev.tables
         coarse_shape = self.levels[k + 1].shape
         rc = np.empty(coarse_shape + (3,))
-        _restrict(r, tables[0][0], tables[0][1], tables[1][0], tables[1][1], tables[2][0], tables[2][1], rc)
+        transfer(r, *tables[0][:2], *tables[1][:2], *tables[2][:2], rc, True)
         xc = self.cycle(rc, k + 1)
-        _prolong_add(xc, tables[0][0], tables[0][1], tables[1][0], tables[1][1], tables[2][0], tables[2][1], x)
+        transfer(x, *tables[0][:2], *tables[1][:2], *tables[2][:2], xc, False)
         self._smooth(k, b, x, False)
         return x

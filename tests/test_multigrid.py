@@ -74,14 +74,14 @@ def test_prolongation_is_trilinear_interpolation_and_restriction_its_transpose()
     tables = [t[:2] if t is not None else multigrid._identity_transfer(n)[:2]
               for t, n in zip(_transfers(shape), shape)]
     x = np.zeros(shape + (3,))
-    multigrid._prolong_add(xc, *tables[0], *tables[1], *tables[2], x)
+    multigrid.transfer(x, *tables[0], *tables[1], *tables[2], xc, False)
     points = np.indices(shape).reshape(3, -1).T
     for c in range(3):  # the analytic trilinear field of the coarse values at the fine nodes
         truth = RegularGridInterpolator(pos, xc[..., c], method="linear")(points).reshape(shape)
         np.testing.assert_allclose(x[..., c], truth, rtol=0, atol=1e-14)
     r = rng.standard_normal(shape + (3,))
     rc = np.empty(coarse + (3,))
-    multigrid._restrict(r, *tables[0], *tables[1], *tables[2], rc)
+    multigrid.transfer(r, *tables[0], *tables[1], *tables[2], rc, True)
     assert np.isclose(np.sum(rc * xc), np.sum(r * x), rtol=1e-13)
 
 
