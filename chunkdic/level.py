@@ -222,8 +222,18 @@ class Level:
         return weak
 
     def _warn_weak_nodes(self) -> None:
+        """Warn of the correlated level's poorly textured nodes (coarser levels: logged only).
+
+        A coarser level only gives the next one its start, and its nodes are regularised
+        anyway (:meth:`regularize`): a warning about them, printed by every run on scans
+        whose corners lose texture to the sums, told users nothing they could act on.
+        """
         weak = self.weak_nodes()
         if len(weak) == 0:
+            return
+        if self.s != self.settings.level:
+            log.info("level %d: %d of %d nodes see little texture (regularised; only a start for level %d)",
+                     self.s, len(weak), int(np.prod(self.mesh.nodes_shape)), self.s - 1)
             return
         coords = self.mesh.node_coords()
         where = ", ".join(
