@@ -137,9 +137,9 @@ def child(n: int, workdir: Path, runs: int) -> dict:
     import tifffile  # noqa: F401
     import zarr  # noqa: F401
 
-    from chunkdic.coarsen import _coarsen_block
+    from chunkdic.coarsen import coarsen_block
 
-    _coarsen_block(np.zeros((4, 4, 4), np.uint8), np.uint16)  # numba import + cached kernel load
+    coarsen_block(np.zeros((4, 4, 4), np.uint8), np.uint16)  # numba import + cached kernel load
 
     base_rss = PeakRSS().proc.memory_info().rss
     for _ in range(runs):

@@ -66,7 +66,7 @@ def pyramid_dtype(base_dtype, s: int) -> np.dtype:
     raise InputError(f"level {s} sums of {base} data do not fit in 64-bit integers: use fewer levels")
 
 
-def _coarsen_block_numpy(block: np.ndarray, dtype) -> np.ndarray:
+def coarsen_block_numpy(block: np.ndarray, dtype) -> np.ndarray:
     """2x2x2 sum of one NumPy block (odd trailing voxels dropped) in ``dtype``; NumPy twin."""
     dtype = np.dtype(dtype)
     work = np.float64 if dtype.kind == "f" else dtype
@@ -103,7 +103,7 @@ def _sum2_numba():
     return numba.njit(nogil=True, cache=True)(_sum2_kernel)
 
 
-def _coarsen_block(block: np.ndarray, dtype) -> np.ndarray:
+def coarsen_block(block: np.ndarray, dtype) -> np.ndarray:
     """2x2x2 sum of one NumPy block (odd trailing voxels dropped) in ``dtype``.
 
     Integer data up to 32 bits go through the numba kernel (exact: int64 accumulation,
@@ -115,7 +115,7 @@ def _coarsen_block(block: np.ndarray, dtype) -> np.ndarray:
         out = np.empty(tuple(n // 2 for n in block.shape), dtype)
         _sum2_numba()(block, out)
         return out
-    return _coarsen_block_numpy(block, dtype)
+    return coarsen_block_numpy(block, dtype)
 
 
 def _default_sum_dtype(dtype) -> np.dtype:
@@ -163,11 +163,11 @@ def coarsen_sum(a, dtype=None, *, chunk: int | None = None):
     if a.ndim != 3:
         raise InputError(f"coarsen_sum needs a 3-D array, got shape {a.shape}")
     if isinstance(a, np.ndarray):
-        return _coarsen_block(a, dtype)
+        return coarsen_block(a, dtype)
     a = a[tuple(slice(0, 2 * (n // 2)) for n in a.shape)]
     if chunk is not None:
         a = a.rechunk(tuple(min(2 * chunk, max(n, 1)) for n in a.shape))
     a = a.rechunk(tuple(_even_chunks(c, n, max(c)) for c, n in zip(a.chunks, a.shape)))
     out_chunks = tuple(tuple(c // 2 for c in cs) for cs in a.chunks)
-    return a.map_blocks(_coarsen_block, dtype, dtype=dtype, chunks=out_chunks,
+    return a.map_blocks(coarsen_block, dtype, dtype=dtype, chunks=out_chunks,
                         meta=np.empty((0, 0, 0), dtype))

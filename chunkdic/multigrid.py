@@ -38,8 +38,8 @@ being convergent, positive definite: plain PCG stays valid. The coarsest level (
 :data:`COARSEST` nodes) is solved by a dense Cholesky factorisation.
 
 Memory: the coarse ``M`` are 1/8, 1/64, … of the fine one (float32), the ``R`` class
-stencils a few MB; while a level is built, the first axis's intermediate (half the fine
-size) is the peak.
+stencils a few MB; a level is built slab by slab along z (:func:`coarsened_in_slabs`), so
+the intermediate after the first axis (half the fine size) is never whole.
 """
 
 from __future__ import annotations
@@ -50,7 +50,7 @@ import numba
 import numpy as np
 
 from .regularization import Regularizer, add_weighted
-from .solve import _axpy, _block_jacobi, _dot, _half_matvec
+from .solve import axpy, block_jacobi, dot, half_matvec
 
 #: Chebyshev degree of the pre- and post-smoothing
 DEGREE = 1
@@ -66,6 +66,8 @@ COARSEST = 216
 CORE = 4
 #: classes of the fine ``R``: its rows differ from the interior's up to 2 nodes from a face
 FINE_CORE = 3
+#: coarse z planes of ``M`` built together (:func:`coarsened_in_slabs`)
+SLAB = 16
 
 
 # --- transfer between levels ---------------------------------------------------------
@@ -381,7 +383,7 @@ class ClassStencil:
 
     def diagonal_blocks(self) -> np.ndarray:
         """The 3×3 diagonal blocks, shape (nz, ny, nx, 3, 3)."""
-        return self.S[np.ix_(*self.classes)][..., 0, :, :]
+        return self.S[..., 0, :, :][np.ix_(*self.classes)]  # offset 0 first: not every offset's rows
 
     def coarsened(self, transfers, core: int) -> "ClassStencil":
         """``Pᵀ A P`` for the per-axis transfers (:func:`axis_transfer`; ``None`` keeps an axis)."""
@@ -490,7 +492,42 @@ def matrix_hierarchy(H: np.ndarray) -> list[tuple]:
         out.append((shape, M, tr))
         if tr is None:
             return out
-        M = node_stencil(M).coarsened(tr, 0).S
+        M = coarsened_in_slabs(M, tr)
+
+
+def coarsened_in_slabs(H: np.ndarray, transfers, slab: int = SLAB) -> np.ndarray:
+    """``Pᵀ H P`` of a per-node half stencil ``H`` (nz, ny, nx, 14, 3, 3), a few coarse z planes at a time.
+
+    The same products as :meth:`ClassStencil.coarsened`, but the intermediate after the
+    first axis (half the fine stencil: 530 MB at 128³ nodes) never exists whole: each slab
+    of ``slab`` coarse planes is coarsened along z, then y, then x, each step over the
+    planes the next one reads (one more on each side per later step, since a coarse node
+    couples with its neighbours). Returns the coarse half stencil, ``H``'s dtype.
+    """
+    if transfers[0] is None:  # z is not coarsened: nothing to slab along
+        return node_stencil(H).coarsened(transfers, 0).S
+    coarse = tuple(n if tr is None else tr[2].shape[0] for n, tr in zip(H.shape[:3], transfers))
+    out = np.empty(coarse + H.shape[3:], H.dtype)
+    steps = [axis for axis in range(3) if transfers[axis] is not None]
+    fine = node_stencil(H)
+    for a in range(0, coarse[0], slab):
+        b = min(a + slab, coarse[0])
+        cur = fine
+        for i, axis in enumerate(steps):
+            halo = len(steps) - 1 - i
+            lo, hi = max(a - halo, 0), min(b + halo, coarse[0])
+            reps, classes = list(cur.reps), list(cur.classes)
+            reps[0] = np.arange(lo, hi, dtype=np.int64)
+            classes[0] = np.zeros(coarse[0], np.int64)
+            classes[0][lo:hi] = np.arange(hi - lo)
+            if axis != 0:
+                reps[axis] = classes[axis] = np.arange(coarse[axis], dtype=np.int64)
+            part = np.empty(tuple(len(r) for r in reps) + H.shape[3:], H.dtype)
+            _galerkin_axis(cur.S, *cur.classes, cur.reach, axis, transfers[axis][2], transfers[axis][3],
+                           *reps, part)
+            cur = ClassStencil(part, tuple(classes), tuple(reps), cur.reach)
+        out[a:b] = cur.S
+    return out
 
 
 def regularizer_hierarchy(reg: Regularizer) -> list[ClassStencil]:
@@ -555,7 +592,7 @@ class VCycle:
     def apply(self, k: int, x: np.ndarray, y: np.ndarray) -> None:
         """``y = A_k x`` on level ``k``."""
         lev = self.levels[k]
-        _half_matvec(lev.M, x, y)
+        half_matvec(lev.M, x, y)
         if k == 0:
             add_weighted(*self._reg_args, self.weight, x, y)
         else:
@@ -568,19 +605,19 @@ class VCycle:
         b = rng.standard_normal(lev.shape + (3,))
         r = b.copy()  # CG from x = 0: only its coefficients are used
         z, q = np.empty_like(b), np.empty_like(b)
-        _block_jacobi(lev.Binv, r, z)
+        block_jacobi(lev.Binv, r, z)
         p = z.copy()
-        rz = _dot(r.reshape(-1), z.reshape(-1))
+        rz = dot(r.reshape(-1), z.reshape(-1))
         alphas, betas = [], []
         for _ in range(min(LANCZOS_STEPS, 3 * int(np.prod(lev.shape)))):
             self.apply(k, p, q)
-            pq = _dot(p.reshape(-1), q.reshape(-1))
+            pq = dot(p.reshape(-1), q.reshape(-1))
             if pq <= 0 or rz <= 0:
                 break
             alpha = rz / pq
-            _axpy(-alpha, q.reshape(-1), r.reshape(-1))
-            _block_jacobi(lev.Binv, r, z)
-            rz_new = _dot(r.reshape(-1), z.reshape(-1))
+            axpy(-alpha, q.reshape(-1), r.reshape(-1))
+            block_jacobi(lev.Binv, r, z)
+            rz_new = dot(r.reshape(-1), z.reshape(-1))
             beta = rz_new / rz
             alphas.append(alpha)
             betas.append(beta)
@@ -611,7 +648,7 @@ class VCycle:
             self.apply(k, x, t)
             r -= t
         d = np.empty_like(b)
-        _block_jacobi(lev.Binv, r, d)
+        block_jacobi(lev.Binv, r, d)
         d /= theta
         for step in range(DEGREE):
             x += d
@@ -620,7 +657,7 @@ class VCycle:
             self.apply(k, d, t)
             r -= t
             rho_new = 1.0 / (2.0 * sigma - rho)
-            _block_jacobi(lev.Binv, r, t)
+            block_jacobi(lev.Binv, r, t)
             d *= rho_new * rho
             d += (2.0 * rho_new / delta) * t
             rho = rho_new

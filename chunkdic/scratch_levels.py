@@ -4,7 +4,7 @@
 is not stored is built here from the finest level already on disk below it (stored, or
 written to scratch just before): each task reads the ``2^d``-times larger region of that
 source it needs (by path, an :class:`~chunkdic.handles.ArrayRef`), sums it ``d`` times
-2x2x2 (:func:`chunkdic.coarsen._coarsen_block`, the kernel of :func:`~chunkdic.coarsen.coarsen_sum`,
+2x2x2 (:func:`chunkdic.coarsen.coarsen_block`, the kernel of :func:`~chunkdic.coarsen.coarsen_sum`,
 each step in that level's dtype, so values are those of the lazy
 :meth:`~chunkdic.volume.Scan.level`, bit for bit) and writes its own whole chunks.
 
@@ -25,7 +25,7 @@ import itertools
 
 import numpy as np
 
-from .coarsen import _coarsen_block
+from .coarsen import coarsen_block
 from .handles import ArrayRef, forget_open_arrays
 from .levels import create_level, mark_complete
 from .store import check_write_alignment, chunk_shape_for, write_region
@@ -46,7 +46,7 @@ def coarsen_task(src: ArrayRef, out: ArrayRef, depth: int, dtypes: tuple[str, ..
                   for r, n, m in zip(region, src.shape, out.shape))
     data = src.read(grown)
     for dtype in dtypes:
-        data = _coarsen_block(data, dtype)
+        data = coarsen_block(data, dtype)
     if data.size:
         write_region(out.path, out.key, region, data)
     return int(data.size)

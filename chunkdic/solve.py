@@ -48,7 +48,7 @@ def half_stencil(full: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(nogil=True, cache=True)
-def _half_matvec(H, x, y):
+def half_matvec(H, x, y):
     """y = M x from the half stencil H (nz, ny, nx, 14, 3, 3)."""
     nz, ny, nx = x.shape[:3]
     y[:] = 0.0
@@ -81,7 +81,7 @@ def _half_matvec(H, x, y):
 def stencil_matvec(H: np.ndarray, x: np.ndarray) -> np.ndarray:
     """``y = M x`` for the half stencil ``H`` (nz, ny, nx, 14, 3, 3) and ``x`` (nz, ny, nx, 3)."""
     y = np.empty(x.shape, dtype=np.float64)
-    _half_matvec(H, np.ascontiguousarray(x, dtype=np.float64), y)
+    half_matvec(H, np.ascontiguousarray(x, dtype=np.float64), y)
     return y
 
 
@@ -241,7 +241,7 @@ def warmup() -> None:
 
 
 @numba.njit(nogil=True, cache=True)
-def _block_jacobi(Binv, r, z):
+def block_jacobi(Binv, r, z):
     nz, ny, nx = r.shape[:3]
     for i in range(nz):
         for j in range(ny):
@@ -258,31 +258,31 @@ def _pcg(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
     Written out (rather than scipy's ``cg``) so that its vector operations are plain
     loops: on a busy machine, multithreaded BLAS calls on these small vectors cost more
     than the whole stencil product. The vector operations run on flat views through
-    :func:`_dot` and :func:`_axpy`: written as 4-D array expressions they took numba 41 s
+    :func:`dot` and :func:`axpy`: written as 4-D array expressions they took numba 41 s
     to compile (the first run's largest single wait), as flat loops under a second.
     """
     r = b.copy()  # x starts at zero
     z = np.empty_like(b)
     q = np.empty_like(b)
     rf, zf, qf, xf = r.reshape(-1), z.reshape(-1), q.reshape(-1), x.reshape(-1)
-    _block_jacobi(Binv, r, z)
+    block_jacobi(Binv, r, z)
     p = z.copy()
     pf = p.reshape(-1)
-    rz = _dot(rf, zf)
-    bnorm = np.sqrt(_dot(b.reshape(-1), b.reshape(-1)))
+    rz = dot(rf, zf)
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
     if bnorm == 0.0:
         return 0
     for it in range(1, maxiter + 1):
-        _half_matvec(H, p, q)
+        half_matvec(H, p, q)
         if code != 0:
             add_weighted(code, Ke, Kf, sw, lam, p, q)
-        alpha = rz / _dot(pf, qf)
-        _axpy(alpha, pf, xf)
-        _axpy(-alpha, qf, rf)
-        if np.sqrt(_dot(rf, rf)) <= rtol * bnorm:
+        alpha = rz / dot(pf, qf)
+        axpy(alpha, pf, xf)
+        axpy(-alpha, qf, rf)
+        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
             return it
-        _block_jacobi(Binv, r, z)
-        rz_new = _dot(rf, zf)
+        block_jacobi(Binv, r, z)
+        rz_new = dot(rf, zf)
         beta = rz_new / rz
         for k in range(pf.size):  # p = z + β p
             pf[k] = zf[k] + beta * pf[k]
@@ -298,22 +298,22 @@ def _pcg_preconditioned(matvec, precondition, b, x, rtol, maxiter) -> int:
     """
     r = b.copy()
     rf, xf = r.reshape(-1), x.reshape(-1)
-    bnorm = np.sqrt(_dot(b.reshape(-1), b.reshape(-1)))
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
     if bnorm == 0.0:
         return 0
     z = precondition(r)
     p = z.copy()
     pf = p.reshape(-1)
-    rz = _dot(rf, z.reshape(-1))
+    rz = dot(rf, z.reshape(-1))
     for it in range(1, maxiter + 1):
         q = matvec(p)
-        alpha = rz / _dot(pf, q.reshape(-1))
-        _axpy(alpha, pf, xf)
-        _axpy(-alpha, q.reshape(-1), rf)
-        if np.sqrt(_dot(rf, rf)) <= rtol * bnorm:
+        alpha = rz / dot(pf, q.reshape(-1))
+        axpy(alpha, pf, xf)
+        axpy(-alpha, q.reshape(-1), rf)
+        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
             return it
         z = precondition(r)
-        rz_new = _dot(rf, z.reshape(-1))
+        rz_new = dot(rf, z.reshape(-1))
         beta = rz_new / rz
         p *= beta
         p += z
@@ -322,7 +322,7 @@ def _pcg_preconditioned(matvec, precondition, b, x, rtol, maxiter) -> int:
 
 
 @numba.njit(nogil=True, cache=True)
-def _dot(a, b):
+def dot(a, b):
     s = 0.0
     for k in range(a.size):
         s += a[k] * b[k]
@@ -330,7 +330,7 @@ def _dot(a, b):
 
 
 @numba.njit(nogil=True, cache=True)
-def _axpy(alpha, a, y):
+def axpy(alpha, a, y):
     """``y += alpha * a`` (flat arrays)."""
     for k in range(a.size):
         y[k] += alpha * a[k]

@@ -178,3 +178,13 @@ def test_iterations_do_not_grow_with_the_length():
     eq = StencilSolver(H.copy(), multigrid=None)
     eq.regularize(Regularizer("equilibrium-gap", shape, 8.0), lam)
     assert eq._vcycle is None
+
+
+@pytest.mark.parametrize("shape", [(11, 9, 7), (17, 3, 10), (2, 20, 20)])
+def test_slab_coarsening_equals_the_whole(shape):
+    """Coarse M built a few z planes at a time: bit-identical to the whole-stencil product."""
+    H = np.random.default_rng(1).standard_normal(shape + (14, 3, 3)).astype(np.float32)
+    tr = multigrid._level_transfers(shape)
+    whole = multigrid.node_stencil(H).coarsened(tr, 0).S
+    for slab in (1, 3, 16):
+        np.testing.assert_array_equal(multigrid.coarsened_in_slabs(H, tr, slab), whole)

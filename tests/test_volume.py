@@ -57,7 +57,7 @@ def test_coarsen_sum_equals_numpy(shape):
 @pytest.mark.parametrize("src, out", [("uint8", "uint16"), ("uint16", "uint32"), ("int16", "int32"),
                                       ("uint32", "uint32"), ("float32", "float32")])
 def test_numba_kernel_equals_numpy_twin(src, out):
-    from chunkdic.coarsen import _coarsen_block, _coarsen_block_numpy
+    from chunkdic.coarsen import coarsen_block, coarsen_block_numpy
 
     rng = np.random.default_rng(3)
     if np.dtype(src).kind == "f":
@@ -67,9 +67,9 @@ def test_numba_kernel_equals_numpy_twin(src, out):
         hi = min(int(info.max), 2**20)  # level-2 uint32 sums of 8-bit data stay far below 2**32
         x = rng.integers(max(int(info.min), -hi), hi, (11, 8, 9), endpoint=True).astype(src)
     for block in (x, x[1:, 2:, :7]):  # odd sizes, non-contiguous
-        got = _coarsen_block(block, out)
+        got = coarsen_block(block, out)
         assert got.dtype == np.dtype(out)
-        np.testing.assert_array_equal(got, _coarsen_block_numpy(block, out))
+        np.testing.assert_array_equal(got, coarsen_block_numpy(block, out))
         np.testing.assert_allclose(got, block_sums(block, 1))
 
 
