@@ -171,3 +171,19 @@ def test_deformed_scan_of_another_shape(noise64):
     res = chunkdic.correlate(f, g_small, element_size=16, coarsest=0)
     assert res.info["excluded_voxels"] > 0
     assert np.abs(res.displacement[:, :-1] - np.array([0, 0, 0.0])[:, None, None, None]).max() < 1e-3
+
+
+def test_coarse_levels_weak_nodes_are_logged_not_warned(tmp_path, caplog):
+    """128³ foam at ℓ = 6: level 2's corner nodes lose texture to the 4³ sums (6 of 216),
+    level 0 has none. Only the correlated level's nodes are warned of (a coarser level only
+    starts the next one, regularised); the coarse ones are logged."""
+    import logging
+    import warnings
+
+    pair = synthetic.synthesize(tmp_path / "p", 128, seed=1)
+    with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.INFO, logger="chunkdic"):
+        warnings.simplefilter("always")
+        res = chunkdic.correlate(pair["reference"], pair["deformed"], element_size=6, regularization="none")
+    assert res.info["levels"] == [2, 1, 0] and res.converged
+    assert not [w for w in caught if issubclass(w.category, chunkdic.PoorTextureWarning)]
+    assert any("level 2:" in r.getMessage() and "little texture" in r.getMessage() for r in caplog.records)
