@@ -132,23 +132,25 @@ def cmd_demo(args) -> int:
 
 
 def _compile_in_background():
-    """On a first run, compile the correlation kernels into numba's on-disk cache in a second
-    process while this one synthesizes the demo's scans (the two compile independently on
-    two cores; the correlation then loads them). None when the cache is warm.
+    """On a first run, compile the correlation kernels into numba's on-disk cache in two more
+    processes (the block kernels; the client's solver and V-cycle) while this one
+    synthesizes the demo's scans; the correlation then loads them. An empty list when the
+    cache is warm.
 
     Measured on a 2-core machine with a fresh cache (96³ demo): first iteration line at
-    22.8 s when the kernels compiled after the synthesis (8.0 s, itself 5.7 s of texture
-    kernel compile, then 14.4 s), 17.8 s with this overlap.
+    22.8 s when the kernels compiled after the synthesis, 17.8 s with one background
+    process; with the fused prefilter and the V-cycle (about 10 s more to compile) 22.9 s
+    with one process, 18.6 s with two.
     """
     import subprocess
 
     from . import kernels
 
     if kernels.compiled_on_disk():
-        return None
+        return []
     say("compiling the numba kernels in the background (first run on this machine)")
-    code = "from chunkdic import kernels, solve; kernels.warmup(); solve.warmup()"
-    return subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return [subprocess.Popen([sys.executable, "-c", f"from chunkdic import {m}; {m}.warmup()"],
+                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for m in ("kernels", "solve")]
 
 
 def _demo(args) -> int:
@@ -165,9 +167,10 @@ def _demo(args) -> int:
     say(f"synthesizing a {args.size}^3 foam pair in {out} (affine field: -1% along z, 0.5% shear, translation)")
     compiling = _compile_in_background()
     paths = synthetic.synthesize(out, (args.size,) * 3, field=field, seed=args.seed)
-    if compiling is not None:  # the kernels were being compiled into numba's cache meanwhile
+    if compiling:  # the kernels were being compiled into numba's cache meanwhile
         t = time.perf_counter()
-        compiling.wait()
+        for process in compiling:
+            process.wait()
         say(f"kernels compiled (waited {time.perf_counter() - t:.1f} s after the synthesis)")
     t0 = time.perf_counter()
     result = correlate(paths["reference"], paths["deformed"], element_size=args.element_size,
