@@ -164,7 +164,8 @@ def correlate(
                 # inside the runner: with a cluster, missing levels are built by its workers
                 f_refs = f_scan.refs(levels, scratch / "ref", runner=runner)
                 g_refs = g_scan.refs(levels, scratch / "def", runner=runner)
-                mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask")
+                mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask",
+                                                                    runner)
                 _compile_kernels(runner, progress)
                 result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
                               mask_refs, init_result)

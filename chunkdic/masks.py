@@ -29,15 +29,55 @@ from .volume import open_scan
 MIN_MATERIAL = 0.5
 
 
-def prepare_mask(src, ref_shape0, levels, scratch: Path) -> dict[int, ArrayRef]:
+def prepare_mask(src, ref_shape0, levels, scratch: Path, runner) -> dict[int, ArrayRef]:
     """Binarise ``src`` (non-zero = material) and give its sum levels ``levels`` (ArrayRefs).
+
+    Out of core, by tasks on ``runner`` (:mod:`chunkdic.scheduler`) and without a Dask
+    graph: the mask's level 0 on disk (stored, or written to scratch from memory by
+    :meth:`~chunkdic.volume.Scan.refs`) is binarised chunk by chunk (:func:`binarise_task`)
+    into ``scratch``/binary.zarr, whose sum levels :mod:`chunkdic.scratch_levels` builds
+    (uint8 level 0, then the :func:`~chunkdic.coarsen.pyramid_dtype` of each level).
 
     Raises :class:`InputError` if the mask is not 3-D of the reference's level-0 shape.
     """
+    import zarr
+
+    from .coarsen import pyramid_dtype
+    from .levels import create_level, mark_complete
+    from .scratch_levels import build_level, region_chunks, task_regions
+    from .store import check_write_alignment, chunk_shape_for
+
     mask = open_scan(src)
     check_mask_shape(mask, ref_shape0)
-    binary = open_scan((mask.level(0) != 0).astype(np.uint8))
-    return binary.refs(levels, scratch)
+    source = mask.refs([0], scratch / "source", runner=runner)[0]
+    Path(scratch).mkdir(parents=True, exist_ok=True)
+    group = str(Path(scratch) / "binary.zarr")
+    zarr.open_group(store=group, mode="w-", zarr_format=3).update_attributes(
+        {"chunkdic": {"kind": "scratch", "scratch": True}})
+    chunks = chunk_shape_for(source.shape, None)
+    create_level(group, 0, source.shape, "uint8", chunks)
+    binary = ArrayRef("zarr", group, "0", source.shape, "uint8")
+    regions = task_regions(source.shape, chunks)
+    check_write_alignment(region_chunks(regions, source.shape), source.shape, chunks, name=f"{group}/0")
+    for _ in runner.map_unordered(binarise_task, [(source, binary, r) for r in regions]):
+        pass
+    mark_complete(group, 0)
+    out = {0: binary}
+    for s in range(1, max(int(v) for v in levels) + 1):
+        out[s] = build_level(group, s, out[s - 1], 1, [pyramid_dtype(np.uint8, s)], runner)
+    return {int(s): out[int(s)] for s in levels}
+
+
+def binarise_task(src: ArrayRef, out: ArrayRef, region) -> int:
+    """Task: ``region`` of ``src`` as 1 where non-zero (material), else 0 (uint8), into ``out``.
+
+    The region covers whole chunks of ``out``. Returns the voxels written.
+    """
+    from .store import write_region
+
+    data = (src.read(region) != 0).astype(np.uint8)
+    write_region(out.path, out.key, region, data)
+    return int(data.size)
 
 
 def check_mask_shape(mask, ref_shape0) -> None:

@@ -95,14 +95,14 @@ def build_level(group: str, s: int, src: ArrayRef, depth: int, dtypes, runner, c
     out = ArrayRef("zarr", str(group), str(s), shape, dtypes[-1])
     regions = task_regions(shape, chunk_shape)
     # each task owns whole chunks by construction; checked as every writer of chunkdic does
-    check_write_alignment(_region_chunks(regions, shape), shape, chunk_shape, name=f"{group}/{s}")
+    check_write_alignment(region_chunks(regions, shape), shape, chunk_shape, name=f"{group}/{s}")
     for _ in runner.map_unordered(coarsen_task, [(src, out, depth, dtypes, r) for r in regions]):
         pass
     mark_complete(group, s)
     return out
 
 
-def _region_chunks(regions, shape) -> tuple[tuple[int, ...], ...]:
+def region_chunks(regions, shape) -> tuple[tuple[int, ...], ...]:
     """The Dask-style ``chunks`` of the regions' grid (for :func:`check_write_alignment`)."""
     out = []
     for axis, n in enumerate(shape):

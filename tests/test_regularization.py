@@ -467,3 +467,24 @@ def test_bad_regularisation_and_mask_input_on_the_command_line(small_pair, tmp_p
     assert len(errors) == 1 and errors[0] == lines[-1] and message in errors[0], lines
     assert len(lines) == (2 if found_in_data else 1), lines
     assert not out.exists()
+
+
+def test_mask_pyramid_by_tasks_equals_the_binarised_sums(tmp_path):
+    """The mask's binary level 0 and its sum levels, written chunk by chunk by tasks (8³ chunks,
+    an odd-shaped float mask with zeros): equal to NumPy's binarisation and 2×2×2 sums."""
+    import dask
+
+    from chunkdic.masks import prepare_mask
+    from chunkdic.scheduler import open_runner
+
+    rng = np.random.default_rng(0)
+    m = (rng.random((37, 22, 51)) > 0.6) * rng.random((37, 22, 51)).astype(np.float32)
+    with dask.config.set({"chunkdic.chunk-size": 8}), open_runner(None) as runner:
+        refs = prepare_mask(m, m.shape, [2, 1, 0], tmp_path / "mask", runner)
+    want = (m != 0).astype(np.uint64)
+    for s in (0, 1, 2):
+        got = refs[s].read(tuple(slice(0, n) for n in refs[s].shape))
+        assert got.dtype == (np.uint8 if s == 0 else np.uint16)
+        np.testing.assert_array_equal(got, want)
+        n = tuple(k // 2 for k in want.shape)
+        want = want[:2 * n[0], :2 * n[1], :2 * n[2]].reshape(n[0], 2, n[1], 2, n[2], 2).sum(axis=(1, 3, 5))
