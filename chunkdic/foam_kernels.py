@@ -69,6 +69,30 @@ def _feature(fc, fh, n, i, j, k, key, jit):
 
 
 @njit(nogil=True, cache=True, inline="always")
+def _cell_lookup(qz, qy, qx, ckey):
+    """The lattice cell of ``q`` and what a per-cell cache keyed by ``ckey`` holds for it.
+
+    Returns ``(cz, cy, cx, iz, iy, ix, state)``: the floored coordinates (float and int)
+    and ``state`` 0 when the cache is this cell's, 1 when it is the previous cell's along x
+    (the caller shifts it and fills one face), 2 when it must be filled anew.
+    """
+    cz = math.floor(qz)
+    cy = math.floor(qy)
+    cx = math.floor(qx)
+    iz = np.int64(cz)
+    iy = np.int64(cy)
+    ix = np.int64(cx)
+    state = 0
+    if ckey[3] == 0 or ckey[0] != iz or ckey[1] != iy or ckey[2] != ix:
+        state = 1 if ckey[3] == 1 and ckey[0] == iz and ckey[1] == iy and ckey[2] + 1 == ix else 2
+        ckey[0] = iz
+        ckey[1] = iy
+        ckey[2] = ix
+        ckey[3] = 1
+    return cz, cy, cx, iz, iy, ix, state
+
+
+@njit(nogil=True, cache=True, inline="always")
 def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
     """Wall weight at lattice position q, and the hash of the nearest feature's cell.
 
@@ -83,14 +107,9 @@ def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
       ball every plane stays farther than R (weight exactly 0) and the nearest feature
       stays the same (``ckey[5]``). It is only used within the same lattice cell.
     """
-    cz = math.floor(qz)
-    cy = math.floor(qy)
-    cx = math.floor(qx)
-    iz = np.int64(cz)
-    iy = np.int64(cy)
-    ix = np.int64(cx)
-    if ckey[3] == 0 or ckey[0] != iz or ckey[1] != iy or ckey[2] != ix:
-        if ckey[3] == 1 and ckey[0] == iz and ckey[1] == iy and ckey[2] + 1 == ix:
+    cz, cy, cx, iz, iy, ix, state = _cell_lookup(qz, qy, qx, ckey)
+    if state != 0:
+        if state == 1:
             for m in range(9):  # shift along x: reuse 18 of the 27 features
                 b = 3 * m
                 for r in range(3):
@@ -106,10 +125,6 @@ def _worley_wall(qz, qy, qx, key, jit, inv4r2, lim, fc, fh, work, ckey):
                     for dx in range(-1, 2):
                         _feature(fc, fh, n, iz + dz, iy + dy, ix + dx, key, jit)
                         n += 1
-        ckey[0] = iz
-        ckey[1] = iy
-        ckey[2] = ix
-        ckey[3] = 1
         ckey[4] = -1  # separations not computed
         work[2, 3] = -1.0  # no ball
     elif work[2, 3] > 0.0:
@@ -173,32 +188,26 @@ def _fade(t):
 
 
 @njit(nogil=True, cache=True, inline="always")
+def _signed_unit(h):
+    """A 64-bit hash as a float in [-1, 1)."""
+    return np.float64(h >> _S11) * _INV53 * 2.0 - 1.0
+
+
+@njit(nogil=True, cache=True, inline="always")
 def _value_noise(qz, qy, qx, key, vc, ckey):
     """Smooth (C2) value noise in [-1, 1] at lattice position q; ``vc`` (8,) cache."""
-    cz = math.floor(qz)
-    cy = math.floor(qy)
-    cx = math.floor(qx)
-    iz = np.int64(cz)
-    iy = np.int64(cy)
-    ix = np.int64(cx)
-    if ckey[3] == 0 or ckey[0] != iz or ckey[1] != iy or ckey[2] != ix:
-        if ckey[3] == 1 and ckey[0] == iz and ckey[1] == iy and ckey[2] + 1 == ix:
-            for m in range(4):  # shift along x: reuse 4 of the 8 corners
-                vc[2 * m] = vc[2 * m + 1]
-                h = hash3(iz + m // 2, iy + m % 2, ix + 1, key)
-                vc[2 * m + 1] = np.float64(h >> _S11) * _INV53 * 2.0 - 1.0
-        else:
-            n = 0
-            for dz in range(2):
-                for dy in range(2):
-                    for dx in range(2):
-                        h = hash3(iz + dz, iy + dy, ix + dx, key)
-                        vc[n] = np.float64(h >> _S11) * _INV53 * 2.0 - 1.0
-                        n += 1
-        ckey[0] = iz
-        ckey[1] = iy
-        ckey[2] = ix
-        ckey[3] = 1
+    cz, cy, cx, iz, iy, ix, state = _cell_lookup(qz, qy, qx, ckey)
+    if state == 1:
+        for m in range(4):  # shift along x: reuse 4 of the 8 corners
+            vc[2 * m] = vc[2 * m + 1]
+            vc[2 * m + 1] = _signed_unit(hash3(iz + m // 2, iy + m % 2, ix + 1, key))
+    elif state == 2:
+        n = 0
+        for dz in range(2):
+            for dy in range(2):
+                for dx in range(2):
+                    vc[n] = _signed_unit(hash3(iz + dz, iy + dy, ix + dx, key))
+                    n += 1
     tz = _fade(qz - cz)
     ty = _fade(qy - cy)
     tx = _fade(qx - cx)

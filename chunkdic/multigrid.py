@@ -457,8 +457,9 @@ class _Level:
     lmax: float = 0.0
 
     def __post_init__(self):
-        if self.transfers is not None:  # (fine_index, fine_weight) per axis for the numba transfers
-            self.tables = [t if t is not None else _identity_transfer(n) for t, n in zip(self.transfers, self.shape)]
+        if self.transfers is not None:  # (fine_index, fine_weight) of each axis, as :func:`transfer` takes them
+            self.tables = tuple(a for t, n in zip(self.transfers, self.shape)
+                                for a in (t if t is not None else _identity_transfer(n))[:2])
 
 
 def _identity_transfer(n: int) -> tuple:
@@ -577,8 +578,8 @@ class VCycle:
                 diag = M[..., 0, :, :].astype(np.float64) + self.weight * R.diagonal_blocks()
                 lev.Binv = np.linalg.inv(diag)
             self.levels.append(lev)
-        for lev in self.levels[:-1]:
-            lev.lmax = 1.1 * self._lambda_max(lev)
+        for k, lev in enumerate(self.levels[:-1]):
+            lev.lmax = 1.1 * self._lambda_max(k)
         last = self.levels[-1]
         n = int(np.prod(last.shape))
         A = np.zeros((3 * n, 3 * n))
@@ -598,9 +599,9 @@ class VCycle:
         else:
             lev.R.matvec_add(self.weight, x, y)
 
-    def _lambda_max(self, lev: _Level) -> float:
-        """Largest eigenvalue of ``D⁻¹A`` (10 Lanczos steps of block-Jacobi CG from a fixed random start)."""
-        k = self.levels.index(lev)
+    def _lambda_max(self, k: int) -> float:
+        """Largest eigenvalue of ``D⁻¹A`` on level ``k`` (10 Lanczos steps of block-Jacobi CG from a fixed random start)."""
+        lev = self.levels[k]
         rng = np.random.default_rng(0)
         b = rng.standard_normal(lev.shape + (3,))
         r = b.copy()  # CG from x = 0: only its coefficients are used
@@ -674,11 +675,10 @@ class VCycle:
         r = np.empty_like(b)
         self.apply(k, x, r)
         np.subtract(b, r, out=r)
-        tables = lev.tables
         coarse_shape = self.levels[k + 1].shape
         rc = np.empty(coarse_shape + (3,))
-        transfer(r, *tables[0][:2], *tables[1][:2], *tables[2][:2], rc, True)
+        transfer(r, *lev.tables, rc, True)
         xc = self.cycle(rc, k + 1)
-        transfer(x, *tables[0][:2], *tables[1][:2], *tables[2][:2], xc, False)
+        transfer(x, *lev.tables, xc, False)
         self._smooth(k, b, x, False)
         return x

@@ -68,15 +68,6 @@ def _shape_gradients(xi) -> np.ndarray:
     return out
 
 
-def laplacian_element(ell: float) -> np.ndarray:
-    """``∫ ∇N_a · ∇N_b`` over a cube of edge ``ell`` (8, 8); exact 2×2×2 Gauss quadrature."""
-    K = np.zeros((8, 8))
-    for xi in np.array(np.meshgrid(_GAUSS, _GAUSS, _GAUSS, indexing="ij")).reshape(3, -1).T:
-        G = _shape_gradients(xi)
-        K += G @ G.T / 8.0
-    return K * ell  # gradients scale 1/ell, volume ell^3
-
-
 def elastic_element(ell: float, poisson: float = POISSON) -> np.ndarray:
     """Isotropic elastic stiffness (E = 1) of a cube of edge ``ell``, (24, 24), dofs ``(a, i)``."""
     lam = poisson / ((1 + poisson) * (1 - 2 * poisson))
@@ -109,22 +100,6 @@ def face_laplacian_element() -> np.ndarray:
                       for dy in (0, 1) for dx in (0, 1)])
         K += G @ G.T / 4.0
     return K
-
-
-@numba.njit(nogil=True, cache=True)
-def _apply_scalar(Ke, x, y):
-    """y += Σ_elements Ke (8×8) per component on the nodal field x (nz, ny, nx, 3)."""
-    nz, ny, nx = x.shape[0], x.shape[1], x.shape[2]
-    for ez in range(nz - 1):
-        for ey in range(ny - 1):
-            for ex in range(nx - 1):
-                for a in range(8):
-                    za, ya, xa = ez + (a >> 2), ey + ((a >> 1) & 1), ex + (a & 1)
-                    for b in range(8):
-                        k = Ke[a, b]
-                        zb, yb, xb = ez + (b >> 2), ey + ((b >> 1) & 1), ex + (b & 1)
-                        for c in range(3):
-                            y[za, ya, xa, c] += k * x[zb, yb, xb, c]
 
 
 @numba.njit(nogil=True, cache=True)
