@@ -55,7 +55,8 @@ FIXTURE = r"""
 import json, sys, numpy as np
 from pathlib import Path
 import chunkdic
-from chunkdic import foam, synthetic
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
 d = Path(sys.argv[1]); N = %d; T = %r
 synthetic.synthesize(d / "s", (N,) * 3, field=synthetic.Translation(T), seed=4, chunks=16)
 synthetic.synthesize(d / "other", (N,) * 3, field=synthetic.Translation(T), seed=5, chunks=16)

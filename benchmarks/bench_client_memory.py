@@ -50,7 +50,7 @@ class _StandInRunner:
         self._cache: dict = {}
 
     def map_unordered(self, fn, args):
-        from chunkdic.kernels_m import m_block
+        from chunkdic.kernels.m import m_block
 
         for _inputs, job, _u in args:
             key = tuple(job.shape)
@@ -67,10 +67,10 @@ class _StandInRunner:
 def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid: bool = True) -> None:
     import numpy as np
 
-    from chunkdic.level import Level
-    from chunkdic.planning import plan_meshes
-    from chunkdic.settings import Settings
-    from chunkdic.handles import ArrayRef
+    from chunkdic.engine.level import Level
+    from chunkdic.engine.planning import plan_meshes
+    from chunkdic.engine.settings import Settings
+    from chunkdic.io.handles import ArrayRef
 
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened

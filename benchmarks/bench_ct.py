@@ -31,9 +31,9 @@ def _cpu() -> float:
 def slice_costs(n: int, skimage: bool) -> dict:
     import numpy as np
 
-    from chunkdic import ctsim as C
-    from chunkdic import microstructure as M
-    from chunkdic.ctpair import standard_field
+    from chunkdic.synth import ctsim as C
+    from chunkdic.synth import microstructure as M
+    from chunkdic.synth.ctpair import standard_field
 
     P = M.GrainsParams()
     fld, _ = standard_field("band", (n, n, n))
@@ -70,8 +70,8 @@ def slice_costs(n: int, skimage: bool) -> dict:
 
 
 def pair_time(n: int, specimen: str, root: str) -> dict:
-    from chunkdic import synthetic as S
-    from chunkdic.ctpair import standard_field
+    from chunkdic.synth import synthetic as S
+    from chunkdic.synth.ctpair import standard_field
 
     fld, _ = standard_field("band", (n, n, n))
     out = os.path.join(root, f"{specimen}{n}")
@@ -96,7 +96,7 @@ def main() -> None:
         print(f"slice {n}^2: " + ", ".join(f"{k} {v:.1f}" if isinstance(v, float) else f"{k} {v}"
                                            for k, v in c.items()), flush=True)
     root = a.dir or tempfile.mkdtemp(prefix="bench_ct_")
-    from chunkdic import synthetic as S
+    from chunkdic.synth import synthetic as S
 
     S.synthesize(os.path.join(root, "warm"), 16, specimen="grains", overwrite=True)
     for n in a.sizes:

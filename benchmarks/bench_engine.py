@@ -72,7 +72,7 @@ def cpu_rate(med: dict, key: str, scheduler: str) -> str:
 
 
 def _make_pair(size: int, workdir: Path) -> dict:
-    from chunkdic import synthetic
+    from chunkdic.synth import synthetic
 
     out = workdir / f"pair{size}"
     if (out / "field.json").exists():

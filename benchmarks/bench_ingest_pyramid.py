@@ -122,8 +122,8 @@ def cpu() -> float:
 
 
 def child(n: int, workdir: Path, runs: int) -> dict:
-    from chunkdic.formats import ingest
-    from chunkdic.pyramid import build_pyramid
+    from chunkdic.io.formats.ingest import ingest
+    from chunkdic.io.pyramid import build_pyramid
 
     raw = workdir / f"foam_{n}.raw"
     t0 = time.perf_counter()
@@ -137,7 +137,7 @@ def child(n: int, workdir: Path, runs: int) -> dict:
     import tifffile  # noqa: F401
     import zarr  # noqa: F401
 
-    from chunkdic.coarsen import coarsen_block
+    from chunkdic.io.coarsen import coarsen_block
 
     coarsen_block(np.zeros((4, 4, 4), np.uint8), np.uint16)  # numba import + cached kernel load
 

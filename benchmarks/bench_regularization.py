@@ -6,7 +6,7 @@ Usage::
                                               [--lengths 1 2 4 8] [--specimen grains]
                                               [--workdir DIR] [--json PATH]
 
-On the standard cases of :func:`chunkdic.synthetic.standard_case` (``noise``: a (0.5, 0.5,
+On the standard cases of :func:`chunkdic.synth.synthetic.standard_case` (``noise``: a (0.5, 0.5,
 0.5) translation with independent CT noise in each scan; ``band``: the −8 % compression
 band), for every element size ``ℓ``: the correlation without regularisation and with the
 default (curvature Tikhonov, automatic length), and at ``ℓ = 8`` with fixed lengths
@@ -42,7 +42,8 @@ def _sweeping_choice() -> None:
     """
     import functools
 
-    from chunkdic import engine, regchoice
+    from chunkdic.engine import driver as engine
+    from chunkdic.solve import regchoice
 
     engine.choose_length = functools.partial(regchoice.choose_length, sweep=True)
 
@@ -84,7 +85,7 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="write the rows here")
     args = ap.parse_args()
 
-    from chunkdic import synthetic
+    from chunkdic.synth import synthetic
 
     _sweeping_choice()
     work = Path(args.workdir or tempfile.mkdtemp(prefix="bench-reg-"))

@@ -223,7 +223,7 @@ def _stage_line(row: dict) -> str:
 
 
 def _print_event(event: dict) -> None:
-    from chunkdic._cli_common import format_event
+    from chunkdic.cli.common import format_event
 
     line = format_event(event)
     if line:
@@ -300,7 +300,7 @@ def _error(result, field, level: int) -> dict:
 
 def _same_pair(pair_dir: Path, field, n: int, args) -> bool:
     """Whether ``pair_dir`` holds a complete synthetic pair of this size, dtype, seed and field."""
-    from chunkdic import synthetic
+    from chunkdic.synth import synthetic
 
     try:
         meta = synthetic.load_metadata(pair_dir)
@@ -322,7 +322,7 @@ def _texture(args) -> dict:
 def _check_disk(workdir: Path, args, reuse: bool) -> None:
     import numpy as np
 
-    from chunkdic.coarsen import pyramid_dtype
+    from chunkdic.io.coarsen import pyramid_dtype
 
     size = args.size
     # level 0 of two scans uncompressed, plus the pyramids (levels 1.. in 4-byte sums: 1/2, 1/16...)
@@ -376,7 +376,7 @@ def main(argv=None) -> dict:
     from distributed import Client, LocalCluster
 
     import chunkdic
-    from chunkdic import synthetic
+    from chunkdic.synth import synthetic
 
     n = args.size
     workdir = Path(args.workdir)
@@ -440,7 +440,7 @@ def main(argv=None) -> dict:
             record["extrapolation"] = _extrapolate(events, args)
         else:
             with mon.stage("strain") as row:
-                from chunkdic.strain import mean_strain, strain_summary
+                from chunkdic.results.strain import mean_strain, strain_summary
 
                 s = strain_summary(result)
                 # The mean of dUz/dZ over the inner box only depends on Uz at its faces, and
@@ -454,7 +454,7 @@ def main(argv=None) -> dict:
                       f"corrected {s.eps_zz_corrected:+.5f}, tr {s.volume_change:+.5f} (true {t.volume_change:+.5f})",
                       flush=True)
             with mon.stage("report") as row:
-                from chunkdic.report import report
+                from chunkdic.views.report import report
 
                 figures = report(result, report_dir, progress=lambda msg: print("   " + msg, flush=True))
                 row["figures"] = sorted(figures)

@@ -32,7 +32,7 @@ def _peak_rss_mb() -> float:
 
 
 def kernel_rates(field, n: int = 128, repeat: int = 3) -> dict:
-    from chunkdic import foam
+    from chunkdic.synth import foam
 
     foam.render((8, 8, 8), field=field, which="deformed")  # compile / load the cache
     foam.render((8, 8, 8))
@@ -49,7 +49,7 @@ def kernel_rates(field, n: int = 128, repeat: int = 3) -> dict:
 
 def bench_size(n: int, *, field, dtype: str, chunks: int, repeat: int, root: str) -> dict:
     from chunkdic import config
-    from chunkdic import synthetic as S
+    from chunkdic.synth import synthetic as S
 
     threads = config.get("num-threads") or os.cpu_count() or 1
     walls, cpus = [], []
@@ -79,8 +79,8 @@ def main(argv=None) -> int:
     p.add_argument("--dir", default=None, help="scratch directory (default: system temp)")
     args = p.parse_args(argv)
 
-    from chunkdic import synthetic as S
-    from chunkdic import foam
+    from chunkdic.synth import synthetic as S
+    from chunkdic.synth import foam
 
     def field_for(n):
         c = (n - 1) / 2.0

@@ -23,14 +23,14 @@ chunkdic's embedded pool (``DASK_CHUNKDIC__NUM_THREADS``), al-dvc's ``n_threads`
 each tool on a 48³ pair comes first, so that neither pays for Numba compilation.
 
 Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` of
-:mod:`chunkdic.microstructure` imaged by :mod:`chunkdic.ctsim`, with independent noise
+:mod:`chunkdic.synth.microstructure` imaged by :mod:`chunkdic.synth.ctsim`, with independent noise
 ``--noise`` in each scan; ``foam`` for the smooth synthetic foam):
 
 - ``shift``: the reference, Fourier-shifted by (0.5, 0.5, 0.5) voxel (the paper's section
   4.2 test: both scans share the reference's noise);
 - ``noise``: a (0.5, 0.5, 0.5) translation rendered from the geometry, independent noise
   in each scan;
-- ``band``: the standard compression band (:func:`chunkdic.ctpair.standard_field`: −8 %
+- ``band``: the standard compression band (:func:`chunkdic.synth.ctpair.standard_field`: −8 %
   peak strain, 6-voxel width, lateral factor 0.05 unless ``--band-lateral``), independent
   noise in each scan. The C8 basis alone cannot follow so sharp a band: at 100³ the L2
   projection of this field on chunkdic's meshes leaves 0.029 / 0.026 voxel RMS at the
@@ -86,7 +86,7 @@ def _error(msg: str) -> None:
 @dataclass
 class Case:
     """One pair of scans. ``reference``/``deformed``: what chunkdic reads (Zarr);
-    ``field``: the true displacement (a :class:`chunkdic.fields.Field`) or None."""
+    ``field``: the true displacement (a :class:`chunkdic.synth.fields.Field`) or None."""
 
     name: str
     reference: str
@@ -100,14 +100,14 @@ GREY_CHANGE = {"gain": 1.1, "offset": 0.05, "drift": 0.03}
 
 
 def _band(n: int, lateral: float | None):
-    from chunkdic.ctpair import standard_field
+    from chunkdic.synth.ctpair import standard_field
 
     kw = {} if lateral is None else {"lateral": lateral}
     return standard_field("band", (n,) * 3, **kw)[0]
 
 
 def _pair(out: Path, n: int, args, specimen: str, *, field, **extra) -> dict:
-    from chunkdic import synthetic
+    from chunkdic.synth import synthetic
 
     if (out / "field.json").exists():
         return {"reference": str(out / "ref.zarr"), "deformed": str(out / "def.zarr")}
@@ -122,7 +122,7 @@ def _pair(out: Path, n: int, args, specimen: str, *, field, **extra) -> dict:
 
 def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | None:
     """Write the scans of case ``name`` at ``n``³ under ``workdir`` (kept between runs)."""
-    from chunkdic.fields import Translation
+    from chunkdic.synth.fields import Translation
 
     tag = f"{name}-{n}-{specimen}-{args.dtype}-n{args.noise:g}-s{args.seed}"
     if name.startswith("band") and args.band_lateral is not None:
@@ -131,8 +131,8 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
     label = f"{name}/{specimen}"
     if name == "shift":
         if specimen == "foam":
-            from chunkdic.fourier_shift import fourier_shift_scan
-            from chunkdic.volume import open_scan
+            from chunkdic.synth.fourier_shift import fourier_shift_scan
+            from chunkdic.io.scan import open_scan
 
             paths = _pair(out, n, args, specimen, field=None)
             shifted = out / "shifted.zarr"
@@ -164,8 +164,8 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
 
 def pair_case(path: str) -> Case:
     """A synthesized pair directory (``ref.zarr``, ``def.zarr``, ``field.json``)."""
-    from chunkdic import synthetic
-    from chunkdic.volume import open_scan
+    from chunkdic.synth import synthetic
+    from chunkdic.io.scan import open_scan
 
     d = Path(path)
     ref, dfm = d / "ref.zarr", d / "def.zarr"
@@ -178,7 +178,7 @@ def pair_case(path: str) -> Case:
 
 def npy_copies(case: Case, workdir: Path) -> tuple[Path, Path]:
     """``.npy`` copies of a case's level-0 scans for al-dvc (slab by slab)."""
-    from chunkdic.volume import open_scan
+    from chunkdic.io.scan import open_scan
 
     out = []
     for src in (case.reference, case.deformed):
@@ -196,7 +196,7 @@ def npy_copies(case: Case, workdir: Path) -> tuple[Path, Path]:
 def _chunkdic_child(args) -> None:
     """One chunkdic run in this (fresh) process; writes points/u (.npz) and a JSON summary."""
     import chunkdic
-    import chunkdic.engine  # noqa: F401  (the correlation's modules: imported before the clock
+    import chunkdic.engine.driver  # noqa: F401  (the correlation's modules: imported before the clock
     # starts, as al-dvc's "Done in" time starts after its imports; `proc` counts both)
 
     t0 = time.perf_counter()
@@ -248,7 +248,7 @@ def run_chunkdic(case: Case, ell: int, threads: int, out: Path, timeout: float, 
 
 def _score(points, u, valid, case: Case, ell: int) -> dict:
     from chunkdic import score_displacement
-    from chunkdic.fields import true_displacement
+    from chunkdic.synth.fields import true_displacement
 
     if points is None:
         return {}
@@ -321,7 +321,7 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys) -> dict:
 
 def warm_up(exe: Path, args, workdir: Path) -> None:
     """One untimed run of each tool on a 48³ pair: Numba caches loaded or compiled."""
-    from chunkdic.fields import Translation
+    from chunkdic.synth.fields import Translation
 
     class A:  # the synthesis settings of a tiny pair
         seed, dtype, noise = 0, "uint8", 0.0
@@ -359,7 +359,7 @@ def selfcheck(exe: Path, args, workdir: Path) -> int:
     node positions down to a fraction of a voxel. Exit status 1 when a check fails.
     """
     from chunkdic import score_displacement
-    from chunkdic.fields import Affine, Translation, true_displacement
+    from chunkdic.synth.fields import Affine, Translation, true_displacement
 
     class A:
         seed, dtype, specimen, noise = 3, "float32", None, 0.0

@@ -26,8 +26,8 @@ def main() -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from chunkdic import microstructure as M
-    from chunkdic.ctpair import render_ct, standard_field
+    from chunkdic.synth import microstructure as M
+    from chunkdic.synth.ctpair import render_ct, standard_field
 
     n = a.size
     shape = (n, n, n)

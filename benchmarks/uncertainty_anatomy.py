@@ -2,7 +2,7 @@
 
 For each case (``fourier-shift``: the paper's section 4.2 test, both scans share their
 noise; ``shift``: the same translation with independent noise in each scan) and element
-size, on a small CT-like pair (:func:`chunkdic.synthetic.standard_case`, grains):
+size, on a small CT-like pair (:func:`chunkdic.synth.synthetic.standard_case`, grains):
 
 - ``measured``: σ of chunkdic's field (unregularised), pooled over components, at nodes
   at least ℓ from the faces (:func:`chunkdic.score_displacement`);
@@ -33,8 +33,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
 import chunkdic
-from chunkdic import synthetic
-from chunkdic.scoring import scored_region
+from chunkdic.synth import synthetic
+from chunkdic.analysis.scoring import scored_region
 
 
 def load(path) -> np.ndarray:

@@ -2,7 +2,7 @@
 
 Each check raises :class:`InputError` with one line that names the offending input or
 option and says what to change; the CLI prints it and exits with status 2. Commands call
-these first, then declare their outputs (:mod:`chunkdic.outputs`), then compute.
+these first, then declare their outputs (:mod:`chunkdic.io.outputs`), then compute.
 
 - :func:`number`: numeric options (finite, in range, integer where needed).
 - :func:`check_finite` / :func:`non_finite_error`: NaN and infinite voxels, with one
@@ -155,7 +155,7 @@ def check_displacement(displacement: np.ndarray, where: str, flags: np.ndarray |
     A node flagged as not measured (``FLAG_NO_DATA``, ``FLAG_MASKED`` in ``flags``) is NaN
     by design; any other non-finite value is damage (strains would be garbage).
     """
-    from .result import FLAG_MASKED, FLAG_NO_DATA
+    from .results.result import FLAG_MASKED, FLAG_NO_DATA
 
     bad = (~np.isfinite(displacement)).any(axis=0)
     if flags is not None and flags.shape == bad.shape:

@@ -2,7 +2,7 @@
 
 Shared by ``test_real_ct.py`` (issue 10) and ``test_regularization.py`` (issue 11): a
 correlation asked for by several tests (the same pair, element size and settings) runs
-once. Pairs are the standard cases of :func:`chunkdic.synthetic.standard_case` (CT-like
+once. Pairs are the standard cases of :func:`chunkdic.synth.synthetic.standard_case` (CT-like
 ``grains`` / ``concrete`` specimens, uint16, reconstruction noise 0.02 of the phase
 contrast, independent in the two scans unless the case is a Fourier shift); a case name
 ``"band+grey-up"`` adds a grey-level change of the deformed scan (:data:`GREY`). Every
@@ -15,7 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import chunkdic
-from chunkdic import synthetic
+from chunkdic.synth import synthetic
 
 NOISE = 0.02
 #: grey-level changes of the deformed scan (issue 10: gain 0.9-1.1, offset ±5 %, drift ±3 %)
@@ -34,7 +34,7 @@ class CTCases:
         self._runs: dict = {}
 
     def pair(self, specimen: str, case: str, size: int) -> dict:
-        """The pair of :func:`chunkdic.synthetic.standard_case` (``case`` optionally ``+grey``)."""
+        """The pair of :func:`chunkdic.synth.synthetic.standard_case` (``case`` optionally ``+grey``)."""
         key = (specimen, case, size)
         if key not in self._pairs:
             base, _, grey = case.partition("+")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic.cli import main
+from chunkdic.cli.main import main
 
 from textures import smooth_noise
 
@@ -91,7 +91,8 @@ def test_no_traceback_from_the_installed_command(pair, tmp_path):
 
 
 def test_long_passes_report_blocks_rate_and_eta(pair, tmp_path, capsys, monkeypatch):
-    from chunkdic import level, prefilter
+    from chunkdic.engine import level
+    from chunkdic.engine import prefilter
 
     monkeypatch.setattr(level, "PROGRESS_SECONDS", 0.0)  # every block counts as "long"
     monkeypatch.setattr(prefilter, "TASK_EDGE", 16)  # several prefilter tasks on this small pair

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from chunkdic import boolean as B
-from chunkdic import ctsim as C
-from chunkdic import microstructure as M
-from chunkdic import synthetic as S
-from chunkdic.ctpair import CTSpecimen, as_dask_ct, quantise, render_ct, standard_field
+from chunkdic.synth import boolean as B
+from chunkdic.synth import ctsim as C
+from chunkdic.synth import microstructure as M
+from chunkdic.synth import synthetic as S
+from chunkdic.synth.ctpair import CTSpecimen, as_dask_ct, quantise, render_ct, standard_field
 from chunkdic.errors import InputError
 
 BAND = S.Band(center_z=15.5, width=6.0, strain=-0.08, lateral=0.3, center_y=20.0, center_x=18.0)
@@ -299,7 +299,7 @@ def test_ct_slabs_agree_with_whole_render():
 
 
 def test_synthesize_ct_pair(tmp_path):
-    from chunkdic.volume import open_scan
+    from chunkdic.io.scan import open_scan
 
     shape = (24, 32, 32)
     fld, fourier = standard_field("band", shape)
@@ -322,7 +322,7 @@ def test_synthesize_ct_pair(tmp_path):
 
 
 def test_synthesize_fourier_shift_pair(tmp_path):
-    from chunkdic.volume import open_scan
+    from chunkdic.io.scan import open_scan
 
     shape = (16, 24, 24)
     fld, fourier = standard_field("fourier-shift", shape)
@@ -362,7 +362,7 @@ def test_synthesize_fourier_shift_pair(tmp_path):
     ["--noise", "-1"],
 ])
 def test_cli_bad_options(tmp_path, capsys, opts):
-    from chunkdic.cli import main
+    from chunkdic.cli.main import main
 
     out = tmp_path / "bad"
     assert main(["synth", str(out), "--shape", "16", *opts]) == 2
@@ -372,7 +372,7 @@ def test_cli_bad_options(tmp_path, capsys, opts):
 
 
 def test_cli_ct_case(tmp_path, capsys):
-    from chunkdic.cli import main
+    from chunkdic.cli.main import main
 
     out = tmp_path / "band"
     assert main(["synth", str(out), "--shape", "24,32,32", "--specimen", "grains", "--case", "band",

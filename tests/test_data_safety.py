@@ -28,9 +28,10 @@ import tifffile
 import zarr
 
 import chunkdic
-from chunkdic import foam, synthetic
-from chunkdic.cli import main
-from chunkdic.integrity import MissingChunksWarning
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
+from chunkdic.cli.main import main
+from chunkdic.io.integrity import MissingChunksWarning
 
 N = 32
 T = (0.6, -0.4, 0.3)
@@ -268,7 +269,7 @@ def test_B1_lock_and_scratch_of_a_killed_run_are_reclaimed(data, tmp_path, capsy
 
 def _interrupt_at(monkeypatch, iteration: int):
     """Make the CLI's progress printer raise KeyboardInterrupt at a level-0 iteration."""
-    from chunkdic import cli
+    from chunkdic.cli import main as cli
 
     real = cli.print_progress
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import _cli_common
-from chunkdic.cli import build_parser, main
+from chunkdic.cli import common as _cli_common
+from chunkdic.cli.main import build_parser, main
 
 
 def _subparsers(parser):
@@ -120,7 +120,7 @@ class _Scan:
 
 def test_lengths_in_physical_units_hand_values():
     from chunkdic.errors import InputError
-    from chunkdic.units import element_size_voxels, parse_length, roi_voxels
+    from chunkdic.io.units import element_size_voxels, parse_length, roi_voxels
 
     assert parse_length("60um") == (60.0, "micrometer") and parse_length("60 µm") == (60.0, "micrometer")
     assert parse_length("0.06mm") == (0.06, "millimeter") and parse_length("12") == (12.0, None)
@@ -148,7 +148,7 @@ def test_correlate_summary_strain_and_exports_in_physical_units(tmp_path, capsys
 
     import pandas as pd
 
-    from chunkdic import synthetic
+    from chunkdic.synth import synthetic
 
     t = (1.0, 0.5, -0.5)
     pair = synthetic.synthesize(tmp_path / "s", (40, 40, 40), field=synthetic.Translation(t), seed=2,

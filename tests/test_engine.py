@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import foam, synthetic
-from chunkdic.planning import plan_meshes
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
+from chunkdic.engine.planning import plan_meshes
 
 from textures import fourier_shift, smooth_noise
 

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import synthetic
-from chunkdic.cli import main
-from chunkdic.corrected import open_corrected, write_corrected
-from chunkdic.fields_export import CHANNELS, equivalent_strain, open_fields, write_fields
+from chunkdic.synth import synthetic
+from chunkdic.cli.main import main
+from chunkdic.views.corrected_image import open_corrected, write_corrected
+from chunkdic.views.fields import CHANNELS, equivalent_strain, open_fields, write_fields
 from chunkdic.mesh import Mesh
 
 A = ((-0.02, 0.0, 0.0), (0.0, 0.01, 0.0), (0.005, 0.0, 0.01))  # dU_i / dX_j, axes (z, y, x)
@@ -201,9 +201,9 @@ def test_corrected_is_an_image_on_the_scan_grid(affine, tmp_path):
     """``export --corrected``: an OME-NGFF image on the scan's grid whose channels are the
     corrected image and residual of one whole-ROI block (independent of the chunking)
     and whose residual is the fields image's."""
-    from chunkdic.correction import Correction, correct_block
+    from chunkdic.views.correction import Correction, correct_block
     from chunkdic.mesh import Block
-    from chunkdic.resultscans import level_refs
+    from chunkdic.results.scans import level_refs
 
     pair, res, d, _ = affine
     with dask.config.set({"chunkdic.chunk-size": 16}):  # 27 tasks; the ROI [6, 42) cuts chunks

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import tifffile
 
-from chunkdic import _cli_scan
+from chunkdic.cli import scan as _cli_scan
 from chunkdic.errors import InputError
-from chunkdic.formats import ingest, slab_chunks
-from chunkdic.openers import natural_key
+from chunkdic.io.formats.ingest import ingest, slab_chunks
+from chunkdic.io.formats.openers import natural_key
 
 SHAPE = (13, 17, 19)
 
@@ -83,7 +83,7 @@ def test_3d_tiff_compressed_pages(tmp_path, vol16):
 def test_tiled_volumetric_tiff_reads_only_the_tiles_a_slab_needs(tmp_path, vol16, monkeypatch):
     """One compressed volumetric page of 3-D tiles: read through tifffile's chunked store;
     a slab decodes the tiles it overlaps (counted), never the whole series."""
-    from chunkdic.openers import open_tiff_file
+    from chunkdic.io.formats.openers import open_tiff_file
 
     tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(4, 16, 16), volumetric=True, compression="zlib")
     monkeypatch.setattr(tifffile.TiffPageSeries, "asarray", lambda *a, **k: pytest.fail("whole series read"))
@@ -93,7 +93,7 @@ def test_tiled_volumetric_tiff_reads_only_the_tiles_a_slab_needs(tmp_path, vol16
 
 
 def test_compressed_tiff_stored_as_one_block_is_refused_when_large(tmp_path, vol16, monkeypatch):
-    import chunkdic.openers as openers
+    import chunkdic.io.formats.openers as openers
 
     # one zlib tile holding every slice of a (13, 17, 19) volume: fine while small...
     tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(16, 32, 32), volumetric=True, compression="zlib")
@@ -229,7 +229,7 @@ def test_cli_ingest_and_pyramid(tmp_path, vol16, capsys):
     err = capsys.readouterr().err
     assert "MB/s" in err and "uint16" in err
     assert _cli(["pyramid", out, "--levels", "2"]) == 0
-    from chunkdic.volume import open_scan
+    from chunkdic.io.scan import open_scan
 
     scan = open_scan(str(out))
     assert scan.stored_levels() == [0, 1, 2] and scan.voxel_size == (4.91,) * 3

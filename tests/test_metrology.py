@@ -9,10 +9,15 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic import _cli_report, foam, fourier_shift, metrology, synthetic, zoisweep
+from chunkdic.cli import report as _cli_report
+from chunkdic.synth import foam
+from chunkdic.synth import fourier_shift
+from chunkdic.analysis import metrology
+from chunkdic.synth import synthetic
+from chunkdic.analysis import zoisweep
 from chunkdic.errors import InputError
-from chunkdic.metrology import PowerLaw, fit_power_law
-from chunkdic.handles import ArrayRef
+from chunkdic.analysis.metrology import PowerLaw, fit_power_law
+from chunkdic.io.handles import ArrayRef
 
 
 def _parser():

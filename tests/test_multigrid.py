@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
-from chunkdic import multigrid
+from chunkdic.solve import multigrid
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS
-from chunkdic.regularization import Regularizer, plane_wave_weight
-from chunkdic.solve import StencilSolver, stencil_matvec
+from chunkdic.solve.regularization import Regularizer, plane_wave_weight
+from chunkdic.solve.cg import StencilSolver, stencil_matvec
 
 
 def _mass_stencil(nodes, seed=0):

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from chunkdic.prefilter import build_prepared, prepared_halo
+from chunkdic.engine.prefilter import build_prepared, prepared_halo
 from chunkdic.scheduler import open_runner
-from chunkdic.handles import ArrayRef
+from chunkdic.io.handles import ArrayRef
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1.0], ids=["no-low-pass", "low-pass"])
@@ -51,7 +51,7 @@ def test_reading_a_memory_mapped_store_leaves_no_mapping_behind(tmp_path, noise6
 def test_fused_filter_equals_scipy(shape, sigma, cubic):
     """One sweep per axis (Gaussian then B-spline) against scipy's two whole-volume filters:
     equal to float32 round-off of the coefficients' range, short and odd axes included."""
-    from chunkdic.kernels_prefilter import lowpass_bspline
+    from chunkdic.kernels.lowpass import lowpass_bspline
 
     g = (np.random.default_rng(7).random(shape) * 4000).astype(np.uint16)
     want = g.astype(np.float32)

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import zarr
 
-import chunkdic.store as store
-import chunkdic.levels as levels
+import chunkdic.io.store as store
+import chunkdic.io.levels as levels
 from chunkdic.errors import InputError
-from chunkdic.pyramid import build_pyramid
-from chunkdic.scanwrite import write_scan
-from chunkdic.volume import open_scan
+from chunkdic.io.pyramid import build_pyramid
+from chunkdic.io.scanwrite import write_scan
+from chunkdic.io.scan import open_scan
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:
@@ -52,7 +52,7 @@ def test_rerun_skips_complete_levels_and_rebuilds_incomplete(scan_path, monkeypa
     stamp = {s: (p / str(s) / "zarr.json").stat().st_mtime_ns for s in (1, 2)}
     calls = []
     original = levels.write_level
-    monkeypatch.setattr("chunkdic.pyramid.write_level", lambda *a, **k: calls.append(a[1]) or original(*a, **k))
+    monkeypatch.setattr("chunkdic.io.pyramid.write_level", lambda *a, **k: calls.append(a[1]) or original(*a, **k))
     build_pyramid(p, 2)
     assert calls == []
     assert all((p / str(s) / "zarr.json").stat().st_mtime_ns == stamp[s] for s in (1, 2))
@@ -146,7 +146,7 @@ def test_level0_window_and_mean_display_pyramid(scan_path, capsys):
     from ome_zarr.io import parse_url
     from ome_zarr.reader import Reader
 
-    from chunkdic.cli import main
+    from chunkdic.cli.main import main
 
     p, x = scan_path
     assert main(["pyramid", str(p), "--levels", "2", "--display"]) == 0
@@ -176,7 +176,7 @@ def test_window_from_a_bounded_sample_read_by_tasks(tmp_path):
     """The one window helper: extremes exact, percentiles from the array's ``[::step]^3``
     grid of at most ``samples`` voxels (gathered chunk by chunk from tasks), channels apart,
     an all-NaN channel None."""
-    from chunkdic.display import sample_step, windows
+    from chunkdic.io.display import sample_step, windows
 
     rng = np.random.default_rng(3)
     x = rng.normal(size=(2, 30, 29, 31)).astype(np.float32)

@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import foam, synthetic
-from chunkdic.cli import main
-from chunkdic.crosscheck import correlation_length
-from chunkdic.q4 import correlate2d
-from chunkdic.q4mesh import Mesh2D, read_image
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
+from chunkdic.cli.main import main
+from chunkdic.analysis.crosscheck import correlation_length
+from chunkdic.analysis.q4 import correlate2d
+from chunkdic.analysis.q4mesh import Mesh2D, read_image
 
 from textures import fourier_shift, smooth_noise
 
@@ -147,10 +148,10 @@ def test_cutcheck_flags_a_wrong_field(synthetic_result):
     d = synthetic_result
     good = chunkdic.cutcheck(d / "good.zarr")
     res = chunkdic.open_result(d / "wrong.zarr")
-    from chunkdic import correction
-    from chunkdic.crosscheck import check_cut
-    from chunkdic.figures import mid_planes
-    from chunkdic.resultscans import level_refs
+    from chunkdic.views import correction
+    from chunkdic.analysis.crosscheck import check_cut
+    from chunkdic.views.figures import mid_planes
+    from chunkdic.results.scans import level_refs
     from chunkdic.scheduler import open_runner
 
     with level_refs(res) as (f, g), open_runner(None) as runner:

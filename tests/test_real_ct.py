@@ -1,6 +1,6 @@
 """Issue 10: the default engine on CT-like specimens, against known fields and al-dvc.
 
-The pairs are the standard cases of :func:`chunkdic.synthetic.standard_case` (grains and
+The pairs are the standard cases of :func:`chunkdic.synth.synthetic.standard_case` (grains and
 concrete specimens imaged by simulated CT: partial-volume edges, filtered back-projection,
 reconstruction noise 0.02 of the phase contrast, uint16), written and correlated once per
 session (``tests/ctcases.py``). Every figure is :func:`chunkdic.score_displacement`: nodes
@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from chunkdic.cli import main
+from chunkdic.cli.main import main
 
 from textures import smooth_noise
 
@@ -139,7 +139,7 @@ def test_stagnating_gap_is_reported_stalled_with_exit_1(tmp_path, capsys):
     improvement; never ``converged`` either way.)
     """
     import chunkdic
-    from chunkdic.gauss_newton import STALL_PATIENCE
+    from chunkdic.engine.gauss_newton import STALL_PATIENCE
 
     f = smooth_noise((48, 48, 48), sigma=1.2, seed=1).astype(np.float32)
     g = smooth_noise((48, 48, 48), sigma=1.2, seed=2).astype(np.float32)

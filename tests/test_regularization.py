@@ -2,7 +2,7 @@
 
 Truths: analytic fields the operators must leave alone (rigid, linear, in equilibrium) or
 map to known values (``x⁴``), the plane-wave normalisation written in
-:mod:`chunkdic.regularization`, the known fields of the CT-like pairs (``tests/ctcases.py``;
+:mod:`chunkdic.solve.regularization`, the known fields of the CT-like pairs (``tests/ctcases.py``;
 scores by :func:`chunkdic.score_displacement`), a prescribed homogeneous strain, block-size
 invariance. Measured values are in the comments.
 """
@@ -16,17 +16,18 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import foam, synthetic
-from chunkdic.cli import main
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
+from chunkdic.cli.main import main
 from chunkdic.errors import InputError
-from chunkdic.planning import plan_meshes
-from chunkdic.prefilter import face_margin
-from chunkdic.regchoice import CANDIDATES, choose_length, regions
-from chunkdic.regularization import Regularizer, plane_wave_weight, plane_waves, reference_wavelength
-from chunkdic.result import FLAG_MASKED, FLAG_WEAK
-from chunkdic.scoring import scored_region
-from chunkdic.solve import half_stencil, stencil_matvec
-from chunkdic.strain import strain_summary
+from chunkdic.engine.planning import plan_meshes
+from chunkdic.engine.prefilter import face_margin
+from chunkdic.solve.regchoice import CANDIDATES, choose_length, regions
+from chunkdic.solve.regularization import Regularizer, plane_wave_weight, plane_waves, reference_wavelength
+from chunkdic.results.result import FLAG_MASKED, FLAG_WEAK
+from chunkdic.analysis.scoring import scored_region
+from chunkdic.solve.cg import half_stencil, stencil_matvec
+from chunkdic.results.strain import strain_summary
 
 from textures import smooth_noise
 
@@ -96,7 +97,7 @@ def _texture_half_stencil(shape, ell, seed=1):
     """The half stencil of ``M`` of a smooth isotropic random texture over a mesh of ``shape`` nodes."""
     import scipy.ndimage as ndi
 
-    from chunkdic.kernels_m import m_block
+    from chunkdic.kernels.m import m_block
 
     core = tuple((n - 1) * ell for n in shape)
     v = ndi.gaussian_filter(np.random.default_rng(seed).random(tuple(c + 2 for c in core)), 1.0)
@@ -377,8 +378,8 @@ def test_nodal_uncertainty_matches_the_measured_scatter(ct_cases, ell):
 
 def test_exact_diagonal_equals_the_dense_inverse():
     """diag(A⁻¹ M A⁻¹) over the inner nodes of a 6³ regularised system, against a dense inverse."""
-    from chunkdic.noise import exact_diagonal
-    from chunkdic.solve import StencilSolver
+    from chunkdic.engine.noise import exact_diagonal
+    from chunkdic.solve.cg import StencilSolver
 
     rng = np.random.default_rng(3)
     n = (6, 6, 6)
@@ -474,7 +475,7 @@ def test_mask_pyramid_by_tasks_equals_the_binarised_sums(tmp_path):
     an odd-shaped float mask with zeros): equal to NumPy's binarisation and 2×2×2 sums."""
     import dask
 
-    from chunkdic.masks import prepare_mask
+    from chunkdic.engine.masks import prepare_mask
     from chunkdic.scheduler import open_runner
 
     rng = np.random.default_rng(0)

@@ -9,11 +9,12 @@ import scipy.ndimage as ndi
 import pytest
 
 import chunkdic
-from chunkdic import _cli_report, synthetic
+from chunkdic.cli import report as _cli_report
+from chunkdic.synth import synthetic
 from chunkdic.errors import InputError
-from chunkdic.corrected import open_corrected, write_corrected
-from chunkdic.export import VTK_HEX_ORDER, hexahedra
-from chunkdic.report import plot_epszz_maps, plot_uz_maps, report
+from chunkdic.views.corrected_image import open_corrected, write_corrected
+from chunkdic.views.export import VTK_HEX_ORDER, hexahedra
+from chunkdic.views.report import plot_epszz_maps, plot_uz_maps, report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 T = (1.3, -0.7, 0.4)
@@ -211,7 +212,7 @@ def test_vtu_field_data_and_csv_for_pandas(translation, tmp_path):
 
     import meshio
 
-    from chunkdic.export import CSV_COLUMNS, read_vtk_metadata
+    from chunkdic.views.export import CSV_COLUMNS, read_vtk_metadata
 
     pd = pytest.importorskip("pandas")
     _, res, d = translation
@@ -244,7 +245,7 @@ def test_vtu_field_data_and_csv_for_pandas(translation, tmp_path):
 
 
 def test_vtu_field_data_with_a_voxel_size(translation, tmp_path):
-    from chunkdic.export import read_vtk_metadata, write_vtk
+    from chunkdic.views.export import read_vtk_metadata, write_vtk
 
     _, res, _ = translation
     phys = chunkdic.Result(res.displacement, res.node_coords, res.history,
@@ -275,7 +276,7 @@ def affine(tmp_path_factory):
 def _profile_rows(path):
     import csv
 
-    from chunkdic.profile import PROFILE_COLUMNS
+    from chunkdic.views.profile import PROFILE_COLUMNS
 
     with open(path, newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -325,7 +326,7 @@ def test_true_layer_strain_of_a_band_against_quadrature(affine):
     analytic strain profile over each element layer, at level 0 and at level 1."""
     from scipy.integrate import quad
 
-    from chunkdic.profile import true_layer_strain
+    from chunkdic.views.profile import true_layer_strain
 
     _, res, _ = affine
     band = synthetic.Band(center_z=22.0, width=10.0, strain=-0.05, lateral=0.3, center_y=20.0, center_x=25.0)
@@ -345,7 +346,7 @@ def test_true_layer_strain_of_a_band_against_quadrature(affine):
 
 
 def test_gap_figure_labels_levels_and_plain_percent(translation):
-    from chunkdic.report import gap_figure
+    from chunkdic.views.report import gap_figure
 
     _, res, _ = translation
     fig = gap_figure([res])
@@ -391,7 +392,7 @@ def test_report_format_and_dpi(translation, tmp_path):
 
 
 def test_cuts_from_must_be_one_of_the_results(translation, affine, tmp_path):
-    from chunkdic.cli import main
+    from chunkdic.cli.main import main
 
     _, _, d = translation
     _, _, d_a = affine
@@ -405,7 +406,7 @@ def test_maps_share_extent_colour_bar_and_centre(translation, tmp_path):
     symmetric about 0; with a voxel size the axes are in the scan's unit."""
     import matplotlib.figure
 
-    from chunkdic import maps
+    from chunkdic.views import maps
 
     _, res, _ = translation
     small = chunkdic.Result(res.displacement[:, :3, :3, :3], res.node_coords[:, :3, :3, :3], res.history,

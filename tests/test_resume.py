@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import foam, synthetic
-from chunkdic.cli import main
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
+from chunkdic.cli.main import main
 
 
 @pytest.fixture(scope="module")

@@ -52,9 +52,9 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
 
     import numpy as np
 
-    from chunkdic import foam
-    from chunkdic.cli import main
-    from chunkdic.volume import open_scan
+    from chunkdic.synth import foam
+    from chunkdic.cli.main import main
+    from chunkdic.io.scan import open_scan
 
     out = tmp_path / "pair"
     assert main(["synth", str(out), "--shape", "32", "--chunks", "8", "--dtype", "uint16", "--seed", "3",

@@ -1,4 +1,4 @@
-"""The common scoring rule (chunkdic.scoring): border exclusion, pooled sigma, RMS, failures.
+"""The common scoring rule (chunkdic.analysis.scoring): border exclusion, pooled sigma, RMS, failures.
 
 Every expected number below is computed by hand in the comments, not by the code.
 """
@@ -10,7 +10,7 @@ import pytest
 
 import chunkdic
 from chunkdic.errors import InputError
-from chunkdic.scoring import score_displacement, scored_region
+from chunkdic.analysis.scoring import score_displacement, scored_region
 
 
 def test_border_exclusion_uses_the_outer_voxel_faces():

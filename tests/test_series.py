@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic import synthetic
-from chunkdic.cli import main
+from chunkdic.synth import synthetic
+from chunkdic.cli.main import main
 
 N, ELL = 48, 8
 OPTIONS = dict(element_size=ELL, regularization="none")  # no automatic length choice: fast, same objective

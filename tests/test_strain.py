@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from chunkdic.mesh import Mesh
-from chunkdic.result import Result, open_result
-from chunkdic.strain import (
+from chunkdic.results.result import Result, open_result
+from chunkdic.results.strain import (
     displacement_gradient,
     element_strain,
     mean_strain,
@@ -102,10 +102,10 @@ def test_mean_strain_of_a_masked_result_counts_its_active_elements_only(tmp_path
     inactive ones (their nodes measured, at the mask's rim) would change."""
     import json
 
-    from chunkdic.cli import main
-    from chunkdic.loadseries import _row
-    from chunkdic.strain import strain_summary
-    from chunkdic.zoisweep import zoi_table
+    from chunkdic.cli.main import main
+    from chunkdic.analysis.loadseries import _row
+    from chunkdic.results.strain import strain_summary
+    from chunkdic.analysis.zoisweep import zoi_table
 
     mesh = Mesh((0, 0, 0), 8, (6, 6, 6))
     z = mesh.node_coords()[0]

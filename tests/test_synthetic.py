@@ -8,8 +8,9 @@ import os
 import numpy as np
 import pytest
 
-from chunkdic import synthetic as S
-from chunkdic import foam, foam_kernels
+from chunkdic.synth import synthetic as S
+from chunkdic.synth import foam
+from chunkdic.synth import foam_kernels
 from chunkdic.errors import InputError
 
 FIELDS = {
@@ -236,7 +237,7 @@ def test_field_json_round_trip():
 
 
 def test_synthesize_writes_pair(tmp_path):
-    from chunkdic.volume import open_scan
+    from chunkdic.io.scan import open_scan
 
     fld = FIELDS["band"]
     out = tmp_path / "pair"
@@ -260,7 +261,7 @@ def test_synthesize_writes_pair(tmp_path):
 def test_cli_synth(tmp_path):
     import argparse
 
-    from chunkdic import _cli_synth
+    from chunkdic.cli import synth as _cli_synth
 
     parser = argparse.ArgumentParser()
     _cli_synth.register(parser.add_subparsers(dest="command"))

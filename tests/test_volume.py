@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic.coarsen import coarsen_sum, pyramid_dtype
+from chunkdic.io.coarsen import coarsen_sum, pyramid_dtype
 from chunkdic.errors import InputError
-from chunkdic.store import store_array, check_write_alignment
-from chunkdic.handles import ArrayRef
-from chunkdic.scanwrite import write_scan
-from chunkdic.volume import open_scan
+from chunkdic.io.store import store_array, check_write_alignment
+from chunkdic.io.handles import ArrayRef
+from chunkdic.io.scanwrite import write_scan
+from chunkdic.io.scan import open_scan
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:
@@ -57,7 +57,7 @@ def test_coarsen_sum_equals_numpy(shape):
 @pytest.mark.parametrize("src, out", [("uint8", "uint16"), ("uint16", "uint32"), ("int16", "int32"),
                                       ("uint32", "uint32"), ("float32", "float32")])
 def test_numba_kernel_equals_numpy_twin(src, out):
-    from chunkdic.coarsen import coarsen_block, coarsen_block_numpy
+    from chunkdic.io.coarsen import coarsen_block, coarsen_block_numpy
 
     rng = np.random.default_rng(3)
     if np.dtype(src).kind == "f":
@@ -274,7 +274,7 @@ def test_in_memory_inputs_never_travel_inside_a_graph(tmp_path, monkeypatch, kin
 
     from distributed import Client
 
-    import chunkdic.levels as levels
+    import chunkdic.io.levels as levels
     from chunkdic.scheduler import DistributedRunner
 
     x = np.random.default_rng(3).integers(0, 60000, size=(64, 64, 64), dtype=np.uint16)
@@ -312,7 +312,7 @@ def float32_sums(x: np.ndarray, s: int) -> np.ndarray:
 
 @pytest.mark.parametrize("dtype", ["uint8", "uint16", "float32"])
 def test_scratch_levels_by_tasks_equal_the_lazy_levels(tmp_path, dtype):
-    """The scratch levels of ``refs`` (tasks, chunkdic.scratch_levels) equal bit for bit the
+    """The scratch levels of ``refs`` (tasks, chunkdic.io.scratch_levels) equal bit for bit the
     lazy Dask levels and an independent NumPy reshape-sum, on an odd shape cut into 8³
     chunks (many tasks, trailing partial chunks, trimmed odd voxels); also levels asked
     alone (built from level 0 in one task per chunk, intermediate levels never stored)."""
@@ -375,7 +375,7 @@ def test_correlation_of_zarr_scans_never_imports_dask_array(tmp_path):
 
 def test_write_scan_of_a_numpy_array_writes_it_from_the_client(tmp_path, monkeypatch):
     """No Dask graph at all for a NumPy level 0 (it would carry the array)."""
-    import chunkdic.levels as levels
+    import chunkdic.io.levels as levels
 
     monkeypatch.setattr(levels, "store_array", lambda *a, **k: pytest.fail("a graph was built"))
     x = np.arange(20 * 18 * 16, dtype=np.uint16).reshape(20, 18, 16)

@@ -10,7 +10,7 @@ not add::
 
     u_{0,n}(X) = u_{0,n-1}(X) + u_{n-1,n}(X + u_{0,n-1}(X))
 
-(:func:`chunkdic.loadseries.compose`). The script compares, at every step, the composed field
+(:func:`chunkdic.analysis.loadseries.compose`). The script compares, at every step, the composed field
 with the correlated cumulative one, and both with the truth when the scans are synthetic.
 
 Run here (scans 0..3 of a 64³ synthetic specimen under growing compression)::
@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 
 import chunkdic
-from chunkdic import foam, synthetic
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
 
 
 def show(event: dict) -> None:

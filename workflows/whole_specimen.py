@@ -36,7 +36,8 @@ from pathlib import Path
 import numpy as np
 
 import chunkdic
-from chunkdic import foam, synthetic
+from chunkdic.synth import foam
+from chunkdic.synth import synthetic
 
 
 def show(event: dict) -> None:
@@ -177,7 +178,7 @@ def main(argv=None) -> dict:
     print(repr(result))
 
     # 4. strain: mean over the ROI without the outermost elements (paper 5.2), principal values
-    from chunkdic.strain import strain_summary
+    from chunkdic.results.strain import strain_summary
 
     s = strain_summary(result)
     (workdir / "strain.json").write_text(json.dumps(s.as_dict(), indent=1))
@@ -187,8 +188,8 @@ def main(argv=None) -> dict:
     # 5. figures (mid-plane cuts, Uz and eps_zz maps, gap history) and the mesh for ParaView
     if not args.no_report:
         t0 = time.perf_counter()
-        from chunkdic.export import write_vtk
-        from chunkdic.report import report
+        from chunkdic.views.export import write_vtk
+        from chunkdic.views.report import report
 
         # redrawn on every run: overwrite replaces only the figures and mesh an earlier run wrote
         figures = report(result, workdir / "report", overwrite=True,

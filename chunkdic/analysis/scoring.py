@@ -1,0 +1,180 @@
+"""One scoring rule for displacement fields measured by any DVC tool against a known truth.
+
+A field measured by chunkdic (at its C8 nodes) or by another code (at its own grid points)
+is scored the same way, so that the numbers of different tools compare:
+
+- **Region.** Only points at least ``ell`` voxels from the volume's faces count. The faces
+  are the outer faces of the outer voxels: voxel ``i`` has its centre at ``i``
+  (shared/DESIGN.md), so along an axis of ``n`` voxels they sit at ``-0.5`` and
+  ``n - 0.5``, and a point ``p`` is scored when ``p + 0.5 >= ell`` and
+  ``n - 0.5 - p >= ell`` on all three axes. Local (subset) codes place no point nearer to
+  the border than about half a subset, and C8 boundary nodes are 2–4× noisier than inner
+  ones, so scoring the same region is what makes tools comparable.
+- **Failures.** Inside that region, points whose displacement is not finite, or that the
+  tool itself flags as failed (``valid=False``: not converged, rejected and replaced by
+  interpolation, ...), are left out of the statistics and counted in ``n_failed``. They
+  are never dropped without a count.
+- **Statistics** of the error ``e = u - u_true`` over the remaining ``n`` points:
+  per-component bias (mean of ``e``) and standard deviation (population, ``ddof=0``, as in
+  :func:`chunkdic.analysis.metrology.uncertainty`); ``sigma`` pooled over the three components
+  ``= sqrt(mean of the three variances)``; ``rms = sqrt(mean over points of |e|²)``
+  (bias included); ``max_error = max |e|``.
+
+``sigma`` measures the scatter (the a-priori uncertainty of the paper's section 4.2, where
+the truth is a uniform translation); ``rms`` measures the whole error against a
+non-uniform truth such as a compression band, bias and model error included.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["Score", "score_displacement", "scored_region"]
+
+
+@dataclass(frozen=True)
+class Score:
+    """Scores of one displacement field (all lengths in voxels of the reference).
+
+    Attributes
+    ----------
+    n_points : int
+        Points that entered the statistics (inside the region, finite, valid).
+    n_failed : int
+        Points inside the region left out because ``u`` was not finite or the tool
+        flagged them (``valid=False``).
+    n_outside : int
+        Points nearer than ``ell`` to the volume's faces (not scored).
+    bias : tuple of 3 float
+        Mean error per component ``(z, y, x)``.
+    std : tuple of 3 float
+        Standard deviation of the error per component ``(z, y, x)`` (``ddof=0``).
+    sigma : float
+        ``sqrt(mean(std**2))``: the three components pooled.
+    rms : float
+        ``sqrt(mean |u - u_true|²)`` over the points (vector error, bias included).
+    max_error : float
+        Largest ``|u - u_true|`` (vector norm).
+    """
+
+    n_points: int
+    n_failed: int
+    n_outside: int
+    bias: tuple[float, float, float]
+    std: tuple[float, float, float]
+    sigma: float
+    rms: float
+    max_error: float
+
+    def as_dict(self) -> dict:
+        """The scores as a JSON-serialisable dict (NaN stays NaN)."""
+        d = asdict(self)
+        d["bias"], d["std"] = list(self.bias), list(self.std)
+        return d
+
+
+def _as_points(a, name: str) -> np.ndarray:
+    a = np.asarray(a, dtype=np.float64)
+    if a.ndim < 1 or a.shape[0] != 3:
+        raise InputError(f"{name} must have the component axis first, shape (3, ...), got {a.shape}")
+    return a.reshape(3, -1)
+
+
+def scored_region(points, volume_shape, ell: float) -> np.ndarray:
+    """Which points lie at least ``ell`` voxels inside the volume's faces.
+
+    Parameters
+    ----------
+    points : array_like, shape (3, N) or (3, nz, ny, nx), float, voxels
+        Positions ``(z, y, x)`` in the reference scan (voxel ``i`` centred at ``i``).
+    volume_shape : tuple of 3 int
+        ``(nz, ny, nx)`` of the reference scan.
+    ell : float, voxels
+        Required distance to the faces at ``-0.5`` and ``n - 0.5``.
+
+    Returns
+    -------
+    ndarray, shape (N,), bool
+    """
+    p = _as_points(points, "points")
+    shape = np.asarray(volume_shape, dtype=np.float64).reshape(-1)
+    if shape.size != 3 or np.any(shape < 1):
+        raise InputError(f"volume_shape must be 3 positive integers (z, y, x), got {volume_shape!r}")
+    if not np.isfinite(ell) or ell < 0:
+        raise InputError(f"ell must be a non-negative number of voxels, got {ell!r}")
+    tol = 1e-9  # a node exactly ell from the face counts, whatever the round-off
+    lo = p + 0.5 >= ell - tol
+    hi = (shape[:, None] - 0.5) - p >= ell - tol
+    return np.all(lo & hi & np.isfinite(p), axis=0)
+
+
+def score_displacement(points, u, u_true, volume_shape, ell: float, *, valid=None) -> Score:
+    """Score a measured displacement field against the truth (module docstring: the rule).
+
+    Parameters
+    ----------
+    points : array_like, shape (3, N) or (3, nz, ny, nx), float, voxels
+        Positions ``(z, y, x)`` of the measurement points in the reference scan.
+    u : array_like, same shape as ``points``, float, voxels
+        Measured displacement ``(Uz, Uy, Ux)`` with ``f(X) = g(X + u(X))``.
+    u_true : array_like, shape like ``u`` or (3,), float, voxels
+        True displacement at the same points (``(3,)``: a uniform translation).
+    volume_shape : tuple of 3 int
+        ``(nz, ny, nx)`` of the reference scan.
+    ell : float, voxels
+        Only points at least ``ell`` from the volume's faces are scored (use the element
+        size / node spacing of the comparison).
+    valid : array_like of bool, shape (N,) or ``points.shape[1:]``, optional
+        ``False`` where the tool reports a failure; such points are counted in
+        ``n_failed``, not scored. Default: all valid.
+
+    Returns
+    -------
+    Score
+        With ``n_points == 0`` the statistics are NaN.
+
+    Examples
+    --------
+    >>> pts = np.array([[20.0, 40.0], [20.0, 40.0], [20.0, 40.0]])
+    >>> s = score_displacement(pts, [[0.6, 0.4], [0.5, 0.5], [0.5, 0.5]], (0.5, 0.5, 0.5), (64, 64, 64), 16)
+    >>> round(s.rms, 3), s.n_points
+    (0.1, 2)
+    """
+    p = _as_points(points, "points")
+    uu = _as_points(u, "u")
+    if uu.shape != p.shape:
+        raise InputError(f"u has {uu.shape[1]} points, points has {p.shape[1]}")
+    t = np.asarray(u_true, dtype=np.float64)
+    t = np.broadcast_to(t.reshape(3, 1), p.shape) if t.shape == (3,) else _as_points(t, "u_true")
+    if t.shape != p.shape:
+        raise InputError(f"u_true has {t.shape[1]} points, points has {p.shape[1]}")
+    ok = np.ones(p.shape[1], dtype=bool)
+    if valid is not None:
+        ok = np.asarray(valid, dtype=bool).reshape(-1)
+        if ok.size != p.shape[1]:
+            raise InputError(f"valid has {ok.size} entries, points has {p.shape[1]}")
+    inside = scored_region(p, volume_shape, ell)
+    good = inside & ok & np.all(np.isfinite(uu), axis=0) & np.all(np.isfinite(t), axis=0)
+    n = int(good.sum())
+    n_failed = int((inside & ~good).sum())
+    n_outside = int((~inside).sum())
+    if n == 0:
+        nan3 = (float("nan"),) * 3
+        return Score(0, n_failed, n_outside, nan3, nan3, float("nan"), float("nan"), float("nan"))
+    e = uu[:, good] - t[:, good]
+    bias, std = e.mean(axis=1), e.std(axis=1)
+    norm2 = (e * e).sum(axis=0)
+    return Score(
+        n_points=n,
+        n_failed=n_failed,
+        n_outside=n_outside,
+        bias=tuple(float(v) for v in bias),
+        std=tuple(float(v) for v in std),
+        sigma=float(np.sqrt((std ** 2).mean())),
+        rms=float(np.sqrt(norm2.mean())),
+        max_error=float(np.sqrt(norm2.max())),
+    )

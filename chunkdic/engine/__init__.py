@@ -1,0 +1,9 @@
+"""The correlation: settings, meshes per level, block tasks, Gauss-Newton iterations, checkpoints, the coarse-to-fine driver.
+
+Public names are imported on first use (lazy_loader, as scikit-image does); ``__init__.pyi``
+lists them with the module each comes from.
+"""
+
+import lazy_loader as _lazy
+
+__getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)

@@ -1,0 +1,129 @@
+"""Checkpoints: a correlation survives the death of its client.
+
+While it runs, a correlation keeps its output group marked incomplete and writes, after
+every completed iteration, what it needs to continue: the Gauss–Newton state of the
+current level (nodal field, best field so far, counters), the history, the rigid
+translation and the statuses of the finished levels. Re-running the same command finds
+the checkpoint, checks that inputs and settings are the same (a fingerprint) and carries
+on from there; ``M`` and the B-spline coefficients are recomputed (deterministic), so the
+final field equals that of an uninterrupted run to float round-off.
+
+Layout inside ``OUT.zarr``: ``attrs["chunkdic"] = {"complete": false, "fingerprint": …,
+"checkpoint": {…scalars…, "slot": k}}`` and arrays ``checkpoint/<name><k>``. Arrays are
+written to the slot not in use before the attributes point at it, so a kill during a
+checkpoint leaves the previous one intact.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import uuid
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from ..io.integrity import content_identity
+
+
+def fingerprint(description: dict) -> str:
+    """A stable hash of what determines a run's result (inputs and settings)."""
+    text = json.dumps(description, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _read_attrs(path: Path) -> dict | None:
+    import zarr
+
+    try:
+        return dict(zarr.open_group(str(path), mode="r").attrs.get("chunkdic", {}))
+    except Exception:  # noqa: BLE001 - anything unreadable is "not ours"
+        return None
+
+
+def _what_changed(before: dict | None, now: dict | None) -> str:
+    changed = [role for role in (now or {}) if before and role in before and before[role] != now[role]]
+    return f" (the {' and '.join(changed)} scan changed since)" if changed else ""
+
+
+class Checkpoint:
+    """The checkpoint of one run in its output group."""
+
+    def __init__(self, path: Path, print_: str):
+        self.path = Path(path)
+        self.fingerprint = print_
+        self.saved = False  # whether this run has written a checkpoint yet
+
+    @classmethod
+    def start(cls, path, print_: str, *, identities: dict | None = None) -> tuple["Checkpoint", dict | None]:
+        """Open the output for a run: fresh, or resumed from a matching checkpoint.
+
+        The caller has checked the output (:mod:`chunkdic.io.outputs`: not an input, ours,
+        ``--overwrite`` rules) and holds its lock (:class:`chunkdic.io.ownership.OutputLock`);
+        here, under the lock, an existing group is read again. Returns the checkpoint and
+        the saved state (``None`` for a fresh run). Refuses (InputError) a result completed
+        meanwhile and a run made with other inputs or settings, naming the input whose
+        content changed (``identities``: input role -> content identity).
+        """
+        import zarr
+
+        path = Path(path)
+        identities = json.loads(json.dumps(identities or {}, default=str))  # compared with their JSON form
+        state = None
+        if path.exists():
+            attrs = _read_attrs(path)
+            if attrs is None or "fingerprint" not in attrs:
+                raise InputError(f"output {path} exists: choose another path or pass --overwrite")
+            if attrs.get("complete"):
+                raise InputError(f"output {path} is a complete result: choose another path or "
+                                 "pass --overwrite")
+            if attrs["fingerprint"] != print_:
+                raise InputError(f"output {path} holds an interrupted run made with other inputs or settings"
+                                 f"{_what_changed(attrs.get('identities'), identities)}: pass --overwrite to start "
+                                 "again")
+            state = attrs.get("checkpoint")
+        else:
+            root = zarr.open_group(str(path), mode="w", zarr_format=3)
+            root.attrs["chunkdic"] = {"kind": "result", "complete": False, "fingerprint": print_,
+                                      "identities": identities}
+        ckpt = cls(path, print_)
+        if state is not None:
+            state = dict(state, arrays=ckpt._load_arrays(state))
+        return ckpt, state
+
+    def _load_arrays(self, state: dict) -> dict[str, np.ndarray]:
+        import zarr
+
+        group = zarr.open_group(str(self.path / "checkpoint"), mode="r")
+        k = state["slot"]
+        return {name: group[f"{name}{k}"][...] for name in state["array_names"]}
+
+    def save(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
+        """Write a new checkpoint (arrays first, into the free slot, then the pointer)."""
+        import zarr
+
+        root = zarr.open_group(str(self.path), mode="r+")
+        attrs = dict(root.attrs["chunkdic"])
+        slot = 1 - attrs.get("checkpoint", {}).get("slot", 1)
+        group = root.require_group("checkpoint")
+        for name, arr in arrays.items():
+            arr = np.ascontiguousarray(arr)
+            # named dimensions, as every array of a result group (xarray reads them)
+            group.create_array(f"{name}{slot}", data=arr, overwrite=True,
+                               dimension_names=tuple(f"{name}_{i}" for i in range(arr.ndim)))
+        attrs["checkpoint"] = {**state, "slot": slot, "array_names": sorted(arrays)}
+        root.attrs["chunkdic"] = attrs
+        self.saved = True
+
+
+def identify_input(src, scan) -> dict:
+    """What identifies an input for resuming: path, shape, dtype and a cheap content
+    identity of every stored level (:func:`chunkdic.io.integrity.content_identity`: chunk
+    list, sizes, times and a fixed sample of chunk bytes, never the scan). In-memory
+    inputs never match (no resume)."""
+    if isinstance(src, (str, Path)):
+        content = {str(s): content_identity(r.kind, r.path, r.key) for s, r in sorted(scan.stored_refs().items())}
+        return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0)),
+                "content": content}
+    return {"in-memory": uuid.uuid4().hex}

@@ -1,0 +1,362 @@
+"""One pyramid level of a correlation: its blocks, ``M``, prepared ``g`` and ``b`` passes.
+
+A :class:`Level` lives from the ``M`` pass to the end of the level's Gauss–Newton
+iterations. It owns the level's scratch data (the haloed copy of ``f``, the B-spline
+coefficients of ``g``) and deletes them in :meth:`Level.release`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import shutil
+import time
+import warnings
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..errors import InputError
+from .greylevel import Fit, combine
+from .haloed import HaloedBlocks
+from ..kernels.blocks import LAGS
+from ..mesh import Mesh
+from .masks import MIN_MATERIAL, active_elements
+from .noise import correlation_factor
+from .prefilter import build_prepared, face_margin, prepared_halo, reachable_box
+from .settings import Settings
+from ..solve.regularization import Regularizer, plane_wave_weight
+from ..solve.cg import PoorTextureWarning, StencilSolver, rigid_restriction, stencil_matvec
+from .tasks import BlockJob, LevelInputs, b_task, m_task
+from ..io.handles import ArrayRef, forget_open_arrays
+
+log = logging.getLogger(__name__)
+
+#: interval of block-count progress events during a long pass over the voxels (seconds)
+PROGRESS_SECONDS = 5.0
+#: a diagnostic gap (:meth:`Level.gap`) is measured on one element in 8 when the mesh has
+#: at least this many elements (the sample then holds 512 or more)
+GAP_SAMPLE_MIN = 4096
+
+
+def emit(progress: Callable[[dict], None] | None, **event) -> None:
+    """Log an engine event and hand it to the caller's ``progress`` callback."""
+    log.info("%s", event)
+    if progress is not None:
+        progress(event)
+
+
+@dataclasses.dataclass
+class Pass:
+    """One ``b`` pass over a level for a nodal field.
+
+    Attributes
+    ----------
+    fit : Fit
+        ``b``, ``Σ r²`` and the brightness found (:mod:`chunkdic.engine.greylevel`).
+    gap : float
+        Matching gap ``rms(r) / (max f - min f)`` over the valid voxels (paper section 5.1).
+    n_valid, n_excluded : int
+        Voxels used, and voxels whose ``X + u(X)`` left ``g``.
+    kappa : float
+        How much more misfit a fitted unknown absorbs than with white noise
+        (:func:`chunkdic.engine.noise.correlation_factor`).
+    """
+
+    fit: Fit
+    gap: float
+    n_valid: int
+    n_excluded: int
+    kappa: float = 1.0
+
+    @property
+    def noise_variance(self) -> float:
+        """``σ_r²``: the mean squared residual (grey levels²)."""
+        return self.fit.ssr / self.fit.weight if self.fit.weight > 0 else float("nan")
+
+    @property
+    def b(self) -> np.ndarray:
+        return self.fit.b
+
+    @property
+    def excluded_fraction(self) -> float:
+        total = self.n_valid + self.n_excluded
+        return self.n_excluded / total if total else 1.0
+
+
+class Level:
+    """State of one pyramid level: its mesh, data, assembled ``M`` and solver.
+
+    Parameters
+    ----------
+    s : int
+        Pyramid level.
+    mesh : Mesh
+        The level's mesh.
+    f_ref, g_ref : ArrayRef
+        Reference and deformed scans at this level.
+    runner
+        Where tasks run (:func:`chunkdic.scheduler.open_runner`).
+    settings : Settings
+    scratch : Path
+        The run's scratch directory (shared with the workers).
+    progress : callable, optional
+        Receives events (dicts), see :func:`emit`.
+    """
+
+    def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
+                 scratch: Path, progress=None, mask: ArrayRef | None = None):
+        self.s, self.mesh, self.runner, self.settings = s, mesh, runner, settings
+        self.scratch = scratch
+        self.progress = progress
+        self._builds = 0
+        m = settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size)
+        self.jobs = BlockJob.for_mesh(mesh, m)
+        margin = face_margin(settings.smoothing)
+        if min(g_ref.shape) <= 2 * margin + 1:
+            raise InputError(f"the deformed scan is too small at level {s} ({g_ref.shape}) for a low-pass of "
+                             f"{settings.smoothing} voxels: choose a finer coarsest level or less smoothing")
+        self.inputs = LevelInputs(f_ref, g_ref, self._create_f_copy(f_ref, settings.smoothing),
+                                  settings.interpolation, settings.smoothing, settings.grey,
+                                  int(config.get("bspline-halo")), margin, level=s, mask=mask)
+        self.active = None  # element activity of a specimen mask (set by the M pass)
+        self.dynamic_range = math.nan
+
+    @property
+    def blocks(self) -> list:
+        return [job.block for job in self.jobs]
+
+    def _map(self, fn, args, label: str, voxels: int | None = None):
+        """Run one task per argument tuple, yield results as they come, report long passes.
+
+        A pass that lasts more than ``PROGRESS_SECONDS`` emits ``stage="blocks"`` events
+        (done/total, voxel rate, ETA) at that interval, for a person at a terminal.
+        ``voxels``: what the tasks cover together (default: the mesh's ROI).
+        """
+        total = len(args)
+        voxels_per_block = (self.mesh.n_voxels if voxels is None else voxels) / max(total, 1)
+        t0 = last = time.perf_counter()
+        for done, result in enumerate(self.runner.map_unordered(fn, args), start=1):
+            yield result
+            now = time.perf_counter()
+            if now - last >= PROGRESS_SECONDS and done < total:
+                last = now
+                rate = done * voxels_per_block / (now - t0)
+                emit(self.progress, stage="blocks", level=self.s, label=label, done=done, total=total,
+                     rate=rate, eta=(total - done) * voxels_per_block / rate)
+
+    def _create_f_copy(self, f_ref: ArrayRef, sigma: float) -> HaloedBlocks:
+        """Empty store for the blocks' haloed ``f`` (see :mod:`chunkdic.engine.haloed`).
+
+        Low-passed blocks are float32; without the low-pass the scan's own dtype (1-2
+        bytes per voxel for most scans) keeps the scratch small.
+        """
+        grid = tuple(max(job.index[a] for job in self.jobs) + 1 for a in range(3))
+        regions = [job.haloed_region(f_ref.shape)[0] for job in self.jobs]
+        chunk = tuple(max(r[a].stop - r[a].start for r in regions) for a in range(3))
+        dtype = "float32" if sigma > 0 else f_ref.dtype
+        return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, dtype)
+
+    def assemble_m(self, u: np.ndarray) -> None:
+        """``M`` pass for the level's starting field ``u``: the stencil, its rigid restriction, the solver."""
+        mesh = self.mesh
+        # float32 and only the symmetric half (solve.HALF_OFFSETS): M only steers the
+        # modified Gauss-Newton steps (the converged field solves b = λ R a whatever M),
+        # and at 128³ nodes a full float64 stencil alone would be 4 GB. Each block's
+        # partial is summed in float64 by its task.
+        S = np.zeros(mesh.nodes_shape + (14, 3, 3), dtype=np.float32)
+        fmin, fmax = np.inf, -np.inf
+        args = [(self.inputs, job, self._nodes_of(u, job)) for job in self.jobs]
+        self.sensitivity_lags = np.zeros((3, LAGS + 1))
+        fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
+        for blk, part, lo, hi, lags, frac in self._map(m_task, args, "M pass"):
+            S[blk.node_slices] += part[..., 13:, :, :]
+            fmin, fmax = min(fmin, lo), max(fmax, hi)
+            self.sensitivity_lags += lags
+            if fractions is not None:
+                fractions[tuple(slice(e0, e1) for e0, e1 in blk.elements)] = frac
+        if fractions is not None:
+            self.active = active_elements(fractions)
+            if not self.active.any():
+                raise InputError(f"the mask has no element with material in the ROI at level {self.s} "
+                                 f"(at least {MIN_MATERIAL:.0%} of an element must be material)")
+        self.dynamic_range = float(fmax - fmin)
+        if not self.dynamic_range > 0:
+            raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
+        self.inputs = dataclasses.replace(self.inputs, center=0.5 * float(fmin + fmax))
+        # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
+        self.rigid_matrix = rigid_restriction(S)
+        self.solver = StencilSolver(S)
+        self._warn_weak_nodes()
+        self.regularization_length = math.nan
+        self.regularization_weight = 0.0
+
+    def regularize(self, length: float) -> None:
+        """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularization`); ``length``: ``ℓ_reg``, voxels of the level.
+
+        Coarser levels only give the finest one its starting field, and their low-passed
+        sums may leave elements with too little texture: they are always regularised
+        (Tikhonov when the run asks for none). Unregularised, a 128³ foam correlated at
+        ℓ = 6 moved by 33-82 voxels on level 1 and ended stalled at σ 0.098 voxel; with the
+        coarse levels regularised it converged at σ 0.0048.
+        """
+        kind = self.settings.regularization
+        if kind == "none":
+            if self.s == self.settings.level:
+                return
+            kind = "tikhonov"
+        reg = Regularizer(kind, self.mesh.nodes_shape, self.mesh.element_size)
+        weight = plane_wave_weight(reg, lambda v: stencil_matvec(self.solver.matrix, v), length)
+        self.solver.regularize(reg, weight)
+        self.regularization_length, self.regularization_weight = float(length), weight
+        log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", self.s, kind, length, weight)
+
+    def weak_nodes(self) -> np.ndarray:
+        """Poorly textured nodes (index triples), those outside a specimen mask left out."""
+        weak = self.solver.weak_nodes
+        if self.active is not None and len(weak):
+            weak = weak[~self.masked_nodes()[tuple(weak.T)]]
+        return weak
+
+    def _warn_weak_nodes(self) -> None:
+        """Warn of the correlated level's poorly textured nodes (coarser levels: logged only).
+
+        A coarser level only gives the next one its start, and its nodes are regularised
+        anyway (:meth:`regularize`): a warning about them, printed by every run on scans
+        whose corners lose texture to the sums, told users nothing they could act on.
+        """
+        weak = self.weak_nodes()
+        if len(weak) == 0:
+            return
+        if self.s != self.settings.level:
+            log.info("level %d: %d of %d nodes see little texture (regularised; only a start for level %d)",
+                     self.s, len(weak), int(np.prod(self.mesh.nodes_shape)), self.s - 1)
+            return
+        coords = self.mesh.node_coords()
+        where = ", ".join(
+            "node (%d, %d, %d) at voxel (%.1f, %.1f, %.1f)" % (*n, *coords[(slice(None), *n)]) for n in weak[:5]
+        )
+        more = f" and {len(weak) - 5} more" if len(weak) > 5 else ""
+        warnings.warn(
+            f"level {self.s}: {len(weak)} of {np.prod(self.mesh.nodes_shape)} nodes see too little texture "
+            f"to be measured ({where}{more}); they are regularised and their values are unreliable",
+            PoorTextureWarning,
+            stacklevel=4,
+        )
+
+    def prepare_interpolation(self, u: np.ndarray) -> None:
+        """Prepare once the part of ``g`` that ``u`` (± a margin) can reach (low-pass, B-spline)."""
+        if not self.inputs.g_needs_preparing:
+            return
+        g_ref = self.inputs.g
+        needed = reachable_box(self.mesh, u, g_ref.shape, margin=0)
+        current = self.inputs.prepared
+        if needed is None or (current is not None and current.covers(tuple(slice(a, b) for a, b in needed))):
+            return
+        box = reachable_box(self.mesh, u, g_ref.shape, margin=max(8, self.mesh.element_size))
+        self._release_prepared()
+        self._builds += 1
+        path = self.scratch / f"g-level{self.s}-{self._builds}.zarr"
+        t0 = time.perf_counter()
+        voxels = int(np.prod([b - a for a, b in box]))
+        inp = self.inputs
+        prepared = build_prepared(
+            g_ref, box, path, lambda fn, args: self._map(fn, args, "prefilter of g", voxels),
+            halo=prepared_halo(inp.sigma, inp.interpolation, inp.bspline_halo), local=self.runner.local,
+            sigma=inp.sigma, interpolation=inp.interpolation,
+        )
+        self.inputs = dataclasses.replace(self.inputs, prepared=prepared)
+        log.info("level %d: g prepared over %s in %.1f s", self.s, box, time.perf_counter() - t0)
+
+    def _release_prepared(self) -> None:
+        if self.inputs.prepared is not None:
+            path = Path(self.inputs.prepared.ref.path)
+            self.inputs = dataclasses.replace(self.inputs, prepared=None)
+            self._delete([path])
+
+    def release(self) -> None:
+        """Delete this level's scratch data (prepared ``g``, haloed ``f``) and open handles on them."""
+        paths = [Path(self.inputs.f_copy.path)]
+        if self.inputs.prepared is not None:
+            paths.append(Path(self.inputs.prepared.ref.path))
+        self._delete(paths)
+
+    def _delete(self, paths: list[Path]) -> None:
+        self.runner.run_everywhere(forget_open_arrays)
+        for path in paths:
+            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+
+    @staticmethod
+    def _active_of(active: np.ndarray | None, job: BlockJob) -> np.ndarray | None:
+        """A block's slice of an element activity (None: every element)."""
+        if active is None:
+            return None
+        return np.ascontiguousarray(active[tuple(slice(e0, e1) for e0, e1 in job.block.elements)])
+
+    def masked_nodes(self) -> np.ndarray:
+        """Nodes with no active element around them (bool, nodes shape); all False without a mask."""
+        if self.active is None:
+            return np.zeros(self.mesh.nodes_shape, bool)
+        a = np.pad(self.active, 1)
+        n = self.mesh.nodes_shape
+        around = sum(a[dz:dz + n[0], dy:dy + n[1], dx:dx + n[2]] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
+        return around == 0
+
+    @staticmethod
+    def _nodes_of(u: np.ndarray, job: BlockJob) -> np.ndarray:
+        """A block's own slice of the nodal field: what its task receives (kilobytes)."""
+        return np.ascontiguousarray(u[(slice(None), *job.block.node_slices)])
+
+    def gap(self, u: np.ndarray) -> float:
+        """The matching gap of the nodal field ``u`` (3, nz, ny, nx) alone: a diagnostic
+        (the initial and rigid gaps a run reports), not a step of the iterations.
+
+        On a mesh of at least :data:`GAP_SAMPLE_MIN` elements it is measured on the regular
+        sample of one element in 8 (even indices along every axis; rows of voxels with no
+        sampled element are skipped): a pass at an eighth of the cost. The gap is a root
+        mean square over elements fitted independently (per-element offsets), so the sample
+        estimates it closely (measured on the 300³ CT pair, ℓ = 12 and 8: within 0.9 % of the
+        full pass).
+        """
+        sample = None
+        if int(np.prod(self.mesh.shape)) >= GAP_SAMPLE_MIN:
+            sample = np.zeros(self.mesh.shape, np.uint8)
+            sample[::2, ::2, ::2] = 1
+            if self.active is not None:
+                sample &= self.active.astype(np.uint8)
+            if not sample.any():
+                sample = None
+        return self.assemble_b(u, sample).gap
+
+    def assemble_b(self, u: np.ndarray, sample: np.ndarray | None = None) -> Pass:
+        """One pass for the nodal field ``u``: ``b``, brightness, gap and voxel counts.
+
+        ``sample`` (uint8, the mesh's element shape): only its non-zero elements take part
+        (:meth:`gap`); default: every active element.
+        """
+        mesh = self.mesh
+        nodal = scalars = None
+        elements = None
+        n_excluded = 0
+        lags = np.zeros((6, LAGS + 1))
+        active = self.active if sample is None else sample
+        args = [(self.inputs, job, self._nodes_of(u, job), self._active_of(active, job)) for job in self.jobs]
+        for blk, part in self._map(b_task, args, "b pass"):
+            if nodal is None:
+                nodal = np.zeros((part.nodal.shape[0],) + mesh.nodes_shape + (3,))
+                scalars = np.zeros_like(part.scalars)
+                elements = np.zeros((part.elements.shape[0],) + tuple(mesh.shape))
+            nodal[(slice(None), *blk.node_slices)] += part.nodal
+            scalars += part.scalars
+            elements[(slice(None), *(slice(e0, e1) for e0, e1 in blk.elements))] = part.elements
+            n_excluded += part.n_excluded
+            lags += part.lags
+        fit = combine(self.settings.grey, nodal, scalars, elements, self.inputs.center, mesh.element_size)
+        gap = math.sqrt(fit.ssr / fit.weight) / self.dynamic_range if fit.weight > 0 else math.inf
+        kappa = correlation_factor(lags, self.sensitivity_lags, float(np.median(fit.gain)),
+                                   fit.ssr / fit.weight if fit.weight > 0 else None)
+        self.last_pass = Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded, kappa)
+        return self.last_pass

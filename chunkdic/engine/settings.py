@@ -1,0 +1,137 @@
+"""Algorithm settings of one correlation: one frozen, validated, JSON-able record.
+
+A :class:`Settings` is what :func:`chunkdic.correlate` runs with, what a result stores
+(``info["settings"]``) and part of the resume fingerprint. Every field is checked when the
+record is made, so a bad option is refused (:class:`InputError`, one line, exit 2 on the
+command line) before anything is read or written.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields
+
+from ..errors import InputError
+
+INTERPOLATIONS = ("cubic", "linear")
+GREY_MODELS = ("none", "global", "drift", "element")
+REGULARIZATIONS = ("none", "tikhonov", "equilibrium-gap")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Algorithm settings of one correlation (stored with the result).
+
+    Parameters
+    ----------
+    element_size : int
+        Element edge ``ell``, voxels of ``level`` (>= 2).
+    level : int
+        Pyramid level correlated last (0 = full resolution, 2 = the paper's 4³ compression).
+    coarsest : int or None
+        Coarsest pyramid level; ``None`` picks it automatically
+        (:func:`chunkdic.engine.planning.plan_meshes`).
+    interpolation : {"cubic", "linear"}
+        Interpolation of the deformed image (cubic B-spline, or the paper's trilinear).
+    smoothing : float
+        Standard deviation (voxels of each level, >= 0) of the Gaussian low-pass applied to
+        both scans before correlating; 0 turns it off (the paper). docs/engine.md, "Image
+        preparation".
+    grey : {"none", "global", "drift", "element"}
+        Brightness model between the scans (:mod:`chunkdic.engine.greylevel`); ``none`` is the
+        paper's plain residual.
+    regularization : {"none", "tikhonov", "equilibrium-gap"}
+        Penalty on the short wavelengths of the field (:mod:`chunkdic.solve.regularization`).
+    regularization_length : float or None
+        Its length ``ℓ_reg``, voxels of level 0 (> 0): wavelengths shorter than it are
+        damped, longer ones left to the images. ``None``: chosen automatically
+        (docs/engine.md, "Regularisation").
+    tolerance : float
+        Convergence when ``max |δa|`` falls below it (voxels of ``level``; finite, >= 0;
+        0 iterates until ``max_iterations``).
+    coarse_tolerance : float
+        The same on coarser levels, whose field is only a starting point.
+    max_iterations : int
+        Iteration cap per level (>= 1).
+    block_elements : int or None
+        Elements per block side; ``None`` uses ``chunkdic.block-voxels`` (config).
+    """
+
+    element_size: int
+    level: int = 0
+    coarsest: int | None = None
+    interpolation: str = "cubic"
+    smoothing: float = 1.0
+    grey: str = "drift"
+    regularization: str = "tikhonov"
+    regularization_length: float | None = None
+    tolerance: float = 1e-3
+    coarse_tolerance: float = 1e-2
+    max_iterations: int = 30
+    block_elements: int | None = None
+
+    def __post_init__(self):
+        check = object.__setattr__
+        check(self, "element_size", _integer(self.element_size, "element size", minimum=2))
+        check(self, "level", _integer(self.level, "level", minimum=0))
+        if self.coarsest is not None:
+            check(self, "coarsest", _integer(self.coarsest, "coarsest level", minimum=0))
+        _choice(self.interpolation, INTERPOLATIONS, "interpolation")
+        check(self, "smoothing", _nonnegative_float(self.smoothing, "smoothing"))
+        _choice(self.grey, GREY_MODELS, "grey-level model")
+        _choice(self.regularization, REGULARIZATIONS, "regularization")
+        if self.regularization_length is not None:
+            check(self, "regularization_length", _positive_float(self.regularization_length, "regularization length"))
+        check(self, "tolerance", _nonnegative_float(self.tolerance, "tolerance"))
+        check(self, "coarse_tolerance", _nonnegative_float(self.coarse_tolerance, "coarse tolerance"))
+        check(self, "max_iterations", _integer(self.max_iterations, "max iterations", minimum=1))
+        if self.block_elements is not None:
+            check(self, "block_elements", _integer(self.block_elements, "block elements", minimum=1))
+
+    @classmethod
+    def names(cls) -> tuple[str, ...]:
+        return tuple(f.name for f in fields(cls))
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Settings":
+        """Settings stored by a result (keys this version does not know are ignored)."""
+        return cls(**{k: v for k, v in d.items() if k in cls.names()})
+
+
+def _integer(value, name: str, *, minimum: int) -> int:
+    try:
+        out = int(value)
+    except (TypeError, ValueError, OverflowError):
+        raise InputError(f"{name} must be an integer, got {value!r}") from None
+    if out != value or out < minimum:
+        raise InputError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return out
+
+
+def _positive_float(value, name: str) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not (math.isfinite(out) and out > 0):
+        raise InputError(f"{name} must be a finite number > 0, got {value!r}")
+    return out
+
+
+def _nonnegative_float(value, name: str) -> float:
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"{name} must be a number, got {value!r}") from None
+    if not (math.isfinite(out) and out >= 0):
+        raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
+    return out
+
+
+def _choice(value, choices, name: str) -> str:
+    if value not in choices:
+        raise InputError(f"{name} must be one of {', '.join(choices)}; got {value!r}")
+    return value

@@ -1,0 +1,207 @@
+"""Task bodies of the engine: what one worker does for one block of elements.
+
+A task receives a :class:`BlockJob` (which block: a few integers), the level's
+:class:`LevelInputs` (paths and small descriptors, never voxels) and, for ``b``, its own
+slice of the nodal field; it reads its voxels from the stores and returns mesh-sized
+partials (shared/DESIGN.md, "Out-of-core shape").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..kernels.blocks import ElementSums
+from ..kernels.b import b_sums
+from ..kernels.m import m_block
+from ..kernels.window import g_window
+from .greylevel import Partials, reduce_block
+from .haloed import HaloedBlocks
+from ..mesh import Block, Mesh
+from .masks import active_elements, element_fractions
+from .prefilter import PreparedImage, check_finite, gaussian_radius, prepare_deformed, prepare_reference, prepared_halo
+from ..io.handles import ArrayRef
+
+
+@dataclass(frozen=True)
+class BlockJob:
+    """One block of whole elements of a level's mesh.
+
+    Attributes
+    ----------
+    block : Block
+        Element ranges.
+    ell : int
+        Element edge, voxels of the level.
+    start, shape : tuple of 3 int
+        Absolute first voxel and shape of the block's core, voxels of the level.
+    index : tuple of 3 int
+        Position of the block in the block grid (its chunk of the haloed ``f`` copy).
+    """
+
+    block: Block
+    ell: int
+    start: tuple[int, int, int]
+    shape: tuple[int, int, int]
+    index: tuple[int, int, int]
+
+    @classmethod
+    def for_mesh(cls, mesh: Mesh, elements_per_block: int) -> list["BlockJob"]:
+        """Every block of ``mesh``, at most ``elements_per_block`` elements per side."""
+        m = max(1, int(elements_per_block))
+        jobs = []
+        for blk in mesh.blocks(m):
+            start, shape = mesh.block_core(blk)
+            index = tuple(e0 // m for e0, _ in blk.elements)
+            jobs.append(cls(blk, mesh.element_size, start, shape, index))
+        return jobs
+
+    def haloed_region(self, volume_shape) -> tuple[tuple[slice, ...], tuple[int, ...], tuple[int, ...]]:
+        """The core grown by one voxel (clipped to the volume) and the halo obtained per side."""
+        return halo_region(self.start, self.shape, volume_shape)
+
+
+@dataclass(frozen=True)
+class LevelInputs:
+    """What every task of one level reads: stores and the level's image settings.
+
+    Attributes
+    ----------
+    f, g : ArrayRef
+        Reference and deformed scans at the level.
+    f_copy : HaloedBlocks
+        Each block's prepared, haloed ``f``, written by the ``M`` pass, read by the ``b`` passes.
+    interpolation : {"cubic", "linear"}
+    sigma : float
+        Gaussian low-pass of both scans, voxels of the level (0: none).
+    grey : str
+        Brightness model (:mod:`chunkdic.engine.greylevel`).
+    bspline_halo : int
+        Extra voxels around a ``g`` window prefiltered by the task itself (cubic).
+    g_margin : int
+        Voxels ``X + u(X)`` falling within this distance of a face of ``g`` are excluded:
+        there the low-pass of ``g`` sees the mirror extension instead of the specimen's
+        continuation (:func:`chunkdic.engine.prefilter.face_margin`).
+    center : float
+        Centring constant of the brightness sums (the level's mid grey level, set by the
+        ``M`` pass).
+    prepared : PreparedImage or None
+        The level's prepared ``g``, when built.
+    level : int
+        The pyramid level.
+    mask : ArrayRef or None
+        The binary specimen mask's sums at this level (:mod:`chunkdic.engine.masks`).
+    """
+
+    f: ArrayRef
+    g: ArrayRef
+    f_copy: HaloedBlocks
+    interpolation: str
+    sigma: float
+    grey: str
+    bspline_halo: int
+    g_margin: int = 0
+    center: float = 0.0
+    prepared: PreparedImage | None = None
+    level: int = 0
+    mask: ArrayRef | None = None
+
+    @property
+    def g_needs_preparing(self) -> bool:
+        return self.interpolation == "cubic" or self.sigma > 0
+
+
+def halo_region(start, shape, full_shape, halo: int = 1):
+    """Core box grown by ``halo`` voxels, clipped to the volume; and the halos obtained."""
+    region, lo, hi = [], [], []
+    for a, n, N in zip(start, shape, full_shape):
+        r0, r1 = max(a - halo, 0), min(a + n + halo, N)
+        region.append(slice(r0, r1))
+        lo.append(a - r0)
+        hi.append(r1 - (a + n))
+    return tuple(region), tuple(lo), tuple(hi)
+
+
+def read_prepared_reference(inputs: LevelInputs, start, shape, halo: int = 1):
+    """The reference over a block core grown by ``halo`` voxels (clipped), checked and low-passed.
+
+    Returns ``(f, lo, hi)``: the block (float32 when low-passed, else the scan's dtype) and
+    the halo obtained on each side (:func:`halo_region`).
+    """
+    inner, lo, hi = halo_region(start, shape, inputs.f.shape, halo)
+    region, _, _ = halo_region(start, shape, inputs.f.shape, halo + gaussian_radius(inputs.sigma))
+    raw = inputs.f.read(region)
+    check_finite(raw, "reference", region)
+    f = prepare_reference(raw, region, inner, inputs.sigma) if inputs.sigma > 0 else raw
+    return f, lo, hi
+
+
+def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
+    """Task: this block's share of ``M`` (a nodal stencil) and the min/max of the prepared ``f``.
+
+    Reads the block with the halo its low-pass needs, checks it, low-passes it and keeps
+    the prepared block with its one-voxel halo as its chunk of ``inputs.f_copy`` for the
+    ``b`` passes. ``u_block``: the level's starting field on the block's nodes; voxels it
+    maps outside ``g`` are left out of ``M`` as the ``b`` passes leave them out.
+    """
+    f, lo, hi = read_prepared_reference(inputs, job.start, job.shape, halo=1)
+    inputs.f_copy.write(job.index, f)
+    f = np.asarray(f, dtype=np.float32)
+    fractions = None
+    if inputs.mask is not None:
+        fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
+    # the brightness condensation is invariant to the centring constant: the block's mean
+    # keeps its sums small
+    stencil, fmin, fmax, lags = m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
+                                        u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
+                                        margin=inputs.g_margin, with_lags=True,
+                                        active=None if fractions is None else active_elements(fractions))
+    return job.block, stencil, fmin, fmax, lags, fractions
+
+
+def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
+           active: np.ndarray | None = None) -> tuple[Block, Partials]:
+    """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.engine.greylevel.Partials`).
+
+    ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass;
+    the window of ``g`` from the level's prepared store when it covers it, else it is read
+    raw with a halo and prepared here (same result to float32 precision). ``active``: the
+    block's element activity (a specimen mask), default all.
+    """
+    region, lo, hi = job.haloed_region(inputs.f.shape)
+    f = inputs.f_copy.read(job.index, tuple(r.stop - r.start for r in region))
+    g, g_origin = read_g_window(inputs, job, u_block)
+    if g is None:
+        # no voxel of the block maps inside g: every active voxel is excluded
+        n_off = 0 if active is None else int(np.sum(active == 0)) * job.ell**3
+        sums = ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
+                           np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
+    else:
+        sums = b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
+                      interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
+                      margin=inputs.g_margin, active=active)
+    return job.block, reduce_block(sums, inputs.grey)
+
+
+def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
+    """The prepared window of ``g`` a block needs for the field ``u_block``.
+
+    Returns ``(window, origin)``: float32 samples (linear) or B-spline coefficients (cubic)
+    of the low-passed ``g``; ``(None, None)`` when no voxel of the block can map inside ``g``.
+    """
+    interp = inputs.interpolation
+    window = g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp,
+                      margin=inputs.g_margin)
+    if any(s.stop <= s.start for s in window):
+        return None, None
+    if inputs.prepared is not None and inputs.prepared.covers(window):
+        return inputs.prepared.read(window), tuple(s.start for s in window)
+    if not inputs.g_needs_preparing:
+        return np.asarray(inputs.g.read(window), dtype=np.float32), tuple(s.start for s in window)
+    halo = prepared_halo(inputs.sigma, interp, inputs.bspline_halo)
+    window = g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp, halo=halo,
+                      margin=inputs.g_margin)
+    raw = inputs.g.read(window)
+    check_finite(raw, "deformed", window)
+    return prepare_deformed(raw, inputs.sigma, interp), tuple(s.start for s in window)

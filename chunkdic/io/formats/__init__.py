@@ -1,0 +1,9 @@
+"""Scan file formats users bring (TIFF, raw, HDF5, npy): header checks, picklable slab readers, ingest to Zarr.
+
+Public names are imported on first use (lazy_loader, as scikit-image does); ``__init__.pyi``
+lists them with the module each comes from.
+"""
+
+import lazy_loader as _lazy
+
+__getattr__, __dir__, __all__ = _lazy.attach_stub(__name__, __file__)

@@ -1,0 +1,3 @@
+from .ingest import ingest, slab_chunks
+from .openers import natural_key, open_source, open_tiff_file
+from .readers import H5Reader, NpyReader, RawReader, Reader, TiffSlicesReader, TiffVolumeReader

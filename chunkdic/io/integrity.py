@@ -1,0 +1,207 @@
+"""Damaged inputs and input identity: the narrow places where stored bytes are trusted.
+
+- A chunk that does not decode (truncated, overwritten, bit rot) raises, inside whatever
+  task read it, one :class:`InputError` naming the array, the chunk and its file
+  (:func:`damaged_read_error`). It costs nothing on the hot path: the reader only calls it
+  from its ``except`` branch, and only then are the chunks of the failed region probed
+  one by one.
+- A chunk *file* missing from a stored level: Zarr reads it as the fill value without a
+  word. chunkdic writes every chunk of every level (``write_empty_chunks``), so in a scan
+  that chunkdic wrote a missing chunk can only be damage: :func:`check_chunks_present`
+  refuses it when the scan is opened (one directory listing per level). In a Zarr array
+  written by another tool, absent chunks are a legitimate way to store empty regions:
+  there it is a warning.
+- :func:`content_identity`: a cheap, out-of-core identity of an on-disk array for the
+  resume fingerprint: the array metadata, the list of chunk files with their sizes, and
+  hashes of a fixed sample of chunk files (a ``.npy``: its size and sampled byte ranges).
+  Modification times are part of it: a rewritten chunk changes it even when its size
+  does not, and a scan copied without its times counts as changed (the safe side: the
+  re-run is refused, never resumed on other data). Reading it costs a listing and at
+  most ``SAMPLE_FILES`` partial file reads, never the scan.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+import logging
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["damaged_read_error", "check_chunks_present", "content_identity", "MissingChunksWarning"]
+
+#: chunk files hashed per array for the content identity
+SAMPLE_FILES = 8
+#: bytes hashed per sampled file: whole files up to this size, else head, middle and tail
+SAMPLE_BYTES = 1 << 20
+
+
+class MissingChunksWarning(UserWarning):
+    """Chunks absent from a Zarr array that chunkdic did not write (read as the fill value)."""
+
+
+def _array_dir(path: str, key: str) -> Path:
+    return Path(path) / key if key else Path(path)
+
+
+def _chunk_file(arr, coords) -> str:
+    try:
+        return arr.metadata.encode_chunk_key(tuple(int(c) for c in coords))
+    except Exception:  # noqa: BLE001 - v2 or exotic encodings: name the index only
+        return "/".join(str(int(c)) for c in coords)
+
+
+def damaged_read_error(path: str, key: str, region, exc: BaseException) -> InputError:
+    """One-line error for a failed read of ``region`` of the Zarr array ``path``/``key``.
+
+    Probes the chunks (shards) the region overlaps, one at a time, to name the first that
+    cannot be read; the caller raises the returned error.
+    """
+    import zarr
+
+    where = str(_array_dir(path, key))
+    first = f"{type(exc).__name__}: {exc}".splitlines()[0][:200]
+    try:
+        arr = zarr.open_array(store=path, path=key or None, mode="r")
+        unit = tuple(arr.shards) if getattr(arr, "shards", None) else tuple(arr.chunks)
+        ranges = []
+        for s, u, n in zip(region, unit, arr.shape):
+            a, b, _ = s.indices(n)
+            ranges.append(range(a // u, max(a, b - 1) // u + 1))
+        for coords in itertools.product(*ranges):
+            box = tuple(slice(c * u, min((c + 1) * u, n)) for c, u, n in zip(coords, unit, arr.shape))
+            try:
+                arr[box]
+            except Exception as inner:  # noqa: BLE001 - this is the damaged one
+                reason = f"{type(inner).__name__}: {inner}".splitlines()[0][:200]
+                return InputError(f"{where}: chunk {tuple(int(c) for c in coords)} (file "
+                                  f"{_array_dir(path, key) / _chunk_file(arr, coords)}) cannot be read: {reason}; "
+                                  "the store is damaged or truncated")
+    except Exception:  # noqa: BLE001 - fall back to the original error
+        pass
+    return InputError(f"{where}: cannot read the region "
+                      f"{tuple((s.start, s.stop) for s in region)}: {first}; the store is damaged or truncated")
+
+
+def _chunk_files(adir: Path) -> dict[str, tuple[int, int]]:
+    """Relative path -> (size, mtime in ns) of every chunk file of a local Zarr v3 array (``c/...``)."""
+    out = {}
+    root = adir / "c"
+    for dirpath, _, files in os.walk(root):
+        for name in files:
+            full = os.path.join(dirpath, name)
+            try:
+                st = os.stat(full)
+            except OSError:
+                continue
+            out[os.path.relpath(full, adir)] = (st.st_size, st.st_mtime_ns)
+    return out
+
+
+def check_chunks_present(path: str, key: str, *, ours: bool) -> None:
+    """Refuse (``ours``) or warn about (foreign array) chunk files missing from an array.
+
+    Parameters
+    ----------
+    path, key : str
+        Zarr store root and array path inside it.
+    ours : bool
+        True for a level that chunkdic wrote (every chunk is written): missing chunks are
+        damage and raise :class:`InputError`. False: :class:`MissingChunksWarning`.
+    """
+    import zarr
+
+    arr = zarr.open_array(store=path, path=key or None, mode="r")
+    default_keys = arr.metadata.zarr_format == 3 and _chunk_file(arr, (0,) * arr.ndim).startswith("c/")
+    if getattr(arr, "shards", None) or not default_keys:
+        expected, present = arr.nchunks, arr.nchunks_initialized
+        missing_names: list[str] = []
+    else:
+        grid = [range(-(-n // c)) for n, c in zip(arr.shape, arr.chunks)]
+        expected = int(np.prod([len(g) for g in grid]))
+        files = _chunk_files(_array_dir(path, key))
+        if len(files) >= expected:
+            return
+        missing_names = []
+        for coords in itertools.product(*grid):
+            name = _chunk_file(arr, coords)
+            if name not in files:
+                missing_names.append(name)
+                if len(missing_names) >= 3:
+                    break
+        present = len(files)
+    if present >= expected:
+        return
+    where = str(_array_dir(path, key))
+    first = f" (first: {', '.join(missing_names)})" if missing_names else ""
+    if ours:
+        raise InputError(f"{where}: {expected - present} of {expected} chunk files are missing{first}; "
+                         "the scan is damaged: write or ingest it again")
+    warnings.warn(f"{where}: {expected - present} of {expected} chunks are absent{first} and read as the "
+                  f"fill value {arr.fill_value}", MissingChunksWarning, stacklevel=3)
+
+
+def _hash_file(h, path: str) -> None:
+    size = os.path.getsize(path)
+    h.update(str(size).encode())
+    with open(path, "rb") as fh:
+        if size <= SAMPLE_BYTES:
+            h.update(fh.read())
+            return
+        part = SAMPLE_BYTES // 3
+        for offset in (0, size // 2 - part // 2, size - part):
+            fh.seek(offset)
+            h.update(fh.read(part))
+
+
+def content_identity(kind: str, path: str, key: str = "") -> str:
+    """Cheap content hash of an on-disk array (module docstring); never reads it whole.
+
+    Parameters
+    ----------
+    kind : {"zarr", "npy"}
+    path, key : str
+        As in :class:`chunkdic.io.handles.ArrayRef`.
+
+    Returns
+    -------
+    str
+        Hex digest; equal digests mean the same metadata, chunk list, chunk sizes and
+        sampled bytes.
+    """
+    h = hashlib.sha256()
+    if kind == "npy":
+        _hash_npy(h, path)
+        return h.hexdigest()[:32]
+    adir = _array_dir(path, key)
+    meta = adir / "zarr.json"
+    if meta.is_file():
+        h.update(meta.read_bytes())
+    files = _chunk_files(adir)
+    names = sorted(files)
+    for name in names:
+        h.update(f"{name}:{files[name][0]}:{files[name][1]};".encode())
+    if names:
+        picks = sorted({round(i * (len(names) - 1) / max(SAMPLE_FILES - 1, 1)) for i in range(SAMPLE_FILES)})
+        for i in picks:
+            _hash_file(h, str(adir / names[i]))
+    return h.hexdigest()[:32]
+
+
+def _hash_npy(h, path: str) -> None:
+    st = os.stat(path)
+    size = st.st_size
+    h.update(f"{size}:{st.st_mtime_ns}".encode())
+    window = 1 << 16
+    with open(path, "rb") as fh:
+        for i in range(SAMPLE_FILES * 2):
+            offset = min(max(size - window, 0), round(i * max(size - window, 0) / (SAMPLE_FILES * 2 - 1)))
+            fh.seek(offset)
+            h.update(fh.read(window))

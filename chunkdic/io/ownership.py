@@ -1,0 +1,270 @@
+"""Who owns a path: process identities, one-writer locks, and stale leftovers of dead runs.
+
+Every file or directory that a chunkdic run leaves behind while it works (a lock file, a
+half-written output, a scratch directory) records its owner: host name, process id and
+the process's start time. The start time tells a live owner from a dead one whose pid was
+reused. A leftover is reclaimed only when its owner is known dead: same host, and no
+process with that pid and start time. A leftover of another host is never touched (that
+host may be alive and share the file system).
+
+Only paths that carry chunkdic's own names and owner records are ever removed here:
+``.NAME.chunkdic-lock`` (a lock), ``.NAME.chunkdic-partial-HOST-PID-XXXX`` (a staged
+output, see :mod:`chunkdic.io.outputs`) and ``chunkdic-*`` scratch directories holding
+``SCRATCH_MARKER``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import socket
+import tempfile
+import time
+import uuid
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+__all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
+           "reclaim_stale_partials", "LOCK_SUFFIX", "SCRATCH_MARKER"]
+
+LOCK_SUFFIX = ".chunkdic-lock"
+PARTIAL_TAG = ".chunkdic-partial-"
+SCRATCH_PREFIX = "chunkdic-"
+SCRATCH_MARKER = ".chunkdic-scratch.json"
+
+
+def _start_time(pid: int) -> str | None:
+    """Start time of process ``pid`` in clock ticks since boot (Linux), else None."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            stat = fh.read()
+    except OSError:
+        return None
+    # the command name (field 2) may hold spaces and parentheses: split after the last ')'
+    return stat.rsplit(")", 1)[1].split()[19]
+
+
+@dataclass(frozen=True)
+class Owner:
+    """A process: ``host``, ``pid`` and its ``start`` time (None where unknown)."""
+
+    host: str
+    pid: int
+    start: str | None = None
+
+    @classmethod
+    def me(cls) -> "Owner":
+        return cls(socket.gethostname(), os.getpid(), _start_time(os.getpid()))
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Owner":
+        return cls(str(d["host"]), int(d["pid"]), d.get("start"))
+
+    def is_dead(self) -> bool:
+        """True only when this owner is known dead (same host, no such live process)."""
+        if self.host != socket.gethostname():
+            return False
+        try:
+            os.kill(self.pid, 0)
+        except ProcessLookupError:
+            return True
+        except PermissionError:  # alive, someone else's
+            return False
+        if self.start is not None:
+            now = _start_time(self.pid)
+            return now is not None and now != self.start  # the pid was reused
+        return False
+
+    def describe(self) -> str:
+        return f"pid {self.pid} on {self.host}"
+
+
+# --------------------------------------------------------------------------- locks
+
+
+class OutputLock:
+    """One writer per output: an exclusive lock file next to it (``.NAME.chunkdic-lock``).
+
+    The file is created atomically (``O_EXCL``) and holds the owner (JSON). A lock whose
+    owner is dead (killed with SIGKILL, machine rebooted) is taken over; a live owner's
+    lock is refused with one line naming it. Released (removed) on exit.
+    """
+
+    def __init__(self, output):
+        out = Path(output)
+        self.output = out
+        self.path = out.parent / f".{out.name}{LOCK_SUFFIX}"
+        self.held = False
+
+    def acquire(self) -> "OutputLock":
+        me = Owner.me()
+        record = json.dumps({**asdict(me), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
+                             "output": str(self.output)})
+        for _ in range(3):
+            try:
+                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+            except FileExistsError:
+                self._take_over_if_stale()
+                continue
+            except OSError as exc:
+                raise InputError(f"cannot create the lock {self.path}: {exc.strerror}") from None
+            with os.fdopen(fd, "w") as fh:
+                fh.write(record)
+            self.held = True
+            return self
+        raise InputError(f"output {self.output} is locked by {self.path} and the lock could not be taken")
+
+    def _take_over_if_stale(self) -> None:
+        try:
+            info = json.loads(self.path.read_text())
+            owner = Owner.from_dict(info)
+        except FileNotFoundError:
+            return  # released meanwhile: try again
+        except (OSError, ValueError, KeyError, TypeError):
+            age = time.time() - _mtime(self.path)
+            if age < 10:  # being written right now by its owner
+                time.sleep(0.2)
+                return
+            raise InputError(f"output {self.output} has an unreadable lock {self.path}: remove it if no "
+                             "chunkdic run is writing this output") from None
+        if not owner.is_dead():
+            hint = "" if owner.host == socket.gethostname() else \
+                f" (if that run is dead, remove {self.path})"
+            raise InputError(f"output {self.output} is being written by another chunkdic run "
+                             f"({owner.describe()} since {info.get('since', '?')}): wait for it to finish or "
+                             f"stop it{hint}")
+        # Rename first: of two runs recovering the same stale lock, only one rename succeeds.
+        grave = self.path.with_name(self.path.name + f".stale-{uuid.uuid4().hex[:8]}")
+        try:
+            os.rename(self.path, grave)
+        except FileNotFoundError:
+            return
+        grave.unlink(missing_ok=True)
+        log.info("took over the stale lock of %s (%s is dead)", self.output, owner.describe())
+
+    def release(self) -> None:
+        if self.held:
+            self.path.unlink(missing_ok=True)
+            self.held = False
+
+    def __enter__(self) -> "OutputLock":
+        return self.acquire()
+
+    def __exit__(self, *exc) -> None:
+        self.release()
+
+
+def _mtime(path: Path) -> float:
+    try:
+        return path.stat().st_mtime
+    except OSError:
+        return time.time()
+
+
+# --------------------------------------------------------------------------- staged outputs
+
+
+def partial_name(final: Path) -> Path:
+    """Name of a staged (half-written) version of ``final``: a hidden sibling that names
+    its owner and keeps the suffix (writers such as meshio choose the format by it)."""
+    me = Owner.me()
+    host = re.sub(r"[^A-Za-z0-9_]", "_", me.host)
+    return final.parent / f".{final.stem}{PARTIAL_TAG}{host}-{me.pid}-{uuid.uuid4().hex[:6]}{final.suffix}"
+
+
+def final_name(path) -> str:
+    """The name a staged output will have once in place (``.x.chunkdic-partial-HOST-PID-XXXXXX.zarr``
+    -> ``x.zarr``); other names unchanged. Metadata that records the store's own name uses it."""
+    name = Path(path).name
+    m = re.fullmatch(r"\.(.*)" + re.escape(PARTIAL_TAG) + r"[A-Za-z0-9_]+-\d+-[0-9a-f]{6}(\.[^.]*)?", name)
+    return name if m is None else m.group(1) + (m.group(2) or "")
+
+
+def reclaim_stale_partials(final: Path) -> list[Path]:
+    """Remove staged versions of ``final`` whose owner (this host) is dead; returns them."""
+    host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
+    pattern = re.compile(re.escape(f".{final.stem}{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}"
+                         + re.escape(final.suffix) + "$")
+    removed = []
+    try:
+        entries = list(final.parent.iterdir())
+    except OSError:
+        return removed
+    for entry in entries:
+        m = pattern.match(entry.name)
+        if m is None:
+            continue
+        pid = int(m.group(1))
+        # no start time in a name: a live pid counts as the owner (never remove a live run's work)
+        if Owner(socket.gethostname(), pid).is_dead():
+            _remove(entry)
+            removed.append(entry)
+            log.info("removed %s, left by a dead run", entry)
+    return removed
+
+
+# --------------------------------------------------------------------------- scratch
+
+
+def scratch_root() -> Path:
+    from .. import config
+
+    return Path(config.get("scratch-directory") or tempfile.gettempdir())
+
+
+def make_scratch(prefix: str = SCRATCH_PREFIX) -> Path:
+    """A new scratch directory under ``chunkdic.scratch-directory`` that records its owner.
+
+    Stale scratch of dead runs in the same root is reclaimed first. Raises InputError if
+    the root cannot be written.
+    """
+    root = scratch_root()
+    if not root.is_dir():
+        raise InputError(f"scratch directory {root} does not exist (chunkdic.scratch-directory)")
+    reclaim_stale_scratch(root)
+    try:
+        path = Path(tempfile.mkdtemp(prefix=prefix, dir=root))
+        (path / SCRATCH_MARKER).write_text(json.dumps(asdict(Owner.me())))
+    except OSError as exc:
+        raise InputError(f"cannot write in the scratch directory {root}: {exc.strerror} "
+                         "(set chunkdic.scratch-directory, e.g. DASK_CHUNKDIC__SCRATCH_DIRECTORY)") from None
+    return path
+
+
+def reclaim_stale_scratch(root: Path | None = None) -> list[Path]:
+    """Remove ``chunkdic-*`` scratch directories under ``root`` whose owner is dead.
+
+    Only directories holding chunkdic's owner record are considered, so nothing else in a
+    shared temporary directory is ever touched.
+    """
+    root = scratch_root() if root is None else Path(root)
+    removed = []
+    try:
+        entries = [e for e in root.iterdir() if e.name.startswith(SCRATCH_PREFIX)]
+    except OSError:
+        return removed
+    for entry in entries:
+        marker = entry / SCRATCH_MARKER
+        try:
+            owner = Owner.from_dict(json.loads(marker.read_text()))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if owner.is_dead():
+            _remove(entry)
+            removed.append(entry)
+            log.info("reclaimed the scratch directory %s of a dead run (%s)", entry, owner.describe())
+    return removed
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)

@@ -1,0 +1,251 @@
+"""Writing Dask arrays into Zarr arrays chunk by chunk, safely.
+
+Every task owns whole Zarr chunks (shards): :func:`check_write_alignment` refuses
+anything else, because zarr 3.1 silently loses data when concurrent tasks write parts of
+the same chunk. Progress is reported from the local threaded scheduler or from the futures
+of a ``distributed`` client; on failure the local pool is drained before returning so that
+callers can remove a half-written output safely.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import os
+
+import numpy as np
+
+from .. import config
+from ..errors import InputError
+
+
+def drain_zarr_io(timeout: float = 10.0) -> None:
+    """Wait until zarr's I/O event loop has no task in flight (at most ``timeout`` s).
+
+    zarr 3 writes the chunks of one assignment concurrently on its event loop; when one
+    write fails (a full disk), the assignment raises at once while the others go on
+    (``asyncio.gather`` does not cancel them), and a store removed right then is partly
+    written again a moment later (measured: a staged output left behind under load).
+    Cleanup calls this first.
+    """
+    import asyncio
+
+    from zarr.core import sync as zsync
+
+    loop = zsync.loop[0]
+    if loop is None or not loop.is_running():
+        return
+
+    async def idle() -> None:
+        me = asyncio.current_task()
+        pending = [t for t in asyncio.all_tasks() if t is not me]
+        if pending:
+            await asyncio.wait(pending, timeout=timeout)
+
+    try:
+        asyncio.run_coroutine_threadsafe(idle(), loop).result(timeout + 1)
+    except Exception:  # noqa: BLE001 - best effort: cleanup goes on
+        pass
+
+
+def compressors(dtype):
+    """Compressor of every array chunkdic writes (measurements in docs/scans.md).
+
+    ``chunkdic.compressor`` (dask config): ``"auto"`` (default: zstd level 1 for 1-byte
+    samples, blosc-lz4 with bit shuffle for wider ones, i.e. 16/32-bit scans and every
+    pyramid level), ``"zstd"``, ``"lz4"`` (blosc-lz4 + bit shuffle) or ``"none"``.
+    """
+    import dask.config
+    from zarr.codecs import BloscCodec, ZstdCodec
+
+    name = str(dask.config.get("chunkdic.compressor", default="auto")).lower()
+    itemsize = np.dtype(dtype).itemsize
+    if name == "auto":
+        name = "zstd" if itemsize == 1 else "lz4"
+    if name == "zstd":
+        return (ZstdCodec(level=1),)
+    if name == "lz4":
+        return (BloscCodec(cname="lz4", clevel=5, shuffle="bitshuffle", typesize=itemsize),)
+    if name == "none":
+        return None
+    raise InputError(f"chunkdic.compressor={name!r}: use auto, zstd, lz4 or none")
+
+
+def chunk_shape_for(shape, chunks) -> tuple[int, int, int]:
+    if chunks is None:
+        chunks = config.get("chunk-size")
+    c = tuple(int(v) for v in np.broadcast_to(np.asarray(chunks), (3,)))
+    if any(v < 1 for v in c):
+        raise InputError(f"chunk edge must be a positive integer, got {chunks!r}")
+    return tuple(max(1, min(v, n)) for v, n in zip(c, shape))
+
+
+def check_write_alignment(dask_chunks, shape, unit, name: str = "array") -> None:
+    """Raise :class:`InputError` unless each Dask block covers whole write units.
+
+    Zarr 3.1 loses data silently when concurrent tasks write parts of the same chunk or
+    shard, so every block boundary must fall on a multiple of the write unit (the shard
+    shape for a sharded array, else the chunk shape) or on the array end.
+
+    Parameters
+    ----------
+    dask_chunks : tuple of 3 tuples of int
+        ``dask_array.chunks``.
+    shape : tuple of 3 int
+        Array shape.
+    unit : tuple of 3 int
+        Zarr shard shape (sharded) or chunk shape.
+    """
+    for axis, (cs, n, u) in enumerate(zip(dask_chunks, shape, unit)):
+        edges = np.cumsum((0,) + tuple(cs))
+        if edges[-1] != n:
+            raise InputError(f"{name}: dask chunks cover {edges[-1]} voxels along axis {'zyx'[axis]}, the array has {n}")
+        bad = [int(e) for e in edges[1:-1] if e % u]
+        if bad:
+            raise InputError(
+                f"{name}: dask block boundaries along {'zyx'[axis]} at {bad[:4]} are not multiples of the "
+                f"Zarr chunk/shard edge {u}; every writing task must own whole chunks/shards "
+                f"(zarr 3.1 silently loses data otherwise): rechunk to multiples of {u}"
+            )
+
+
+def write_region(path: str, key: str, region, data: np.ndarray) -> None:
+    """Write ``data`` into ``region`` (slices) of the Zarr array ``path``/``key``.
+
+    The caller owns the whole chunks (shards) ``region`` covers (:func:`check_write_alignment`).
+    """
+    import zarr
+
+    arr = zarr.open_array(store=path, path=key or None, mode="r+")
+    # Skipping the per-chunk "all fill value?" test makes zarr 3.1 writes 2-3x faster
+    # (measured, docs/scans.md); a chunk of zeros then costs a few bytes on disk.
+    arr = arr.with_config({"write_empty_chunks": True})
+    arr[tuple(region)] = data
+
+
+def _write_block(block: np.ndarray, path: str, key: str, block_info=None) -> np.ndarray:
+    loc = block_info[0]["array-location"]
+    write_region(path, key, tuple(slice(a, b) for a, b in loc), block)
+    return np.ones((1, 1, 1), np.int64)
+
+
+class _Progress:
+    """A ``dask`` local-scheduler callback reporting finished tasks to ``fn(fraction)``.
+
+    ``start``/``end`` map this computation into a sub-range of a longer operation.
+    """
+
+    def __init__(self, fn, start=0.0, end=1.0):
+        self.fn, self.start, self.end = fn, start, end
+        self._cb = None
+
+    def __enter__(self):
+        if self.fn is None:
+            return self
+        from dask.callbacks import Callback
+
+        total, done, last = [1], [0], [-1.0]
+
+        def _start_state(dsk, state):
+            total[0] = max(1, len(state["ready"]) + len(state["waiting"]) + len(state["running"]))
+
+        def _posttask(key, result, dsk, state, worker_id):
+            done[0] += 1
+            frac = self.start + (self.end - self.start) * min(1.0, done[0] / total[0])
+            if frac - last[0] >= 0.01:
+                last[0] = frac
+                self.fn(frac)
+
+        self._cb = Callback(start_state=_start_state, posttask=_posttask)
+        self._cb.__enter__()
+        return self
+
+    def __exit__(self, *exc):
+        if self._cb is not None:
+            self._cb.__exit__(*exc)
+        if exc[0] is None and self.fn is not None:
+            self.fn(self.end)
+        return False
+
+
+def _compute(x, progress=None, start=0.0, end=1.0):
+    """Compute the dask array ``x`` (one small block per written chunk), reporting progress.
+
+    On the local threaded scheduler use our own pool and, on failure, wait for the running
+    tasks before returning so that callers can clean up safely. On a ``distributed``
+    client, progress comes from the blocks' futures as they finish (local-scheduler
+    callbacks never fire there).
+    """
+    import dask
+    import dask.threaded
+    from dask.base import get_scheduler
+
+    sched = get_scheduler(collections=[x])
+    client = getattr(sched, "__self__", None)  # the bound ``Client.get`` of a distributed client
+    if progress is not None and client is not None:
+        from distributed import Client
+
+        if isinstance(client, Client):
+            return _compute_on_client(client, x, progress, start, end)
+    with _Progress(progress, start, end):
+        if sched is None or sched is dask.threaded.get:
+            n = config.get("num-threads") or os.cpu_count() or 1
+            pool = concurrent.futures.ThreadPoolExecutor(n)
+            try:
+                return dask.compute(x, scheduler="threads", pool=pool)[0]
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
+        return dask.compute(x)[0]
+
+
+def _compute_on_client(client, x, progress, start: float, end: float) -> None:
+    """Run the blocks of ``x`` on a distributed ``client``, calling ``progress(fraction)``
+    (at most every 1 %) as their futures finish; on failure cancel what has not run."""
+    from distributed import as_completed
+
+    futures = client.compute(list(x.to_delayed().ravel()))
+    done, last = 0, -1.0
+    try:
+        for fut in as_completed(futures):
+            fut.result()  # raises the task's error here
+            done += 1
+            frac = start + (end - start) * done / len(futures)
+            if frac - last >= 0.01:
+                last = frac
+                progress(float(frac))
+    except BaseException:
+        client.cancel(futures)
+        raise
+    if last < end:
+        progress(end)
+
+
+def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0) -> None:
+    """Write dask array ``data`` into the existing Zarr array ``path``/``key``, block by block.
+
+    Each task owns whole chunks (shards): checked up front.
+
+    Not ``dask.array.store``: it neither checks that tasks own whole shards (zarr 3.1
+    silently loses data otherwise, shared/DESIGN.md) nor reports progress from a
+    distributed client's futures, and it cannot skip zarr's per-chunk "all fill value?"
+    test, which made writes 2-3x slower (docs/scans.md).
+    """
+    import zarr
+
+    arr = zarr.open_array(store=path, path=key or None, mode="r+")
+    if tuple(arr.shape) != tuple(data.shape):
+        raise InputError(f"cannot write an array of shape {data.shape} into {path}/{key} of shape {arr.shape}")
+    unit = arr.shards if getattr(arr, "shards", None) else arr.chunks
+    check_write_alignment(data.chunks, data.shape, unit, name=f"{path}/{key}")
+    out_chunks = tuple((1,) * len(c) for c in data.chunks)
+    done = data.map_blocks(_write_block, path=str(path), key=key, dtype=np.int64, chunks=out_chunks,
+                           meta=np.empty((0, 0, 0), np.int64))
+    _compute(done, progress, start, end)
+
+
+def aligned(data, chunk_shape):
+    """``data`` unchanged if its blocks own whole chunks, else rechunked to the chunk grid."""
+    try:
+        check_write_alignment(data.chunks, data.shape, chunk_shape)
+        return data
+    except InputError:
+        return data.rechunk(chunk_shape)

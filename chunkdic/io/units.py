@@ -1,0 +1,94 @@
+"""Lengths given in physical units on the command line, converted to voxels of a scan.
+
+``--element-size 60um`` and ``--roi 0:500,0:500,0:500 --roi-unit um`` (or a unit suffix on
+the ROI) are converted with the reference scan's voxel size (OME-NGFF metadata,
+:mod:`chunkdic.io.ngff`). Voxel ``i`` of level 0 has its centre at ``i * voxel_size``
+(DESIGN.md), so a physical coordinate ``p`` is voxel coordinate ``p / voxel_size``.
+"""
+
+from __future__ import annotations
+
+import re
+
+from ..errors import InputError
+from .ngff import normalize_unit
+
+#: metres per unit, for the units a scan's metadata and a user are likely to use
+METERS = {"angstrom": 1e-10, "picometer": 1e-12, "nanometer": 1e-9, "micrometer": 1e-6,
+          "millimeter": 1e-3, "centimeter": 1e-2, "decimeter": 1e-1, "meter": 1.0}
+
+_NUMBER_UNIT = re.compile(r"^\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([^\d\s.:,+-][^\s:,]*)?\s*$")
+
+
+def parse_length(text, what: str = "--element-size") -> tuple[float, str | None]:
+    """``"60um"`` -> ``(60.0, "micrometer")``; ``"12"`` -> ``(12.0, None)`` (voxels)."""
+    m = _NUMBER_UNIT.match(str(text))
+    if m is None:
+        raise InputError(f"{what} {text!r}: expected a number, optionally with a length unit (12, 60um, 0.06mm)")
+    unit = m.group(2)
+    if unit is not None and unit.lower() in ("vx", "voxel", "voxels"):
+        unit = None
+    return float(m.group(1)), normalize_unit(unit)
+
+
+def factor(unit: str, scan_unit: str | None) -> float:
+    """How many ``scan_unit`` make one ``unit`` (refuses units it cannot relate)."""
+    scan_unit = normalize_unit(scan_unit) if scan_unit else None
+    if scan_unit is None or unit == scan_unit:
+        return 1.0
+    if unit not in METERS or scan_unit not in METERS:
+        raise InputError(f"cannot convert {unit} to the scan's unit {scan_unit}")
+    return METERS[unit] / METERS[scan_unit]
+
+
+def _voxel(scan, what: str):
+    vs = getattr(scan, "voxel_size", None)
+    if not vs:
+        raise InputError(f"{what} is given in a physical unit but the reference scan has no voxel size: give "
+                         "it in voxels, or ingest the scan with --voxel-size and --unit")
+    return tuple(float(v) for v in vs), getattr(scan, "unit", None)
+
+
+def element_size_voxels(text, scan, level: int = 0) -> tuple[int, str | None]:
+    """``--element-size`` in voxels of ``level``: ``(ell, note)``.
+
+    A physical size is divided by the level's voxel (``voxel_size * 2**level``, which must
+    be the same along the three axes: C8 elements are cubes of voxels) and rounded to the
+    nearest whole voxel; ``note`` says so (``None`` for a size given in voxels).
+    """
+    value, unit = parse_length(text)
+    if unit is None:
+        if value != int(value):
+            raise InputError(f"--element-size {text!r}: a size in voxels must be a whole number")
+        return int(value), None
+    vs, scan_unit = _voxel(scan, "--element-size")
+    if max(vs) - min(vs) > 1e-9 * max(vs):
+        raise InputError(f"--element-size {text!r}: the voxel size {vs} is not the same along z, y, x; give the "
+                         "element size in voxels")
+    voxel = vs[0] * 2**level
+    exact = value * factor(unit, scan_unit) / voxel
+    ell = max(1, round(exact))
+    return ell, (f"--element-size {text} = {exact:.3f} voxels of level {level}: using {ell} "
+                 f"({ell * voxel:.4g} {scan_unit or unit})")
+
+
+def roi_voxels(roi: str, scan, unit: str | None = None) -> tuple[str, str | None]:
+    """A ROI ``"z0:z1,y0:y1,x0:x1"`` in ``unit`` (or with a unit suffix, ``"0:500,0:500,0:500um"``)
+    as the same string in level-0 voxels (bounds rounded to the nearest voxel), and a note."""
+    text = str(roi).strip()
+    m = re.match(r"^(.*?\d)\s*([^\d\s.:,+-][^\s:,]*)$", text)
+    if m is not None:
+        text, unit = m.group(1), m.group(2)
+    unit = None if unit is None or unit.lower() in ("vx", "voxel", "voxels") else normalize_unit(unit)
+    if unit is None:
+        return text, None
+    vs, scan_unit = _voxel(scan, "--roi")
+    f = factor(unit, scan_unit)
+    try:
+        pairs = [tuple(float(v) for v in part.split(":")) for part in text.split(",")]
+    except ValueError:
+        raise InputError(f"ROI {roi!r}: expected z0:z1,y0:y1,x0:x1 in {unit}") from None
+    if len(pairs) != 3 or any(len(p) != 2 for p in pairs):
+        raise InputError(f"ROI {roi!r}: expected three ranges z0:z1,y0:y1,x0:x1")
+    out = ",".join(f"{round(a * f / v)}:{round(b * f / v)}" for (a, b), v in zip(pairs, vs))
+    return out, f"--roi {roi} ({unit}) = {out} in level-0 voxels"

@@ -1,0 +1,1 @@
+from .jit import compiled_on_disk, warmup

@@ -1,0 +1,372 @@
+"""A correlation result and its Zarr v3 group.
+
+The group holds small arrays only (mesh-sized): ``displacement`` and ``node_coords``
+``(3, nz, ny, nx)`` float64 in voxels of the correlated level, and the iteration history
+``history/level``, ``history/iteration``, ``history/gap``, ``history/max_delta``,
+``history/excluded``, and the element strains ``strain`` ``(3, 3, ez, ey, ex)`` float64
+(dimensionless, :mod:`chunkdic.results.strain`; computed from ``displacement`` when the result
+is saved, absent from results written before it existed). Everything else is in
+``attrs["chunkdic"]``. The group is created with ``complete: false`` and marked complete
+last, so an interrupted write is never mistaken for a result.
+
+Every array carries Zarr v3 ``dimension_names`` and ``units`` / ``long_name`` attributes
+(:data:`LAYOUT`), and the group holds the 1-D node and element-centre positions ``z, y,
+x`` and ``ez, ey, ex`` as coordinate arrays, so that ``xarray.open_zarr(path)`` reads a
+result as a labelled Dataset (``displacement`` on ``("component", "z", "y", "x")``).
+Results written before this carry no dimension names: :meth:`Result.to_xarray` works on
+every result.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..errors import InputError
+from ..mesh import Mesh, level0_position
+
+HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
+
+#: node flag: the node's elements hold (almost) no voxel that maps inside ``g``; its
+#: displacement is NaN (not measured)
+FLAG_NO_DATA = 1
+#: node flag: poorly textured (its 3x3 block of ``M`` is nearly singular); regularised,
+#: its value is unreliable
+FLAG_WEAK = 2
+#: node flag: outside the specimen mask (no active element around it); NaN, not measured
+FLAG_MASKED = 4
+
+#: dimension names, unit and description of every array of a result group (the ``units``
+#: follow CF usage: ``"1"`` is dimensionless; ``"voxel"`` is a voxel of the correlated level)
+LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
+    "displacement": (("component", "z", "y", "x"), "voxel", "nodal displacement, components (Uz, Uy, Ux)"),
+    "node_coords": (("component", "z", "y", "x"), "voxel", "node position, components (z, y, x)"),
+    "uncertainty": (("component", "z", "y", "x"), "voxel",
+                    "standard uncertainty of the nodal displacement, components (z, y, x)"),
+    "strain": (("component_i", "component_j", "ez", "ey", "ex"), "1",
+               "small-strain tensor at the element centres, axes (z, y, x)"),
+    "flags": (("z", "y", "x"), "1", "node flags (bits): 1 no data, 2 weak texture, 4 masked"),
+    "active": (("ez", "ey", "ex"), "1", "element took part (specimen mask)"),
+    "brightness": (("gain_offset", "ez", "ey", "ex"), "1",
+                   "per-element gain (dimensionless) and offset (grey levels of the level): f = gain g + offset"),
+    "z": (("z",), "voxel", "node position along z"),
+    "y": (("y",), "voxel", "node position along y"),
+    "x": (("x",), "voxel", "node position along x"),
+    "ez": (("ez",), "voxel", "element centre along z"),
+    "ey": (("ey",), "voxel", "element centre along y"),
+    "ex": (("ex",), "voxel", "element centre along x"),
+}
+#: the same for the arrays of the ``history`` group (one entry per level and iteration)
+HISTORY_LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
+    "level": (("step",), "1", "pyramid level"),
+    "iteration": (("step",), "1", "iteration (negative: rigid-translation steps)"),
+    "gap": (("step",), "1", "matching gap rms(r) / (max f - min f) (paper 5.1)"),
+    "max_delta": (("step",), "voxel", "max |da| of the update that followed (NaN: final evaluation)"),
+    "excluded": (("step",), "voxel", "voxels left out (X + u(X) outside the deformed scan); a count"),
+}
+
+
+@dataclass
+class Result:
+    """Outcome of :func:`chunkdic.correlate`.
+
+    Attributes
+    ----------
+    displacement : ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
+        Nodal displacement, components ``(z, y, x)`` (``Uz, Uy, Ux``).
+    node_coords : ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
+        Node positions.
+    history : dict of 1-D ndarrays
+        Per level and iteration: ``level``, ``iteration``, matching gap ``gap``
+        (paper section 5.1), ``max_delta`` = max |δa| of the update that followed
+        (NaN for the final evaluation), ``excluded`` voxels.
+    info : dict
+        Everything else: ``element_size``, ``roi`` (level voxels, ``[[z0, z1], …]``),
+        ``roi_level0``, ``level``, ``scale`` (voxel edge in level-0 voxels),
+        ``voxel_size``, ``unit``, ``converged``, ``status``, ``initial_gap``,
+        ``rigid_gap``, ``final_gap``, ``rigid_translation``, ``excluded_voxels``,
+        ``used_voxels``, settings and inputs.
+    strain : ndarray, shape (3, 3, ez, ey, ex), float64, optional
+        Small-strain tensor per element at the element centres (paper section 5.4), axes
+        ``(z, y, x)``; ``None`` until computed (:meth:`element_strain` computes it).
+    flags : ndarray, shape (nz, ny, nx), uint8, optional
+        Per-node flags, bits :data:`FLAG_NO_DATA` (displacement NaN: not measured),
+        :data:`FLAG_WEAK` (poorly textured, regularised) and :data:`FLAG_MASKED` (outside
+        the specimen mask, NaN).
+    active : ndarray, shape (ez, ey, ex), uint8, optional
+        Elements that took part (a specimen mask's material elements, :mod:`chunkdic.engine.masks`);
+        ``None`` without a mask.
+    uncertainty : ndarray, shape (3, nz, ny, nx), float64, optional
+        Standard deviation of each nodal displacement from the final residual's noise,
+        voxels of ``level`` (:func:`chunkdic.engine.noise.nodal_uncertainty`); NaN where not measured.
+    brightness : ndarray, shape (2, ez, ey, ex), float64, optional
+        Per-element gain and offset of the grey-level model (:mod:`chunkdic.engine.greylevel`):
+        ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
+    """
+
+    displacement: np.ndarray
+    node_coords: np.ndarray
+    history: dict[str, np.ndarray]
+    info: dict = field(default_factory=dict)
+    path: str | None = None
+    strain: np.ndarray | None = None
+    flags: np.ndarray | None = None
+    brightness: np.ndarray | None = None
+    active: np.ndarray | None = None
+    uncertainty: np.ndarray | None = None
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.info.get("converged", False))
+
+    @property
+    def final_gap(self) -> float:
+        return float(self.info["final_gap"])
+
+    @property
+    def mesh(self) -> Mesh:
+        roi = self.info["roi"]
+        ell = int(self.info["element_size"])
+        return Mesh(tuple(int(a) for a, _ in roi), ell, tuple((b - a) // ell for a, b in roi))
+
+    def element_strain(self) -> np.ndarray:
+        """Element strains ``(3, 3, ez, ey, ex)`` (stored, else computed and kept)."""
+        if self.strain is None:
+            from .strain import element_strain
+
+            self.strain = element_strain(self.displacement, self.info["element_size"])
+        return self.strain
+
+    def _arrays(self) -> dict[str, np.ndarray]:
+        """Every array of the result group, by name (:data:`LAYOUT`), with the 1-D node and
+        element-centre positions taken from the regular mesh."""
+        X = self.node_coords
+        arrays = {"displacement": self.displacement, "node_coords": X}
+        if "element_size" in self.info:
+            arrays["strain"] = self.element_strain()
+        for name in ("flags", "brightness", "active", "uncertainty"):
+            if getattr(self, name) is not None:
+                arrays[name] = getattr(self, name)
+        for axis, name in enumerate("zyx"):  # the mesh is regular: one position per node index
+            line = X[(axis,) + tuple(slice(None) if a == axis else 0 for a in range(3))]
+            arrays[name] = line
+            arrays["e" + name] = (line[1:] + line[:-1]) / 2
+        return arrays
+
+    def _var_attrs(self, name: str, layout=None) -> dict:
+        _, units, text = (layout or LAYOUT)[name]
+        level = int(self.info.get("level", 0))
+        long_name = text + (f" (voxels of level {level})" if units == "voxel" and level else "")
+        return {"units": units, "long_name": long_name}
+
+    def to_xarray(self):
+        """The result as an :class:`xarray.Dataset` (xarray is an optional dependency).
+
+        Returns
+        -------
+        xarray.Dataset
+            ``displacement``, ``node_coords``, ``uncertainty`` on ``("component", "z",
+            "y", "x")``, ``strain`` on ``("component_i", "component_j", "ez", "ey", "ex")``,
+            ``flags``, ``active``, ``brightness`` when present, and the iteration history
+            (``history_gap`` …) on ``("step",)``. Coordinates: ``component`` (``"z", "y",
+            "x"``), node positions ``z, y, x`` and element centres ``ez, ey, ex`` in voxels
+            of the correlated level; when the scan has a voxel size, also ``z_physical`` …
+            (level-0 voxel centres times the voxel size, in ``unit``). Each variable has
+            ``units`` and ``long_name`` attributes; the Dataset's attributes hold the
+            scalar facts of the run (element size, level, status, gap, voxel size, unit).
+
+        Examples
+        --------
+        >>> ds = chunkdic.open_result("result.zarr").to_xarray()  # doctest: +SKIP
+        >>> ds.displacement.sel(component="z").isel(x=0).plot()  # doctest: +SKIP
+        """
+        try:
+            import xarray as xr
+        except ImportError:
+            raise ImportError("Result.to_xarray needs xarray: pip install xarray") from None
+        arrays = self._arrays()
+        coords = {"component": ("component", np.array(["z", "y", "x"]))}
+        data_vars = {}
+        for name, arr in arrays.items():
+            entry = (LAYOUT[name][0], np.asarray(arr), self._var_attrs(name))
+            (coords if name in ("z", "y", "x", "ez", "ey", "ex") else data_vars)[name] = entry
+        coords.update(self._physical_coords(arrays))
+        for name, arr in self.history.items():
+            data_vars["history_" + name] = (HISTORY_LAYOUT[name][0], np.asarray(arr),
+                                            self._var_attrs(name, HISTORY_LAYOUT))
+        return xr.Dataset(data_vars, coords=coords, attrs=self.summary_attrs())
+
+    def voxel_length(self) -> np.ndarray | None:
+        """Physical length of one voxel of the correlated level per axis ``(z, y, x)``, in
+        ``info["unit"]`` (``scale`` level-0 voxels times the scan's voxel size); ``None``
+        when the scan had no voxel size. A displacement in level voxels times this is a
+        displacement in the physical unit."""
+        vs = self.info.get("voxel_size")
+        if not vs:
+            return None
+        return float(self.info.get("scale", 1)) * np.asarray(vs, dtype=np.float64)
+
+    def _physical_coords(self, arrays: dict) -> dict:
+        """Node positions in the scan's physical unit, ``{"z_physical": ("z", …), …}``
+        (empty without a voxel size)."""
+        vs = self.info.get("voxel_size")
+        if not vs:
+            return {}
+        scale = float(self.info.get("scale", 1))
+        unit = self.info.get("unit") or "unit"
+        out = {}
+        for axis, name in enumerate("zyx"):
+            level0 = level0_position(arrays[name], scale)
+            out[f"{name}_physical"] = (name, level0 * float(vs[axis]),
+                                       {"units": unit, "long_name": f"node position along {name}"})
+        return out
+
+    def summary_attrs(self) -> dict:
+        """Scalar facts of the run (JSON- and netCDF-friendly): element size, level, scale,
+        status, gaps, voxel size and unit (when known), chunkdic version."""
+        from .. import __version__
+
+        keys = ("element_size", "level", "scale", "status", "converged", "initial_gap", "final_gap",
+                "voxel_size", "unit")
+        attrs = {k: jsonable(self.info[k]) for k in keys if self.info.get(k) is not None}
+        if "converged" in attrs:
+            attrs["converged"] = int(bool(attrs["converged"]))  # netCDF has no booleans
+        attrs["chunkdic_version"] = self.info.get("chunkdic_version") or __version__
+        return attrs
+
+    def __repr__(self) -> str:
+        i = self.info
+        gap = i.get("final_gap")  # None: a field composed from others (chunkdic.series), no gap of its own
+        return (
+            f"<chunkdic.Result {self.displacement.shape[1:]} nodes, ell={i.get('element_size')} "
+            f"level={i.get('level')} status={i.get('status')} final_gap={float('nan') if gap is None else gap:.4g}>"
+        )
+
+    def save(self, path: str | os.PathLike, *, overwrite: bool = False, inputs=()) -> None:
+        """Write the result as a Zarr v3 group (complete flag set last).
+
+        The group is written next to ``path`` and renamed into place when complete, so an
+        existing result is replaced only by a complete one. ``overwrite`` replaces only a
+        result that chunkdic wrote (:mod:`chunkdic.io.outputs`); ``inputs`` (paths) may not
+        be, contain or hold ``path``.
+        """
+        import zarr
+
+        from ..io.outputs import Outputs
+
+        plan = Outputs(inputs=inputs, overwrite=overwrite)
+        entry = plan.add(path, "result")
+        with plan:
+            root = zarr.open_group(str(entry.work), mode="w", zarr_format=3)
+            root.attrs["chunkdic"] = {**jsonable(self.info), "kind": "result", "complete": False}
+            for name, arr in self._arrays().items():
+                dtype = np.uint8 if name in ("flags", "active") else np.float64
+                root.create_array(name, data=np.ascontiguousarray(arr, dtype=dtype),
+                                  dimension_names=LAYOUT[name][0], attributes=self._var_attrs(name))
+            hist = root.create_group("history")
+            for name in HISTORY_FIELDS:
+                hist.create_array(name, data=np.asarray(self.history[name]), dimension_names=HISTORY_LAYOUT[name][0],
+                                  attributes=self._var_attrs(name, HISTORY_LAYOUT))
+            root.attrs["chunkdic"] = {**jsonable(self.info), "kind": "result", "complete": True}
+        self.path = str(path)
+
+
+#: attributes every result holds (``open_result`` refuses a group without them)
+REQUIRED_INFO = ("element_size", "roi", "final_gap")
+
+
+def open_result(path: str | os.PathLike) -> Result:
+    """Read a result written by :func:`chunkdic.correlate`.
+
+    Refuses (one-line :class:`InputError`) a path that is not a result, an incomplete one
+    (interrupted run), one whose attributes, arrays or history are missing or do not
+    agree with each other, and a damaged store.
+    """
+    import zarr
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError(f"result {path} does not exist")
+    try:
+        root = zarr.open_group(str(path), mode="r")
+        info = dict(root.attrs["chunkdic"])
+    except Exception as exc:  # noqa: BLE001 - any failure means "not a result"
+        raise InputError(f"{path} is not a chunkdic result ({exc.__class__.__name__})") from None
+    if not info.get("complete", False):
+        raise InputError(f"result {path} is incomplete (the run that wrote it was interrupted)")
+    missing = [k for k in REQUIRED_INFO if k not in info]
+    if missing:
+        raise InputError(f"result {path} lacks the attribute(s) {', '.join(missing)}: not a chunkdic result, "
+                         "or a damaged one")
+    try:
+        u = root["displacement"][...]
+        X = root["node_coords"][...]
+        history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
+        optional = {name: root[name][...] if name in root else None
+                    for name in ("strain", "flags", "brightness", "active", "uncertainty")}
+    except KeyError as exc:
+        raise InputError(f"result {path} lacks the array {exc.args[0]!r}: a damaged result") from None
+    except Exception as exc:  # noqa: BLE001 - undecodable chunks
+        raise InputError(f"result {path} cannot be read ({type(exc).__name__}: {exc}"
+                         .splitlines()[0] + "): a damaged result") from None
+    _check_consistent(path, info, u, X, history)
+    return Result(u, X, history, info, str(path), **optional)
+
+
+def _check_consistent(path, info, u, X, history) -> None:
+    """The arrays of a result agree with its attributes (else one-line InputError)."""
+    try:
+        ell = int(info["element_size"])
+        roi = [(int(a), int(b)) for a, b in info["roi"]]
+        nodes = tuple((b - a) // ell + 1 for a, b in roi)
+        ok_roi = len(roi) == 3 and ell >= 1 and all((b - a) % ell == 0 and b > a for a, b in roi)
+    except (TypeError, ValueError, KeyError):
+        ok_roi, nodes = False, None
+    if not ok_roi:
+        raise InputError(f"result {path}: attributes element_size {info.get('element_size')!r} and roi "
+                         f"{info.get('roi')!r} do not describe a mesh: a damaged result")
+    for name, a in (("displacement", u), ("node_coords", X)):
+        if a.shape != (3,) + nodes:
+            raise InputError(f"result {path}: {name} has shape {a.shape}, the mesh needs {(3,) + nodes}: "
+                             "a damaged result")
+    lengths = {name: len(v) for name, v in history.items()}
+    if len(set(lengths.values())) > 1:
+        raise InputError(f"result {path}: history arrays of different lengths {lengths}: a damaged result")
+
+
+def jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, float) and not np.isfinite(obj):
+        return None
+    return obj
+
+
+def node_flags(mesh, elements: np.ndarray | None, weak_nodes, masked: np.ndarray | None = None) -> np.ndarray:
+    """Per-node flags (:data:`chunkdic.results.result.FLAG_NO_DATA`, ``FLAG_WEAK``, ``FLAG_MASKED``), shape (nz, ny, nx) uint8.
+
+    A node has no data when the elements around it together hold fewer valid voxels (voxels
+    whose ``X + u(X)`` falls inside ``g``) than ``chunkdic.min-node-support`` of one element:
+    its value would be extrapolated by its neighbours, not measured.
+    """
+    flags = np.zeros(mesh.nodes_shape, np.uint8)
+    if elements is not None:
+        valid = np.pad(elements[2], 1)
+        support = sum(valid[dz:dz + flags.shape[0], dy:dy + flags.shape[1], dx:dx + flags.shape[2]]
+                      for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
+        flags[support < config.get("min-node-support") * mesh.element_size**3] |= FLAG_NO_DATA
+    for n in weak_nodes:
+        flags[tuple(n)] |= FLAG_WEAK
+    if masked is not None:
+        flags[masked] = FLAG_MASKED
+    return flags

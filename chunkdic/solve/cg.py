@@ -1,0 +1,336 @@
+"""Client-side solve of ``(M + λR) δa = b − λ R a`` (paper section 3) on the nodal stencil.
+
+``M`` is a weighted mass matrix: conjugate gradients with a 3×3 nodal block-Jacobi
+preconditioner converge in about a hundred iterations whatever the mesh size, where a
+direct factorisation costs seconds to minutes (shared/DESIGN.md). The stencil is used
+as is for the matrix-vector product, never converted to CSR, and only its symmetric half
+is kept (:data:`HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
+of 2. The regularisation ``R`` (:mod:`chunkdic.solve.regularization`) is applied matrix-free
+in the same CG. A long Tikhonov length makes ``M + λ R`` a fourth-order operator whose
+smooth modes block-Jacobi cannot reach (hundreds to thousands of iterations): there a
+multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) preconditions the same CG instead.
+"""
+
+from __future__ import annotations
+
+import logging
+import warnings
+
+import numba
+import numpy as np
+
+from ..errors import InputError
+from ..mesh import STENCIL_OFFSETS
+from .regularization import Regularizer, add_weighted
+
+log = logging.getLogger(__name__)
+
+#: multigrid replaces block-Jacobi (Tikhonov only) from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii``
+#: (medians over nodes): from about 7ℓ, where block-Jacobi CG needs ~100 iterations and
+#: the V-cycle 9 (docs/engine.md, "Solve"). The equilibrium gap keeps block-Jacobi: its
+#: large non-smooth near-null space (every field in equilibrium) defeats the point
+#: smoother, and the V-cycle saved iterations but not time (measured).
+MULTIGRID_FROM = 100.0
+#: index of the node itself in the 27-point stencil
+CENTRE = 13
+#: the stored half of the stencil: entries 13 (the node) to 26; entry ``26 - k`` of the
+#: neighbour ``n + off_k`` is the transpose of entry ``k`` of node ``n``
+HALF_OFFSETS = STENCIL_OFFSETS[CENTRE:]
+
+
+class PoorTextureWarning(UserWarning):
+    """Some nodes see too little image gradient to be measured reliably."""
+
+
+def half_stencil(full: np.ndarray) -> np.ndarray:
+    """The stored half ``S[..., 13:, :, :]`` of a full (…, 27, 3, 3) stencil (a view)."""
+    return full[..., CENTRE:, :, :]
+
+
+@numba.njit(nogil=True, cache=True)
+def half_matvec(H, x, y):
+    """y = M x from the half stencil H (nz, ny, nx, 14, 3, 3)."""
+    nz, ny, nx = x.shape[:3]
+    y[:] = 0.0
+    for z in range(nz):
+        for yy in range(ny):
+            for xx in range(nx):
+                s = H[z, yy, xx, 0]
+                c0, c1, c2 = x[z, yy, xx, 0], x[z, yy, xx, 1], x[z, yy, xx, 2]
+                y[z, yy, xx, 0] += s[0, 0] * c0 + s[0, 1] * c1 + s[0, 2] * c2
+                y[z, yy, xx, 1] += s[1, 0] * c0 + s[1, 1] * c1 + s[1, 2] * c2
+                y[z, yy, xx, 2] += s[2, 0] * c0 + s[2, 1] * c1 + s[2, 2] * c2
+                for h in range(1, 14):
+                    k = h + 13
+                    z2 = z + k // 9 - 1
+                    y2 = yy + (k // 3) % 3 - 1
+                    x2 = xx + k % 3 - 1
+                    if z2 < 0 or z2 >= nz or y2 < 0 or y2 >= ny or x2 < 0 or x2 >= nx:
+                        continue
+                    s = H[z, yy, xx, h]
+                    v0, v1, v2 = x[z2, y2, x2, 0], x[z2, y2, x2, 1], x[z2, y2, x2, 2]
+                    y[z, yy, xx, 0] += s[0, 0] * v0 + s[0, 1] * v1 + s[0, 2] * v2
+                    y[z, yy, xx, 1] += s[1, 0] * v0 + s[1, 1] * v1 + s[1, 2] * v2
+                    y[z, yy, xx, 2] += s[2, 0] * v0 + s[2, 1] * v1 + s[2, 2] * v2
+                    # the transposed entry of the neighbour
+                    y[z2, y2, x2, 0] += s[0, 0] * c0 + s[1, 0] * c1 + s[2, 0] * c2
+                    y[z2, y2, x2, 1] += s[0, 1] * c0 + s[1, 1] * c1 + s[2, 1] * c2
+                    y[z2, y2, x2, 2] += s[0, 2] * c0 + s[1, 2] * c1 + s[2, 2] * c2
+
+
+def stencil_matvec(H: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``y = M x`` for the half stencil ``H`` (nz, ny, nx, 14, 3, 3) and ``x`` (nz, ny, nx, 3)."""
+    y = np.empty(x.shape, dtype=np.float64)
+    half_matvec(H, np.ascontiguousarray(x, dtype=np.float64), y)
+    return y
+
+
+def rigid_restriction(H: np.ndarray) -> np.ndarray:
+    """``Σ_ij M_ij`` (3, 3): ``M`` restricted to uniform translations (``Σ_a N_a = 1``)."""
+    centre = H[..., 0, :, :].sum(axis=(0, 1, 2), dtype=np.float64)
+    off = H[..., 1:, :, :].sum(axis=(0, 1, 2, 3), dtype=np.float64)
+    return centre + off + off.T
+
+
+class StencilSolver:
+    """Preconditioned CG on the half stencil of ``M`` (plus an optional ``λ R``).
+
+    Parameters
+    ----------
+    half : ndarray, shape (nz, ny, nx, 14, 3, 3), float32
+        The stored half of ``M`` (:data:`HALF_OFFSETS`). The solver keeps it (no copy) and
+        adds to its diagonal blocks the small Tikhonov term of poorly textured nodes.
+    weak_threshold : float
+        A node is *poorly textured* when the smallest eigenvalue of its 3×3 diagonal
+        block is below ``weak_threshold`` times the median over nodes of the mean
+        eigenvalue. Such nodes get a Tikhonov term of that size on their own block so the
+        system stays solvable, and :attr:`weak_nodes` lists them.
+    rtol : float
+        Relative residual tolerance of CG, relative to the largest right-hand side this
+        solver has seen (not only the current one): the Gauss–Newton steps of a level shrink
+        to nothing as it converges, and a residual relative to a vanishing right-hand side
+        asked ever more CG iterations of an increment nobody uses (measured at 300³ with a
+        long regularisation length: 1 281 iterations, 3.1 s, for a step of max 3e-6 voxel).
+        The increments then carry an error of at most ``rtol`` times the first step's size.
+    maxiter : int
+        CG iterations before giving up with a warning.
+    multigrid : bool or None
+        Precondition with a multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) instead of
+        block-Jacobi: ``None`` (default) when it pays, i.e. with Tikhonov regularisation
+        whose weight makes ``λ R`` dominate ``M`` (:data:`MULTIGRID_FROM`); ``True`` whenever
+        regularised, ``False`` never.
+
+    Raises
+    ------
+    InputError
+        If ``M`` has no gradient at all (nothing to correlate).
+    """
+
+    def __init__(self, half: np.ndarray, *, weak_threshold: float = 1e-3, rtol: float = 1e-7,
+                 maxiter: int = 2000, multigrid: bool | None = None):
+        self.rtol, self.maxiter = rtol, maxiter
+        #: norm of the largest right-hand side solved so far (kept by checkpoints: a
+        #: resumed run stops CG where the uninterrupted one did)
+        self.largest_rhs = 0.0
+        self.nodes_shape = half.shape[:3]
+        diag = half[..., 0, :, :].reshape(-1, 3, 3).astype(np.float64)
+        eig = np.linalg.eigvalsh(diag)  # ascending
+        scale = float(np.median(eig.mean(axis=1)))
+        if not np.isfinite(scale) or scale <= 0:
+            raise InputError("the reference image has no gradient in the ROI: nothing to correlate")
+        weak = eig[:, 0] < weak_threshold * scale
+        self.weak_nodes = np.argwhere(weak.reshape(self.nodes_shape))
+        if weak.any():
+            diag[weak] += weak_threshold * scale * np.eye(3)
+            half[..., 0, :, :] = diag.reshape(self.nodes_shape + (3, 3))
+        self.scale = scale
+        # float32 for the matrix-vector product: CG is bound by memory traffic through the
+        # stencil, and M only steers the modified Gauss-Newton steps (the converged field
+        # solves b = λ R a whatever M), so its round-off at 6e-8 changes nothing measurable.
+        self.matrix = half if half.dtype == np.float32 else half.astype(np.float32)
+        self._diag = diag.reshape(self.nodes_shape + (3, 3))
+        self.regularizer: Regularizer | None = None
+        self.weight = 0.0
+        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0)
+        self.block_inverse = np.linalg.inv(self._diag)
+        self.multigrid = multigrid
+        self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
+        self._vcycle = None
+
+    def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
+        """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
+        self.regularizer = regularizer if weight > 0 else None
+        self.weight = float(weight) if self.regularizer is not None else 0.0
+        diag = self._diag
+        if self.regularizer is not None:
+            self._reg_args = self.regularizer.numba_args()
+            reg_diag = self.regularizer.diagonal_blocks()
+            diag = diag + self.weight * reg_diag
+            self._regularizer_diagonal = float(np.median(np.trace(reg_diag, axis1=-2, axis2=-1)))
+            self._matrix_diagonal = float(np.median(np.trace(self._diag, axis1=-2, axis2=-1)))
+        self.block_inverse = np.linalg.inv(diag)
+        self._vcycle = None
+        if self._use_multigrid():
+            from .multigrid import VCycle, matrix_hierarchy
+
+            if self._matrices is None:
+                self._matrices = matrix_hierarchy(self.matrix)
+            self._vcycle = VCycle(self._matrices, self.block_inverse, self.regularizer, self.weight)
+
+    def _use_multigrid(self) -> bool:
+        """Whether :meth:`regularize` builds a V-cycle (:data:`MULTIGRID_FROM`)."""
+        if self.regularizer is None or self.multigrid is False:
+            return False
+        if self.multigrid:
+            return True
+        if self.regularizer.kind != "tikhonov":
+            return False
+        return self.weight * self._regularizer_diagonal >= MULTIGRID_FROM * self._matrix_diagonal
+
+    def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
+        """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3); zeros without regularisation."""
+        if self.regularizer is None:
+            return np.zeros(a.shape)
+        return self.weight * self.regularizer.apply(a)
+
+    def matvec(self, x: np.ndarray) -> np.ndarray:
+        """``(M + λ R) x``."""
+        y = stencil_matvec(self.matrix, x)
+        if self.regularizer is not None:
+            add_weighted(*self._reg_args, self.weight, np.ascontiguousarray(x, dtype=np.float64), y)
+        return y
+
+    def solve(self, b: np.ndarray) -> tuple[np.ndarray, int]:
+        """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
+
+        Returns the solution and the number of CG iterations.
+        """
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        x = np.zeros_like(b)
+        code, Ke, Kf, sw = self._reg_args
+        norm = float(np.sqrt(np.sum(b * b)))
+        self.largest_rhs = max(self.largest_rhs, norm)
+        rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
+        if self._vcycle is not None:
+            iterations = _pcg_preconditioned(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
+        else:
+            iterations = _pcg(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
+                              code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
+        if iterations < 0:
+            warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
+                          stacklevel=2)
+            iterations = self.maxiter
+        return x, iterations
+
+
+def warmup() -> None:
+    """Compile the client's solver kernels (CG with and without regularisation, the V-cycle) on tiny systems."""
+    from .regularization import Regularizer
+
+    half = np.zeros((3, 3, 3, 14, 3, 3), np.float32)
+    half[..., 0, :, :] = np.eye(3)
+    solver = StencilSolver(half)
+    solver.solve(np.ones((3, 3, 3, 3)))
+    solver.regularize(Regularizer("tikhonov", (3, 3, 3), 2.0), 1.0)
+    solver.solve(np.ones((3, 3, 3, 3)))
+    half = np.zeros((7, 7, 7, 14, 3, 3), np.float32)  # two multigrid levels
+    half[..., 0, :, :] = np.eye(3)
+    solver = StencilSolver(half, multigrid=True)
+    solver.regularize(Regularizer("tikhonov", (7, 7, 7), 2.0), 1.0)
+    solver.solve(np.ones((7, 7, 7, 3)))
+
+
+@numba.njit(nogil=True, cache=True)
+def block_jacobi(Binv, r, z):
+    nz, ny, nx = r.shape[:3]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for a in range(3):
+                    z[i, j, k, a] = (Binv[i, j, k, a, 0] * r[i, j, k, 0] + Binv[i, j, k, a, 1] * r[i, j, k, 1]
+                                     + Binv[i, j, k, a, 2] * r[i, j, k, 2])
+
+
+@numba.njit(nogil=True, cache=True)
+def _pcg(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
+    """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
+
+    Written out (rather than scipy's ``cg``) so that its vector operations are plain
+    loops: on a busy machine, multithreaded BLAS calls on these small vectors cost more
+    than the whole stencil product. The vector operations run on flat views through
+    :func:`dot` and :func:`axpy`: written as 4-D array expressions they took numba 41 s
+    to compile (the first run's largest single wait), as flat loops under a second.
+    """
+    r = b.copy()  # x starts at zero
+    z = np.empty_like(b)
+    q = np.empty_like(b)
+    rf, zf, qf, xf = r.reshape(-1), z.reshape(-1), q.reshape(-1), x.reshape(-1)
+    block_jacobi(Binv, r, z)
+    p = z.copy()
+    pf = p.reshape(-1)
+    rz = dot(rf, zf)
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    if bnorm == 0.0:
+        return 0
+    for it in range(1, maxiter + 1):
+        half_matvec(H, p, q)
+        if code != 0:
+            add_weighted(code, Ke, Kf, sw, lam, p, q)
+        alpha = rz / dot(pf, qf)
+        axpy(alpha, pf, xf)
+        axpy(-alpha, qf, rf)
+        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
+            return it
+        block_jacobi(Binv, r, z)
+        rz_new = dot(rf, zf)
+        beta = rz_new / rz
+        for k in range(pf.size):  # p = z + β p
+            pf[k] = zf[k] + beta * pf[k]
+        rz = rz_new
+    return -1
+
+
+def _pcg_preconditioned(matvec, precondition, b, x, rtol, maxiter) -> int:
+    """:func:`_pcg` with any symmetric positive definite preconditioner ``precondition(r) -> z``.
+
+    Written in Python around the numba vector kernels: with a V-cycle per iteration, a few
+    tens of iterations, the interpreter's share is negligible.
+    """
+    r = b.copy()
+    rf, xf = r.reshape(-1), x.reshape(-1)
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    if bnorm == 0.0:
+        return 0
+    z = precondition(r)
+    p = z.copy()
+    pf = p.reshape(-1)
+    rz = dot(rf, z.reshape(-1))
+    for it in range(1, maxiter + 1):
+        q = matvec(p)
+        alpha = rz / dot(pf, q.reshape(-1))
+        axpy(alpha, pf, xf)
+        axpy(-alpha, q.reshape(-1), rf)
+        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
+            return it
+        z = precondition(r)
+        rz_new = dot(rf, z.reshape(-1))
+        beta = rz_new / rz
+        p *= beta
+        p += z
+        rz = rz_new
+    return -1
+
+
+@numba.njit(nogil=True, cache=True)
+def dot(a, b):
+    s = 0.0
+    for k in range(a.size):
+        s += a[k] * b[k]
+    return s
+
+
+@numba.njit(nogil=True, cache=True)
+def axpy(alpha, a, y):
+    """``y += alpha * a`` (flat arrays)."""
+    for k in range(a.size):
+        y[k] += alpha * a[k]

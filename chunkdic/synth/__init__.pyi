@@ -1,0 +1,4 @@
+from .ctpair import render_ct
+from .fields import Affine, Band, Translation
+from .fourier_shift import fourier_shift_scan
+from .synthetic import load_field, standard_case, synthesize

@@ -1,0 +1,341 @@
+"""Analytic displacement fields of the synthetic specimens, in voxels.
+
+A :class:`Field` gives the displacement ``u(X)`` in the reference (Lagrangian) frame and
+its inverse ``X(x)`` with ``X + u(X) = x``; :mod:`chunkdic.synth.foam` renders a deformed
+scan as ``g(x) = f(X(x))``. Fields: :class:`Translation` (rigid), :class:`Affine` (exact
+inverse) and :class:`Band`, the paper's localized compression band (inverse by Newton to
+1e-13). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips
+through a pair's ``field.json``. All names are re-exported by :mod:`chunkdic.synth.synthetic`.
+"""
+
+from __future__ import annotations
+
+import math
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numba import njit
+
+from ..errors import InputError
+
+__all__ = [
+    "Field",
+    "Translation",
+    "Affine",
+    "Band",
+    "true_displacement",
+]
+
+
+class Field(ABC):
+    """A displacement field ``u(X)`` in the reference (Lagrangian) frame, in voxels.
+
+    Subclasses are frozen dataclasses. ``x = X + u(X)`` is the position in the deformed
+    scan of the material point at ``X`` in the reference scan.
+    """
+
+    kind: ClassVar[str] = ""
+    _registry: ClassVar[dict[str, type]] = {}
+
+    def __init_subclass__(cls, **kw):
+        super().__init_subclass__(**kw)
+        if cls.kind:
+            Field._registry[cls.kind] = cls
+
+    @abstractmethod
+    def displacement(self, z, y, x) -> np.ndarray:
+        """Displacement ``u(X)``.
+
+        Parameters
+        ----------
+        z, y, x : array_like, broadcastable, float64, voxels
+            Reference positions ``X``.
+
+        Returns
+        -------
+        ndarray, shape (3, *shape), float64, voxels
+            Components ``(Uz, Uy, Ux)``.
+        """
+
+    @abstractmethod
+    def inverse(self, z, y, x) -> np.ndarray:
+        """Reference positions ``X`` with ``X + u(X) = x``.
+
+        Parameters
+        ----------
+        z, y, x : array_like, broadcastable, float64, voxels
+            Deformed positions ``x``.
+
+        Returns
+        -------
+        ndarray, shape (3, *shape), float64, voxels
+        """
+
+    @abstractmethod
+    def _json_fields(self) -> dict:
+        ...
+
+    def to_json(self) -> dict:
+        """A JSON-serialisable dict; :meth:`Field.from_json` reads it back."""
+        return {"type": self.kind, **self._json_fields()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Field":
+        """Build the field described by ``d`` (the output of :meth:`to_json`)."""
+        d = dict(d)
+        kind = d.pop("type", None)
+        if kind not in Field._registry:
+            raise InputError(f"unknown field type {kind!r} (known: {sorted(Field._registry)})")
+        try:
+            return Field._registry[kind]._from_fields(d)
+        except (TypeError, KeyError) as exc:
+            raise InputError(f"bad {kind} field description {d!r}: {exc}") from None
+
+    @classmethod
+    def _from_fields(cls, d: dict) -> "Field":
+        return cls(**d)
+
+
+def _xyz(z, y, x):
+    return np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (z, y, x)))
+
+
+def _vec3(v, name) -> tuple[float, float, float]:
+    t = tuple(float(a) for a in np.asarray(v, dtype=np.float64).ravel())
+    if len(t) != 3 or not all(np.isfinite(t)):
+        raise InputError(f"{name} must be 3 finite numbers (z, y, x), got {v!r}")
+    return t
+
+
+@dataclass(frozen=True)
+class Translation(Field):
+    """Rigid translation ``u(X) = t``.
+
+    Parameters
+    ----------
+    t : tuple of 3 float, voxels
+        ``(tz, ty, tx)``.
+    """
+
+    kind: ClassVar[str] = "translation"
+    t: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        object.__setattr__(self, "t", _vec3(self.t, "t"))
+
+    def displacement(self, z, y, x):
+        zz, _, _ = _xyz(z, y, x)
+        return np.stack([np.full(zz.shape, c) for c in self.t])
+
+    def inverse(self, z, y, x):
+        zz, yy, xx = _xyz(z, y, x)
+        return np.stack([zz - self.t[0], yy - self.t[1], xx - self.t[2]])
+
+    def _json_fields(self):
+        return {"t": list(self.t)}
+
+
+@dataclass(frozen=True)
+class Affine(Field):
+    """Affine field ``u(X) = A (X - center) + translation``.
+
+    Parameters
+    ----------
+    matrix : 3x3 nested tuple of float
+        Displacement gradient ``A[i][j] = dU_i / dX_j``, axes ``(z, y, x)``.
+    center : tuple of 3 float, voxels
+        Point where ``u = translation``.
+    translation : tuple of 3 float, voxels
+    """
+
+    kind: ClassVar[str] = "affine"
+    matrix: tuple = ((0.0, 0.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    center: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        a = np.asarray(self.matrix, dtype=np.float64)
+        if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+            raise InputError(f"affine matrix must be 3x3 finite numbers, got {self.matrix!r}")
+        if abs(np.linalg.det(np.eye(3) + a)) < 1e-6 or np.linalg.det(np.eye(3) + a) < 0:
+            raise InputError("affine field is not invertible (det(I + A) <= 0)")
+        object.__setattr__(self, "matrix", tuple(tuple(float(v) for v in r) for r in a))
+        object.__setattr__(self, "center", _vec3(self.center, "center"))
+        object.__setattr__(self, "translation", _vec3(self.translation, "translation"))
+
+    def displacement(self, z, y, x):
+        X = _xyz(z, y, x)
+        d = [X[j] - self.center[j] for j in range(3)]
+        a = self.matrix
+        return np.stack([
+            a[i][0] * d[0] + a[i][1] * d[1] + a[i][2] * d[2] + self.translation[i]
+            for i in range(3)
+        ])
+
+    def inverse(self, z, y, x):
+        xs = _xyz(z, y, x)
+        b = np.linalg.inv(np.eye(3) + np.asarray(self.matrix))
+        d = [xs[j] - self.center[j] - self.translation[j] for j in range(3)]
+        return np.stack([
+            self.center[i] + (b[i, 0] * d[0] + b[i, 1] * d[1] + b[i, 2] * d[2])
+            for i in range(3)
+        ])
+
+    def _json_fields(self):
+        return {
+            "matrix": [list(r) for r in self.matrix],
+            "center": list(self.center),
+            "translation": list(self.translation),
+        }
+
+    @classmethod
+    def _from_fields(cls, d):
+        return cls(matrix=tuple(tuple(r) for r in d["matrix"]), center=tuple(d["center"]),
+                   translation=tuple(d["translation"]))
+
+
+@njit(nogil=True, cache=True)
+def _lncosh(a):
+    a = abs(a)
+    return a + math.log1p(math.exp(-2.0 * a)) - math.log(2.0)
+
+
+@njit(nogil=True, cache=True)
+def _band_profile(s, half, edge):
+    # smooth top hat of width 2*half, value 1 inside, 0 outside, tanh edges of scale edge
+    return 0.5 * (math.tanh((s + half) / edge) - math.tanh((s - half) / edge))
+
+
+@njit(nogil=True, cache=True)
+def _band_integral(s, half, edge):
+    # integral of the profile from 0 to s (odd in s)
+    return 0.5 * edge * (_lncosh((s + half) / edge) - _lncosh((s - half) / edge))
+
+
+@njit(nogil=True, cache=True)
+def _band_inverse_z(xz, cz, half, edge, strain, out):
+    """Solve Z + strain * I(Z - cz) = xz per element (Newton, own stopping per element)."""
+    for i in range(xz.size):
+        target = xz[i] - cz
+        s = target  # u_z is at most |strain| * half away from it
+        for _ in range(100):
+            r = s + strain * _band_integral(s, half, edge) - target
+            step = r / (1.0 + strain * _band_profile(s, half, edge))
+            s -= step
+            if abs(step) < 1e-13 * (1.0 + abs(s)):
+                break
+        out[i] = s + cz
+
+
+@dataclass(frozen=True)
+class Band(Field):
+    """Localized compression band normal to z with lateral expansion (the paper's case).
+
+    With ``s = Z - center_z`` and ``p(s)`` a smooth top hat of width ``width`` (tanh
+    edges of scale ``edge``) and ``I(s)`` its integral from 0:
+
+    - ``Uz = strain * I(s)`` (strain ``< 0``: compression inside the band, rigid shifts of
+      ``strain * width / 2`` on both sides, so the band shortens by ``|strain| * width``),
+    - ``Uy = -lateral * strain * p(s) * (Y - center_y)``, same for ``x``.
+
+    ``dUz/dZ = strain * p(s)``, so the field is smooth (C-infinity) and invertible for
+    ``strain > -1``; the inverse solves the 1-D ``z`` equation by Newton to 1e-13 and the
+    lateral components exactly.
+
+    Parameters
+    ----------
+    center_z : float, voxels
+    width : float, voxels
+        Band width (full width at half of the profile).
+    strain : float
+        Axial strain inside the band (negative = compression), e.g. ``-0.05``.
+    lateral : float
+        Poisson-like lateral expansion factor (``0`` for a foam that does not expand).
+    center_y, center_x : float, voxels
+        Axis of the lateral expansion.
+    edge : float or None, voxels
+        Softness of the band edges (default ``width / 8``).
+    """
+
+    kind: ClassVar[str] = "band"
+    center_z: float = 0.0
+    width: float = 32.0
+    strain: float = -0.05
+    lateral: float = 0.3
+    center_y: float = 0.0
+    center_x: float = 0.0
+    edge: float | None = None
+
+    def __post_init__(self):
+        for name in ("center_z", "width", "strain", "lateral", "center_y", "center_x"):
+            v = float(getattr(self, name))
+            if not np.isfinite(v):
+                raise InputError(f"band parameter {name} must be finite, got {v!r}")
+            object.__setattr__(self, name, v)
+        if self.width <= 0:
+            raise InputError(f"band width must be positive, got {self.width}")
+        if not -1.0 < self.strain < 1.0:
+            raise InputError(f"band strain must lie in (-1, 1), got {self.strain}")
+        if self.edge is not None:
+            if not float(self.edge) > 0:
+                raise InputError(f"band edge must be positive, got {self.edge!r}")
+            object.__setattr__(self, "edge", float(self.edge))
+        if abs(self.lateral * self.strain) >= 1.0:
+            raise InputError("band lateral * strain must have magnitude < 1")
+
+    @property
+    def _edge(self) -> float:
+        return self.edge if self.edge is not None else self.width / 8.0
+
+    def _profile(self, s):
+        e, h = self._edge, self.width / 2.0
+        return 0.5 * (np.tanh((s + h) / e) - np.tanh((s - h) / e))
+
+    def _integral(self, s):
+        e, h = self._edge, self.width / 2.0
+
+        def lncosh(a):
+            a = np.abs(a)
+            return a + np.log1p(np.exp(-2.0 * a)) - math.log(2.0)
+
+        return 0.5 * e * (lncosh((s + h) / e) - lncosh((s - h) / e))
+
+    def displacement(self, z, y, x):
+        zz, yy, xx = _xyz(z, y, x)
+        s = zz - self.center_z
+        p = self._profile(s)
+        k = -self.lateral * self.strain
+        return np.stack([self.strain * self._integral(s), k * p * (yy - self.center_y),
+                         k * p * (xx - self.center_x)])
+
+    def inverse(self, z, y, x):
+        zz, yy, xx = _xyz(z, y, x)
+        # Z depends on z alone: solve on z as given (e.g. one value per plane of a grid),
+        # then broadcast; element by element the result is the same
+        z0 = np.asarray(z, dtype=np.float64)
+        Z = np.empty(z0.size)
+        _band_inverse_z(np.ascontiguousarray(z0).ravel(), self.center_z, self.width / 2.0,
+                        self._edge, self.strain, Z)
+        Z = Z.reshape(z0.shape)
+        g = 1.0 - self.lateral * self.strain * self._profile(Z - self.center_z)
+        Z, g = np.broadcast_to(Z, zz.shape), np.broadcast_to(g, zz.shape)
+        return np.stack([Z, self.center_y + (yy - self.center_y) / g,
+                         self.center_x + (xx - self.center_x) / g])
+
+    def _json_fields(self):
+        return {"center_z": self.center_z, "width": self.width, "strain": self.strain,
+                "lateral": self.lateral, "center_y": self.center_y, "center_x": self.center_x,
+                "edge": self.edge}
+
+
+def true_displacement(field: Field, z, y, x) -> np.ndarray:
+    """The true displacement ``u(X)``, shape ``(3, *shape)``, float64, voxels.
+
+    Same as ``field.displacement(z, y, x)``; ``field=None`` means no motion.
+    """
+    if field is None:
+        zz, _, _ = _xyz(z, y, x)
+        return np.zeros((3, *zz.shape))
+    return field.displacement(z, y, x)

@@ -1,0 +1,197 @@
+"""The corrected deformed image: what the engine compared with the reference, voxel by voxel.
+
+A result's residual is ``r = f̃(X) - (λ g̃(X + u(X)) + μ(X))`` (paper section 3, with the
+image preparation and brightness model of docs/engine.md): ``f̃``, ``g̃`` are the scans
+low-passed as the engine did (:mod:`chunkdic.engine.prefilter`), ``g̃`` interpolated as the engine
+did (same window reads, same kernel: :func:`chunkdic.kernels.warp.warp_block`), and ``λ``, ``μ``
+the brightness the engine found (:mod:`chunkdic.engine.greylevel`: a gain and an offset per
+element, plus a linear drift). This module computes it for one block of whole elements, in
+a task, and is the one place that knows how: the corrected volume of
+:func:`chunkdic.views.corrected_image.write_corrected`, the cuts of :mod:`chunkdic.views.report` and anything
+else that shows ``g(X + u(X))`` go through :func:`correct_block`. The client never reads
+voxels: a plane of the corrected image is assembled from the planes the tasks return.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import config
+from ..kernels.warp import warp_block
+from ..kernels.blocks import voxel_xi
+from ..mesh import Block, Mesh
+from ..engine.prefilter import face_margin
+from ..results.result import Result
+from ..engine.tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
+from ..io.handles import ArrayRef
+
+__all__ = ["Correction", "correct_block", "element_slice", "plane_jobs", "plane_task", "assemble_plane", "planes"]
+
+
+@dataclass(frozen=True)
+class Correction:
+    """Everything a task needs to correct ``g`` by a result: stores and settings, no voxels.
+
+    Attributes
+    ----------
+    inputs : LevelInputs
+        The scans at the result's level and the engine's image settings.
+    mesh : Mesh
+        The result's mesh (its level).
+    drift : tuple of 3 float
+        Brightness drift of the ``drift`` model, grey levels per voxel of the level along
+        ``(z, y, x)`` (zeros for the other models).
+    """
+
+    inputs: LevelInputs
+    mesh: Mesh
+    drift: tuple[float, float, float]
+
+    @classmethod
+    def of_result(cls, result: Result, f_ref: ArrayRef, g_ref: ArrayRef, interpolation: str | None = None
+                  ) -> "Correction":
+        """The correction of ``result`` for the scans ``f_ref``, ``g_ref`` at its level."""
+        settings = result.info.get("settings") or {}
+        sigma = float(settings.get("smoothing", 0.0) or 0.0)
+        grey = (result.info.get("grey_level") or {}).get("model", settings.get("grey", "none"))
+        interp = interpolation or str(settings.get("interpolation", "cubic"))
+        inputs = LevelInputs(f_ref, g_ref, None, interp, sigma, grey, int(config.get("bspline-halo")),
+                             face_margin(sigma), level=int(result.info.get("level", 0)))
+        drift = (result.info.get("grey_level") or {}).get("drift") or (0.0, 0.0, 0.0)
+        return cls(inputs, result.mesh, tuple(float(v) for v in drift))
+
+
+def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: np.ndarray | None):
+    """The prepared reference, the corrected deformed image and their validity over one block.
+
+    Parameters
+    ----------
+    c : Correction
+    block : Block
+        Whole elements of ``c.mesh``.
+    u_block : ndarray, shape (3, ez+1, ey+1, ex+1), float64, voxels
+        The result's field on the block's nodes.
+    brightness : ndarray, shape (2, ez, ey, ex), float64, or None
+        Gain and offset (at the element centre) per element (``Result.brightness``); None:
+        gain 1, offset 0.
+
+    Returns
+    -------
+    f : ndarray, block core shape, float32, grey levels
+        The reference as the engine saw it (low-passed).
+    corrected : ndarray, block core shape, float32, grey levels
+        ``λ g̃(X + u(X)) + μ(X)``; NaN where ``X + u(X)`` leaves the usable part of ``g``.
+    valid : ndarray, block core shape, bool
+    """
+    ell = c.mesh.element_size
+    start, shape = c.mesh.block_core(block)
+    job = BlockJob(block, ell, start, shape, (0, 0, 0))
+    f, _, _ = read_prepared_reference(c.inputs, start, shape, halo=0)
+    g, g_origin = read_g_window(c.inputs, job, u_block)
+    if g is None:
+        return np.asarray(f, np.float32), np.full(shape, np.nan, np.float32), np.zeros(shape, bool)
+    warped, valid = warp_block(ell, u_block, start, shape, g, g_origin, c.inputs.g.shape,
+                               interpolation=c.inputs.interpolation, prefiltered=True,
+                               margin=c.inputs.g_margin)
+    if brightness is not None:
+        # per voxel: the element's gain and centre offset, plus drift · (X - X_e)
+        gain, offset = (np.repeat(np.repeat(np.repeat(b, ell, 0), ell, 1), ell, 2) for b in brightness)
+        local = (voxel_xi(ell) - 0.5) * ell  # X - X_e inside an element, voxels
+        ramp = sum(d * np.tile(local, n).reshape([-1 if a == axis else 1 for a in range(3)])
+                   for axis, (d, n) in enumerate(zip(c.drift, block.n_elements)) if d)
+        warped = gain * warped + offset + ramp
+    return np.asarray(f, np.float32), np.asarray(warped, np.float32), valid
+
+
+def element_slice(per_element: np.ndarray | None, block: Block) -> np.ndarray | None:
+    """The block's elements of a per-element array ``(k, ez, ey, ex)`` (None stays None)."""
+    if per_element is None:
+        return None
+    return np.ascontiguousarray(per_element[(slice(None), *(slice(e0, e1) for e0, e1 in block.elements))])
+
+
+# --------------------------------------------------------------------------- planes
+
+
+def plane_jobs(mesh: Mesh, normal: int, index: int, elements_per_block: int) -> list[Block]:
+    """Blocks one element thick along ``normal`` that hold the plane ``index`` (level voxels)."""
+    e = (index - mesh.origin[normal]) // mesh.element_size
+    if not 0 <= e < mesh.shape[normal]:
+        raise ValueError(f"plane {index} is outside the ROI along axis {normal}")
+    out = []
+    for blk in mesh.blocks(elements_per_block):
+        if blk.elements[normal][0] <= e < blk.elements[normal][1]:
+            els = list(blk.elements)
+            els[normal] = (e, e + 1)
+            out.append(Block(tuple(els)))
+    return out
+
+
+def plane_task(c: Correction, block: Block, u_block: np.ndarray, brightness: np.ndarray | None,
+               normal: int, index: int) -> tuple[Block, dict[str, np.ndarray]]:
+    """Task: one block's share of a plane: ``f`` raw and prepared, ``g`` raw, corrected ``g``.
+
+    Returns the block and 2-D float32 arrays (the block's extent along the two other axes).
+    """
+    start, shape = c.mesh.block_core(block)
+    f_prep, corrected, valid = correct_block(c, block, u_block, brightness)
+    k = index - start[normal]
+    take = tuple(k if a == normal else slice(None) for a in range(3))
+    region = tuple(slice(index, index + 1) if a == normal else slice(s, s + n)
+                   for a, (s, n) in enumerate(zip(start, shape)))
+    planes = {"reference": c.inputs.f.read(region).astype(np.float32).squeeze(normal),
+              "prepared": f_prep[take], "corrected": np.where(valid[take], corrected[take], np.nan)}
+    g_region = tuple(slice(max(r.start, 0), min(r.stop, n)) for r, n in zip(region, c.inputs.g.shape))
+    g_plane = np.full([r.stop - r.start for r in region], np.nan, np.float32)
+    if all(r.stop > r.start for r in g_region):
+        dst = tuple(slice(r.start - q.start, r.stop - q.start) for r, q in zip(g_region, region))
+        g_plane[dst] = c.inputs.g.read(g_region)
+    planes["deformed"] = g_plane.squeeze(normal)
+    return block, planes
+
+
+def assemble_plane(c: Correction, normal: int, parts) -> dict[str, np.ndarray]:
+    """The ROI plane from the ``(block, planes)`` of :func:`plane_task` (any order)."""
+    others = [a for a in range(3) if a != normal]
+    ell = c.mesh.element_size
+    full = tuple(c.mesh.shape[a] * ell for a in others)
+    out: dict[str, np.ndarray] = {}
+    for block, planes in parts:
+        at = tuple(slice(block.elements[a][0] * ell, block.elements[a][1] * ell) for a in others)
+        for name, img in planes.items():
+            out.setdefault(name, np.full(full, np.nan, np.float32))[at] = img
+    return out
+
+
+def planes(result: Result, f_ref: ArrayRef, g_ref: ArrayRef, normal: int, index: int, runner, *,
+           interpolation: str | None = None) -> dict[str, np.ndarray]:
+    """One ROI plane of the reference, the deformed scan and the corrected image, from tasks.
+
+    Parameters
+    ----------
+    result : Result
+    f_ref, g_ref : ArrayRef
+        The scans at the result's level.
+    normal : int
+        Axis normal to the plane (0 = z, 1 = y, 2 = x).
+    index : int
+        Plane index along ``normal``, voxels of the level, inside the ROI.
+    runner
+        Where the tasks run (:func:`chunkdic.scheduler.open_runner`).
+
+    Returns
+    -------
+    dict of str to ndarray, 2-D (the two other axes over the ROI), float32, grey levels
+        ``reference`` and ``deformed`` (raw, NaN where the plane leaves ``g``), ``prepared``
+        (the reference as the engine saw it), ``corrected`` (NaN where invalid); the residual
+        is ``prepared - corrected``.
+    """
+    c = Correction.of_result(result, f_ref, g_ref, interpolation)
+    m = max(1, int(config.get("chunk-size")) // c.mesh.element_size)
+    u = result.displacement
+    args = [(c, blk, np.ascontiguousarray(u[(slice(None), *blk.node_slices)]),
+             element_slice(result.brightness, blk), normal, index)
+            for blk in plane_jobs(c.mesh, normal, index, m)]
+    return assemble_plane(c, normal, runner.map_unordered(plane_task, args))

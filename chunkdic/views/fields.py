@@ -1,0 +1,366 @@
+"""Voxel-wise fields of a result for viewers: one OME-NGFF 0.5 image on the scan's grid.
+
+One idea: :func:`write_fields` turns a result (a nodal field on a mesh of some pyramid
+level) into volumes a viewer lays over the scan with no code: ``Uz, Uy, Ux``, ``|U|``,
+``eps_zz``, the equivalent (von Mises) strain and the residual, as the channels of one
+multiscale OME-NGFF 0.5 image (axes ``c, z, y, x``) on the reference scan's **full level-0
+grid**, with its scale, unit and origin, NaN outside the ROI (and outside a specimen mask).
+napari (napari-ome-zarr) opens it as one layer per channel, named, with its contrast
+window; neuroglancer opens it as one layer with a channel dimension.
+
+Everything voxel-sized is made by tasks, one per output chunk (shared/DESIGN.md,
+"Out-of-core shape"): a task receives the nodes, element values and brightness of the
+elements its chunk touches (kilobytes) and writes its chunk of every channel; the
+pyramid levels ``1..k`` are 2×2×2 means (NaN-aware) made by tasks from the level below;
+the contrast windows come from a bounded sample of the coarsest level, read by tasks
+(:func:`chunkdic.views.images.write_image`, the writer shared with the corrected image).
+
+- Displacement: the C8 field (trilinear shape functions) at level-0 voxel centres. A
+  level-0 voxel ``x0`` lies at level-``s`` position ``(x0 + 0.5) / 2^s - 0.5``
+  (:func:`chunkdic.mesh.level_to_level`) and the displacement in level-0 voxels is
+  ``2^s`` times the level-``s`` value (physical units: times the voxel size per axis).
+- Strain: per element, constant over the element, the value of :mod:`chunkdic.results.strain`
+  (the C8 gradient at the element centre = its average; paper section 5.4), as the
+  result's ``strain`` array and ``chunkdic strain`` use. The equivalent strain is
+  ``sqrt(2/3 e:e)`` with ``e`` the deviatoric part.
+- Residual: ``f̃(X) - corrected g(X + u(X))`` of :mod:`chunkdic.views.correction` (what the
+  engine compared), in grey levels of the result's level, computed per task at that level
+  and repeated (nearest) over the ``2^s`` level-0 voxels each level-``s`` voxel sums.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..errors import InputError
+from .images import field_levels, scan_frame, write_image
+from ..mesh import Block, Mesh, level_to_level
+from ..io.outputs import Outputs
+from ..results.result import Result
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CHANNELS", "write_fields", "open_fields", "field_levels"]
+
+#: channel labels of the image, in order (``|U|`` is the displacement's norm)
+CHANNELS = ("Uz", "Uy", "Ux", "|U|", "eps_zz", "eps_eq", "residual")
+
+
+@dataclass(frozen=True)
+class FieldsJob:
+    """What every task of :func:`write_fields` shares: the mesh, grids, units, stores.
+
+    Attributes
+    ----------
+    mesh : Mesh
+        The result's mesh (voxels of its level ``level``).
+    level : int
+        The result's pyramid level ``s``.
+    shape0 : tuple of 3 int
+        The reference scan's level-0 shape.
+    factor : tuple of 3 float
+        Output displacement per level-``s`` voxel of displacement, per component ``(z, y, x)``:
+        ``2^s`` (level-0 voxels) or ``2^s * voxel_size`` (physical units).
+    out : str
+        The image group being written (its level arrays ``"0"``, ``"1"``, …).
+    correction : Correction or None
+        How to compute the residual (None: the residual channel stays NaN).
+    """
+
+    mesh: Mesh
+    level: int
+    shape0: tuple[int, int, int]
+    factor: tuple[float, float, float]
+    out: str
+    correction: object | None
+
+
+def roi_level0(mesh: Mesh, level: int) -> tuple[tuple[int, int], ...]:
+    """Level-0 voxels ``[a, b)`` per axis whose centres lie in the mesh's elements: those
+    summed into the ROI's level-``s`` voxels, ``[2^s o, 2^s (o + n ell))``."""
+    f = 2**level
+    return tuple((f * o, f * (o + n * mesh.element_size)) for o, n in zip(mesh.origin, mesh.shape))
+
+
+def _chunk_elements(job: FieldsJob, region) -> tuple | None:
+    """The in-ROI level-0 range of a chunk and the element range it touches, per axis
+    (None if the chunk misses the ROI)."""
+    inside, elements = [], []
+    for axis, (r, (a, b)) in enumerate(zip(region, roi_level0(job.mesh, job.level))):
+        lo, hi = max(r.start, a), min(r.stop, b)
+        if lo >= hi:
+            return None
+        k, _ = job.mesh.element_index(axis, _level_positions(np.array([lo, hi - 1]), job.level))
+        inside.append((lo, hi))
+        elements.append((int(k[0]), int(k[1]) + 1))
+    return tuple(inside), tuple(elements)
+
+
+def _level_positions(x0: np.ndarray, level: int) -> np.ndarray:
+    """Level-``s`` position of level-0 voxel centres ``x0`` (DESIGN.md half-voxel offset)."""
+    return level_to_level(np.asarray(x0, np.float64), 0, level)
+
+
+def chunk_tasks(job: FieldsJob, result: Result, chunks: tuple[int, int, int]) -> list[tuple]:
+    """Arguments of :func:`fields_task`, one per level-0 chunk that meets the ROI.
+
+    Each carries only its own elements' nodes, brightness and activity (mesh-sized slices).
+    """
+    from .correction import element_slice
+
+    u = result.displacement
+    args = []
+    grid = [range(0, n, c) for n, c in zip(job.shape0, chunks)]
+    for z in grid[0]:
+        for y in grid[1]:
+            for x in grid[2]:
+                region = tuple(slice(a, min(a + c, n)) for a, c, n in zip((z, y, x), chunks, job.shape0))
+                found = _chunk_elements(job, region)
+                if found is None:
+                    continue  # the fill value (NaN) stands for it
+                _, elements = found
+                block = Block(elements)
+                active = None if result.active is None else np.ascontiguousarray(
+                    result.active[tuple(slice(e0, e1) for e0, e1 in elements)])
+                args.append((job, tuple((r.start, r.stop) for r in region), block,
+                             np.ascontiguousarray(u[(slice(None), *block.node_slices)]),
+                             element_slice(result.brightness, block), active))
+    return args
+
+
+def equivalent_strain(eps: np.ndarray) -> np.ndarray:
+    """Von Mises equivalent strain ``sqrt(2/3 e:e)``, ``e = eps - tr(eps)/3 I``.
+
+    Parameters
+    ----------
+    eps : ndarray, shape (3, 3, ...), float64, dimensionless
+
+    Returns
+    -------
+    ndarray, shape (...), float64
+
+    Examples
+    --------
+    >>> eps = np.diag([0.01, -0.005, -0.005])[:, :, None]  # incompressible uniaxial strain
+    >>> round(float(equivalent_strain(eps)[0]), 12)
+    0.01
+    """
+    dev = eps - np.trace(eps)[None, None] / 3.0 * np.eye(3).reshape(3, 3, *([1] * (eps.ndim - 2)))
+    return np.sqrt(2.0 / 3.0 * (dev**2).sum(axis=(0, 1)))
+
+
+def fields_values(job: FieldsJob, region, block: Block, u_block: np.ndarray, brightness, active) -> np.ndarray:
+    """Every channel over one level-0 region (the body of :func:`fields_task`).
+
+    Parameters
+    ----------
+    job : FieldsJob
+    region : tuple of 3 (start, stop)
+        Level-0 voxels of the chunk.
+    block : Block
+        The result's elements the region's in-ROI voxels fall in.
+    u_block : ndarray, shape (3, ez+1, ey+1, ex+1), float64, voxels of the result's level
+        The result's field on the block's nodes.
+    brightness : ndarray, shape (2, ez, ey, ex), or None
+    active : ndarray, shape (ez, ey, ex), or None
+        Elements inside the specimen mask (others give NaN).
+
+    Returns
+    -------
+    ndarray, shape (len(CHANNELS), nz, ny, nx), float32
+        NaN outside the ROI (and in inactive elements); see the module docstring for units.
+    """
+    from ..results.strain import element_strain
+
+    mesh, s = job.mesh, job.level
+    ell = mesh.element_size
+    shape = tuple(b - a for a, b in region)
+    out = np.full((len(CHANNELS),) + shape, np.nan, np.float32)
+    found = _chunk_elements(job, tuple(slice(a, b) for a, b in region))
+    if found is None:
+        return out
+    inside, _ = found
+    at = (slice(None),) + tuple(slice(lo - a, hi - a) for (lo, hi), (a, _) in zip(inside, region))
+    # the block's own mesh: the same elements, numbered from the block's first one
+    sub = Mesh(tuple(o + e0 * ell for o, (e0, _) in zip(mesh.origin, block.elements)), ell, block.n_elements)
+    x0 = [np.arange(lo, hi) for lo, hi in inside]
+    pos = [_level_positions(v, s) for v in x0]
+    u = sub.evaluate_grid(u_block, pos) * np.asarray(job.factor).reshape(3, 1, 1, 1)
+    k = [sub.element_index(axis, p)[0] for axis, p in enumerate(pos)]
+    eps = element_strain(u_block, ell)
+    per_voxel = np.ix_(*k)
+    values = out[at]  # a view: the channels are computed in place
+    values[0:3] = u
+    values[3] = np.sqrt((u**2).sum(axis=0))
+    values[4] = eps[0, 0][per_voxel]
+    values[5] = equivalent_strain(eps)[per_voxel]
+    if job.correction is not None:
+        from .correction import correct_block
+
+        f, corrected, valid = correct_block(job.correction, block, u_block, brightness)
+        residual = np.where(valid, f - corrected, np.nan)
+        start, _ = mesh.block_core(block)
+        # level-s voxel j sums level-0 voxels 2^s j … 2^s j + 2^s - 1: repeat it over them
+        j = [v // 2**s - s0 for v, s0 in zip(x0, start)]
+        values[6] = residual[np.ix_(*j)]
+    if active is not None:
+        values[:, ~(active[per_voxel] > 0)] = np.nan
+    return out
+
+
+def fields_task(job: FieldsJob, region, block: Block, u_block, brightness, active) -> int:
+    """Task: compute every channel over one level-0 chunk and write it (the task owns that
+    chunk of every channel). Returns the number of in-ROI voxels written."""
+    import zarr
+
+    data = fields_values(job, region, block, u_block, brightness, active)
+    arr = zarr.open_array(store=job.out, path="0", mode="r+")
+    arr[(slice(None), *(slice(a, b) for a, b in region))] = data
+    return int(np.isfinite(data[0]).sum())
+
+
+# --------------------------------------------------------------------------- writer
+
+
+def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True, units: str = "voxels",
+                 levels: int | None = None, scheduler=None, overwrite: bool = False,
+                 progress: Callable[[str, float], None] | None = None) -> dict:
+    """Write the voxel-wise fields of a result as one OME-NGFF 0.5 image on the scan's grid.
+
+    Parameters
+    ----------
+    result : Result or path
+        A correlation result (any pyramid level).
+    out : path
+        Zarr v3 group to create: a multiscale image, arrays ``"0"`` … ``"k"``, shape
+        ``(7, nz, ny, nx)`` at level 0 (the reference scan's level-0 shape), float32,
+        channels :data:`CHANNELS`; NaN outside the ROI. Level ``t`` is the 2^t mean.
+    ref, deformed : path, optional
+        The scans (default: the paths recorded in the result). The reference gives the
+        grid (shape, scale, unit, origin); both are needed for the residual.
+    residual : bool, keyword-only
+        Compute the residual channel (False: it stays NaN, and the scans are only needed
+        for the grid: without them the result's recorded shape and voxel size are used).
+    units : {"voxels", "physical"}, keyword-only
+        Displacement in level-0 voxels (default) or in the scan's unit (needs a voxel size).
+    levels : int, optional
+        Pyramid levels above 0 (default: down to an edge of :data:`MIN_COARSE_EDGE`).
+    scheduler
+        As in :func:`chunkdic.correlate`.
+    overwrite : bool
+        Replace a fields image an earlier export wrote (nothing else).
+    progress : callable(str, float), optional
+        ``(stage, fraction)``: ``"fields"`` then ``"level t"``.
+
+    Returns
+    -------
+    dict
+        ``path``, ``levels`` (shapes), ``voxels`` (in-ROI level-0 voxels), ``windows``
+        (per channel label: 1st/99th percentile, min, max of the coarsest level), ``seconds``.
+
+    Examples
+    --------
+    >>> chunkdic.write_fields("result.zarr", "fields.zarr")  # doctest: +SKIP
+    """
+    from ..inputs import check_displacement
+    from ..results.scans import as_result, input_paths
+
+    result = as_result(result)
+    check_displacement(result.displacement, result.path, result.flags)
+    if units not in ("voxels", "physical"):
+        raise InputError(f"units must be voxels or physical, got {units!r}")
+    if levels is not None and (int(levels) != levels or levels < 0):
+        raise InputError(f"levels must be a whole number >= 0, got {levels!r}")
+    scans = _scans(result, ref, deformed, residual)
+    f_scan = scans[0]
+    shape0 = tuple(int(n) for n in (f_scan.shape(0) if f_scan is not None
+                                    else result.info["input_shapes"]["reference"]))
+    scale0, shift0, unit = scan_frame(f_scan, result.info)
+    s = int(result.info.get("level", 0))
+    if units == "physical":
+        vs = result.info.get("voxel_size") or (f_scan.voxel_size if f_scan is not None else None)
+        if not vs:
+            raise InputError("this result has no voxel size: export fields in voxels, or give the scans a voxel size")
+        factor, disp_unit = tuple(2.0**s * float(v) for v in vs), str(result.info.get("unit") or unit or "unit")
+    else:
+        factor, disp_unit = (2.0**s,) * 3, "level-0 voxels"
+    plan = Outputs(inputs=input_paths(result, ref, deformed), overwrite=overwrite)
+    entry = plan.add(out, "fields")
+    with plan:
+        return _write(result, entry.work, Path(out), scans if residual else None, shape0, (scale0, shift0, unit),
+                      factor, disp_unit, field_levels(shape0, levels), scheduler, progress)
+
+
+def _scans(result: Result, ref, deformed, residual: bool) -> tuple:
+    """The scans, opened and checked once: both when the residual needs them, else the
+    reference alone, or None when it is not on disk but the result recorded its shape."""
+    from ..results.scans import input_scan, input_scans
+
+    if residual:
+        return input_scans(result, ref, deformed)
+    known = (result.info.get("input_shapes") or {}).get("reference") is not None
+    return input_scan(result, "reference", ref, optional=known), None
+
+
+def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, disp_unit: str, shapes,
+           scheduler, progress) -> dict:
+    """:func:`write_fields` into ``work`` (renamed to ``out`` by the caller); ``scans``:
+    the result's scans for the residual (None: no residual)."""
+    import contextlib
+
+    from .correction import Correction
+    from ..results.scans import interpolation_of, level_refs
+    from ..scheduler import open_runner
+
+    t0 = time.perf_counter()
+    c = int(config.get("chunk-size"))
+    mesh, s = result.mesh, int(result.info.get("level", 0))
+    meta = {"kind": "fields", "complete": False, "result": result.path, "level": s,
+            "element_size": mesh.element_size, "roi_level0": [list(r) for r in roi_level0(mesh, s)],
+            "channels": list(CHANNELS), "displacement_unit": disp_unit, "residual": scans is not None,
+            "strain": "per element (C8 gradient at the element centre), constant over the element"}
+    description = (
+        f"channels {', '.join(CHANNELS)}: displacement ({disp_unit}), its norm, eps_zz and the von Mises "
+        "equivalent strain (per element, dimensionless), residual f - corrected g (grey levels of the "
+        "result's level); NaN outside the ROI. Level t is the NaN-aware mean over 2^t voxels per axis of level 0")
+    with contextlib.ExitStack() as stack:
+        runner = stack.enter_context(open_runner(scheduler))
+        corr = None
+        if scans is not None:
+            f_ref, g_ref = stack.enter_context(level_refs(result, scans=scans))
+            corr = Correction.of_result(result, f_ref, g_ref, interpolation_of(result))
+        job = FieldsJob(mesh, s, shape0, factor, str(work), corr)
+        counts, windows = write_image(
+            runner, work, fields_task, chunk_tasks(job, result, tuple(min(c, n) for n in shape0)), meta=meta,
+            channels=CHANNELS, shapes=shapes, chunk=c, frame=frame, description=description,
+            summarize=lambda counts: {"voxels": sum(counts)}, progress=progress, stage="fields")
+    seconds = time.perf_counter() - t0
+    log.info("fields written to %s (%d levels, %.1f s)", out, len(shapes), seconds)
+    return {"path": str(out), "levels": shapes, "voxels": sum(counts),
+            "windows": dict(zip(CHANNELS, windows)), "seconds": seconds}
+
+
+def open_fields(path):
+    """Open an image written by :func:`write_fields`: ``(levels, attrs)``, the level arrays
+    (lazily read Zarr arrays, ``(7, nz, ny, nx)``) and the group's attributes; an
+    incomplete one is refused."""
+    import zarr
+
+    try:
+        g = zarr.open_group(str(path), mode="r")
+        attrs = g.attrs.asdict()
+        meta = attrs["chunkdic"]
+    except Exception as exc:  # noqa: BLE001
+        raise InputError(f"{path} is not a fields image ({exc.__class__.__name__})") from None
+    if meta.get("kind") != "fields" or not meta.get("complete"):
+        raise InputError(f"{path} is not a complete fields image")
+    datasets = attrs["ome"]["multiscales"][0]["datasets"]
+    return [g[d["path"]] for d in datasets], attrs
+
