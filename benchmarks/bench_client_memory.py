@@ -3,7 +3,7 @@
 The client of a correlation never touches voxels: it receives mesh-sized partial sums
 from the block tasks, adds them into the nodal stencil of ``M`` (float32), builds the
 block-Jacobi preconditioner and solves. Its memory is therefore set by the mesh, and it
-can be measured on the real client code (``level.Level.assemble_m`` and the solver)
+can be measured on the real client code (the ``M`` pass of ``Level`` and the solver)
 with the tasks replaced by a stand-in runner that returns, for every block, the stencil
 of a random texture block of the right shape (computed once per shape by the real
 ``kernels_m.m_block``; ``f`` is never read and no scan is needed).
@@ -75,9 +75,9 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened
     with tempfile.TemporaryDirectory() as scratch:
-        lvl = Level(0, mesh, f_ref, f_ref, _StandInRunner(), Settings(element_size=ell), Path(scratch))
         t0 = time.perf_counter()
-        lvl.assemble_m(np.zeros((3,) + mesh.nodes_shape))
+        lvl = Level(0, mesh, f_ref, f_ref, _StandInRunner(), Settings(element_size=ell), Path(scratch),
+                    start=np.zeros((3,) + mesh.nodes_shape))
         t_m = time.perf_counter() - t0
         rng = np.random.default_rng(1)
         times, its = [], []

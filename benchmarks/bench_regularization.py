@@ -42,10 +42,10 @@ def _sweeping_choice() -> None:
     """
     import functools
 
-    from chunkdic.engine import driver as engine
+    from chunkdic.engine import steps
     from chunkdic.solve import regchoice
 
-    engine.choose_length = functools.partial(regchoice.choose_length, sweep=True)
+    steps.choose_length = functools.partial(regchoice.choose_length, sweep=True)
 
 
 def run(pair: dict, ell: int, **options) -> dict:

@@ -11,8 +11,9 @@ these first, then declare their outputs (:mod:`chunkdic.io.outputs`), then compu
 - :func:`check_scan_for_result` / :func:`check_shape_for_result`: a scan given to
   ``export``/``report`` for a result, or the reference of a run started from a result
   (``--init``), must be the shape the result was computed on (or at least hold its ROI).
-- :func:`check_displacement`: a result read back must hold finite displacements before
-  strains or exports are derived from it.
+
+A result read back is checked by :meth:`chunkdic.Result.check_displacement` before strains
+or exports are derived from it.
 """
 
 from __future__ import annotations
@@ -23,8 +24,7 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["number", "check_finite", "non_finite_error", "check_scan_for_result", "check_shape_for_result",
-           "check_displacement"]
+__all__ = ["number", "check_finite", "non_finite_error", "check_scan_for_result", "check_shape_for_result"]
 
 
 def number(value, name: str, *, minimum: float | None = None, maximum: float | None = None,
@@ -147,21 +147,3 @@ def check_shape_for_result(info: dict, shape0, role: str, *, what: str,
             if a < 0 or b > n:
                 raise InputError(f"{what} has shape {shape} at level {level}, too small for the result's ROI "
                                  f"{a}:{b} on axis {'zyx'[axis]}: {hint}")
-
-
-def check_displacement(displacement: np.ndarray, where: str, flags: np.ndarray | None = None) -> None:
-    """Refuse a result whose nodal field has NaN/inf values the result does not explain.
-
-    A node flagged as not measured (``FLAG_NO_DATA``, ``FLAG_MASKED`` in ``flags``) is NaN
-    by design; any other non-finite value is damage (strains would be garbage).
-    """
-    from .results.result import FLAG_MASKED, FLAG_NO_DATA
-
-    bad = (~np.isfinite(displacement)).any(axis=0)
-    if flags is not None and flags.shape == bad.shape:
-        bad &= (flags & (FLAG_NO_DATA | FLAG_MASKED)) == 0
-    if bad.any():
-        n = int(bad.sum())
-        node = tuple(int(v) for v in np.argwhere(bad)[0])
-        raise InputError(f"result {where}: {n} node(s) have no finite displacement (first: node {node}): "
-                         "the result is damaged or was not measured there")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 
 from textures import smooth_noise
 

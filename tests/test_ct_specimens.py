@@ -362,7 +362,7 @@ def test_synthesize_fourier_shift_pair(tmp_path):
     ["--noise", "-1"],
 ])
 def test_cli_bad_options(tmp_path, capsys, opts):
-    from chunkdic.cli.main import main
+    from chunkdic.cli.app import main
 
     out = tmp_path / "bad"
     assert main(["synth", str(out), "--shape", "16", *opts]) == 2
@@ -372,7 +372,7 @@ def test_cli_bad_options(tmp_path, capsys, opts):
 
 
 def test_cli_ct_case(tmp_path, capsys):
-    from chunkdic.cli.main import main
+    from chunkdic.cli.app import main
 
     out = tmp_path / "band"
     assert main(["synth", str(out), "--shape", "24,32,32", "--specimen", "grains", "--case", "band",

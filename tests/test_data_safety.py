@@ -30,7 +30,7 @@ import zarr
 import chunkdic
 from chunkdic.synth import foam
 from chunkdic.synth import synthetic
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 from chunkdic.io.integrity import MissingChunksWarning
 
 N = 32
@@ -269,7 +269,7 @@ def test_B1_lock_and_scratch_of_a_killed_run_are_reclaimed(data, tmp_path, capsy
 
 def _interrupt_at(monkeypatch, iteration: int):
     """Make the CLI's progress printer raise KeyboardInterrupt at a level-0 iteration."""
-    from chunkdic.cli import main as cli
+    from chunkdic.cli import app as cli
 
     real = cli.print_progress
 

@@ -10,7 +10,7 @@ import pytest
 
 import chunkdic
 from chunkdic.cli import common as _cli_common
-from chunkdic.cli.main import build_parser, main
+from chunkdic.cli.app import build_parser, main
 
 
 def _subparsers(parser):

@@ -10,7 +10,7 @@ import pytest
 
 import chunkdic
 from chunkdic.synth import synthetic
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 from chunkdic.views.corrected_image import open_corrected, write_corrected
 from chunkdic.views.fields import CHANNELS, equivalent_strain, open_fields, write_fields
 from chunkdic.mesh import Mesh

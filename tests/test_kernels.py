@@ -544,5 +544,12 @@ def test_gauss_newton_recovers_subvoxel_translation(interpolation):
         assert np.abs(err).max() < 0.3
 
 
-def test_warmup_runs():
+def test_warmup_compiles_every_kernel_it_names():
+    """After ``warmup`` every numba kernel of the block passes has machine code for the
+    dtypes a run uses (float32 images, float64 fields), so no task compiles."""
+    from chunkdic.kernels import b, m, warp
+
     warmup()
+    for kernel in (b.b_kernel, m.m_kernel, warp._warp_kernel):
+        assert kernel.signatures, kernel
+    assert any("float32" in str(sig) for sig in b.b_kernel.signatures)

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 from scipy.interpolate import RegularGridInterpolator
 
-from chunkdic.solve import multigrid
+from chunkdic.solve import galerkin, multigrid
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS
 from chunkdic.solve.regularization import Regularizer, plane_wave_weight
-from chunkdic.solve.cg import StencilSolver, stencil_matvec
+from chunkdic.solve.cg import StencilSolver
+from chunkdic.solve.stencil import stencil_matvec
 
 
 def _mass_stencil(nodes, seed=0):
@@ -52,7 +53,7 @@ def _dense_prolongation(shape):
 
 
 def _transfers(shape):
-    return tuple(multigrid.axis_transfer(n) if multigrid.coarse_size(n) < n else None for n in shape)
+    return tuple(galerkin.axis_transfer(n) if galerkin.coarse_size(n) < n else None for n in shape)
 
 
 def _dense(apply, shape):
@@ -71,17 +72,17 @@ def test_prolongation_is_trilinear_interpolation_and_restriction_its_transpose()
     coarse = tuple(len(p) for p in pos)
     rng = np.random.default_rng(0)
     xc = rng.standard_normal(coarse + (3,))
-    tables = [t[:2] if t is not None else multigrid._identity_transfer(n)[:2]
+    tables = [t[:2] if t is not None else galerkin.identity_transfer(n)[:2]
               for t, n in zip(_transfers(shape), shape)]
     x = np.zeros(shape + (3,))
-    multigrid.transfer(x, *tables[0], *tables[1], *tables[2], xc, False)
+    galerkin.transfer(x, *tables[0], *tables[1], *tables[2], xc, False)
     points = np.indices(shape).reshape(3, -1).T
     for c in range(3):  # the analytic trilinear field of the coarse values at the fine nodes
         truth = RegularGridInterpolator(pos, xc[..., c], method="linear")(points).reshape(shape)
         np.testing.assert_allclose(x[..., c], truth, rtol=0, atol=1e-14)
     r = rng.standard_normal(shape + (3,))
     rc = np.empty(coarse + (3,))
-    multigrid.transfer(r, *tables[0], *tables[1], *tables[2], rc, True)
+    galerkin.transfer(r, *tables[0], *tables[1], *tables[2], rc, True)
     assert np.isclose(np.sum(rc * xc), np.sum(r * x), rtol=1e-13)
 
 
@@ -90,14 +91,14 @@ def test_galerkin_coarse_operators_equal_dense_triple_products():
     H = _mass_stencil(shape)
     P, coarse = _dense_prolongation(shape)
     M = _dense(lambda v: stencil_matvec(H, v), shape)
-    Mc = multigrid.node_stencil(H).coarsened(_transfers(shape), 0).S
+    Mc = galerkin.node_stencil(H).coarsened(_transfers(shape), 0).S
     assert Mc.shape == coarse + (14, 3, 3)  # a 27-point stencil stays 27-point
     np.testing.assert_allclose(_dense(lambda v: stencil_matvec(Mc, v), coarse), P.T @ M @ P, rtol=0,
                                atol=2e-7 * np.abs(M).max())  # float32 storage
     for kind in ("tikhonov", "equilibrium-gap"):
         reg = Regularizer(kind, shape, 6.0)
         R = _dense(reg.apply, shape)
-        Rc = multigrid.regularizer_stencil(reg).coarsened(_transfers(shape), multigrid.CORE)
+        Rc = galerkin.regularizer_stencil(reg).coarsened(_transfers(shape), galerkin.CORE)
 
         def coarse_apply(v, Rc=Rc):
             y = np.zeros_like(v)
@@ -112,7 +113,7 @@ def test_class_stencils_of_a_large_mesh_act_as_R_and_its_galerkin_product(kind):
     """Class stencils (rows shared by interior nodes) on meshes longer than 2·CORE + 1 nodes per axis."""
     shape = (20, 17, 12)
     reg = Regularizer(kind, shape, 8.0)
-    R0 = multigrid.regularizer_stencil(reg)
+    R0 = galerkin.regularizer_stencil(reg)
     assert R0.S.shape[:3] == (7, 7, 7)  # probed on 7³ nodes, whatever the mesh
     rng = np.random.default_rng(1)
     v = rng.standard_normal(shape + (3,))
@@ -120,7 +121,7 @@ def test_class_stencils_of_a_large_mesh_act_as_R_and_its_galerkin_product(kind):
     R0.matvec_add(1.0, v, y)
     np.testing.assert_allclose(y, reg.apply(v), rtol=0, atol=1e-12 * np.abs(y).max())
     # coarse: wᵀ R_c v = (P w)ᵀ R (P v), P by scipy's trilinear interpolation
-    R1 = R0.coarsened(_transfers(shape), multigrid.CORE)
+    R1 = R0.coarsened(_transfers(shape), galerkin.CORE)
     pos = [_coarse_positions(n) for n in shape]
     coarse = tuple(len(p) for p in pos)
     points = np.indices(shape).reshape(3, -1).T
@@ -138,7 +139,7 @@ def test_class_stencils_of_a_large_mesh_act_as_R_and_its_galerkin_product(kind):
 
 @pytest.mark.parametrize("kind", ["tikhonov", "equilibrium-gap"])
 def test_vcycle_cg_equals_a_dense_solve_and_is_symmetric(kind, monkeypatch):
-    monkeypatch.setattr(multigrid, "COARSEST", 8)  # four levels on 6³ nodes: 6³, 4³, 3³, 2³ (dense)
+    monkeypatch.setattr(galerkin, "COARSEST", 8)  # four levels on 6³ nodes: 6³, 4³, 3³, 2³ (dense)
     shape = (6, 6, 6)
     H = _mass_stencil(shape, seed=2)
     reg = Regularizer(kind, shape, 4.0)
@@ -184,7 +185,7 @@ def test_iterations_do_not_grow_with_the_length():
 def test_slab_coarsening_equals_the_whole(shape):
     """Coarse M built a few z planes at a time: bit-identical to the whole-stencil product."""
     H = np.random.default_rng(1).standard_normal(shape + (14, 3, 3)).astype(np.float32)
-    tr = multigrid._level_transfers(shape)
-    whole = multigrid.node_stencil(H).coarsened(tr, 0).S
+    tr = galerkin.level_transfers(shape)
+    whole = galerkin.node_stencil(H).coarsened(tr, 0).S
     for slab in (1, 3, 16):
-        np.testing.assert_array_equal(multigrid.coarsened_in_slabs(H, tr, slab), whole)
+        np.testing.assert_array_equal(galerkin.coarsened_in_slabs(H, tr, slab), whole)

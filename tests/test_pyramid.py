@@ -146,7 +146,7 @@ def test_level0_window_and_mean_display_pyramid(scan_path, capsys):
     from ome_zarr.io import parse_url
     from ome_zarr.reader import Reader
 
-    from chunkdic.cli.main import main
+    from chunkdic.cli.app import main
 
     p, x = scan_path
     assert main(["pyramid", str(p), "--levels", "2", "--display"]) == 0

@@ -10,7 +10,7 @@ import pytest
 import chunkdic
 from chunkdic.synth import foam
 from chunkdic.synth import synthetic
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 from chunkdic.analysis.crosscheck import correlation_length
 from chunkdic.analysis.q4 import correlate2d
 from chunkdic.analysis.q4mesh import Mesh2D, read_image

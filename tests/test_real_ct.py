@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 
 from textures import smooth_noise
 
@@ -139,7 +139,7 @@ def test_stagnating_gap_is_reported_stalled_with_exit_1(tmp_path, capsys):
     improvement; never ``converged`` either way.)
     """
     import chunkdic
-    from chunkdic.engine.gauss_newton import STALL_PATIENCE
+    from chunkdic.engine.stopping import STALL_PATIENCE
 
     f = smooth_noise((48, 48, 48), sigma=1.2, seed=1).astype(np.float32)
     g = smooth_noise((48, 48, 48), sigma=1.2, seed=2).astype(np.float32)

@@ -18,7 +18,7 @@ import pytest
 import chunkdic
 from chunkdic.synth import foam
 from chunkdic.synth import synthetic
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 from chunkdic.errors import InputError
 from chunkdic.engine.planning import plan_meshes
 from chunkdic.engine.prefilter import face_margin
@@ -26,7 +26,7 @@ from chunkdic.solve.regchoice import CANDIDATES, choose_length, regions
 from chunkdic.solve.regularization import Regularizer, plane_wave_weight, plane_waves, reference_wavelength
 from chunkdic.results.result import FLAG_MASKED, FLAG_WEAK
 from chunkdic.analysis.scoring import scored_region
-from chunkdic.solve.cg import half_stencil, stencil_matvec
+from chunkdic.solve.stencil import half_stencil, stencil_matvec
 from chunkdic.results.strain import strain_summary
 
 from textures import smooth_noise

@@ -391,13 +391,16 @@ def test_report_format_and_dpi(translation, tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
-def test_cuts_from_must_be_one_of_the_results(translation, affine, tmp_path):
-    from chunkdic.cli.main import main
+def test_cuts_from_must_be_one_of_the_results(translation, affine, tmp_path, capsys):
+    from chunkdic.cli.app import main
 
     _, _, d = translation
     _, _, d_a = affine
     out = tmp_path / "fig"
     assert main(["report", str(d / "result.zarr"), "-o", str(out), "--cuts-from", str(d_a / "result.zarr")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cuts-from" in err[0] and "not one of the results given" in err[0]
+    assert str(d_a / "result.zarr") in err[0] and "Traceback" not in err[0]
     assert not out.exists()
 
 

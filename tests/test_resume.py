@@ -14,7 +14,7 @@ import pytest
 import chunkdic
 from chunkdic.synth import foam
 from chunkdic.synth import synthetic
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 
 
 @pytest.fixture(scope="module")

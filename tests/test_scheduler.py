@@ -53,7 +53,7 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
     import numpy as np
 
     from chunkdic.synth import foam
-    from chunkdic.cli.main import main
+    from chunkdic.cli.app import main
     from chunkdic.io.scan import open_scan
 
     out = tmp_path / "pair"

@@ -17,7 +17,7 @@ import pytest
 
 import chunkdic
 from chunkdic.synth import synthetic
-from chunkdic.cli.main import main
+from chunkdic.cli.app import main
 
 N, ELL = 48, 8
 OPTIONS = dict(element_size=ELL, regularization="none")  # no automatic length choice: fast, same objective

@@ -102,7 +102,7 @@ def test_mean_strain_of_a_masked_result_counts_its_active_elements_only(tmp_path
     inactive ones (their nodes measured, at the mask's rim) would change."""
     import json
 
-    from chunkdic.cli.main import main
+    from chunkdic.cli.app import main
     from chunkdic.analysis.loadseries import _row
     from chunkdic.results.strain import strain_summary
     from chunkdic.analysis.zoisweep import zoi_table

@@ -173,6 +173,14 @@ def test_translation_and_affine_inverse_exact():
     A = np.asarray(a.matrix)
     np.testing.assert_allclose(a.displacement(*X), A @ (X - a.center) + a.translation,
                                atol=1e-13)
+    # the inverses: the deformed position x = X + u(X) maps back to X, to round-off
+    rng = np.random.default_rng(3)
+    Xs = rng.uniform(-20, 120, size=(3, 50))
+    for field in (t, a):
+        x = Xs + field.displacement(*Xs)
+        np.testing.assert_allclose(field.inverse(*x), Xs, atol=1e-10)
+    # not the first-order x - u(x): an inverse that ignored the strain would fail above
+    assert np.abs(a.inverse(*Xs) - (Xs - a.displacement(*Xs))).max() > 1e-4
 
 
 def test_band_shape():

@@ -204,13 +204,12 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     """
     from ..views import correction
     from ..views.figures import check_figure_options, mid_planes
-    from ..inputs import check_displacement
     from ..io.outputs import Outputs
     from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
     from ..scheduler import check_scheduler, open_runner
 
     res = result if isinstance(result, Result) else open_result(result)
-    check_displacement(res.displacement, res.path, res.flags)
+    res.check_displacement()
     scans = input_scans(res, ref, deformed)  # every input checked before anything is written
     check_scheduler(scheduler)
     check_figure_options(fmt, dpi)

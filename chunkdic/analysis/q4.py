@@ -45,8 +45,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from ..errors import InputError
-from ..engine.gauss_newton import State
-from ..engine.gauss_newton import decide  # the engine's stopping rule, shared on purpose
+from ..engine.stopping import State, decide  # the engine's stopping rule, shared on purpose
 from ..mesh import level_to_level
 from .q4mesh import Mesh2D, plan2d, pyramid2d
 from ..engine.rigid import phase_correlation

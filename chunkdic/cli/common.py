@@ -1,6 +1,6 @@
 """What every ``chunkdic`` command prints: stderr lines and the progress events of a run.
 
-Shared by :mod:`chunkdic.cli.main` and the ``_cli_*`` modules (one home, no import cycle).
+Shared by :mod:`chunkdic.cli.app` and the ``_cli_*`` modules (one home, no import cycle).
 """
 
 from __future__ import annotations
@@ -43,7 +43,7 @@ def explain(term: str) -> str:
     if term not in EXPLAIN or term in _RUN["explained"]:
         return ""
     _RUN["explained"].add(term)
-    from ..engine.gauss_newton import STALL_PATIENCE
+    from ..engine.stopping import STALL_PATIENCE
 
     return "\n  (" + EXPLAIN[term].format(patience=STALL_PATIENCE) + ")"
 
@@ -158,41 +158,30 @@ def add_figure_options(p) -> None:
 
 
 def add_engine_options(p, **helps) -> None:
-    """The correlation settings every correlating command takes, declared once.
+    """The correlation settings every correlating command takes, built from the fields of
+    :class:`~chunkdic.engine.settings.Settings` (their flag, help, choices and default are
+    declared there, once), then ``--mask`` and ``--scheduler``.
 
-    ``helps``: a different help text for some options (by ``dest``), where a command
+    ``helps``: a different help text for some options (by field name), where a command
     uses the option differently (e.g. ``coarsest`` in a series).
     """
+    from ..engine.settings import Settings
     from ..scheduler import SCHEDULER_HELP
 
-    def add(*flags, dest, help, **kw):
-        p.add_argument(*flags, dest=dest, help=helps.get(dest, help), **kw)
-
-    add("--level", dest="level", type=int, default=0, help="pyramid level correlated last (default 0)")
-    add("--coarsest", dest="coarsest", type=int, default=None, help="coarsest pyramid level (default: automatic)")
-    add("--interpolation", dest="interpolation", choices=("cubic", "linear"), default="cubic",
-        help="interpolation of the deformed scan (default cubic B-spline; linear: the paper's)")
-    add("--smoothing", dest="smoothing", type=float, default=1.0,
-        help="Gaussian low-pass of both scans, voxels of each level (default 1; 0: the paper's raw images)")
-    add("--grey-level", dest="grey_level", choices=("none", "global", "drift", "element"), default="drift",
-        help="brightness model between the scans (default drift: a gain, a linear drift and an offset "
-             "per element; none: the paper's plain residual)")
-    add("--regularization", dest="regularization", choices=("none", "tikhonov", "equilibrium-gap"),
-        default="tikhonov", help="penalty on the field's short wavelengths (default tikhonov, on its curvature)")
-    add("--regularization-length", dest="regularization_length", type=float, default=None, metavar="L",
-        help="its length, voxels of level 0 (default: chosen from the data and printed)")
-    add("--mask", dest="mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
-    add("--tolerance", dest="tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
-    add("--max-iterations", dest="max_iterations", type=int, default=30,
-        help="Gauss-Newton iterations per level at most")
-    add("--block-elements", dest="block_elements", type=int, default=None,
-        help="elements per block side (default: automatic, blocks of about chunkdic.chunk-size voxels)")
-    add("--scheduler", dest="scheduler", default=None, help=SCHEDULER_HELP)
+    for name, meta in Settings.options():
+        flag = meta["flag"] or "--" + name.replace("_", "-")
+        kw = {"choices": meta["choices"]} if meta["choices"] else {"type": meta["type"]}
+        if meta["metavar"]:
+            kw["metavar"] = meta["metavar"]
+        p.add_argument(flag, dest=name, default=meta["default"], help=helps.get(name, meta["help"]), **kw)
+    p.add_argument("--mask", dest="mask", default=None,
+                   help="specimen mask of the reference's shape (non-zero = material)")
+    p.add_argument("--scheduler", dest="scheduler", default=None, help=helps.get("scheduler", SCHEDULER_HELP))
 
 
 def engine_options(args) -> dict:
     """The keyword arguments of :func:`chunkdic.correlate` from :func:`add_engine_options`' options."""
-    return dict(level=args.level, coarsest=args.coarsest, interpolation=args.interpolation,
-                smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
-                regularization_length=args.regularization_length, mask=args.mask, tolerance=args.tolerance,
-                max_iterations=args.max_iterations, block_elements=args.block_elements, scheduler=args.scheduler)
+    from ..engine.settings import Settings
+
+    return {**{name: getattr(args, name) for name, _ in Settings.options()}, "mask": args.mask,
+            "scheduler": args.scheduler}

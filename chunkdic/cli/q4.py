@@ -1,7 +1,7 @@
 """``chunkdic correlate2d | cutcheck``: 2-D Q4-DIC and the paper's cut check, thin over the API.
 
 Each subcommand function takes the parsed ``argparse`` namespace and returns the exit code;
-bad input raises :class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli.main``).
+bad input raises :class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli.app``).
 Progress goes to stderr, results to stdout.
 """
 

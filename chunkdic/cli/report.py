@@ -1,7 +1,7 @@
 """``chunkdic strain | uncertainty | sweep | table | report | export``: analyses of results, thin over the API.
 
 Each subcommand function takes the parsed ``argparse`` namespace and returns the exit code;
-bad input raises :class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli.main``).
+bad input raises :class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli.app``).
 Progress goes to stderr, results (tables, paths) to stdout.
 """
 
@@ -204,10 +204,8 @@ def run_strain(args: argparse.Namespace) -> int:
     from ..results.result import open_result
     from ..results.strain import strain_summary
 
-    from ..inputs import check_displacement
-
     res = open_result(args.result)
-    check_displacement(res.displacement, res.path, res.flags)
+    res.check_displacement()
     s = strain_summary(res, exclude_outer=not args.all_elements)  # a mask's active elements only
     if args.json:
         out = {"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}
@@ -248,14 +246,13 @@ def run_sweep(args: argparse.Namespace) -> int:
 
 
 def run_table(args: argparse.Namespace) -> int:
-    from ..inputs import check_displacement
     from ..analysis.zoisweep import read_delta_eps, write_zoi_table, zoi_table
     from ..io.outputs import Outputs
     from ..results.result import open_result
 
     results = [open_result(r) for r in args.results]
     for res in results:
-        check_displacement(res.displacement, res.path, res.flags)
+        res.check_displacement()
     rows = zoi_table(results, delta_eps=read_delta_eps(args.uncertainty))
     if not args.output:
         print(write_zoi_table(rows))
@@ -285,7 +282,6 @@ def run_report(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from ..views import export
     from ..results import scans as resultscans
-    from ..inputs import check_displacement
     from ..io.outputs import Outputs
     from ..results.result import open_result
     from ..scheduler import check_scheduler
@@ -293,7 +289,7 @@ def run_export(args: argparse.Namespace) -> int:
     if not (args.vtk or args.csv or args.corrected or args.fields):
         raise InputError("nothing to export: give --vtk, --csv, --corrected and/or --fields")
     res = open_result(args.result)
-    check_displacement(res.displacement, res.path, res.flags)
+    res.check_displacement()
     if args.units == "physical" and not res.info.get("voxel_size"):
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
     if args.corrected or args.fields:

@@ -2,7 +2,7 @@
 
 Progress goes to stderr (the correlations' lines, one ``series:`` line per step), the
 summary table to stderr and the series path to stdout. Bad input raises
-:class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli.main``).
+:class:`chunkdic.errors.InputError` (one line, exit 2 in ``chunkdic.cli.app``).
 """
 
 from __future__ import annotations

@@ -13,35 +13,30 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import shutil
 import time
 import uuid
 from collections.abc import Callable
 from pathlib import Path
 
-import numpy as np
-
-from .. import config
-from ..kernels import jit as kernels
-from .checkpoint import Checkpoint, fingerprint, identify_input
 from ..errors import InputError
-from .gauss_newton import History, State, iterate, rigid_step
-from .level import Level, emit
-from .initial import init_identity, open_init, start_field
-from ..mesh import transfer
 from ..io.outputs import Outputs
 from ..io.ownership import OutputLock, make_scratch
+from ..io.scan import open_scan
+from ..kernels import jit as kernels
+from ..results.result import Result
+from ..scheduler import check_scheduler, open_runner
+from ..solve import cg as solve
+from .checkpoint import Checkpoint, fingerprint, identify_input
+from .events import emit
+from .initial import init_identity, open_init
+from .masks import check_mask_shape, prepare_mask
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
-from .masks import check_mask_shape, prepare_mask
-from .noise import nodal_uncertainty
-from ..solve.regchoice import choose_length
-from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
-from .rigid import translation_task
-from ..scheduler import check_scheduler, open_runner
+from .runstate import LevelOutcome, RunState
 from .settings import Settings
-from ..io.scan import open_scan
+from .steps import (RunContext, assemble_result, finish_level, measure_start_gaps, open_level, regularization_length,
+                    rigid_start, solve_level, start_field)
 
 __all__ = ["correlate", "Settings"]
 
@@ -168,8 +163,9 @@ def correlate(
                 mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask",
                                                                     runner)
                 _compile_kernels(runner, progress)
-                result = _run(settings, meshes, levels, f_refs, g_refs, runner, progress, scratch, ckpt, resume,
-                              mask_refs, init_result)
+                ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
+                                 mask_refs, init_result)
+                result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))
             except (InputError, OSError) as exc:
                 # bad input found by a pass (a constant or non-finite image), or a full or read-only
                 # disk before the first checkpoint: nothing to resume, so what this run created goes.
@@ -223,171 +219,30 @@ def _init_path(init_result: Result | None):
     return None if init_result is None else init_result.path
 
 
-def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, scratch: Path,
-         checkpoint=None, resume: dict | None = None, mask_refs: dict | None = None,
-         init: Result | None = None) -> Result:
-    """All levels, coarsest first; resumes from ``resume`` (a checkpoint state) if given.
-
-    ``init``: an earlier result whose field is the start on the coarsest level, instead of
-    the rigid translation (:mod:`chunkdic.engine.initial`)."""
-    finest, coarsest = levels[-1], levels[0]
-    statuses: dict[int, str] = {}
-    rigid_t = initial_gap = rigid_gap = None
-    state = None
-    weak = []  # poorly textured nodes of the finest level
-    masked, active = None, None  # nodes outside the mask, active elements (finest level)
-    sigma_u, noise = None, {}  # per-node uncertainty and the noise it comes from (finest level)
-    reg_length = math.nan  # regularisation length of the finest level, level-0 voxels
-    history = History()
-    if resume is not None:
-        history = History(resume["history"])
-        statuses = {int(k): v for k, v in resume["statuses"].items()}
-        rigid_t = np.array(resume["rigid_t"])
-        initial_gap, rigid_gap = resume.get("initial_gap"), resume.get("rigid_gap")
-        state = State.restore(resume["gn"], resume["arrays"])
-        emit(progress, stage="resume", level=resume["level"], iteration=state.iteration)
-    u = None
-
-    def save_checkpoint(st: State, s: int) -> None:
-        if checkpoint is None:
-            return
-        checkpoint.save(
-            {"level": s, "gn": st.scalars(), "statuses": {str(k): v for k, v in statuses.items()},
-             "history": history.to_json(), "rigid_t": rigid_t.tolist(),
-             "initial_gap": initial_gap, "rigid_gap": rigid_gap},
-            st.arrays(),
-        )
-
-    for s in levels:
-        if resume is not None and s > resume["level"]:
-            continue  # finished before the interruption
-        mesh = meshes[s]
-        tol = settings.tolerance if s == finest else settings.coarse_tolerance
-        if state is None or state.status is None:
-            t0, c0 = time.perf_counter(), time.process_time()
-            if state is not None:
-                start = state.u  # resumed
-            elif s == coarsest and init is not None:
-                start = start_field(init, mesh, s)
-                emit(progress, stage="init", level=s, path=init.path,
-                     mean=[float(v) for v in start.mean(axis=(1, 2, 3))])
-            elif s == coarsest:
-                t_int = run_one(runner, translation_task, (f_refs[s], g_refs[s], mesh.roi))
-                start = _uniform(t_int, mesh)
-            else:
-                start = transfer(u, meshes[s + 1], s + 1, mesh, s)
-            lvl = Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress,
-                        None if mask_refs is None else mask_refs[s])
-            lvl.assemble_m(start)
-            emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
-                 voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
-            if state is None:
-                if s == coarsest and init is not None:
-                    rigid_t = start.mean(axis=(1, 2, 3))  # reported as the run's mean start translation
-                elif s == coarsest:
-                    lvl.prepare_interpolation(start)
-                    rigid_t = rigid_step(lvl, t_int, tol, 10, history, progress)
-                    start = _uniform(rigid_t, mesh)
-                state = State(start)
-            lvl.regularize(_regularization_length(settings, state, s, mesh))
-            lvl.prepare_interpolation(state.u)
-            if s == finest and initial_gap is None:
-                rigid_fine = rigid_t * 2.0 ** (coarsest - finest)
-                initial_gap = lvl.gap(np.zeros((3,) + mesh.nodes_shape))
-                rigid_gap = lvl.gap(_uniform(rigid_fine, mesh))
-                emit(progress, stage="gaps", level=s, initial_gap=initial_gap, rigid_gap=rigid_gap,
-                     translation=rigid_fine.tolist())
-            # With the length still to choose, iterate only to the coarse levels' tolerance
-            # first, and stop at the pass whose increment is below it without applying it:
-            # the choice linearises around that pass's field and `b` anyway, and the
-            # regularised iterations that follow converge it to `tol` (each a b pass fewer)
-            choosing = s == finest and _length_to_choose(settings, state)
-            state = iterate(lvl, state, max(tol, settings.coarse_tolerance) if choosing else tol,
-                            settings.max_iterations, history, progress,
-                            on_iteration=lambda st, s=s: save_checkpoint(st, s), resolve=choosing)
-            if s == finest and _choose_automatically(settings, state):
-                state = _with_chosen_regularization(lvl, state, progress)
-                state = iterate(lvl, state, tol, settings.max_iterations, history, progress,
-                                on_iteration=lambda st, s=s: save_checkpoint(st, s), first_pass=lvl.last_pass)
-            reg_length = lvl.regularization_length * 2**s
-            lvl.release()
-            statuses[s] = state.status
-            save_checkpoint(state, s)
-            emit(progress, stage="level", level=s, status=state.status, gap=state.gap,
-                 seconds=time.perf_counter() - t0)
-            weak, masked, active = lvl.weak_nodes(), lvl.masked_nodes(), lvl.active
-            if s == finest:
-                p = lvl.last_pass
-                sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
-                noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
-        final, u, state = state, state.u, None
-    mesh = meshes[finest]
-    flags = node_flags(mesh, final.elements, weak, masked)
-    missing = (flags & (FLAG_NO_DATA | FLAG_MASKED))[None] > 0
-    u = np.where(missing, np.nan, u)
-    if sigma_u is not None:
-        sigma_u = np.where(missing, np.nan, sigma_u)
-    status = statuses[finest]
-    excluded_fraction = final.excluded / max(final.excluded + final.n_valid, 1)
-    if status == "converged" and excluded_fraction > config.get("max-excluded-fraction"):
-        status = statuses[finest] = "excluded"
-    info = {
-        "element_size": settings.element_size,
-        "roi": [[r.start, r.stop] for r in mesh.roi],
-        "roi_level0": [[r.start * 2**finest, r.stop * 2**finest] for r in mesh.roi],
-        "level": finest,
-        "scale": 2**finest,
-        "levels": levels,
-        "level_status": {str(k): v for k, v in statuses.items()},
-        "status": status,
-        "converged": status == "converged",
-        "initial_gap": initial_gap,
-        "rigid_gap": rigid_gap,
-        "final_gap": final.gap,
-        "rigid_translation": (rigid_t * 2.0 ** (coarsest - finest)).tolist(),
-        "excluded_voxels": int(final.excluded),
-        "used_voxels": int(final.n_valid),
-        "excluded_fraction": float(excluded_fraction),
-        "nodes_without_data": int(np.count_nonzero(flags & FLAG_NO_DATA)),
-        "masked_nodes": int(np.count_nonzero(flags & FLAG_MASKED)),
-        "weak_nodes": int(np.count_nonzero(flags & FLAG_WEAK)),
-        "grey_level": _brightness_summary(settings.grey, final.elements),
-        "noise": noise,
-        "regularization": {"kind": settings.regularization,
-                           "length": None if not np.isfinite(reg_length) else float(reg_length),
-                           "automatic": settings.regularization_length is None},
-        "settings": settings.to_json(),
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "chunkdic_version": _version(),
-    }
-    brightness = None if final.elements is None else final.elements[:2]
-    return Result(u, mesh.node_coords(), history.arrays(), info, flags=flags, brightness=brightness,
-                  active=active, uncertainty=sigma_u)
-
-
-def _brightness_summary(model: str, elements: np.ndarray | None) -> dict:
-    out = {"model": model}
-    if elements is not None:
-        used = elements[2] > 0
-        gain, offset = elements[0][used], elements[1][used]
-        if gain.size:
-            out.update(gain=float(np.median(gain)), offset=float(np.median(offset)),
-                       offset_range=[float(offset.min()), float(offset.max())],
-                       drift=[float(v) for v in elements[3:, 0, 0, 0]])
-    return out
-
-
-#: the regularisation length before (coarse levels: instead of) the automatic choice, in element sizes
-START_LENGTH = 2.0
-
-
-def _regularization_length(settings: Settings, state: State, s: int, mesh) -> float:
-    """``ℓ_reg`` for level ``s``, voxels of the level: given, chosen (resumed), or the starting one."""
-    if settings.regularization_length is not None:
-        return settings.regularization_length / 2.0**s
-    if math.isfinite(state.reg_length):
-        return state.reg_length
-    return START_LENGTH * mesh.element_size
+def _run(ctx: RunContext, run: RunState | None = None) -> Result:
+    """All levels, coarsest first (paper section 3), from a fresh or a resumed ``run``."""
+    if run is None:
+        run = RunState()
+    else:
+        emit(ctx.progress, stage="resume", level=run.resumed_level, iteration=run.gn.iteration)
+    u, outcome = None, LevelOutcome()
+    for s in ctx.levels:
+        if run.done_before_resume(s):
+            continue
+        if run.level_to_solve():
+            t0 = time.perf_counter()
+            start, t_int = start_field(ctx, run, s, u)
+            lvl = open_level(ctx, s, start)
+            if run.gn is None:
+                rigid_start(ctx, run, lvl, start, t_int)
+            lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh))
+            lvl.prepare_interpolation(run.gn.u)
+            if s == ctx.finest and run.initial_gap is None:
+                measure_start_gaps(ctx, run, lvl)
+            solve_level(ctx, run, lvl)
+            outcome = finish_level(ctx, run, lvl, t0)
+        final, u, run.gn = run.gn, run.gn.u, None
+    return assemble_result(ctx, run, final, outcome)
 
 
 def _compile_kernels(runner, progress) -> None:
@@ -396,8 +251,6 @@ def _compile_kernels(runner, progress) -> None:
     The first run on a machine compiles for ~20 s before the first iteration: say so first,
     and report the time (the stage timings would otherwise hide it).
     """
-    from ..solve import cg as solve
-
     cold = not kernels.compiled_on_disk()
     if cold:
         emit(progress, stage="compile", done=False)
@@ -408,66 +261,7 @@ def _compile_kernels(runner, progress) -> None:
         emit(progress, stage="compile", done=True, seconds=time.perf_counter() - t0)
 
 
-def _length_to_choose(settings: Settings, state: State) -> bool:
-    return (settings.regularization != "none" and settings.regularization_length is None
-            and not math.isfinite(state.reg_length))
-
-
-def _choose_automatically(settings: Settings, state: State) -> bool:
-    return _length_to_choose(settings, state) and state.status == "converged"
-
-
-def _with_chosen_regularization(lvl: Level, state: State, progress) -> State:
-    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.solve.regchoice.choose_length`), restart."""
-    p = lvl.last_pass
-    u = np.moveaxis(state.u, 0, -1)
-
-    last = {"half": None, "solver": None}
-
-    def solve_with(half, reg, weight, rhs):
-        from ..solve.cg import StencilSolver
-
-        # one solver per sub-mesh (its coarse M, block inverse and weak nodes reused by every
-        # candidate); rtol 1e-5, not the iterations' 1e-7: 30 % fewer CG iterations, and the
-        # same length chosen on every case measured (docs/engine.md, "Automatic length")
-        if last["half"] is not half:
-            last["half"], last["solver"] = half, StencilSolver(half.copy(), rtol=1e-5)
-        last["solver"].regularize(reg, weight)
-        return last["solver"].solve(rhs)[0]
-
-    choice = choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
-                           p.kappa * p.noise_variance, solve_with)
-    scale = 2.0**lvl.s
-    corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
-    emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale, l_curve_length=corner,
-         kind=lvl.settings.regularization, kappa=p.kappa)
-    lvl.regularize(choice.length)
-    state.reg_length = choice.length
-    state.restart()
-    return state
-
-
-def _uniform(t, mesh) -> np.ndarray:
-    """A uniform nodal field ``t`` (3,) over ``mesh``: shape (3, nz, ny, nx)."""
-    return np.asarray(t, dtype=np.float64)[:, None, None, None] * np.ones((3,) + mesh.nodes_shape)
-
-
-def run_one(runner, fn, args):
-    """Run one task on the runner and return its result."""
-    return next(iter(runner.map_unordered(fn, [args])))
-
-
 def _describe(src) -> str:
     if isinstance(src, (str, Path)):
         return str(Path(src).resolve())
     return f"<in-memory {type(src).__name__}>"
-
-
-def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("chunkdic")
-    except PackageNotFoundError:
-        return "unknown"
-

@@ -13,13 +13,13 @@ import math
 import shutil
 import time
 import warnings
-from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from .. import config
 from ..errors import InputError
+from .events import emit
 from .greylevel import Fit, combine
 from .haloed import HaloedBlocks
 from ..kernels.blocks import LAGS
@@ -29,7 +29,8 @@ from .noise import correlation_factor
 from .prefilter import build_prepared, face_margin, prepared_halo, reachable_box
 from .settings import Settings
 from ..solve.regularization import Regularizer, plane_wave_weight
-from ..solve.cg import PoorTextureWarning, StencilSolver, rigid_restriction, stencil_matvec
+from ..solve.cg import PoorTextureWarning, StencilSolver
+from ..solve.stencil import rigid_restriction, stencil_matvec
 from .tasks import BlockJob, LevelInputs, b_task, m_task
 from ..io.handles import ArrayRef, forget_open_arrays
 
@@ -40,13 +41,6 @@ PROGRESS_SECONDS = 5.0
 #: a diagnostic gap (:meth:`Level.gap`) is measured on one element in 8 when the mesh has
 #: at least this many elements (the sample then holds 512 or more)
 GAP_SAMPLE_MIN = 4096
-
-
-def emit(progress: Callable[[dict], None] | None, **event) -> None:
-    """Log an engine event and hand it to the caller's ``progress`` callback."""
-    log.info("%s", event)
-    if progress is not None:
-        progress(event)
 
 
 @dataclasses.dataclass
@@ -104,11 +98,16 @@ class Level:
     scratch : Path
         The run's scratch directory (shared with the workers).
     progress : callable, optional
-        Receives events (dicts), see :func:`emit`.
+        Receives events (dicts), see :func:`chunkdic.engine.events.emit`.
+    mask : ArrayRef, optional
+        The specimen mask at this level.
+    start : ndarray, shape (3, nz, ny, nx), float64, keyword-only
+        The level's starting field, voxels of the level: the ``M`` pass (run on
+        construction) reads the window of ``g`` it reaches.
     """
 
     def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
-                 scratch: Path, progress=None, mask: ArrayRef | None = None):
+                 scratch: Path, progress=None, mask: ArrayRef | None = None, *, start: np.ndarray):
         self.s, self.mesh, self.runner, self.settings = s, mesh, runner, settings
         self.scratch = scratch
         self.progress = progress
@@ -122,8 +121,10 @@ class Level:
         self.inputs = LevelInputs(f_ref, g_ref, self._create_f_copy(f_ref, settings.smoothing),
                                   settings.interpolation, settings.smoothing, settings.grey,
                                   int(config.get("bspline-halo")), margin, level=s, mask=mask)
-        self.active = None  # element activity of a specimen mask (set by the M pass)
-        self.dynamic_range = math.nan
+        self.regularization_length = math.nan
+        self.regularization_weight = 0.0
+        # the operator is assembled here, so that no method can run before it exists
+        self._assemble_m(start)
 
     @property
     def blocks(self) -> list:
@@ -160,8 +161,9 @@ class Level:
         dtype = "float32" if sigma > 0 else f_ref.dtype
         return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, dtype)
 
-    def assemble_m(self, u: np.ndarray) -> None:
-        """``M`` pass for the level's starting field ``u``: the stencil, its rigid restriction, the solver."""
+    def _assemble_m(self, u: np.ndarray) -> None:
+        """``M`` pass for the level's starting field ``u``: the stencil, its rigid restriction, the
+        solver, the element activity of a mask and the reference's dynamic range."""
         mesh = self.mesh
         # float32 and only the symmetric half (solve.HALF_OFFSETS): M only steers the
         # modified Gauss-Newton steps (the converged field solves b = λ R a whatever M),
@@ -172,6 +174,7 @@ class Level:
         args = [(self.inputs, job, self._nodes_of(u, job)) for job in self.jobs]
         self.sensitivity_lags = np.zeros((3, LAGS + 1))
         fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
+        self.active = None  # element activity of a specimen mask (None: every element)
         for blk, part, lo, hi, lags, frac in self._map(m_task, args, "M pass"):
             S[blk.node_slices] += part[..., 13:, :, :]
             fmin, fmax = min(fmin, lo), max(fmax, hi)
@@ -191,8 +194,6 @@ class Level:
         self.rigid_matrix = rigid_restriction(S)
         self.solver = StencilSolver(S)
         self._warn_weak_nodes()
-        self.regularization_length = math.nan
-        self.regularization_weight = 0.0
 
     def regularize(self, length: float) -> None:
         """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularization`); ``length``: ``ℓ_reg``, voxels of the level.

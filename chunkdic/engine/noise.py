@@ -128,7 +128,7 @@ def exact_diagonal(small, region: tuple[slice, slice, slice] | None = None) -> n
     import scipy.linalg as sla
     import scipy.sparse as sp
 
-    from ..solve.cg import stencil_matvec
+    from ..solve.stencil import stencil_matvec
 
     shape = tuple(small.nodes_shape)
     size = 3 * int(np.prod(shape))

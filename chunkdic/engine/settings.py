@@ -9,13 +9,23 @@ command line) before anything is read or written.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, field, fields
 
 from ..errors import InputError
 
 INTERPOLATIONS = ("cubic", "linear")
 GREY_MODELS = ("none", "global", "drift", "element")
 REGULARIZATIONS = ("none", "tikhonov", "equilibrium-gap")
+
+
+def _option(default, help: str, *, flag: str | None = None, choices: tuple | None = None, kind=None,
+            metavar: str | None = None):
+    """A settings field with its command-line option declared beside it (the CLI builds its
+    options from these, :func:`chunkdic.cli.common.add_engine_options`): ``flag`` (default
+    ``--`` + the name with dashes), ``help``, ``choices``, the value type ``kind`` (default:
+    that of ``default``) and ``metavar``."""
+    return field(default=default, metadata={"flag": flag, "help": help, "choices": choices,
+                                            "type": kind or type(default), "metavar": metavar})
 
 
 @dataclass(frozen=True)
@@ -58,17 +68,24 @@ class Settings:
     """
 
     element_size: int
-    level: int = 0
-    coarsest: int | None = None
-    interpolation: str = "cubic"
-    smoothing: float = 1.0
-    grey: str = "drift"
-    regularization: str = "tikhonov"
-    regularization_length: float | None = None
-    tolerance: float = 1e-3
-    coarse_tolerance: float = 1e-2
-    max_iterations: int = 30
-    block_elements: int | None = None
+    level: int = _option(0, "pyramid level correlated last (default 0; 2: the paper's 4³ compression)")
+    coarsest: int | None = _option(None, "coarsest pyramid level (default: automatic)", kind=int)
+    interpolation: str = _option("cubic", "interpolation of the deformed scan (default cubic B-spline; linear: "
+                                 "the paper's)", choices=INTERPOLATIONS)
+    smoothing: float = _option(1.0, "Gaussian low-pass of both scans, voxels of each level (default 1; 0: the "
+                               "paper's raw images)")
+    grey: str = _option("drift", "brightness model between the scans (default drift: a gain, a linear drift and "
+                        "an offset per element; none: the paper's plain residual)", flag="--grey-level",
+                        choices=GREY_MODELS)
+    regularization: str = _option("tikhonov", "penalty on the field's short wavelengths (default tikhonov, on "
+                                  "its curvature)", choices=REGULARIZATIONS)
+    regularization_length: float | None = _option(None, "its length, voxels of level 0 (default: chosen from the "
+                                                  "data and printed)", kind=float, metavar="L")
+    tolerance: float = _option(1e-3, "max |da| for convergence, voxels")
+    coarse_tolerance: float = 1e-2  # not a command-line option
+    max_iterations: int = _option(30, "Gauss-Newton iterations per level at most")
+    block_elements: int | None = _option(None, "elements per block side (default: automatic, blocks of about "
+                                         "chunkdic.block-voxels voxels per side)", kind=int)
 
     def __post_init__(self):
         check = object.__setattr__
@@ -91,6 +108,12 @@ class Settings:
     @classmethod
     def names(cls) -> tuple[str, ...]:
         return tuple(f.name for f in fields(cls))
+
+    @classmethod
+    def options(cls) -> list[tuple[str, dict]]:
+        """``(name, metadata)`` of every field that is a command-line option (not ``element_size``,
+        which is given with a unit, see :mod:`chunkdic.io.units`), metadata with its ``default``."""
+        return [(f.name, dict(f.metadata, default=f.default)) for f in fields(cls) if f.metadata]
 
     def to_json(self) -> dict:
         return asdict(self)

@@ -128,6 +128,27 @@ class Result:
         return float(self.info["final_gap"])
 
     @property
+    def level(self) -> int:
+        """The pyramid level the field was computed on (its displacements are in its voxels)."""
+        return int(self.info.get("level", 0))
+
+    @property
+    def scale(self) -> float:
+        """Size of a voxel of :attr:`level` in level-0 voxels (``2 ** level``)."""
+        return float(self.info.get("scale", 2.0**self.level))
+
+    @property
+    def voxel_size(self) -> tuple[float, float, float] | None:
+        """Physical size of a level-0 voxel ``(z, y, x)`` in :attr:`unit`, if the reference carried one."""
+        vs = self.info.get("voxel_size")
+        return None if not vs else tuple(float(v) for v in vs)
+
+    @property
+    def unit(self) -> str | None:
+        """Unit of :attr:`voxel_size` (an OME-NGFF unit name), if any."""
+        return self.info.get("unit") if self.voxel_size is not None else None
+
+    @property
     def mesh(self) -> Mesh:
         roi = self.info["roi"]
         ell = int(self.info["element_size"])
@@ -140,6 +161,26 @@ class Result:
 
             self.strain = element_strain(self.displacement, self.info["element_size"])
         return self.strain
+
+    def check_displacement(self) -> None:
+        """Refuse a result whose nodal field has NaN/inf values the result does not explain.
+
+        A node flagged as not measured (``FLAG_NO_DATA``, ``FLAG_MASKED``) is NaN by design;
+        any other non-finite value is damage (strains and exports would be garbage).
+
+        Raises
+        ------
+        InputError
+            One line naming the result and the first damaged node.
+        """
+        bad = (~np.isfinite(self.displacement)).any(axis=0)
+        if self.flags is not None and self.flags.shape == bad.shape:
+            bad &= (self.flags & (FLAG_NO_DATA | FLAG_MASKED)) == 0
+        if bad.any():
+            n = int(bad.sum())
+            node = tuple(int(v) for v in np.argwhere(bad)[0])
+            raise InputError(f"result {self.path}: {n} node(s) have no finite displacement (first: node {node}): "
+                             "the result is damaged or was not measured there")
 
     def _arrays(self) -> dict[str, np.ndarray]:
         """Every array of the result group, by name (:data:`LAYOUT`), with the 1-D node and

@@ -4,7 +4,7 @@
 preconditioner converge in about a hundred iterations whatever the mesh size, where a
 direct factorisation costs seconds to minutes (shared/DESIGN.md). The stencil is used
 as is for the matrix-vector product, never converted to CSR, and only its symmetric half
-is kept (:data:`HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
+is kept (:data:`~chunkdic.solve.stencil.HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
 of 2. The regularisation ``R`` (:mod:`chunkdic.solve.regularization`) is applied matrix-free
 in the same CG. A long Tikhonov length makes ``M + λ R`` a fourth-order operator whose
 smooth modes block-Jacobi cannot reach (hundreds to thousands of iterations): there a
@@ -16,12 +16,13 @@ from __future__ import annotations
 import logging
 import warnings
 
-import numba
 import numpy as np
 
 from ..errors import InputError
-from ..mesh import STENCIL_OFFSETS
+from .galerkin import matrix_hierarchy
+from .multigrid import VCycle
 from .regularization import Regularizer, add_weighted
+from .stencil import pcg, pcg_block_jacobi, stencil_matvec
 
 log = logging.getLogger(__name__)
 
@@ -31,65 +32,10 @@ log = logging.getLogger(__name__)
 #: large non-smooth near-null space (every field in equilibrium) defeats the point
 #: smoother, and the V-cycle saved iterations but not time (measured).
 MULTIGRID_FROM = 100.0
-#: index of the node itself in the 27-point stencil
-CENTRE = 13
-#: the stored half of the stencil: entries 13 (the node) to 26; entry ``26 - k`` of the
-#: neighbour ``n + off_k`` is the transpose of entry ``k`` of node ``n``
-HALF_OFFSETS = STENCIL_OFFSETS[CENTRE:]
 
 
 class PoorTextureWarning(UserWarning):
     """Some nodes see too little image gradient to be measured reliably."""
-
-
-def half_stencil(full: np.ndarray) -> np.ndarray:
-    """The stored half ``S[..., 13:, :, :]`` of a full (…, 27, 3, 3) stencil (a view)."""
-    return full[..., CENTRE:, :, :]
-
-
-@numba.njit(nogil=True, cache=True)
-def half_matvec(H, x, y):
-    """y = M x from the half stencil H (nz, ny, nx, 14, 3, 3)."""
-    nz, ny, nx = x.shape[:3]
-    y[:] = 0.0
-    for z in range(nz):
-        for yy in range(ny):
-            for xx in range(nx):
-                s = H[z, yy, xx, 0]
-                c0, c1, c2 = x[z, yy, xx, 0], x[z, yy, xx, 1], x[z, yy, xx, 2]
-                y[z, yy, xx, 0] += s[0, 0] * c0 + s[0, 1] * c1 + s[0, 2] * c2
-                y[z, yy, xx, 1] += s[1, 0] * c0 + s[1, 1] * c1 + s[1, 2] * c2
-                y[z, yy, xx, 2] += s[2, 0] * c0 + s[2, 1] * c1 + s[2, 2] * c2
-                for h in range(1, 14):
-                    k = h + 13
-                    z2 = z + k // 9 - 1
-                    y2 = yy + (k // 3) % 3 - 1
-                    x2 = xx + k % 3 - 1
-                    if z2 < 0 or z2 >= nz or y2 < 0 or y2 >= ny or x2 < 0 or x2 >= nx:
-                        continue
-                    s = H[z, yy, xx, h]
-                    v0, v1, v2 = x[z2, y2, x2, 0], x[z2, y2, x2, 1], x[z2, y2, x2, 2]
-                    y[z, yy, xx, 0] += s[0, 0] * v0 + s[0, 1] * v1 + s[0, 2] * v2
-                    y[z, yy, xx, 1] += s[1, 0] * v0 + s[1, 1] * v1 + s[1, 2] * v2
-                    y[z, yy, xx, 2] += s[2, 0] * v0 + s[2, 1] * v1 + s[2, 2] * v2
-                    # the transposed entry of the neighbour
-                    y[z2, y2, x2, 0] += s[0, 0] * c0 + s[1, 0] * c1 + s[2, 0] * c2
-                    y[z2, y2, x2, 1] += s[0, 1] * c0 + s[1, 1] * c1 + s[2, 1] * c2
-                    y[z2, y2, x2, 2] += s[0, 2] * c0 + s[1, 2] * c1 + s[2, 2] * c2
-
-
-def stencil_matvec(H: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """``y = M x`` for the half stencil ``H`` (nz, ny, nx, 14, 3, 3) and ``x`` (nz, ny, nx, 3)."""
-    y = np.empty(x.shape, dtype=np.float64)
-    half_matvec(H, np.ascontiguousarray(x, dtype=np.float64), y)
-    return y
-
-
-def rigid_restriction(H: np.ndarray) -> np.ndarray:
-    """``Σ_ij M_ij`` (3, 3): ``M`` restricted to uniform translations (``Σ_a N_a = 1``)."""
-    centre = H[..., 0, :, :].sum(axis=(0, 1, 2), dtype=np.float64)
-    off = H[..., 1:, :, :].sum(axis=(0, 1, 2, 3), dtype=np.float64)
-    return centre + off + off.T
 
 
 class StencilSolver:
@@ -98,7 +44,7 @@ class StencilSolver:
     Parameters
     ----------
     half : ndarray, shape (nz, ny, nx, 14, 3, 3), float32
-        The stored half of ``M`` (:data:`HALF_OFFSETS`). The solver keeps it (no copy) and
+        The stored half of ``M`` (:data:`~chunkdic.solve.stencil.HALF_OFFSETS`). The solver keeps it (no copy) and
         adds to its diagonal blocks the small Tikhonov term of poorly textured nodes.
     weak_threshold : float
         A node is *poorly textured* when the smallest eigenvalue of its 3×3 diagonal
@@ -171,8 +117,6 @@ class StencilSolver:
         self.block_inverse = np.linalg.inv(diag)
         self._vcycle = None
         if self._use_multigrid():
-            from .multigrid import VCycle, matrix_hierarchy
-
             if self._matrices is None:
                 self._matrices = matrix_hierarchy(self.matrix)
             self._vcycle = VCycle(self._matrices, self.block_inverse, self.regularizer, self.weight)
@@ -212,9 +156,9 @@ class StencilSolver:
         self.largest_rhs = max(self.largest_rhs, norm)
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
         if self._vcycle is not None:
-            iterations = _pcg_preconditioned(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
+            iterations = pcg(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
         else:
-            iterations = _pcg(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
+            iterations = pcg_block_jacobi(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
                               code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
@@ -225,8 +169,6 @@ class StencilSolver:
 
 def warmup() -> None:
     """Compile the client's solver kernels (CG with and without regularisation, the V-cycle) on tiny systems."""
-    from .regularization import Regularizer
-
     half = np.zeros((3, 3, 3, 14, 3, 3), np.float32)
     half[..., 0, :, :] = np.eye(3)
     solver = StencilSolver(half)
@@ -238,99 +180,3 @@ def warmup() -> None:
     solver = StencilSolver(half, multigrid=True)
     solver.regularize(Regularizer("tikhonov", (7, 7, 7), 2.0), 1.0)
     solver.solve(np.ones((7, 7, 7, 3)))
-
-
-@numba.njit(nogil=True, cache=True)
-def block_jacobi(Binv, r, z):
-    nz, ny, nx = r.shape[:3]
-    for i in range(nz):
-        for j in range(ny):
-            for k in range(nx):
-                for a in range(3):
-                    z[i, j, k, a] = (Binv[i, j, k, a, 0] * r[i, j, k, 0] + Binv[i, j, k, a, 1] * r[i, j, k, 1]
-                                     + Binv[i, j, k, a, 2] * r[i, j, k, 2])
-
-
-@numba.njit(nogil=True, cache=True)
-def _pcg(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
-    """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
-
-    Written out (rather than scipy's ``cg``) so that its vector operations are plain
-    loops: on a busy machine, multithreaded BLAS calls on these small vectors cost more
-    than the whole stencil product. The vector operations run on flat views through
-    :func:`dot` and :func:`axpy`: written as 4-D array expressions they took numba 41 s
-    to compile (the first run's largest single wait), as flat loops under a second.
-    """
-    r = b.copy()  # x starts at zero
-    z = np.empty_like(b)
-    q = np.empty_like(b)
-    rf, zf, qf, xf = r.reshape(-1), z.reshape(-1), q.reshape(-1), x.reshape(-1)
-    block_jacobi(Binv, r, z)
-    p = z.copy()
-    pf = p.reshape(-1)
-    rz = dot(rf, zf)
-    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
-    if bnorm == 0.0:
-        return 0
-    for it in range(1, maxiter + 1):
-        half_matvec(H, p, q)
-        if code != 0:
-            add_weighted(code, Ke, Kf, sw, lam, p, q)
-        alpha = rz / dot(pf, qf)
-        axpy(alpha, pf, xf)
-        axpy(-alpha, qf, rf)
-        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
-            return it
-        block_jacobi(Binv, r, z)
-        rz_new = dot(rf, zf)
-        beta = rz_new / rz
-        for k in range(pf.size):  # p = z + β p
-            pf[k] = zf[k] + beta * pf[k]
-        rz = rz_new
-    return -1
-
-
-def _pcg_preconditioned(matvec, precondition, b, x, rtol, maxiter) -> int:
-    """:func:`_pcg` with any symmetric positive definite preconditioner ``precondition(r) -> z``.
-
-    Written in Python around the numba vector kernels: with a V-cycle per iteration, a few
-    tens of iterations, the interpreter's share is negligible.
-    """
-    r = b.copy()
-    rf, xf = r.reshape(-1), x.reshape(-1)
-    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
-    if bnorm == 0.0:
-        return 0
-    z = precondition(r)
-    p = z.copy()
-    pf = p.reshape(-1)
-    rz = dot(rf, z.reshape(-1))
-    for it in range(1, maxiter + 1):
-        q = matvec(p)
-        alpha = rz / dot(pf, q.reshape(-1))
-        axpy(alpha, pf, xf)
-        axpy(-alpha, q.reshape(-1), rf)
-        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
-            return it
-        z = precondition(r)
-        rz_new = dot(rf, z.reshape(-1))
-        beta = rz_new / rz
-        p *= beta
-        p += z
-        rz = rz_new
-    return -1
-
-
-@numba.njit(nogil=True, cache=True)
-def dot(a, b):
-    s = 0.0
-    for k in range(a.size):
-        s += a[k] * b[k]
-    return s
-
-
-@numba.njit(nogil=True, cache=True)
-def axpy(alpha, a, y):
-    """``y += alpha * a`` (flat arrays)."""
-    for k in range(a.size):
-        y[k] += alpha * a[k]

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .regularization import Regularizer, plane_wave_weight
-from .cg import stencil_matvec
+from .stencil import stencil_matvec
 
 
 #: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)

@@ -269,11 +269,10 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
     --------
     >>> chunkdic.write_fields("result.zarr", "fields.zarr")  # doctest: +SKIP
     """
-    from ..inputs import check_displacement
     from ..results.scans import as_result, input_paths
 
     result = as_result(result)
-    check_displacement(result.displacement, result.path, result.flags)
+    result.check_displacement()
     if units not in ("voxels", "physical"):
         raise InputError(f"units must be voxels or physical, got {units!r}")
     if levels is not None and (int(levels) != levels or levels < 0):

@@ -356,12 +356,11 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         Figure name -> path (and ``epszz_profile_csv`` -> the profile's numbers).
     """
     from ..results.scans import input_paths, input_scans, interpolation_of
-    from ..inputs import check_displacement
     from ..io.outputs import Outputs
 
     results = as_results(results)
     for res in results:
-        check_displacement(res.displacement, res.path, res.flags)
+        res.check_displacement()
     if interpolation not in (None, "cubic", "linear"):
         raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
     check_figure_options(fmt, dpi)

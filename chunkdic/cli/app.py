@@ -94,7 +94,7 @@ def _summary(result, seconds: float) -> str:
         line += (f"\n  excluded: {100 * info.get('excluded_fraction', 0):.0f}% of the ROI maps outside the deformed "
                  "scan; the rest converged, but so large a share left out is not called converged")
     elif info["status"] in ("stalled", "diverged", "max-iterations"):
-        from ..engine.gauss_newton import STALL_PATIENCE
+        from ..engine.stopping import STALL_PATIENCE
 
         line += "\n  " + EXPLAIN[info["status"]].format(patience=STALL_PATIENCE)
     if info["excluded_voxels"] and info["status"] != "excluded":

@@ -1,0 +1,294 @@
+"""The steps of a correlation on one level, each a function of the run's context and state.
+
+:func:`chunkdic.engine.driver.correlate` strings them together, coarsest level first
+(paper section 3): the start field (:func:`start_field`), the level with its ``M``
+(:func:`open_level`), the rigid step on the coarsest level (:func:`rigid_start`), the
+Gauss–Newton solve with the choice of the regularisation length (:func:`solve_level`),
+and the result (:func:`assemble_result`). docs/engine.md describes each choice.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..mesh import Mesh, transfer
+from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
+from ..solve.cg import StencilSolver
+from ..solve.regchoice import choose_length
+from .checkpoint import Checkpoint
+from .events import emit
+from .gauss_newton import iterate, rigid_step
+from .initial import start_field as init_start_field
+from .level import Level
+from .noise import nodal_uncertainty
+from .rigid import translation_task
+from .runstate import LevelOutcome, RunState
+from .settings import Settings
+from .stopping import State
+
+#: the regularisation length before (coarse levels: instead of) the automatic choice, in element sizes
+START_LENGTH = 2.0
+#: Gauss-Newton passes of the rigid step (a uniform translation: three unknowns)
+RIGID_ITERATIONS = 10
+
+
+@dataclasses.dataclass(frozen=True)
+class RunContext:
+    """What does not change during a run: settings, meshes, scans, where tasks run.
+
+    ``levels`` are coarsest first; ``f_refs``, ``g_refs``, ``mask_refs`` map a level to the
+    :class:`~chunkdic.io.handles.ArrayRef` tasks read; ``init`` an earlier result to start
+    from (:mod:`chunkdic.engine.initial`).
+    """
+
+    settings: Settings
+    meshes: dict[int, Mesh]
+    levels: list[int]
+    f_refs: dict
+    g_refs: dict
+    runner: object
+    scratch: Path
+    progress: Callable[[dict], None] | None = None
+    checkpoint: Checkpoint | None = None
+    mask_refs: dict | None = None
+    init: Result | None = None
+
+    @property
+    def finest(self) -> int:
+        return self.levels[-1]
+
+    @property
+    def coarsest(self) -> int:
+        return self.levels[0]
+
+    def tolerance(self, s: int) -> float:
+        """The level's tolerance: coarser levels only give the next one its start."""
+        return self.settings.tolerance if s == self.finest else self.settings.coarse_tolerance
+
+    def save(self, run: RunState, s: int) -> None:
+        """Checkpoint ``run`` while level ``s`` is solved (nothing without an output)."""
+        if self.checkpoint is not None:
+            self.checkpoint.save(run.to_json(s), run.arrays())
+
+
+def start_field(ctx: RunContext, run: RunState, s: int, coarser_u: np.ndarray | None):
+    """The field level ``s`` starts from, shape (3, nz, ny, nx), voxels of the level, and
+    the integer translation the rigid step refines (coarsest level only, else ``None``).
+
+    Resumed: the saved field. Coarsest level: an ``init`` result evaluated at the nodes,
+    or the phase-correlation translation (:mod:`chunkdic.engine.rigid`). Finer levels: the
+    coarser level's field carried to the finer nodes (DESIGN.md, half-voxel offset, × 2).
+    """
+    mesh = ctx.meshes[s]
+    if run.gn is not None:
+        return run.gn.u, None
+    if s == ctx.coarsest and ctx.init is not None:
+        start = init_start_field(ctx.init, mesh, s)
+        emit(ctx.progress, stage="init", level=s, path=ctx.init.path,
+             mean=[float(v) for v in start.mean(axis=(1, 2, 3))])
+        return start, None
+    if s == ctx.coarsest:
+        t_int = run_one(ctx.runner, translation_task, (ctx.f_refs[s], ctx.g_refs[s], mesh.roi))
+        return uniform(t_int, mesh), t_int
+    return transfer(coarser_u, ctx.meshes[s + 1], s + 1, mesh, s), None
+
+
+def open_level(ctx: RunContext, s: int, start: np.ndarray) -> Level:
+    """Level ``s`` with its ``M`` assembled around ``start`` (one pass over the voxels)."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    mesh = ctx.meshes[s]
+    lvl = Level(s, mesh, ctx.f_refs[s], ctx.g_refs[s], ctx.runner, ctx.settings, ctx.scratch, ctx.progress,
+                None if ctx.mask_refs is None else ctx.mask_refs[s], start=start)
+    emit(ctx.progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
+         voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
+    return lvl
+
+
+def rigid_start(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_int) -> None:
+    """A new run's Gauss–Newton state on the coarsest level: the rigid translation refined
+    by Gauss–Newton (paper section 5.1), or the ``init`` field as it is."""
+    if t_int is None:  # an init field: its mean is reported as the run's start translation
+        run.rigid_t = start.mean(axis=(1, 2, 3))
+    else:
+        lvl.prepare_interpolation(start)
+        run.rigid_t = rigid_step(lvl, t_int, ctx.tolerance(lvl.s), RIGID_ITERATIONS, run.history, ctx.progress)
+        start = uniform(run.rigid_t, lvl.mesh)
+    run.gn = State(start)
+
+
+def measure_start_gaps(ctx: RunContext, run: RunState, lvl: Level) -> None:
+    """The finest level's gaps of the zero and of the rigid field (reported, never iterated on)."""
+    rigid_fine = run.rigid_t * 2.0 ** (ctx.coarsest - ctx.finest)
+    run.initial_gap = lvl.gap(np.zeros((3,) + lvl.mesh.nodes_shape))
+    run.rigid_gap = lvl.gap(uniform(rigid_fine, lvl.mesh))
+    emit(ctx.progress, stage="gaps", level=lvl.s, initial_gap=run.initial_gap, rigid_gap=run.rigid_gap,
+         translation=rigid_fine.tolist())
+
+
+def solve_level(ctx: RunContext, run: RunState, lvl: Level) -> None:
+    """Modified Gauss–Newton on the level from ``run.gn``, choosing the regularisation length
+    on the finest level when the settings leave it automatic; checkpoints every pass.
+
+    With the length still to choose, the level first iterates to the coarse levels'
+    tolerance only and stops at the pass whose increment is below it without applying it:
+    the choice linearises around that pass's field and ``b`` anyway, and the regularised
+    iterations that follow converge it to the tolerance (each a ``b`` pass fewer).
+    """
+    s, settings = lvl.s, ctx.settings
+    tol = ctx.tolerance(s)
+
+    def save(gn: State) -> None:
+        ctx.save(run, s)
+
+    choosing = s == ctx.finest and length_to_choose(settings, run.gn)
+    run.gn = iterate(lvl, run.gn, max(tol, settings.coarse_tolerance) if choosing else tol,
+                     settings.max_iterations, run.history, ctx.progress, on_iteration=save, resolve=choosing)
+    if choosing and run.gn.status == "converged":
+        choose_regularization(lvl, run.gn, ctx.progress)
+        run.gn = iterate(lvl, run.gn, tol, settings.max_iterations, run.history, ctx.progress,
+                         on_iteration=save, first_pass=lvl.last_pass)
+
+
+def finish_level(ctx: RunContext, run: RunState, lvl: Level, t0: float) -> LevelOutcome:
+    """Record the level's status, checkpoint, free its scratch; what it leaves for the result."""
+    s = lvl.s
+    outcome = LevelOutcome(weak=lvl.weak_nodes(), masked=lvl.masked_nodes(), active=lvl.active,
+                           reg_length=lvl.regularization_length * 2**s)
+    lvl.release()
+    run.statuses[s] = run.gn.status
+    ctx.save(run, s)
+    emit(ctx.progress, stage="level", level=s, status=run.gn.status, gap=run.gn.gap,
+         seconds=time.perf_counter() - t0)
+    if s == ctx.finest:
+        p = lvl.last_pass
+        outcome.sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
+        outcome.noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
+    return outcome
+
+
+def regularization_length(settings: Settings, state: State, s: int, mesh: Mesh) -> float:
+    """``ℓ_reg`` for level ``s``, voxels of the level: given, chosen (resumed), or the starting one."""
+    if settings.regularization_length is not None:
+        return settings.regularization_length / 2.0**s
+    if math.isfinite(state.reg_length):
+        return state.reg_length
+    return START_LENGTH * mesh.element_size
+
+
+def length_to_choose(settings: Settings, state: State) -> bool:
+    """The finest level's regularisation length is automatic and not chosen yet."""
+    return (settings.regularization != "none" and settings.regularization_length is None
+            and not math.isfinite(state.reg_length))
+
+
+def choose_regularization(lvl: Level, state: State, progress) -> None:
+    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.solve.regchoice.choose_length`)
+    and restart ``state`` under it."""
+    p = lvl.last_pass
+    u = np.moveaxis(state.u, 0, -1)
+    last = {"half": None, "solver": None}
+
+    def solve_with(half, reg, weight, rhs):
+        # one solver per sub-mesh (its coarse M, block inverse and weak nodes reused by every
+        # candidate); rtol 1e-5, not the iterations' 1e-7: 30 % fewer CG iterations, and the
+        # same length chosen on every case measured (docs/engine.md, "Automatic length")
+        if last["half"] is not half:
+            last["half"], last["solver"] = half, StencilSolver(half.copy(), rtol=1e-5)
+        last["solver"].regularize(reg, weight)
+        return last["solver"].solve(rhs)[0]
+
+    choice = choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
+                           p.kappa * p.noise_variance, solve_with)
+    scale = 2.0**lvl.s
+    corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
+    emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale, l_curve_length=corner,
+         kind=lvl.settings.regularization, kappa=p.kappa)
+    lvl.regularize(choice.length)
+    state.reg_length = choice.length
+    state.restart()
+
+
+def assemble_result(ctx: RunContext, run: RunState, final: State, outcome: LevelOutcome) -> Result:
+    """The finest level's field, flags, uncertainty and the run's facts as a :class:`Result`."""
+    settings, finest, coarsest = ctx.settings, ctx.finest, ctx.coarsest
+    mesh = ctx.meshes[finest]
+    flags = node_flags(mesh, final.elements, outcome.weak, outcome.masked)
+    missing = (flags & (FLAG_NO_DATA | FLAG_MASKED))[None] > 0
+    u = np.where(missing, np.nan, final.u)
+    sigma_u = None if outcome.sigma_u is None else np.where(missing, np.nan, outcome.sigma_u)
+    status = run.statuses[finest]
+    excluded_fraction = final.excluded / max(final.excluded + final.n_valid, 1)
+    if status == "converged" and excluded_fraction > config.get("max-excluded-fraction"):
+        status = run.statuses[finest] = "excluded"
+    reg_length = outcome.reg_length
+    info = {
+        "element_size": settings.element_size,
+        "roi": [[r.start, r.stop] for r in mesh.roi],
+        "roi_level0": [[r.start * 2**finest, r.stop * 2**finest] for r in mesh.roi],
+        "level": finest,
+        "scale": 2**finest,
+        "levels": ctx.levels,
+        "level_status": {str(k): v for k, v in run.statuses.items()},
+        "status": status,
+        "converged": status == "converged",
+        "initial_gap": run.initial_gap,
+        "rigid_gap": run.rigid_gap,
+        "final_gap": final.gap,
+        "rigid_translation": (run.rigid_t * 2.0 ** (coarsest - finest)).tolist(),
+        "excluded_voxels": int(final.excluded),
+        "used_voxels": int(final.n_valid),
+        "excluded_fraction": float(excluded_fraction),
+        "nodes_without_data": int(np.count_nonzero(flags & FLAG_NO_DATA)),
+        "masked_nodes": int(np.count_nonzero(flags & FLAG_MASKED)),
+        "weak_nodes": int(np.count_nonzero(flags & FLAG_WEAK)),
+        "grey_level": brightness_summary(settings.grey, final.elements),
+        "noise": outcome.noise,
+        "regularization": {"kind": settings.regularization,
+                           "length": None if not np.isfinite(reg_length) else float(reg_length),
+                           "automatic": settings.regularization_length is None},
+        "settings": settings.to_json(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "chunkdic_version": _version(),
+    }
+    brightness = None if final.elements is None else final.elements[:2]
+    return Result(u, mesh.node_coords(), run.history.arrays(), info, flags=flags, brightness=brightness,
+                  active=outcome.active, uncertainty=sigma_u)
+
+
+def brightness_summary(model: str, elements: np.ndarray | None) -> dict:
+    """Median gain and offset, offset range and drift of the last pass (``info["grey_level"]``)."""
+    out = {"model": model}
+    if elements is not None:
+        used = elements[2] > 0
+        gain, offset = elements[0][used], elements[1][used]
+        if gain.size:
+            out.update(gain=float(np.median(gain)), offset=float(np.median(offset)),
+                       offset_range=[float(offset.min()), float(offset.max())],
+                       drift=[float(v) for v in elements[3:, 0, 0, 0]])
+    return out
+
+
+def uniform(t, mesh: Mesh) -> np.ndarray:
+    """A uniform nodal field ``t`` (3,) over ``mesh``: shape (3, nz, ny, nx)."""
+    return np.asarray(t, dtype=np.float64)[:, None, None, None] * np.ones((3,) + mesh.nodes_shape)
+
+
+def run_one(runner, fn, args):
+    """Run one task on the runner and return its result."""
+    return next(iter(runner.map_unordered(fn, [args])))
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("chunkdic")
+    except PackageNotFoundError:
+        return "unknown"

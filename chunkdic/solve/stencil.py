@@ -1,0 +1,166 @@
+"""Primitives of the stencil CG: the half-stencil matrix-vector product, block-Jacobi, vector kernels.
+
+Shared by the CG of :mod:`chunkdic.solve.cg` and the V-cycle of
+:mod:`chunkdic.solve.multigrid`, which both build on them (and neither on the other's
+internals). Numba kernels, serial and ``nogil`` as every kernel of the package.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from ..mesh import STENCIL_OFFSETS
+from .regularization import add_weighted
+
+#: index of the node itself in the 27-point stencil
+CENTRE = 13
+#: the stored half of the stencil: entries 13 (the node) to 26; entry ``26 - k`` of the
+#: neighbour ``n + off_k`` is the transpose of entry ``k`` of node ``n``
+HALF_OFFSETS = STENCIL_OFFSETS[CENTRE:]
+
+
+def half_stencil(full: np.ndarray) -> np.ndarray:
+    """The stored half ``S[..., 13:, :, :]`` of a full (…, 27, 3, 3) stencil (a view)."""
+    return full[..., CENTRE:, :, :]
+
+
+@numba.njit(nogil=True, cache=True)
+def half_matvec(H, x, y):
+    """y = M x from the half stencil H (nz, ny, nx, 14, 3, 3)."""
+    nz, ny, nx = x.shape[:3]
+    y[:] = 0.0
+    for z in range(nz):
+        for yy in range(ny):
+            for xx in range(nx):
+                s = H[z, yy, xx, 0]
+                c0, c1, c2 = x[z, yy, xx, 0], x[z, yy, xx, 1], x[z, yy, xx, 2]
+                y[z, yy, xx, 0] += s[0, 0] * c0 + s[0, 1] * c1 + s[0, 2] * c2
+                y[z, yy, xx, 1] += s[1, 0] * c0 + s[1, 1] * c1 + s[1, 2] * c2
+                y[z, yy, xx, 2] += s[2, 0] * c0 + s[2, 1] * c1 + s[2, 2] * c2
+                for h in range(1, 14):
+                    k = h + 13
+                    z2 = z + k // 9 - 1
+                    y2 = yy + (k // 3) % 3 - 1
+                    x2 = xx + k % 3 - 1
+                    if z2 < 0 or z2 >= nz or y2 < 0 or y2 >= ny or x2 < 0 or x2 >= nx:
+                        continue
+                    s = H[z, yy, xx, h]
+                    v0, v1, v2 = x[z2, y2, x2, 0], x[z2, y2, x2, 1], x[z2, y2, x2, 2]
+                    y[z, yy, xx, 0] += s[0, 0] * v0 + s[0, 1] * v1 + s[0, 2] * v2
+                    y[z, yy, xx, 1] += s[1, 0] * v0 + s[1, 1] * v1 + s[1, 2] * v2
+                    y[z, yy, xx, 2] += s[2, 0] * v0 + s[2, 1] * v1 + s[2, 2] * v2
+                    # the transposed entry of the neighbour
+                    y[z2, y2, x2, 0] += s[0, 0] * c0 + s[1, 0] * c1 + s[2, 0] * c2
+                    y[z2, y2, x2, 1] += s[0, 1] * c0 + s[1, 1] * c1 + s[2, 1] * c2
+                    y[z2, y2, x2, 2] += s[0, 2] * c0 + s[1, 2] * c1 + s[2, 2] * c2
+
+
+def stencil_matvec(H: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """``y = M x`` for the half stencil ``H`` (nz, ny, nx, 14, 3, 3) and ``x`` (nz, ny, nx, 3)."""
+    y = np.empty(x.shape, dtype=np.float64)
+    half_matvec(H, np.ascontiguousarray(x, dtype=np.float64), y)
+    return y
+
+
+def rigid_restriction(H: np.ndarray) -> np.ndarray:
+    """``Σ_ij M_ij`` (3, 3): ``M`` restricted to uniform translations (``Σ_a N_a = 1``)."""
+    centre = H[..., 0, :, :].sum(axis=(0, 1, 2), dtype=np.float64)
+    off = H[..., 1:, :, :].sum(axis=(0, 1, 2, 3), dtype=np.float64)
+    return centre + off + off.T
+
+
+@numba.njit(nogil=True, cache=True)
+def block_jacobi(Binv, r, z):
+    nz, ny, nx = r.shape[:3]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for a in range(3):
+                    z[i, j, k, a] = (Binv[i, j, k, a, 0] * r[i, j, k, 0] + Binv[i, j, k, a, 1] * r[i, j, k, 1]
+                                     + Binv[i, j, k, a, 2] * r[i, j, k, 2])
+
+
+@numba.njit(nogil=True, cache=True)
+def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
+    """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
+
+    Written out (rather than scipy's ``cg``) so that its vector operations are plain
+    loops: on a busy machine, multithreaded BLAS calls on these small vectors cost more
+    than the whole stencil product. The vector operations run on flat views through
+    :func:`dot` and :func:`axpy`: written as 4-D array expressions they took numba 41 s
+    to compile (the first run's largest single wait), as flat loops under a second.
+    """
+    r = b.copy()  # x starts at zero
+    z = np.empty_like(b)
+    q = np.empty_like(b)
+    rf, zf, qf, xf = r.reshape(-1), z.reshape(-1), q.reshape(-1), x.reshape(-1)
+    block_jacobi(Binv, r, z)
+    p = z.copy()
+    pf = p.reshape(-1)
+    rz = dot(rf, zf)
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    if bnorm == 0.0:
+        return 0
+    for it in range(1, maxiter + 1):
+        half_matvec(H, p, q)
+        if code != 0:
+            add_weighted(code, Ke, Kf, sw, lam, p, q)
+        alpha = rz / dot(pf, qf)
+        axpy(alpha, pf, xf)
+        axpy(-alpha, qf, rf)
+        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
+            return it
+        block_jacobi(Binv, r, z)
+        rz_new = dot(rf, zf)
+        beta = rz_new / rz
+        for k in range(pf.size):  # p = z + β p
+            pf[k] = zf[k] + beta * pf[k]
+        rz = rz_new
+    return -1
+
+
+def pcg(matvec, precondition, b, x, rtol, maxiter) -> int:
+    """:func:`pcg_block_jacobi` with any symmetric positive definite preconditioner ``precondition(r) -> z``.
+
+    Written in Python around the numba vector kernels: with a V-cycle per iteration, a few
+    tens of iterations, the interpreter's share is negligible.
+    """
+    r = b.copy()
+    rf, xf = r.reshape(-1), x.reshape(-1)
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    if bnorm == 0.0:
+        return 0
+    z = precondition(r)
+    p = z.copy()
+    pf = p.reshape(-1)
+    rz = dot(rf, z.reshape(-1))
+    for it in range(1, maxiter + 1):
+        q = matvec(p)
+        alpha = rz / dot(pf, q.reshape(-1))
+        axpy(alpha, pf, xf)
+        axpy(-alpha, q.reshape(-1), rf)
+        if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
+            return it
+        z = precondition(r)
+        rz_new = dot(rf, z.reshape(-1))
+        beta = rz_new / rz
+        p *= beta
+        p += z
+        rz = rz_new
+    return -1
+
+
+@numba.njit(nogil=True, cache=True)
+def dot(a, b):
+    s = 0.0
+    for k in range(a.size):
+        s += a[k] * b[k]
+    return s
+
+
+@numba.njit(nogil=True, cache=True)
+def axpy(alpha, a, y):
+    """``y += alpha * a`` (flat arrays)."""
+    for k in range(a.size):
+        y[k] += alpha * a[k]
