@@ -1,6 +1,6 @@
 """CT-like test pairs written once per test session, and their correlations run once.
 
-Shared by ``test_real_ct.py`` (issue 10) and ``test_regularization.py`` (issue 11): a
+Shared by ``tests/engine/test_real_ct.py`` (issue 10) and ``tests/solve/test_regularization.py`` (issue 11): a
 correlation asked for by several tests (the same pair, element size and settings) runs
 once. Pairs are the standard cases of :func:`chunkdic.synth.synthetic.standard_case` (CT-like
 ``grains`` / ``concrete`` specimens, uint16, reconstruction noise 0.02 of the phase

@@ -13,6 +13,9 @@ from urllib.parse import urlparse
 import numpy as np
 import pytest
 
+# end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
+pytestmark = pytest.mark.slow
+
 WORKFLOWS = Path(__file__).resolve().parents[1] / "workflows"
 
 

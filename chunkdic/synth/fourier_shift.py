@@ -11,7 +11,7 @@ factor per axis; so the shift of a whole volume equals three successive 1-D shif
 axis. Each pass reads *pencils* (whole lines along the pass axis, a tile of the other two
 axes), shifts every line with a 1-D FFT and writes the pencil back, tile by tile, into a
 Zarr array in the output directory (each task owns whole chunks). Memory per task is one
-pencil; the result is exact to float32 round-off (``tests/test_metrology.py``: a product
+pencil; the result is exact to float32 round-off (``tests/analysis/test_metrology.py``: a product
 of DCT-II modes, which this shift moves exactly, within 5e-7 of its mean), with no halo
 to tune. This is preferred over block-wise FFTs with overlapping apodised halos, whose error
 only decays with the halo width, and over ``dask.array.fft`` after a rechunk to whole

@@ -19,6 +19,9 @@ import chunkdic
 from chunkdic.synth import synthetic
 from chunkdic.cli.app import main
 
+# end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
+pytestmark = pytest.mark.slow
+
 N, ELL = 48, 8
 OPTIONS = dict(element_size=ELL, regularization="none")  # no automatic length choice: fast, same objective
 C = (N - 1) / 2

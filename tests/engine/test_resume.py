@@ -16,6 +16,9 @@ from chunkdic.synth import foam
 from chunkdic.synth import synthetic
 from chunkdic.cli.app import main
 
+# end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def pair(tmp_path_factory):

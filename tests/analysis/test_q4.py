@@ -57,7 +57,7 @@ def shifted():
 
 @pytest.mark.parametrize("ell, std_bound", [(16, 0.01), (8, 0.03)])
 def test_fourier_subpixel_translation(shifted, ell, std_bound):
-    """The 3-D engine's bounds (tests/test_engine.py: bias < 0.005, std 0.01 / 0.03)."""
+    """The 3-D engine's bounds (tests/engine/test_engine.py: bias < 0.005, std 0.01 / 0.03)."""
     f, g = shifted
     res = correlate2d(f, g, element_size=ell)
     assert res.converged

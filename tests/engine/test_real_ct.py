@@ -24,6 +24,9 @@ from chunkdic.cli.app import main
 
 from textures import smooth_noise
 
+# end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
+pytestmark = pytest.mark.slow
+
 SHIFT_SIZE = 80
 BAND_SIZE = 96
 

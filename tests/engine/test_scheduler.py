@@ -9,8 +9,12 @@ import weakref
 from urllib.parse import urlparse
 
 import numpy as np
+import pytest
 
 from chunkdic.scheduler import ThreadRunner, open_runner
+
+# end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
+pytestmark = pytest.mark.slow
 
 
 def test_local_cluster_listens_on_loopback_only():

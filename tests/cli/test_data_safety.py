@@ -33,6 +33,9 @@ from chunkdic.synth import synthetic
 from chunkdic.cli.app import main
 from chunkdic.io.integrity import MissingChunksWarning
 
+# end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
+pytestmark = pytest.mark.slow
+
 N = 32
 T = (0.6, -0.4, 0.3)
 
