@@ -181,7 +181,9 @@ def add_engine_options(p, **helps) -> None:
         default="tikhonov", help="penalty on the field's short wavelengths (default tikhonov, on its curvature)")
     add("--regularization-length", dest="regularization_length", type=float, default=None, metavar="L",
         help="its length, voxels of level 0 (default: chosen from the data and printed)")
-    add("--mask", dest="mask", default=None, help="specimen mask of the reference's shape (non-zero = material)")
+    add("--mask", dest="mask", default=None,
+        help="specimen mask of the reference's shape (non-zero = material): Zarr, .npy, TIFF file or folder "
+             "of TIFF slices, HDF5 (file.h5[:/dataset])")
     add("--tolerance", dest="tolerance", type=float, default=1e-3, help="max |da| for convergence, voxels")
     add("--max-iterations", dest="max_iterations", type=int, default=30,
         help="Gauss-Newton iterations per level at most")
@@ -190,9 +192,18 @@ def add_engine_options(p, **helps) -> None:
     add("--scheduler", dest="scheduler", default=None, help=SCHEDULER_HELP)
 
 
+def _mask(src):
+    """``--mask``: a path ``open_scan`` reads as is, or a TIFF / HDF5 mask opened in place."""
+    if src is None:
+        return None
+    from ..io.formats.anyscan import is_foreign, open_any
+
+    return open_any(src) if is_foreign(src) else src
+
+
 def engine_options(args) -> dict:
     """The keyword arguments of :func:`chunkdic.correlate` from :func:`add_engine_options`' options."""
     return dict(level=args.level, coarsest=args.coarsest, interpolation=args.interpolation,
                 smoothing=args.smoothing, grey=args.grey_level, regularization=args.regularization,
-                regularization_length=args.regularization_length, mask=args.mask, tolerance=args.tolerance,
+                regularization_length=args.regularization_length, mask=_mask(args.mask), tolerance=args.tolerance,
                 max_iterations=args.max_iterations, block_elements=args.block_elements, scheduler=args.scheduler)
