@@ -30,9 +30,9 @@ itself can resolve on one slice, so the bound is ``max(0.02, K_NOISE × floor)``
 *noise floor* is the 2-D correlation's own predicted standard uncertainty on that cut
 (:func:`noise_floor`): the a-priori estimate ``κ σ_r² M⁻¹`` of global DIC with the 2-D
 ``M`` of the cut and the residual noise ``σ_r`` and correlation factor ``κ`` the 3-D run
-measured (``Result.info["noise"]``). A result is then "consistent with noise" when mean and
-std are within ``K_NOISE`` floors (or 0.02 pixel) and the correlation length is below one
-element. Results without a noise estimate keep the paper's 0.02 pixel.
+measured (``Result.info["noise"]``). A result is then "consistent with noise" when its std is
+within ``K_NOISE`` floors, its mean within ``K_MEAN`` predicted uncertainties of the mean
+(each bound at least 0.02 pixel) and the correlation length is below one element. Results without a noise estimate keep the paper's 0.02 pixel.
 
 Masked results: pixels where the corrected image is not defined (outside the specimen
 mask, NaN) are left out of the 2-D correlation (the reference cut is set to NaN there),
@@ -62,8 +62,10 @@ __all__ = ["Cut", "cutcheck", "correlation_length", "plot_cutcheck", "noise_floo
 
 #: the paper's bound on the cut-check displacement, pixels (section 5.3)
 THRESHOLD = 0.02
-#: a cut is consistent with noise when its mean and std are within this many noise floors
+#: a cut is consistent with noise when its std is within this many noise floors
 K_NOISE = 2.0
+#: ... and its mean within this many predicted uncertainties of the mean
+K_MEAN = 3.0
 #: random draws of the noise-floor estimate
 _FLOOR_DRAWS = 16
 
@@ -101,6 +103,10 @@ class Cut:
         ``max(THRESHOLD, K_NOISE * floor)``, pixels.
     nodes : int
         2-D nodes the figures run over (those of Q4 elements at least half defined).
+    floor_mean : float
+        Predicted standard uncertainty of the mean vector (:func:`noise_floor`), pixels.
+    bound_mean : float
+        ``max(THRESHOLD, K_MEAN * floor_mean)``: the bound on ``mean``, pixels.
     """
 
     axis: str
@@ -116,6 +122,8 @@ class Cut:
     floor: float = math.nan
     bound: float = THRESHOLD
     nodes: int = 0
+    floor_mean: float = math.nan
+    bound_mean: float = THRESHOLD
 
     def as_dict(self) -> dict:
         d = asdict(self)
@@ -208,15 +216,20 @@ def noise_floor(prepared: np.ndarray, corrected: np.ndarray, element_size: int, 
 
     Returns
     -------
-    float
+    floor : float
         ``sqrt(mean of κ^(2/3) σ_r² diag(M⁻¹))`` over ``nodes`` and both components
-        (exact diagonal up to 4000 unknowns, else a 32-probe Hutchinson estimate).
+        (exact diagonal up to 4000 unknowns, else a 32-probe Hutchinson estimate): the
+        standard deviation a field of noise alone has.
+    floor_mean : float
+        The predicted standard uncertainty of the mean 2-D vector over ``nodes`` (both
+        components, ``κ^(2/3) σ_r² 1ᵀ M⁻¹ 1 / n²``): far below ``floor``, it is what makes an
+        error with a mean (an offset, a bump) visible through the noise.
     """
     from .q4 import _Level
     from .q4mesh import plan2d
 
     if not (math.isfinite(sigma_r) and math.isfinite(kappa)):
-        return math.nan
+        return math.nan, math.nan
     f = np.asarray(prepared, np.float64)
     g = np.asarray(corrected, np.float64)
     f = np.where(np.isfinite(g), f, np.nan)
@@ -231,7 +244,14 @@ def noise_floor(prepared: np.ndarray, corrected: np.ndarray, element_size: int, 
         rng = np.random.default_rng(seed)
         z = np.where(pick[:, None], rng.choice([-1.0, 1.0], size=(2 * n, 32)), 0.0)
         mean_var = float(np.mean([zi @ lvl.solve(zi) for zi in z.T])) / pick.sum()
-    return float(math.sqrt(kappa ** (2.0 / 3.0) * sigma_r**2 * mean_var))
+    k2 = kappa ** (2.0 / 3.0) * sigma_r**2
+    # the mean over the nodes, per component: Var = k2 1ᵀ M⁻¹ 1 / |P|² (one solve each)
+    var_mean = 0.0
+    for c in range(2):
+        one = np.zeros(2 * n)
+        one[c * n:(c + 1) * n] = pick[c * n:(c + 1) * n]
+        var_mean += float(one @ lvl.solve(one)) / max(float(one.sum()), 1.0) ** 2
+    return float(math.sqrt(k2 * mean_var)), float(math.sqrt(k2 * var_mean))
 
 
 def check_cut(prepared: np.ndarray, corrected: np.ndarray, element_size: int, normal: int, index: int,
@@ -255,11 +275,13 @@ def check_cut(prepared: np.ndarray, corrected: np.ndarray, element_size: int, no
     corrected = np.asarray(corrected, np.float64)
     defined = np.isfinite(corrected) & np.isfinite(prepared)
     prepared = np.where(defined, prepared, np.nan)  # outside a specimen mask: left out
-    floor = math.nan
+    floor = floor_mean = math.nan
     if noise is not None:
         mesh = plan2d(prepared.shape, int(element_size), None, 0)[0]
-        floor = noise_floor(prepared, corrected, element_size, *noise, nodes=measured_nodes(defined, mesh))
+        floor, floor_mean = noise_floor(prepared, corrected, element_size, *noise,
+                                        nodes=measured_nodes(defined, mesh))
     bound = max(THRESHOLD, K_NOISE * floor) if math.isfinite(floor) else THRESHOLD
+    bound_mean = max(THRESHOLD, K_MEAN * floor_mean) if math.isfinite(floor_mean) else THRESHOLD
     # solved to 5 % of the bound that judges it (the default 1e-3 pixel when the bound is the paper's)
     res = correlate2d(prepared, corrected, element_size=element_size, tolerance=max(1e-3, 0.05 * bound))
     nodes = measured_nodes(defined, res.mesh)
@@ -267,9 +289,9 @@ def check_cut(prepared: np.ndarray, corrected: np.ndarray, element_size: int, no
     comps = tuple(AXES[a] for a in range(3) if a != normal)
     u = res.displacement - (res.displacement[:, nodes].mean(axis=1)[:, None, None] if nodes.any() else 0.0)
     length = correlation_length(np.where(nodes[None], u, 0.0), element_size)
-    passed = res.converged and mean < bound and std < bound and length < element_size
+    passed = res.converged and mean < bound_mean and std < bound and length < element_size
     cut = Cut(AXES[normal], int(index), mean, std, mx, length, res.status, float(res.gap), comps, bool(passed),
-              floor, bound, int(nodes.sum()))
+              floor, bound, int(nodes.sum()), floor_mean, bound_mean)
     res.measured = nodes  # for the figure
     return cut, res
 
@@ -340,7 +362,7 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
                 fields.append(q)
                 say(f"cut normal to {c.axis} at {c.axis} = {idx}: mean {c.mean:.4f}, std {c.std:.4f}, "
                     f"max {c.max:.4f} pixel, correlation length {c.correlation_length:.1f} pixel, noise floor "
-                    f"{c.floor:.4f} pixel ({c.status})")
+                    f"{c.floor:.4f} pixel (of the mean {c.floor_mean:.4f}) ({c.status})")
         if out is not None:
             figure_path = plot_cutcheck(res, cuts, fields, out / f"cutcheck.{fmt}", dpi=dpi)
             (out / "cutcheck.json").write_text(json.dumps([c.as_dict() for c in cuts], indent=2) + "\n")
@@ -377,7 +399,8 @@ def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path,
         im = ax.imshow(m, origin="lower", extent=extent, cmap="magma", vmin=0.0, vmax=vmax, interpolation="nearest")
         ax.quiver(*np.meshgrid(xs, ys), q.displacement[1], q.displacement[0], color="c", angles="xy")
         ax.set_title(f"normal to {c.axis}, {c.axis} = {c.index}\nmean {c.mean:.4f}, std {c.std:.4f}, max {c.max:.4f} px;"
-                     f" corr. length {c.correlation_length:.1f} px\nnoise floor {c.floor:.4f} px, bound {c.bound:.4f} px",
+                     f" corr. length {c.correlation_length:.1f} px\nbounds: std {c.bound:.4f}, mean {c.bound_mean:.4f} px "
+                     f"(noise floor {c.floor:.4f} px)",
                      fontsize=9)
         ax.set_xlabel(f"{c.components[1]} ({lab})")
         ax.set_ylabel(f"{c.components[0]} ({lab})")
