@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from chunkdic.synth.fields import Affine
+from chunkdic.synth.foam import render
+
 
 def smooth_noise(shape, *, sigma: float = 1.5, seed: int = 0) -> np.ndarray:
     """Periodic Gaussian-filtered white noise (filtered in Fourier space), float64.
@@ -25,3 +28,27 @@ def fourier_shift(volume: np.ndarray, t) -> np.ndarray:
     freqs = np.meshgrid(*[np.fft.fftfreq(n) for n in volume.shape], indexing="ij", sparse=True)
     phase = sum(f * ti for f, ti in zip(freqs, t))
     return np.fft.ifftn(np.fft.fftn(volume) * np.exp(-2j * np.pi * phase)).real
+
+
+def cylinder_pair(n=64, radius=24.0):
+    """Foam cylinder (axis z) in air, -2 % axial / +0.6 % lateral strain, partial-volume edges.
+
+    The edge is a one-voxel linear ramp of the material weight, evaluated at ``X`` in the
+    reference and at the undeformed position ``field.inverse(x)`` in the deformed scan, so
+    the edge moves with the material (a binary edge would jump by whole voxels).
+    """
+    field = Affine(matrix=((-0.02, 0, 0), (0, 0.006, 0), (0, 0, 0.006)), center=(n / 2,) * 3)
+    f0 = render((n,) * 3, seed=3, cell_size=5.0)
+    g0 = render((n,) * 3, seed=3, cell_size=5.0, field=field, which="deformed")
+    Z, Y, X = np.indices((n,) * 3).astype(float)
+    c = (n - 1) / 2
+
+    def weight(y, x):
+        return np.clip(radius + 0.5 - np.hypot(y - c, x - c), 0.0, 1.0)
+
+    back = field.inverse(Z, Y, X)
+    wf, wg = weight(Y, X), weight(back[1], back[2])
+    air = 0.05
+    f = (wf * f0 + (1 - wf) * air).astype(np.float32)
+    g = (wg * g0 + (1 - wg) * air).astype(np.float32)
+    return f, g, wf, field

@@ -145,10 +145,13 @@ class _Level:
         self.phi = phi
         self.L = sp.hstack([sp.diags(fy) @ phi, sp.diags(fx) @ phi], format="csr")
         M = (self.L.T @ self.L).tocsc()
-        # a small ridge keeps a node without texture (M nearly singular) finite
-        ridge = 1e-9 * max(float(M.diagonal().mean()), 1e-30)
+        # a small ridge keeps a node without texture (M nearly singular) finite; a node with
+        # almost no pixels (< 1 % of the mean diagonal: a corner of a specimen mask's cut) is
+        # held where it is, so that it cannot keep the iterations from converging
+        mean_diag = max(float(M.diagonal().mean()), 1e-30)
+        ridge = 1e-9 * mean_diag + np.where(M.diagonal() < 0.01 * mean_diag, mean_diag, 0.0)
         self.M = M
-        self.solve = spla.factorized((M + ridge * sp.identity(M.shape[0], format="csc")).tocsc())
+        self.solve = spla.factorized((M + sp.diags(ridge)).tocsc())
         n = phi.shape[1]
         blocks = [[M[i * n:(i + 1) * n, j * n:(j + 1) * n].sum() for j in range(2)] for i in range(2)]
         self.rigid = np.array(blocks)  # Σ_a N_a = 1: the rigid 2×2 system is the sum of M's blocks

@@ -175,7 +175,8 @@ def add_engine_options(p, **helps) -> None:
             kw["metavar"] = meta["metavar"]
         p.add_argument(flag, dest=name, default=meta["default"], help=helps.get(name, meta["help"]), **kw)
     p.add_argument("--mask", dest="mask", default=None,
-                   help="specimen mask of the reference's shape (non-zero = material)")
+                   help="specimen mask of the reference's shape (non-zero = material): Zarr, .npy, TIFF file or "
+                        "folder of TIFF slices, HDF5 (file.h5[:/dataset])")
     p.add_argument("--scheduler", dest="scheduler", default=None, help=helps.get("scheduler", SCHEDULER_HELP))
 
 

@@ -42,6 +42,7 @@ def register(subparsers) -> None:
                     "tr(eps), eps_zz and principal strains.")
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--all-elements", action="store_true", help="keep the outermost layer in the mean")
+    add_strain_option(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=run_strain)
 
@@ -172,6 +173,44 @@ def _fmt_tensor(t) -> str:
     return "\n".join(rows)
 
 
+_MEASURE_NAMES = {"small": "small", "green-lagrange": "Green-Lagrange"}
+
+
+def add_strain_option(p) -> None:
+    """``--strain {small,green-lagrange}`` (default Green-Lagrange: a rigid rotation gives no strain)."""
+    from ..results.strain import DEFAULT_MEASURE, MEASURES
+
+    p.add_argument("--strain", dest="strain", choices=MEASURES, default=DEFAULT_MEASURE,
+                   help="strain measure: green-lagrange (default; zero for a rigid rotation) or small "
+                        "(the paper's; a rotation of t degrees shows as a strain of about -t^2/2 rad)")
+
+
+def rotation_warning(summary) -> str | None:
+    """The line that says a small strain cannot take the rotations present (None when it can)."""
+    from ..results.strain import ROTATION_WARNING
+
+    if summary.measure == "small" and summary.max_rotation > ROTATION_WARNING:
+        return (f"elements rotate by up to {summary.max_rotation:.2f} deg (> {ROTATION_WARNING:g}): small strain "
+                f"counts that rotation as strain; use --strain green-lagrange")
+    return None
+
+
+def _correction_lines(summary, factors: str) -> list[str]:
+    """The (1 - 2 ell / L) line when its assumption holds, else why it is not shown."""
+    if summary.correction_applies:
+        return [f"corrected by (1 - 2 ell / L) per axis ({factors}) (paper 5.4; assumes the strain is localised "
+                "inside, the outer layer unstrained):",
+                f"  tr(eps) = {summary.volume_change_corrected:+.5f}   eps_zz = {summary.eps_zz_corrected:+.5f}"]
+    if not any(summary.excluded):
+        return []
+    if summary.measure != "small":
+        return ["(the (1 - 2 ell / L) correction of paper 5.4 is a small-strain one: --strain small shows it "
+                "when it applies)"]
+    return [f"(the (1 - 2 ell / L) correction of paper 5.4 is not shown: it assumes an unstrained outer layer, "
+            f"whose mean eps_zz here is {summary.outer[0, 0]:+.5f}: the strain is not localised, and the mean "
+            "above is the estimate)"]
+
+
 def format_strain(summary, result) -> str:
     """Text block printed by ``chunkdic strain``."""
     ell = result.info["element_size"]
@@ -185,13 +224,13 @@ def format_strain(summary, result) -> str:
     return "\n".join([
         f"{result.path}: {'x'.join(map(str, n))} elements of ell = {ell} voxels{size} "
         f"(level {result.info.get('level', 0)})",
-        f"mean strain over {used} elements ({excl}), axes (z, y, x):",
+        f"{_MEASURE_NAMES[summary.measure]} strain, mean over {used} elements ({excl}), axes (z, y, x); "
+        f"largest element rotation {summary.max_rotation:.2f} deg:",
         _fmt_tensor(summary.mean),
         f"  tr(eps) = {summary.volume_change:+.5f}   eps_zz = {summary.eps_zz:+.5f}",
         f"  principal strains: {', '.join(f'{v:+.5f}' for v in summary.principal)}   "
         f"max |principal| = {summary.delta_eps:.5f}",
-        f"corrected by (1 - 2 ell / L) per axis ({f}) (paper 5.4):",
-        f"  tr(eps) = {summary.volume_change_corrected:+.5f}   eps_zz = {summary.eps_zz_corrected:+.5f}",
+        *_correction_lines(summary, f),
         f"mean over all {'x'.join(map(str, n))} elements: tr(eps) = {np.trace(summary.mean_all):+.5f}   "
         f"eps_zz = {summary.mean_all[0, 0]:+.5f}",
     ])
@@ -206,7 +245,10 @@ def run_strain(args: argparse.Namespace) -> int:
 
     res = open_result(args.result)
     res.check_displacement()
-    s = strain_summary(res, exclude_outer=not args.all_elements)  # a mask's active elements only
+    s = strain_summary(res, exclude_outer=not args.all_elements, measure=args.strain)  # a mask's active elements only
+    warning = rotation_warning(s)
+    if warning:
+        say(f"warning: {warning}")
     if args.json:
         out = {"result": res.path, "element_size": res.info["element_size"], **s.as_dict()}
         length = res.voxel_length()

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.formats.anyscan import is_foreign
 from ..io.integrity import content_identity
 
 
@@ -122,6 +123,14 @@ def identify_input(src, scan) -> dict:
     identity of every stored level (:func:`chunkdic.io.integrity.content_identity`: chunk
     list, sizes, times and a fixed sample of chunk bytes, never the scan). In-memory
     inputs never match (no resume)."""
+    if isinstance(src, (str, Path)) and is_foreign(src):
+        # a TIFF or HDF5 file read in place (a mask, chunkdic.io.formats.open_any): its files'
+        # sizes and modification times
+        p = Path(scan.path)
+        files = sorted(p.iterdir()) if p.is_dir() else [p]
+        stat = [(f.name, f.stat().st_size, f.stat().st_mtime_ns) for f in files if f.is_file()]
+        return {"path": str(p.resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0)),
+                "content": {"files": stat}}
     if isinstance(src, (str, Path)):
         content = {str(s): content_identity(r.kind, r.path, r.key) for s, r in sorted(scan.stored_refs().items())}
         return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0)),

@@ -20,6 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ..errors import InputError
+from ..io.formats.anyscan import open_any
 from ..io.outputs import Outputs
 from ..io.ownership import OutputLock, make_scratch
 from ..io.scan import open_scan
@@ -123,7 +124,7 @@ def correlate(
     for s in levels:
         if min(g_scan.shape(s)) < 2:
             raise InputError(f"the deformed scan is too small at level {s} ({g_scan.shape(s)})")
-    mask_scan = None if mask is None else open_scan(mask)
+    mask_scan = None if mask is None else open_any(mask)  # also a TIFF or HDF5 mask, read in place
     if mask_scan is not None:
         check_mask_shape(mask_scan, f_scan.shape(0))
     plan = entry = None
@@ -160,7 +161,7 @@ def correlate(
                 # inside the runner: with a cluster, missing levels are built by its workers
                 f_refs = f_scan.refs(levels, scratch / "ref", runner=runner)
                 g_refs = g_scan.refs(levels, scratch / "def", runner=runner)
-                mask_refs = None if mask is None else prepare_mask(mask, f_scan.shape(0), levels, scratch / "mask",
+                mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), levels, scratch / "mask",
                                                                     runner)
                 _compile_kernels(runner, progress)
                 ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,

@@ -1,4 +1,4 @@
-"""Small strains of a C8 displacement field: per element, mean over the ROI, principal values.
+"""Strains of a C8 displacement field: per element, mean over the ROI, principal values, rotation.
 
 The C8 field is trilinear in each element, so its gradient is bilinear there; at the
 element centre it is the average of the four edge differences along each axis
@@ -14,6 +14,16 @@ Layout of strain arrays (one choice, everywhere in chunkdic):
   6 components, so that ``eps[0, 0]`` is ``eps_zz`` and ``eps[2, 1]`` is ``eps_xy``).
 
 Strains are dimensionless: displacements and element size are in voxels of the same level.
+
+Measures (:data:`MEASURES`): ``"small"``, the paper's ``(H + Hᵀ) / 2``, which a rigid
+rotation by ``θ`` turns into a false strain of about ``-θ²/2`` (−0.0038 at 5°); and
+``"green-lagrange"``, ``E = (H + Hᵀ + HᵀH) / 2 = (FᵀF − I) / 2`` with ``F = I + H``, zero for
+any rigid rotation, equal to the small strain to first order. :data:`DEFAULT_MEASURE` is
+Green–Lagrange, so that a rotated specimen shows no strain (what DVC users expect of
+VIC-3D or spam); ``"small"`` stays one option away. The rotation of an element is that of
+the polar decomposition ``F = R U`` (:func:`rotation_angle`); above
+:data:`ROTATION_WARNING` degrees the small strain is no longer trustworthy and the
+commands say so.
 
 References
 ----------
@@ -31,6 +41,11 @@ import numpy as np
 from ..errors import InputError
 
 __all__ = [
+    "MEASURES",
+    "DEFAULT_MEASURE",
+    "ROTATION_WARNING",
+    "green_lagrange",
+    "rotation_angle",
     "displacement_gradient",
     "element_strain",
     "principal_strains",
@@ -38,6 +53,67 @@ __all__ = [
     "StrainSummary",
     "strain_summary",
 ]
+
+
+#: strain measures, by name
+MEASURES = ("small", "green-lagrange")
+#: the measure of every command and of :func:`strain_summary` unless told otherwise
+DEFAULT_MEASURE = "green-lagrange"
+#: rotation (degrees) above which small strain is not trustworthy
+ROTATION_WARNING = 1.0
+
+
+def check_measure(measure: str) -> str:
+    if measure not in MEASURES:
+        raise InputError(f"strain measure must be one of {', '.join(MEASURES)}, got {measure!r}")
+    return measure
+
+
+def green_lagrange(H: np.ndarray) -> np.ndarray:
+    """Green–Lagrange strain ``E = (H + Hᵀ + HᵀH) / 2`` of displacement gradients.
+
+    Parameters
+    ----------
+    H : ndarray, shape (3, 3, ...), float64
+        ``H[i, j] = dU_i / dX_j`` (:func:`displacement_gradient`).
+
+    Returns
+    -------
+    ndarray, shape (3, 3, ...), float64, dimensionless
+
+    Examples
+    --------
+    >>> t = np.radians(10.0)
+    >>> R = np.array([[1, 0, 0], [0, np.cos(t), -np.sin(t)], [0, np.sin(t), np.cos(t)]])
+    >>> float(np.abs(green_lagrange(R - np.eye(3))).max()) < 1e-15
+    True
+    """
+    H = np.asarray(H, np.float64)
+    HtH = np.einsum("ki...,kj...->ij...", H, H)
+    return 0.5 * (H + H.swapaxes(0, 1) + HtH)
+
+
+def rotation_angle(H: np.ndarray) -> np.ndarray:
+    """Rotation angle of the polar decomposition ``F = R U`` (``F = I + H``), degrees.
+
+    Parameters
+    ----------
+    H : ndarray, shape (3, 3, ...), float64
+
+    Returns
+    -------
+    ndarray, shape (...), float64, degrees in [0, 180]; NaN where ``H`` has a NaN.
+    """
+    H = np.asarray(H, np.float64)
+    F = np.moveaxis(H, (0, 1), (-2, -1)) + np.eye(3)
+    finite = np.isfinite(F).all(axis=(-2, -1))
+    W, _, Vt = np.linalg.svd(np.where(finite[..., None, None], F, np.eye(3)))
+    R = W @ Vt
+    det = np.linalg.det(R)
+    W[..., :, 2] *= np.sign(det)[..., None]  # a proper rotation
+    R = W @ Vt
+    cos = np.clip((np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0, -1.0, 1.0)
+    return np.where(finite, np.degrees(np.arccos(cos)), np.nan)
 
 
 def _check_nodal(u: np.ndarray) -> np.ndarray:
@@ -88,8 +164,8 @@ def displacement_gradient(u: np.ndarray, element_size: float) -> np.ndarray:
     return H
 
 
-def element_strain(u: np.ndarray, element_size: float) -> np.ndarray:
-    """Small-strain tensor per element, at the element centres (paper section 5.4).
+def element_strain(u: np.ndarray, element_size: float, measure: str = "small") -> np.ndarray:
+    """Strain tensor per element, at the element centres (paper section 5.4).
 
     Parameters
     ----------
@@ -97,13 +173,17 @@ def element_strain(u: np.ndarray, element_size: float) -> np.ndarray:
         Nodal displacement.
     element_size : float
         Element edge ``ell``, voxels.
+    measure : {"small", "green-lagrange"}
+        Small strain (the paper's, default of this low-level function) or Green–Lagrange.
 
     Returns
     -------
     eps : ndarray, shape (3, 3, nz-1, ny-1, nx-1), float64, dimensionless
-        ``eps[i, j] = (dU_i/dX_j + dU_j/dX_i) / 2``, axes ``(z, y, x)``.
+        ``eps[i, j] = (dU_i/dX_j + dU_j/dX_i) / 2`` (small), axes ``(z, y, x)``.
     """
     H = displacement_gradient(u, element_size)
+    if check_measure(measure) == "green-lagrange":
+        return green_lagrange(H)
     return 0.5 * (H + H.swapaxes(0, 1))
 
 
@@ -118,13 +198,16 @@ def principal_strains(eps: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray, shape (3, ...), float64
-        Eigenvalues in decreasing order.
+        Eigenvalues in decreasing order; NaN for a tensor with a NaN entry.
     """
     eps = np.asarray(eps, dtype=np.float64)
     if eps.shape[:2] != (3, 3):
         raise InputError(f"strain tensors must have shape (3, 3, ...), got {eps.shape}")
     moved = np.moveaxis(eps, (0, 1), (-2, -1))
-    vals = np.linalg.eigvalsh(0.5 * (moved + np.swapaxes(moved, -1, -2)))[..., ::-1]
+    finite = np.isfinite(moved).all(axis=(-2, -1))  # NaN tensors (elements not measured) give NaN
+    sym = 0.5 * (moved + np.swapaxes(moved, -1, -2))
+    vals = np.linalg.eigvalsh(np.where(finite[..., None, None], sym, 0.0))[..., ::-1]
+    vals = np.where(finite[..., None], vals, np.nan)
     return np.moveaxis(vals, -1, 0)
 
 
@@ -171,6 +254,20 @@ class StrainSummary:
         Elements per axis that entered ``mean``.
     excluded : tuple of 3 bool
         Whether the outer layer was removed along ``(z, y, x)``.
+    measure : str
+        ``"small"`` or ``"green-lagrange"``.
+    max_rotation : float
+        Largest element rotation (polar decomposition) over the averaged elements, degrees.
+    correction_applies : bool
+        Whether the ``(1 - 2 ell / L)`` correction's assumption holds: the removed outer layer
+        carries little strain (its mean strain below half the inner mean's, norms of the
+        symmetric gradients), as around a localised band. False for a uniform strain, where
+        ``mean`` is already right and ``corrected`` is too small by ``factor``. Judged per
+        derivative axis ``j``: column ``j`` of the mean gradient over the two outer layers
+        normal to ``j`` against that of the inner elements.
+    outer : ndarray, shape (3, 3)
+        Column ``j``: the mean ``dU_i/dX_j`` over the two outer layers normal to ``j`` (NaN
+        where nothing was removed).
     """
 
     mean: np.ndarray
@@ -185,6 +282,10 @@ class StrainSummary:
     delta_eps: float
     elements: tuple[int, int, int]
     excluded: tuple[bool, bool, bool]
+    measure: str = "small"
+    max_rotation: float = 0.0
+    correction_applies: bool = True
+    outer: np.ndarray | None = None
 
     def as_dict(self) -> dict:
         """JSON-friendly dict (arrays as nested lists)."""
@@ -192,7 +293,7 @@ class StrainSummary:
 
 
 def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = True,
-                elements: np.ndarray | None = None) -> StrainSummary:
+                elements: np.ndarray | None = None, measure: str = "small") -> StrainSummary:
     """Mean strain of a C8 nodal field, with and without its outermost layer of elements.
 
     The mean of element strains equals the volume average of the strain, which only
@@ -211,6 +312,10 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
     elements : ndarray of bool, shape (nz-1, ny-1, nx-1), keyword-only, optional
         The elements to average (a specimen mask's active elements); elements with a NaN
         node (not measured) are always left out.
+    measure : {"small", "green-lagrange"}, keyword-only
+        Strain measure: small strain (the paper's; the mean of the element gradients,
+        symmetrised) or the mean of the element Green–Lagrange tensors. The ``(1 - 2 ell /
+        L)`` correction is a small-strain one: with Green–Lagrange ``corrected`` is NaN.
 
     Returns
     -------
@@ -242,10 +347,30 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
     if not use.any():
         raise InputError("no element to average the strain over: every element is masked out or has an "
                          "unmeasured (NaN) node")
-    H_all = _element_mean(H, use)
-    H_in = _element_mean(H[(slice(None), slice(None)) + inner], use[inner])
     factor = np.array([1.0 - 2.0 * ell / (k * ell) if e else 1.0 for k, e in zip(n, excluded)])
-    mean, mean_all, corrected = _sym(H_in), _sym(H_all), _sym(H_in * factor[None, :])
+    H_in = _element_mean(H[(slice(None), slice(None)) + inner], use[inner])
+    # the correction's assumption, per derivative axis j: the two outer layers normal to j
+    # carry little of dU/dX_j (column j of H) compared with the inner elements
+    H_out = np.full((3, 3), np.nan)
+    applies = bool(any(excluded) and np.isfinite(H_in).all())
+    big = max(float(np.linalg.norm(H_in[:, j])) for j in range(3)) if applies else 0.0
+    for j in range(3):
+        if not excluded[j]:
+            continue
+        layers = np.zeros(n, bool)
+        layers[tuple(slice(None) if a != j else [0, n[j] - 1] for a in range(3))] = True
+        H_out[:, j] = _element_mean(H, use & layers)[:, j]
+        inner_j = float(np.linalg.norm(H_in[:, j]))
+        if inner_j > 0.1 * big and not float(np.linalg.norm(H_out[:, j])) < 0.5 * inner_j:
+            applies = False
+    angles = rotation_angle(np.where(use, H, 0.0))
+    max_rotation = float(angles[use].max())
+    if check_measure(measure) == "green-lagrange":
+        E = green_lagrange(H)
+        mean, mean_all = _element_mean(E[(slice(None), slice(None)) + inner], use[inner]), _element_mean(E, use)
+        corrected = np.full((3, 3), np.nan)
+    else:
+        mean, mean_all, corrected = _sym(H_in), _sym(_element_mean(H, use)), _sym(H_in * factor[None, :])
     principal = principal_strains(mean) if np.isfinite(mean).all() else np.full(3, np.nan)
     return StrainSummary(
         mean=mean,
@@ -260,13 +385,18 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
         delta_eps=float(np.abs(principal).max()),
         elements=tuple(int(k - 2) if e else int(k) for k, e in zip(n, excluded)),
         excluded=excluded,
+        measure=measure,
+        max_rotation=max_rotation,
+        correction_applies=applies and any(excluded) and measure == "small",
+        outer=H_out,
     )
 
 
-def strain_summary(result, *, exclude_outer: bool = True) -> StrainSummary:
+def strain_summary(result, *, exclude_outer: bool = True, measure: str = DEFAULT_MEASURE) -> StrainSummary:
     """:func:`mean_strain` of a :class:`chunkdic.Result` (element size from its info; the
     active elements of its mask, if any): what every mean strain of a result uses, so that
-    elements a mask excludes never count."""
+    elements a mask excludes never count. ``measure``: Green–Lagrange by default
+    (:data:`DEFAULT_MEASURE`), ``"small"`` for the paper's small strain."""
     active = None if result.active is None else result.active > 0
     return mean_strain(result.displacement, result.info["element_size"], exclude_outer=exclude_outer,
-                       elements=active)
+                       elements=active, measure=measure)

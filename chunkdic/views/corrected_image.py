@@ -30,7 +30,7 @@ import numpy as np
 from .. import config
 from ..errors import InputError
 from ..io.outputs import Outputs
-from .correction import Correction, correct_block, element_slice
+from .correction import Correction, active_slice, correct_block, element_slice
 from ..mesh import Block, Mesh
 from ..results.result import Result
 from ..results.scans import as_result, input_paths, input_scans, interpolation_of, level_refs
@@ -62,7 +62,8 @@ def chunk_block(mesh: Mesh, region) -> Block | None:
     return Block(tuple(elements))
 
 
-def corrected_task(c: Correction, region, block: Block, u_block: np.ndarray, brightness, out_path: str):
+def corrected_task(c: Correction, region, block: Block, u_block: np.ndarray, brightness, out_path: str,
+                   active=None):
     """Task: the corrected image and the residual over one chunk, written to that chunk.
 
     Parameters
@@ -76,6 +77,8 @@ def corrected_task(c: Correction, region, block: Block, u_block: np.ndarray, bri
     brightness : ndarray, shape (2, ez, ey, ex), or None
     out_path : str
         The image group (its level-0 array ``"0"``, shape ``(2, nz, ny, nx)``).
+    active : ndarray, shape (ez, ey, ex), or None
+        The block's elements that took part (a specimen mask): NaN and not counted elsewhere.
 
     Returns
     -------
@@ -85,7 +88,7 @@ def corrected_task(c: Correction, region, block: Block, u_block: np.ndarray, bri
     """
     import zarr
 
-    f, corrected, valid = correct_block(c, block, u_block, brightness)
+    f, corrected, valid = correct_block(c, block, u_block, brightness, active)
     start, _ = c.mesh.block_core(block)
     inside = [(max(a, r.start), min(b, r.stop)) for (a, b), r in zip(region, c.mesh.roi)]
     take = tuple(slice(lo - s0, hi - s0) for (lo, hi), s0 in zip(inside, start))
@@ -93,9 +96,10 @@ def corrected_task(c: Correction, region, block: Block, u_block: np.ndarray, bri
     f, corrected, valid = f[take], corrected[take], valid[take]
     data = np.full((2,) + tuple(b - a for a, b in region), np.nan, np.float32)
     data[(0, *put)] = corrected
-    data[(1, *put)] = f - corrected
+    data[(1, *put)] = np.where(valid, f - corrected, np.nan)
     zarr.open_array(store=out_path, path="0", mode="r+")[(slice(None), *(slice(a, b) for a, b in region))] = data
     r = (f - corrected)[valid].astype(np.float64)
+    # the grey range over every in-ROI voxel, as the engine's gap (chunkdic.kernels.m)
     return float(r @ r), int(valid.sum()), int(valid.size - valid.sum()), float(f.min()), float(f.max())
 
 
@@ -199,7 +203,7 @@ def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation
                     blk = chunk_block(mesh, region)
                     if blk is not None:  # a chunk outside the ROI keeps the fill value (NaN)
                         args.append((corr, region, blk, np.ascontiguousarray(u[(slice(None), *blk.node_slices)]),
-                                     element_slice(result.brightness, blk), str(work)))
+                                     element_slice(result.brightness, blk), str(work), active_slice(result, blk)))
         shapes = field_levels(shape, levels)
         write_image(runner, work, corrected_task, args, meta=meta, channels=CORRECTED_CHANNELS, shapes=shapes,
                     chunk=c, frame=frame, description=description, summarize=_gap, progress=level0,

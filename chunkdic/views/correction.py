@@ -27,7 +27,7 @@ from ..results.result import Result
 from ..engine.tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
 from ..io.handles import ArrayRef
 
-__all__ = ["Correction", "correct_block", "element_slice", "plane_jobs", "plane_task", "assemble_plane", "planes"]
+__all__ = ["Correction", "correct_block", "element_slice", "plane_jobs", "plane_task", "active_slice", "fill_missing_nodes", "assemble_plane", "planes"]
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,33 @@ class Correction:
         return cls(inputs, result.mesh, tuple(float(v) for v in drift))
 
 
-def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: np.ndarray | None):
+def fill_missing_nodes(u_block: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Nodes not measured (NaN: outside a specimen mask, no data) given the mean of the
+    measured nodes of the block, so that the window of ``g`` and the warp stay finite.
+
+    Returns the filled field ``(3, nz, ny, nx)`` and the per-element usability
+    ``(ez, ey, ex)`` bool: an element is usable when its eight nodes were measured. The
+    voxels of other elements are invalid whatever the filled values give.
+    """
+    known = np.isfinite(u_block).all(axis=0)
+    k = known.astype(np.int8)
+    usable = np.ones(tuple(n - 1 for n in known.shape), bool)
+    for dz in (0, 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                usable &= k[dz:dz + usable.shape[0], dy:dy + usable.shape[1], dx:dx + usable.shape[2]] > 0
+    if known.all():
+        return u_block, usable
+    fill = u_block[:, known].mean(axis=1) if known.any() else np.zeros(3)
+    return np.where(known[None], u_block, fill[:, None, None, None]), usable
+
+
+def _per_voxel(per_element: np.ndarray, ell: int) -> np.ndarray:
+    return np.repeat(np.repeat(np.repeat(per_element, ell, 0), ell, 1), ell, 2)
+
+
+def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: np.ndarray | None,
+                  active: np.ndarray | None = None):
     """The prepared reference, the corrected deformed image and their validity over one block.
 
     Parameters
@@ -76,6 +102,9 @@ def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: 
     brightness : ndarray, shape (2, ez, ey, ex), float64, or None
         Gain and offset (at the element centre) per element (``Result.brightness``); None:
         gain 1, offset 0.
+    active : ndarray, shape (ez, ey, ex), or None
+        The elements that took part (``Result.active``, a specimen mask): the voxels of the
+        others are invalid, as are those of elements with a node not measured (NaN).
 
     Returns
     -------
@@ -84,24 +113,34 @@ def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: 
     corrected : ndarray, block core shape, float32, grey levels
         ``λ g̃(X + u(X)) + μ(X)``; NaN where ``X + u(X)`` leaves the usable part of ``g``.
     valid : ndarray, block core shape, bool
+        Inside ``g``, in an element whose nodes were measured and (with ``active``) that
+        took part.
     """
     ell = c.mesh.element_size
     start, shape = c.mesh.block_core(block)
     job = BlockJob(block, ell, start, shape, (0, 0, 0))
     f, _, _ = read_prepared_reference(c.inputs, start, shape, halo=0)
+    u_block, usable = fill_missing_nodes(np.asarray(u_block, np.float64))
+    if active is not None:
+        usable &= np.asarray(active) > 0
+    if not usable.any():
+        return np.asarray(f, np.float32), np.full(shape, np.nan, np.float32), np.zeros(shape, bool)
     g, g_origin = read_g_window(c.inputs, job, u_block)
     if g is None:
         return np.asarray(f, np.float32), np.full(shape, np.nan, np.float32), np.zeros(shape, bool)
     warped, valid = warp_block(ell, u_block, start, shape, g, g_origin, c.inputs.g.shape,
                                interpolation=c.inputs.interpolation, prefiltered=True,
                                margin=c.inputs.g_margin)
+    if not usable.all():
+        valid = valid & _per_voxel(usable, ell)
     if brightness is not None:
         # per voxel: the element's gain and centre offset, plus drift · (X - X_e)
-        gain, offset = (np.repeat(np.repeat(np.repeat(b, ell, 0), ell, 1), ell, 2) for b in brightness)
+        gain, offset = (_per_voxel(np.where(np.isfinite(b), b, 0.0), ell) for b in brightness)
         local = (voxel_xi(ell) - 0.5) * ell  # X - X_e inside an element, voxels
         ramp = sum(d * np.tile(local, n).reshape([-1 if a == axis else 1 for a in range(3)])
                    for axis, (d, n) in enumerate(zip(c.drift, block.n_elements)) if d)
         warped = gain * warped + offset + ramp
+    warped = np.where(valid, warped, np.nan)
     return np.asarray(f, np.float32), np.asarray(warped, np.float32), valid
 
 
@@ -110,6 +149,13 @@ def element_slice(per_element: np.ndarray | None, block: Block) -> np.ndarray | 
     if per_element is None:
         return None
     return np.ascontiguousarray(per_element[(slice(None), *(slice(e0, e1) for e0, e1 in block.elements))])
+
+
+def active_slice(result: Result, block: Block) -> np.ndarray | None:
+    """The block's elements of ``result.active`` (the specimen mask's elements; None without a mask)."""
+    if result.active is None:
+        return None
+    return np.ascontiguousarray(result.active[tuple(slice(e0, e1) for e0, e1 in block.elements)])
 
 
 # --------------------------------------------------------------------------- planes
@@ -130,13 +176,13 @@ def plane_jobs(mesh: Mesh, normal: int, index: int, elements_per_block: int) -> 
 
 
 def plane_task(c: Correction, block: Block, u_block: np.ndarray, brightness: np.ndarray | None,
-               normal: int, index: int) -> tuple[Block, dict[str, np.ndarray]]:
+               normal: int, index: int, active: np.ndarray | None = None) -> tuple[Block, dict[str, np.ndarray]]:
     """Task: one block's share of a plane: ``f`` raw and prepared, ``g`` raw, corrected ``g``.
 
     Returns the block and 2-D float32 arrays (the block's extent along the two other axes).
     """
     start, shape = c.mesh.block_core(block)
-    f_prep, corrected, valid = correct_block(c, block, u_block, brightness)
+    f_prep, corrected, valid = correct_block(c, block, u_block, brightness, active)
     k = index - start[normal]
     take = tuple(k if a == normal else slice(None) for a in range(3))
     region = tuple(slice(index, index + 1) if a == normal else slice(s, s + n)
@@ -192,6 +238,6 @@ def planes(result: Result, f_ref: ArrayRef, g_ref: ArrayRef, normal: int, index:
     m = max(1, int(config.get("chunk-size")) // c.mesh.element_size)
     u = result.displacement
     args = [(c, blk, np.ascontiguousarray(u[(slice(None), *blk.node_slices)]),
-             element_slice(result.brightness, blk), normal, index)
+             element_slice(result.brightness, blk), normal, index, active_slice(result, blk))
             for blk in plane_jobs(c.mesh, normal, index, m)]
     return assemble_plane(c, normal, runner.map_unordered(plane_task, args))

@@ -116,6 +116,8 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
     disp = np.stack([u[2].ravel(), u[1].ravel(), u[0].ravel()], axis=1)
     cells = hexahedra(n)
     eps = result.element_strain()  # (3, 3, ez, ey, ex), axes z, y, x
+    if result.active is not None:  # a specimen mask: no strain where there is no material
+        eps = np.where(result.active[None, None] > 0, eps, np.nan)
     eps_xyz = eps[::-1, ::-1].reshape(3, 3, -1).transpose(2, 0, 1).reshape(-1, 9)
     cell_data = {"strain": [eps_xyz]}
     names = "zyx"
@@ -123,6 +125,8 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
         cell_data[f"eps_{names[j]}{names[i]}" if i < j else f"eps_{names[i]}{names[j]}"] = [eps[i, j].ravel()]
     cell_data["volume_change"] = [np.trace(eps).ravel()]
     cell_data["max_abs_principal"] = [np.abs(principal_strains(eps)).max(axis=0).ravel()]
+    if result.active is not None:
+        cell_data["active"] = [result.active.ravel().astype(np.int32)]
     point_data = {"displacement": disp, "Ux": disp[:, 0], "Uy": disp[:, 1], "Uz": disp[:, 2]}
     if units == "voxels" and result.voxel_length() is not None:  # the scan's unit too (issue 13)
         point_data["displacement_physical"] = disp * result.voxel_length()[::-1]

@@ -204,7 +204,7 @@ def fields_values(job: FieldsJob, region, block: Block, u_block: np.ndarray, bri
     if job.correction is not None:
         from .correction import correct_block
 
-        f, corrected, valid = correct_block(job.correction, block, u_block, brightness)
+        f, corrected, valid = correct_block(job.correction, block, u_block, brightness, active)
         residual = np.where(valid, f - corrected, np.nan)
         start, _ = mesh.block_core(block)
         # level-s voxel j sums level-0 voxels 2^s j … 2^s j + 2^s - 1: repeat it over them

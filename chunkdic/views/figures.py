@@ -22,7 +22,7 @@ from ..results.result import Result, open_result
 
 __all__ = ["AXES", "FORMATS", "DEFAULT_DPI", "Frame", "frame", "figure", "panel", "save", "check_figure_options",
            "shared_colorbar",
-           "symmetric_limit", "common_frame", "as_results", "level_label", "mid_planes", "plane_extent"]
+           "symmetric_limit", "common_frame", "as_results", "level_label", "result_label", "mid_planes", "plane_extent"]
 
 AXES = "zyx"
 #: file formats of the figures (matplotlib writes each from the file's extension)
@@ -52,6 +52,25 @@ def as_results(results) -> list[Result]:
     if not out:
         raise InputError("no result given")
     return out
+
+
+def result_label(result: Result) -> str:
+    """The name of a result in legends and titles: ``info["label"]`` when given (``--label``),
+    else its file stem (``m.zarr`` -> ``m``; a series step ``s.zarr/steps/002-cumulative`` ->
+    ``s:002-cumulative``), else ``result``."""
+    label = (result.info or {}).get("label")
+    if label:
+        return str(label)
+    if not result.path:
+        return "result"
+    from pathlib import Path
+
+    p = Path(str(result.path))
+    stem = p.name[:-5] if p.name.endswith(".zarr") else p.name
+    if p.parent.name in ("steps", "composed") and p.parent.parent.name:
+        parent = p.parent.parent.name
+        return f"{parent[:-5] if parent.endswith('.zarr') else parent}:{stem}"
+    return stem
 
 
 def level_label(result: Result) -> str:

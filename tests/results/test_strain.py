@@ -120,11 +120,13 @@ def test_mean_strain_of_a_masked_result_counts_its_active_elements_only(tmp_path
     res = Result(u, mesh.node_coords(), hist, info, active=active)
     # the inner layers 1..4: without the mask (3 * -0.01 + 0.05) / 4 = +0.005
     assert mean_strain(u, 8).eps_zz == pytest.approx(0.005, abs=1e-12)
-    assert strain_summary(res).eps_zz == pytest.approx(-0.01, abs=1e-12)
+    assert strain_summary(res, measure="small").eps_zz == pytest.approx(-0.01, abs=1e-12)
+    # the default measure (Green-Lagrange, issue 23): E_zz = a + a^2 / 2 of the same elements
+    assert strain_summary(res).eps_zz == pytest.approx(-0.01 + 0.5e-4, abs=1e-12)
     assert _row(res, 1, "0→1", "incremental", "steps/001-incremental", "computed", 0.0)["eps_zz"] == \
-        pytest.approx(-0.01, abs=1e-12)
+        pytest.approx(-0.01 + 0.5e-4, abs=1e-12)
     res.save(tmp_path / "r.zarr")
-    assert main(["strain", str(tmp_path / "r.zarr"), "--json"]) == 0
+    assert main(["strain", str(tmp_path / "r.zarr"), "--json", "--strain", "small"]) == 0
     assert json.loads(capsys.readouterr().out)["eps_zz"] == pytest.approx(-0.01, abs=1e-12)
     assert zoi_table([tmp_path / "r.zarr"])[0]["eps_zz"] == pytest.approx(-0.01, abs=1e-12)
     # no active element left: one line, no traceback; the series row says NaN
@@ -134,3 +136,75 @@ def test_mean_strain_of_a_masked_result_counts_its_active_elements_only(tmp_path
     assert main(["strain", str(tmp_path / "none.zarr")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no element to average" in err[0]
+
+
+# ------------------------------------------------------------------ finite strain (issue 23)
+
+
+def _rotation(deg: float, axis: int = 0) -> np.ndarray:
+    t = np.radians(deg)
+    c, s = np.cos(t), np.sin(t)
+    a, b = [i for i in range(3) if i != axis]
+    R = np.eye(3)
+    R[a, a], R[a, b], R[b, a], R[b, b] = c, -s, s, c
+    return R
+
+
+def test_rigid_rotation_gives_no_strain_with_the_default_measure(capsys):
+    """A 10° rigid rotation about z (nodal field u = (R - I)(X - c), exact for C8): the
+    default (Green-Lagrange) strain is zero to round-off, the rotation is 10°; the small
+    strain shows the known false strain cos 10° - 1 = -0.01519 on the in-plane axes, and
+    the command-level warning says so."""
+    from chunkdic.cli.report import rotation_warning
+    from chunkdic.results.strain import DEFAULT_MEASURE, element_strain, rotation_angle, displacement_gradient
+
+    mesh = Mesh((0, 0, 0), 8, (4, 4, 4))
+    X = mesh.node_coords()
+    c = X.mean(axis=(1, 2, 3))[:, None, None, None]
+    R = _rotation(10.0, axis=0)
+    u = np.einsum("ij,j...->i...", R - np.eye(3), X - c)
+    assert DEFAULT_MEASURE == "green-lagrange"
+    s = mean_strain(u, 8, measure=DEFAULT_MEASURE)
+    assert np.abs(s.mean).max() < 1e-3 and np.abs(s.mean).max() < 1e-12
+    assert np.abs(element_strain(u, 8, measure="green-lagrange")).max() < 1e-12
+    np.testing.assert_allclose(rotation_angle(displacement_gradient(u, 8)), 10.0, atol=1e-9)
+    assert s.max_rotation == pytest.approx(10.0, abs=1e-9)
+    small = mean_strain(u, 8, measure="small")
+    assert small.mean[1, 1] == pytest.approx(np.cos(np.radians(10)) - 1, abs=1e-12)
+    assert rotation_warning(small) is not None and rotation_warning(s) is None
+    # stretch: E = a + a^2 / 2 exactly for a uniform gradient a
+    a = -0.01
+    uz = np.stack([a * (X[0] - c[0]), 0 * X[0], 0 * X[0]])
+    assert mean_strain(uz, 8, measure="green-lagrange").eps_zz == pytest.approx(a + a * a / 2, abs=1e-14)
+
+
+def test_corrected_mean_strain_line_only_when_it_applies(tmp_path, capsys):
+    """Uniform -1 % compression: the plain mean is the truth, the (1 - 2 ell/L) line would say
+    -0.01 * (1 - 2/6) = -0.00667 and is not printed (its assumption, an unstrained outer layer,
+    is stated instead). A band inside unstrained outer layers: the line is printed."""
+    import json
+
+    from chunkdic.cli.app import main
+
+    mesh = Mesh((0, 0, 0), 8, (6, 6, 6))
+    z = mesh.node_coords()[0]
+    hist = {k: np.zeros(1) for k in ("level", "iteration", "gap", "max_delta", "excluded")}
+    info = {"element_size": 8, "roi": [[0, 48]] * 3, "level": 0, "final_gap": 0.01, "status": "converged"}
+    uniform = np.stack([-0.01 * z, 0 * z, 0 * z])
+    Result(uniform, mesh.node_coords(), hist, info).save(tmp_path / "u.zarr")
+    assert main(["strain", str(tmp_path / "u.zarr"), "--strain", "small"]) == 0
+    out = capsys.readouterr().out
+    assert "eps_zz = -0.01000" in out and "corrected by" not in out and "unstrained outer layer" in out
+    # a band: strain only in element layers 1..4 (the inner ones), none in the outer layer
+    k = mesh.node_axes()[0]
+    band = np.stack([-0.01 * np.clip(z - k[1], 0, k[5] - k[1]), 0 * z, 0 * z])
+    Result(band, mesh.node_coords(), hist, info).save(tmp_path / "b.zarr")
+    assert main(["strain", str(tmp_path / "b.zarr"), "--strain", "small", "--all-elements"]) == 0
+    capsys.readouterr()
+    assert main(["strain", str(tmp_path / "b.zarr"), "--strain", "small"]) == 0
+    out = capsys.readouterr().out
+    # the whole-ROI mean is -0.01 * 4/6; the inner mean -0.01; corrected -0.01 * (1 - 2/6)
+    assert "corrected by" in out and "eps_zz = -0.00667" in out
+    assert main(["strain", str(tmp_path / "b.zarr"), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["measure"] == "green-lagrange" and d["eps_zz"] == pytest.approx(-0.01 + 0.5e-4, abs=1e-12)

@@ -29,7 +29,7 @@ from chunkdic.analysis.scoring import scored_region
 from chunkdic.solve.stencil import half_stencil, stencil_matvec
 from chunkdic.results.strain import strain_summary
 
-from textures import smooth_noise
+from textures import cylinder_pair, smooth_noise
 
 KINDS = ("tikhonov", "equilibrium-gap")
 SMALL_SIZE = 64  # ℓ = 6 and 4: 3 375 and 15 625 nodes at 64³
@@ -267,30 +267,6 @@ def test_automatic_length_keeps_a_linear_field_and_shortens_for_a_bump():
 # -------------------------------------------------------------------------------- masks
 
 
-def _cylinder_pair(n=64, radius=24.0):
-    """Foam cylinder (axis z) in air, -2 % axial / +0.6 % lateral strain, partial-volume edges.
-
-    The edge is a one-voxel linear ramp of the material weight, evaluated at ``X`` in the
-    reference and at the undeformed position ``field.inverse(x)`` in the deformed scan, so
-    the edge moves with the material (a binary edge would jump by whole voxels).
-    """
-    field = synthetic.Affine(matrix=((-0.02, 0, 0), (0, 0.006, 0), (0, 0, 0.006)), center=(n / 2,) * 3)
-    f0 = foam.render((n,) * 3, seed=3, cell_size=5.0)
-    g0 = foam.render((n,) * 3, seed=3, cell_size=5.0, field=field, which="deformed")
-    Z, Y, X = np.indices((n,) * 3).astype(float)
-    c = (n - 1) / 2
-
-    def weight(y, x):
-        return np.clip(radius + 0.5 - np.hypot(y - c, x - c), 0.0, 1.0)
-
-    back = field.inverse(Z, Y, X)
-    wf, wg = weight(Y, X), weight(back[1], back[2])
-    air = 0.05
-    f = (wf * f0 + (1 - wf) * air).astype(np.float32)
-    g = (wg * g0 + (1 - wg) * air).astype(np.float32)
-    return f, g, wf, field
-
-
 def _fractions(material, roi, ell, s):
     """Material fraction of each element of a level-``s`` mesh (roi in level-``s`` voxels)."""
     k = 2**s
@@ -314,7 +290,7 @@ def test_cylinder_in_air_with_its_mask():
     corners), 8 at level 1. Without the mask: 127 weak nodes.
     """
     n, ell, radius = 64, 8, 24.0
-    f, g, wf, field = _cylinder_pair(n, radius)
+    f, g, wf, field = cylinder_pair(n, radius)
     mask = (wf > 0.5).astype(np.uint8)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
