@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.formats.anyscan import is_foreign
+from ..io.formats.detect import is_foreign
 from ..io.integrity import content_identity
 
 

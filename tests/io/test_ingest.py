@@ -12,7 +12,7 @@ import tifffile
 from chunkdic.cli import scan as _cli_scan
 from chunkdic.errors import InputError
 from chunkdic.io.formats.ingest import ingest, slab_chunks
-from chunkdic.io.formats.openers import natural_key
+from chunkdic.io.formats.base import natural_key
 
 SHAPE = (13, 17, 19)
 
@@ -83,7 +83,7 @@ def test_3d_tiff_compressed_pages(tmp_path, vol16):
 def test_tiled_volumetric_tiff_reads_only_the_tiles_a_slab_needs(tmp_path, vol16, monkeypatch):
     """One compressed volumetric page of 3-D tiles: read through tifffile's chunked store;
     a slab decodes the tiles it overlaps (counted), never the whole series."""
-    from chunkdic.io.formats.openers import open_tiff_file
+    from chunkdic.io.formats.tiff import open_tiff_file
 
     tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(4, 16, 16), volumetric=True, compression="zlib")
     monkeypatch.setattr(tifffile.TiffPageSeries, "asarray", lambda *a, **k: pytest.fail("whole series read"))
@@ -93,7 +93,7 @@ def test_tiled_volumetric_tiff_reads_only_the_tiles_a_slab_needs(tmp_path, vol16
 
 
 def test_compressed_tiff_stored_as_one_block_is_refused_when_large(tmp_path, vol16, monkeypatch):
-    import chunkdic.io.formats.openers as openers
+    import chunkdic.io.formats.tiff as openers
 
     # one zlib tile holding every slice of a (13, 17, 19) volume: fine while small...
     tifffile.imwrite(tmp_path / "v.tif", vol16, tile=(16, 32, 32), volumetric=True, compression="zlib")

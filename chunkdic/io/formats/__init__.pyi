@@ -1,4 +1,8 @@
+from .anyscan import open_any
+from .base import Format, Layout, Reader, Source, natural_key
+from .detect import FORMATS, is_foreign, open_source
+from .hdf5 import H5Reader
 from .ingest import ingest, slab_chunks
-from .openers import natural_key, open_source, open_tiff_file
-from .readers import H5Reader, NpyReader, RawReader, Reader, TiffSlicesReader, TiffVolumeReader
-from .anyscan import is_foreign, open_any
+from .npy import NpyReader
+from .raw import RawReader
+from .tiff import TiffSlicesReader, TiffVolumeReader, open_tiff_file

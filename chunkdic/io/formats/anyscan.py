@@ -4,22 +4,21 @@ What a mask needs: a specimen mask often comes as the TIFF stack or HDF5 dataset
 segmentation tool wrote, and converting it first would be a chore. :func:`open_any` opens
 Zarr and ``.npy`` as :func:`chunkdic.open_scan` does, and TIFF (a 3-D file or a folder of
 slices) and HDF5 (``file.h5`` or ``file.h5:/dataset``) through the readers of
-:mod:`chunkdic.io.formats.readers`: nothing is read until a level is needed, and level 0 is
+the format readers (:mod:`chunkdic.io.formats.detect`): nothing is read until a level is needed, and level 0 is
 then copied to scratch one chunk row at a time (:meth:`chunkdic.io.scan.Scan.refs`). A raw
 file needs its shape and dtype: ingest it first.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 
 from ...errors import InputError
 from ..scan import Scan, open_scan
-from .openers import _HDF5, _TIFF, _split_h5, open_source
+from .detect import is_foreign, open_source
 
-__all__ = ["open_any", "is_foreign"]
+__all__ = ["open_any"]
 
 
 class _Slabs:
@@ -43,22 +42,6 @@ class _Slabs:
         return a if dtype is None else a.astype(dtype)
 
 
-def is_foreign(src) -> bool:
-    """Whether ``src`` is a path :func:`chunkdic.open_scan` refuses but :func:`open_any` reads
-    (a TIFF file or folder of TIFF slices, an HDF5 file or dataset)."""
-    if not isinstance(src, (str, Path)):
-        return False
-    h5, ds = _split_h5(str(src), None)
-    if h5.suffix.lower() in _HDF5 or ds is not None:
-        return True
-    p = Path(src)
-    if p.is_file():
-        return p.suffix.lower() in _TIFF
-    if p.is_dir() and not any((p / m).exists() for m in ("zarr.json", ".zarray", ".zgroup")):
-        return any(f.suffix.lower() in _TIFF for f in p.iterdir())
-    return False
-
-
 def open_any(src) -> Scan:
     """Open a scan in any format ``chunkdic ingest`` reads but raw (Zarr, npy, TIFF, HDF5).
 
@@ -80,10 +63,9 @@ def open_any(src) -> Scan:
     """
     if not is_foreign(src):
         return open_scan(src)
-    reader, voxel_size, unit, path = open_source(src, shape=None, dtype=None, byte_order="little", offset=0,
-                                                 dataset=None)
-    if reader is None:
+    source = open_source(src)
+    if source.reader is None:
         return open_scan(src)
-    if len(reader.shape) != 3:
-        raise InputError(f"{src}: shape {tuple(reader.shape)}; a scan must be 3-D (z, y, x)")
-    return Scan(path=str(path), voxel_size=voxel_size, unit=unit, _base=_Slabs(reader))
+    if len(source.reader.shape) != 3:
+        raise InputError(f"{src}: shape {tuple(source.reader.shape)}; a scan must be 3-D (z, y, x)")
+    return Scan(path=str(source.path), voxel_size=source.voxel_size, unit=source.unit, _base=_Slabs(source.reader))

@@ -5,8 +5,8 @@ Formats: a folder of 2-D TIFF slices (natural sort: ``slice_2`` before ``slice_1
 offset), an HDF5 dataset (``file.h5:/path/to/dataset``), a ``.npy`` file, or an existing
 Zarr array / scan group (rechunked, recompressed copy).
 
-Nothing is read whole: a small picklable *reader* (:mod:`chunkdic.io.formats.readers`, a path and a
-layout, built by :mod:`chunkdic.io.formats.openers`) is wrapped in a Dask array whose blocks are slabs
+Nothing is read whole: a small picklable *reader* (:class:`chunkdic.io.formats.base.Reader`, a path and a
+layout, built by the format of the file, :mod:`chunkdic.io.formats.detect`) is wrapped in a Dask array whose blocks are slabs
 of whole Zarr chunks (``chunk`` slices deep, full rows if they fit
 ``chunkdic.ingest-slab-bytes``, 32 MiB by default); each task opens the file by path,
 reads its slab (page range, ``pread`` rows, HDF5 hyperslab, memory map) and writes it with
@@ -26,7 +26,8 @@ import numpy as np
 from ...errors import InputError
 from ...inputs import check_finite
 from ..ngff import normalize_unit, normalize_voxel_size
-from .openers import open_source
+from .base import Layout
+from .detect import open_source
 from ..store import chunk_shape_for
 from ..scanwrite import write_scan
 from ..scan import Scan, open_scan
@@ -129,8 +130,8 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
     user_unit = normalize_unit(unit)
     if user_unit is not None and user_vs is None:
         raise InputError("a unit was given without a voxel size: pass both (--voxel-size 4.91 --unit micrometer)")
-    reader, meta_vs, meta_unit, in_path = open_source(src, shape=shape, dtype=dtype, byte_order=byte_order,
-                                                      offset=offset, dataset=dataset)
+    source = open_source(src, Layout(shape, dtype, byte_order, offset, dataset))
+    reader, meta_vs, meta_unit, in_path = source.reader, source.voxel_size, source.unit, source.path
     out_p = Path(out)
     if reader is None:  # a Zarr array or group
         scan = open_scan(in_path)

@@ -1,0 +1,111 @@
+"""HDF5 scans: a 3-D dataset, named as ``file.h5:/path/to/dataset`` when the file holds several.
+
+The voxel size comes from the dataset's attributes (``element_size_um``, ``voxel_size``,
+``pixel_size`` with ``unit``); the reader reads a hyperslab per task.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ...errors import InputError
+from ..ngff import normalize_voxel_size
+from .base import Layout, Reader, Source, metadata_unit
+
+SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5", ".nxs")
+
+
+class Hdf5:
+    """An HDF5 file (by suffix, a ``:dataset`` part, or its signature)."""
+
+    name = "hdf5"
+
+    def can_open(self, path: Path, layout: Layout) -> bool:
+        import h5py
+
+        return path.suffix.lower() in SUFFIXES or layout.dataset is not None or (path.is_file() and h5py.is_hdf5(path))
+
+    def open(self, path: Path, layout: Layout) -> Source:
+        reader, vs, unit = _open_hdf5(path, layout.dataset)
+        return Source(path, reader, vs, unit)
+
+
+def split_dataset(src: str, dataset):
+    if dataset is not None:
+        return Path(src), str(dataset)
+    if os.path.exists(src):
+        return Path(src), None
+    for m in re.finditer(":", src):
+        head = src[: m.start()]
+        if os.path.isfile(head):
+            return Path(head), src[m.start() + 1:] or None
+    return Path(src), None
+
+
+def _h5_datasets(f) -> list[str]:
+    import h5py
+
+    found = []
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset) and obj.ndim == 3:
+            found.append("/" + name)
+
+    f.visititems(visit)
+    return found
+
+
+def _open_hdf5(path: Path, dataset):
+    import h5py
+
+    try:
+        f = h5py.File(path, "r")
+    except Exception as e:  # noqa: BLE001
+        raise InputError(f"{path}: not a readable HDF5 file ({e})".splitlines()[0]) from None
+    with f:
+        candidates = _h5_datasets(f)
+        if dataset is None:
+            if len(candidates) != 1:
+                raise InputError(f"{path}: name the dataset as {path}:/path/to/dataset (3-D datasets: "
+                                 f"{', '.join(candidates[:6]) or 'none'})")
+            dataset = candidates[0]
+        if dataset not in f or not isinstance(f[dataset], h5py.Dataset):
+            raise InputError(f"{path}: no dataset {dataset!r} (3-D datasets: {', '.join(candidates[:6]) or 'none'})")
+        d = f[dataset]
+        if d.ndim != 3:
+            raise InputError(f"{path}:{dataset} has shape {d.shape}; a scan must be 3-D (z, y, x)")
+        if d.dtype.kind not in "uif":
+            raise InputError(f"{path}:{dataset}: unsupported dtype {d.dtype}")
+        vs = unit = None
+        attrs = d.attrs
+        if "element_size_um" in attrs:
+            vs, unit = attrs["element_size_um"], "micrometer"
+        else:
+            for k in ("voxel_size", "pixel_size", "voxel_size_um"):
+                if k in attrs:
+                    vs = attrs[k]
+                    u = attrs.get("unit", attrs.get("units", "micrometer" if k.endswith("_um") else None))
+                    unit = metadata_unit(u.decode() if isinstance(u, bytes) else u)
+                    break
+        try:
+            vs = normalize_voxel_size(np.asarray(vs, float).tolist()) if vs is not None else None
+        except (InputError, TypeError, ValueError):
+            vs, unit = None, None
+        return H5Reader(str(path), dataset, d.shape, d.dtype), vs, unit
+
+
+class H5Reader(Reader):
+    def __init__(self, path: str, dataset: str, shape, dtype):
+        self.path, self.dataset, self.shape = path, dataset, tuple(shape)
+        self.dtype = np.dtype(dtype).newbyteorder("=")
+        self.label = f"{path}:{dataset}"
+
+    def _read(self, region):
+        import h5py
+
+        with h5py.File(self.path, "r") as f:
+            return np.asarray(f[self.dataset][region], dtype=self.dtype)
