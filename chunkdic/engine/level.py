@@ -26,7 +26,7 @@ from ..kernels.blocks import LAGS
 from ..mesh import Mesh
 from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
-from .prefilter import build_prepared, face_margin, prepared_halo, reachable_box
+from .prefilter import build_prepared, face_margin, reachable_box
 from .settings import Settings
 from ..solve.regularization import Regularizer, plane_wave_weight
 from ..solve.cg import PoorTextureWarning, StencilSolver
@@ -118,9 +118,9 @@ class Level:
         if min(g_ref.shape) <= 2 * margin + 1:
             raise InputError(f"the deformed scan is too small at level {s} ({g_ref.shape}) for a low-pass of "
                              f"{settings.smoothing} voxels: choose a finer coarsest level or less smoothing")
-        self.inputs = LevelInputs(f_ref, g_ref, self._create_f_copy(f_ref, settings.smoothing),
-                                  settings.interpolation, settings.smoothing, settings.grey,
-                                  int(config.get("bspline-halo")), margin, level=s, mask=mask)
+        self.inputs = LevelInputs.for_settings(f_ref, g_ref, self._create_f_copy(f_ref, settings.smoothing), level=s,
+                                               interpolation=settings.interpolation, smoothing=settings.smoothing,
+                                               grey=settings.grey, mask=mask)
         self.regularization_length = math.nan
         self.regularization_weight = 0.0
         # the operator is assembled here, so that no method can run before it exists
@@ -266,7 +266,7 @@ class Level:
         inp = self.inputs
         prepared = build_prepared(
             g_ref, box, path, lambda fn, args: self._map(fn, args, "prefilter of g", voxels),
-            halo=prepared_halo(inp.sigma, inp.interpolation, inp.bspline_halo), local=self.runner.local,
+            halo=inp.g_halo, local=self.runner.local,
             sigma=inp.sigma, interpolation=inp.interpolation,
         )
         self.inputs = dataclasses.replace(self.inputs, prepared=prepared)

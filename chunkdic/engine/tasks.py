@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .. import config
 from ..kernels.blocks import ElementSums
 from ..kernels.b import b_sums
 from ..kernels.m import m_block
@@ -20,7 +21,8 @@ from .greylevel import Partials, reduce_block
 from .haloed import HaloedBlocks
 from ..mesh import Block, Mesh
 from .masks import active_elements, element_fractions
-from .prefilter import PreparedImage, check_finite, gaussian_radius, prepare_deformed, prepare_reference, prepared_halo
+from .prefilter import (PreparedImage, check_finite, face_margin, gaussian_radius, prepare_deformed, prepare_reference,
+                        prepared_halo)
 from ..io.handles import ArrayRef
 
 
@@ -107,9 +109,23 @@ class LevelInputs:
     level: int = 0
     mask: ArrayRef | None = None
 
+    @classmethod
+    def for_settings(cls, f: ArrayRef, g: ArrayRef, f_copy: HaloedBlocks | None, *, level: int,
+                     interpolation: str, smoothing: float, grey: str, mask: ArrayRef | None = None) -> "LevelInputs":
+        """The one way to make a level's inputs from a run's settings: the B-spline halo from
+        ``chunkdic.bspline-halo`` and the margin near the faces of ``g`` from the low-pass
+        (:func:`chunkdic.engine.prefilter.face_margin`) are derived here, once."""
+        return cls(f, g, f_copy, interpolation, float(smoothing), grey, int(config.get("bspline-halo")),
+                   face_margin(smoothing), level=int(level), mask=mask)
+
     @property
     def g_needs_preparing(self) -> bool:
         return self.interpolation == "cubic" or self.sigma > 0
+
+    @property
+    def g_halo(self) -> int:
+        """Halo (voxels) a window of raw ``g`` needs to be prepared exactly on its crop."""
+        return prepared_halo(self.sigma, self.interpolation, self.bspline_halo)
 
 
 def halo_region(start, shape, full_shape, halo: int = 1):

@@ -22,7 +22,6 @@ from .. import config
 from ..kernels.warp import warp_block
 from ..kernels.blocks import voxel_xi
 from ..mesh import Block, Mesh
-from ..engine.prefilter import face_margin
 from ..results.result import Result
 from ..engine.tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
 from ..io.handles import ArrayRef
@@ -57,8 +56,8 @@ class Correction:
         sigma = float(settings.get("smoothing", 0.0) or 0.0)
         grey = (result.info.get("grey_level") or {}).get("model", settings.get("grey", "none"))
         interp = interpolation or str(settings.get("interpolation", "cubic"))
-        inputs = LevelInputs(f_ref, g_ref, None, interp, sigma, grey, int(config.get("bspline-halo")),
-                             face_margin(sigma), level=int(result.info.get("level", 0)))
+        inputs = LevelInputs.for_settings(f_ref, g_ref, None, level=result.level, interpolation=interp,
+                                          smoothing=sigma, grey=grey)
         drift = (result.info.get("grey_level") or {}).get("drift") or (0.0, 0.0, 0.0)
         return cls(inputs, result.mesh, tuple(float(v) for v in drift))
 
