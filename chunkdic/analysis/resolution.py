@@ -16,11 +16,14 @@ along a code's own curve (a longer regularisation length lowers ``n`` and raises
   the paper's section 4.2 test); ``n`` = σ pooled over the three components at the nodes
   at least ``ell`` from the faces (:func:`chunkdic.analysis.scoring.score_displacement`);
 - **star**: every x-line of ``f`` moved by ``Ux = A sin(2π (z - z_c) / λ(y))``,
-  ``λ`` rising linearly from ``periods[0]`` at the first y to ``periods[1]`` at the last
-  (:class:`chunkdic.synth.fields.Star`; default ``2 ℓ … 20 ℓ``).
+  ``λ`` rising linearly from ``periods[0]`` to ``periods[1]`` over the rows read (at least
+  ``ell`` from the faces) (:class:`chunkdic.synth.fields.Star`; default ``2 ℓ … 20 ℓ``).
 
 Both are correlated with the same settings (element size, regularisation, any
-:class:`chunkdic.Settings`) against the *same* noisy reference. The star field is then
+:class:`chunkdic.Settings`) against the *same* noisy reference, the star first: with an
+automatic regularisation length, the translated pair is correlated at the length chosen
+on the star (the rule would pick its longest candidate on a translation: another setting,
+whose tiny noise says nothing about the resolution measured). The star field is then
 read **between the nodes** as the scoring rule does (trilinear on the node grid, every
 voxel at least ``ell`` from the faces): per voxel row ``y``, the least-squares fit of the
 measured ``Ux`` over ``(z, x)`` within one period around ``z_c`` by ``a · s(z) + b · c(z) +
@@ -157,8 +160,10 @@ def star_ratios(result, star: Star, volume_shape, ell: float | None = None) -> t
         d = np.broadcast_to((zw - star.center_z)[:, None], ux.shape)[ok]
         k = 2.0 * np.pi / lam
         cols = [np.sin(k * d), np.cos(k * d), np.ones(d.size)]
+        half = max(float(np.abs(d).max()), 1.0)
         for kk in (2.0 * np.pi / grid - k, 2.0 * np.pi / grid + k):  # the node grid's first aliases
-            cols += [np.sin(kk * d), np.cos(kk * d)]
+            if abs(abs(kk) - k) * half >= 0.5:  # not separable from k within the window (λ near 2ℓ)
+                cols += [np.sin(kk * d), np.cos(kk * d)]
         coef = np.linalg.lstsq(np.stack(cols, axis=1), ux[ok], rcond=1e-8)[0]
         periods.append(lam)
         ratios.append(coef[0] / star.amplitude)
@@ -256,7 +261,7 @@ def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, 
     amplitude : float
         Amplitude ``A`` of the star, voxels.
     periods : (float, float), optional
-        Periods of the star at the first and the last y, voxels (default ``2 ℓ, 20 ℓ``).
+        Periods of the star at the first and the last row read (ℓ from the faces), voxels (default ``2 ℓ, 20 ℓ``).
     seed : int
         Seed of the noises.
     scheduler, overwrite, progress
@@ -336,30 +341,39 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
     rows, profiles = [], {}
     for ell in sizes:
         lo, hi = periods if periods is not None else (2.0 * ell, 20.0 * ell)
-        star = Star(amplitude=amplitude, period_min=lo, period_max=hi, y0=0.0, y1=float(max(shape[1] - 1, 1)),
+        # the periods span the rows that are read (at least ell from the faces)
+        y0, y1 = ell - 0.5, shape[1] - 0.5 - ell
+        if y1 <= y0:
+            y0, y1 = 0.0, float(max(shape[1] - 1, 1))
+        star = Star(amplitude=amplitude, period_min=lo, period_max=hi, y0=y0, y1=y1,
                     center_z=(shape[0] - 1) / 2.0)
         with open_runner(scheduler) as runner:
             sp = moved_copy(src, out / f"star-ell{ell}.zarr", runner=runner, noise=std, key=keys["star"] + ell,
                             star=star, attrs={"resolution": {"role": "star", "field": star.to_json(), "noise": std}},
                             progress=stage(f"star-ell{ell}"))
         settings["element_size"] = ell
-        emit({"stage": "element-size", "element_size": ell, "pair": "translated"})
-        rt = correlate(_level0_path(ref), _level0_path(trans), **settings, scheduler=scheduler,
-                       output=out / f"result-translated-ell{ell}.zarr", overwrite=True, progress=progress)
-        sc = score_displacement(rt.node_coords, rt.displacement, t, shape, ell)
         emit({"stage": "element-size", "element_size": ell, "pair": "star"})
         rs = correlate(_level0_path(ref), _level0_path(sp), **settings, scheduler=scheduler,
                        output=out / f"result-star-ell{ell}.zarr", overwrite=True, progress=progress)
+        # the noise of the *same* setting: an automatic length is the one chosen on the star
+        # (on a translation the rule picks the longest candidate, a different setting)
+        reg = rs.info.get("regularization") or {}
+        same = dict(settings)
+        if reg.get("kind", "none") != "none" and reg.get("length") is not None:
+            same["regularization_length"] = float(reg["length"])
+        emit({"stage": "element-size", "element_size": ell, "pair": "translated"})
+        rt = correlate(_level0_path(ref), _level0_path(trans), **same, scheduler=scheduler,
+                       output=out / f"result-translated-ell{ell}.zarr", overwrite=True, progress=progress)
+        sc = score_displacement(rt.node_coords, rt.displacement, t, shape, ell)
         per, rat = star_ratios(rs, star, shape, ell)
         length, bound = l10(per, rat)
         fit = smooth_fit(per, rat)
         profiles[ell] = (per, rat, fit)
-        reg = rs.info.get("regularization") or {}
         row = {
             "element_size": ell,
             "regularization": str(reg.get("kind", options.get("regularization", "tikhonov"))),
             "regularization_length": _length(reg),
-            "regularization_length_translated": _length(rt.info.get("regularization") or {}),
+            "regularization_automatic": bool(reg.get("automatic", False)),
             "noise": sc.sigma, "noise_rms": sc.rms, "nodes_scored": sc.n_points,
             "l10": length, "l10_bound": bound,
             "mei": sc.sigma * length, "mei3d": sc.sigma * length ** 1.5,

@@ -31,7 +31,7 @@ def register(subparsers) -> None:
                    help="translation of the translated pair, voxels (default 0.5 on each axis)")
     p.add_argument("--amplitude", type=float, default=0.5, help="amplitude of the star, voxels (default 0.5)")
     p.add_argument("--periods", default=None, metavar="PMIN,PMAX",
-                   help="periods of the star at the first and the last y, voxels (default 2 ell, 20 ell)")
+                   help="periods of the star at the first and the last y read (ell from the faces), voxels (default 2 ell, 20 ell)")
     p.add_argument("--seed", type=int, default=0, help="seed of the added noises")
     p.add_argument("--overwrite", action="store_true",
                    help="replace the output directory of an earlier resolution run")
