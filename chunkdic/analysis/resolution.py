@@ -59,7 +59,7 @@ from .scoring import score_displacement
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ResolutionReport", "c8_ratio", "c8_l10", "l10", "resolution", "star_ratios"]
+__all__ = ["ResolutionReport", "c8_ratio", "c8_l10", "l10", "resolution", "star_ratios", "star_ratios_nodes"]
 
 #: the threshold of the DIC Challenge 2.0 rule: amplitude attenuated by 10 %
 THRESHOLD = 0.9
@@ -135,17 +135,36 @@ def star_ratios(result, star: Star, volume_shape, ell: float | None = None) -> t
     ratios : ndarray, shape (m,), float64
         ``a / A`` of each row.
     """
-    mesh = result.mesh
-    grid = float(result.info["element_size"])
-    ell = grid if ell is None else float(ell)
-    u = np.asarray(result.displacement, np.float64)
-    if not np.all(np.isfinite(u)):  # masked / no-data nodes: read where the field is measured
-        u = np.where(np.isfinite(u), u, np.nan)
+    return star_ratios_nodes(result.mesh.node_axes(), result.displacement, star, volume_shape,
+                             float(result.info["element_size"]) if ell is None else ell)
+
+
+def star_ratios_nodes(node_axes, u, star: Star, volume_shape, ell: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`star_ratios` for a field on any regular grid of points (another code's, too).
+
+    Parameters
+    ----------
+    node_axes : sequence of 3 ndarray, float, voxels
+        Grid positions along ``z, y, x`` (evenly spaced, the same step on every axis).
+    u : ndarray, shape (3, gz, gy, gx), float, voxels
+        Displacement at the grid points (NaN where a point failed); read trilinearly
+        between them.
+    star, volume_shape, ell
+        As in :func:`star_ratios` (``ell``: distance from the faces of the voxels read).
+    """
+    from ..mesh import Mesh
+
+    node_axes = [np.asarray(a, np.float64) for a in node_axes]
+    grid = float(node_axes[0][1] - node_axes[0][0])
+    mesh = Mesh(origin=tuple(float(a[0]) + 0.5 for a in node_axes), element_size=grid,
+                shape=tuple(a.size - 1 for a in node_axes))
+    ell = float(ell)
+    u = np.asarray(u, np.float64)
     axes = []
-    for a, n in enumerate(volume_shape):
-        roi = mesh.roi[a]
-        v = np.arange(max(roi.start, math.ceil(ell - 0.5 - 1e-9)), min(roi.stop, math.floor(n - 0.5 - ell + 1e-9) + 1))
-        axes.append(v.astype(np.float64))
+    for a, n in zip(node_axes, volume_shape):
+        lo = max(math.ceil(a[0] - 1e-9), math.ceil(ell - 0.5 - 1e-9))
+        hi = min(math.floor(a[-1] + 1e-9), math.floor(n - 0.5 - ell + 1e-9))
+        axes.append(np.arange(lo, hi + 1, dtype=np.float64))
     z, ys, x = axes
     periods, ratios = [], []
     for y in ys:
@@ -161,9 +180,10 @@ def star_ratios(result, star: Star, volume_shape, ell: float | None = None) -> t
         k = 2.0 * np.pi / lam
         cols = [np.sin(k * d), np.cos(k * d), np.ones(d.size)]
         half = max(float(np.abs(d).max()), 1.0)
+        if abs(abs(2.0 * np.pi / grid - k) - k) * half < 0.5:
+            continue  # λ near 2ℓ: the grid's alias is the sine itself within the window, no reading
         for kk in (2.0 * np.pi / grid - k, 2.0 * np.pi / grid + k):  # the node grid's first aliases
-            if abs(abs(kk) - k) * half >= 0.5:  # not separable from k within the window (λ near 2ℓ)
-                cols += [np.sin(kk * d), np.cos(kk * d)]
+            cols += [np.sin(kk * d), np.cos(kk * d)]
         coef = np.linalg.lstsq(np.stack(cols, axis=1), ux[ok], rcond=1e-8)[0]
         periods.append(lam)
         ratios.append(coef[0] / star.amplitude)
