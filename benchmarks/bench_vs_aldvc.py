@@ -37,7 +37,13 @@ Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` 
   scored nodes for ell = 12 / 8 (0.13 / 0.06 with a lateral factor of 0.3, which would
   measure the basis rather than the tools);
 - ``band-grey``: ``band`` with the deformed scan's grey levels changed (gain 1.1, +5 %
-  offset, 3 % drift along z; CT specimens only).
+  offset, 3 % drift along z; CT specimens only);
+- ``star``: issue 20's 3-D star, ``Ux = 0.5 sin(2π (z − z_c) / λ(y))`` with ``λ`` from 10 to
+  100 voxels across y, rendered from the geometry, independent noise in each scan; besides
+  the scores, each tool's spatial resolution ``l10 %`` read between its points
+  (:func:`chunkdic.analysis.resolution.star_ratios_nodes`: chunkdic's C8 nodes, al-dvc's
+  grid of step ``ell``, both trilinear between points). ``chunkdic resolution`` measures the
+  same on a scan's own texture, with the noise of the same setting.
 
 ``--set KEY=VALUE`` passes settings to chunkdic (e.g. ``--set smoothing=0 --set grey=none``
 for the paper's plain C8).
@@ -48,6 +54,7 @@ Usage::
     python benchmarks/bench_vs_aldvc.py --sizes 128 --spacings 16 12 8 --repeats 1
     python benchmarks/bench_vs_aldvc.py --sizes 300 --cases shift --spacings 12 --repeats 3
     python benchmarks/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
+    python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimens grains --spacings 16 12 8
 """
 
 from __future__ import annotations
@@ -71,7 +78,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import aldvc as peer  # noqa: E402  (benchmarks/aldvc.py, next to this file)
 
 RECORDS = Path(__file__).resolve().parent / "records"
-CASE_NAMES = ("shift", "noise", "band", "band-grey")
+CASE_NAMES = ("shift", "noise", "band", "band-grey", "star")
+#: the star of issue 20: Ux = 0.5 sin(2 pi (z - zc) / period(y)), period 10 -> 100 voxels across y
+STAR = {"amplitude": 0.5, "period_min": 10.0, "period_max": 100.0}
 SHIFT = (0.5, 0.5, 0.5)
 
 
@@ -148,6 +157,13 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
         paths = _pair(out, n, args, specimen, field=Translation(SHIFT))
         return Case(label, paths["reference"], paths["deformed"], Translation(SHIFT), (n,) * 3,
                     f"translation, independent noise {args.noise:g}")
+    if name == "star":
+        from chunkdic.synth.fields import Star
+
+        field = Star(**STAR, y0=0.0, y1=n - 1.0, center_z=(n - 1) / 2.0)
+        paths = _pair(out, n, args, specimen, field=field)
+        return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
+                    f"star, period 10-100 across y, independent noise {args.noise:g}")
     field = _band(n, args.band_lateral)
     if name == "band":
         paths = _pair(out, n, args, specimen, field=field)
@@ -258,6 +274,28 @@ def _score(points, u, valid, case: Case, ell: int) -> dict:
     return score_displacement(points, u, truth, case.shape, ell, valid=valid).as_dict()
 
 
+def _star(points, u, valid, case: Case, ell: int) -> dict:
+    """l10 % of a field on a regular grid of points (either tool), read between the points."""
+    from chunkdic.analysis.resolution import l10, star_ratios_nodes
+    from chunkdic.synth.fields import Star
+
+    if points is None or not isinstance(case.field, Star):
+        return {}
+    axes = [np.unique(np.round(c, 6)) for c in points]
+    grid = np.full((3, *(a.size for a in axes)), np.nan)
+    idx = [np.searchsorted(a, np.round(c, 6)) for a, c in zip(axes, points)]
+    uu = np.array(u, np.float64)
+    if valid is not None:
+        uu[:, ~np.asarray(valid, bool)] = np.nan
+    grid[:, idx[0], idx[1], idx[2]] = uu
+    try:
+        per, rat = star_ratios_nodes(axes, grid, case.field, case.shape, ell)
+        v, bound = l10(per, rat)
+    except Exception as exc:  # a grid that is not regular, too few rows: say so in the record
+        return {"l10_error": str(exc)}
+    return {"l10": v, "l10_bound": bound}
+
+
 def _median(values):
     v = [x for x in values if x is not None and not (isinstance(x, float) and math.isnan(x))]
     return statistics.median(v) if v else float("nan")
@@ -304,8 +342,9 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys) -> dict:
     for rep in range(args.repeats):
         base = workdir / "runs" / f"{case.name}-{case.shape[0]}-ell{ell}-r{rep}"
         c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout, args.options)
-        score = _score(c.pop("points", None), c.pop("u", None), None, case, ell)
-        runs["chunkdic"].append({**c, **score})
+        pts, uc = c.pop("points", None), c.pop("u", None)
+        score = _score(pts, uc, None, case, ell)
+        runs["chunkdic"].append({**c, **score, **_star(pts, uc, None, case, ell)})
         a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
                            threads=args.threads, timeout=args.timeout)
         score = _score(a.points, a.u, a.valid, case, ell)
@@ -313,7 +352,7 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys) -> dict:
         every = _score(a.points, a.u, None, case, ell) if a.points is not None else {}
         info = {k: v for k, v in a.info.items() if k not in ("para", "command")}
         runs["al-dvc"].append({"status": a.status, "wall": a.pipeline_seconds, "proc": a.wall,
-                               "peak_rss_mb": a.peak_rss_mb, **score,
+                               "peak_rss_mb": a.peak_rss_mb, **score, **_star(a.points, a.u, a.valid, case, ell),
                                "rms_all_nodes": every.get("rms"), "sigma_all_nodes": every.get("sigma"),
                                "info": info})
     return {tool: _summarise(r) | {"runs": r} for tool, r in runs.items()}
@@ -544,6 +583,10 @@ def main(argv=None) -> int:
             ratio = a["wall"] / c["wall"] if c.get("wall") and a.get("wall") else None
             print(row(case.shape[0], case.name, ell, "chunkdic", c), flush=True)
             print(row(case.shape[0], case.name, ell, "al-dvc", a, ratio), flush=True)
+            for tool, m in (("chunkdic", c), ("al-dvc", a)):
+                if "l10" in m:  # the star: spatial resolution read between the points (analysis/resolution.py)
+                    print(f"{'':>4} {case.name:<18} {ell:>3} {tool:<8} l10 % {m.get('l10_bound', '')}"
+                          f" {m['l10']:.1f} voxels", flush=True)
             results.append({"case": case.name, "note": case.note, "shape": case.shape, "ell": ell,
                             "field": None if case.field is None else case.field.to_json(),
                             "chunkdic": c, "al-dvc": a, "wall_ratio": ratio})

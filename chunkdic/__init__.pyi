@@ -3,6 +3,7 @@ from .analysis.crosscheck import cutcheck
 from .analysis.loadseries import SeriesResult, open_series, series
 from .analysis.metrology import fit_power_law, uncertainty
 from .analysis.q4 import correlate2d
+from .analysis.resolution import resolution
 from .analysis.scoring import score_displacement
 from .analysis.zoisweep import sweep, zoi_table
 from .engine.driver import correlate

@@ -223,6 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
     from . import q4 as _cli_q4
     from . import report as _cli_report
+    from . import resolution as _cli_resolution
     from . import scan as _cli_scan
     from . import series as _cli_series
     from . import synth as _cli_synth
@@ -236,6 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_scan.register(sub)
     _cli_synth.register(sub)
     _cli_report.register(sub)
+    _cli_resolution.register(sub)
     _cli_q4.register(sub)
     _cli_series.register(sub)
     _add_demo(sub)

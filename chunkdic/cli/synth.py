@@ -8,12 +8,13 @@ import time
 from ..errors import InputError
 from ..scheduler import SCHEDULER_HELP, dask_scheduler
 
-FIELDS = ("none", "translation", "affine", "band")
+FIELDS = ("none", "translation", "affine", "band", "star")
 SPECIMENS = ("foam", "grains", "concrete")
 CASES = ("fourier-shift", "shift", "band")
 CT_OPTIONS = ("angles", "filter", "blur", "rings", "gain", "offset", "drift")
 FOAM_OPTIONS = ("cell_size", "bead_size", "wall_width")
 DEFAULT_TRANSLATION = (2.3, -1.4, 0.7)
+DEFAULT_PERIODS = (16.0, 160.0)
 
 
 def register(subparsers) -> None:
@@ -52,6 +53,11 @@ def register(subparsers) -> None:
                    help="band lateral expansion factor (default 0.3)")
     p.add_argument("--band-width", type=float, default=None,
                    help="band width in voxels (default a quarter of the height)")
+    p.add_argument("--amplitude", type=float, default=None,
+                   help="star: amplitude of Ux, voxels (default 0.5)")
+    p.add_argument("--periods", default=None, metavar="PMIN,PMAX",
+                   help="star: period of the sine along z at the first and the last y, voxels "
+                        "(default 16,160: 2 to 20 elements of 8 voxels)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--dtype", choices=("uint8", "uint16", "float32"), default=None,
                    help="default uint8 (foam), uint16 (CT specimens)")
@@ -122,6 +128,11 @@ def build_field(args, shape):
         t = _floats(args.translation, "translation", 3) if args.translation else (0.0, 0.0, 0.0)
         a = ((strain, 0.0, shear), (0.0, 0.0, 0.0), (shear, 0.0, 0.0))
         return S.Affine(a, center=center, translation=t)
+    if args.field == "star":
+        amp = 0.5 if args.amplitude is None else args.amplitude
+        pmin, pmax = _floats(args.periods, "periods", 2) if args.periods else DEFAULT_PERIODS
+        return S.Star(amplitude=amp, period_min=pmin, period_max=pmax, y0=0.0, y1=float(max(ny - 1, 1)),
+                      center_z=center[0])
     strain = -0.05 if args.strain is None else args.strain
     width = nz / 4.0 if args.band_width is None else args.band_width
     return S.Band(center_z=center[0], width=width, strain=strain, lateral=args.lateral,
@@ -139,9 +150,15 @@ def _check_options(args) -> None:
                      ("strain", dict(above=-1)), ("shear", {}), ("seed", dict(minimum=0, integer=True)),
                      ("levels", dict(minimum=0, integer=True)), ("chunks", dict(minimum=1, integer=True)),
                      ("angles", dict(minimum=1, integer=True)), ("blur", dict(minimum=0)), ("rings", dict(minimum=0)),
-                     ("gain", dict(above=0)), ("offset", {}), ("drift", {})):
+                     ("gain", dict(above=0)), ("offset", {}), ("drift", {}), ("amplitude", {})):
         if getattr(args, name) is not None:
             number(getattr(args, name), "--" + name.replace("_", "-"), **kw)
+    if args.periods is not None:
+        for v in _floats(args.periods, "periods", 2):
+            number(v, "--periods", above=0)
+    star_only = [o for o in ("amplitude", "periods") if getattr(args, o) is not None]
+    if star_only and (args.field != "star" or args.case is not None):
+        raise InputError(f"--{star_only[0]} only applies to --field star")
     for name in ("translation", "voxel_size"):
         if getattr(args, name) is not None:
             for v in _floats(getattr(args, name), name.replace("_", "-"), 3):

@@ -1,4 +1,4 @@
 from .ctpair import render_ct
-from .fields import Affine, Band, Translation
+from .fields import Affine, Band, Star, Translation
 from .fourier_shift import fourier_shift_scan
 from .synthetic import load_field, standard_case, synthesize

@@ -3,8 +3,9 @@
 A :class:`Field` gives the displacement ``u(X)`` in the reference (Lagrangian) frame and
 its inverse ``X(x)`` with ``X + u(X) = x``; :mod:`chunkdic.synth.foam` renders a deformed
 scan as ``g(x) = f(X(x))``. Fields: :class:`Translation` (rigid), :class:`Affine` (exact
-inverse) and :class:`Band`, the paper's localized compression band (inverse by Newton to
-1e-13). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips
+inverse), :class:`Band`, the paper's localized compression band (inverse by Newton to
+1e-13), and :class:`Star`, a sine along z whose period rises across y (the DIC Challenge
+2.0 star, for the spatial resolution; explicit inverse). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips
 through a pair's ``field.json``. All names are re-exported by :mod:`chunkdic.synth.synthetic`.
 """
 
@@ -25,6 +26,7 @@ __all__ = [
     "Translation",
     "Affine",
     "Band",
+    "Star",
     "true_displacement",
 ]
 
@@ -328,6 +330,74 @@ class Band(Field):
         return {"center_z": self.center_z, "width": self.width, "strain": self.strain,
                 "lateral": self.lateral, "center_y": self.center_y, "center_x": self.center_x,
                 "edge": self.edge}
+
+
+@dataclass(frozen=True)
+class Star(Field):
+    """3-D star: ``Ux = amplitude * sin(2 pi (Z - center_z) / period(Y))``, ``Uz = Uy = 0``.
+
+    The period rises linearly across y, ``period(Y) = period_min + (period_max - period_min)
+    * clip((Y - y0) / (y1 - y0), 0, 1)``, so one scan shows the field at every period from
+    ``period_min`` to ``period_max`` (the star of the DIC Challenge 2.0, Reu et al. 2022, in
+    3-D): a DVC code's measured/imposed amplitude along y gives its spatial resolution
+    ``l10 %`` (:mod:`chunkdic.analysis.resolution`). The phase is zero on the plane
+    ``Z = center_z``, where the fringes of all periods are aligned.
+
+    ``u`` depends on ``(Z, Y)`` alone and moves points along x only, so the inverse is
+    explicit: ``X = (z, y, x - Ux(z, y))``.
+
+    Parameters
+    ----------
+    amplitude : float, voxels
+    period_min, period_max : float, voxels
+        Periods at ``y0`` and ``y1`` (positive).
+    y0, y1 : float, voxels
+        Where the period is ``period_min`` and ``period_max`` (``y0 != y1``); constant
+        beyond them.
+    center_z : float, voxels
+        Plane of zero phase.
+    """
+
+    kind: ClassVar[str] = "star"
+    amplitude: float = 0.5
+    period_min: float = 16.0
+    period_max: float = 160.0
+    y0: float = 0.0
+    y1: float = 255.0
+    center_z: float = 0.0
+
+    def __post_init__(self):
+        for name in ("amplitude", "period_min", "period_max", "y0", "y1", "center_z"):
+            v = float(getattr(self, name))
+            if not np.isfinite(v):
+                raise InputError(f"star parameter {name} must be finite, got {v!r}")
+            object.__setattr__(self, name, v)
+        if self.period_min <= 0 or self.period_max <= 0:
+            raise InputError(f"star periods must be positive, got {self.period_min}, {self.period_max}")
+        if self.y1 == self.y0:
+            raise InputError("star y0 and y1 must differ")
+
+    def period(self, y) -> np.ndarray:
+        """Period of the sine at ``y``, voxels (float64, shape of ``y``)."""
+        s = np.clip((np.asarray(y, dtype=np.float64) - self.y0) / (self.y1 - self.y0), 0.0, 1.0)
+        return self.period_min + (self.period_max - self.period_min) * s
+
+    def _ux(self, zz, yy):
+        return self.amplitude * np.sin(2.0 * np.pi * (zz - self.center_z) / self.period(yy))
+
+    def displacement(self, z, y, x):
+        zz, yy, _ = _xyz(z, y, x)
+        ux = self._ux(zz, yy)
+        zero = np.zeros(zz.shape)
+        return np.stack([zero, zero, ux])
+
+    def inverse(self, z, y, x):
+        zz, yy, xx = _xyz(z, y, x)
+        return np.stack([zz, yy, xx - self._ux(zz, yy)])
+
+    def _json_fields(self):
+        return {"amplitude": self.amplitude, "period_min": self.period_min, "period_max": self.period_max,
+                "y0": self.y0, "y1": self.y1, "center_z": self.center_z}
 
 
 def true_displacement(field: Field, z, y, x) -> np.ndarray:

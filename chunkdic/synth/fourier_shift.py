@@ -38,7 +38,7 @@ from ..errors import InputError
 from ..io.handles import ArrayRef
 from ..inputs import check_finite
 
-__all__ = ["PENCIL_EDGE", "fourier_shift_line", "fourier_shift_scan", "shift_pencil_task"]
+__all__ = ["PENCIL_EDGE", "fourier_shift_line", "fourier_shift_rows", "fourier_shift_scan", "shift_pencil_task"]
 
 #: edge of the (y, x) tile of a pencil and of the chunks of the shifted arrays
 PENCIL_EDGE = 64
@@ -88,6 +88,41 @@ def fourier_shift_line(a: np.ndarray, t: float, axis: int) -> np.ndarray:
     spec *= _shift_factors(n, t).astype(spec.dtype).reshape(shape)
     out = sfft.irfft(spec, n=2 * n, axis=axis, workers=1)
     return np.take(out, np.arange(n), axis=axis).astype(dtype, copy=False)
+
+
+def fourier_shift_rows(a: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Shift each line along the last axis by its own amount: ``out[..., x] = a[..., x - t[...]]``.
+
+    The same mirror-extended phase shift as :func:`fourier_shift_line`, with one shift per
+    line (a field that moves points along x by an amount that depends on ``(z, y)`` only,
+    such as :class:`chunkdic.synth.fields.Star`, maps a scan exactly this way).
+
+    Parameters
+    ----------
+    a : ndarray, shape (..., n), real
+    t : ndarray, shape ``a.shape[:-1]`` (or broadcastable to it), float, samples
+
+    Returns
+    -------
+    ndarray, float32 (float64 input gives float64), shape of ``a``
+    """
+    import scipy.fft as sfft
+
+    a = np.asarray(a)
+    dtype = np.float64 if a.dtype == np.float64 else np.float32
+    a = a.astype(dtype, copy=False)
+    n = a.shape[-1]
+    if n < 2:
+        return a.copy()
+    t = np.broadcast_to(np.asarray(t, np.float64), a.shape[:-1])[..., None]
+    m = 2 * n
+    k = np.arange(m // 2 + 1)
+    phase = np.exp(-2j * np.pi * k * t / m)
+    phase[..., -1] = np.cos(np.pi * t[..., 0])  # Nyquist: real factor, real output
+    ext = np.concatenate([a, a[..., ::-1]], axis=-1)
+    spec = sfft.rfft(ext, axis=-1, workers=1)
+    spec *= phase.astype(spec.dtype)
+    return sfft.irfft(spec, n=m, axis=-1, workers=1)[..., :n].astype(dtype, copy=False)
 
 
 def shift_pencil_task(src: ArrayRef, out_path: str, out_key: str, axis: int, t: float, region,

@@ -16,7 +16,7 @@ import shutil
 import numpy as np
 
 from ..errors import InputError
-from .fields import Affine, Band, Field, Translation, true_displacement
+from .fields import Affine, Band, Field, Star, Translation, true_displacement
 from .foam import INT_HI, INT_LO, TextureParams, as_dask, check_dtype, shape3, texture_params
 
 __all__ = [
@@ -24,6 +24,7 @@ __all__ = [
     "Translation",
     "Affine",
     "Band",
+    "Star",
     "synthesize",
     "true_displacement",
     "load_field",
