@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.settings import Settings
 from ..errors import InputError
 from ..synth.fourier_shift import fourier_shift_scan
 from ..inputs import number
@@ -220,12 +221,19 @@ def check_shift(shift) -> tuple[float, float, float]:
     return t
 
 
+def with_settings(settings: Settings | None, level: int, interpolation: str, options: dict | None):
+    """``level``, ``interpolation`` and ``options`` of the studies that correlate once per element
+    size, with a template :class:`Settings` folded in (its fields before ``options``)."""
+    if settings is None:
+        return level, interpolation, options
+    fields = {k: v for k, v in settings.to_json().items() if k not in ("element_size", "level", "interpolation")}
+    return settings.level, settings.interpolation, {**fields, **(options or {})}
+
+
 def check_plan(scan, sizes, roi, level: int, interpolation: str, options: dict | None = None) -> None:
     """Every element size must fit the scan's ROI at ``level`` (checked before any output)."""
     from ..engine.planning import plan_meshes
     from ..engine.prefilter import face_margin
-    from ..engine.settings import Settings
-
     given = {k: v for k, v in {**PAPER_SETTINGS, **(options or {})}.items() if k in Settings.names()}
     for ell in sizes:
         settings = Settings(element_size=ell, level=level, interpolation=interpolation, **given)  # validates
@@ -239,7 +247,8 @@ PAPER_SETTINGS = {"regularization": "none"}
 
 def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=None, level: int = 0,
                 interpolation: str = "cubic", scheduler=None, overwrite: bool = False,
-                progress: Callable[[dict], None] | None = None, options: dict | None = None) -> UncertaintyReport:
+                progress: Callable[[dict], None] | None = None, options: dict | None = None,
+                settings: Settings | None = None) -> UncertaintyReport:
     """A-priori displacement and strain uncertainty versus element size (paper section 4.2).
 
     Parameters
@@ -273,6 +282,11 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
         without regularisation (:data:`PAPER_SETTINGS`) unless ``options`` asks for one: a
         regularised field's noise depends on ``ℓ_reg`` more than on ``ℓ``.
 
+    settings : Settings, optional
+        Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
+        ``element_size`` is replaced by each of ``element_sizes``, and it sets ``level`` and
+        ``interpolation`` (``options`` still override its fields).
+
     Returns
     -------
     UncertaintyReport
@@ -288,6 +302,7 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     from ..scheduler import check_scheduler
 
     sizes = check_element_sizes(element_sizes)
+    level, interpolation, options = with_settings(settings, level, interpolation, options)
     t = check_shift(shift)
     level = number(level, "level", minimum=0, integer=True)
     src_scan = open_scan(scan)

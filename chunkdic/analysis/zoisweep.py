@@ -13,6 +13,7 @@ import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from ..engine.settings import Settings
 from ..errors import InputError
 from ..inputs import number
 from .metrology import (
@@ -20,6 +21,7 @@ from .metrology import (
     UncertaintyReport,
     check_element_sizes,
     check_plan,
+    with_settings,
     check_shift,
     uncertainty,
     write_table,
@@ -110,7 +112,8 @@ def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dic
 def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, level: int = 0,
           interpolation: str = "cubic", uncertainty_from=None, a_priori: bool = True, shift=0.5,
           scheduler=None, overwrite: bool = False,
-          progress: Callable[[dict], None] | None = None, options: dict | None = None) -> dict:
+          progress: Callable[[dict], None] | None = None, options: dict | None = None,
+          settings: Settings | None = None) -> dict:
     """The ZOI-size sweep of paper Table 1: correlate for each element size, tabulate.
 
     Parameters
@@ -136,6 +139,11 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
         More :class:`chunkdic.Settings` fields; as for :func:`uncertainty`, the paper's
         analysis runs without regularisation unless asked for (:data:`PAPER_SETTINGS`).
 
+    settings : Settings, optional
+        Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
+        ``element_size`` is replaced by each of ``element_sizes``, and it sets ``level`` and
+        ``interpolation`` (``options`` still override its fields).
+
     Returns
     -------
     dict
@@ -147,6 +155,7 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     from ..io.scan import open_scan
 
     sizes = check_element_sizes(element_sizes)
+    level, interpolation, options = with_settings(settings, level, interpolation, options)
     level = number(level, "level", minimum=0, integer=True)
     check_shift(shift)
     f_scan = open_scan(ref)

@@ -150,3 +150,21 @@ def test_sweep_table(affine_pair, uncertainty_dir, tmp_path):
                                  "-o", str(tmp_path / "table")])
     assert args.func(args) == 0
     assert (tmp_path / "table" / "zoi_table.md").read_text() == md
+
+
+def test_studies_take_settings_like_correlate():
+    """``sweep``/``uncertainty(settings=...)``: the template's fields reach every correlation
+    (its element size replaced per size), ``options`` still override them."""
+    from chunkdic.analysis.metrology import with_settings
+    from chunkdic.engine.settings import Settings
+
+    template = Settings(element_size=99, level=1, interpolation="linear", smoothing=0.0, regularization="tikhonov")
+    level, interp, options = with_settings(template, 0, "cubic", {"tolerance": 1e-4, "smoothing": 0.5})
+    assert (level, interp) == (1, "linear")
+    assert "element_size" not in options and options["regularization"] == "tikhonov"
+    assert options["smoothing"] == 0.5 and options["tolerance"] == 1e-4
+    assert with_settings(None, 2, "cubic", None) == (2, "cubic", None)
+    import inspect
+
+    for fn in (zoisweep.sweep, metrology.uncertainty):
+        assert "settings" in inspect.signature(fn).parameters
