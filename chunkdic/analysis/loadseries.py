@@ -114,10 +114,10 @@ def compose(cumulative: Result, increment: Result) -> np.ndarray:
     ndarray, shape (3, nz, ny, nx), float64, voxels
         ``u_{0→k-1}(X) + u_{k-1→k}(X + u_{0→k-1}(X))``; NaN where ``u_{0→k-1}`` is.
     """
-    if int(cumulative.info.get("level", 0)) != int(increment.info.get("level", 0)):
+    if cumulative.level != increment.level:
         raise InputError("compose: both fields must be on the same pyramid level")
     X, u = cumulative.node_coords, cumulative.displacement
-    level = int(increment.info.get("level", 0))
+    level = increment.level
     return u + carry_field(filled(increment.displacement), increment.mesh, level, X + np.nan_to_num(u), level,
                            clamp=True)
 
@@ -370,7 +370,7 @@ def _row(res: Result, k: int, pair: str, kind: str, group: str, run: str, second
     return {"step": k, "pair": pair, "kind": kind, "group": group, "status": str(res.info.get("status")),
             "run": run, "gap": None if gap is None or not np.isfinite(gap) else float(gap),
             "mean": [float(np.nanmean(u[c])) for c in range(3)], "eps_zz": eps_zz, "seconds": round(seconds, 2),
-            "level": int(res.info.get("level", 0))}
+            "level": res.level}
 
 
 def _emit(progress, **event) -> None:

@@ -91,7 +91,7 @@ def init_identity(res: Result) -> dict:
     return {"path": None if res.path is None else str(Path(res.path).resolve()),
             "fingerprint": res.info.get("fingerprint"), "created": res.info.get("created"),
             "displacement_sha256": hashlib.sha256(u.tobytes()).hexdigest()[:32],
-            "element_size": res.info.get("element_size"), "level": int(res.info.get("level", 0))}
+            "element_size": res.info.get("element_size"), "level": res.level}
 
 
 def filled(u: np.ndarray) -> np.ndarray:
@@ -121,5 +121,5 @@ def start_field(res: Result, mesh: Mesh, level: int) -> np.ndarray:
     -------
     ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
     """
-    return carry_field(filled(res.displacement), res.mesh, int(res.info.get("level", 0)), mesh.node_coords(), level,
+    return carry_field(filled(res.displacement), res.mesh, res.level, mesh.node_coords(), level,
                        clamp=True)

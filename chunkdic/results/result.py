@@ -200,7 +200,7 @@ class Result:
 
     def _var_attrs(self, name: str, layout=None) -> dict:
         _, units, text = (layout or LAYOUT)[name]
-        level = int(self.info.get("level", 0))
+        level = self.level
         long_name = text + (f" (voxels of level {level})" if units == "voxel" and level else "")
         return {"units": units, "long_name": long_name}
 
@@ -246,19 +246,18 @@ class Result:
         ``info["unit"]`` (``scale`` level-0 voxels times the scan's voxel size); ``None``
         when the scan had no voxel size. A displacement in level voxels times this is a
         displacement in the physical unit."""
-        vs = self.info.get("voxel_size")
-        if not vs:
+        if self.voxel_size is None:
             return None
-        return float(self.info.get("scale", 1)) * np.asarray(vs, dtype=np.float64)
+        return self.scale * np.asarray(self.voxel_size, dtype=np.float64)
 
     def _physical_coords(self, arrays: dict) -> dict:
         """Node positions in the scan's physical unit, ``{"z_physical": ("z", …), …}``
         (empty without a voxel size)."""
-        vs = self.info.get("voxel_size")
-        if not vs:
+        vs = self.voxel_size
+        if vs is None:
             return {}
-        scale = float(self.info.get("scale", 1))
-        unit = self.info.get("unit") or "unit"
+        scale = self.scale
+        unit = self.unit or "unit"
         out = {}
         for axis, name in enumerate("zyx"):
             level0 = level0_position(arrays[name], scale)

@@ -79,7 +79,7 @@ def level_refs(result: Result, ref=None, deformed=None, *, scans=None):
     :func:`input_scans` (then ``ref`` and ``deformed`` are not used); default: opened here.
     """
     f_scan, g_scan = scans if scans is not None else input_scans(result, ref, deformed)
-    s = int(result.info.get("level", 0))
+    s = result.level
     scratch = make_scratch("chunkdic-export-")
     try:
         f_ref = f_scan.refs([s], scratch / "ref")[s]
