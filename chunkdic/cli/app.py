@@ -226,6 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     from . import scan as _cli_scan
     from . import series as _cli_series
     from . import synth as _cli_synth
+    from . import view as _cli_view
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
                      formatter_class=_HelpFormatter)
@@ -238,6 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_report.register(sub)
     _cli_q4.register(sub)
     _cli_series.register(sub)
+    _cli_view.register(sub)
     _add_demo(sub)
     p = sub.add_parser("versions", help="print versions for bug reports",
                        description="Print the versions of Python, chunkdic and its dependencies, for bug reports.")
