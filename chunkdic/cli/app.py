@@ -6,8 +6,10 @@ Bad input gets one line on stderr and exit status 2, with nothing written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import logging
+import os
 import sys
 import time
 import warnings
@@ -276,6 +278,32 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 _FS_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG, errno.EIO}
 
 
+@contextlib.contextmanager
+def _dask_logs(verbose: bool):
+    """Dask's cluster logs (scheduler, nanny and worker lines of ``distributed``, ~50 lines
+    for a ``local:2`` run) below WARNING during a command unless ``-v``: in this process's
+    ``dask.config`` and in the environment that a LocalCluster's worker processes inherit.
+    A level the user set (``DASK_LOGGING__DISTRIBUTED``, a Dask YAML file) is kept; both are
+    restored afterwards (``main`` also runs inside other programs and tests)."""
+    import dask.config
+
+    key = "DASK_LOGGING__DISTRIBUTED"
+    if verbose or key in os.environ or dask.config.get("logging.distributed", "info") != "info":
+        yield
+        return
+    logger = logging.getLogger("distributed")
+    level = logger.level
+    os.environ[key] = "warning"
+    try:
+        with dask.config.set({"logging.distributed": "warning"}):
+            logger.setLevel(logging.WARNING)  # distributed sets it from dask.config when imported
+            yield
+    finally:
+        del os.environ[key]
+        # distributed imported meanwhile would have set its default, INFO
+        logger.setLevel(logging.INFO if level == logging.NOTSET and "distributed" in sys.modules else level)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -287,7 +315,8 @@ def main(argv=None) -> int:
     if args.verbosity < 0:
         sys.stderr = _QuietStderr(stderr)
     try:
-        return _dispatch(args)
+        with _dask_logs(args.verbosity > 0):
+            return _dispatch(args)
     finally:
         sys.stderr = stderr
 
