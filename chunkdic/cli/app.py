@@ -155,6 +155,26 @@ def _compile_in_background():
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for m in ("kernels", "solve")]
 
 
+def _wait_for_compile(processes, *, every: float | None = None, clock=time.monotonic, sleep=time.sleep) -> float:
+    """Wait for the compiling processes, saying every ``every`` seconds (default
+    :data:`~chunkdic.cli.common.PROGRESS_SECONDS`) how many are done, so that a first run
+    is never silent; returns the seconds waited."""
+    from .common import PROGRESS_SECONDS
+
+    every = PROGRESS_SECONDS if every is None else every
+    t0 = last = clock()
+    while True:
+        done = sum(p.poll() is not None for p in processes)
+        now = clock()
+        if done == len(processes):
+            return now - t0
+        if now - last >= every:
+            say(f"  compiling the numba kernels: {done} of {len(processes)} processes done "
+                f"({now - t0:.0f} s; first run on this machine only)")
+            last = now
+        sleep(0.2)
+
+
 def _demo(args) -> int:
     from ..synth import synthetic
     from ..engine.driver import correlate
@@ -170,10 +190,8 @@ def _demo(args) -> int:
     compiling = _compile_in_background()
     paths = synthetic.synthesize(out, (args.size,) * 3, field=field, seed=args.seed)
     if compiling:  # the kernels were being compiled into numba's cache meanwhile
-        t = time.perf_counter()
-        for process in compiling:
-            process.wait()
-        say(f"kernels compiled (waited {time.perf_counter() - t:.1f} s after the synthesis)")
+        waited = _wait_for_compile(compiling)
+        say(f"kernels compiled (waited {waited:.1f} s after the synthesis)")
     t0 = time.perf_counter()
     result = correlate(paths["reference"], paths["deformed"], element_size=args.element_size,
                        scheduler=args.scheduler, output=result_path, progress=print_progress)

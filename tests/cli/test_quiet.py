@@ -93,3 +93,26 @@ def test_dask_cluster_logs_only_with_verbose(tmp_path):
     assert len(lines) <= 15, quiet.stderr  # measured: 11 (start, M, rigid steps, iterations, summary)
     verbose = subprocess.run(cmd + ["-o", str(tmp_path / "v.zarr"), "-v"], capture_output=True, text=True)
     assert verbose.returncode == 0 and any(s in verbose.stderr for s in DASK_LINES)
+
+
+def test_demo_says_it_is_compiling_every_5_seconds(capsys):
+    """A first run of the demo waits for its compiling processes: a line every 5 s, not silence."""
+    from chunkdic.cli.app import _wait_for_compile
+
+    clock = Clock()
+
+    class Compiling:
+        def __init__(self, seconds):
+            self.end = clock.now + seconds
+
+        def poll(self):
+            return 0 if clock.now >= self.end else None
+
+    def sleep(dt):
+        clock.now += dt
+
+    waited = _wait_for_compile([Compiling(7.0), Compiling(16.0)], clock=clock, sleep=sleep)
+    lines = capsys.readouterr().err.splitlines()
+    assert waited == pytest.approx(16.0, abs=0.3)
+    assert [line.split(":")[1].split("(")[0].strip() for line in lines] == [
+        "0 of 2 processes done", "1 of 2 processes done", "1 of 2 processes done"]
