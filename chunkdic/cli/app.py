@@ -6,8 +6,10 @@ Bad input gets one line on stderr and exit status 2, with nothing written.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import errno
 import logging
+import os
 import sys
 import time
 import warnings
@@ -153,6 +155,26 @@ def _compile_in_background():
                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for m in ("kernels", "solve")]
 
 
+def _wait_for_compile(processes, *, every: float | None = None, clock=time.monotonic, sleep=time.sleep) -> float:
+    """Wait for the compiling processes, saying every ``every`` seconds (default
+    :data:`~chunkdic.cli.common.PROGRESS_SECONDS`) how many are done, so that a first run
+    is never silent; returns the seconds waited."""
+    from .common import PROGRESS_SECONDS
+
+    every = PROGRESS_SECONDS if every is None else every
+    t0 = last = clock()
+    while True:
+        done = sum(p.poll() is not None for p in processes)
+        now = clock()
+        if done == len(processes):
+            return now - t0
+        if now - last >= every:
+            say(f"  compiling the numba kernels: {done} of {len(processes)} processes done "
+                f"({now - t0:.0f} s; first run on this machine only)")
+            last = now
+        sleep(0.2)
+
+
 def _demo(args) -> int:
     from ..synth import synthetic
     from ..engine.driver import correlate
@@ -168,10 +190,8 @@ def _demo(args) -> int:
     compiling = _compile_in_background()
     paths = synthetic.synthesize(out, (args.size,) * 3, field=field, seed=args.seed)
     if compiling:  # the kernels were being compiled into numba's cache meanwhile
-        t = time.perf_counter()
-        for process in compiling:
-            process.wait()
-        say(f"kernels compiled (waited {time.perf_counter() - t:.1f} s after the synthesis)")
+        waited = _wait_for_compile(compiling)
+        say(f"kernels compiled (waited {waited:.1f} s after the synthesis)")
     t0 = time.perf_counter()
     result = correlate(paths["reference"], paths["deformed"], element_size=args.element_size,
                        scheduler=args.scheduler, output=result_path, progress=print_progress)
@@ -227,6 +247,7 @@ def build_parser() -> argparse.ArgumentParser:
     from . import scan as _cli_scan
     from . import series as _cli_series
     from . import synth as _cli_synth
+    from . import view as _cli_view
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
                      formatter_class=_HelpFormatter)
@@ -240,6 +261,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_resolution.register(sub)
     _cli_q4.register(sub)
     _cli_series.register(sub)
+    _cli_view.register(sub)
     _add_demo(sub)
     p = sub.add_parser("versions", help="print versions for bug reports",
                        description="Print the versions of Python, chunkdic and its dependencies, for bug reports.")
@@ -276,6 +298,32 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 _FS_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG, errno.EIO}
 
 
+@contextlib.contextmanager
+def _dask_logs(verbose: bool):
+    """Dask's cluster logs (scheduler, nanny and worker lines of ``distributed``, ~50 lines
+    for a ``local:2`` run) below WARNING during a command unless ``-v``: in this process's
+    ``dask.config`` and in the environment that a LocalCluster's worker processes inherit.
+    A level the user set (``DASK_LOGGING__DISTRIBUTED``, a Dask YAML file) is kept; both are
+    restored afterwards (``main`` also runs inside other programs and tests)."""
+    import dask.config
+
+    key = "DASK_LOGGING__DISTRIBUTED"
+    if verbose or key in os.environ or dask.config.get("logging.distributed", "info") != "info":
+        yield
+        return
+    logger = logging.getLogger("distributed")
+    level = logger.level
+    os.environ[key] = "warning"
+    try:
+        with dask.config.set({"logging.distributed": "warning"}):
+            logger.setLevel(logging.WARNING)  # distributed sets it from dask.config when imported
+            yield
+    finally:
+        del os.environ[key]
+        # distributed imported meanwhile would have set its default, INFO
+        logger.setLevel(logging.INFO if level == logging.NOTSET and "distributed" in sys.modules else level)
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -287,7 +335,8 @@ def main(argv=None) -> int:
     if args.verbosity < 0:
         sys.stderr = _QuietStderr(stderr)
     try:
-        return _dispatch(args)
+        with _dask_logs(args.verbosity > 0):
+            return _dispatch(args)
     finally:
         sys.stderr = stderr
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import sys
+import time
 
 
 def say(msg: str) -> None:
@@ -112,6 +113,55 @@ def print_progress(event: dict) -> None:
         say(line)
 
 
+#: the shortest time between two progress lines of a step (the engine's block passes use the
+#: same, :data:`chunkdic.engine.level.PROGRESS_SECONDS`)
+PROGRESS_SECONDS = 5.0
+
+
+class Progress:
+    """Progress lines of one long step on stderr: at most one per ``every`` seconds.
+
+    ``progress(fraction, stage=None)`` is what the writers call (``fraction`` in [0, 1] of
+    the whole step, ``stage`` naming its part); a line with the fraction, the elapsed time
+    and an ETA is said only when ``every`` seconds have passed since the step started or
+    since its last line. :meth:`done` says ``STEP: 100%`` unless a line came less than
+    ``every`` seconds before (the summary that follows says it is done). So a step shorter
+    than ``every`` prints its 100 % line only, and no two progress lines of a step are less
+    than ``every`` apart. ``header`` is said with the first call, once the inputs and
+    outputs have been checked (a refused run prints its error line only).
+
+    """
+
+    def __init__(self, step: str, *, header: str | None = None, every: float = PROGRESS_SECONDS,
+                 clock=time.monotonic, indent: str = "  "):
+        self.step, self.header, self.every, self.clock, self.indent = step, header, every, clock, indent
+        self.t0 = self.last = clock()
+        self.lines = 0
+
+    def _header(self) -> None:
+        if self.header:
+            say(self.header)
+            self.header = None
+
+    def __call__(self, fraction: float, stage: str | None = None) -> None:
+        self._header()
+        now = self.clock()
+        if fraction < 1 and now - self.last >= self.every:
+            elapsed = now - self.t0
+            eta = f", ETA {elapsed * (1 - fraction) / fraction:.0f} s" if fraction > 0 else ""
+            part = f" ({stage})" if stage and stage != self.step else ""
+            say(f"{self.indent}{self.step}: {fraction:4.0%}{part} ({elapsed:.1f} s{eta})")
+            self.last, self.lines = now, self.lines + 1
+
+    def done(self) -> None:
+        """The step's 100 % line, unless a line came less than ``every`` seconds ago."""
+        self._header()
+        now = self.clock()
+        if not self.lines or now - self.last >= self.every:
+            say(f"{self.indent}{self.step}: 100% ({now - self.t0:.1f} s)")
+            self.last, self.lines = now, self.lines + 1
+
+
 def add_length_options(p, *, every_step: str = "") -> None:
     """``--element-size``, ``--roi`` and ``--roi-unit``, in voxels or a physical unit
     (:mod:`chunkdic.io.units`), declared once (``correlate``, ``series``); ``every_step``: a
@@ -186,3 +236,31 @@ def engine_options(args) -> dict:
 
     return {**{name: getattr(args, name) for name, _ in Settings.options()}, "mask": args.mask,
             "scheduler": args.scheduler}
+
+
+#: what a voxel size without a unit is told (issue 23: a bare number was silently read as µm)
+NO_UNIT = ("{option} {value} has no unit: add it ({option} {value}um) or give --unit (micrometer/um, "
+           "millimeter/mm, nanometer/nm); a voxel size's unit is never guessed")
+
+
+def voxel_size_option(text, unit, option: str = "--voxel-size") -> tuple[str | None, str | None]:
+    """``--voxel-size`` and ``--unit`` as ``(numbers, unit)``: the unit given with ``--unit``
+    or as a suffix (``6.5um``, ``5,2.5,2.5um``); a voxel size without either is refused
+    (one line), as are two different units. ``(None, unit)`` without a voxel size."""
+    from ..errors import InputError
+    from ..io.ngff import normalize_unit
+    from ..io.units import parse_length
+
+    if text is None:
+        return None, unit
+    parts = [p for p in str(text).replace(" ", ",").split(",") if p]
+    parsed = [parse_length(p, option) for p in parts]
+    for value, _ in parsed:
+        if not (math.isfinite(value) and value > 0):
+            raise InputError(f"{option} {text!r} must be one positive number or 3 (z,y,x)")
+    units = {u for _, u in parsed if u} | ({normalize_unit(unit)} if unit else set())
+    if len(units) > 1:
+        raise InputError(f"{option} {text!r} and --unit {unit} name different units: give one")
+    if not units:
+        raise InputError(NO_UNIT.format(option=option, value=text))
+    return ",".join(repr(v) for v, _ in parsed), units.pop()

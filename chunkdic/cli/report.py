@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import add_figure_options, say
+from .common import Progress, add_figure_options, say
 from ..errors import InputError
 
 
@@ -143,14 +143,27 @@ def _shift(text: str):
     return tuple(vals * 3) if len(vals) == 1 else tuple(vals)
 
 
+#: the progress of the Fourier shift under way (its events carry fractions)
+_SHIFT: dict = {}
+
+
+def _whole(stage: str, f: float) -> float:
+    """The fraction of a whole fields export from its stage's (level 0 ~ 90 % of the work:
+    its tasks evaluate the field and the residual; the pyramid levels are means)."""
+    return 0.9 * f if stage == "fields" else 0.9 + 0.1 * f
+
+
 def _progress(event: dict) -> None:
     from .common import format_event
 
     stage = event.get("stage")
     if stage == "shift":
         f = event["fraction"]
-        if f >= 1 or int(10 * f) != int(10 * (f - 1e-9)):
-            say(f"  Fourier shift: {f:4.0%} ({event['seconds']:.1f} s)")
+        if f <= 0 or "shift" not in _SHIFT:  # a new shift (one per uncertainty run)
+            _SHIFT["shift"] = Progress("Fourier shift")
+        _SHIFT["shift"](f)
+        if f >= 1:
+            _SHIFT.pop("shift").done()
         return
     if stage == "element-size":
         say(f"== element size {event['element_size']} ==")
@@ -366,16 +379,10 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
                                          name=Path(args.csv).name)
         say(f"{args.csv}: {n} nodes (metadata in {export.csv_sidecar(args.csv)})")
     if args.corrected:
-        t0 = time.perf_counter()
-        last = [0.0]
-
-        def progress(f):
-            if f >= 1 or f - last[0] >= 0.1:
-                last[0] = f
-                say(f"  corrected image: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
-
+        progress = Progress("corrected image")
         out = write_corrected(res, work["corrected"], ref=args.ref, deformed=args.deformed,
                               scheduler=args.scheduler, progress=progress)
+        progress.done()
         say(f"{args.corrected}: corrected and residual, gap {100 * out['gap']:.3f}% over {out['valid']} voxels "
              f"({out['excluded']} excluded)")
     if args.fields:
@@ -386,15 +393,9 @@ def _export_fields(res, args: argparse.Namespace, work) -> None:
     """``export --fields``: the fields image into the staged path ``work``, with progress lines."""
     from ..views.fields import CHANNELS, write_fields
 
-    t0 = time.perf_counter()
-    last = {}
-
-    def progress(stage, f):
-        if f >= 1 or f - last.get(stage, 0.0) >= 0.1:
-            last[stage] = f
-            say(f"  {stage}: {f:4.0%} ({time.perf_counter() - t0:.1f} s)")
-
+    progress = Progress("fields")  # its stages: "fields" (level 0), then "level t" of the pyramid
     out = write_fields(res, work, ref=args.ref, deformed=args.deformed, units=args.units,
-                       scheduler=args.scheduler, progress=progress)
+                       scheduler=args.scheduler, progress=lambda stage, f: progress(_whole(stage, f), stage))
+    progress.done()
     say(f"{args.fields}: {', '.join(CHANNELS)} on {len(out['levels'])} levels "
          f"({'x'.join(map(str, out['levels'][0]))} voxels at level 0, {out['voxels']} in the ROI)")

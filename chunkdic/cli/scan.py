@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from ..scheduler import SCHEDULER_HELP, dask_scheduler
-from .common import say
+from .common import Progress, say, voxel_size_option
 
 
 def register(subparsers) -> None:
@@ -22,8 +22,11 @@ def register(subparsers) -> None:
     )
     p.add_argument("src", metavar="SRC")
     p.add_argument("out", metavar="OUT.zarr", help="scan group to create (missing parent directories are made)")
-    p.add_argument("--voxel-size", metavar="V", help="voxel size: one number or Z,Y,X (default: from metadata)")
-    p.add_argument("--unit", help="length unit of --voxel-size, e.g. micrometer (um), millimeter (mm)")
+    p.add_argument("--voxel-size", metavar="V",
+                   help="voxel size with its unit: 6.5um, or one number or Z,Y,X with --unit (default: from metadata)")
+    p.add_argument("--unit", "--voxel-unit", dest="unit",
+                   help="length unit of --voxel-size, e.g. micrometer (um), millimeter (mm); required with a bare "
+                        "--voxel-size (a unit is never guessed)")
     p.add_argument("--chunks", type=int, metavar="N", help="Zarr chunk edge in voxels (default 128)")
     p.add_argument("--shape", metavar="Z,Y,X", help="raw input: array shape")
     p.add_argument("--dtype", help="raw input: uint8, uint16, float32 (also int16, uint32, int32, float64)")
@@ -49,24 +52,6 @@ def register(subparsers) -> None:
                         "one contrast window for every level (default: off)")
     q.add_argument("--scheduler", default=None, help=SCHEDULER_HELP + "; its workers must see SCAN.zarr")
     q.set_defaults(func=run_pyramid)
-
-
-class _Printer:
-    """Progress lines on stderr, every 10 %; ``header`` is printed with the first call, once
-    the inputs and outputs have been checked (a refused run prints its error line only)."""
-
-    def __init__(self, step: str, header: str | None = None):
-        self.step, self.next, self.t0 = step, 0.1, time.perf_counter()
-        self.header = header
-
-    def __call__(self, frac: float) -> None:
-        if self.header:
-            say(self.header)
-            self.header = None
-        if frac + 1e-9 >= self.next:
-            say(f"  {self.step}: {min(frac, 1.0):4.0%}  ({time.perf_counter() - self.t0:.1f} s)")
-            while self.next <= frac + 1e-9:
-                self.next += 0.1
 
 
 def _du(path: Path) -> int:
@@ -98,6 +83,7 @@ def run_ingest(args: argparse.Namespace) -> int:
         raise InputError(f"--chunks must be a positive integer, got {args.chunks}")
     if args.offset < 0:
         raise InputError(f"--offset must be >= 0, got {args.offset}")
+    args.voxel_size, args.unit = voxel_size_option(args.voxel_size, args.unit)
     with dask_scheduler(args.scheduler, announce=say):
         return _ingest(args)
 
@@ -109,11 +95,11 @@ def _ingest(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     # level 0 and the pyramid are written together, in a staged copy renamed into place at
     # the end (chunkdic.io.outputs): all or nothing
+    progress = Progress("ingest" + (" + pyramid" if args.levels else ""), header=f"ingest {args.src} -> {args.out}{levels}")
     scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
                   shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
-                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels,
-                  progress=_Printer("ingest" + (" + pyramid" if args.levels else ""),
-                                    header=f"ingest {args.src} -> {args.out}{levels}"))
+                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels, progress=progress)
+    progress.done()
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
     return 0
 
@@ -128,8 +114,9 @@ def run_pyramid(args: argparse.Namespace) -> int:
               + (f" (complete already: {[s for s in before if s]})" if len(before) > 1 and not args.overwrite else ""))
     with dask_scheduler(args.scheduler, announce=say):
         t0 = time.perf_counter()
-        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite,
-                             progress=_Printer("pyramid", header=header))
+        progress = Progress("pyramid", header=header)
+        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=progress)
+        progress.done()
         if args.display:
             from ..io.display import write_display
 

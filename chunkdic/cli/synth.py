@@ -7,6 +7,7 @@ import time
 
 from ..errors import InputError
 from ..scheduler import SCHEDULER_HELP, dask_scheduler
+from .common import Progress
 
 FIELDS = ("none", "translation", "affine", "band", "star")
 SPECIMENS = ("foam", "grains", "concrete")
@@ -64,7 +65,7 @@ def register(subparsers) -> None:
     p.add_argument("--chunks", type=int, default=None, help="chunk edge (default 128)")
     p.add_argument("--levels", type=int, default=0, help="pyramid levels to build")
     p.add_argument("--voxel-size", default=None, help="s or sz,sy,sx (physical units; default: none, sizes in voxels)")
-    p.add_argument("--unit", default=None, help="length unit, e.g. micrometer")
+    p.add_argument("--unit", default=None, help="length unit of --voxel-size (required with it), e.g. micrometer")
     p.add_argument("--cell-size", type=float, default=None, help="foam: mean cell size, voxels (default 8)")
     p.add_argument("--bead-size", type=float, default=None, help="foam: mean bead size, voxels (default 64)")
     p.add_argument("--wall-width", type=float, default=None,
@@ -163,6 +164,9 @@ def _check_options(args) -> None:
         if getattr(args, name) is not None:
             for v in _floats(getattr(args, name), name.replace("_", "-"), 3):
                 number(v, "--" + name.replace("_", "-"), above=0 if name == "voxel_size" else None)
+    if args.voxel_size is not None and args.unit is None:
+        raise InputError(f"--voxel-size {args.voxel_size} has no unit: give --unit (micrometer/um, millimeter/mm, "
+                         "nanometer/nm); a voxel size's unit is never guessed")
 
 
 def _specimen_options(args) -> dict:
@@ -200,18 +204,10 @@ def run(args) -> int:
     check_scheduler(args.scheduler)
     plan = Outputs(overwrite=args.overwrite)
     plan.add(args.out_dir, "synth")  # checked before anything is written; removed if the run fails
-    last = [-1]
     t0 = time.perf_counter()
-    header = [f"synth: {args.out_dir} {args.specimen} shape {shape}, field {'none' if fld is None else fld.to_json()}"]
-
-    def progress(frac: float) -> None:
-        if header:  # printed once writing starts: a refused run prints its error line only
-            print(header.pop(), file=sys.stderr, flush=True)
-        pct = min(100, int(100 * frac))
-        if pct >= last[0] + 5 or (pct == 100 and last[0] < 100):
-            last[0] = pct
-            print(f"synth: {pct:3d}% ({time.perf_counter() - t0:.1f} s)", file=sys.stderr,
-                  flush=True)
+    # the header is said once writing starts: a refused run prints its error line only
+    progress = Progress("synth", header=f"synth: {args.out_dir} {args.specimen} shape {shape}, field "
+                                        f"{'none' if fld is None else fld.to_json()}", indent="")
 
     with plan, dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr,
                                                                           flush=True)):
@@ -221,6 +217,7 @@ def run(args) -> int:
             progress=progress, specimen=args.specimen, noise=args.noise, fourier_shift=fourier,
             **extra,
         )
+        progress.done()
     dt = time.perf_counter() - t0
     nvox = 2 * shape[0] * shape[1] * shape[2]
     print(f"synth: wrote {res['reference']} and {res['deformed']} ({nvox / dt / 1e6:.2f} "

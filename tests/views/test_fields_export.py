@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import dask.config
 import numpy as np
@@ -167,9 +168,13 @@ def test_cli_export_fields_and_refusals(affine, tmp_path, capsys):
     pair, res, d, _ = affine
     result = str(d / "result.zarr")
     out = tmp_path / "f.zarr"
+    t0 = time.monotonic()
     assert main(["export", result, "--fields", str(out)]) == 0
+    seconds = time.monotonic() - t0
     cap = capsys.readouterr()
     assert cap.out.strip() == str(out) and "fields: 100%" in cap.err and "on 3 levels" in cap.err
+    # progress at most one line per 5 s (issue 23: 22 lines for 100³), its 100 % line included
+    assert len([line for line in cap.err.splitlines() if "%" in line]) <= 1 + seconds // 5
     assert json.loads((out / "zarr.json").read_text())["attributes"]["ome"]["multiscales"][0]["name"] == "f.zarr"
     # an existing fields image: refused without --overwrite, replaced with it
     assert main(["export", result, "--fields", str(out)]) == 2
