@@ -154,11 +154,14 @@ class Result:
         ell = int(self.info["element_size"])
         return Mesh(tuple(int(a) for a, _ in roi), ell, tuple((b - a) // ell for a, b in roi))
 
-    def element_strain(self) -> np.ndarray:
-        """Element strains ``(3, 3, ez, ey, ex)`` (stored, else computed and kept)."""
-        if self.strain is None:
-            from .strain import element_strain
+    def element_strain(self, measure: str = "small") -> np.ndarray:
+        """Element strains ``(3, 3, ez, ey, ex)``: the small strain stored (else computed and
+        kept), or another measure of :mod:`chunkdic.results.strain` (``"green-lagrange"``), computed."""
+        from .strain import check_measure, element_strain
 
+        if check_measure(measure) != "small":
+            return element_strain(self.displacement, self.info["element_size"], measure)
+        if self.strain is None:
             self.strain = element_strain(self.displacement, self.info["element_size"])
         return self.strain
 

@@ -44,6 +44,7 @@ from .images import field_levels, scan_frame, write_image
 from ..mesh import Block, Mesh, level_to_level
 from ..io.outputs import Outputs
 from ..results.result import Result
+from ..results.strain import DEFAULT_MEASURE, check_measure
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +73,8 @@ class FieldsJob:
         The image group being written (its level arrays ``"0"``, ``"1"``, …).
     correction : Correction or None
         How to compute the residual (None: the residual channel stays NaN).
+    strain : str
+        Strain measure of ``eps_zz`` and ``eps_eq`` (:mod:`chunkdic.results.strain`).
     """
 
     mesh: Mesh
@@ -80,6 +83,7 @@ class FieldsJob:
     factor: tuple[float, float, float]
     out: str
     correction: object | None
+    strain: str = "small"
 
 
 def roi_level0(mesh: Mesh, level: int) -> tuple[tuple[int, int], ...]:
@@ -194,7 +198,7 @@ def fields_values(job: FieldsJob, region, block: Block, u_block: np.ndarray, bri
     pos = [_level_positions(v, s) for v in x0]
     u = sub.evaluate_grid(u_block, pos) * np.asarray(job.factor).reshape(3, 1, 1, 1)
     k = [sub.element_index(axis, p)[0] for axis, p in enumerate(pos)]
-    eps = element_strain(u_block, ell)
+    eps = element_strain(u_block, ell, job.strain)
     per_voxel = np.ix_(*k)
     values = out[at]  # a view: the channels are computed in place
     values[0:3] = u
@@ -231,7 +235,7 @@ def fields_task(job: FieldsJob, region, block: Block, u_block, brightness, activ
 
 def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True, units: str = "voxels",
                  levels: int | None = None, scheduler=None, overwrite: bool = False,
-                 progress: Callable[[str, float], None] | None = None) -> dict:
+                 progress: Callable[[str, float], None] | None = None, strain: str = DEFAULT_MEASURE) -> dict:
     """Write the voxel-wise fields of a result as one OME-NGFF 0.5 image on the scan's grid.
 
     Parameters
@@ -258,6 +262,9 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
         Replace a fields image an earlier export wrote (nothing else).
     progress : callable(str, float), optional
         ``(stage, fraction)``: ``"fields"`` then ``"level t"``.
+    strain : {"green-lagrange", "small"}, keyword-only
+        Measure of the ``eps_zz`` and ``eps_eq`` channels (default Green–Lagrange: zero for a
+        rigid rotation); recorded in the image's ``chunkdic`` attributes (``strain_measure``).
 
     Returns
     -------
@@ -273,6 +280,7 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
 
     result = as_result(result)
     result.check_displacement()
+    check_measure(strain)
     if units not in ("voxels", "physical"):
         raise InputError(f"units must be voxels or physical, got {units!r}")
     if levels is not None and (int(levels) != levels or levels < 0):
@@ -294,7 +302,7 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
     entry = plan.add(out, "fields")
     with plan:
         return _write(result, entry.work, Path(out), scans if residual else None, shape0, (scale0, shift0, unit),
-                      factor, disp_unit, field_levels(shape0, levels), scheduler, progress)
+                      factor, disp_unit, field_levels(shape0, levels), scheduler, progress, strain)
 
 
 def _scans(result: Result, ref, deformed, residual: bool) -> tuple:
@@ -309,7 +317,7 @@ def _scans(result: Result, ref, deformed, residual: bool) -> tuple:
 
 
 def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, disp_unit: str, shapes,
-           scheduler, progress) -> dict:
+           scheduler, progress, strain: str = DEFAULT_MEASURE) -> dict:
     """:func:`write_fields` into ``work`` (renamed to ``out`` by the caller); ``scans``:
     the result's scans for the residual (None: no residual)."""
     import contextlib
@@ -324,10 +332,11 @@ def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, 
     meta = {"kind": "fields", "complete": False, "result": result.path, "level": s,
             "element_size": mesh.element_size, "roi_level0": [list(r) for r in roi_level0(mesh, s)],
             "channels": list(CHANNELS), "displacement_unit": disp_unit, "residual": scans is not None,
-            "strain": "per element (C8 gradient at the element centre), constant over the element"}
+            "strain": "per element (C8 gradient at the element centre), constant over the element",
+            "strain_measure": strain}
     description = (
         f"channels {', '.join(CHANNELS)}: displacement ({disp_unit}), its norm, eps_zz and the von Mises "
-        "equivalent strain (per element, dimensionless), residual f - corrected g (grey levels of the "
+        f"equivalent strain ({strain} strain, per element, dimensionless), residual f - corrected g (grey levels of the "
         "result's level); NaN outside the ROI. Level t is the NaN-aware mean over 2^t voxels per axis of level 0")
     with contextlib.ExitStack() as stack:
         runner = stack.enter_context(open_runner(scheduler))
@@ -335,7 +344,7 @@ def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, 
         if scans is not None:
             f_ref, g_ref = stack.enter_context(level_refs(result, scans=scans))
             corr = Correction.of_result(result, f_ref, g_ref, interpolation_of(result))
-        job = FieldsJob(mesh, s, shape0, factor, str(work), corr)
+        job = FieldsJob(mesh, s, shape0, factor, str(work), corr, strain)
         counts, windows = write_image(
             runner, work, fields_task, chunk_tasks(job, result, tuple(min(c, n) for n in shape0)), meta=meta,
             channels=CHANNELS, shapes=shapes, chunk=c, frame=frame, description=description,
