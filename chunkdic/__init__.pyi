@@ -19,8 +19,9 @@ from .results.result import Result, open_result
 from .results.strain import element_strain, mean_strain
 from .solve.cg import PoorTextureWarning
 from .views.corrected_image import write_corrected
-from .views.export import write_vtk
-from .views.fields import write_fields
+from .views.export import write_nodes_csv, write_vtk
+from .views.fields import open_fields, write_fields
+from .views.report import report
 
 __version__: str
 

@@ -542,3 +542,20 @@ def test_a_rigid_rotation_exports_no_strain_by_default(tmp_path):
     with pytest.raises(InputError, match="strain measure"):
         write_vtk(res, tmp_path / "x.vtu", strain="cauchy")
     assert not (tmp_path / "x.vtu").exists()
+
+
+def test_result_methods_and_faces_level_with_the_cli(tmp_path):
+    """Issue 23 item 6: Result.strain_summary / to_vtk / to_csv, chunkdic.report, as the commands."""
+    import meshio
+    import pandas as pd
+
+    res = _rotated()
+    s = res.strain_summary()
+    assert s.measure == "green-lagrange" and np.abs(s.mean).max() < 1e-12 and s.max_rotation == pytest.approx(10)
+    assert res.strain_summary(measure="small").eps_zz == pytest.approx(np.cos(np.radians(10)) - 1, abs=1e-12)
+    info = res.to_vtk(tmp_path / "r.vtu")
+    assert info["strain"] == "green-lagrange" and np.abs(meshio.read(tmp_path / "r.vtu").cell_data["strain"][0]).max() < 1e-12
+    assert res.to_csv(tmp_path / "r.csv") == 125
+    table = pd.read_csv(tmp_path / "r.csv")
+    assert np.allclose(table["Uz"].to_numpy(), res.displacement[0].ravel())
+    assert chunkdic.report is report and chunkdic.write_nodes_csv is not None
