@@ -11,6 +11,7 @@ from .errors import InputError
 from .io.display import write_display
 from .io.formats.ingest import ingest
 from .io.handles import ArrayRef
+from .io.masking import make_mask
 from .io.pyramid import build_pyramid
 from .io.scan import Scan, open_scan
 from .io.scanwrite import write_scan
