@@ -12,6 +12,7 @@ from .errors import InputError
 from .io.display import write_display
 from .io.formats.ingest import ingest
 from .io.handles import ArrayRef
+from .io.masking import make_mask
 from .io.pyramid import build_pyramid
 from .io.scan import Scan, open_scan
 from .io.scanwrite import write_scan
@@ -20,8 +21,9 @@ from .results.result import Result, open_result
 from .results.strain import element_strain, mean_strain
 from .solve.cg import PoorTextureWarning
 from .views.corrected_image import write_corrected
-from .views.export import write_vtk
-from .views.fields import write_fields
+from .views.export import write_nodes_csv, write_vtk
+from .views.fields import open_fields, write_fields
+from .views.report import report
 
 __version__: str
 

@@ -47,7 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.checkpoint import fingerprint, identify_input
-from ..engine.driver import correlate, settings_from
+from ..engine.driver import correlate, settings_from, voxel_lengths
 from ..errors import InputError
 from ..engine.initial import filled
 from ..mesh import carry_field
@@ -133,6 +133,7 @@ def series(
     overwrite: bool = False,
     progress: Callable[[dict], None] | None = None,
     mask=None,
+    roi_unit: str | None = None,
     **options,
 ) -> SeriesResult:
     """Correlate a loading series: each scan against the previous one and/or the first.
@@ -150,8 +151,9 @@ def series(
         override or make it. The same settings and ROI for every step.
     mode : {"both", "incremental", "cumulative"}
         Which fields to correlate (module docstring).
-    roi, scheduler, mask :
-        As for :func:`chunkdic.correlate`.
+    roi, scheduler, mask, roi_unit :
+        As for :func:`chunkdic.correlate` (``element_size="80um"`` too: physical lengths are
+        converted with the first scan's voxel size).
     progress : callable, optional
         The events of :func:`chunkdic.correlate`, each with ``group`` (the step being
         computed), and ``stage="series-step"`` when a step starts or is skipped.
@@ -165,6 +167,9 @@ def series(
     >>> s = chunkdic.series(["s0.zarr", "s1.zarr", "s2.zarr"], "series.zarr", element_size=8)  # doctest: +SKIP
     >>> print(s.table())  # doctest: +SKIP
     """
+    scans = list(scans)
+    if scans and isinstance(scans[0], (str, Path)):
+        options, roi = voxel_lengths(settings, options, roi, roi_unit, scans[0])
     settings = settings_from(settings, options)
     if mode not in MODES:
         raise InputError(f"series mode must be one of {', '.join(MODES)}, got {mode!r}")

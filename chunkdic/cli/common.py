@@ -9,102 +9,31 @@ import math
 import sys
 import time
 
+from ..engine.events import EXPLAIN, EventText  # noqa: F401  (EXPLAIN: app's summary)
+
 
 def say(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-#: what the progress lines of the current run have explained already, and the last rigid
-#: gap per level (a rigid step that raises the gap is explained)
-_RUN: dict = {"explained": set(), "rigid_gap": {}}
-
-#: one-line explanations of terms that appear in progress lines and summaries
-EXPLAIN = {
-    "stalled": "stalled: neither the gap nor the increments improved for {patience} passes; the best field "
-               "so far is kept and not called converged (try a larger --element-size or regularisation)",
-    "excluded": "excluded: voxels whose X + u(X) falls outside the deformed scan; they are left out of the "
-                "sums (a large share means the ROI reaches past what the deformed scan shows)",
-    "diverged": "diverged: the gap grew far above its best; the best field so far is kept, not converged",
-    "max-iterations": "max-iterations: --max-iterations reached before max|da| fell under --tolerance",
-    "rigid-rise": "the gap rose: the previous rigid step overshot; this uniform translation is only the "
-                  "starting estimate, which the C8 iterations refine",
-    "rigid-worse": "a single mean translation fits this field worse than no motion (strain or rotation "
-                   "dominate); it is only a starting estimate, which the C8 iterations refine",
-}
+#: the lines of the current run's events, each term explained once per run (the wording
+#: lives below the CLI, in :mod:`chunkdic.engine.events`, where the engine's log uses it too)
+_TEXT = EventText(explain=True)
 
 
 def new_run() -> None:
     """Forget what an earlier run in this process explained (each run explains its terms once)."""
-    _RUN["explained"].clear()
-    _RUN["rigid_gap"].clear()
+    _TEXT.reset()
 
 
 def explain(term: str) -> str:
     """The explanation of ``term`` on a line of its own, the first time in this run."""
-    if term not in EXPLAIN or term in _RUN["explained"]:
-        return ""
-    _RUN["explained"].add(term)
-    from ..engine.stopping import STALL_PATIENCE
-
-    return "\n  (" + EXPLAIN[term].format(patience=STALL_PATIENCE) + ")"
+    return _TEXT.explain(term)
 
 
 def format_event(event: dict) -> str | None:
-    stage = event["stage"]
-    if stage == "start":
-        roi = ",".join(f"{a}:{b}" for a, b in event["roi"])
-        nodes = "x".join(str(n) for n in event["nodes"])
-        line = f"running on {event['scheduler']}; levels {event['levels']}; ROI {roi} (level voxels); {nodes} nodes"
-        if event.get("requested_roi"):
-            asked = ",".join(f"{a}:{b}" for a, b in event["requested_roi"])
-            line += f" (requested {asked} in level-0 voxels, trimmed to whole elements)"
-        return line
-    if stage == "compile":
-        if not event["done"]:
-            return ("compiling the numba kernels (first run on this machine, about 20 s; "
-                    "later runs load them from the cache)")
-        return f"kernels compiled in {event['seconds']:.1f} s"
-    if stage == "matrix":
-        rate = event["voxels"] / max(event["seconds"], 1e-9) / 1e6
-        return f"level {event['level']}: M built over {event['blocks']} blocks in {event['seconds']:.1f} s ({rate:.1f} Mvoxel/s)"
-    if stage == "rigid":
-        t = ", ".join(f"{v:+.3f}" for v in event["translation"])
-        before = _RUN["rigid_gap"].get(event["level"]) if event["iteration"] else None
-        _RUN["rigid_gap"][event["level"]] = event["gap"]
-        rose = explain("rigid-rise") if before is not None and event["gap"] > before else ""
-        return (f"level {event['level']} rigid {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  "
-                f"max|da| {event['max_delta']:.2e}  t=({t})" + rose)
-    if stage == "gaps":
-        worse = explain("rigid-worse") if event["rigid_gap"] > event["initial_gap"] else ""
-        return (f"level {event['level']}: initial gap {100 * event['initial_gap']:.3f}%, after rigid translation "
-                f"{100 * event['rigid_gap']:.3f}%" + worse)
-    if stage == "iteration":
-        d = event.get("status", "final") if event["max_delta"] is None else f"{event['max_delta']:.2e}"
-        notes = (explain("excluded") if event["excluded"] else "") + explain(event.get("status") or "")
-        return (
-            f"level {event['level']} iter {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  max|da| {d}"
-            f"  excluded {event['excluded']}  ({event['seconds']:.1f} s)" + notes
-        )
-    if stage == "blocks":
-        return (f"  level {event['level']} {event['label']}: {event['done']}/{event['total']} blocks, "
-                f"{event['rate'] / 1e6:.1f} Mvoxel/s, ETA {event['eta']:.0f} s")
-    if stage == "regularization":
-        corner = event.get("l_curve_length")
-        corner = f"; L-curve corner {corner:.1f}" if corner is not None and math.isfinite(corner) else ""
-        return (f"level {event['level']}: {event['kind']} regularisation length {event['length']:.1f} voxels "
-                f"(chosen from the data{corner}; noise correlation factor {event['kappa']:.1f})")
-    if stage == "init":
-        mean = ", ".join(f"{v:+.3f}" for v in event["mean"])
-        return f"level {event['level']}: starting from the field of {event['path']} (mean {mean} voxels of the level)"
-    if stage == "series-step":
-        what = {"computed": "correlating", "resumed": "resuming", "done before": "done before, skipped:"}[event["run"]]
-        return f"series: {what} {event['group']} (scans {event['pair']})"
-    if stage == "resume":
-        return f"resuming the interrupted run from its checkpoint: level {event['level']}, iteration {event['iteration']}"
-    if stage == "level":
-        return (f"level {event['level']}: {event['status']}, gap {100 * event['gap']:.3f}% "
-                f"({event['seconds']:.1f} s)" + explain(event["status"]))
-    return None
+    """The progress line of an engine event (None for events the CLI does not print)."""
+    return _TEXT(event)
 
 
 def print_progress(event: dict) -> None:
@@ -178,21 +107,14 @@ def add_length_options(p, *, every_step: str = "") -> None:
 def length_options(args, ref) -> tuple[int, str | None]:
     """``--element-size`` and ``--roi`` (:func:`add_length_options`) in voxels, converted
     when given in a physical unit (``60um``, ``--roi-unit um``) with the voxel size of the
-    reference scan ``ref`` (opened only then); each conversion said on stderr."""
-    from ..io.units import element_size_voxels, parse_length, roi_voxels
+    reference scan ``ref`` (opened only then) by :func:`chunkdic.io.units.lengths_in_voxels`,
+    as the Python API converts them; each conversion said on stderr."""
+    from ..io.units import lengths_in_voxels
 
-    physical = parse_length(args.element_size)[1] is not None or args.roi_unit is not None or (
-        args.roi is not None and not args.roi.strip()[-1:].isdigit())
-    scan = None
-    if physical:
-        from ..io.scan import open_scan
-
-        scan = open_scan(ref)
-    ell, note = element_size_voxels(args.element_size, scan, args.level)
-    roi, roi_note = (None, None) if args.roi is None else roi_voxels(args.roi, scan, args.roi_unit)
-    for line in (note, roi_note):
-        if line:
-            say(line)
+    ell, roi, notes = lengths_in_voxels(args.element_size, args.roi, roi_unit=args.roi_unit, reference=ref,
+                                        level=args.level)
+    for line in notes:
+        say(line)
     return ell, roi
 
 

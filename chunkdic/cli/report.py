@@ -101,6 +101,10 @@ def register(subparsers) -> None:
                    help="where the cut planes are computed: threads (default), local[:N], or tcp://host:port")
     p.add_argument("--cuts-from", metavar="RESULT.zarr", default=None,
                    help="the result (one of those given) whose field the cut figures use (default: the first)")
+    p.add_argument("--label", dest="labels", action="append", metavar="NAME", default=None,
+                   help="name of a result in every legend and panel title, once per result in their order "
+                        "(default: each result's file stem)")
+    add_strain_option(p)
     add_figure_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
     p.set_defaults(func=run_report)
@@ -112,7 +116,8 @@ def register(subparsers) -> None:
                     "data); --csv: one line per node under one header line (pandas.read_csv reads it), "
                     "metadata in NODES.csv.json; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as "
                     "Zarr arrays; --fields: Uz, Uy, Ux, |U|, eps_zz, equivalent strain and residual as one "
-                    "OME-NGFF multiscale image on the scan's level-0 grid (napari, neuroglancer).")
+                    "OME-NGFF multiscale image on the scan's level-0 grid (napari, neuroglancer). Strains of "
+                    "--vtk and --fields: --strain (default Green-Lagrange).")
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
@@ -126,6 +131,7 @@ def register(subparsers) -> None:
     p.add_argument("--deformed", help="deformed scan for --corrected/--fields (default: recorded path)")
     p.add_argument("--scheduler", default=None,
                    help="where --corrected/--fields are computed: threads (default), local[:N], or tcp://host:port")
+    add_strain_option(p)
     p.add_argument("--overwrite", action="store_true", help="replace outputs that an earlier export wrote")
     p.set_defaults(func=run_export)
 
@@ -328,7 +334,8 @@ def run_report(args: argparse.Namespace) -> int:
     check_scheduler(args.scheduler)
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
                    interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
-                   progress=say, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi)
+                   progress=say, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi, labels=args.labels,
+                   strain=args.strain)
     for p in paths.values():
         print(p)
     return 0
@@ -371,8 +378,9 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
     from ..views.corrected_image import write_corrected
 
     if args.vtk:
-        info = export.write_vtk(res, work["vtk"], units=args.units)
-        say(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra, coordinates in {info['unit']}"
+        info = export.write_vtk(res, work["vtk"], units=args.units, strain=args.strain)
+        say(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra ({info['strain']} strain), "
+            f"coordinates in {info['unit']}"
              + ("; run facts in its field data" if str(args.vtk).lower().endswith(".vtu") else ""))
     if args.csv:
         n = export.write_nodes_csv_files(res, work["csv"], work["csv-meta"], units=args.units,
@@ -395,7 +403,8 @@ def _export_fields(res, args: argparse.Namespace, work) -> None:
 
     progress = Progress("fields")  # its stages: "fields" (level 0), then "level t" of the pyramid
     out = write_fields(res, work, ref=args.ref, deformed=args.deformed, units=args.units,
-                       scheduler=args.scheduler, progress=lambda stage, f: progress(_whole(stage, f), stage))
+                       scheduler=args.scheduler, progress=lambda stage, f: progress(_whole(stage, f), stage),
+                       strain=args.strain)
     progress.done()
     say(f"{args.fields}: {', '.join(CHANNELS)} on {len(out['levels'])} levels "
          f"({'x'.join(map(str, out['levels'][0]))} voxels at level 0, {out['voxels']} in the ROI)")

@@ -13,7 +13,26 @@ from .common import Progress, say, voxel_size_option
 
 
 def register(subparsers) -> None:
-    """Add the ``ingest`` and ``pyramid`` subcommands to an ``argparse`` subparsers object."""
+    """Add the ``ingest``, ``pyramid`` and ``mask`` subcommands to an ``argparse`` subparsers object."""
+    m = subparsers.add_parser(
+        "mask", help="a specimen mask of a scan (threshold, holes filled, largest component), for --mask and napari",
+        description="Material = SCAN > threshold (Otsu's by default, from the histogram accumulated chunk by chunk), "
+                    "optionally inside --cylinder or --box, holes of every z-slice filled, optionally only the "
+                    "largest connected component; written chunk by chunk as an OME-NGFF labels image (1 = "
+                    "material) on the scan's grid: napari shows it as a Labels layer, correlate --mask reads it.")
+    m.add_argument("scan", metavar="SCAN", help="the scan (Zarr, .npy, TIFF file or folder, HDF5 file.h5[:/dataset])")
+    m.add_argument("-o", "--output", required=True, metavar="MASK.zarr", help="labels image to create")
+    m.add_argument("--threshold", default="otsu", metavar="otsu|none|VALUE",
+                   help="material is SCAN > VALUE (default otsu; none: every voxel, with --cylinder/--box)")
+    m.add_argument("--no-fill", dest="fill_holes", action="store_false",
+                   help="keep the holes (default: fill the holes of every z-slice)")
+    m.add_argument("--largest", action="store_true", help="keep only the largest connected component")
+    m.add_argument("--cylinder", metavar="CY,CX,R", help="only inside this cylinder along z (voxels)")
+    m.add_argument("--box", metavar="Z0:Z1,Y0:Y1,X0:X1", help="only inside this box (voxels)")
+    m.add_argument("--scheduler", default=None, help=SCHEDULER_HELP)
+    m.add_argument("--overwrite", action="store_true", help="replace a mask that chunkdic wrote")
+    m.set_defaults(func=run_mask)
+
     p = subparsers.add_parser(
         "ingest", help="convert a scan (TIFF slices/stack, raw, HDF5, npy) to a Zarr v3 scan group",
         description="Convert a scan to a Zarr v3 group with OME-NGFF 0.5 metadata, chunk by chunk. "
@@ -101,6 +120,20 @@ def _ingest(args: argparse.Namespace) -> int:
                   dataset=args.dataset, overwrite=args.overwrite, levels=args.levels, progress=progress)
     progress.done()
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
+    return 0
+
+
+def run_mask(args: argparse.Namespace) -> int:
+    """``chunkdic mask``: the mask's path on stdout, what it holds on stderr."""
+    from ..io.masking import make_mask
+
+    out = make_mask(args.scan, args.output, threshold=args.threshold, fill_holes=args.fill_holes,
+                    largest=args.largest, cylinder=args.cylinder, box=args.box, scheduler=args.scheduler,
+                    overwrite=args.overwrite, progress=say)
+    thr = "every voxel" if out["threshold"] is None else f"threshold {out['threshold']:g}"
+    say(f"{args.output}: {out['material']} material voxels ({100 * out['fraction']:.1f} %), {thr}; "
+        f"{out['seconds']:.1f} s")
+    print(args.output)
     return 0
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import logging
 import shutil
 import time
 import uuid
@@ -24,6 +25,7 @@ from ..io.formats.anyscan import open_any
 from ..io.outputs import Outputs
 from ..io.ownership import OutputLock, make_scratch
 from ..io.scan import open_scan
+from ..io.units import lengths_in_voxels
 from ..kernels import jit as kernels
 from ..results.result import Result
 from ..scheduler import check_scheduler, open_runner
@@ -41,6 +43,8 @@ from .steps import (RunContext, assemble_result, finish_level, measure_start_gap
 
 __all__ = ["correlate", "Settings"]
 
+log = logging.getLogger(__name__)
+
 
 def correlate(
     ref,
@@ -54,6 +58,7 @@ def correlate(
     progress: Callable[[dict], None] | None = None,
     mask=None,
     init=None,
+    roi_unit: str | None = None,
     **options,
 ) -> Result:
     """Measure the displacement field between two scans by multiscale C8-DIC.
@@ -67,9 +72,13 @@ def correlate(
         Algorithm settings; keyword ``options`` (any :class:`Settings` field, e.g.
         ``element_size=16``, ``level=2``, ``interpolation="linear"``) override its fields
         or, without ``settings``, make a new one (``element_size`` is then required).
+        ``element_size`` may be a physical length, ``"80um"``, converted with the reference's
+        voxel size and rounded to whole voxels of ``level``, as ``--element-size`` does
+        (:func:`chunkdic.io.units.lengths_in_voxels`; the conversion is logged).
     roi : str or sequence, optional
-        ``"z0:z1,y0:y1,x0:x1"`` in level-0 voxels; default: the largest centred box of
-        whole elements with a small margin. Trimmed to whole elements (reported).
+        ``"z0:z1,y0:y1,x0:x1"`` in level-0 voxels, in ``roi_unit``, or with a unit suffix
+        (``"0:500,0:500,0:500um"``); default: the largest centred box of whole elements with
+        a small margin. Trimmed to whole elements (reported).
     scheduler : None, "threads", "local[:N]", address or distributed.Client
         Where tasks run (see :func:`chunkdic.scheduler.open_runner`).
     output : path, optional
@@ -91,6 +100,8 @@ def correlate(
         finest level unless ``coarsest`` is given (:mod:`chunkdic.engine.initial`). Checked
         before any output (a result of the same reference shape); recorded in
         ``info["init"]`` and in the resume fingerprint.
+    roi_unit : str, optional
+        Length unit of a ``roi`` string without suffix (``"um"``), as ``--roi-unit``.
 
     Returns
     -------
@@ -112,6 +123,7 @@ def correlate(
     >>> round(float(res.displacement[0].mean()), 3), res.info["status"]
     (1.0, 'converged')
     """
+    options, roi = voxel_lengths(settings, options, roi, roi_unit, ref)
     settings = settings_from(settings, options)
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
     init_result = None if init is None else open_init(init, f_scan.shape(0))
@@ -213,6 +225,17 @@ def settings_from(settings: Settings | None, options: dict) -> Settings:
             raise TypeError("correlate() needs element_size (or settings=Settings(...))")
         return Settings(**options)
     return dataclasses.replace(settings, **options)
+
+
+def voxel_lengths(settings: Settings | None, options: dict, roi, roi_unit, ref) -> tuple[dict, object]:
+    """``element_size`` and ``roi`` in voxels (physical lengths converted with the reference's
+    voxel size, as the CLI converts them; each conversion logged)."""
+    level = options.get("level", settings.level if settings is not None else 0)
+    ell, roi, notes = lengths_in_voxels(options.get("element_size"), roi, roi_unit=roi_unit, reference=ref,
+                                        level=level)
+    for note in notes:
+        log.info("%s", note)
+    return ({**options, "element_size": ell} if "element_size" in options else options), roi
 
 
 def _init_path(init_result: Result | None):

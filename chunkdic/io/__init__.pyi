@@ -2,6 +2,7 @@ from .display import write_display
 from .formats.ingest import ingest
 from .handles import ArrayRef
 from .kinds import kind_of
+from .masking import make_mask
 from .outputs import Outputs, check_output
 from .ownership import OutputLock, make_scratch
 from .pyramid import build_pyramid

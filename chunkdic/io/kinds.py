@@ -39,6 +39,7 @@ KINDS: dict[str, Kind] = {k.name: k for k in (
     Kind("scan", "store", "scan"),
     Kind("corrected", "store", "corrected-image group"),
     Kind("fields", "store", "fields image"),
+    Kind("mask", "store", "mask labels image"),
     Kind("series", "store", "loading series"),
     Kind("figures", "folder", "figures folder",
          ("cut_x.png", "cut_y.png", "cut_z.png", "residual.png", "uz_map.png", "epszz_map.png", "gap.png")),

@@ -92,3 +92,66 @@ def roi_voxels(roi: str, scan, unit: str | None = None) -> tuple[str, str | None
         raise InputError(f"ROI {roi!r}: expected three ranges z0:z1,y0:y1,x0:x1")
     out = ",".join(f"{round(a * f / v)}:{round(b * f / v)}" for (a, b), v in zip(pairs, vs))
     return out, f"--roi {roi} ({unit}) = {out} in level-0 voxels"
+
+
+def has_unit(element_size=None, roi=None, roi_unit: str | None = None) -> bool:
+    """Whether an element size or a ROI is given in a physical unit (so the reference's voxel
+    size is needed): ``"60um"``, ``roi_unit="um"`` or a ROI with a unit suffix."""
+    if roi_unit is not None and str(roi_unit).lower() not in ("vx", "voxel", "voxels"):
+        return True
+    if isinstance(element_size, str) and parse_length(element_size)[1] is not None:
+        return True
+    return isinstance(roi, str) and bool(roi.strip()) and not roi.strip()[-1:].isdigit()
+
+
+def lengths_in_voxels(element_size, roi=None, *, roi_unit: str | None = None, reference=None,
+                      level: int = 0) -> tuple[int | None, object, list[str]]:
+    """The element size and ROI of a correlation in voxels, as :func:`chunkdic.correlate`,
+    :func:`chunkdic.series` and the ``--element-size``/``--roi``/``--roi-unit`` options take them.
+
+    Parameters
+    ----------
+    element_size : int, str or None
+        Voxels of ``level`` (``16``, ``"16"``) or a physical length (``"80um"``, ``"0.08mm"``);
+        ``None``: left as is (taken from a ``Settings``).
+    roi : str, sequence or None
+        ``"z0:z1,y0:y1,x0:x1"`` in level-0 voxels, in ``roi_unit``, or with a unit suffix
+        (``"0:500,0:500,0:500um"``); a sequence of pairs is in voxels and left as is.
+    roi_unit : str, optional
+        Unit of a ROI string without suffix (``"um"``).
+    reference : path or array, optional
+        The reference scan; opened (:func:`chunkdic.io.scan.open_scan`) only when a length
+        has a unit, for its voxel size and unit.
+    level : int
+        The pyramid level the element size is in.
+
+    Returns
+    -------
+    element_size : int or None
+    roi : str, sequence or None
+        In level-0 voxels.
+    notes : list of str
+        One line per conversion made (``"--element-size 80um = 8.000 voxels of level 0: using 8 …"``).
+    """
+    if roi_unit is not None and roi is None:
+        raise InputError(f"a ROI unit ({roi_unit}) without a ROI")
+    if roi is not None and not isinstance(roi, str) and roi_unit is not None:
+        raise InputError("roi_unit applies to a ROI given as a string 'z0:z1,y0:y1,x0:x1'")
+    scan = None
+    if has_unit(element_size, roi, roi_unit):
+        from .scan import open_scan
+
+        scan = reference if hasattr(reference, "voxel_size") else open_scan(reference)
+    notes = []
+    if element_size is not None and not isinstance(element_size, bool) and isinstance(element_size, (str, int, float)):
+        if isinstance(element_size, str):
+            element_size, note = element_size_voxels(element_size, scan, level)
+            if note:
+                notes.append(note)
+        elif float(element_size) == int(element_size):  # 16.0 -> 16; 16.5 left for Settings to refuse
+            element_size = int(element_size)
+    if isinstance(roi, str):
+        roi, note = roi_voxels(roi, scan, roi_unit)
+        if note:
+            notes.append(note)
+    return element_size, roi, notes

@@ -154,13 +154,55 @@ class Result:
         ell = int(self.info["element_size"])
         return Mesh(tuple(int(a) for a, _ in roi), ell, tuple((b - a) // ell for a, b in roi))
 
-    def element_strain(self) -> np.ndarray:
-        """Element strains ``(3, 3, ez, ey, ex)`` (stored, else computed and kept)."""
-        if self.strain is None:
-            from .strain import element_strain
+    def element_strain(self, measure: str = "small") -> np.ndarray:
+        """Element strains ``(3, 3, ez, ey, ex)``: the small strain stored (else computed and
+        kept), or another measure of :mod:`chunkdic.results.strain` (``"green-lagrange"``), computed."""
+        from .strain import check_measure, element_strain
 
+        if check_measure(measure) != "small":
+            return element_strain(self.displacement, self.info["element_size"], measure)
+        if self.strain is None:
             self.strain = element_strain(self.displacement, self.info["element_size"])
         return self.strain
+
+    def strain_summary(self, *, measure: str | None = None, exclude_outer: bool = True):
+        """Mean strain over the ROI (paper 5.2, 5.4), what ``chunkdic strain`` prints.
+
+        :func:`chunkdic.results.strain.strain_summary` of this result: Green–Lagrange by default
+        (``measure="small"``: the paper's), without the outermost layer of elements, over the
+        active elements of a mask. (Not ``Result.strain``: that name holds the element strains.)
+
+        Returns
+        -------
+        chunkdic.results.strain.StrainSummary
+            ``mean`` (3, 3), ``eps_zz``, ``principal``, ``max_rotation`` (degrees), ...; ``as_dict()``.
+
+        Examples
+        --------
+        >>> s = chunkdic.open_result("result.zarr").strain_summary()  # doctest: +SKIP
+        >>> s.eps_zz, s.principal  # doctest: +SKIP
+        """
+        from .strain import DEFAULT_MEASURE, strain_summary
+
+        self.check_displacement()
+        return strain_summary(self, exclude_outer=exclude_outer, measure=measure or DEFAULT_MEASURE)
+
+    def to_vtk(self, path, *, units: str = "voxels", strain: str | None = None, overwrite: bool = False) -> dict:
+        """Write the mesh, nodal displacement and element strains as VTK (ParaView): :func:`chunkdic.write_vtk`.
+
+        ``strain``: ``"green-lagrange"`` (default) or ``"small"``; ``units``: ``"voxels"`` or ``"physical"``.
+        """
+        # lazy, and the one import of views by results (a contract exception in pyproject.toml): the writer
+        # belongs with the other exports in views, the method is the form users expect (xarray's to_netcdf)
+        from ..views.export import write_vtk
+
+        return write_vtk(self, path, units=units, overwrite=overwrite, **({"strain": strain} if strain else {}))
+
+    def to_csv(self, path, *, units: str = "voxels", overwrite: bool = False) -> int:
+        """Write the node table (one line per node, JSON sidecar ``PATH.json``): :func:`chunkdic.write_nodes_csv`."""
+        from ..views.export import write_nodes_csv  # lazy: as in to_vtk
+
+        return write_nodes_csv(self, path, units=units, overwrite=overwrite)
 
     def check_displacement(self) -> None:
         """Refuse a result whose nodal field has NaN/inf values the result does not explain.

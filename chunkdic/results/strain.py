@@ -43,6 +43,7 @@ from ..errors import InputError
 __all__ = [
     "MEASURES",
     "DEFAULT_MEASURE",
+    "MEASURE_SYMBOLS",
     "ROTATION_WARNING",
     "green_lagrange",
     "rotation_angle",
@@ -59,6 +60,8 @@ __all__ = [
 MEASURES = ("small", "green-lagrange")
 #: the measure of every command and of :func:`strain_summary` unless told otherwise
 DEFAULT_MEASURE = "green-lagrange"
+#: the symbol of each measure in figures and tables (E: Green–Lagrange, ε: small strain)
+MEASURE_SYMBOLS = {"small": "ε", "green-lagrange": "E"}
 #: rotation (degrees) above which small strain is not trustworthy
 ROTATION_WARNING = 1.0
 

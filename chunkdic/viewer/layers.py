@@ -271,9 +271,9 @@ def fields_layers(path) -> list[Layer]:
     ``|U|`` visible. The residual only when it was computed."""
     import dask.array as da
 
-    from ..views.fields import CHANNELS, open_fields
+    from ..views.fields import CHANNELS, open_levels
 
-    levels, attrs = open_fields(path)
+    levels, attrs = open_levels(path)
     meta = attrs["chunkdic"]
     frame = _ngff_frame(attrs["ome"]["multiscales"][0])
     windows = {c["label"]: c["window"] for c in (attrs["ome"].get("omero") or {}).get("channels", [])}

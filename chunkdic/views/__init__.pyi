@@ -1,3 +1,3 @@
 from .corrected_image import open_corrected, write_corrected
 from .export import write_nodes_csv, write_vtk
-from .fields import open_fields, write_fields
+from .fields import open_fields, open_levels, write_fields

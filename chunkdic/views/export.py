@@ -21,6 +21,7 @@ from ..mesh import level0_position
 from ..io.outputs import Outputs
 from ..results.result import Result, jsonable
 from ..results.scans import as_result
+from ..results.strain import DEFAULT_MEASURE, check_measure
 
 __all__ = ["write_vtk", "write_nodes_csv", "write_nodes_csv_files", "read_vtk_metadata", "csv_sidecar",
            "CSV_COLUMNS", "CSV_PHYSICAL_COLUMNS", "VTK_HEX_ORDER"]
@@ -75,7 +76,7 @@ def hexahedra(nodes_shape) -> np.ndarray:
     return np.stack([c.ravel() for c in cols], axis=1).astype(np.int64)
 
 
-def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -> dict:
+def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False, strain: str = DEFAULT_MEASURE) -> dict:
     """Write the C8 mesh, nodal displacement and element strains as a VTK file (meshio).
 
     Parameters
@@ -89,11 +90,15 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
         the scan's physical unit (level-0 voxel centres scaled by ``voxel_size``).
     overwrite : bool, keyword-only
         Replace an existing VTK file that chunkdic wrote (nothing else).
+    strain : {"green-lagrange", "small"}, keyword-only
+        Measure of the cell strains (:mod:`chunkdic.results.strain`): Green–Lagrange by
+        default (zero for a rigid rotation), ``"small"`` the paper's; a ``.vtu`` names it in
+        its field data (``strain_measure=…``).
 
     Returns
     -------
     dict
-        ``points``, ``cells`` counts and ``unit``.
+        ``points``, ``cells`` counts, ``unit`` and ``strain`` (the measure).
 
     Notes
     -----
@@ -108,6 +113,7 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
     from ..results.strain import principal_strains
 
     result = as_result(result)
+    check_measure(strain)
     plan = Outputs(inputs=[result.path] if result.path else [], overwrite=overwrite)
     entry = plan.add(path, "vtk")
     X, u, unit = _positions(result, units)
@@ -115,7 +121,7 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
     points = np.stack([X[2].ravel(), X[1].ravel(), X[0].ravel()], axis=1)
     disp = np.stack([u[2].ravel(), u[1].ravel(), u[0].ravel()], axis=1)
     cells = hexahedra(n)
-    eps = result.element_strain()  # (3, 3, ez, ey, ex), axes z, y, x
+    eps = result.element_strain(strain)  # (3, 3, ez, ey, ex), axes z, y, x
     if result.active is not None:  # a specimen mask: no strain where there is no material
         eps = np.where(result.active[None, None] > 0, eps, np.nan)
     eps_xyz = eps[::-1, ::-1].reshape(3, 3, -1).transpose(2, 0, 1).reshape(-1, 9)
@@ -139,8 +145,9 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False) -
     with plan:
         mesh.write(str(entry.work))
         if entry.work.suffix.lower() == ".vtu":
-            _insert_field_data(entry.work, vtk_field_data(result, unit))
-    return {"points": len(points), "cells": len(cells), "unit": unit}
+            _insert_field_data(entry.work, {**vtk_field_data(result, unit),
+                                            f"strain_measure={strain}": np.array([1], np.int32)})
+    return {"points": len(points), "cells": len(cells), "unit": unit, "strain": strain}
 
 
 def _version_of(result: Result) -> str:

@@ -44,10 +44,11 @@ from .images import field_levels, scan_frame, write_image
 from ..mesh import Block, Mesh, level_to_level
 from ..io.outputs import Outputs
 from ..results.result import Result
+from ..results.strain import DEFAULT_MEASURE, check_measure
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CHANNELS", "write_fields", "open_fields", "field_levels"]
+__all__ = ["CHANNELS", "write_fields", "open_fields", "open_levels", "field_levels"]
 
 #: channel labels of the image, in order (``|U|`` is the displacement's norm)
 CHANNELS = ("Uz", "Uy", "Ux", "|U|", "eps_zz", "eps_eq", "residual")
@@ -72,6 +73,8 @@ class FieldsJob:
         The image group being written (its level arrays ``"0"``, ``"1"``, …).
     correction : Correction or None
         How to compute the residual (None: the residual channel stays NaN).
+    strain : str
+        Strain measure of ``eps_zz`` and ``eps_eq`` (:mod:`chunkdic.results.strain`).
     """
 
     mesh: Mesh
@@ -80,6 +83,7 @@ class FieldsJob:
     factor: tuple[float, float, float]
     out: str
     correction: object | None
+    strain: str = "small"
 
 
 def roi_level0(mesh: Mesh, level: int) -> tuple[tuple[int, int], ...]:
@@ -194,7 +198,7 @@ def fields_values(job: FieldsJob, region, block: Block, u_block: np.ndarray, bri
     pos = [_level_positions(v, s) for v in x0]
     u = sub.evaluate_grid(u_block, pos) * np.asarray(job.factor).reshape(3, 1, 1, 1)
     k = [sub.element_index(axis, p)[0] for axis, p in enumerate(pos)]
-    eps = element_strain(u_block, ell)
+    eps = element_strain(u_block, ell, job.strain)
     per_voxel = np.ix_(*k)
     values = out[at]  # a view: the channels are computed in place
     values[0:3] = u
@@ -231,7 +235,7 @@ def fields_task(job: FieldsJob, region, block: Block, u_block, brightness, activ
 
 def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True, units: str = "voxels",
                  levels: int | None = None, scheduler=None, overwrite: bool = False,
-                 progress: Callable[[str, float], None] | None = None) -> dict:
+                 progress: Callable[[str, float], None] | None = None, strain: str = DEFAULT_MEASURE) -> dict:
     """Write the voxel-wise fields of a result as one OME-NGFF 0.5 image on the scan's grid.
 
     Parameters
@@ -258,6 +262,9 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
         Replace a fields image an earlier export wrote (nothing else).
     progress : callable(str, float), optional
         ``(stage, fraction)``: ``"fields"`` then ``"level t"``.
+    strain : {"green-lagrange", "small"}, keyword-only
+        Measure of the ``eps_zz`` and ``eps_eq`` channels (default Green–Lagrange: zero for a
+        rigid rotation); recorded in the image's ``chunkdic`` attributes (``strain_measure``).
 
     Returns
     -------
@@ -273,6 +280,7 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
 
     result = as_result(result)
     result.check_displacement()
+    check_measure(strain)
     if units not in ("voxels", "physical"):
         raise InputError(f"units must be voxels or physical, got {units!r}")
     if levels is not None and (int(levels) != levels or levels < 0):
@@ -294,7 +302,7 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
     entry = plan.add(out, "fields")
     with plan:
         return _write(result, entry.work, Path(out), scans if residual else None, shape0, (scale0, shift0, unit),
-                      factor, disp_unit, field_levels(shape0, levels), scheduler, progress)
+                      factor, disp_unit, field_levels(shape0, levels), scheduler, progress, strain)
 
 
 def _scans(result: Result, ref, deformed, residual: bool) -> tuple:
@@ -309,7 +317,7 @@ def _scans(result: Result, ref, deformed, residual: bool) -> tuple:
 
 
 def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, disp_unit: str, shapes,
-           scheduler, progress) -> dict:
+           scheduler, progress, strain: str = DEFAULT_MEASURE) -> dict:
     """:func:`write_fields` into ``work`` (renamed to ``out`` by the caller); ``scans``:
     the result's scans for the residual (None: no residual)."""
     import contextlib
@@ -324,10 +332,11 @@ def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, 
     meta = {"kind": "fields", "complete": False, "result": result.path, "level": s,
             "element_size": mesh.element_size, "roi_level0": [list(r) for r in roi_level0(mesh, s)],
             "channels": list(CHANNELS), "displacement_unit": disp_unit, "residual": scans is not None,
-            "strain": "per element (C8 gradient at the element centre), constant over the element"}
+            "strain": "per element (C8 gradient at the element centre), constant over the element",
+            "strain_measure": strain}
     description = (
         f"channels {', '.join(CHANNELS)}: displacement ({disp_unit}), its norm, eps_zz and the von Mises "
-        "equivalent strain (per element, dimensionless), residual f - corrected g (grey levels of the "
+        f"equivalent strain ({strain} strain, per element, dimensionless), residual f - corrected g (grey levels of the "
         "result's level); NaN outside the ROI. Level t is the NaN-aware mean over 2^t voxels per axis of level 0")
     with contextlib.ExitStack() as stack:
         runner = stack.enter_context(open_runner(scheduler))
@@ -335,7 +344,7 @@ def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, 
         if scans is not None:
             f_ref, g_ref = stack.enter_context(level_refs(result, scans=scans))
             corr = Correction.of_result(result, f_ref, g_ref, interpolation_of(result))
-        job = FieldsJob(mesh, s, shape0, factor, str(work), corr)
+        job = FieldsJob(mesh, s, shape0, factor, str(work), corr, strain)
         counts, windows = write_image(
             runner, work, fields_task, chunk_tasks(job, result, tuple(min(c, n) for n in shape0)), meta=meta,
             channels=CHANNELS, shapes=shapes, chunk=c, frame=frame, description=description,
@@ -346,10 +355,10 @@ def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, 
             "windows": dict(zip(CHANNELS, windows)), "seconds": seconds}
 
 
-def open_fields(path):
+def open_levels(path):
     """Open an image written by :func:`write_fields`: ``(levels, attrs)``, the level arrays
     (lazily read Zarr arrays, ``(7, nz, ny, nx)``) and the group's attributes; an
-    incomplete one is refused."""
+    incomplete one is refused. :func:`open_fields` gives one level as an xarray Dataset."""
     import zarr
 
     try:
@@ -362,4 +371,68 @@ def open_fields(path):
         raise InputError(f"{path} is not a complete fields image")
     datasets = attrs["ome"]["multiscales"][0]["datasets"]
     return [g[d["path"]] for d in datasets], attrs
+
+
+def open_fields(path, level: int = 0):
+    """One level of a fields image (:func:`write_fields`) as an :class:`xarray.Dataset`.
+
+    ``xarray.open_zarr`` cannot read the image group itself: its levels share the dimension
+    names ``c, z, y, x`` with different sizes (an OME-NGFF pyramid, "conflicting sizes for
+    dimension 'z'"); this opens one level, lazily (Dask, the image's chunks).
+
+    Parameters
+    ----------
+    path : path
+        The image (``chunkdic export RESULT --fields fields.zarr``).
+    level : int
+        Pyramid level of the image (0: the scan's level-0 grid; ``t``: the 2^t mean).
+
+    Returns
+    -------
+    xarray.Dataset
+        One variable per channel (:data:`CHANNELS`: ``Uz``, ``Uy``, ``Ux``, ``|U|``, ``eps_zz``,
+        ``eps_eq``, ``residual``), float32 on ``(z, y, x)``, NaN outside the ROI; coordinates
+        ``z, y, x`` are the voxel centres in the scan's physical unit (OME-NGFF scale and
+        translation of that level; voxels without a voxel size), ``units`` in their attributes;
+        the Dataset's attributes hold the image's ``chunkdic`` metadata (result, element size,
+        displacement unit, strain measure).
+
+    Examples
+    --------
+    >>> ds = chunkdic.open_fields("fields.zarr")  # doctest: +SKIP
+    >>> ds["eps_zz"].sel(z=500.0, method="nearest").plot()  # doctest: +SKIP
+    """
+    try:
+        import xarray as xr
+    except ImportError:
+        raise ImportError("open_fields needs xarray: pip install xarray") from None
+    import dask.array as da
+
+    levels, attrs = open_levels(path)
+    if int(level) != level or not 0 <= level < len(levels):
+        raise InputError(f"{path} has levels 0 to {len(levels) - 1}, not {level!r}")
+    level = int(level)
+    ms = attrs["ome"]["multiscales"][0]
+    scale, shift = [1.0] * 4, [0.0] * 4
+    for t in ms["datasets"][level].get("coordinateTransformations", []):
+        if t.get("type") == "scale":
+            scale = [float(v) for v in t["scale"]]
+        elif t.get("type") == "translation":
+            shift = [float(v) for v in t["translation"]]
+    axes = {a["name"]: a for a in ms.get("axes", []) if isinstance(a, dict)}
+    arr = levels[level]
+    data = da.from_zarr(arr)
+    meta = attrs.get("chunkdic", {})
+    coords = {}
+    for i, name in enumerate("zyx", start=1):
+        unit = axes.get(name, {}).get("unit") or "voxel"
+        coords[name] = (name, shift[i] + scale[i] * np.arange(arr.shape[i]), {"units": unit})
+    names = meta.get("channels") or list(CHANNELS)
+    units = {"Uz": meta.get("displacement_unit"), "Uy": meta.get("displacement_unit"),
+             "Ux": meta.get("displacement_unit"), "|U|": meta.get("displacement_unit"), "eps_zz": "1",
+             "eps_eq": "1", "residual": "grey level"}
+    data_vars = {name: (("z", "y", "x"), data[k], {"units": units.get(name) or "1"}) for k, name in enumerate(names)}
+    return xr.Dataset(data_vars, coords=coords, attrs={**{k: v for k, v in meta.items() if v is not None and
+                                                          isinstance(v, (str, int, float, bool))},
+                                                       "level": level, "path": str(path)})
 

@@ -22,7 +22,7 @@ from ..results.result import Result, open_result
 
 __all__ = ["AXES", "FORMATS", "DEFAULT_DPI", "Frame", "frame", "figure", "panel", "save", "check_figure_options",
            "shared_colorbar",
-           "symmetric_limit", "common_frame", "as_results", "level_label", "result_label", "mid_planes", "plane_extent"]
+           "symmetric_limit", "common_frame", "curve_style", "with_labels", "LINE_STYLES", "as_results", "level_label", "result_label", "mid_planes", "plane_extent"]
 
 AXES = "zyx"
 #: file formats of the figures (matplotlib writes each from the file's extension)
@@ -71,6 +71,35 @@ def result_label(result: Result) -> str:
         parent = p.parent.parent.name
         return f"{parent[:-5] if parent.endswith('.zarr') else parent}:{stem}"
     return stem
+
+
+#: line styles of curves 11-20, 21-30, ... (the first ten: solid, in matplotlib's ten colours)
+LINE_STYLES = ("-", "--", ":", "-.")
+
+
+def curve_style(i: int) -> dict:
+    """Colour and line style of curve ``i`` of a figure: the ten ``tab10`` colours, then
+    the same colours dashed, dotted, dash-dotted; 40 curves have distinct pairs."""
+    from matplotlib import colormaps
+
+    return {"color": colormaps["tab10"](i % 10), "linestyle": LINE_STYLES[(i // 10) % len(LINE_STYLES)]}
+
+
+def with_labels(results: list[Result], labels=None) -> list[Result]:
+    """The results with the names their figures show (``info["label"]``, :func:`result_label`):
+    ``labels`` (one per result), else their file stems, made distinct by the parent folder
+    when two stems agree. Copies (sharing the arrays); the results given are not changed."""
+    import dataclasses
+
+    if labels is not None:
+        labels = [str(v) for v in labels]
+        if len(labels) != len(results):
+            raise InputError(f"{len(labels)} label(s) for {len(results)} result(s): give one --label per result")
+    else:
+        labels = [result_label(r) for r in results]
+        if len(set(labels)) < len(labels):
+            labels = [f"{Path(str(r.path)).parent.name}/{lab}" if r.path else lab for r, lab in zip(results, labels)]
+    return [dataclasses.replace(r, info={**r.info, "label": lab}) for r, lab in zip(results, labels)]
 
 
 def level_label(result: Result) -> str:

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .figures import (as_results, common_frame, figure, mid_planes, panel, plane_extent, save,
+from .figures import (as_results, common_frame, figure, mid_planes, panel, plane_extent, result_label, save,
                       shared_colorbar, symmetric_limit)
+from ..results.strain import DEFAULT_MEASURE, MEASURE_SYMBOLS
 from ..results.result import Result
 
 __all__ = ["plot_u_maps", "plot_uz_maps", "plot_epszz_maps", "plot_uncertainty_map", "COMPONENTS"]
@@ -59,10 +60,10 @@ def _panels(results, maps, extents, frames, title, path, *, cbar, cmap, vmin, vm
     im = None
     for ax, res, m, e, fr in zip(axs, results, maps, extents, frames):
         if m is None:
-            ax.set_title(f"ℓ = {res.info['element_size']}: {empty}", fontsize=10)
+            ax.set_title(f"{result_label(res)}, ℓ = {res.info['element_size']}: {empty}", fontsize=10)
             ax.set_axis_off()
             continue
-        im = panel(fig, ax, m, e, title(res), f"y ({fr.unit})", f"z ({fr.unit})", None, cmap=cmap,
+        im = panel(fig, ax, m, e, f"{result_label(res)}: {title(res)}", f"y ({fr.unit})", f"z ({fr.unit})", None, cmap=cmap,
                    vmin=vmin, vmax=vmax, interpolation=interpolation)
         ax.set_xlim(*xlim)
         ax.set_ylim(*ylim)
@@ -140,11 +141,11 @@ def plot_uncertainty_map(results, path, *, x: int | None = None, dpi: int | None
                    suptitle=f"Per-node displacement uncertainty σ_U on the plane x = {x}")
 
 
-def _epszz_plane(res: Result, x: float):
+def _epszz_plane(res: Result, x: float, strain: str = "small"):
     """eps_zz on the plane ``x`` at the element centres (linear along x between centre
     layers) and the centre coordinates ``(cz, cy)``, level voxels."""
     mesh = res.mesh
-    eps = res.element_strain()[0, 0]  # (ez, ey, ex)
+    eps = res.element_strain(strain)[0, 0]  # (ez, ey, ex)
     centres = mesh.element_axes()
     cx = centres[2]
     if len(cx) == 1:
@@ -156,7 +157,8 @@ def _epszz_plane(res: Result, x: float):
     return layer, centres[0], centres[1]
 
 
-def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5, dpi: int | None = None) -> str:
+def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5, dpi: int | None = None,
+                    strain: str = DEFAULT_MEASURE) -> str:
     """``eps_zz`` on the plane normal to x, interpolated linearly between element centres
     (paper Fig. 10: "linearly interpolated between element centers where the element strain
     has been imposed"), one panel per result, one colour bar.
@@ -174,6 +176,8 @@ def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5, d
     step : float
         Pixel size of the rendered map, voxels.
     dpi : int, optional
+    strain : {"green-lagrange", "small"}
+        Strain measure (:mod:`chunkdic.results.strain`; default Green–Lagrange, zero for a rigid rotation).
     """
     from scipy.interpolate import RegularGridInterpolator
 
@@ -182,7 +186,7 @@ def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5, d
     frames = common_frame(results)
     maps, extents = [], []
     for res, fr in zip(results, frames):
-        layer, cz, cy = _epszz_plane(res, x)
+        layer, cz, cy = _epszz_plane(res, x, strain)
         if len(cz) < 2 or len(cy) < 2:
             zz, yy, img = cz, cy, layer
         else:
@@ -193,6 +197,7 @@ def plot_epszz_maps(results, path, *, x: int | None = None, step: float = 0.5, d
         maps.append(img)
         extents.append([*map(float, fr.position(1, [yy[0], yy[-1]])), *map(float, fr.position(0, [zz[0], zz[-1]]))])
     lim = symmetric_limit(maps)
-    return _panels(results, maps, extents, frames, _ell, path, cbar="ε_zz (–)", cmap="RdBu_r", vmin=-lim, vmax=lim,
-                   dpi=dpi, interpolation="bilinear",
-                   suptitle=f"ε_zz on the plane x = {x}, linear between element centres")
+    sym = MEASURE_SYMBOLS[strain]
+    return _panels(results, maps, extents, frames, _ell, path, cbar=f"{sym}_zz (–)", cmap="RdBu_r", vmin=-lim,
+                   vmax=lim, dpi=dpi, interpolation="bilinear",
+                   suptitle=f"{sym}_zz ({strain} strain) on the plane x = {x}, linear between element centres")

@@ -92,12 +92,21 @@ def _level0(result: Result, c):
     return level0_position(c, float(result.info.get("scale", 1)))
 
 
-def true_layer_strain(result: Result, field: Field) -> np.ndarray:
-    """Mean true ``∂Uz/∂Z`` of every element of the result's mesh, shape ``(ez, ey, ex)``.
+def _zz(dU_dZ: np.ndarray, strain: str) -> np.ndarray:
+    """The zz strain of the column ``∂U/∂Z`` (3, ...): ``∂Uz/∂Z`` (small), or the Green–Lagrange
+    ``E_zz = ∂Uz/∂Z + (Σ_i (∂U_i/∂Z)²) / 2``, which needs that column only."""
+    if strain == "small":
+        return dU_dZ[0]
+    return dU_dZ[0] + 0.5 * (dU_dZ**2).sum(axis=0)
 
-    Per element: ``(Uz(Z1) - Uz(Z0)) / (Z1 - Z0)`` on its bottom and top faces, averaged over
-    2x2 Gauss points of the face (exact when ``Uz`` is at most cubic in ``y`` and ``x`` on an
-    element), computed one element layer at a time.
+
+def true_layer_strain(result: Result, field: Field, strain: str = "small") -> np.ndarray:
+    """Mean true zz strain of every element of the result's mesh, shape ``(ez, ey, ex)``.
+
+    Per element: ``∂U/∂Z = (U(Z1) - U(Z0)) / (Z1 - Z0)`` on its bottom and top faces, averaged
+    over 2x2 Gauss points of the face (exact when ``U`` is at most cubic in ``y`` and ``x`` on
+    an element), computed one element layer at a time; then its ``strain`` measure, as the
+    measured element strain is that of the element's mean gradient.
     """
     mesh = result.mesh
     ell = mesh.element_size
@@ -109,13 +118,13 @@ def true_layer_strain(result: Result, field: Field) -> np.ndarray:
     out = np.empty((ez, ey, ex))
     for k in range(ez):
         z0, z1 = _level0(result, [oz - 0.5 + k * ell, oz - 0.5 + (k + 1) * ell])
-        d = (field.displacement(np.full_like(yy, z1), yy, xx)[0]
-             - field.displacement(np.full_like(yy, z0), yy, xx)[0]) / (z1 - z0)
-        out[k] = d.reshape(ey, 2, ex, 2).mean(axis=(1, 3))
+        d = (field.displacement(np.full_like(yy, z1), yy, xx)
+             - field.displacement(np.full_like(yy, z0), yy, xx)) / (z1 - z0)
+        out[k] = _zz(d.reshape(3, ey, 2, ex, 2).mean(axis=(2, 4)), strain)
     return out
 
 
-def epszz_profile(result: Result, field: Field | None = None) -> LayerProfile:
+def epszz_profile(result: Result, field: Field | None = None, strain: str = "small") -> LayerProfile:
     """Mean ``eps_zz`` per element layer of ``result`` (and the truth of ``field``, if given).
 
     Parameters
@@ -123,13 +132,15 @@ def epszz_profile(result: Result, field: Field | None = None) -> LayerProfile:
     result : Result
     field : Field, optional
         The synthetic field of the pair (:func:`synthetic_field`), level-0 voxels.
+    strain : {"small", "green-lagrange"}
+        Strain measure of the profile and of its truth.
 
     Returns
     -------
     LayerProfile
     """
     mesh = result.mesh
-    eps = result.element_strain()[0, 0]
+    eps = result.element_strain(strain)[0, 0]
     use = np.isfinite(eps)
     if result.active is not None:
         use &= np.asarray(result.active, bool)
@@ -138,14 +149,14 @@ def epszz_profile(result: Result, field: Field | None = None) -> LayerProfile:
         mean = np.where(use, eps, 0.0).sum(axis=(1, 2)) / np.where(n > 0, n, np.nan)
         true = None
         if field is not None:
-            t = true_layer_strain(result, field)
+            t = true_layer_strain(result, field, strain)
             true = np.where(use, t, 0.0).sum(axis=(1, 2)) / np.where(n > 0, n, np.nan)
     z = mesh.element_axes()[0]
     return LayerProfile(z, mean, n.astype(int), true)
 
 
-def true_curve(result: Result, field: Field, n: int = 400, lateral: int = 12):
-    """The truth as a continuous curve: ``(z, mean ∂Uz/∂Z over the ROI plane at z)``, z in
+def true_curve(result: Result, field: Field, n: int = 400, lateral: int = 12, strain: str = "small"):
+    """The truth as a continuous curve: ``(z, mean zz strain over the ROI plane at z)``, z in
     level voxels over the ROI, the plane sampled on ``lateral x lateral`` points."""
     roi = result.mesh.roi
     z = np.linspace(roi[0].start - 0.5, roi[0].stop - 0.5, n)
@@ -154,8 +165,8 @@ def true_curve(result: Result, field: Field, n: int = 400, lateral: int = 12):
     Z = _level0(result, z)[:, None, None]
     h = 0.25
     yy, xx = np.broadcast_arrays(ys[None, :, None], xs[None, None, :])
-    d = (field.displacement(Z + h, yy, xx)[0] - field.displacement(Z - h, yy, xx)[0]) / (2 * h)
-    return z, d.mean(axis=(1, 2))
+    d = (field.displacement(Z + h, yy, xx) - field.displacement(Z - h, yy, xx)) / (2 * h)
+    return z, _zz(d, strain).mean(axis=(1, 2))
 
 
 def write_profile_csv(rows: list[tuple[Result, LayerProfile, object]], path) -> str:

@@ -38,10 +38,11 @@ import numpy as np
 
 from . import correction
 from ..errors import InputError
-from .figures import (AXES, as_results, check_figure_options, common_frame, figure, frame, mid_planes, panel,
-                      plane_extent, save, shared_colorbar, symmetric_limit)
+from .figures import (AXES, as_results, check_figure_options, common_frame, curve_style, figure, frame, mid_planes,
+                      panel, plane_extent, result_label, save, shared_colorbar, symmetric_limit, with_labels)
 from .maps import plot_epszz_maps, plot_u_maps, plot_uncertainty_map, plot_uz_maps
 from ..results.result import Result
+from ..results.strain import DEFAULT_MEASURE, MEASURE_SYMBOLS, check_measure
 
 log = logging.getLogger(__name__)
 
@@ -114,7 +115,8 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
         panel(fig, ax, r, extent, f"normal to {name}, {name} = {planes[name]}; gap {100 * gap:.2f} %",
               f"{col_ax} ({lab})", f"{row_ax} ({lab})", "f − corrected (grey level)",
               cmap="RdBu_r", vmin=-lim, vmax=lim)
-    fig.suptitle(f"Residual f − (λ g(X + u(X)) + μ), scans low-passed as correlated, on the ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
+    fig.suptitle(f"{result_label(result)}: residual f − (λ g(X + u(X)) + μ), scans low-passed as correlated, on the "
+                 f"ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
     paths["residual"] = save(fig, out_dir / f"residual.{fmt}", dpi)
     if progress:
         progress(f"wrote {paths['residual']}")
@@ -144,8 +146,8 @@ def _cut_figure(result: Result, normal: int, idx: int, cut: dict, fr, path, dpi)
                                                             "(e) f − corrected (residual, low-passed f)"))]
     shared_colorbar(fig, bottom[0], axs[1, :2], "difference (grey level)")
     axs[1, 2].set_visible(False)
-    fig.suptitle(f"Mid-plane cut normal to {name}, {name} = {idx} (voxel of level {result.info.get('level', 0)}); "
-                 f"ℓ = {result.info['element_size']}")
+    fig.suptitle(f"{result_label(result)}: mid-plane cut normal to {name}, {name} = {idx} (voxel of level "
+                 f"{result.info.get('level', 0)}); ℓ = {result.info['element_size']}")
     return save(fig, path, dpi)
 
 
@@ -160,8 +162,9 @@ def _percent(v, _pos=None) -> str:
 def gap_figure(results):
     """The matching-gap figure (section 5.1): one curve per result and pyramid level.
 
-    Each level's iterations form one labelled curve ("level s (ℓ = …)"), from the
-    coarsest; the rigid-translation steps that open a level are drawn as black open squares
+    Each level's iterations form one labelled curve ("NAME: level s (ℓ = …)", NAME the
+    result's :func:`~chunkdic.views.figures.result_label`), from the coarsest, each curve in its
+    own colour and line style (:func:`~chunkdic.views.figures.curve_style`); the rigid-translation steps that open a level are drawn as black open squares
     (one legend entry), the Gauss-Newton iterations as filled dots. The y axis is
     logarithmic with plain percent ticks.
 
@@ -176,7 +179,9 @@ def gap_figure(results):
     fig = figure(7.5, 4.5)
     ax = fig.subplots()
     rigid_done = False
+    curve = 0
     for res in results:
+        name = result_label(res)
         h = res.history
         gap = 100 * np.asarray(h["gap"], float)
         step = np.arange(len(gap))
@@ -184,8 +189,9 @@ def gap_figure(results):
         rigid = np.asarray(h["iteration"]) < 0
         for lev in dict.fromkeys(levels.tolist()):  # order of appearance: coarsest first
             on = levels == lev
-            line, = ax.plot(step[on & ~rigid], gap[on & ~rigid], "o-", ms=4, lw=1.2,
-                            label=f"level {lev} (ℓ = {res.info['element_size']})")
+            line, = ax.plot(step[on & ~rigid], gap[on & ~rigid], marker="o", ms=4, lw=1.2, **curve_style(curve),
+                            label=f"{name}: level {lev} (ℓ = {res.info['element_size']})")
+            curve += 1
             if (on & rigid).any():
                 ax.plot(step[on & rigid], gap[on & rigid], "s", ms=8, mfc="none", mec="k", mew=1.2,
                         label=None if rigid_done else "rigid translation steps")
@@ -211,8 +217,9 @@ def plot_gap(results, path, *, dpi: int | None = None) -> str:
     return save(gap_figure(results), path, dpi)
 
 
-def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | None = None) -> dict[str, str]:
-    """ε_zz(z): mean ``eps_zz`` per element layer along z, one curve per result, and the truth
+def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | None = None,
+                       strain: str = DEFAULT_MEASURE) -> dict[str, str]:
+    """ε_zz(z): mean zz strain per element layer along z, one curve per result, and the truth
     when the pair is synthetic (:mod:`chunkdic.views.profile`); the numbers go to a CSV next to
     the figure (same name, ``.csv``; columns :data:`chunkdic.views.profile.PROFILE_COLUMNS`).
 
@@ -225,6 +232,8 @@ def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | Non
         The scans, when not at the paths recorded in the results (where the synthetic
         truth is looked for).
     dpi : int, optional
+    strain : {"green-lagrange", "small"}
+        Strain measure of the curves and the truth (default Green–Lagrange).
 
     Returns
     -------
@@ -238,25 +247,26 @@ def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | Non
     rows, truth = [], None
     for res, fr in zip(results, frames):
         fld = synthetic_field(res, ref, deformed)
-        rows.append((res, epszz_profile(res, fld), fr))
+        rows.append((res, epszz_profile(res, fld, check_measure(strain)), fr))
         if fld is not None and truth is None:
-            zt, et = true_curve(res, fld)
+            zt, et = true_curve(res, fld, strain=strain)
             truth = (fr.position(0, zt), et)
     fig = figure(6.0, 5.2)
     ax = fig.subplots()
     if truth is not None:
-        ax.plot(truth[1], truth[0], "-", color="0.3", lw=1, label="truth ∂Uz/∂Z (plane mean)")
-    for res, prof, fr in rows:
-        line, = ax.plot(prof.eps_zz, fr.position(0, prof.z), "o-", ms=5,
-                        label=f"ℓ = {res.info['element_size']} (level {res.info.get('level', 0)})")
+        ax.plot(truth[1], truth[0], "-", color="0.3", lw=1, label="truth (plane mean)")
+    for i, (res, prof, fr) in enumerate(rows):
+        name = result_label(res)
+        line, = ax.plot(prof.eps_zz, fr.position(0, prof.z), marker="o", ms=5, **curve_style(i),
+                        label=f"{name}: ℓ = {res.info['element_size']} (level {res.info.get('level', 0)})")
         if prof.eps_zz_true is not None:
             ax.plot(prof.eps_zz_true, fr.position(0, prof.z), "x", ms=7, color=line.get_color(),
-                    label=f"truth per layer, ℓ = {res.info['element_size']}")
+                    label=f"{name}: truth per layer")
     ax.axvline(0.0, color="k", lw=0.5)
     ax.xaxis.get_major_formatter().set_useOffset(False)
-    ax.set_xlabel("mean ε_zz per element layer (–)")
+    ax.set_xlabel(f"mean {MEASURE_SYMBOLS[strain]}_zz per element layer (–), {strain} strain")
     ax.set_ylabel(f"z ({frames[0].unit})")
-    ax.set_title("ε_zz(z) profile")
+    ax.set_title(f"{MEASURE_SYMBOLS[strain]}_zz(z) profile")
     ax.grid(True, alpha=0.3)
     ax.legend(fontsize=8)
     out = {"epszz_profile": save(fig, path, dpi)}
@@ -320,7 +330,7 @@ def _cuts_result(results: list[Result], cuts_from) -> Result:
 
 def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
            overwrite: bool = False, progress: Callable[[str], None] | None = None, cuts_from=None,
-           fmt: str = "png", dpi: int | None = None) -> dict[str, str]:
+           fmt: str = "png", dpi: int | None = None, labels=None, strain: str = DEFAULT_MEASURE) -> dict[str, str]:
     """All figures of one or several results into ``out_dir``.
 
     Cuts and residual come from one result (``cuts_from``, default the first; they need the
@@ -349,6 +359,12 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     dpi : int, optional
         Resolution of every figure, dots per inch (default
         :data:`chunkdic.views.figures.DEFAULT_DPI`; a PNG's pixel size scales with it).
+    labels : sequence of str, optional
+        The name of each result in every legend and panel title (default: its file stem;
+        ``--label`` on the command line).
+    strain : {"green-lagrange", "small"}
+        Strain measure of the ε_zz map and profile (default Green–Lagrange: a rigid rotation
+        shows no strain; ``"small"``: the paper's).
 
     Returns
     -------
@@ -364,7 +380,11 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     if interpolation not in (None, "cubic", "linear"):
         raise InputError(f"interpolation must be cubic or linear, got {interpolation!r}")
     check_figure_options(fmt, dpi)
+    check_measure(strain)
     cut_res = _cuts_result(results, cuts_from)
+    at = next(i for i, r in enumerate(results) if r is cut_res)
+    results = with_labels(results, labels)
+    cut_res = results[at]
     say = progress or (lambda msg: None)
     skip = None
     try:
@@ -387,11 +407,11 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     with plan:  # a failure removes the figures this run wrote, never older files
         for comp in "zyx":
             done(f"u{comp}_map", plot_u_maps(results, out_dir / f"u{comp}_map.{fmt}", comp, dpi=dpi))
-        for name, fn in (("epszz_map", plot_epszz_maps), ("gap", plot_gap),
-                         ("uncertainty_map", plot_uncertainty_map)):
+        done("epszz_map", plot_epszz_maps(results, out_dir / f"epszz_map.{fmt}", dpi=dpi, strain=strain))
+        for name, fn in (("gap", plot_gap), ("uncertainty_map", plot_uncertainty_map)):
             done(name, fn(results, out_dir / f"{name}.{fmt}", dpi=dpi))
         for name, path in plot_epszz_profile(results, out_dir / f"epszz_profile.{fmt}", ref=ref,
-                                             deformed=deformed, dpi=dpi).items():
+                                             deformed=deformed, dpi=dpi, strain=strain).items():
             done(name, path)
         if skip is None:
             paths.update(plot_cuts(cut_res, out_dir, ref=ref, deformed=deformed,

@@ -56,3 +56,18 @@ def test_zeroed_and_smooth_error_fail(noisy):
     for name in ("zero", "smooth"):
         cuts = chunkdic.cutcheck(noisy / f"{name}.zarr")
         assert not any(c.passed for c in cuts), (name, cuts)
+
+
+def test_summary_line_states_the_rule_applied():
+    """The verdict line says the bounds used (noise floor or the paper's 0.02 px), not always 0.02."""
+    from types import SimpleNamespace
+
+    from chunkdic.cli.q4 import _rule
+
+    cuts = [SimpleNamespace(axis=a, floor=f, bound=max(0.02, 2 * f), bound_mean=max(0.02, 3 * f / 6))
+            for a, f in (("z", 0.18), ("y", 0.2), ("x", 0.19))]
+    line = _rule(cuts, 0.02)
+    assert "max(0.02, 3 x its predicted uncertainty) = 0.09/0.1/0.095 pixel" in line
+    assert "max(0.02, 2 x the noise floor) = 0.36/0.4/0.38 pixel on cuts z/y/x" in line
+    plain = [SimpleNamespace(axis=a, floor=float("nan"), bound=0.02, bound_mean=0.02) for a in "zyx"]
+    assert _rule(plain, 0.02).startswith("mean and std below 0.02 pixel: the paper's bound")

@@ -103,3 +103,33 @@ def test_long_passes_report_blocks_rate_and_eta(pair, tmp_path, capsys, monkeypa
     assert any("level 0 b pass: 1/27 blocks" in ln and "Mvoxel/s, ETA" in ln for ln in lines), lines
     assert any("level 0 M pass: 1/27 blocks" in ln for ln in lines), lines
     assert any("level 0 prefilter of g: 1/" in ln and "Mvoxel/s, ETA" in ln for ln in lines), lines
+
+
+def test_python_api_takes_physical_lengths_as_the_cli(pair, tmp_path, caplog):
+    """Issue 23 item 6: correlate(element_size="80um", roi in um) is the CLI's run of the same command."""
+    import logging
+
+    f, g = np.load(pair / "ref.npy"), np.load(pair / "def.npy")
+    for name, data in (("ref.zarr", f), ("def.zarr", g)):
+        chunkdic.write_scan(tmp_path / name, data, voxel_size=(10.0, 10.0, 10.0), unit="micrometer")
+    ref, dfm = str(tmp_path / "ref.zarr"), str(tmp_path / "def.zarr")
+    assert main(["correlate", ref, dfm, "-o", str(tmp_path / "cli.zarr"), "-l", "80um",
+                 "--roi", "40:440,40:440,40:440", "--roi-unit", "um"]) == 0
+    cli = chunkdic.open_result(tmp_path / "cli.zarr")
+    with caplog.at_level(logging.INFO, logger="chunkdic"):
+        api = chunkdic.correlate(ref, dfm, element_size="80um", roi="40:440,40:440,40:440um")
+    assert api.info["element_size"] == cli.info["element_size"] == 8
+    assert api.info["roi"] == cli.info["roi"] == [[4, 44]] * 3
+    np.testing.assert_allclose(api.displacement, cli.displacement, rtol=0, atol=1e-9)
+    assert np.abs(api.displacement - np.array([1, 2, -1.0])[:, None, None, None]).max() < 1e-3
+    # the conversion and the events are logged as the CLI words them, not as raw dicts
+    messages = [r.getMessage() for r in caplog.records]
+    assert any(m.startswith("--element-size 80um = 8.000 voxels of level 0: using 8") for m in messages), messages
+    assert any(m.startswith("running on ") for m in messages)
+    assert any(" iter " in m and "gap" in m for m in messages)
+    assert not any("'stage'" in m for m in messages)
+    # a physical length without a voxel size, or a fraction of a voxel, is refused in one line
+    with pytest.raises(chunkdic.InputError, match="no voxel size"):
+        chunkdic.correlate(f, g, element_size="80um")
+    with pytest.raises(chunkdic.InputError, match="whole number"):
+        chunkdic.correlate(ref, dfm, element_size="8.5")

@@ -13,7 +13,7 @@ import chunkdic
 from chunkdic.synth import synthetic
 from chunkdic.cli.app import main
 from chunkdic.views.corrected_image import open_corrected, write_corrected
-from chunkdic.views.fields import CHANNELS, equivalent_strain, open_fields, write_fields
+from chunkdic.views.fields import CHANNELS, equivalent_strain, open_levels, write_fields
 from chunkdic.mesh import Mesh
 
 A = ((-0.02, 0.0, 0.0), (0.0, 0.01, 0.0), (0.005, 0.0, 0.01))  # dU_i / dX_j, axes (z, y, x)
@@ -108,7 +108,7 @@ def test_fields_read_back_on_the_scan_grid(affine):
     ell = 12
     centres = [np.arange(6 + ell // 2, 42, ell)] * 3
     per_element = vol[4][np.ix_(*centres)]
-    assert np.allclose(per_element, res.element_strain()[0, 0], atol=1e-6)
+    assert np.allclose(per_element, res.element_strain("green-lagrange")[0, 0], atol=1e-6)  # the default measure
     assert abs(per_element[1:-1, 1:-1, 1:-1].mean() - A[0][0]) < 1e-3
     assert np.abs(per_element - A[0][0]).max() < 5e-3
     sym = 0.5 * (np.asarray(A) + np.asarray(A).T)
@@ -126,7 +126,7 @@ def test_residual_is_the_corrected_residual(affine, tmp_path):
     _, res, d, _ = affine
     write_corrected(res, tmp_path / "c.zarr")
     _, residual, _ = open_corrected(tmp_path / "c.zarr")
-    levels, attrs = open_fields(d / "fields.zarr")
+    levels, attrs = open_levels(d / "fields.zarr")
     ours = levels[0][6][6:42, 6:42, 6:42]
     r = residual[...]
     assert np.abs(ours - r).max() < 1e-3 * np.abs(r).max()
@@ -136,8 +136,8 @@ def test_residual_is_the_corrected_residual(affine, tmp_path):
 def test_chunking_does_not_change_the_fields(affine, tmp_path):
     _, res, d, _ = affine
     write_fields(res, tmp_path / "f.zarr", residual=False, levels=0)  # one 48^3 chunk
-    one, _ = open_fields(tmp_path / "f.zarr")
-    many, _ = open_fields(d / "fields.zarr")
+    one, _ = open_levels(tmp_path / "f.zarr")
+    many, _ = open_levels(d / "fields.zarr")
     assert len(one) == 1
     assert np.allclose(one[0][:6], many[0][:6], atol=1e-6, equal_nan=True)
     assert np.isnan(one[0][6]).all()
@@ -154,8 +154,8 @@ def test_level_1_result_maps_onto_level_0_voxels(affine, tmp_path):
     fake = chunkdic.Result(u1, nodes1, res.history, info)
     for units, factor in (("voxels", 1.0), ("physical", VOXEL)):
         out = tmp_path / f"{units}.zarr"
-        write_fields(fake, out, residual=False, units=units)
-        vol = open_fields(out)[0][0][...]
+        write_fields(fake, out, residual=False, units=units, strain="small")  # analytic truth below: small strain
+        vol = open_levels(out)[0][0][...]
         truth = _affine(np.indices((48,) * 3, float))[:, 6:42, 6:42, 6:42] * factor
         assert np.abs(vol[:3, 6:42, 6:42, 6:42] - truth).max() < 1e-4 * factor
         assert np.isnan(vol[:, :6]).all() and np.isnan(vol[:, 42:]).all()
@@ -231,7 +231,7 @@ def test_corrected_is_an_image_on_the_scan_grid(affine, tmp_path):
     roi = (slice(6, 42),) * 3
     assert np.abs(vol[0][roi] - c).max() < 1e-5 * np.abs(c).max()
     assert np.abs(vol[1][roi] - (f - c)).max() < 1e-5 * np.abs(c).max()
-    fields = np.asarray(open_fields(d / "fields.zarr")[0][0][6])
+    fields = np.asarray(open_levels(d / "fields.zarr")[0][0][6])
     assert np.abs(vol[1] - fields)[inside].max() < 1e-5 * np.abs(c).max()
     # open_corrected: the ROI of level 0; level 1 the NaN-aware mean
     corrected, residual, meta = open_corrected(tmp_path / "c.zarr")
@@ -284,3 +284,22 @@ def test_napari_layers_place_the_fields_on_the_scan(affine):
         assert tuple(data[0].shape[-3:]) == tuple(scan_data[0].shape)
     names = fields[0][1].get("name")  # one layer per channel, "fields.zarr: Uz", ...
     assert [str(n).split(": ")[-1] for n in names] == list(CHANNELS)
+
+
+def test_open_fields_gives_one_level_as_xarray_with_physical_coordinates(affine):
+    """Issue 23 item 6: chunkdic.open_fields -> xarray.Dataset, named channels, the scan's frame."""
+    _, res, d, _ = affine
+    levels, _ = open_levels(d / "fields.zarr")
+    ds = chunkdic.open_fields(d / "fields.zarr")
+    assert list(ds.data_vars) == list(CHANNELS)
+    assert ds["Uz"].dims == ("z", "y", "x") and ds["Uz"].shape == (48, 48, 48)
+    assert np.allclose(ds["z"].values, VOXEL * np.arange(48)) and ds["z"].attrs["units"] == "micrometer"
+    for k, name in enumerate(CHANNELS):
+        np.testing.assert_array_equal(ds[name].values, np.asarray(levels[0][k]))
+    one = chunkdic.open_fields(d / "fields.zarr", level=1)
+    # a level-1 voxel j is the mean of level-0 voxels 2j, 2j + 1: centre 2 j + 1/2 (DESIGN.md)
+    assert np.allclose(one["x"].values, VOXEL * (2 * np.arange(24) + 0.5))
+    np.testing.assert_array_equal(one["eps_zz"].values, np.asarray(levels[1][4]))
+    assert ds.attrs["strain_measure"] == "green-lagrange" and ds.attrs["kind"] == "fields"
+    with pytest.raises(chunkdic.InputError, match="levels 0 to"):
+        chunkdic.open_fields(d / "fields.zarr", level=len(levels))

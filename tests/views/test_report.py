@@ -295,7 +295,7 @@ def test_epszz_profile_csv_against_strains_and_truth(affine, translation, tmp_pa
     _, res_t, d_t = translation
     out = tmp_path / "fig"
     assert _run(["report", str(d / "result.zarr"), str(d_t / "result.zarr"), "-o", str(out),
-                 "--format", "svg", "--cuts-from", str(d / "result.zarr")]) == 0
+                 "--format", "svg", "--cuts-from", str(d / "result.zarr"), "--strain", "small"]) == 0
     rows = _profile_rows(out / "epszz_profile.csv")
     for r, truth in ((res, A_ZZ), (res_t, 0.0)):
         mine = [row for row in rows if row["result"] == r.path]
@@ -319,6 +319,24 @@ def test_epszz_profile_csv_against_strains_and_truth(affine, translation, tmp_pa
         assert head.startswith(b"<?xml") and b"<svg" in head, name
     assert not list(out.glob("*.png"))
     assert "ℓ = 12" in (out / "cut_z.svg").read_text()
+    # both results named (same stem "result": told apart by their folders) in every legend and title
+    names = [f"{p.name}/result" for p in (d, d_t)]
+    for fig in ("gap", "epszz_profile", "uz_map", "epszz_map", "uncertainty_map"):
+        text = (out / f"{fig}.svg").read_text()
+        assert all(n in text for n in names), (fig, names)
+    for fig in ("cut_x", "cut_y", "cut_z", "residual"):
+        assert names[0] in (out / f"{fig}.svg").read_text() and names[1] not in (out / f"{fig}.svg").read_text()
+    # the default measure, Green-Lagrange: E_zz = dUz/dZ + |dU/dZ|^2 / 2 per element, and its truth
+    out2 = tmp_path / "fig-gl"
+    assert _run(["report", str(d / "result.zarr"), "-o", str(out2), "--format", "svg"]) == 0
+    mine = _profile_rows(out2 / "epszz_profile.csv")
+    H = res.displacement  # the element strains of the stored field, Green-Lagrange
+    from chunkdic.results.strain import element_strain
+
+    E = element_strain(H, res.info["element_size"], "green-lagrange")[0, 0]
+    assert np.allclose([float(row["eps_zz"]) for row in mine], E.mean(axis=(1, 2)), rtol=0, atol=1e-14)
+    assert np.allclose([float(row["eps_zz_true"]) for row in mine], A_ZZ + A_ZZ**2 / 2, atol=1e-12)
+    assert "E_zz" in (out2 / "epszz_profile.svg").read_text()
 
 
 def test_true_layer_strain_of_a_band_against_quadrature(affine):
@@ -353,7 +371,7 @@ def test_gap_figure_labels_levels_and_plain_percent(translation):
     ax = fig.axes[0]
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     levels = list(dict.fromkeys(np.asarray(res.history["level"]).tolist()))
-    expect = [f"level {s} (ℓ = 12)" for s in levels]
+    expect = [f"result: level {s} (ℓ = 12)" for s in levels]
     if (np.asarray(res.history["iteration"]) < 0).any():
         expect.insert(1, "rigid translation steps")
     assert labels == expect
@@ -361,7 +379,7 @@ def test_gap_figure_labels_levels_and_plain_percent(translation):
     lines = {ln.get_label(): ln for ln in ax.get_lines()}
     lev, it = np.asarray(res.history["level"]), np.asarray(res.history["iteration"])
     for s in levels:
-        ys = lines[f"level {s} (ℓ = 12)"].get_ydata()
+        ys = lines[f"result: level {s} (ℓ = 12)"].get_ydata()
         assert np.allclose(ys, 100 * np.asarray(res.history["gap"])[(lev == s) & (it >= 0)])
     fmt = ax.yaxis.get_major_formatter()
     assert fmt(0.5, 0) == "0.5 %" and fmt(20.0, 0) == "20 %"
@@ -443,3 +461,101 @@ def test_maps_share_extent_colour_bar_and_centre(translation, tmp_path):
     assert ax.get_images()[0].get_extent() == pytest.approx([3.0 * (y0 - 0.5), 3.0 * (y1 - 0.5),
                                                              2.0 * (z0 - 0.5), 2.0 * (z1 - 0.5)])
     assert ax.get_xlabel() == "y (µm)" and ax.get_images()[0].get_clim()[1] == pytest.approx(3.0 * hi)
+
+
+def test_labels_name_every_curve_and_twelve_curves_differ(translation, affine, tmp_path):
+    """Issue 23 item 3: --label / labels= in every legend and panel title; 12 curves, 12 (colour, style) pairs."""
+    from chunkdic.views.figures import with_labels
+    from chunkdic.views.report import gap_figure
+
+    a, b = _in_memory(translation[1]), _in_memory(affine[1])
+    out = tmp_path / "fig"
+    assert _run(["report", str(translation[2] / "result.zarr"), str(affine[2] / "result.zarr"), "-o", str(out),
+                 "--format", "svg", "--label", "tension A", "--label", "shear B"]) == 0
+    for fig in ("gap", "epszz_profile", "uz_map", "epszz_map", "uncertainty_map"):
+        text = (out / f"{fig}.svg").read_text()
+        assert "tension A" in text and "shear B" in text, fig
+    assert "tension A" in (out / "cut_z.svg").read_text()
+    # the labels read back from the matplotlib objects, and one label per result or nothing written
+    ax = gap_figure(with_labels([a, b], ["tension A", "shear B"])).axes[0]
+    texts = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert any(t.startswith("tension A: level") for t in texts) and any(t.startswith("shear B: level") for t in texts)
+    with pytest.raises(InputError, match="1 label"):
+        report([a, b], tmp_path / "bad", labels=["only one"])
+    assert not (tmp_path / "bad").exists()
+    # 12 curves: 12 distinct (colour, line style) pairs
+    one = chunkdic.Result(a.displacement, a.node_coords,
+                          {k: np.asarray(v)[np.asarray(a.history["level"]) == 0] for k, v in a.history.items()},
+                          a.info)
+    many = with_labels([one] * 12, [f"r{i}" for i in range(12)])
+    lines = [ln for ln in gap_figure(many).axes[0].get_lines() if ": level" in ln.get_label()]
+    assert len(lines) == 12
+    from matplotlib.colors import to_hex
+
+    assert len({(to_hex(ln.get_color()), ln.get_linestyle()) for ln in lines}) == 12
+
+
+def _rotated(theta_deg: float = 10.0):
+    """A result whose field is a rigid rotation by ``theta`` about the x axis (in the z-y plane)."""
+    from chunkdic.mesh import Mesh
+
+    mesh = Mesh((4, 4, 4), 8, (4, 4, 4))
+    X = mesh.node_coords()
+    t = np.radians(theta_deg)
+    R = np.array([[np.cos(t), -np.sin(t), 0], [np.sin(t), np.cos(t), 0], [0, 0, 1.0]])
+    c = np.array([20.0, 20.0, 20.0])[:, None, None, None]
+    u = np.einsum("ij,j...->i...", R - np.eye(3), X - c)
+    hist = {k: np.zeros(1) for k in ("level", "iteration", "gap", "max_delta", "excluded")}
+    info = {"element_size": 8, "roi": [[4, 36]] * 3, "level": 0, "scale": 1, "final_gap": 0.01,
+            "input_shapes": {"reference": [40, 40, 40]}, "inputs": {"reference": "<in-memory ndarray>"}}
+    return chunkdic.Result(u, X, hist, info)
+
+
+def test_a_rigid_rotation_exports_no_strain_by_default(tmp_path):
+    """Issue 23 item 2: VTK cells and the fields image of a 10° rotation: |eps| < 1e-3 by default
+    (Green-Lagrange), the small strain's cos(10°) - 1 = -0.0152 with --strain small."""
+    import meshio
+
+    from chunkdic.views.export import read_vtk_metadata, write_vtk
+    from chunkdic.views.fields import write_fields
+
+    res = _rotated()
+    res.save(tmp_path / "rot.zarr")
+    assert _run(["export", str(tmp_path / "rot.zarr"), "--vtk", str(tmp_path / "gl.vtu")]) == 0
+    cells = meshio.read(tmp_path / "gl.vtu").cell_data
+    assert np.abs(cells["strain"][0]).max() < 1e-3 and np.abs(cells["strain"][0]).max() < 1e-12
+    assert read_vtk_metadata(tmp_path / "gl.vtu")["strain_measure"] == "green-lagrange"
+    write_vtk(res, tmp_path / "small.vtu", strain="small")
+    small = meshio.read(tmp_path / "small.vtu").cell_data
+    assert np.allclose(small["eps_zz"][0], np.cos(np.radians(10)) - 1, atol=1e-12)
+    # the fields image: eps_zz and eps_eq per voxel
+    out = write_fields(res, tmp_path / "f.zarr", residual=False)
+    import zarr
+
+    vol = zarr.open_array(str(tmp_path / "f.zarr"), path="0")[4:6]
+    inside = np.isfinite(vol[0])
+    assert inside.sum() == 32**3 and np.abs(vol[:, inside]).max() < 1e-6
+    assert out["path"].endswith("f.zarr")
+    vol = np.asarray(zarr.open_array(str(write_fields(res, tmp_path / "s.zarr", residual=False, strain="small")["path"]),
+                                     path="0")[4])
+    assert np.allclose(vol[np.isfinite(vol)], np.cos(np.radians(10)) - 1, atol=1e-6)
+    with pytest.raises(InputError, match="strain measure"):
+        write_vtk(res, tmp_path / "x.vtu", strain="cauchy")
+    assert not (tmp_path / "x.vtu").exists()
+
+
+def test_result_methods_and_faces_level_with_the_cli(tmp_path):
+    """Issue 23 item 6: Result.strain_summary / to_vtk / to_csv, chunkdic.report, as the commands."""
+    import meshio
+    import pandas as pd
+
+    res = _rotated()
+    s = res.strain_summary()
+    assert s.measure == "green-lagrange" and np.abs(s.mean).max() < 1e-12 and s.max_rotation == pytest.approx(10)
+    assert res.strain_summary(measure="small").eps_zz == pytest.approx(np.cos(np.radians(10)) - 1, abs=1e-12)
+    info = res.to_vtk(tmp_path / "r.vtu")
+    assert info["strain"] == "green-lagrange" and np.abs(meshio.read(tmp_path / "r.vtu").cell_data["strain"][0]).max() < 1e-12
+    assert res.to_csv(tmp_path / "r.csv") == 125
+    table = pd.read_csv(tmp_path / "r.csv")
+    assert np.allclose(table["Uz"].to_numpy(), res.displacement[0].ravel())
+    assert chunkdic.report is report and chunkdic.write_nodes_csv is not None
