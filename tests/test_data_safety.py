@@ -269,7 +269,9 @@ def test_B1_lock_and_scratch_of_a_killed_run_are_reclaimed(data, tmp_path, capsy
 
 def _interrupt_at(monkeypatch, iteration: int):
     """Make the CLI's progress printer raise KeyboardInterrupt at a level-0 iteration."""
-    from chunkdic.cli import main as cli
+    import importlib
+
+    cli = importlib.import_module("chunkdic.cli.main")  # the module (chunkdic.cli.main is also a function)
 
     real = cli.print_progress
 
