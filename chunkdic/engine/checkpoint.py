@@ -117,6 +117,49 @@ class Checkpoint:
         self.saved = True
 
 
+def completed_already(path, print_: str):
+    """The complete result at ``path`` if this very run made it (same fingerprint: inputs,
+    their contents, settings, ROI, start field), else None. A re-run of the same command
+    (a batch job re-queued after a kill that landed just after the save) then has nothing
+    to do, as ``make``."""
+    from ..results.result import open_result
+    from ..io.kinds import kind_of
+
+    p = Path(path)
+    if p.is_symlink() or kind_of(p) != ("result", True):
+        return None
+    attrs = _read_attrs(p)
+    if attrs is None or attrs.get("fingerprint") != print_:
+        return None
+    return open_result(p)
+
+
+def redo_level_end(state, s: int, statuses: dict, finest: int) -> bool:
+    """Resumed at level ``s`` whose iterations had ended (``state.status`` set): is its end to
+    be redone? Yes when the kill came before the level's end was recorded (``s`` not in
+    ``statuses``: the regularisation length may still be to choose), and always on the
+    finest level, whose solver gives the result's weak nodes, mask flags and uncertainty.
+    A finished coarse level only hands its field on."""
+    return state is not None and state.status is not None and (s not in statuses or s == finest)
+
+
+def resumed_pass(lvl, state):
+    """The latest pass at ``state.u`` on ``lvl``: the one this process ran, else (a level resumed
+    after its iterations ended) one evaluated again. Exactly the pass the interrupted run
+    held when its field stayed the pass's own (an increment left unapplied for the
+    regularisation choice, :func:`chunkdic.engine.gauss_newton.iterate` ``resolve``)."""
+    p = getattr(lvl, "last_pass", None)
+    return p if p is not None else lvl.assemble_b(state.u)
+
+
+def kept_checkpoint_error(exc: OSError, output) -> InputError:
+    """The one line for a disk error (full, read-only, I/O) met after a checkpoint was saved:
+    the checkpoint stays (marked incomplete) and the same command resumes from it."""
+    where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+    return InputError(f"{exc.strerror or exc}{where}; the checkpoint in {output} is kept (marked incomplete): "
+                      "free space and run the same command again to resume, or remove it")
+
+
 def identify_input(src, scan) -> dict:
     """What identifies an input for resuming: path, shape, dtype and a cheap content
     identity of every stored level (:func:`chunkdic.io.integrity.content_identity`: chunk

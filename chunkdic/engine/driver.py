@@ -24,7 +24,8 @@ import numpy as np
 
 from .. import config
 from ..kernels import jit as kernels
-from .checkpoint import Checkpoint, fingerprint, identify_input
+from .checkpoint import (Checkpoint, completed_already, fingerprint, identify_input, kept_checkpoint_error,
+                         redo_level_end, resumed_pass)
 from ..errors import InputError
 from .gauss_newton import History, State, iterate, rigid_step
 from .level import Level, emit
@@ -131,10 +132,6 @@ def correlate(
     mask_scan = None if mask is None else open_scan(mask)
     if mask_scan is not None:
         check_mask_shape(mask_scan, f_scan.shape(0))
-    plan = entry = None
-    if output is not None:  # every output rule (chunkdic.io.outputs), nothing written yet
-        plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
-        entry = plan.add(output, "result", resumable=True)
     identities = {role: identify_input(src, scan) for role, src, scan in
                   (("reference", ref, f_scan), ("deformed", deformed, g_scan))}
     if mask is not None:
@@ -147,6 +144,15 @@ def correlate(
         if init_result.path is None:  # an in-memory result never resumes, as in-memory scans
             init_id["in-memory"] = uuid.uuid4().hex
     run_print = fingerprint(described)
+    plan = entry = None
+    if output is not None and not overwrite:
+        done = completed_already(output, run_print)  # the same command re-run on its own complete result
+        if done is not None:
+            emit(progress, stage="complete", path=str(output))
+            return done
+    if output is not None:  # every output rule (chunkdic.io.outputs), nothing written yet
+        plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
+        entry = plan.add(output, "result", resumable=True)
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
     scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
@@ -178,6 +184,8 @@ def correlate(
                 fresh = plan is not None and resume is None
                 if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
                     plan.rollback()
+                elif isinstance(exc, OSError) and ckpt is not None:
+                    raise kept_checkpoint_error(exc, output) from None  # say it is kept, and how to resume
                 raise
             result.info.update(
                 voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
@@ -189,7 +197,10 @@ def correlate(
             if init_id is not None:
                 result.info["settings"] = dict(result.info["settings"], init=init_id)
             if output is not None:  # replaces the checkpointed group once complete, under the lock
-                result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
+                try:
+                    result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
+                except OSError as exc:  # the staged copy is gone, the checkpoint stays
+                    raise kept_checkpoint_error(exc, output) from None
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return result
@@ -263,7 +274,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             continue  # finished before the interruption
         mesh = meshes[s]
         tol = settings.tolerance if s == finest else settings.coarse_tolerance
-        if state is None or state.status is None:
+        if state is None or state.status is None or redo_level_end(state, s, statuses, finest):
             t0, c0 = time.perf_counter(), time.process_time()
             if state is not None:
                 start = state.u  # resumed
@@ -278,7 +289,8 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                 start = transfer(u, meshes[s + 1], s + 1, mesh, s)
             lvl = Level(s, mesh, f_refs[s], g_refs[s], runner, settings, scratch, progress,
                         None if mask_refs is None else mask_refs[s])
-            lvl.assemble_m(start)
+            m_start = start if state is None or state.m_start is None else state.m_start
+            lvl.assemble_m(m_start)
             emit(progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
                  voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
             if state is None:
@@ -289,6 +301,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                     rigid_t = rigid_step(lvl, t_int, tol, 10, history, progress)
                     start = _uniform(rigid_t, mesh)
                 state = State(start)
+            state.m_start = m_start  # in the checkpoint: a resumed level rebuilds the very same M
             lvl.regularize(_regularization_length(settings, state, s, mesh))
             lvl.prepare_interpolation(state.u)
             if s == finest and initial_gap is None:
@@ -316,8 +329,8 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
             emit(progress, stage="level", level=s, status=state.status, gap=state.gap,
                  seconds=time.perf_counter() - t0)
             weak, masked, active = lvl.weak_nodes(), lvl.masked_nodes(), lvl.active
-            if s == finest:
-                p = lvl.last_pass
+            if s == finest:  # the latest pass's noise (kept in the state: a level resumed after its end)
+                p = state if math.isfinite(state.noise_variance) else resumed_pass(lvl, state)
                 sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
                 noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
         final, u, state = state, state.u, None
@@ -419,7 +432,7 @@ def _choose_automatically(settings: Settings, state: State) -> bool:
 
 def _with_chosen_regularization(lvl: Level, state: State, progress) -> State:
     """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.solve.regchoice.choose_length`), restart."""
-    p = lvl.last_pass
+    p = resumed_pass(lvl, state)
     u = np.moveaxis(state.u, 0, -1)
 
     last = {"half": None, "solver": None}
