@@ -228,3 +228,59 @@ def test_scratch_on_a_full_disk_leaves_nothing(tmp_path, monkeypatch):
         with pytest.raises(InputError, match="No space left on device"):
             ownership.make_scratch()
     assert list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- kills and resume
+
+#: the issue's command on a 32³ pair with two levels: rigid step, M, passes, the automatic
+#: regularisation length, the level ends
+_RESUME_ARGS = ["-l", "6", "--tolerance", "1e-4", "--block-elements", "2", "--coarsest", "1"]
+_STAGES = ["level 1 rigid  0", "level 1: converged", "level 0 iter  0", "regularisation length",
+           "level 0: converged"]
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(data, tmp_path_factory):
+    out = tmp_path_factory.mktemp("uninterrupted") / "full.zarr"
+    assert main(["correlate", str(data / "s/ref.zarr"), str(data / "s/def.zarr"), "-o", str(out),
+                 *_RESUME_ARGS]) == 0
+    return chunkdic.open_result(out)
+
+
+@pytest.mark.parametrize("stage", _STAGES)
+def test_kill_at_a_stage_line_resumes_to_the_uninterrupted_field(data, uninterrupted, tmp_path, capsys, stage):
+    out = tmp_path / "out.zarr"
+    argv = ["correlate", str(data / "s/ref.zarr"), str(data / "s/def.zarr"), "-o", str(out), *_RESUME_ARGS]
+    before = tree(data / "s")
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", *argv], stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if stage in line:
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    assert proc.wait() == -signal.SIGKILL, f"the run ended before {stage!r}"
+    capsys.readouterr()
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    res = chunkdic.open_result(out)
+    np.testing.assert_allclose(res.displacement, uninterrupted.displacement, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(res.flags, uninterrupted.flags)
+    np.testing.assert_allclose(res.uncertainty, uninterrupted.uncertainty, rtol=1e-6, atol=1e-9)
+    assert res.info["regularization"] == uninterrupted.info["regularization"]
+    assert res.info["level_status"] == uninterrupted.info["level_status"]
+    assert tree(data / "s") == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.zarr"]  # the dead run's lock reclaimed
+
+
+def test_the_same_command_on_its_own_complete_result_has_nothing_to_do(data, uninterrupted, tmp_path, capsys):
+    out = tmp_path / "full.zarr"
+    shutil.copytree(uninterrupted.path, out, copy_function=shutil.copy2)
+    argv = ["correlate", str(data / "s/ref.zarr"), str(data / "s/def.zarr"), "-o", str(out), *_RESUME_ARGS]
+    # the copy's fingerprint names the first output's inputs, which are these: it is this run's result
+    before = tree(out)
+    assert main(argv) == 0
+    assert "is already complete (the same inputs and settings): nothing to do" in capsys.readouterr().err
+    assert tree(out) == before
+    # other settings on a complete result: refused, untouched
+    refused([*argv[:-1], "3"], capsys, "is a complete result")
+    assert tree(out) == before
