@@ -284,3 +284,23 @@ def test_the_same_command_on_its_own_complete_result_has_nothing_to_do(data, uni
     # other settings on a complete result: refused, untouched
     refused([*argv[:-1], "3"], capsys, "is a complete result")
     assert tree(out) == before
+
+
+def test_a_garbled_checkpoint_is_refused_in_one_line(data, tmp_path, capsys):
+    out = tmp_path / "out.zarr"
+    argv = ["correlate", str(data / "s/ref.zarr"), str(data / "s/def.zarr"), "-o", str(out), *_RESUME_ARGS]
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", *argv], stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if "level 0 iter  0" in line:
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    proc.wait()
+    rng = np.random.default_rng(1)
+    for f in (out / "checkpoint").rglob("*"):  # every chunk of every checkpoint array: noise
+        if f.is_file() and f.name != "zarr.json":
+            f.write_bytes(rng.bytes(f.stat().st_size))
+    before = tree(out)
+    refused(argv, capsys, "holds a checkpoint that cannot be read .*pass --overwrite to start again")
+    assert tree(out) == before
+    assert main([*argv, "--overwrite"]) == 0
+    capsys.readouterr()

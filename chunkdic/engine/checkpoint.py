@@ -95,9 +95,17 @@ class Checkpoint:
     def _load_arrays(self, state: dict) -> dict[str, np.ndarray]:
         import zarr
 
-        group = zarr.open_group(str(self.path / "checkpoint"), mode="r")
-        k = state["slot"]
-        return {name: group[f"{name}{k}"][...] for name in state["array_names"]}
+        try:
+            group = zarr.open_group(str(self.path / "checkpoint"), mode="r")
+            k = state["slot"]
+            arrays = {name: group[f"{name}{k}"][...] for name in state["array_names"]}
+            if not all(np.isfinite(a).all() for name, a in arrays.items() if name in ("u", "m_start")):
+                raise ValueError("non-finite nodal field")
+            return arrays
+        except Exception as exc:  # noqa: BLE001 - garbled arrays or attributes: never a traceback, never a guess
+            first = (str(exc).splitlines() or [""])[0]
+            raise InputError(f"output {self.path} holds a checkpoint that cannot be read ({type(exc).__name__}: "
+                             f"{first}): pass --overwrite to start again") from None
 
     def save(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
         """Write a new checkpoint (arrays first, into the free slot, then the pointer)."""
