@@ -304,3 +304,23 @@ def test_a_garbled_checkpoint_is_refused_in_one_line(data, tmp_path, capsys):
     assert tree(out) == before
     assert main([*argv, "--overwrite"]) == 0
     capsys.readouterr()
+
+
+def test_partials_of_dead_runs_are_reclaimed_by_the_next_writer_in_the_directory(data, tmp_path, capsys):
+    import socket
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()  # a pid that no process holds any more (a run killed with SIGKILL)
+    host = socket.gethostname().replace("-", "_").replace(".", "_")
+    left = [tmp_path / f".f.chunkdic-partial-{host}-{dead.pid}-0a1b2c.zarr",  # export --fields
+            tmp_path / f".c.chunkdic-partial-{host}-{dead.pid}-3d4e5f.zarr"]  # export --corrected
+    for p in left:
+        (p / "0").mkdir(parents=True)
+        (p / "0" / "zarr.json").write_text("{}")
+    live = tmp_path / f".g.chunkdic-partial-{host}-{os.getpid()}-abcdef.zarr"  # a live run's: never touched
+    live.mkdir()
+    user = tmp_path / ".f.chunkdic-partial-notes.txt"  # not chunkdic's name pattern: never touched
+    user.write_text("a user's file")
+    assert main(["export", str(data / "r.zarr"), "--vtk", str(tmp_path / "m.vtu")]) == 0
+    capsys.readouterr()
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, user.name, "m.vtu"])

@@ -204,10 +204,12 @@ def final_name(path) -> str:
 
 
 def reclaim_stale_partials(final: Path) -> list[Path]:
-    """Remove staged versions of ``final`` whose owner (this host) is dead; returns them."""
+    """Remove the staged outputs of dead runs (this host) in the directory of ``final``:
+    of ``final`` and of any other output there (a killed ``export --fields`` leaves one
+    beside its output, which the next run of any command writing there reclaims). Only
+    entries named as chunkdic's staged outputs whose owner pid is dead; returns them."""
     host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
-    pattern = re.compile(re.escape(f".{final.stem}{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}"
-                         + re.escape(final.suffix) + "$")
+    pattern = re.compile(r"\..+" + re.escape(f"{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}(\.[^.]*)?$")
     removed = []
     try:
         entries = list(final.parent.iterdir())
