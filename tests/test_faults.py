@@ -324,3 +324,27 @@ def test_partials_of_dead_runs_are_reclaimed_by_the_next_writer_in_the_directory
     assert main(["export", str(data / "r.zarr"), "--vtk", str(tmp_path / "m.vtu")]) == 0
     capsys.readouterr()
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live.name, user.name, "m.vtu"])
+
+
+def test_series_killed_after_a_steps_regularisation_line_resumes(data, tmp_path, capsys):
+    scans = [str(data / "s/ref.zarr"), str(data / "s/def.zarr"), str(data / "s/def.zarr")]
+    opts = ["-l", "6", "--tolerance", "1e-4", "--block-elements", "2"]
+    full = tmp_path / "full.zarr"
+    assert main(["series", *scans, "-o", str(full), *opts]) == 0
+    out = tmp_path / "ser.zarr"
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", "series", *scans, "-o", str(out), *opts],
+                            stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if "regularisation length" in line:
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    assert proc.wait() == -signal.SIGKILL
+    capsys.readouterr()
+    assert main(["series", *scans, "-o", str(out), *opts]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    a, b = chunkdic.open_series(out), chunkdic.open_series(full)
+    assert sorted(a.cumulative) == sorted(b.cumulative)
+    for k in a.cumulative:
+        np.testing.assert_allclose(a.cumulative[k].displacement, b.cumulative[k].displacement, rtol=0, atol=1e-6)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["full.zarr", "ser.zarr"]
+    assert not [p for p in out.rglob("*") if "chunkdic-" in p.name]  # no lock or partial inside the series
