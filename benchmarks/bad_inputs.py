@@ -666,6 +666,23 @@ def issue24(add, cor, ov) -> None:
             setup=_other_layout(fmt), kind="changed", change=_roll_other_layout)
     add("I24", "resume from a garbled checkpoint", [*cor, "--tolerance", "1e-6", "-o", "out.zarr"], kind="changed",
         change=_garble_checkpoint)
+    # never a hang, never a traceback
+    fifo = lambda name: (lambda d: os.mkfifo(d / name))  # noqa: E731
+    add("I24", "correlate -o FIFO", [*cor, "-o", "o.zarr"], setup=fifo("o.zarr"), timeout=HANG)
+    add("I24", "correlate -o FIFO --overwrite", [*cor, "-o", "o.zarr", ov], setup=fifo("o.zarr"), timeout=HANG)
+    add("I24", "export --vtk FIFO --overwrite", ["export", "r.zarr", "--vtk", "o.vtu", ov], setup=fifo("o.vtu"),
+        timeout=HANG)
+    add("I24", "ingest f.npy FIFO --overwrite", ["ingest", "f.npy", "o.zarr", ov], setup=fifo("o.zarr"), timeout=HANG)
+    vs = ["ingest", "s/ref.zarr/0", "vs.zarr", "--voxel-size", "2", "--unit", "um"]
+    with_vs = lambda d: subprocess.run([sys.executable, "-m", "chunkdic", *vs], cwd=d, env=Case.env_for(Case.tree),  # noqa: E731
+                                       capture_output=True, check=True)
+    for opt in (["-l", "1e999um"], ["-l", "1e999"], ["-l=-160um"], ["-l", "0um"],
+                ["-l", "8", "--roi", "0:nan,0:32,0:32", "--roi-unit", "um"],
+                ["-l", "8", "--roi", "0:1e999,0:32,0:32", "--roi-unit", "um"],
+                ["-l", "8", "--roi", "nan:5,0:32,0:32um"]):
+        for cmd in ("correlate", "series"):
+            add("I24", f"{cmd} {' '.join(opt)} (voxel size 2 um)", [cmd, "vs.zarr", "s/def.zarr", *opt, "-o", "o.zarr"],
+                setup=with_vs)
     # kills at named stage lines, then the same command: a complete result, nothing else left
     run = ["correlate", "s/ref.zarr", "s/def.zarr", "-l", "6", "--tolerance", "1e-4", "--block-elements", "2",
            "--coarsest", "1", "-o", "out.zarr"]

@@ -348,3 +348,36 @@ def test_series_killed_after_a_steps_regularisation_line_resumes(data, tmp_path,
         np.testing.assert_allclose(a.cumulative[k].displacement, b.cumulative[k].displacement, rtol=0, atol=1e-6)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["full.zarr", "ser.zarr"]
     assert not [p for p in out.rglob("*") if "chunkdic-" in p.name]  # no lock or partial inside the series
+
+
+# --------------------------------------------------------------------------- one line, never a hang
+
+
+@pytest.mark.parametrize("overwrite", [False, True])
+def test_output_naming_a_fifo_is_refused_without_opening_it(data, tmp_path, capsys, overwrite):
+    fifo = tmp_path / "o.zarr"
+    os.mkfifo(fifo)  # opening it for reading would wait for a writer for ever
+    argv = ["correlate", data / "s/ref.zarr", data / "s/def.zarr", "-l", "8", "-o", fifo]
+    t0 = time.perf_counter()
+    refused([*argv, *(["--overwrite"] if overwrite else [])], capsys, "exists|chunkdic did not write")
+    vtu = tmp_path / "o.vtu"
+    os.mkfifo(vtu)
+    refused(["export", data / "r.zarr", "--vtk", vtu, *(["--overwrite"] if overwrite else [])], capsys)
+    assert time.perf_counter() - t0 < 30
+    assert fifo.is_fifo() and vtu.is_fifo()
+
+
+@pytest.mark.parametrize("option", [["-l", "1e999um"], ["-l", "1e999"], ["-l=-160um"], ["-l", "0um"],
+                                    ["-l", "8", "--roi", "0:nan,0:32,0:32", "--roi-unit", "um"],
+                                    ["-l", "8", "--roi", "0:1e999,0:32,0:32", "--roi-unit", "um"]])
+def test_non_finite_lengths_are_one_line(data, tmp_path, capsys, option):
+    ref = tmp_path / "ref.zarr"
+    shutil.copytree(data / "s/ref.zarr", ref)
+    assert main(["ingest", str(ref / "0"), str(tmp_path / "vs.zarr"), "--voxel-size", "2", "--unit", "um"]) == 0
+    capsys.readouterr()  # a scan with a voxel size (2 um), so that lengths may carry units
+    before = tree(tmp_path / "vs.zarr", data / "s")
+    for cmd in (["correlate", tmp_path / "vs.zarr", data / "s/def.zarr"], ["series", tmp_path / "vs.zarr",
+                                                                            data / "s/def.zarr"]):
+        refused([*cmd, *option, "-o", tmp_path / "o.zarr"], capsys, "positive finite|finite number")
+        nothing_left(tmp_path / "o.zarr")
+    assert tree(tmp_path / "vs.zarr", data / "s") == before

@@ -178,6 +178,8 @@ def kind_of(path) -> tuple[str | None, bool]:
         if marker is not None:
             return str(marker["kind"]), bool(marker.get("complete", False))
         return None, False
+    if not p.is_file():  # a FIFO, socket or device: never opened (reading a FIFO waits for ever)
+        return None, False
     return _file_kind(p), True
 
 
