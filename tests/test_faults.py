@@ -381,3 +381,17 @@ def test_non_finite_lengths_are_one_line(data, tmp_path, capsys, option):
         refused([*cmd, *option, "-o", tmp_path / "o.zarr"], capsys, "positive finite|finite number")
         nothing_left(tmp_path / "o.zarr")
     assert tree(tmp_path / "vs.zarr", data / "s") == before
+
+
+def test_a_result_whose_element_size_is_zero_is_refused_in_one_line(data, tmp_path, capsys):
+    res = tmp_path / "r.zarr"
+    shutil.copytree(data / "r.zarr", res)
+    meta = json.loads((res / "zarr.json").read_text())
+    meta["attributes"]["chunkdic"]["element_size"] = 0
+    (res / "zarr.json").write_text(json.dumps(meta))
+    before = tree(res, data / "s")
+    refused(["strain", res], capsys, "do not describe a mesh: a damaged result")
+    refused(["correlate", data / "s/ref.zarr", data / "s/def.zarr", "-l", "8", "--init", res, "-o",
+             tmp_path / "o.zarr"], capsys, "do not describe a mesh")
+    nothing_left(tmp_path / "o.zarr")
+    assert tree(res, data / "s") == before
