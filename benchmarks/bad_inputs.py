@@ -18,7 +18,9 @@ The promise, checked per case:
   input touched), and no scratch left in the case's scratch directory;
 - faults with their own checks: two runs on one output (the second refused, the first's
   result complete and right), a resumed run whose input changed (refused, checkpoint
-  untouched), the scratch of a killed run (reclaimed by the next run).
+  untouched), the scratch of a killed run (reclaimed by the next run), a live writer
+  holding any command's output (refused, nothing changed), a run killed on a named stage
+  line (the same command completes it; no lock, partial or scratch left).
 
 Prints one line per case (PASS/FAIL, class, name, why) and the counts per class.
 Needs ``unshare -m`` (root or user namespaces) for the read-only and full-disk cases;
@@ -570,7 +572,128 @@ def cases(servers: Servers | None) -> list[Case]:
         add("H2", f"uncertainty {opt} {val}", argv)
     add("H2", "sweep -l 1", ["sweep", "s/ref.zarr", "s/def.zarr", "-l", "1", "--no-a-priori", "-o", "sw"])
     add("H2", "sweep --level -1", ["sweep", "s/ref.zarr", "s/def.zarr", "-l", "8", "--level", "-1", "-o", "sw"])
+    issue24(add, cor, ov)
     return C
+
+
+# --------------------------------------------------------------------------- issue 24
+
+
+def _user_display(d: Path) -> None:
+    import numpy as np
+    import zarr
+
+    zarr.open_group(str(d / "s/ref.zarr"), mode="r+").create_array("display", data=np.arange(10))
+
+
+def _meshio_file(name: str):
+    def setup(d: Path) -> None:
+        import meshio
+        import numpy as np
+
+        pts = np.array([[x, y, z] for z in (0, 1) for y in (0, 1) for x in (0, 1)], dtype=float)
+        meshio.Mesh(pts, [("hexahedron", np.array([[0, 1, 3, 2, 4, 5, 7, 6]]))]).write(str(d / name))
+    return setup
+
+
+def _empty_chunk(key: str):
+    def setup(d: Path) -> None:
+        (d / key).write_bytes(b"")
+    return setup
+
+
+def _other_layout(fmt: str):
+    """The deformed scan as a foreign Zarr array of another chunk-key layout (``def2.zarr``)."""
+    def setup(d: Path) -> None:
+        import zarr
+
+        src = zarr.open_array(str(d / "s/def.zarr/0"), mode="r")[...]
+        kw = {"zarr_format": 2} if fmt == "v2" else {"chunk_key_encoding": {"name": "default", "separator": "."}}
+        zarr.create_array(str(d / "def2.zarr"), shape=src.shape, chunks=(16, 16, 16), dtype=src.dtype, **kw)[...] = src
+    return setup
+
+
+def _roll_other_layout(d: Path) -> None:
+    import numpy as np
+    import zarr
+
+    a = zarr.open_array(str(d / "def2.zarr"), mode="r+")
+    a[...] = np.roll(a[...], 3, axis=0)
+
+
+def _garble_checkpoint(d: Path) -> None:
+    import numpy as np
+
+    rng = np.random.default_rng(1)
+    for f in (d / "out.zarr/checkpoint").rglob("*"):
+        if f.is_file() and f.name != "zarr.json":
+            f.write_bytes(rng.bytes(f.stat().st_size))
+
+
+def issue24(add, cor, ov) -> None:
+    """Faults and races of issue 24: foreign files, locks, damaged chunks, kills at stage lines."""
+    add("I24", "pyramid --display over a user's display array", ["pyramid", "s/ref.zarr", "--levels", "1",
+                                                                 "--display"], setup=_user_display)
+    for name in ("mine.vtu", "mine.vtk"):
+        add("I24", f"export --vtk {name} --overwrite (meshio wrote it)", ["export", "r.zarr", "--vtk", name, ov],
+            setup=_meshio_file(name))
+    add("I24", "export --csv t.csv --overwrite (the column line, no chunkdic sidecar)",
+        ["export", "r.zarr", "--csv", "t.csv", ov],
+        setup=lambda d: (d / "t.csv").write_text("iz,iy,ix,z,y,x,Uz,Uy,Ux,flags\n0,0,0,0,0,0,1,2,3,0\n"))
+    add("I24", "report -o figs --overwrite (a user's folder of PNG names, no marker)",
+        ["report", "r.zarr", "-o", "figs", ov],
+        setup=lambda d: ((d / "figs").mkdir(), (d / "figs/uz_map.png").write_bytes(b"\x89PNG user")))
+    for key in ("s/ref.zarr/0/c/0/0/0", "s/ref.zarr/0/c/1/0/1"):
+        add("I24", f"pyramid with a 0-byte chunk {key}", ["pyramid", "s/ref.zarr", "--levels", "1"],
+            setup=_empty_chunk(key))
+        add("I24", f"correlate with a 0-byte chunk {key}", [*cor, "-o", "o.zarr"], setup=_empty_chunk(key))
+    add("I24", "ingest with a 0-byte chunk", ["ingest", "s/def.zarr/0", "o.zarr"],
+        setup=_empty_chunk("s/def.zarr/0/c/1/1/1"))
+    # a live writer holds the output (every writing command takes the lock)
+    for name, argv in (("export --vtk", ["export", "r.zarr", "--vtk", "m.vtu"]),
+                       ("export --csv", ["export", "r.zarr", "--csv", "m.csv"]),
+                       ("export --fields", ["export", "r.zarr", "--fields", "f.zarr"]),
+                       ("export --corrected", ["export", "r.zarr", "--corrected", "c.zarr"]),
+                       ("ingest", ["ingest", "f.npy", "i.zarr"]),
+                       ("pyramid", ["pyramid", "s/ref.zarr", "--levels", "2"]),
+                       ("synth", ["synth", "sy", "--shape", "32"]),
+                       ("table", ["table", "r.zarr", "-o", "tb"])):
+        add("I24", f"{name} while another run holds the output", argv, kind="locked")
+    # inputs of other chunk-key layouts changed between a kill and the resume
+    for fmt in ("v2", "dot"):
+        add("I24", f"resume after the deformed scan ({fmt} layout) was rolled by 3 voxels",
+            ["correlate", "s/ref.zarr", "def2.zarr", "-l", "8", "--tolerance", "1e-6", "-o", "out.zarr"],
+            setup=_other_layout(fmt), kind="changed", change=_roll_other_layout)
+    add("I24", "resume from a garbled checkpoint", [*cor, "--tolerance", "1e-6", "-o", "out.zarr"], kind="changed",
+        change=_garble_checkpoint)
+    # never a hang, never a traceback
+    fifo = lambda name: (lambda d: os.mkfifo(d / name))  # noqa: E731
+    add("I24", "correlate -o FIFO", [*cor, "-o", "o.zarr"], setup=fifo("o.zarr"), timeout=HANG)
+    add("I24", "correlate -o FIFO --overwrite", [*cor, "-o", "o.zarr", ov], setup=fifo("o.zarr"), timeout=HANG)
+    add("I24", "export --vtk FIFO --overwrite", ["export", "r.zarr", "--vtk", "o.vtu", ov], setup=fifo("o.vtu"),
+        timeout=HANG)
+    add("I24", "ingest f.npy FIFO --overwrite", ["ingest", "f.npy", "o.zarr", ov], setup=fifo("o.zarr"), timeout=HANG)
+    vs = ["ingest", "s/ref.zarr/0", "vs.zarr", "--voxel-size", "2", "--unit", "um"]
+    with_vs = lambda d: subprocess.run([sys.executable, "-m", "chunkdic", *vs], cwd=d, env=Case.env_for(Case.tree),  # noqa: E731
+                                       capture_output=True, check=True)
+    for opt in (["-l", "1e999um"], ["-l", "1e999"], ["-l=-160um"], ["-l", "0um"],
+                ["-l", "8", "--roi", "0:nan,0:32,0:32", "--roi-unit", "um"],
+                ["-l", "8", "--roi", "0:1e999,0:32,0:32", "--roi-unit", "um"],
+                ["-l", "8", "--roi", "nan:5,0:32,0:32um"]):
+        for cmd in ("correlate", "series"):
+            add("I24", f"{cmd} {' '.join(opt)} (voxel size 2 um)", [cmd, "vs.zarr", "s/def.zarr", *opt, "-o", "o.zarr"],
+                setup=with_vs)
+    # kills at named stage lines, then the same command: a complete result, nothing else left
+    run = ["correlate", "s/ref.zarr", "s/def.zarr", "-l", "6", "--tolerance", "1e-4", "--block-elements", "2",
+           "--coarsest", "1", "-o", "out.zarr"]
+    for at in ("level 1 rigid  0", "level 1 iter  0", "level 1: converged", "level 0: M built", "level 0 iter  0",
+               "level 0: tikhonov regularisation length", "level 0: converged"):
+        add("I24", f"correlate killed at {at!r}, resumed", run, kind="resumes", env={"AT": at})
+    add("I24", "correlate --mask killed at the regularisation line, resumed", [*run, "--mask", "s/ref.zarr"],
+        kind="resumes", env={"AT": "level 0: tikhonov regularisation length"})
+    add("I24", "series killed at a step's regularisation line, resumed",
+        ["series", "s/ref.zarr", "s/def.zarr", "s/def.zarr", "-l", "6", "--tolerance", "1e-4", "--block-elements",
+         "2", "-o", "out.zarr"], kind="resumes", env={"AT": "level 0: tikhonov regularisation length"})
 
 
 # --------------------------------------------------------------------------- running
@@ -653,8 +776,8 @@ def run_case(case: Case, base: Path, work: Path, index: int) -> Outcome:
     try:
         if case.setup is not None:
             case.setup(d)
-        why = {"refuse": _refuse, "concurrent": _concurrent, "changed": _changed, "scratch": _scratch}[case.kind](
-            case, d, scratch)
+        why = {"refuse": _refuse, "concurrent": _concurrent, "changed": _changed, "scratch": _scratch,
+               "locked": _locked, "resumes": _resumes}[case.kind](case, d, scratch)
     except subprocess.TimeoutExpired:
         why = f"hang (> {case.timeout:.0f} s)"
     except Exception as exc:  # noqa: BLE001 - a harness problem is reported, not hidden
@@ -669,6 +792,58 @@ def _refuse(case, d, scratch) -> str:
     before = snapshot(d)
     proc, mounted = _run(case, case.argv, d, scratch)
     return _promise(proc, mounted, before, snapshot(d), scratch)
+
+
+_HOLD = ("import sys, time; from chunkdic.io.ownership import OutputLock; "
+         "OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(600)")
+
+
+def _locked(case, d, scratch) -> str:
+    """Another (live) chunkdic writer holds the output's lock: refused, nothing changed."""
+    out = {"pyramid": "s/ref.zarr", "ingest": case.argv[2]}.get(case.argv[0])
+    if out is None:
+        out = case.argv[case.argv.index("-o") + 1] if "-o" in case.argv else case.argv[-1]
+        if case.argv[0] == "synth":
+            out = case.argv[1]
+    holder = subprocess.Popen([sys.executable, "-c", _HOLD, str(d / out)], env=Case.env_for(case.tree),
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        if holder.stdout.readline().strip() != "locked":
+            return "harness: the holder could not take the lock"
+        before = snapshot(d)
+        proc, mounted = _run(case, case.argv, d, scratch)
+        why = _promise(proc, mounted, before, snapshot(d), scratch)
+        return why or ("" if "being written by another chunkdic run" in proc.stderr else
+                       f"refused for another reason: {proc.stderr.strip()[-160:]!r}")
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def _resumes(case, d, scratch) -> str:
+    """Killed (SIGKILL) on the stage line ``AT``; the same command then completes the output."""
+    first = _kill_at(case, case.argv, d, scratch, case.env["AT"])
+    if first is None:
+        return "harness: the first run ended before the stage line"
+    first.kill()
+    first.wait()
+    env = Case.env_for(case.tree)
+    env["DASK_CHUNKDIC__SCRATCH_DIRECTORY"] = str(scratch)
+    proc = subprocess.run([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=env, capture_output=True,
+                          text=True, timeout=case.timeout)
+    if "Traceback" in proc.stderr or proc.returncode not in (0, 1):
+        return f"resume: exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]!r}"
+    check = "chunkdic.open_series" if case.argv[0] == "series" else "chunkdic.open_result"
+    ok = subprocess.run([sys.executable, "-c", f"import sys, chunkdic; {check}(sys.argv[1])", str(d / "out.zarr")],
+                        env=Case.env_for(case.tree), capture_output=True, text=True)
+    if ok.returncode != 0:
+        return f"output not complete: {ok.stderr.strip().splitlines()[-1:]!r}"
+    stray = [p.name for p in d.iterdir() if "chunkdic-" in p.name]
+    stray += [str(p.relative_to(d)) for p in (d / "out.zarr").rglob("*") if "chunkdic-" in p.name]
+    if stray:
+        return f"left: {stray[:3]}"
+    left = list(scratch.iterdir())
+    return f"scratch left: {[p.name for p in left][:3]}" if left else ""
 
 
 def _concurrent(case, d, scratch) -> str:

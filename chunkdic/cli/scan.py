@@ -148,12 +148,11 @@ def run_pyramid(args: argparse.Namespace) -> int:
     with dask_scheduler(args.scheduler, announce=say):
         t0 = time.perf_counter()
         progress = Progress("pyramid", header=header)
-        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=progress)
+        scan = build_pyramid(args.scan, args.levels, overwrite=args.overwrite, progress=progress,
+                             display=args.display)
         progress.done()
         if args.display:
-            from ..io.display import write_display
-
-            shown = write_display(args.scan)
+            shown = [s for s in scan.stored_levels() if s > 0]
             say(f"{args.scan}/display: levels {shown} as means (sums / 8^s), one contrast window")
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "pyramid from level 0 of")
     return 0

@@ -96,9 +96,17 @@ class Checkpoint:
     def _load_arrays(self, state: dict) -> dict[str, np.ndarray]:
         import zarr
 
-        group = zarr.open_group(str(self.path / "checkpoint"), mode="r")
-        k = state["slot"]
-        return {name: group[f"{name}{k}"][...] for name in state["array_names"]}
+        try:
+            group = zarr.open_group(str(self.path / "checkpoint"), mode="r")
+            k = state["slot"]
+            arrays = {name: group[f"{name}{k}"][...] for name in state["array_names"]}
+            if not all(np.isfinite(a).all() for name, a in arrays.items() if name in ("u", "m_start")):
+                raise ValueError("non-finite nodal field")
+            return arrays
+        except Exception as exc:  # noqa: BLE001 - garbled arrays or attributes: never a traceback, never a guess
+            first = (str(exc).splitlines() or [""])[0]
+            raise InputError(f"output {self.path} holds a checkpoint that cannot be read ({type(exc).__name__}: "
+                             f"{first}): pass --overwrite to start again") from None
 
     def save(self, state: dict, arrays: dict[str, np.ndarray]) -> None:
         """Write a new checkpoint (arrays first, into the free slot, then the pointer)."""
@@ -116,6 +124,40 @@ class Checkpoint:
         attrs["checkpoint"] = {**state, "slot": slot, "array_names": sorted(arrays)}
         root.attrs["chunkdic"] = attrs
         self.saved = True
+
+
+def completed_already(path, print_: str):
+    """The complete result at ``path`` if this very run made it (same fingerprint: inputs,
+    their contents, settings, ROI, start field), else None. A re-run of the same command
+    (a batch job re-queued after a kill that landed just after the save) then has nothing
+    to do, as ``make``."""
+    from ..results.result import open_result
+    from ..io.kinds import kind_of
+
+    p = Path(path)
+    if p.is_symlink() or kind_of(p) != ("result", True):
+        return None
+    attrs = _read_attrs(p)
+    if attrs is None or attrs.get("fingerprint") != print_:
+        return None
+    return open_result(p)
+
+
+def resumed_pass(lvl, state):
+    """The latest pass at ``state.u`` on ``lvl``: the one this process ran, else (a level resumed
+    after its iterations ended) one evaluated again. Exactly the pass the interrupted run
+    held when its field stayed the pass's own (an increment left unapplied for the
+    regularisation choice, :func:`chunkdic.engine.gauss_newton.iterate` ``resolve``)."""
+    p = getattr(lvl, "last_pass", None)
+    return p if p is not None else lvl.assemble_b(state.u)
+
+
+def kept_checkpoint_error(exc: OSError, output) -> InputError:
+    """The one line for a disk error (full, read-only, I/O) met after a checkpoint was saved:
+    the checkpoint stays (marked incomplete) and the same command resumes from it."""
+    where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+    return InputError(f"{exc.strerror or exc}{where}; the checkpoint in {output} is kept (marked incomplete): "
+                      "free space and run the same command again to resume, or remove it")
 
 
 def identify_input(src, scan) -> dict:

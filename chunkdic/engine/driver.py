@@ -30,7 +30,7 @@ from ..kernels import jit as kernels
 from ..results.result import Result
 from ..scheduler import check_scheduler, open_runner
 from ..solve import cg as solve
-from .checkpoint import Checkpoint, fingerprint, identify_input
+from .checkpoint import Checkpoint, completed_already, fingerprint, identify_input, kept_checkpoint_error
 from .events import emit
 from .initial import init_identity, open_init
 from .masks import check_mask_shape, prepare_mask
@@ -39,7 +39,7 @@ from .prefilter import face_margin
 from .runstate import LevelOutcome, RunState
 from .settings import Settings
 from .steps import (RunContext, assemble_result, finish_level, measure_start_gaps, open_level, regularization_length,
-                    rigid_start, solve_level, start_field)
+                    solve_level, start_field, start_state)
 
 __all__ = ["correlate", "Settings"]
 
@@ -139,10 +139,6 @@ def correlate(
     mask_scan = None if mask is None else open_any(mask)  # also a TIFF or HDF5 mask, read in place
     if mask_scan is not None:
         check_mask_shape(mask_scan, f_scan.shape(0))
-    plan = entry = None
-    if output is not None:  # every output rule (chunkdic.io.outputs), nothing written yet
-        plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
-        entry = plan.add(output, "result", resumable=True)
     identities = {role: identify_input(src, scan) for role, src, scan in
                   (("reference", ref, f_scan), ("deformed", deformed, g_scan))}
     if mask is not None:
@@ -155,6 +151,15 @@ def correlate(
         if init_result.path is None:  # an in-memory result never resumes, as in-memory scans
             init_id["in-memory"] = uuid.uuid4().hex
     run_print = fingerprint(described)
+    plan = entry = None
+    if output is not None and not overwrite:
+        done = completed_already(output, run_print)  # the same command re-run on its own complete result
+        if done is not None:
+            emit(progress, stage="complete", path=str(output))
+            return done
+    if output is not None:  # every output rule (chunkdic.io.outputs), nothing written yet
+        plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
+        entry = plan.add(output, "result", resumable=True)
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
     scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
@@ -187,6 +192,8 @@ def correlate(
                 fresh = plan is not None and resume is None
                 if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
                     plan.rollback()
+                elif isinstance(exc, OSError) and ckpt is not None:
+                    raise kept_checkpoint_error(exc, output) from None  # say it is kept, and how to resume
                 raise
             result.info.update(
                 voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
@@ -198,7 +205,10 @@ def correlate(
             if init_id is not None:
                 result.info["settings"] = dict(result.info["settings"], init=init_id)
             if output is not None:  # replaces the checkpointed group once complete, under the lock
-                result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
+                try:
+                    result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
+                except OSError as exc:  # the staged copy is gone, the checkpoint stays
+                    raise kept_checkpoint_error(exc, output) from None
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return result
@@ -253,12 +263,12 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
     for s in ctx.levels:
         if run.done_before_resume(s):
             continue
-        if run.level_to_solve():
+        if run.level_to_solve(s, ctx.finest):
             t0 = time.perf_counter()
             start, t_int = start_field(ctx, run, s, u)
-            lvl = open_level(ctx, s, start)
+            lvl = open_level(ctx, run, s, start)
             if run.gn is None:
-                rigid_start(ctx, run, lvl, start, t_int)
+                start_state(ctx, run, lvl, start, t_int)
             lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh))
             lvl.prepare_interpolation(run.gn.u)
             if s == ctx.finest and run.initial_gap is None:

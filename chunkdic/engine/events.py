@@ -112,6 +112,8 @@ class EventText:
             what = {"computed": "correlating", "resumed": "resuming",
                     "done before": "done before, skipped:"}[event["run"]]
             return f"series: {what} {event['group']} (scans {event['pair']})"
+        if stage == "complete":
+            return f"{event['path']} is already complete (the same inputs and settings): nothing to do"
         if stage == "resume":
             return (f"resuming the interrupted run from its checkpoint: level {event['level']}, "
                     f"iteration {event['iteration']}")

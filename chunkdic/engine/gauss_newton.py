@@ -48,6 +48,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
         it = state.iteration
         t0, c0 = time.perf_counter(), time.process_time()
         p, first_pass = (lvl.assemble_b(state.u) if first_pass is None else first_pass), None
+        state.noise_variance, state.kappa = float(p.noise_variance), float(p.kappa)
         cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
         event = dict(stage="iteration", level=lvl.s, iteration=it, gap=p.gap, max_delta=None,
                      excluded=p.n_excluded, gain=float(np.median(p.fit.gain)))

@@ -60,9 +60,13 @@ class RunState:
         """Level ``s`` was finished before the interruption (levels run coarsest first)."""
         return self.resumed_level is not None and s > self.resumed_level
 
-    def level_to_solve(self) -> bool:
-        """Whether the current level still has iterations to run (a resumed finished level has none)."""
-        return self.gn is None or self.gn.status is None
+    def level_to_solve(self, s: int, finest: int) -> bool:
+        """Whether level ``s`` is to be solved: a new level, one whose iterations were under way,
+        or a resumed level whose iterations had ended but whose end is to be redone: the kill
+        came before the end was recorded (``s`` not in ``statuses``: the regularisation length
+        may still be to choose), or it is the finest level, whose solver gives the result's
+        weak nodes, mask flags and uncertainty. A finished coarse level only hands its field on."""
+        return self.gn is None or self.gn.status is None or s not in self.statuses or s == finest
 
     def to_json(self, s: int) -> dict:
         """The checkpoint's scalars while level ``s`` is solved."""

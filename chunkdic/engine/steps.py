@@ -2,7 +2,7 @@
 
 :func:`chunkdic.engine.driver.correlate` strings them together, coarsest level first
 (paper section 3): the start field (:func:`start_field`), the level with its ``M``
-(:func:`open_level`), the rigid step on the coarsest level (:func:`rigid_start`), the
+(:func:`open_level`), its start state with the rigid step on the coarsest level (:func:`start_state`), the
 Gauss–Newton solve with the choice of the regularisation length (:func:`solve_level`),
 and the result (:func:`assemble_result`). docs/engine.md describes each choice.
 """
@@ -22,7 +22,7 @@ from ..mesh import Mesh, transfer
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.cg import StencilSolver
 from ..solve.regchoice import choose_length
-from .checkpoint import Checkpoint
+from .checkpoint import Checkpoint, resumed_pass
 from .events import emit
 from .gauss_newton import iterate, rigid_step
 from .initial import start_field as init_start_field
@@ -100,27 +100,35 @@ def start_field(ctx: RunContext, run: RunState, s: int, coarser_u: np.ndarray | 
     return transfer(coarser_u, ctx.meshes[s + 1], s + 1, mesh, s), None
 
 
-def open_level(ctx: RunContext, s: int, start: np.ndarray) -> Level:
-    """Level ``s`` with its ``M`` assembled around ``start`` (one pass over the voxels)."""
+def open_level(ctx: RunContext, run: RunState, s: int, start: np.ndarray) -> Level:
+    """Level ``s`` with its ``M`` assembled around ``start`` (one pass over the voxels); a
+    resumed level around the field its ``M`` was first built at (``gn.m_start``, in the
+    checkpoint), so that it rebuilds the very same ``M`` and the resumed run equals the
+    uninterrupted one to round-off."""
     t0, c0 = time.perf_counter(), time.process_time()
     mesh = ctx.meshes[s]
+    if run.gn is not None and run.gn.m_start is not None:
+        start = run.gn.m_start
     lvl = Level(s, mesh, ctx.f_refs[s], ctx.g_refs[s], ctx.runner, ctx.settings, ctx.scratch, ctx.progress,
                 None if ctx.mask_refs is None else ctx.mask_refs[s], start=start)
+    lvl.m_start = start
     emit(ctx.progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
          voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
     return lvl
 
 
-def rigid_start(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_int) -> None:
-    """A new run's Gauss–Newton state on the coarsest level: the rigid translation refined
-    by Gauss–Newton (paper section 5.1), or the ``init`` field as it is."""
-    if t_int is None:  # an init field: its mean is reported as the run's start translation
+def start_state(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_int) -> None:
+    """The Gauss–Newton state a level starts with. On the coarsest level of a new run: the
+    rigid translation refined by Gauss–Newton (paper section 5.1), or an ``init`` field as it
+    is (its mean reported as the start translation); on finer levels the carried field."""
+    if lvl.s == ctx.coarsest and t_int is None:
         run.rigid_t = start.mean(axis=(1, 2, 3))
-    else:
+    elif lvl.s == ctx.coarsest:
         lvl.prepare_interpolation(start)
         run.rigid_t = rigid_step(lvl, t_int, ctx.tolerance(lvl.s), RIGID_ITERATIONS, run.history, ctx.progress)
         start = uniform(run.rigid_t, lvl.mesh)
     run.gn = State(start)
+    run.gn.m_start = lvl.m_start  # in the checkpoint: a resumed level rebuilds the very same M
 
 
 def measure_start_gaps(ctx: RunContext, run: RunState, lvl: Level) -> None:
@@ -166,8 +174,8 @@ def finish_level(ctx: RunContext, run: RunState, lvl: Level, t0: float) -> Level
     ctx.save(run, s)
     emit(ctx.progress, stage="level", level=s, status=run.gn.status, gap=run.gn.gap,
          seconds=time.perf_counter() - t0)
-    if s == ctx.finest:
-        p = lvl.last_pass
+    if s == ctx.finest:  # the latest pass's noise (kept in the state: a level resumed after its end)
+        p = run.gn if math.isfinite(run.gn.noise_variance) else resumed_pass(lvl, run.gn)
         outcome.sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
         outcome.noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
     return outcome
@@ -191,7 +199,7 @@ def length_to_choose(settings: Settings, state: State) -> bool:
 def choose_regularization(lvl: Level, state: State, progress) -> None:
     """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.solve.regchoice.choose_length`)
     and restart ``state`` under it."""
-    p = lvl.last_pass
+    p = resumed_pass(lvl, state)
     u = np.moveaxis(state.u, 0, -1)
     last = {"half": None, "solver": None}
 

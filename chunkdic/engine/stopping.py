@@ -91,19 +91,24 @@ class State:
     best_elements: np.ndarray | None = None
     reg_length: float = math.nan  # automatic regularisation length once chosen (voxels of the level)
     largest_rhs: float = 0.0  # the level solver's CG reference (StencilSolver.largest_rhs)
+    # the latest pass's noise (σ_r², κ): the nodal uncertainty of a level resumed after its end
+    noise_variance: float = math.nan
+    kappa: float = math.nan
+    m_start: np.ndarray | None = None  # the field the level's M was built at (a resumed level rebuilds the same M)
 
     SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
                "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length",
-               "largest_rhs")
-    _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length", "largest_rhs")
-    _ARRAYS = ("u", "best_u", "elements", "best_elements")
+               "largest_rhs", "noise_variance", "kappa")
+    _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length", "largest_rhs", "noise_variance",
+               "kappa")
+    _ARRAYS = ("u", "best_u", "elements", "best_elements", "m_start")
 
     def scalars(self) -> dict:
         return {k: json_float(getattr(self, k)) for k in self.SCALARS}
 
     def arrays(self) -> dict:
         out = {"u": self.u, "best_u": self.u if self.best_u is None else self.best_u}
-        for k in ("elements", "best_elements"):
+        for k in ("elements", "best_elements", "m_start"):
             if getattr(self, k) is not None:
                 out[k] = getattr(self, k)
         return out

@@ -35,7 +35,7 @@ import numpy as np
 
 log = logging.getLogger(__name__)
 
-__all__ = ["scan_window", "store_window", "write_display", "windows", "sample_step", "DISPLAY_GROUP",
+__all__ = ["own_display", "check_display_slot", "scan_window", "store_window", "write_display", "windows", "sample_step", "DISPLAY_GROUP",
            "WINDOW_SAMPLES"]
 
 #: subgroup of a scan group holding the mean display pyramid
@@ -43,6 +43,33 @@ DISPLAY_GROUP = "display"
 #: a contrast window's percentiles come from at most this many sampled voxels per channel
 #: (the client holds them as float64: 16 MB); its min and max are exact
 WINDOW_SAMPLES = 2_000_000
+
+
+def own_display(path) -> bool | None:
+    """What the scan group ``path`` holds under :data:`DISPLAY_GROUP`: ``None`` (nothing),
+    ``True`` (chunkdic's mean pyramid, ``attrs["chunkdic"]["kind"] == "display"``) or
+    ``False`` (anything else: a user's array or group, which chunkdic never removes)."""
+    import json
+    from pathlib import Path
+
+    node = Path(path) / DISPLAY_GROUP
+    if not node.exists() and not node.is_symlink():
+        return None
+    try:
+        meta = json.loads((node / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False
+    ck = (meta.get("attributes") or {}).get("chunkdic")
+    return meta.get("node_type") == "group" and isinstance(ck, dict) and ck.get("kind") == "display"
+
+
+def check_display_slot(path) -> None:
+    """Refuse (one line) to write ``--display`` where the scan holds a ``display`` node chunkdic did not write."""
+    from ..errors import InputError
+
+    if own_display(path) is False:
+        raise InputError(f"{path}/{DISPLAY_GROUP} exists and chunkdic did not write it: refusing to replace it "
+                         f"(rename or move it, or leave out --display)")
 
 
 def sample_step(shape, samples: int) -> int:
@@ -224,8 +251,9 @@ def write_display(path: str, *, progress=None) -> list[int]:
     levels = [s for s in scan.stored_levels() if s > 0]
     if not levels:
         raise InputError(f"{path} has no pyramid levels: give --levels N with --display")
+    check_display_slot(path)
     root = zarr.open_group(store=str(path), mode="r+")
-    if DISPLAY_GROUP in root:
+    if own_display(path):
         del root[DISPLAY_GROUP]
     g = root.create_group(DISPLAY_GROUP)
     refs = scan.stored_refs()

@@ -35,7 +35,7 @@ from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["damaged_read_error", "check_chunks_present", "content_identity", "MissingChunksWarning"]
+__all__ = ["damaged_read_error", "check_chunks_present", "check_no_empty_chunks", "content_identity", "MissingChunksWarning"]
 
 #: chunk files hashed per array for the content identity
 SAMPLE_FILES = 8
@@ -90,12 +90,18 @@ def damaged_read_error(path: str, key: str, region, exc: BaseException) -> Input
                       f"{tuple((s.start, s.stop) for s in region)}: {first}; the store is damaged or truncated")
 
 
+#: metadata files of a Zarr array directory (v3 and v2); every other file in it is a chunk
+_METADATA = ("zarr.json", ".zarray", ".zattrs", ".zgroup", ".zmetadata")
+
+
 def _chunk_files(adir: Path) -> dict[str, tuple[int, int]]:
-    """Relative path -> (size, mtime in ns) of every chunk file of a local Zarr v3 array (``c/...``)."""
+    """Relative path -> (size, mtime in ns) of every chunk file of a local Zarr array, whatever its
+    chunk-key layout (v3 ``c/0/0/0`` or ``0.0.0``, v2 ``0.0.0`` or ``0/0/0``)."""
     out = {}
-    root = adir / "c"
-    for dirpath, _, files in os.walk(root):
+    for dirpath, _, files in os.walk(adir):
         for name in files:
+            if dirpath == str(adir) and name in _METADATA:
+                continue
             full = os.path.join(dirpath, name)
             try:
                 st = os.stat(full)
@@ -119,6 +125,7 @@ def check_chunks_present(path: str, key: str, *, ours: bool) -> None:
     import zarr
 
     arr = zarr.open_array(store=path, path=key or None, mode="r")
+    check_no_empty_chunks(path, key)
     default_keys = arr.metadata.zarr_format == 3 and _chunk_file(arr, (0,) * arr.ndim).startswith("c/")
     if getattr(arr, "shards", None) or not default_keys:
         expected, present = arr.nchunks, arr.nchunks_initialized
@@ -146,6 +153,18 @@ def check_chunks_present(path: str, key: str, *, ours: bool) -> None:
                          "the scan is damaged: write or ingest it again")
     warnings.warn(f"{where}: {expected - present} of {expected} chunks are absent{first} and read as the "
                   f"fill value {arr.fill_value}", MissingChunksWarning, stacklevel=3)
+
+
+def check_no_empty_chunks(path: str, key: str = "") -> None:
+    """Refuse (one line) an array with a 0-byte chunk file: no codec writes one (an
+    uncompressed chunk holds its voxels, a compressed one a frame header), so it can only be
+    a truncated write or a damaged disk, whoever wrote the array."""
+    adir = _array_dir(path, key)
+    empty = sorted(name for name, (size, _) in _chunk_files(adir).items() if size == 0)
+    if empty:
+        more = f" and {len(empty) - 1} more" if len(empty) > 1 else ""
+        raise InputError(f"{adir}: chunk file {empty[0]}{more} is empty (0 bytes); the store is damaged or "
+                         "truncated")
 
 
 def _hash_file(h, path: str) -> None:
@@ -181,9 +200,10 @@ def content_identity(kind: str, path: str, key: str = "") -> str:
         _hash_npy(h, path)
         return h.hexdigest()[:32]
     adir = _array_dir(path, key)
-    meta = adir / "zarr.json"
-    if meta.is_file():
-        h.update(meta.read_bytes())
+    for name in ("zarr.json", ".zarray", ".zattrs"):  # v3 metadata, or v2 (any chunk-key layout)
+        meta = adir / name
+        if meta.is_file():
+            h.update(meta.read_bytes())
     files = _chunk_files(adir)
     names = sorted(files)
     for name in names:

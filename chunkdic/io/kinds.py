@@ -16,7 +16,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["MARKER", "Kind", "KINDS", "kind_of", "store_kind", "ours_in_folder", "mark_folder"]
+__all__ = ["VTU_MARK", "VTK_TITLE", "MARKER", "Kind", "KINDS", "kind_of", "store_kind", "ours_in_folder", "mark_folder"]
 
 #: marker file of the folders chunkdic writes: JSON ``{"kind": ..., "complete": ...}``
 MARKER = ".chunkdic.json"
@@ -63,6 +63,12 @@ KINDS: dict[str, Kind] = {k.name: k for k in (
 #: first line of a node table (``chunkdic.views.export.CSV_COLUMNS``); tables written before the
 #: JSON sidecar began with a comment line ``# positions …``
 CSV_HEADER = b"iz,iy,ix,z,y,x,Uz,Uy,Ux,"
+
+#: chunkdic's own mark in the VTK files it writes (``chunkdic.views.export.write_vtk``): an
+#: XML comment right after meshio's in a ``.vtu``, the title line (line 2) of a legacy
+#: ``.vtk``. meshio's own signature is not enough: any meshio user's file carries it.
+VTU_MARK = b"<!--This file was written by chunkdic (export, VTK)-->"
+VTK_TITLE = b"written by chunkdic (export, VTK)"
 
 
 # --------------------------------------------------------------------------- what is there
@@ -130,13 +136,24 @@ def _file_kind(path: Path) -> str | None:
             head = fh.read(1024)
     except OSError:
         return None
-    if path.suffix.lower() in (".vtu", ".vtk") and b"meshio" in head:
+    if path.suffix.lower() in (".vtu", ".vtk") and _vtk_marked(head):
         return "vtk"
-    if head.startswith(CSV_HEADER) or head.startswith(b"# positions"):
+    if head.startswith(b"# positions"):  # tables written before the sidecar: chunkdic's own comment line
         return "csv"
+    if head.startswith(CSV_HEADER) and _json_kind(path.with_name(path.name + ".json")) == "csv-meta":
+        return "csv"  # the column line alone could be anyone's: its chunkdic sidecar proves it
     if path.suffix.lower() == ".json" and _json_kind(path) == "csv-meta":
         return "csv-meta"
     return None
+
+
+def _vtk_marked(head: bytes) -> bool:
+    """A VTK file chunkdic wrote: its mark in the header (:data:`VTU_MARK`, :data:`VTK_TITLE`)."""
+    if head.startswith(b"<?xml"):
+        lines = head.split(b"\n")[:4]
+        return any(line.strip() == VTU_MARK for line in lines)
+    lines = head.split(b"\n")
+    return head.startswith(b"# vtk DataFile") and len(lines) > 1 and lines[1].startswith(VTK_TITLE)
 
 
 def _json_kind(path: Path) -> str | None:
@@ -165,6 +182,8 @@ def kind_of(path) -> tuple[str | None, bool]:
         marker = _read_marker(p)
         if marker is not None:
             return str(marker["kind"]), bool(marker.get("complete", False))
+        return None, False
+    if not p.is_file():  # a FIFO, socket or device: never opened (reading a FIFO waits for ever)
         return None, False
     return _file_kind(p), True
 

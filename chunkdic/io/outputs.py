@@ -43,7 +43,7 @@ from pathlib import Path
 
 from ..errors import InputError
 from .kinds import KINDS, Kind, kind_of, mark_folder, ours_in_folder
-from .ownership import partial_name, reclaim_stale_partials
+from .ownership import OutputLock, partial_name, reclaim_stale_partials
 from .store import drain_zarr_io
 
 log = logging.getLogger(__name__)
@@ -219,10 +219,6 @@ def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable:
         if found == kind.name:
             raise InputError(f"output {_say(p)} holds an interrupted {kind.label}: pass --overwrite to replace it")
         raise InputError(f"output {_say(p)} exists: choose another path or pass --overwrite")
-    if kind.form == "folder" and real.is_dir() and found is None and not (real / "zarr.json").exists():
-        ours, others = ours_in_folder(real, kind)
-        if ours and not others:  # written before folders carried a marker
-            return "replace"
     if found is None:
         what = "a folder" if real.is_dir() else "a file"
         raise InputError(f"output {_say(p)} is {what} chunkdic did not write: refusing to replace it "
@@ -291,6 +287,8 @@ class Entry:
     keep: set = field(default_factory=set)
     parents: list = field(default_factory=list)  # missing directories to create, outermost first
     made: list = field(default_factory=list)  # the directories this run created
+    lock: OutputLock | None = None  # the one-writer lock, held from _begin to commit or rollback
+    begun: bool = False  # writing began (rollback undoes only such entries: never another run's output)
 
 
 class Outputs:
@@ -349,6 +347,13 @@ class Outputs:
             if not d.exists():
                 d.mkdir()
                 e.made.append(d)
+        # one writer per output, whatever the command (a no-op where this process holds it already)
+        e.lock = OutputLock(e.final)
+        e.lock.acquire()
+        if e.state == "absent" and (e.final.exists() or e.final.is_symlink()):
+            raise InputError(f"output {_say(e.final)} appeared while this run was starting: choose another path "
+                             "or pass --overwrite")
+        e.begun = True
         reclaim_stale_partials(e.final)
         if e.staged:
             e.work = partial_name(e.final)
@@ -367,10 +372,19 @@ class Outputs:
             _remove(e.final)
 
     def __enter__(self) -> "Outputs":
-        for e in self.entries:
-            self._begin(e)
+        try:
+            for e in self.entries:
+                self._begin(e)
+        except BaseException:
+            self.rollback()
+            raise
         self._open = True
         return self
+
+    def _release(self) -> None:
+        for e in self.entries:
+            if e.lock is not None:
+                e.lock.release()
 
     def __exit__(self, exc_type, exc, tb) -> bool:
         self._open = False
@@ -382,17 +396,27 @@ class Outputs:
 
     def commit(self) -> None:
         """Move staged outputs into place (replacing the old same-kind output) and mark
-        folders complete."""
+        folders complete; then release the locks."""
+        try:
+            # nothing moves unless every output may: one that appeared meanwhile refuses them all
+            for e in self.entries:
+                if e.staged and e.work.exists() and (e.final.exists() or e.final.is_symlink()):
+                    found, _ = kind_of(e.final)
+                    if found != e.kind.name or e.state == "absent":
+                        raise InputError(f"output {_say(e.final)} appeared while this run was writing it: "
+                                         "refusing to replace it")
+            self._commit()
+        except BaseException:
+            self.rollback()
+            raise
+        self._release()
+
+    def _commit(self) -> None:
         for e in self.entries:
             if e.staged:
                 if not e.work.exists():
                     continue  # this output was not written (an optional step was skipped)
                 if e.final.exists() or e.final.is_symlink():
-                    found, _ = kind_of(e.final)
-                    if found != e.kind.name:
-                        _remove(e.work)
-                        raise InputError(f"output {_say(e.final)} appeared while this run was writing it: "
-                                         "refusing to replace it")
                     if e.final.is_dir():
                         grave = partial_name(e.final)
                         os.rename(e.final, grave)
@@ -408,11 +432,17 @@ class Outputs:
         drain_zarr_io()  # chunk writes still in flight would bring a removed store back
         for e in self.entries:
             try:
-                self._undo(e)
-                for d in reversed(e.made):  # only if still empty: never what another process put there
-                    d.rmdir()
+                if e.begun:
+                    self._undo(e)
             except OSError as exc:  # a full or read-only disk must not hide the first error
                 log.warning("could not remove %s: %s", e.work, exc)
+        self._release()  # the lock files first: they lie in the directories made below
+        for e in self.entries:
+            for d in reversed(e.made):  # only if still empty: never what another process put there
+                try:
+                    d.rmdir()
+                except OSError as exc:
+                    log.warning("could not remove %s: %s", d, exc)
 
     @staticmethod
     def _undo(e: Entry) -> None:

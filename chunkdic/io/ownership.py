@@ -104,6 +104,12 @@ class OutputLock:
         self.held = False
 
     def acquire(self) -> "OutputLock":
+        """Take the lock. Re-entrant within a process: when this process already holds the
+        lock of the same output (``correlate`` holds it while ``Result.save`` stages the
+        result), this handle does not own it and its :meth:`release` does nothing."""
+        key = _lock_key(self.path)
+        if key in _HELD:
+            return self
         me = Owner.me()
         record = json.dumps({**asdict(me), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
                              "output": str(self.output)})
@@ -118,6 +124,7 @@ class OutputLock:
             with os.fdopen(fd, "w") as fh:
                 fh.write(record)
             self.held = True
+            _HELD.add(key)
             return self
         raise InputError(f"output {self.output} is locked by {self.path} and the lock could not be taken")
 
@@ -151,6 +158,7 @@ class OutputLock:
 
     def release(self) -> None:
         if self.held:
+            _HELD.discard(_lock_key(self.path))
             self.path.unlink(missing_ok=True)
             self.held = False
 
@@ -159,6 +167,14 @@ class OutputLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+#: the lock files this process holds (resolved paths): :meth:`OutputLock.acquire` is re-entrant
+_HELD: set[str] = set()
+
+
+def _lock_key(path: Path) -> str:
+    return os.path.join(os.path.realpath(path.parent), path.name)
 
 
 def _mtime(path: Path) -> float:
@@ -188,10 +204,12 @@ def final_name(path) -> str:
 
 
 def reclaim_stale_partials(final: Path) -> list[Path]:
-    """Remove staged versions of ``final`` whose owner (this host) is dead; returns them."""
+    """Remove the staged outputs of dead runs (this host) in the directory of ``final``:
+    of ``final`` and of any other output there (a killed ``export --fields`` leaves one
+    beside its output, which the next run of any command writing there reclaims). Only
+    entries named as chunkdic's staged outputs whose owner pid is dead; returns them."""
     host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
-    pattern = re.compile(re.escape(f".{final.stem}{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}"
-                         + re.escape(final.suffix) + "$")
+    pattern = re.compile(r"\..+" + re.escape(f"{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}(\.[^.]*)?$")
     removed = []
     try:
         entries = list(final.parent.iterdir())
@@ -229,10 +247,13 @@ def make_scratch(prefix: str = SCRATCH_PREFIX) -> Path:
     if not root.is_dir():
         raise InputError(f"scratch directory {root} does not exist (chunkdic.scratch-directory)")
     reclaim_stale_scratch(root)
+    path = None
     try:
         path = Path(tempfile.mkdtemp(prefix=prefix, dir=root))
         (path / SCRATCH_MARKER).write_text(json.dumps(asdict(Owner.me())))
     except OSError as exc:
+        if path is not None:  # made, but its owner record could not be written (a full disk)
+            _remove(path)
         raise InputError(f"cannot write in the scratch directory {root}: {exc.strerror} "
                          "(set chunkdic.scratch-directory, e.g. DASK_CHUNKDIC__SCRATCH_DIRECTORY)") from None
     return path

@@ -20,10 +20,11 @@ from pathlib import Path
 import numpy as np
 
 from .coarsen import coarsen_sum, pyramid_dtype
-from .display import DISPLAY_GROUP, store_window
+from .display import DISPLAY_GROUP, check_display_slot, own_display, store_window
 from ..errors import InputError
 from .ngff import update_group_metadata
 from .outputs import check_writable
+from .ownership import OutputLock
 from .handles import forget_open_arrays, ref_dask
 from .levels import check_levels, write_level
 from .scan import Scan, open_scan
@@ -51,7 +52,7 @@ def build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None
     # (or were interrupted): drop them all before writing anything.
     for name in [k for k in g.array_keys() if k.isdigit() and int(k) >= todo_from]:
         del g[name]
-    if DISPLAY_GROUP in g:  # means of the levels being replaced
+    if own_display(path):  # means of the levels being replaced (never a user's node of that name)
         del g[DISPLAY_GROUP]
     update_group_metadata(path)
     chunk0 = tuple(g["0"].chunks)
@@ -83,7 +84,7 @@ def build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None
 
 
 def build_pyramid(path, levels: int, *, overwrite: bool = False,
-                  progress: Callable[[float], None] | None = None) -> Scan:
+                  progress: Callable[[float], None] | None = None, display: bool = False) -> Scan:
     """Add pyramid levels ``"1"``..``"levels"`` to a stored scan group.
 
     Each level is the 2x2x2 sum of the stored level below (odd sizes trimmed), in
@@ -103,6 +104,10 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
         Rebuild levels ``1..levels`` even if complete.
     progress : callable(float), optional
         Called with the fraction done.
+    display : bool
+        Also write the mean pyramid for viewers (:func:`chunkdic.io.display.write_display`),
+        under the same lock; a ``display`` node the scan holds that chunkdic did not write
+        is refused before anything is written.
 
     Returns
     -------
@@ -134,4 +139,12 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
     if not isinstance(node, zarr.Group) or "chunkdic" not in node.attrs:
         raise InputError(f"{p} is not a chunkdic scan group: convert it with `chunkdic ingest {p} OUT.zarr`")
     check_writable(p)  # the levels are written into the scan group itself
-    return build_levels(str(p), levels, rebuild=overwrite, progress=progress)
+    if display:
+        check_display_slot(p)  # before any level is written
+    with OutputLock(p):  # one writer per scan: two builds never interleave their levels
+        scan = build_levels(str(p), levels, rebuild=overwrite, progress=progress)
+        if display:
+            from .display import write_display
+
+            write_display(str(p))
+    return scan

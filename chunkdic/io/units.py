@@ -8,6 +8,7 @@ the ROI) are converted with the reference scan's voxel size (OME-NGFF metadata,
 
 from __future__ import annotations
 
+import math
 import re
 
 from ..errors import InputError
@@ -28,7 +29,10 @@ def parse_length(text, what: str = "--element-size") -> tuple[float, str | None]
     unit = m.group(2)
     if unit is not None and unit.lower() in ("vx", "voxel", "voxels"):
         unit = None
-    return float(m.group(1)), normalize_unit(unit)
+    value = float(m.group(1))
+    if not math.isfinite(value) or value <= 0:  # 1e999 overflows to inf; -160um is no length
+        raise InputError(f"{what} {text!r}: a length must be a positive finite number")
+    return value, normalize_unit(unit)
 
 
 def factor(unit: str, scan_unit: str | None) -> float:
@@ -90,6 +94,8 @@ def roi_voxels(roi: str, scan, unit: str | None = None) -> tuple[str, str | None
         raise InputError(f"ROI {roi!r}: expected z0:z1,y0:y1,x0:x1 in {unit}") from None
     if len(pairs) != 3 or any(len(p) != 2 for p in pairs):
         raise InputError(f"ROI {roi!r}: expected three ranges z0:z1,y0:y1,x0:x1")
+    if not all(math.isfinite(v) for p in pairs for v in p):
+        raise InputError(f"ROI {roi!r}: every bound must be a finite number")
     out = ",".join(f"{round(a * f / v)}:{round(b * f / v)}" for (a, b), v in zip(pairs, vs))
     return out, f"--roi {roi} ({unit}) = {out} in level-0 voxels"
 

@@ -147,6 +147,7 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False, s
         if entry.work.suffix.lower() == ".vtu":
             _insert_field_data(entry.work, {**vtk_field_data(result, unit),
                                             f"strain_measure={strain}": np.array([1], np.int32)})
+        _mark_vtk(entry.work)
     return {"points": len(points), "cells": len(cells), "unit": unit, "strain": strain}
 
 
@@ -198,6 +199,24 @@ def vtk_field_data(result: Result, coordinates: str) -> dict[str, np.ndarray]:
 
 
 _VTK_TYPES = {"f": "Float64", "i": "Int32"}
+
+
+def _mark_vtk(path: Path) -> None:
+    """Put chunkdic's own mark in the header of the VTK file meshio wrote at ``path``
+    (:data:`chunkdic.io.kinds.VTU_MARK` / ``VTK_TITLE``): ``--overwrite`` replaces only a
+    file that carries it, never another meshio user's file."""
+    from ..io.kinds import VTK_TITLE, VTU_MARK
+
+    text = path.read_bytes()
+    if text.startswith(b"<?xml"):
+        first = text.index(b"\n") + 1
+        second = text.index(b"\n", first) + 1  # after <VTKFile ...>
+        text = text[:second] + VTU_MARK + b"\n" + text[second:]
+    else:  # legacy VTK: line 2 is a free title of at most 256 characters
+        first = text.index(b"\n") + 1
+        end = text.index(b"\n", first)
+        text = text[:first] + VTK_TITLE + b" (" + text[first:end][:200] + b")" + text[end:]
+    path.write_bytes(text)
 
 
 def _insert_field_data(path: Path, data: dict[str, np.ndarray]) -> None:

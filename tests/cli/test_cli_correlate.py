@@ -66,7 +66,13 @@ def test_quiet_run_prints_the_result_path_only(pair, tmp_path, capsys):
     assert main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "-l", "8", "-q"]) == 0
     captured = capsys.readouterr()
     assert captured.err == "" and captured.out.strip() == str(out)
-    assert main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "-l", "8", "-q"]) == 2
+    # the same command again has nothing to do (issue 24), quietly
+    assert main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "-l", "8", "-q"]) == 0
+    captured = capsys.readouterr()
+    assert captured.err == "" and captured.out.strip() == str(out)
+    # other settings on the complete result: refused, and the error is still shown
+    assert main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "-l", "8", "-q",
+                 "--tolerance", "1e-4"]) == 2
     assert capsys.readouterr().err.startswith("chunkdic: error: output")  # errors still shown
 
 

@@ -61,9 +61,14 @@ def test_killed_client_resumes_and_matches_an_uninterrupted_run(pair, tmp_path, 
     np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
     np.testing.assert_array_equal(resumed.history["iteration"], reference.history["iteration"])
 
-    # complete now: refused without --overwrite
-    assert main(_cmd(pair, out)[3:]) == 2
+    # complete now: the same command has nothing to do (exit 0, the result untouched, issue 24);
+    # other settings are refused without --overwrite
+    saved = sorted((p.relative_to(out), p.read_bytes()) for p in out.rglob("*") if p.is_file())
+    assert main(_cmd(pair, out)[3:]) == 0
+    assert "already complete" in capsys.readouterr().err
+    assert main(_cmd(pair, out, "--interpolation", "linear")[3:]) == 2
     assert "complete result" in capsys.readouterr().err
+    assert sorted((p.relative_to(out), p.read_bytes()) for p in out.rglob("*") if p.is_file()) == saved
 
 
 def test_interrupted_run_with_other_settings_is_refused(pair, tmp_path, capsys):
