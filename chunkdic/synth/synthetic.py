@@ -18,12 +18,15 @@ import numpy as np
 from ..errors import InputError
 from .fields import Affine, Band, Field, Translation, true_displacement
 from .foam import INT_HI, INT_LO, TextureParams, as_dask, check_dtype, shape3, texture_params
+from .shear import Slip, Wave
 
 __all__ = [
     "Field",
     "Translation",
     "Affine",
     "Band",
+    "Wave",
+    "Slip",
     "synthesize",
     "true_displacement",
     "load_field",
