@@ -25,6 +25,22 @@ def element_fields(p) -> np.ndarray:
     return np.concatenate([np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element]), drift])
 
 
+def noise_step(lvl: Level, p, delta: np.ndarray) -> float:
+    """The increment in units of the field's own uncertainty: RMS over the unknowns of
+    ``δa / σ_u``, with ``σ_u² = κ σ_r² [A_ii⁻¹ M_ii A_ii⁻¹]`` from each node's diagonal block
+    (``A = M + λR``; the coupling to the neighbours, which :func:`~chunkdic.engine.noise.nodal_uncertainty`
+    adds, only raises ``σ_u``: this is the stricter measure). Weak nodes are left out."""
+    solver = lvl.solver
+    Ainv, Mii = solver.block_inverse, solver.diagonal_blocks
+    var = float(p.kappa * p.noise_variance) * np.einsum("...ij,...jk,...ki->...i", Ainv, Mii, Ainv)
+    ok = var > 0
+    if solver.weak_nodes.size:
+        ok[tuple(solver.weak_nodes.T)] = False
+    if not ok.any():
+        return math.inf
+    return float(np.sqrt(np.mean(delta[ok] ** 2 / var[ok])))
+
+
 def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, history: History, progress,
             on_iteration=None, first_pass=None, resolve: bool = False) -> State:
     """Modified Gauss–Newton on one level (paper section 3), from ``state``.
@@ -66,6 +82,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             delta, cg_iterations = lvl.solver.solve(rhs)
             state.largest_rhs = lvl.solver.largest_rhs
             t2 = time.perf_counter()
+            state.note_noise_step(noise_step(lvl, p, delta))
             if float(np.abs(delta).max()) >= tolerance:
                 state.step(delta)
             else:
@@ -78,9 +95,9 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
                 state.finish("converged", keep_current=True)
                 event.update(status=state.status)
             history.add(lvl.s, it, p.gap, state.last_delta, p.n_excluded)
-            event.update(max_delta=state.last_delta, seconds=t2 - t0, assemble_seconds=t1 - t0,
-                         solve_seconds=t2 - t1, cg_iterations=cg_iterations, voxels=lvl.mesh.n_voxels,
-                         assemble_cpu_seconds=cpu)
+            event.update(max_delta=state.last_delta, noise_step=state.last_noise_step, seconds=t2 - t0,
+                         assemble_seconds=t1 - t0, solve_seconds=t2 - t1, cg_iterations=cg_iterations,
+                         voxels=lvl.mesh.n_voxels, assemble_cpu_seconds=cpu)
             emit(progress, **event)
         if on_iteration is not None:
             on_iteration(state)

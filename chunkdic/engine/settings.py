@@ -12,6 +12,7 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 
 from ..errors import InputError
+from ..solve.regchoice import DEFAULT_RULE, RULES
 
 INTERPOLATIONS = ("cubic", "linear")
 GREY_MODELS = ("none", "global", "drift", "element")
@@ -52,6 +53,9 @@ class Settings:
         paper's plain residual.
     regularization : {"none", "tikhonov", "equilibrium-gap"}
         Penalty on the short wavelengths of the field (:mod:`chunkdic.solve.regularization`).
+    regularization_rule : {"discrepancy", "upre", "discrepancy-half", "gcv", "l-curve"}
+        How the automatic length is chosen (:func:`chunkdic.solve.regchoice.choose_length`;
+        docs/engine.md compares them).
     regularization_length : float or None
         Its length ``ℓ_reg``, voxels of level 0 (> 0): wavelengths shorter than it are
         damped, longer ones left to the images. ``None``: chosen automatically
@@ -79,6 +83,8 @@ class Settings:
                         choices=GREY_MODELS)
     regularization: str = _option("tikhonov", "penalty on the field's short wavelengths (default tikhonov, on "
                                   "its curvature)", choices=REGULARIZATIONS)
+    regularization_rule: str = _option(DEFAULT_RULE, "how the automatic length is chosen (default discrepancy: "
+                                       "Morozov's principle; upre: least predicted error)", choices=RULES)
     regularization_length: float | None = _option(None, "its length, voxels of level 0 (default: chosen from the "
                                                   "data and printed)", kind=float, metavar="L")
     tolerance: float = _option(1e-3, "max |da| for convergence, voxels")
@@ -97,6 +103,7 @@ class Settings:
         check(self, "smoothing", _nonnegative_float(self.smoothing, "smoothing"))
         _choice(self.grey, GREY_MODELS, "grey-level model")
         _choice(self.regularization, REGULARIZATIONS, "regularization")
+        _choice(self.regularization_rule, RULES, "regularization rule")
         if self.regularization_length is not None:
             check(self, "regularization_length", _positive_float(self.regularization_length, "regularization length"))
         check(self, "tolerance", _nonnegative_float(self.tolerance, "tolerance"))

@@ -213,11 +213,12 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
         return last["solver"].solve(rhs)[0]
 
     choice = choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
-                           p.kappa * p.noise_variance, solve_with)
+                           p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
+                           rule=lvl.settings.regularization_rule)
     scale = 2.0**lvl.s
     corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
     emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale, l_curve_length=corner,
-         kind=lvl.settings.regularization, kappa=p.kappa)
+         kind=lvl.settings.regularization, kappa=p.kappa, rule=choice.rule)
     lvl.regularize(choice.length)
     state.reg_length = choice.length
     state.restart()

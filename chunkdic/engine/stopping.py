@@ -20,6 +20,14 @@ from ..results.result import HISTORY_FIELDS
 STALL_PATIENCE = 4
 #: an increment counts as smaller when below this fraction of the smallest one so far
 SHRINK = 0.9
+#: an increment below this fraction of the field's own uncertainty (RMS of δa / σ_u) moves
+#: the field within its noise: STALL_PATIENCE such passes and a level that would stop
+#: stalled or out of iterations has converged at the noise level (docs/engine.md)
+NOISE_STEP = 0.5
+#: ...and this many passes with such increments, no longer shrinking, and a gap that fell
+#: by less than GAP_GAIN (relative) below its best: converged at the noise level at once
+NOISE_PATIENCE = 2
+GAP_GAIN = 1e-4
 #: a gap this many times the best one so far means divergence...
 DIVERGENCE_FACTOR = 2.0
 #: ...when it also exceeds the best by this much (a gap at round-off level, 1e-5 of the
@@ -95,12 +103,16 @@ class State:
     noise_variance: float = math.nan
     kappa: float = math.nan
     m_start: np.ndarray | None = None  # the field the level's M was built at (a resumed level rebuilds the same M)
+    last_noise_step: float = math.inf  # the latest increment in units of the field's uncertainty
+    noise_quiet: int = 0  # consecutive increments within NOISE_STEP of the uncertainty
+    gain_gap: float = math.inf  # the last gap that fell by more than GAP_GAIN below the one before
+    since_gain: int = 0
 
     SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
                "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length",
-               "largest_rhs", "noise_variance", "kappa")
+               "largest_rhs", "noise_variance", "kappa", "last_noise_step", "noise_quiet", "gain_gap", "since_gain")
     _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length", "largest_rhs", "noise_variance",
-               "kappa")
+               "kappa", "last_noise_step", "gain_gap")
     _ARRAYS = ("u", "best_u", "elements", "best_elements", "m_start")
 
     def scalars(self) -> dict:
@@ -130,12 +142,23 @@ class State:
             self.since_best = 0
         else:
             self.since_best += 1
+        if p.gap < self.gain_gap * (1 - GAP_GAIN):
+            self.gain_gap, self.since_gain = p.gap, 0
+        else:
+            self.since_gain += 1
 
     def restart(self) -> None:
         """Iterate again from the current field with a changed objective (a new regularisation)."""
         self.status = None
         self.best_gap, self.best_u, self.since_best = math.inf, None, 0
         self.last_delta, self.best_delta, self.since_smaller = math.inf, math.inf, 0
+        self.last_noise_step, self.noise_quiet = math.inf, 0
+        self.gain_gap, self.since_gain = math.inf, 0
+
+    def note_noise_step(self, q: float) -> None:
+        """Record the increment ``q`` measured in units of the field's uncertainty."""
+        self.last_noise_step = float(q)
+        self.noise_quiet = self.noise_quiet + 1 if q < NOISE_STEP else 0
 
     def finish(self, status: str, *, keep_current: bool) -> None:
         self.status = status
@@ -161,10 +184,21 @@ def decide(state: State, gap: float, tolerance: float, max_iterations: int) -> N
     elif state.last_delta < tolerance:
         # the converged field is returned even if round-off left its gap a hair above the best
         state.finish("converged", keep_current=True)
+    elif (state.noise_quiet >= NOISE_PATIENCE and state.since_gain >= NOISE_PATIENCE
+          and state.since_smaller >= 1):
+        # the field moves within its own uncertainty, the gap no longer falls and the
+        # increments no longer shrink: it has stopped improving at the noise level (the
+        # current field, within half its uncertainty of the last ones and measured by this
+        # pass, which the regularisation choice linearises around)
+        state.finish("converged", keep_current=True)
     elif state.since_best >= STALL_PATIENCE and state.since_smaller >= STALL_PATIENCE:
         # neither the gap nor the increments improve any more: a still-improving field
-        # (increments shrinking while the gap sits at the noise floor) is never "stalled"
-        state.finish("stalled", keep_current=False)
+        # (increments shrinking while the gap sits at the noise floor) is never "stalled";
+        # one whose last increments all stayed within its own uncertainty has stopped
+        # improving at the noise level: converged (the best field), not stalled
+        state.finish("converged" if state.noise_quiet >= STALL_PATIENCE else "stalled", keep_current=False)
+    elif state.iteration == max_iterations and state.noise_quiet >= STALL_PATIENCE:
+        state.finish("converged", keep_current=gap <= state.best_gap * (1 + 1e-6))
     elif state.iteration == max_iterations:
         # out of iterations: the latest field if it is as good as the best (the increments
         # were still shrinking), else the best

@@ -103,6 +103,11 @@ class StencilSolver:
         self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
         self._vcycle = None
 
+    @property
+    def diagonal_blocks(self) -> np.ndarray:
+        """The 3×3 diagonal blocks of ``M`` (nz, ny, nx, 3, 3), float64, weak nodes held."""
+        return self._diag
+
     def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
         """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
         self.regularizer = regularizer if weight > 0 else None

@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import InputError
 from .fields import Affine, Band, Field, Star, Translation, true_displacement
 from .foam import INT_HI, INT_LO, TextureParams, as_dask, check_dtype, shape3, texture_params
+from .shear import Slip, Wave
 
 __all__ = [
     "Field",
@@ -25,6 +26,8 @@ __all__ = [
     "Affine",
     "Band",
     "Star",
+    "Wave",
+    "Slip",
     "synthesize",
     "true_displacement",
     "load_field",

@@ -188,3 +188,37 @@ def test_coarse_levels_weak_nodes_are_logged_not_warned(tmp_path, caplog):
     assert res.info["levels"] == [2, 1, 0] and res.converged
     assert not [w for w in caught if issubclass(w.category, chunkdic.PoorTextureWarning)]
     assert any("level 2:" in r.getMessage() and "little texture" in r.getMessage() for r in caplog.records)
+
+
+def _run_rule(gaps, deltas, noise_steps, tolerance=1e-3, max_iterations=30):
+    """Drive the stopping rule by hand: each pass measures ``gap``, then steps by ``delta``
+    (a uniform increment) measured ``noise_step`` times the field's uncertainty."""
+    from types import SimpleNamespace
+
+    from chunkdic.engine.stopping import State, decide
+
+    state = State(np.zeros((3, 2, 2, 2)))
+    for gap, delta, q in zip(gaps, deltas, noise_steps):
+        state.record(SimpleNamespace(gap=gap, n_excluded=0, n_valid=1), None)
+        decide(state, gap, tolerance, max_iterations)
+        if state.status is not None:
+            return state
+        state.note_noise_step(q)
+        state.step(np.full((2, 2, 2, 3), delta))
+    return state
+
+
+def test_a_field_moving_within_its_noise_is_converged_not_stalled():
+    """Issue 20: increments at 0.2-0.4 of the field's own uncertainty that no longer shrink
+    (a poorly seen mode wandering) while the gap sits still: converged after 2 such passes,
+    the field kept. The same gaps and increments at 3-6 × the uncertainty (a field that is
+    wrong): stalled after 4 passes, as before. Shrinking increments within the noise are
+    left to converge by the tolerance."""
+    flat = [0.0100, 0.0050, 0.0050, 0.0050, 0.0050, 0.0050, 0.0050, 0.0050]
+    growing = [0.8, 0.1, 0.12, 0.15, 0.2, 0.3, 0.4, 0.5]
+    quiet = _run_rule(flat, growing, [5.0, 0.3, 0.3, 0.35, 0.4, 0.45, 0.45, 0.45])
+    assert quiet.status == "converged" and quiet.iteration == 3
+    wrong = _run_rule(flat, growing, [5.0, 3.0, 4.0, 5.0, 6.0, 6.0, 6.0, 6.0])
+    assert wrong.status == "stalled" and wrong.iteration == 6
+    shrinking = _run_rule(flat + [0.005] * 6, [0.8 * 0.5**k for k in range(14)], [0.3] * 14)
+    assert shrinking.status == "converged" and shrinking.last_delta < 1e-3
