@@ -66,14 +66,16 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "running on dask.distributed cluster" in err and "dashboard http://127.0.0.1:" in err
     percents = [int(p) for p in re.findall(r"synth:\s+(\d+)%", err)]
-    assert len(set(percents)) >= 5 and percents == sorted(percents) and percents[-1] == 100
+    # at most one progress line per 5 s since issue 23 (tests/cli/test_quiet.py checks the rate with a
+    # fake clock): lines in order, then the summary of the finished step
+    assert percents and percents == sorted(percents) and "synth: wrote" in err
     ref = out / "ref.zarr"
     level0 = open_scan(str(ref)).level(0).compute()
     np.testing.assert_array_equal(level0, foam.render((32, 32, 32), seed=3, dtype="uint16"))
 
     assert main(["pyramid", str(ref), "--levels", "2", "--scheduler", "local:2"]) == 0
     err = capsys.readouterr().err
-    assert len(re.findall(r"pyramid:\s+\d+%", err)) >= 5
+    assert re.findall(r"pyramid:\s+\d+%", err)  # at least its 100 % line (one line per 5 s at most)
     sums = level0.astype(np.int64).reshape(8, 4, 8, 4, 8, 4).sum(axis=(1, 3, 5))
     np.testing.assert_array_equal(open_scan(str(ref)).level(2).compute(), sums)
 

@@ -21,7 +21,7 @@ from chunkdic.cli.app import main
 from chunkdic.synth import synthetic
 from chunkdic.viewer.layers import layers_of, stride
 from chunkdic.viewer.reader import napari_get_reader
-from chunkdic.views.fields import CHANNELS, open_fields, write_fields
+from chunkdic.views.fields import CHANNELS, open_levels, write_fields
 
 N, ELL, VOXEL = 40, 8, 6.5
 C = (N - 1) / 2
@@ -74,7 +74,7 @@ def test_result_layers_names_shapes_and_physical_frame(made):
     assert level0.min() <= lo < hi <= level0.max()
 
     # the fields image found beside the result: its channels on the scan's frame
-    levels, _ = open_fields(d / "r-fields.zarr")
+    levels, _ = open_levels(d / "r-fields.zarr")
     for name in ("|U|", "eps_zz", "eps_eq", "residual"):
         data, kw, _ = named[name]
         assert [a.shape for a in data] == [a.shape[1:] for a in levels] and kw["scale"] == [VOXEL] * 3
