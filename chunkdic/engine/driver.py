@@ -26,6 +26,7 @@ from .. import config
 from ..kernels import jit as kernels
 from .checkpoint import Checkpoint, fingerprint, identify_input
 from ..errors import InputError
+from .affine import affine_step
 from .gauss_newton import History, State, iterate, rigid_step
 from .level import Level, emit
 from .initial import init_identity, open_init, start_field
@@ -287,7 +288,7 @@ def _run(settings: Settings, meshes, levels, f_refs, g_refs, runner, progress, s
                 elif s == coarsest:
                     lvl.prepare_interpolation(start)
                     rigid_t = rigid_step(lvl, t_int, tol, 10, history, progress)
-                    start = _uniform(rigid_t, mesh)
+                    start = affine_step(lvl, rigid_t, tol, history, progress)
                 state = State(start)
             lvl.regularize(_regularization_length(settings, state, s, mesh))
             lvl.prepare_interpolation(state.u)
