@@ -84,6 +84,7 @@ def run_peer(pair: dict, n: int, ell: int, workdir: Path, threads: int) -> dict:
     (its nodes as they come out, inpainted ones included; ``flagged`` counts those it flags)."""
     sys.path.insert(0, str(Path(__file__).parent))
     import aldvc as peer
+
     from chunkdic.analysis.scoring import score_between_nodes
     from chunkdic.io.scan import open_scan
 
