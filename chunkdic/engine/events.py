@@ -85,6 +85,11 @@ class EventText:
                 rose = explain("rigid-rise") if before is not None and event["gap"] > before else ""
             return (f"level {event['level']} rigid {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  "
                     f"max|da| {event['max_delta']:.2e}  t=({t})" + rose)
+        if stage == "affine":
+            g = event["gradient"]
+            return (f"level {event['level']} affine {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  "
+                    f"max|da| {event['max_delta']:.2e}  dU/dX diagonal ({g[0][0]:+.4f}, {g[1][1]:+.4f}, "
+                    f"{g[2][2]:+.4f})")
         if stage == "gaps":
             worse = explain("rigid-worse") if event["rigid_gap"] > event["initial_gap"] else ""
             return (f"level {event['level']}: initial gap {100 * event['initial_gap']:.3f}%, after rigid translation "

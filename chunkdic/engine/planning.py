@@ -3,8 +3,10 @@
 The ROI is given in level-0 voxels (what a user sees in a viewer). On the correlated level
 it becomes the voxels of that level lying wholly inside it, trimmed, centred, to a whole
 number of elements (the paper, section 4.1, adjusts its ROI the same way). Coarser levels
-use the same element edge over their share of that ROI (paper section 3: the basis
-coarsens with the image). docs/engine.md, "ROI and meshes".
+use the same element edge, but at least :data:`COARSE_MIN_ELEMENT` voxels of their own,
+over their share of that ROI (paper section 3: the basis coarsens with the image; at
+ℓ < 12 the mesh coarsens faster, so that large deformations are carried). docs/engine.md,
+"ROI and meshes".
 """
 
 from __future__ import annotations
@@ -16,6 +18,8 @@ Box = tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
 
 #: a coarser level is used only while its ROI spans at least this many voxels per axis
 MIN_COARSE_EDGE = 24
+#: smallest element edge on a coarser level, voxels of that level
+COARSE_MIN_ELEMENT = 12
 
 
 def parse_roi(roi) -> Box | None:
@@ -54,6 +58,17 @@ def centred_mesh(box: Box, ell: int) -> Mesh | None:
         return None
     origin = tuple(a + ((b - a) - k * ell) // 2 for (a, b), k in zip(box, n))
     return Mesh(origin, ell, n)
+
+
+def coarse_element_size(ell: int, edge: int) -> int:
+    """Element edge of a coarser level, voxels of that level: ``ell``, but at least
+    :data:`COARSE_MIN_ELEMENT` (and at most the ROI's edge ``edge``, one element).
+
+    A coarse level's field only starts the next finer mesh; elements of fewer voxels of a
+    summed, low-passed level hold too little texture to move far (docs/engine.md, "ROI and
+    meshes").
+    """
+    return min(max(int(ell), COARSE_MIN_ELEMENT), int(edge))
 
 
 def default_margin(ell: int, min_margin: int = 0) -> int:
@@ -123,7 +138,7 @@ def plan_meshes(ref_shape0, *, element_size: int, roi=None, level: int = 0, coar
         edge = min(b - a for a, b in box)
         if coarsest is None and edge < MIN_COARSE_EDGE:
             break
-        ell_s = min(ell, edge)
+        ell_s = coarse_element_size(ell, edge)
         if ell_s < 2:
             raise InputError(f"coarsest level {top} is too coarse for this ROI (edge {edge} voxels at level {s})")
         meshes[s] = centred_mesh(box, ell_s)

@@ -22,6 +22,7 @@ from ..mesh import Mesh, transfer
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.cg import StencilSolver
 from ..solve.regchoice import choose_length
+from .affine import affine_step
 from .checkpoint import Checkpoint, resumed_pass
 from .events import emit
 from .gauss_newton import iterate, rigid_step
@@ -126,7 +127,9 @@ def start_state(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t
     elif lvl.s == ctx.coarsest:
         lvl.prepare_interpolation(start)
         run.rigid_t = rigid_step(lvl, t_int, ctx.tolerance(lvl.s), RIGID_ITERATIONS, run.history, ctx.progress)
-        start = uniform(run.rigid_t, lvl.mesh)
+        # then an affine field (12 unknowns, M restricted to affine fields: no extra voxel pass):
+        # a uniform translation cannot start 10-20 % strain or a 10° rotation (docs/engine.md)
+        start = affine_step(lvl, run.rigid_t, ctx.tolerance(lvl.s), run.history, ctx.progress)
     run.gn = State(start)
     run.gn.m_start = lvl.m_start  # in the checkpoint: a resumed level rebuilds the very same M
 

@@ -91,3 +91,33 @@ def test_public_export_and_bad_shapes():
         score_displacement(np.zeros((2, 4)), np.zeros((2, 4)), (0, 0), (9, 9, 9), 1)
     with pytest.raises(InputError):
         scored_region(np.zeros((3, 4)), (9, 9), 1)
+
+
+def test_between_nodes_scores_every_voxel_of_the_trilinear_field():
+    from chunkdic.analysis.scoring import score_between_nodes
+
+    # 20 voxels per axis, ell 4: voxels 4..15 are scored (12 per axis, 1728 in all); nodes every
+    # 4 voxels from -0.5 to 19.5. Along x the truth is u_x = (x - 9.5)^2 / 16 and the nodal field
+    # takes it at the nodes: between nodes 4 apart the chord of x^2/16 exceeds it by
+    # t (4 - t) / 16 at t voxels from a node; voxels sit at t = 0.5, 1.5, 2.5, 3.5, so the
+    # error is 7/64 (t = 0.5, 3.5) or 15/64 (t = 1.5, 2.5), half the voxels each.
+    axes = [np.arange(6) * 4.0 - 0.5] * 3
+    u = np.zeros((3, 6, 6, 6))
+    u[2] = ((axes[2] - 9.5) ** 2 / 16)[None, None, :]
+
+    def truth(z, y, x):
+        z, y, x = np.broadcast_arrays(z, y, x)
+        return np.stack([0 * x, 0 * x, (x - 9.5) ** 2 / 16])
+
+    s = score_between_nodes(axes, u, truth, (20, 20, 20), 4)
+    assert s.n_points == 12**3 and s.n_failed == 0 and s.n_outside == 0
+    assert s.rms == pytest.approx(math.sqrt(((7 / 64) ** 2 + (15 / 64) ** 2) / 2), rel=1e-12)
+    assert s.max_error == pytest.approx(15 / 64, rel=1e-12)
+    # a NaN node fails the voxels of its 8 cells that are scored; a grid covering only
+    # part of the region leaves the rest outside
+    u[0, 2, 2, 2] = np.nan  # node at 7.5: cells 3.5..11.5 per axis hold scored voxels 4..11 (8)
+    s = score_between_nodes(axes, u, truth, (20, 20, 20), 4)
+    assert s.n_failed == 8**3 and s.n_points == 12**3 - 8**3
+    short = [axes[0][:3], axes[1], axes[2]]  # z nodes up to 7.5: scored z voxels 4..7 only
+    s = score_between_nodes(short, np.zeros((3, 3, 6, 6)), truth, (20, 20, 20), 4)
+    assert s.n_points == 4 * 144 and s.n_outside == 8 * 144

@@ -174,12 +174,18 @@ def test_deformed_scan_of_another_shape(noise64):
     assert np.abs(res.displacement[:, :-1] - np.array([0, 0, 0.0])[:, None, None, None]).max() < 1e-3
 
 
-def test_coarse_levels_weak_nodes_are_logged_not_warned(tmp_path, caplog):
-    """128³ foam at ℓ = 6: level 2's corner nodes lose texture to the 4³ sums (6 of 216),
-    level 0 has none. Only the correlated level's nodes are warned of (a coarser level only
-    starts the next one, regularised); the coarse ones are logged."""
+def test_coarse_levels_weak_nodes_are_logged_not_warned(tmp_path, caplog, monkeypatch):
+    """128³ foam at ℓ = 6 with 6-voxel elements on every level: level 2's corner nodes lose
+    texture to the 4³ sums (6 of 216), level 0 has none. Only the correlated level's nodes
+    are warned of (a coarser level only starts the next one, regularised); the coarse ones
+    are logged. (By default coarse levels now have 12-voxel elements, whose corners keep
+    enough texture here: the test asks for the old 6-voxel ones to have weak coarse nodes.)"""
     import logging
     import warnings
+
+    from chunkdic.engine import planning
+
+    monkeypatch.setattr(planning, "COARSE_MIN_ELEMENT", 6)
 
     pair = synthetic.synthesize(tmp_path / "p", 128, seed=1)
     with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.INFO, logger="chunkdic"):

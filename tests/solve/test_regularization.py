@@ -397,7 +397,7 @@ def test_cylinder_in_air_with_its_mask():
         s = int(re.match(r"level (\d+):", msg).group(1))
         nodes = [tuple(int(v) for v in m) for m in re.findall(r"node \((\d+), (\d+), (\d+)\)", msg)]
         assert nodes
-        fr = _fractions(mask.astype(np.float64), meshes[s].roi, ell, s)
+        fr = _fractions(mask.astype(np.float64), meshes[s].roi, meshes[s].element_size, s)
         for node in nodes:
             corners = [tuple(i - d for i, d in zip(node, ds)) for ds in np.ndindex(2, 2, 2)]
             assert any(all(0 <= c < e for c, e in zip(cn, fr.shape)) and fr[cn] >= 0.5 for cn in corners), (s, node)
