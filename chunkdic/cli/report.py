@@ -222,6 +222,12 @@ def _correction_lines(summary, factors: str) -> list[str]:
                 f"  tr(eps) = {summary.volume_change_corrected:+.5f}   eps_zz = {summary.eps_zz_corrected:+.5f}"]
     if not any(summary.excluded):
         return []
+    if summary.measure == "small" and summary.correction_axes[0]:
+        return [f"eps_zz corrected by (1 - 2 ell / L) = {summary.factor[0]:.4f} along z (paper 5.4; assumes the strain "
+                "is localised inside along z, the outer layers normal to z unstrained; the layers normal to "
+                f"{', '.join('zyx'[j] for j in (1, 2) if summary.excluded[j] and not summary.correction_axes[j])} "
+                "are strained, so no other component is corrected):",
+                f"  eps_zz = {summary.eps_zz_corrected:+.5f}"]
     if summary.measure != "small":
         return ["(the (1 - 2 ell / L) correction of paper 5.4 is a small-strain one: --strain small shows it "
                 "when it applies)"]

@@ -268,6 +268,10 @@ class StrainSummary:
         ``mean`` is already right and ``corrected`` is too small by ``factor``. Judged per
         derivative axis ``j``: column ``j`` of the mean gradient over the two outer layers
         normal to ``j`` against that of the inner elements.
+    correction_axes : tuple of 3 bool
+        The same judged per axis ``(z, y, x)``: a band normal to z spans the whole width
+        along y and x, so its outer layers normal to y and x are strained and only ``z``
+        qualifies; then ``eps_zz_corrected`` still estimates the mean over the whole ROI.
     outer : ndarray, shape (3, 3)
         Column ``j``: the mean ``dU_i/dX_j`` over the two outer layers normal to ``j`` (NaN
         where nothing was removed).
@@ -288,6 +292,7 @@ class StrainSummary:
     measure: str = "small"
     max_rotation: float = 0.0
     correction_applies: bool = True
+    correction_axes: tuple[bool, bool, bool] = (True, True, True)
     outer: np.ndarray | None = None
 
     def as_dict(self) -> dict:
@@ -355,8 +360,9 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
     # the correction's assumption, per derivative axis j: the two outer layers normal to j
     # carry little of dU/dX_j (column j of H) compared with the inner elements
     H_out = np.full((3, 3), np.nan)
-    applies = bool(any(excluded) and np.isfinite(H_in).all())
-    big = max(float(np.linalg.norm(H_in[:, j])) for j in range(3)) if applies else 0.0
+    finite = bool(any(excluded) and np.isfinite(H_in).all())
+    big = max(float(np.linalg.norm(H_in[:, j])) for j in range(3)) if finite else 0.0
+    holds = [False] * 3
     for j in range(3):
         if not excluded[j]:
             continue
@@ -364,8 +370,8 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
         layers[tuple(slice(None) if a != j else [0, n[j] - 1] for a in range(3))] = True
         H_out[:, j] = _element_mean(H, use & layers)[:, j]
         inner_j = float(np.linalg.norm(H_in[:, j]))
-        if inner_j > 0.1 * big and not float(np.linalg.norm(H_out[:, j])) < 0.5 * inner_j:
-            applies = False
+        holds[j] = finite and (inner_j <= 0.1 * big or float(np.linalg.norm(H_out[:, j])) < 0.5 * inner_j)
+    applies = finite and all(h for h, e in zip(holds, excluded) if e)
     angles = rotation_angle(np.where(use, H, 0.0))
     max_rotation = float(angles[use].max())
     if check_measure(measure) == "green-lagrange":
@@ -391,6 +397,7 @@ def mean_strain(u: np.ndarray, element_size: float, *, exclude_outer: bool = Tru
         measure=measure,
         max_rotation=max_rotation,
         correction_applies=applies and any(excluded) and measure == "small",
+        correction_axes=tuple(bool(h and measure == "small") for h in holds),
         outer=H_out,
     )
 

@@ -208,3 +208,24 @@ def test_corrected_mean_strain_line_only_when_it_applies(tmp_path, capsys):
     assert main(["strain", str(tmp_path / "b.zarr"), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["measure"] == "green-lagrange" and d["eps_zz"] == pytest.approx(-0.01 + 0.5e-4, abs=1e-12)
+
+
+def test_band_with_lateral_expansion_is_corrected_along_z_only():
+    """A band normal to z (4 % compression in the middle layer, +1 % expansion along y there)
+    spans the whole width: its outer layers normal to y are strained as much as the inner
+    ones, those normal to z not at all (x carries no strain: nothing to judge). The
+    correction holds along z and x, not y, and along z it gives the exact mean over the
+    whole ROI (hand values, 5 elements of edge 10)."""
+    ell, n = 10, 5
+    k = np.arange(n + 1, dtype=float)
+    band = (k >= 3)[:, None, None] * np.ones((n + 1, n + 1, n + 1))  # nodes above the middle layer
+    inside = np.zeros(n + 1)
+    inside[2:4] = 1.0  # element layer 2 (nodes 2 and 3) is the band
+    u = np.zeros((3, n + 1, n + 1, n + 1))
+    u[0] = -0.04 * ell * band
+    lateral = 0.01 * inside[:, None, None]  # nodal dUy/dY on the band's nodes
+    u[1] = lateral * (k[None, :, None] * ell - n * ell / 2)
+    s = mean_strain(u, ell, measure="small")
+    assert s.correction_axes == (True, False, True) and not s.correction_applies
+    assert s.eps_zz_corrected == pytest.approx(s.mean_all[0, 0], abs=1e-12)  # -0.04 / 5 exactly
+    assert s.mean_all[0, 0] == pytest.approx(-0.04 / 5, abs=1e-12)
