@@ -19,6 +19,8 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import dask.config
+
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.outputs import Outputs
@@ -28,6 +30,7 @@ from ..kernels import jit as kernels
 from ..results.result import Result
 from ..scheduler import check_scheduler, open_runner
 from ..solve import cg as solve
+from .budget import calibrated, make_plan, memory_target_of
 from .checkpoint import Checkpoint, fingerprint, identify_input
 from .events import emit
 from .initial import init_identity, open_init
@@ -54,6 +57,7 @@ def correlate(
     progress: Callable[[dict], None] | None = None,
     mask=None,
     init=None,
+    memory_target=None,
     **options,
 ) -> Result:
     """Measure the displacement field between two scans by multiscale C8-DIC.
@@ -91,6 +95,12 @@ def correlate(
         finest level unless ``coarsest`` is given (:mod:`chunkdic.engine.initial`). Checked
         before any output (a result of the same reference shape); recorded in
         ``info["init"]`` and in the resume fingerprint.
+    memory_target : str or int, optional
+        Peak resident memory per process to plan for (``"2GiB"`` or bytes; default
+        ``chunkdic.memory-target``): blocks and prefilter tasks are sized to fit it
+        (:mod:`chunkdic.engine.budget`). A run it cannot hold, or whose scratch or output
+        the free disk cannot hold, is refused (:class:`InputError`) before anything is
+        written; :func:`chunkdic.plan` shows the plan without running.
 
     Returns
     -------
@@ -143,10 +153,15 @@ def correlate(
         if init_result.path is None:  # an in-memory result never resumes, as in-memory scans
             init_id["in-memory"] = uuid.uuid4().hex
     run_print = fingerprint(described)
+    budget = make_plan(f_scan, g_scan, meshes, settings, scheduler=scheduler, output=output,
+                       target=memory_target_of(memory_target))
+    budget.check()  # memory target and free disk: refused before anything is written
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
     scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
         with contextlib.ExitStack() as stack:
+            stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
+                                                 "chunkdic.prepare-voxels": budget.prepare_edge}))
             if output is not None:
                 stack.enter_context(OutputLock(output))  # one writer per output
             runner = stack.enter_context(open_runner(scheduler))
@@ -164,6 +179,7 @@ def correlate(
                 mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), levels, scratch / "mask",
                                                                     runner)
                 _compile_kernels(runner, progress)
+                emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
                 ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
                                  mask_refs, init_result)
                 result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))

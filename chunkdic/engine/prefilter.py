@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import config
 from ..errors import InputError
 from ..kernels.lowpass import TRUNCATE, lowpass_bspline
 from ..mesh import Mesh
@@ -38,8 +39,9 @@ from ..io.handles import ArrayRef
 
 #: chunk edge of the prepared store: small, so a block's window reads little extra
 CHUNK = 64
-#: largest edge of the region one preparation task computes; the box is split into equal
-#: parts no longer than this (multiples of CHUNK when the store is Zarr: whole chunks)
+#: largest edge of the region one preparation task computes by default
+#: (``chunkdic.prepare-voxels``); the box is split into equal parts no longer than this
+#: (multiples of CHUNK when the store is Zarr: whole chunks)
 TASK_EDGE = 160
 
 
@@ -146,15 +148,17 @@ def prepare_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int, sigma: 
     return int(np.prod([r.stop - r.start for r in region]))
 
 
-def task_edge(extent: int, unit: int) -> int:
+def task_edge(extent: int, unit: int, largest: int | None = None) -> int:
     """Edge of the preparation tasks along an axis of ``extent`` voxels: equal parts of at
-    most :data:`TASK_EDGE`, rounded up to a multiple of ``unit``.
+    most ``largest`` (default ``chunkdic.prepare-voxels``, :data:`TASK_EDGE`; a memory
+    target lowers it, :mod:`chunkdic.engine.budget`), rounded up to a multiple of ``unit``.
 
     Each task reads ``prepared_halo`` (16 voxels at σ = 1, cubic) more per side, so small
     remainder tasks are costly: a 316-voxel axis cut 128 + 128 + 60 filtered 1.30× its
     voxels per axis (2.2× in 3-D); cut 158 + 158, 1.20× (1.73×).
     """
-    parts = max(1, -(-int(extent) // TASK_EDGE))
+    largest = int(largest or config.get("prepare-voxels") or TASK_EDGE)
+    parts = max(1, -(-int(extent) // largest))
     edge = -(-int(extent) // parts)
     return -(-edge // unit) * unit
 
