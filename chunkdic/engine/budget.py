@@ -43,16 +43,18 @@ from .prefilter import face_margin, gaussian_radius, prepared_halo, task_edge
 
 GiB, MiB = 2**30, 2**20
 
-#: resident memory of a process that has imported chunkdic and loaded its kernels (bytes;
-#: measured: 0.27-0.30 GiB for the embedded client, workers of a LocalCluster alike)
-BASE_BYTES = 300 * MiB
+#: resident memory of a running correlation's process besides its tasks and mesh data
+#: (bytes; measured: 0.26 GiB after importing chunkdic and loading its kernels, 0.32-0.33
+#: GiB for whole 128³ runs whose tasks are small)
+BASE_BYTES = 330 * MiB
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
 #: solver's block inverse and CG vectors, the regulariser, the nodal fields and the
 #: result (measured: 3.0 GB at 128³ nodes, docs/distributed.md)
 CLIENT_BYTES_PER_NODE = 1300
-#: float32 copies of its (haloed) region that a block task holds at its peak (fitted on
-#: 128³-256³ runs, blocks of 32-128 voxels)
-TASK_COPIES = 6.0
+#: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
+#: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
+#: blocks of 32-128 voxels)
+TASK_COPIES = 12.0
 #: the same for a task of the prefilter of ``g``: two float32 sweeps (measured: 2.0 for the
 #: kernel alone at 96³-192³) and the raw read with its decoded chunks
 PREPARE_COPIES = 3.0
@@ -250,7 +252,7 @@ def threads_of(scheduler) -> tuple[int, int, bool]:
 def task_bytes(block_edge: int, sigma: float, interpolation: str, span: float = 0.0) -> int:
     """A block task's peak memory: its haloed ``f`` and window of ``g`` (float32 copies)."""
     halo_f = 1 + gaussian_radius(sigma)
-    halo_g = 4 + prepared_halo(sigma, interpolation, int(config.get("bspline-halo")))
+    halo_g = 2  # the window of the prepared g: cubic support (a window outside it: rare)
     f = (block_edge + 2 * halo_f) ** 3
     g = (block_edge + 2 * halo_g + span) ** 3
     return int(TASK_COPIES * 4 * max(f, g))
@@ -331,19 +333,29 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     prepared = interp == "cubic" or sigma > 0
     finest = meshes[levels[-1]]
     client = CLIENT_BYTES_PER_NODE * math.prod(finest.nodes_shape)
-    pyr_task = max([_pyramid_task_bytes(scan, levels) for scan in (f_scan, g_scan)])
+    pyr_task, pyr_tasks = max(_pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
 
     def elements(edge: int, mesh: Mesh) -> int:
         return min(settings.block_elements or max(1, edge // mesh.element_size), max(mesh.shape))
 
     def peak(edge: int, prep_edge: int) -> tuple[int, int]:
-        task = max(task_bytes(elements(edge, meshes[s]) * meshes[s].element_size, sigma, interp) for s in levels)
-        if prepared:
-            task = max(task, prepare_bytes(prep_edge, sigma, interp))
-        task = max(task, pyr_task)
+        """(largest task, peak of the largest process) with blocks of ``edge`` voxels: a kind
+        of task runs at most ``threads`` at once, and never more than there are of it."""
+        held = [pyr_task * min(threads, pyr_tasks)]
+        for s in levels:
+            mesh = meshes[s]
+            m = elements(edge, mesh)
+            n_blocks = math.prod(-(-n // m) for n in mesh.shape)
+            held.append(task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks))
+            if prepared:
+                box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared)[2]
+                edges = [task_edge(b, 1, prep_edge) for b in box]
+                n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
+                held.append(prepare_bytes(max(edges), sigma, interp) * min(threads, n_prep))
+        task = max(held)
         if separate:
-            return task, BASE_BYTES + max(client, threads * task)
-        return task, BASE_BYTES + client + threads * task
+            return task, BASE_BYTES + max(client, task)
+        return task, BASE_BYTES + client + task
 
     edge, prep_edge = int(config.get("block-voxels")), int(config.get("prepare-voxels"))
     if target is not None:
@@ -380,14 +392,17 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
                 solve_seconds).timed(None)
 
 
-def _pyramid_task_bytes(scan, levels) -> int:
-    """A task building a missing pyramid level: its source region (2x the chunk per side) and sums."""
+def _pyramid_tasks(scan, levels) -> tuple[int, int]:
+    """``(bytes, count)`` of the largest tasks building a missing pyramid level: each reads
+    its chunk's source region (2x the chunk per side) and sums it into the wider dtype."""
     stored, chunk = set(scan.stored_levels()), int(config.get("chunk-size"))
-    out = 0
+    out = (0, 0)
     for s in levels:
         if s not in stored and s > 0:
+            shape = scan.shape(s)
             edge = [min(2 * chunk, n) for n in scan.shape(s - 1)]
-            out = max(out, 3 * math.prod(edge) * np.dtype(scan.dtype(s)).itemsize)
+            items = np.dtype(scan.dtype(s - 1)).itemsize + np.dtype(scan.dtype(s)).itemsize
+            out = max(out, (math.prod(edge) * items, math.prod(-(-n // chunk) for n in shape)))
     return out
 
 
