@@ -39,6 +39,7 @@ from .. import config
 from ..errors import InputError
 from ..mesh import Mesh
 from ..scheduler import local_workers
+from .haloed import quantization
 from .prefilter import face_margin, gaussian_radius, prepared_halo, task_edge
 
 GiB, MiB = 2**30, 2**20
@@ -280,7 +281,9 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
     :meth:`chunkdic.engine.level.Level.prepare_interpolation`, taken for a small field)."""
     grid = [-(-n // m) for n in mesh.shape]
     chunk = [min(m, n) * mesh.element_size + 2 for n in mesh.shape]
-    item = 4 if sigma > 0 else np.dtype(f_dtype).itemsize
+    item = np.dtype(f_dtype).itemsize
+    if sigma > 0:
+        item = 2 if quantization(f_dtype)[1] > 0 else 4
     f_copy = math.prod(grid) * math.prod(chunk) * item
     if not prepared:
         return int(f_copy), 0, [0, 0, 0]

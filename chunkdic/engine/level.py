@@ -159,7 +159,8 @@ class Level:
         regions = [job.haloed_region(f_ref.shape)[0] for job in self.jobs]
         chunk = tuple(max(r[a].stop - r[a].start for r in regions) for a in range(3))
         dtype = "float32" if sigma > 0 else f_ref.dtype
-        return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, dtype)
+        return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, dtype,
+                                   quantize_from=f_ref.dtype)
 
     def _assemble_m(self, u: np.ndarray) -> None:
         """``M`` pass for the level's starting field ``u``: the stencil, its rigid restriction, the

@@ -162,8 +162,7 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     maps outside ``g`` are left out of ``M`` as the ``b`` passes leave them out.
     """
     f, lo, hi = read_prepared_reference(inputs, job.start, job.shape, halo=1)
-    inputs.f_copy.write(job.index, f)
-    f = np.asarray(f, dtype=np.float32)
+    f = np.asarray(inputs.f_copy.write(job.index, f), dtype=np.float32)  # as the b passes will read it
     fractions = None
     if inputs.mask is not None:
         fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
