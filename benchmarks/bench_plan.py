@@ -55,8 +55,8 @@ class ScratchSampler(threading.Thread):
             sizes: dict = {}
             for dirpath, _, files in os.walk(self.root):
                 rel = Path(dirpath).relative_to(self.root).parts
-                kind = _store_kind(rel[1]) if len(rel) > 1 else "other"
                 for f in files:
+                    kind = _store_kind(rel[1] if len(rel) > 1 else f)
                     try:
                         sizes[kind] = sizes.get(kind, 0) + os.stat(os.path.join(dirpath, f)).st_blocks * 512
                     except OSError:

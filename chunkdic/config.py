@@ -19,10 +19,10 @@ DEFAULTS = {
         # Peak resident memory per process to plan for ("2GiB"; None: no target): block and
         # prefilter task sizes are chosen to fit it, a run that cannot is refused (docs/engine.md).
         "memory-target": None,
-        # Storage of the low-passed blocks of a 1- or 2-byte integer scan level in scratch:
-        # "uint16" (on a 16-bit grid of the dtype's range: half the disk) or "float32" (exact).
-        # docs/engine.md, "Scratch disk".
-        "f-copy-precision": "uint16",
+        # Storage in scratch of the low-passed f blocks and the prepared g of a 1- or 2-byte
+        # integer scan level: "uint16" (on a 16-bit grid of the dtype's range: half the disk)
+        # or "float32" (exact). docs/engine.md, "Scratch disk".
+        "scratch-precision": "uint16",
         # Halo (voxels) around a window prefiltered for cubic B-spline interpolation.
         "bspline-halo": 12,
         # Chunk edge of arrays chunkdic writes (scans, pyramid levels, scratch).

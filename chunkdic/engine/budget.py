@@ -40,7 +40,7 @@ from ..errors import InputError
 from ..mesh import Mesh
 from ..scheduler import local_workers
 from .haloed import quantization
-from .prefilter import face_margin, gaussian_radius, prepared_halo, task_edge
+from .prefilter import face_margin, gaussian_radius, prepared_grid, prepared_halo, task_edge
 
 GiB, MiB = 2**30, 2**20
 
@@ -275,7 +275,8 @@ def pyramid_bytes(scan, levels) -> int:
     return int(total)
 
 
-def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: bool) -> tuple[int, int, list]:
+def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: bool, g_dtype=None,
+               interpolation: str = "cubic") -> tuple[int, int, list]:
     """``(haloed f copy, prepared g)`` scratch bytes of a level with blocks of ``m`` elements,
     and the edges of the box of ``g`` prepared (the current field's reach plus its margin,
     :meth:`chunkdic.engine.level.Level.prepare_interpolation`, taken for a small field)."""
@@ -289,7 +290,8 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
         return int(f_copy), 0, [0, 0, 0]
     margin = max(8, mesh.element_size)
     box = [min(r.stop + margin + 3, n) - max(r.start - margin - 1, 0) for r, n in zip(mesh.roi, g_shape)]
-    return int(f_copy), int(math.prod(box) * 4), box
+    item = 2 if prepared_grid(g_dtype, sigma, interpolation)[1] > 0 else 4
+    return int(f_copy), int(math.prod(box) * item), box
 
 
 def output_bytes(mesh: Mesh) -> int:
@@ -351,7 +353,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
             n_blocks = math.prod(-(-n // m) for n in mesh.shape)
             held.append(task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks))
             if prepared:
-                box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared)[2]
+                box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)[2]
                 edges = [task_edge(b, 1, prep_edge) for b in box]
                 n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
                 held.append(prepare_bytes(max(edges), sigma, interp) * min(threads, n_prep))
@@ -376,7 +378,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
         mesh = meshes[s]
         m = elements(edge, mesh)
         n_blocks = math.prod(-(-n // m) for n in mesh.shape)
-        f_copy, prep, box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared)
+        f_copy, prep, box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)
         passes = PASSES["finest"] if i == len(levels) - 1 else PASSES["coarse"]
         passes += PASSES["coarsest-extra"] if i == 0 else 0
         filtered = math.prod(b + 2 * h * -(-b // task_edge(b, 1, prep_edge)) for b in box) if prep else 0

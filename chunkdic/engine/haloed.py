@@ -13,7 +13,7 @@ and the Gauss–Newton passes of the level read one chunk per block. The copy li
 (shared with the workers, like the B-spline coefficients) and is deleted with the level.
 
 A low-passed block of a scan level stored as 1- or 2-byte integers is kept **quantised to
-16 bits** (``chunkdic.f-copy-precision``: ``"uint16"``, the default; ``"float32"`` keeps it
+16 bits** (``chunkdic.scratch-precision``: ``"uint16"``, the default; ``"float32"`` keeps it
 exact): values on the grid ``offset + k * step``, ``step`` the power of two that maps the
 dtype's range onto 0 … 65535 (1 grey level for 16-bit scans, 1/256 for 8-bit ones). A
 Gaussian low-pass stays within the range of its input, so nothing is clipped; the grid is
@@ -111,10 +111,10 @@ class HaloedBlocks:
 def quantization(dtype) -> tuple[float, float]:
     """``(offset, step)`` of the 16-bit grid for low-passed values of an integer ``dtype`` of
     1 or 2 bytes (``step`` a power of two, 65535 steps cover the dtype's range); ``(0, 0)``:
-    not quantised (other dtypes, or ``chunkdic.f-copy-precision`` is ``"float32"``)."""
+    not quantised (other dtypes, or ``chunkdic.scratch-precision`` is ``"float32"``)."""
     from .. import config
 
-    if dtype is None or config.get("f-copy-precision") != "uint16":
+    if dtype is None or config.get("scratch-precision") != "uint16":
         return 0.0, 0.0
     dtype = np.dtype(dtype)
     if dtype.kind not in "iu" or dtype.itemsize > 2:

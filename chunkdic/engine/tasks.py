@@ -21,8 +21,8 @@ from .greylevel import Partials, reduce_block
 from .haloed import HaloedBlocks
 from ..mesh import Block, Mesh
 from .masks import active_elements, element_fractions
-from .prefilter import (PreparedImage, check_finite, face_margin, gaussian_radius, prepare_deformed, prepare_reference,
-                        prepared_halo)
+from .prefilter import (PreparedImage, check_finite, dequantize, face_margin, gaussian_radius, prepare_deformed,
+                        prepare_reference, prepared_grid, prepared_halo, quantize)
 from ..io.handles import ArrayRef
 
 
@@ -219,4 +219,7 @@ def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
                       margin=inputs.g_margin)
     raw = inputs.g.read(window)
     check_finite(raw, "deformed", window)
-    return prepare_deformed(raw, inputs.sigma, interp), tuple(s.start for s in window)
+    # on the prepared store's grid, so that a result never depends on the store's box
+    grid = prepared_grid(inputs.g.dtype, inputs.sigma, interp)
+    prepared = dequantize(quantize(prepare_deformed(raw, inputs.sigma, interp), grid), grid)
+    return prepared, tuple(s.start for s in window)
