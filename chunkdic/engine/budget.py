@@ -71,7 +71,7 @@ PASSES = {"coarse": 4, "coarsest-extra": 3, "finest": 7}
 #: client seconds per finest node and solve, and solves counted (iterations, length choice)
 SOLVE_SECONDS_PER_NODE, SOLVES = 1.0e-5, 14
 #: fixed seconds: kernels loaded from the cache, runner, output
-FIXED_SECONDS = 3.0
+FIXED_SECONDS = 6.0
 #: seconds per filtered voxel of a prefilter task assumed without a calibration
 UNCALIBRATED = 1.0 / 6e6
 #: edge of each calibration region (voxels of ``g``, before its halo)
@@ -147,6 +147,7 @@ class Plan:
     memory_target: int | None = None
     fixed_work: float = 0.0
     solve_seconds: float = 0.0
+    smallest_bytes: int = 0
 
     def timed(self, seconds_per_voxel: float | None, label: str | None = None) -> "Plan":
         """The plan with its times from ``seconds_per_voxel`` of one task's prefilter of ``g``
@@ -171,7 +172,7 @@ class Plan:
                        f"task {_b(lv.task_bytes)}, scratch {_b(lv.f_copy_bytes + lv.prepared_bytes)}, "
                        f"~{lv.seconds:.0f} s")
         target = "" if self.memory_target is None else f" (target {_b(self.memory_target)})"
-        out.append(f"  memory: client {_b(self.client_bytes)} of mesh data, task {_b(self.task_bytes)}; "
+        out.append(f"  memory: client {_b(self.client_bytes)} of mesh data, tasks {_b(self.task_bytes)} at once; "
                    f"peak per process ~{_b(self.process_bytes)}{target}")
         disk = f"  disk: scratch {_b(self.scratch_bytes)} (pyramids {_b(self.pyramid_bytes)}) in {self.scratch_dir} " \
                f"({_b(self.scratch_free)} free)"
@@ -186,7 +187,7 @@ class Plan:
         finest = self.levels[-1]
         return (f"plan: levels {[lv.level for lv in self.levels]}, level {finest.level} "
                 f"{'x'.join(map(str, finest.nodes))} nodes in {finest.blocks} blocks of {finest.block_edge}³; "
-                f"memory ~{_b(self.process_bytes)} per process (client {_b(self.client_bytes)}, task "
+                f"memory ~{_b(self.process_bytes)} per process (client {_b(self.client_bytes)}, tasks "
                 f"{_b(self.task_bytes)}); scratch {_b(self.scratch_bytes)}; ~{_duration(self.seconds)}")
 
     def to_json(self) -> dict:
@@ -198,9 +199,9 @@ class Plan:
             finest = self.levels[-1]
             raise InputError(
                 f"memory target {_b(self.memory_target)} per process cannot hold this run: the client alone needs "
-                f"{_b(BASE_BYTES + self.client_bytes)} for {math.prod(finest.nodes)} nodes and the smallest tasks "
-                f"{_b(self.task_bytes)} (estimated peak {_b(self.process_bytes)}): raise the target, or use larger "
-                f"elements or a coarser level")
+                f"{_b(BASE_BYTES + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
+                f"is {_b(self.smallest_bytes)} with the smallest blocks: raise the target, or use larger elements "
+                f"or a coarser level")
         same_disk = self.output_dir is not None and _device(self.scratch_dir) == _device(self.output_dir)
         need = self.scratch_bytes + (self.output_bytes if same_disk else 0)
         if need * DISK_MARGIN > self.scratch_free:
@@ -363,10 +364,11 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
         return task, BASE_BYTES + client + task
 
     edge, prep_edge = int(config.get("block-voxels")), int(config.get("prepare-voxels"))
-    if target is not None:
-        smallest = min(m.element_size for m in meshes.values())
-        while peak(edge, prep_edge)[1] > target and edge > smallest and settings.block_elements is None:
-            edge = max(smallest, int(edge * 0.8))
+    smallest = peak(1, MIN_PREPARE_EDGE)[1]
+    if target is not None and smallest <= target:  # else refused, the plan showing the default blocks
+        ell_min = min(m.element_size for m in meshes.values())
+        while peak(edge, prep_edge)[1] > target and edge > ell_min and settings.block_elements is None:
+            edge = max(ell_min, int(edge * 0.8))
             prep_edge = max(MIN_PREPARE_EDGE, min(prep_edge, edge + 32))
         while peak(edge, prep_edge)[1] > target and prep_edge > MIN_PREPARE_EDGE:
             prep_edge = max(MIN_PREPARE_EDGE, prep_edge - 16)
@@ -394,7 +396,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest),
                 str(_existing_parent(root.absolute())), _free(root), None if out_dir is None else str(out_dir),
                 None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
-                solve_seconds).timed(None)
+                solve_seconds, smallest).timed(None)
 
 
 def _pyramid_tasks(scan, levels) -> tuple[int, int]:

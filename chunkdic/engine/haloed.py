@@ -105,7 +105,10 @@ class HaloedBlocks:
         return self._dequantize(chunk) if self.quantized else chunk
 
     def _dequantize(self, q: np.ndarray) -> np.ndarray:
-        return (self.offset + q.astype(np.float64) * self.step).astype(np.float32)
+        out = q.astype(np.float32)  # offset and step are exact in float32 (powers of two, integers)
+        out *= np.float32(self.step)
+        out += np.float32(self.offset)
+        return out
 
 
 def quantization(dtype) -> tuple[float, float]:
