@@ -14,8 +14,9 @@ DEFAULTS = {
         # Target edge of a correlation work unit (voxels); the block holds the largest
         # whole number of elements that fits (at least one).
         "block-voxels": 128,
-        # Largest edge (voxels) of a task of the prefilter of g (its halo: 16 voxels per side).
-        "prepare-voxels": 160,
+        # Largest edge (voxels) of a task of the prefilter of g (its halo: 16 voxels per side;
+        # None: 160, chunkdic.engine.prefilter.TASK_EDGE).
+        "prepare-voxels": None,
         # Peak resident memory per process to plan for ("2GiB"; None: no target): block and
         # prefilter task sizes are chosen to fit it, a run that cannot is refused (docs/engine.md).
         "memory-target": None,

@@ -40,7 +40,7 @@ from ..errors import InputError
 from ..mesh import Mesh
 from ..scheduler import local_workers
 from .haloed import quantization
-from .prefilter import face_margin, gaussian_radius, prepared_grid, prepared_halo, task_edge
+from .prefilter import face_margin, gaussian_radius, prepare_voxels, prepared_grid, prepared_halo, task_edge
 
 GiB, MiB = 2**30, 2**20
 
@@ -363,7 +363,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
             return task, BASE_BYTES + max(client, task)
         return task, BASE_BYTES + client + task
 
-    edge, prep_edge = int(config.get("block-voxels")), int(config.get("prepare-voxels"))
+    edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
     smallest = peak(1, MIN_PREPARE_EDGE)[1]
     if target is not None and smallest <= target:  # else refused, the plan showing the default blocks
         ell_min = min(m.element_size for m in meshes.values())

@@ -160,8 +160,9 @@ def correlate(
     scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
         with contextlib.ExitStack() as stack:
-            stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
-                                                 "chunkdic.prepare-voxels": budget.prepare_edge}))
+            if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
+                stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
+                                                     "chunkdic.prepare-voxels": budget.prepare_edge}))
             if output is not None:
                 stack.enter_context(OutputLock(output))  # one writer per output
             runner = stack.enter_context(open_runner(scheduler))

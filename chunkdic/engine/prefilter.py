@@ -207,6 +207,11 @@ def prepare_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int, sigma: 
     return int(np.prod([r.stop - r.start for r in region]))
 
 
+def prepare_voxels() -> int:
+    """Largest edge of a prefilter task: ``chunkdic.prepare-voxels``, else :data:`TASK_EDGE`."""
+    return int(config.get("prepare-voxels") or TASK_EDGE)
+
+
 def task_edge(extent: int, unit: int, largest: int | None = None) -> int:
     """Edge of the preparation tasks along an axis of ``extent`` voxels: equal parts of at
     most ``largest`` (default ``chunkdic.prepare-voxels``, :data:`TASK_EDGE`; a memory
@@ -216,7 +221,7 @@ def task_edge(extent: int, unit: int, largest: int | None = None) -> int:
     remainder tasks are costly: a 316-voxel axis cut 128 + 128 + 60 filtered 1.30× its
     voxels per axis (2.2× in 3-D); cut 158 + 158, 1.20× (1.73×).
     """
-    largest = int(largest or config.get("prepare-voxels") or TASK_EDGE)
+    largest = int(largest or prepare_voxels())
     parts = max(1, -(-int(extent) // largest))
     edge = -(-int(extent) // parts)
     return -(-edge // unit) * unit
