@@ -57,14 +57,17 @@ CLIENT_BYTES_PER_NODE = 1300
 #: blocks of 32-128 voxels)
 TASK_COPIES = 12.0
 #: the same for a task of the prefilter of ``g``: two float32 sweeps (measured: 2.0 for the
-#: kernel alone at 96³-192³) and the raw read with its decoded chunks
-PREPARE_COPIES = 3.0
+#: kernel alone at 96³-192³), the raw read with its decoded chunks, the quantised copy and
+#: the pages of the store it writes (measured: 6.1 for a whole 160³ task of a 512³ scan;
+#: 5 fits the peaks of 128³-512³ runs best, where two such tasks rarely peak together)
+PREPARE_COPIES = 5.0
 #: smallest edge of a prefilter task under a memory target (its halo grows its work)
 MIN_PREPARE_EDGE = 48
-#: per-voxel costs relative to the prefilter of ``g`` per filtered voxel (measured on this
-#: machine's 256³ and 512³ runs): the ``M`` pass (with the low-pass of ``f``), one ``b``
-#: pass, one level of the scratch pyramid (per level-0 voxel of one scan)
-COSTS = {"m": 1.6, "b": 0.9, "pyramid": 0.12}
+#: per-voxel costs relative to the prefilter of ``g`` per filtered voxel (fitted on this
+#: machine's 128³-512³ runs, benchmarks/bench_plan.py; the 2048³ passes of
+#: docs/distributed.md give 0.58 and 0.65): the ``M`` pass (with the low-pass of ``f``),
+#: one ``b`` pass, one level of the scratch pyramid (per level-0 voxel of one scan)
+COSTS = {"m": 0.7, "b": 0.4, "pyramid": 0.12}
 #: Gauss–Newton passes counted per level: coarse levels (rigid step included on the
 #: coarsest), the finest level (2 sampled gap passes, the length choice's passes)
 PASSES = {"coarse": 4, "coarsest-extra": 3, "finest": 7}

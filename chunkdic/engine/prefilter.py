@@ -135,7 +135,12 @@ def quantize(data: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
     offset, step = grid
     if step <= 0:
         return np.asarray(data, np.float32)
-    return np.clip(np.rint((np.asarray(data, np.float64) - offset) / step), 0, 65535).astype(np.uint16)
+    x = np.array(data, dtype=np.float32)  # float32, in place: no float64 copy of a task's region
+    x -= np.float32(offset)
+    x *= np.float32(1.0 / step)
+    np.rint(x, out=x)
+    np.clip(x, 0, 65535, out=x)
+    return x.astype(np.uint16)
 
 
 def dequantize(q: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
