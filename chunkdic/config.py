@@ -14,6 +14,16 @@ DEFAULTS = {
         # Target edge of a correlation work unit (voxels); the block holds the largest
         # whole number of elements that fits (at least one).
         "block-voxels": 128,
+        # Largest edge (voxels) of a task of the prefilter of g (its halo: 16 voxels per side;
+        # None: 160, chunkdic.engine.prefilter.TASK_EDGE).
+        "prepare-voxels": None,
+        # Peak resident memory per process to plan for ("2GiB"; None: no target): block and
+        # prefilter task sizes are chosen to fit it, a run that cannot is refused (docs/engine.md).
+        "memory-target": None,
+        # Storage in scratch of the low-passed f blocks and the prepared g of a 1- or 2-byte
+        # integer scan level: "uint16" (on a 16-bit grid of the dtype's range: half the disk)
+        # or "float32" (exact). docs/engine.md, "Scratch disk".
+        "scratch-precision": "uint16",
         # Halo (voxels) around a window prefiltered for cubic B-spline interpolation.
         "bspline-halo": 12,
         # Chunk edge of arrays chunkdic writes (scans, pyramid levels, scratch).

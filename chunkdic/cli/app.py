@@ -108,13 +108,26 @@ def cmd_correlate(args) -> int:
     from ..engine.driver import correlate
 
     element_size, roi = length_options(args, args.ref)
+    if args.plan:
+        return _print_plan(args, element_size, roi)
     t0 = time.perf_counter()
     result = correlate(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init,
                        output=args.output, overwrite=args.overwrite, progress=print_progress,
-                       **engine_options(args))
+                       memory_target=args.memory_target, **engine_options(args))
     say(_summary(result, time.perf_counter() - t0))
     print(args.output)
     return 0 if result.converged else 1
+
+
+def _print_plan(args, element_size, roi) -> int:
+    """``correlate --plan``: the plan on stdout, nothing written; exit 2 if the run would be refused."""
+    from ..engine.budget import plan
+
+    p = plan(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init, output=args.output,
+             memory_target=args.memory_target, **engine_options(args))
+    print(p.summary())
+    p.check()
+    return 0
 
 
 def cmd_demo(args) -> int:
@@ -222,6 +235,12 @@ def _add_correlate(sub) -> None:
                         "size, ROI or level of the same reference; the run then starts on --level unless "
                         "--coarsest is given)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    p.add_argument("--memory-target", default=None, metavar="SIZE",
+                   help="peak memory per process to plan for, e.g. 2GiB (default: chunkdic.memory-target, else "
+                        "none): blocks are sized to fit it; a run that cannot fit is refused")
+    p.add_argument("--plan", action="store_true",
+                   help="print the plan (levels, meshes, blocks, memory per task and client, scratch disk, "
+                        "estimated time from a short calibration) and exit, writing nothing")
     p.set_defaults(func=cmd_correlate)
 
 

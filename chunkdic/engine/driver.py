@@ -20,6 +20,8 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import dask.config
+
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.outputs import Outputs
@@ -30,6 +32,7 @@ from ..kernels import jit as kernels
 from ..results.result import Result
 from ..scheduler import check_scheduler, open_runner
 from ..solve import cg as solve
+from .budget import calibrated, make_plan, memory_target_of
 from .checkpoint import Checkpoint, completed_already, fingerprint, identify_input, kept_checkpoint_error
 from .events import emit
 from .initial import init_identity, open_init
@@ -59,6 +62,7 @@ def correlate(
     mask=None,
     init=None,
     roi_unit: str | None = None,
+    memory_target=None,
     **options,
 ) -> Result:
     """Measure the displacement field between two scans by multiscale C8-DIC.
@@ -102,6 +106,12 @@ def correlate(
         ``info["init"]`` and in the resume fingerprint.
     roi_unit : str, optional
         Length unit of a ``roi`` string without suffix (``"um"``), as ``--roi-unit``.
+    memory_target : str or int, optional
+        Peak resident memory per process to plan for (``"2GiB"`` or bytes; default
+        ``chunkdic.memory-target``): blocks and prefilter tasks are sized to fit it
+        (:mod:`chunkdic.engine.budget`). A run it cannot hold, or whose scratch or output
+        the free disk cannot hold, is refused (:class:`InputError`) before anything is
+        written; :func:`chunkdic.plan` shows the plan without running.
 
     Returns
     -------
@@ -157,6 +167,9 @@ def correlate(
         if done is not None:
             emit(progress, stage="complete", path=str(output))
             return done
+    budget = make_plan(f_scan, g_scan, meshes, settings, scheduler=scheduler, output=output,
+                       target=memory_target_of(memory_target))
+    budget.check()  # memory target and free disk: refused before anything is written
     if output is not None:  # every output rule (chunkdic.io.outputs), nothing written yet
         plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
         entry = plan.add(output, "result", resumable=True)
@@ -164,6 +177,9 @@ def correlate(
     scratch = make_scratch()  # also reclaims the scratch of dead runs
     try:
         with contextlib.ExitStack() as stack:
+            if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
+                stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
+                                                     "chunkdic.prepare-voxels": budget.prepare_edge}))
             if output is not None:
                 stack.enter_context(OutputLock(output))  # one writer per output
             runner = stack.enter_context(open_runner(scheduler))
@@ -181,6 +197,7 @@ def correlate(
                 mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), levels, scratch / "mask",
                                                                     runner)
                 _compile_kernels(runner, progress)
+                emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
                 ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
                                  mask_refs, init_result)
                 result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))

@@ -67,6 +67,8 @@ class EventText:
                 asked = ",".join(f"{a}:{b}" for a, b in event["requested_roi"])
                 line += f" (requested {asked} in level-0 voxels, trimmed to whole elements)"
             return line
+        if stage == "plan":
+            return event["plan"].line()
         if stage == "compile":
             if not event["done"]:
                 return ("compiling the numba kernels (first run on this machine, about 20 s; "

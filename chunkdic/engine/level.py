@@ -19,6 +19,7 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
 from .greylevel import Fit, combine
 from .haloed import HaloedBlocks
@@ -139,10 +140,13 @@ class Level:
         """
         total = len(args)
         voxels_per_block = (self.mesh.n_voxels if voxels is None else voxels) / max(total, 1)
-        t0 = last = time.perf_counter()
+        t0 = last = trimmed = time.perf_counter()
         for done, result in enumerate(self.runner.map_unordered(fn, args), start=1):
             yield result
             now = time.perf_counter()
+            if now - trimmed >= TRIM_SECONDS:  # freed task buffers back to the system (budget.py)
+                release_freed_memory()
+                trimmed = now
             if now - last >= PROGRESS_SECONDS and done < total:
                 last = now
                 rate = done * voxels_per_block / (now - t0)
@@ -159,7 +163,8 @@ class Level:
         regions = [job.haloed_region(f_ref.shape)[0] for job in self.jobs]
         chunk = tuple(max(r[a].stop - r[a].start for r in regions) for a in range(3))
         dtype = "float32" if sigma > 0 else f_ref.dtype
-        return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, dtype)
+        return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, dtype,
+                                   quantize_from=f_ref.dtype)
 
     def _assemble_m(self, u: np.ndarray) -> None:
         """``M`` pass for the level's starting field ``u``: the stencil, its rigid restriction, the

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import config
 from ..errors import InputError
 from ..kernels.lowpass import TRUNCATE, lowpass_bspline
 from ..mesh import Mesh
@@ -38,8 +39,9 @@ from ..io.handles import ArrayRef
 
 #: chunk edge of the prepared store: small, so a block's window reads little extra
 CHUNK = 64
-#: largest edge of the region one preparation task computes; the box is split into equal
-#: parts no longer than this (multiples of CHUNK when the store is Zarr: whole chunks)
+#: largest edge of the region one preparation task computes by default
+#: (``chunkdic.prepare-voxels``); the box is split into equal parts no longer than this
+#: (multiples of CHUNK when the store is Zarr: whole chunks)
 TASK_EDGE = 160
 
 
@@ -93,19 +95,80 @@ def prepare_deformed(raw: np.ndarray, sigma: float, interpolation: str) -> np.nd
     return lowpass_bspline(raw, sigma, interpolation == "cubic")
 
 
+def overshoot(sigma: float, interpolation: str) -> float:
+    """How far (fraction of the input's range) the prepared ``g`` may leave that range.
+
+    The low-pass alone stays within it (positive weights); its cubic B-spline coefficients
+    may not: the bound is the negative part of the separable 3-D kernel (Gaussian, then the
+    B-spline prefilter), 0.019 at σ = 1, 0.27 at σ = 0.8, 0.71 at σ = 0.5.
+    """
+    if interpolation != "cubic":
+        return 0.0
+    n = 256
+    w = 2 * np.pi * np.fft.fftfreq(n)
+    h = np.real(np.fft.ifft(np.exp(-0.5 * (float(sigma) * w) ** 2) * 3.0 / (2.0 + np.cos(w))))
+    p, m = float(h[h > 0].sum()), float(-h[h < 0].sum())
+    return 3 * p * p * m + m**3
+
+
+def prepared_grid(dtype, sigma: float, interpolation: str) -> tuple[float, float]:
+    """``(offset, step)`` of the 16-bit grid the prepared ``g`` of a level of ``dtype`` is stored on;
+    ``(0, 0)``: float32 (a float or wider scan, no low-pass, an overshoot above 0.5 of the
+    range, or ``chunkdic.scratch-precision`` ``"float32"``). The grid covers the dtype's
+    range widened by :func:`overshoot` on each side, so nothing is clipped: 1.04 grey
+    levels per step for a 16-bit scan at σ = 1 (docs/engine.md, "Scratch disk")."""
+    if dtype is None or sigma <= 0 or config.get("scratch-precision") != "uint16":
+        return 0.0, 0.0
+    dtype = np.dtype(dtype)
+    if dtype.kind not in "iu" or dtype.itemsize > 2:
+        return 0.0, 0.0
+    over = overshoot(sigma, interpolation)
+    if over > 0.5:
+        return 0.0, 0.0
+    info = np.iinfo(dtype)
+    span = float(info.max) - float(info.min)
+    return float(info.min) - over * span, span * (1 + 2 * over) / 65535.0 * (1 + 1e-9)
+
+
+def quantize(data: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
+    """``data`` on the 16-bit ``grid`` (uint16; ``grid[1] == 0``: float32 as it is)."""
+    offset, step = grid
+    if step <= 0:
+        return np.asarray(data, np.float32)
+    x = np.array(data, dtype=np.float32)  # float32, in place: no float64 copy of a task's region
+    x -= np.float32(offset)
+    x *= np.float32(1.0 / step)
+    np.rint(x, out=x)
+    np.clip(x, 0, 65535, out=x)
+    return x.astype(np.uint16)
+
+
+def dequantize(q: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
+    """Float32 values of ``q`` on ``grid`` (float data: as it is)."""
+    offset, step = grid
+    if step <= 0:
+        return q
+    out = q.astype(np.float32)  # float32 arithmetic: 0.004 grey level off at most, and on every read
+    out *= np.float32(step)
+    out += np.float32(offset)
+    return out
+
+
 @dataclass(frozen=True)
 class PreparedImage:
-    """The prepared ``g`` (samples or B-spline coefficients) over ``box`` (absolute level indices)."""
+    """The prepared ``g`` (samples or B-spline coefficients) over ``box`` (absolute level indices),
+    stored as float32 or on the 16-bit ``grid`` (:func:`prepared_grid`)."""
 
     ref: ArrayRef
     box: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
+    grid: tuple[float, float] = (0.0, 0.0)
 
     def covers(self, window: tuple[slice, slice, slice]) -> bool:
         return all(a <= w.start and w.stop <= b for w, (a, b) in zip(window, self.box))
 
     def read(self, window: tuple[slice, slice, slice]) -> np.ndarray:
         local = tuple(slice(w.start - a, w.stop - a) for w, (a, _) in zip(window, self.box))
-        return self.ref.read(local)
+        return dequantize(self.ref.read(local), self.grid)
 
 
 def reachable_box(mesh: Mesh, u: np.ndarray, g_shape, *, margin: int):
@@ -123,7 +186,8 @@ def reachable_box(mesh: Mesh, u: np.ndarray, g_shape, *, margin: int):
     return tuple(box)
 
 
-def prepare_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int, sigma: float, interpolation: str) -> int:
+def prepare_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int, sigma: float, interpolation: str,
+                 grid: tuple[float, float] = (0.0, 0.0)) -> int:
     """Task: the prepared ``g`` of ``region`` (absolute slices) into the store ``out``.
 
     The region is read with ``halo`` extra voxels per side (clipped to the volume), filtered,
@@ -135,6 +199,8 @@ def prepare_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int, sigma: 
     check_finite(data, "deformed", grown)
     prepared = prepare_deformed(data, sigma, interpolation)
     crop = tuple(slice(r.start - s.start, r.stop - s.start) for r, s in zip(region, grown))
+    prepared = quantize(prepared[crop], grid)
+    crop = (slice(None),) * 3
     local = tuple(slice(r.start - a, r.stop - a) for r, (a, _) in zip(region, box))
     if out.kind == "npy":
         target = np.load(out.path, mmap_mode="r+")
@@ -146,22 +212,30 @@ def prepare_task(g_ref: ArrayRef, out: ArrayRef, box, region, halo: int, sigma: 
     return int(np.prod([r.stop - r.start for r in region]))
 
 
-def task_edge(extent: int, unit: int) -> int:
+def prepare_voxels() -> int:
+    """Largest edge of a prefilter task: ``chunkdic.prepare-voxels``, else :data:`TASK_EDGE`."""
+    return int(config.get("prepare-voxels") or TASK_EDGE)
+
+
+def task_edge(extent: int, unit: int, largest: int | None = None) -> int:
     """Edge of the preparation tasks along an axis of ``extent`` voxels: equal parts of at
-    most :data:`TASK_EDGE`, rounded up to a multiple of ``unit``.
+    most ``largest`` (default ``chunkdic.prepare-voxels``, :data:`TASK_EDGE`; a memory
+    target lowers it, :mod:`chunkdic.engine.budget`), rounded up to a multiple of ``unit``.
 
     Each task reads ``prepared_halo`` (16 voxels at σ = 1, cubic) more per side, so small
     remainder tasks are costly: a 316-voxel axis cut 128 + 128 + 60 filtered 1.30× its
     voxels per axis (2.2× in 3-D); cut 158 + 158, 1.20× (1.73×).
     """
-    parts = max(1, -(-int(extent) // TASK_EDGE))
+    largest = int(largest or prepare_voxels())
+    parts = max(1, -(-int(extent) // largest))
     edge = -(-int(extent) // parts)
     return -(-edge // unit) * unit
 
 
 def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, local: bool, sigma: float = 0.0,
                    interpolation: str = "cubic") -> PreparedImage:
-    """Prepare ``box`` of ``g`` into a new float32 array at ``path``.
+    """Prepare ``box`` of ``g`` into a new array at ``path`` (float32, or uint16 on the
+    grid of :func:`prepared_grid`).
 
     ``map_tasks(fn, args)`` runs the tasks and yields their results: a runner's
     ``map_unordered``, or the engine's wrapper of it that reports progress (at level 0 of
@@ -174,23 +248,25 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
     for workers on other hosts sharing the file system.
     """
     shape = tuple(b - a for a, b in box)
+    grid = prepared_grid(g_ref.dtype, sigma, interpolation)
+    dtype = "uint16" if grid[1] > 0 else "float32"
     if local:
         path = path.with_suffix(".npy")
-        np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=shape).flush()
-        out = ArrayRef("npy", str(path), "", shape, "float32")
+        np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape).flush()
+        out = ArrayRef("npy", str(path), "", shape, dtype)
     else:
         import zarr
 
-        zarr.create_array(str(path), shape=shape, chunks=(CHUNK,) * 3, dtype="float32",
+        zarr.create_array(str(path), shape=shape, chunks=(CHUNK,) * 3, dtype=dtype,
                           compressors=None, zarr_format=3, overwrite=True)
-        out = ArrayRef("zarr", str(path), "", shape, "float32")
+        out = ArrayRef("zarr", str(path), "", shape, dtype)
     edges = [task_edge(b - a, 1 if local else CHUNK) for a, b in box]
     starts = [range(a, b, e) for (a, b), e in zip(box, edges)]
     regions = [
         tuple(slice(s, min(s + e, b)) for s, e, (_, b) in zip(corner, edges, box))
         for corner in ((z, y, x) for z in starts[0] for y in starts[1] for x in starts[2])
     ]
-    args = [(g_ref, out, box, r, halo, float(sigma), interpolation) for r in regions]
+    args = [(g_ref, out, box, r, halo, float(sigma), interpolation, grid) for r in regions]
     for _ in map_tasks(prepare_task, args):
         pass
-    return PreparedImage(out, box)
+    return PreparedImage(out, box, grid)

@@ -21,8 +21,8 @@ from .greylevel import Partials, reduce_block
 from .haloed import HaloedBlocks
 from ..mesh import Block, Mesh
 from .masks import active_elements, element_fractions
-from .prefilter import (PreparedImage, check_finite, face_margin, gaussian_radius, prepare_deformed, prepare_reference,
-                        prepared_halo)
+from .prefilter import (PreparedImage, check_finite, dequantize, face_margin, gaussian_radius, prepare_deformed,
+                        prepare_reference, prepared_grid, prepared_halo, quantize)
 from ..io.handles import ArrayRef
 
 
@@ -162,8 +162,7 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     maps outside ``g`` are left out of ``M`` as the ``b`` passes leave them out.
     """
     f, lo, hi = read_prepared_reference(inputs, job.start, job.shape, halo=1)
-    inputs.f_copy.write(job.index, f)
-    f = np.asarray(f, dtype=np.float32)
+    f = np.asarray(inputs.f_copy.write(job.index, f), dtype=np.float32)  # as the b passes will read it
     fractions = None
     if inputs.mask is not None:
         fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
@@ -220,4 +219,7 @@ def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
                       margin=inputs.g_margin)
     raw = inputs.g.read(window)
     check_finite(raw, "deformed", window)
-    return prepare_deformed(raw, inputs.sigma, interp), tuple(s.start for s in window)
+    # on the prepared store's grid, so that a result never depends on the store's box
+    grid = prepared_grid(inputs.g.dtype, inputs.sigma, interp)
+    prepared = dequantize(quantize(prepare_deformed(raw, inputs.sigma, interp), grid), grid)
+    return prepared, tuple(s.start for s in window)

@@ -1,0 +1,536 @@
+"""The plan of a correlation before anything runs: what it holds, writes and costs.
+
+:func:`plan` (and every :func:`chunkdic.correlate`, before it writes anything) works out,
+from the scans' shapes and dtypes and the settings alone,
+
+- the levels, their meshes and blocks;
+- the memory of one task and of the client, hence the peak of each process: a process
+  holds :data:`BASE_BYTES` (Python, NumPy, numba, zarr and the compiled kernels), the
+  client's mesh-sized data (:data:`CLIENT_BYTES_PER_NODE` per node of the finest mesh) and,
+  with the embedded thread pool, one task per thread;
+- the scratch disk (missing pyramid levels for the whole run; per level the haloed copy of
+  ``f`` and the prepared ``g``, deleted when the level ends) and the output's size;
+- the time, from per-voxel costs measured on this machine (:data:`COSTS`, relative to the
+  prefilter of ``g``) scaled by a short calibration on the real data: the prefilter of one
+  region of ``g`` per thread, run concurrently and timed (so the load of the machine and
+  the speed of the disk count).
+
+A memory target (``memory_target=``, ``--memory-target``, ``chunkdic.memory-target``) picks
+the largest block (and prefilter task) edge whose estimated peak fits; a run that cannot
+fit it, or whose scratch or output does not fit the free disk, is refused
+(:class:`~chunkdic.errors.InputError`, one line, exit 2) before anything is written.
+docs/engine.md, "Plan, memory target and disk".
+"""
+
+from __future__ import annotations
+
+import concurrent.futures
+import ctypes
+import dataclasses
+import math
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..errors import InputError
+from ..mesh import Mesh
+from ..scheduler import local_workers
+from .haloed import quantization
+from .prefilter import face_margin, gaussian_radius, prepare_voxels, prepared_grid, prepared_halo, task_edge
+
+GiB, MiB = 2**30, 2**20
+
+#: resident memory of a running correlation's process besides its tasks and mesh data
+#: (bytes; measured: 0.26 GiB after importing chunkdic and loading its kernels, 0.32-0.33
+#: GiB for whole 128³ runs whose tasks are small)
+BASE_BYTES = 330 * MiB
+#: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
+#: solver's block inverse and CG vectors, the regulariser, the nodal fields and the
+#: result (measured: 3.0 GB at 128³ nodes, docs/distributed.md)
+CLIENT_BYTES_PER_NODE = 1300
+#: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
+#: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
+#: blocks of 32-128 voxels)
+TASK_COPIES = 12.0
+#: the same for a task of the prefilter of ``g``: two float32 sweeps (measured: 2.0 for the
+#: kernel alone at 96³-192³), the raw read with its decoded chunks, the quantised copy and
+#: the pages of the store it writes (measured: 6.1 for a whole 160³ task of a 512³ scan;
+#: 5 fits the peaks of 128³-512³ runs best, where two such tasks rarely peak together)
+PREPARE_COPIES = 5.0
+#: smallest edge of a prefilter task under a memory target (its halo grows its work)
+MIN_PREPARE_EDGE = 48
+#: per-voxel costs relative to the prefilter of ``g`` per filtered voxel (fitted on this
+#: machine's 128³-512³ runs, benchmarks/bench_plan.py; the 2048³ passes of
+#: docs/distributed.md give 0.58 and 0.65): the ``M`` pass (with the low-pass of ``f``),
+#: one ``b`` pass, one level of the scratch pyramid (per level-0 voxel of one scan)
+COSTS = {"m": 0.9, "b": 0.5, "pyramid": 0.12}
+#: Gauss–Newton passes counted per level: coarse levels (rigid step included on the
+#: coarsest), the finest level (2 sampled gap passes, the length choice's passes)
+PASSES = {"coarse": 4, "coarsest-extra": 3, "finest": 7}
+#: client seconds per finest node and solve, and solves counted (iterations, length choice)
+SOLVE_SECONDS_PER_NODE, SOLVES = 1.0e-5, 14
+#: fixed seconds: kernels loaded from the cache, runner, output
+FIXED_SECONDS = 6.0
+#: seconds per filtered voxel of a prefilter task assumed without a calibration
+UNCALIBRATED = 1.0 / 6e6
+#: edge of each calibration region (voxels of ``g``, before its halo)
+CALIBRATION_EDGE = 64
+#: least interval between two :func:`release_freed_memory` calls of a pass (seconds)
+TRIM_SECONDS = 0.1
+#: times the calibration runs (the fastest counts)
+CALIBRATION_REPEATS = 3
+#: free disk kept beyond the estimate (file-system metadata, other writers)
+DISK_MARGIN = 1.05
+
+
+@dataclasses.dataclass(frozen=True)
+class LevelPlan:
+    """One level of a :class:`Plan` (voxels of the level)."""
+
+    level: int
+    nodes: tuple[int, int, int]
+    roi_voxels: int
+    block_elements: int
+    block_edge: int
+    blocks: int
+    f_copy_bytes: int
+    prepared_bytes: int
+    task_bytes: int
+    work: float
+    seconds: float = math.nan
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What a correlation will hold, write and cost (estimates, bytes and seconds).
+
+    Attributes
+    ----------
+    levels : tuple of LevelPlan
+        Coarsest first.
+    threads : int
+        Tasks at once (threads of the embedded pool, or workers' threads).
+    separate_client : bool
+        Tasks run in other processes (a LocalCluster or a cluster): the client's process
+        holds no task, each worker one task per thread.
+    client_bytes, task_bytes : int
+        The client's mesh-sized data; the largest task.
+    process_bytes : int
+        Estimated peak resident memory of the largest process.
+    pyramid_bytes, scratch_bytes, output_bytes : int
+        Scratch pyramid levels (held the whole run); peak scratch (those plus the largest
+        level's haloed ``f`` and prepared ``g``); the result.
+    scratch_dir, output_dir : str
+        Where they go; ``scratch_free``, ``output_free`` their free bytes now.
+    seconds : float
+        Estimated wall time of the correlation; ``calibration`` says from what.
+    block_voxels, prepare_edge : int
+        Block edge target (``chunkdic.block-voxels``) and prefilter task edge chosen.
+    memory_target : int or None
+        Bytes per process asked for.
+    """
+
+    levels: tuple
+    threads: int
+    separate_client: bool
+    client_bytes: int
+    task_bytes: int
+    process_bytes: int
+    pyramid_bytes: int
+    scratch_bytes: int
+    output_bytes: int
+    scratch_dir: str
+    scratch_free: int
+    output_dir: str | None
+    output_free: int | None
+    seconds: float
+    calibration: str
+    block_voxels: int
+    prepare_edge: int
+    memory_target: int | None = None
+    fixed_work: float = 0.0
+    solve_seconds: float = 0.0
+    smallest_bytes: int = 0
+
+    def timed(self, seconds_per_voxel: float | None, label: str | None = None) -> "Plan":
+        """The plan with its times from ``seconds_per_voxel`` of one task's prefilter of ``g``
+        (:func:`calibrate`; ``None``: :data:`UNCALIBRATED` assumed)."""
+        unit = UNCALIBRATED if seconds_per_voxel is None else seconds_per_voxel
+        if label is None:
+            label = (f"calibrated now: prefilter of g at {1e-6 / unit:.1f} Mvoxel/s per task, {self.threads} at once"
+                     if seconds_per_voxel is not None else
+                     f"not calibrated: prefilter of g at {1e-6 / unit:.0f} Mvoxel/s per task assumed")
+        levels = tuple(dataclasses.replace(lv, seconds=lv.work * unit / self.threads) for lv in self.levels)
+        seconds = sum(lv.seconds for lv in levels) + self.fixed_work * unit / self.threads
+        return dataclasses.replace(self, levels=levels, seconds=seconds + FIXED_SECONDS + self.solve_seconds,
+                                   calibration=label)
+
+    def summary(self) -> str:
+        """Several lines for a person: one per level, then memory, disk and time."""
+        out = [f"plan: levels {[lv.level for lv in self.levels]}, {self.threads} tasks at once"
+               + (" in worker processes" if self.separate_client else " in this process")]
+        for lv in self.levels:
+            out.append(f"  level {lv.level}: {'x'.join(map(str, lv.nodes))} nodes, {lv.roi_voxels / 1e6:.1f} Mvoxel, "
+                       f"{lv.blocks} blocks of {lv.block_edge}³ voxels ({lv.block_elements}³ elements), "
+                       f"task {_b(lv.task_bytes)}, scratch {_b(lv.f_copy_bytes + lv.prepared_bytes)}, "
+                       f"~{lv.seconds:.0f} s")
+        target = "" if self.memory_target is None else f" (target {_b(self.memory_target)})"
+        out.append(f"  memory: client {_b(self.client_bytes)} of mesh data, tasks {_b(self.task_bytes)} at once; "
+                   f"peak per process ~{_b(self.process_bytes)}{target}")
+        disk = f"  disk: scratch {_b(self.scratch_bytes)} (pyramids {_b(self.pyramid_bytes)}) in {self.scratch_dir} " \
+               f"({_b(self.scratch_free)} free)"
+        if self.output_dir is not None:
+            disk += f"; output {_b(self.output_bytes)} in {self.output_dir} ({_b(self.output_free)} free)"
+        out.append(disk)
+        out.append(f"  time: ~{_duration(self.seconds)} ({self.calibration})")
+        return "\n".join(out)
+
+    def line(self) -> str:
+        """The plan in one line (printed at the start of every run)."""
+        finest = self.levels[-1]
+        return (f"plan: levels {[lv.level for lv in self.levels]}, level {finest.level} "
+                f"{'x'.join(map(str, finest.nodes))} nodes in {finest.blocks} blocks of {finest.block_edge}³; "
+                f"memory ~{_b(self.process_bytes)} per process (client {_b(self.client_bytes)}, tasks "
+                f"{_b(self.task_bytes)}); scratch {_b(self.scratch_bytes)}; ~{_duration(self.seconds)}")
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def check(self) -> None:
+        """Refuse (:class:`InputError`, one line) a run the memory target or the disk cannot hold."""
+        if self.memory_target is not None and self.process_bytes > self.memory_target:
+            finest = self.levels[-1]
+            raise InputError(
+                f"memory target {_b(self.memory_target)} per process cannot hold this run: the client alone needs "
+                f"{_b(BASE_BYTES + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
+                f"is {_b(self.smallest_bytes)} with the smallest blocks: raise the target, or use larger elements "
+                f"or a coarser level")
+        same_disk = self.output_dir is not None and _device(self.scratch_dir) == _device(self.output_dir)
+        need = self.scratch_bytes + (self.output_bytes if same_disk else 0)
+        if need * DISK_MARGIN > self.scratch_free:
+            what = "scratch and output need" if same_disk else "scratch needs"
+            raise InputError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
+                             f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
+                             "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
+        if self.output_dir is not None and not same_disk and self.output_bytes * DISK_MARGIN > self.output_free:
+            raise InputError(f"not enough disk for the output: {_b(self.output_bytes)} needed in {self.output_dir}, "
+                             f"{_b(self.output_free)} free")
+
+
+_LIBC: list = []
+
+
+def release_freed_memory() -> None:
+    """Return to the system the pages that freed buffers leave in glibc's heaps (``malloc_trim``).
+
+    glibc raises its mmap threshold to the largest buffer freed (up to 32 MB), after which
+    a task's NumPy arrays come from heaps whose freed pages stay resident: in the embedded
+    pool, where the tasks' threads are the client's process, a 512³ run's peak grew to
+    0.73 GiB over the level-0 passes, against 0.40 GiB with ``MALLOC_MMAP_THRESHOLD_=65536``
+    in the environment. Called by the passes (:meth:`chunkdic.engine.level.Level._map`) at
+    most every :data:`TRIM_SECONDS`, it brought the peak to 0.61-0.62 GiB (0.62 GiB every
+    0.25 s); a no-op without glibc. (Dask's nanny sets ``MALLOC_TRIM_THRESHOLD_`` for its
+    workers itself.)
+    """
+    if not _LIBC:
+        try:
+            libc = ctypes.CDLL("libc.so.6")
+            libc.malloc_trim.argtypes = [ctypes.c_size_t]
+        except (OSError, AttributeError):
+            libc = None
+        _LIBC.append(libc)
+    if _LIBC[0] is not None:
+        _LIBC[0].malloc_trim(0)
+
+
+def parse_memory(value) -> int | None:
+    """Bytes from ``"2GiB"``, ``"1.5 GB"``, ``2e9`` or ``None``; refuse anything else."""
+    if value is None or value == "":
+        return None
+    from dask.utils import parse_bytes
+
+    try:
+        out = int(parse_bytes(value)) if isinstance(value, str) else int(value)
+    except (TypeError, ValueError):
+        raise InputError(f"memory target {value!r}: expected a size such as 2GiB or 1500MB") from None
+    if out <= 0:
+        raise InputError(f"memory target {value!r} must be positive")
+    return out
+
+
+def memory_target_of(value=None) -> int | None:
+    """``value``, else ``chunkdic.memory-target`` from dask.config, as bytes (or ``None``)."""
+    return parse_memory(value if value is not None else config.get("memory-target"))
+
+
+def threads_of(scheduler) -> tuple[int, int, bool]:
+    """``(tasks at once per process, tasks at once in all, tasks in other processes)`` for a
+    ``scheduler`` argument (an address not yet reached counts as one worker per core here)."""
+    cores = os.cpu_count() or 1
+    if scheduler is None or scheduler == "threads":
+        n = int(config.get("num-threads") or cores)
+        return n, n, False
+    if isinstance(scheduler, str) and scheduler.startswith("local"):
+        # a LocalCluster of single-threaded workers (chunkdic.scheduler.open_runner)
+        return 1, local_workers(scheduler) or cores, True
+    info = getattr(scheduler, "scheduler_info", None)
+    if callable(info):
+        nthreads = [int(w.get("nthreads", 1)) for w in info().get("workers", {}).values()] or [1]
+        return max(nthreads), sum(nthreads), True
+    return 1, cores, True
+
+
+def task_bytes(block_edge: int, sigma: float, interpolation: str, span: float = 0.0) -> int:
+    """A block task's peak memory: its haloed ``f`` and window of ``g`` (float32 copies)."""
+    halo_f = 1 + gaussian_radius(sigma)
+    halo_g = 2  # the window of the prepared g: cubic support (a window outside it: rare)
+    f = (block_edge + 2 * halo_f) ** 3
+    g = (block_edge + 2 * halo_g + span) ** 3
+    return int(TASK_COPIES * 4 * max(f, g))
+
+
+def prepare_bytes(edge: int, sigma: float, interpolation: str) -> int:
+    """A prefilter task's peak memory (its region grown by the prefilter's halo)."""
+    h = prepared_halo(sigma, interpolation, int(config.get("bspline-halo")))
+    return int(PREPARE_COPIES * 4 * (edge + 2 * h) ** 3)
+
+
+def pyramid_bytes(scan, levels) -> int:
+    """Scratch bytes of the pyramid levels a scan lacks (uncompressed: an upper bound)."""
+    stored = set(scan.stored_levels())
+    total = 0
+    for s in sorted(set(levels) | ({0} if not stored else set())):  # a scan in memory: level 0 too
+        if s not in stored:
+            total += math.prod(scan.shape(s)) * np.dtype(scan.dtype(s)).itemsize
+    return int(total)
+
+
+def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: bool, g_dtype=None,
+               interpolation: str = "cubic") -> tuple[int, int, list]:
+    """``(haloed f copy, prepared g)`` scratch bytes of a level with blocks of ``m`` elements,
+    and the edges of the box of ``g`` prepared (the current field's reach plus its margin,
+    :meth:`chunkdic.engine.level.Level.prepare_interpolation`, taken for a small field)."""
+    grid = [-(-n // m) for n in mesh.shape]
+    chunk = [min(m, n) * mesh.element_size + 2 for n in mesh.shape]
+    item = np.dtype(f_dtype).itemsize
+    if sigma > 0:
+        item = 2 if quantization(f_dtype)[1] > 0 else 4
+    f_copy = math.prod(grid) * math.prod(chunk) * item
+    if not prepared:
+        return int(f_copy), 0, [0, 0, 0]
+    margin = max(8, mesh.element_size)
+    box = [min(r.stop + margin + 3, n) - max(r.start - margin - 1, 0) for r, n in zip(mesh.roi, g_shape)]
+    item = 2 if prepared_grid(g_dtype, sigma, interpolation)[1] > 0 else 4
+    return int(f_copy), int(math.prod(box) * item), box
+
+
+def output_bytes(mesh: Mesh) -> int:
+    """A result's size: nodal fields, flags, uncertainty, history, the checkpoint (float64)."""
+    return int(math.prod(mesh.nodes_shape) * 8 * 16 + MiB)
+
+
+def calibrate(g_ref, sigma: float, interpolation: str, threads: int) -> float:
+    """Seconds per filtered voxel per task of the prefilter of ``g``, measured on the data.
+
+    ``threads`` regions of :data:`CALIBRATION_EDGE` voxels near the centre of ``g`` are read
+    with the prefilter's halo and prepared concurrently, :data:`CALIBRATION_REPEATS` times;
+    the fastest wall time, times ``threads``, over the voxels filtered: what one task pays
+    per voxel now (load included; about 0.3 s).
+    """
+    from .prefilter import prepare_deformed
+
+    h = prepared_halo(sigma, interpolation, int(config.get("bspline-halo")))
+    shape = g_ref.shape
+    edge = [min(CALIBRATION_EDGE + 2 * h, n) for n in shape]
+    regions = []
+    for k in range(threads):
+        corner = [max(0, min(n - e, n // 2 - e // 2 + (k - threads // 2) * e * (a == 2)))
+                  for a, (n, e) in enumerate(zip(shape, edge))]
+        regions.append(tuple(slice(c, c + e) for c, e in zip(corner, edge)))
+    prepare_deformed(np.zeros((8, 8, 8), np.float32), sigma, interpolation)  # kernels loaded, not timed
+
+    def one(region):
+        return prepare_deformed(g_ref.read(region), sigma, interpolation).size
+
+    best = math.inf
+    with concurrent.futures.ThreadPoolExecutor(threads) as pool:
+        for _ in range(CALIBRATION_REPEATS):  # the faster: the first also reads from the disk
+            t0 = time.perf_counter()
+            voxels = sum(pool.map(one, regions))
+            best = min(best, (time.perf_counter() - t0) * threads / max(voxels, 1))
+    return best
+
+
+def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=None, target=None,
+              scratch_dir=None) -> Plan:
+    """The :class:`Plan` of a run; ``target`` (bytes per process) chooses the block edge and
+    the prefilter's task edge: the largest (up to ``chunkdic.block-voxels`` and
+    :data:`~chunkdic.engine.prefilter.TASK_EDGE`) whose estimated peak fits."""
+    threads, concurrency, separate = threads_of(scheduler)
+    levels = sorted(meshes, reverse=True)
+    sigma, interp = settings.smoothing, settings.interpolation
+    prepared = interp == "cubic" or sigma > 0
+    finest = meshes[levels[-1]]
+    client = CLIENT_BYTES_PER_NODE * math.prod(finest.nodes_shape)
+    pyr_task, pyr_tasks = max(_pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
+
+    def elements(edge: int, mesh: Mesh) -> int:
+        return min(settings.block_elements or max(1, edge // mesh.element_size), max(mesh.shape))
+
+    def peak(edge: int, prep_edge: int) -> tuple[int, int]:
+        """(largest task, peak of the largest process) with blocks of ``edge`` voxels: a kind
+        of task runs at most ``threads`` at once, and never more than there are of it."""
+        held = [pyr_task * min(threads, pyr_tasks)]
+        for s in levels:
+            mesh = meshes[s]
+            m = elements(edge, mesh)
+            n_blocks = math.prod(-(-n // m) for n in mesh.shape)
+            held.append(task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks))
+            if prepared:
+                box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)[2]
+                edges = [task_edge(b, 1, prep_edge) for b in box]
+                n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
+                held.append(prepare_bytes(max(edges), sigma, interp) * min(threads, n_prep))
+        task = max(held)
+        if separate:
+            return task, BASE_BYTES + max(client, task)
+        return task, BASE_BYTES + client + task
+
+    edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
+    smallest = peak(1, MIN_PREPARE_EDGE)[1]
+    if target is not None and smallest <= target:  # else refused, the plan showing the default blocks
+        ell_min = min(m.element_size for m in meshes.values())
+        while peak(edge, prep_edge)[1] > target and edge > ell_min and settings.block_elements is None:
+            edge = max(ell_min, int(edge * 0.8))
+            prep_edge = max(MIN_PREPARE_EDGE, min(prep_edge, edge + 32))
+        while peak(edge, prep_edge)[1] > target and prep_edge > MIN_PREPARE_EDGE:
+            prep_edge = max(MIN_PREPARE_EDGE, prep_edge - 16)
+    task, process = peak(edge, prep_edge)
+
+    h = prepared_halo(sigma, interp, int(config.get("bspline-halo")))
+    plans = []
+    for i, s in enumerate(levels):
+        mesh = meshes[s]
+        m = elements(edge, mesh)
+        n_blocks = math.prod(-(-n // m) for n in mesh.shape)
+        f_copy, prep, box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)
+        passes = PASSES["finest"] if i == len(levels) - 1 else PASSES["coarse"]
+        passes += PASSES["coarsest-extra"] if i == 0 else 0
+        filtered = math.prod(b + 2 * h * -(-b // task_edge(b, 1, prep_edge)) for b in box) if prep else 0
+        work = mesh.n_voxels * (COSTS["m"] + passes * COSTS["b"]) + filtered
+        plans.append(LevelPlan(s, tuple(mesh.nodes_shape), int(mesh.n_voxels), int(m), int(m * mesh.element_size),
+                               int(n_blocks), f_copy, prep, task_bytes(m * mesh.element_size, sigma, interp), work))
+    pyr = pyramid_bytes(f_scan, levels) + pyramid_bytes(g_scan, levels)
+    scratch = pyr + max(lv.f_copy_bytes + lv.prepared_bytes for lv in plans)
+    pyr_work = 2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0
+    solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
+    root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
+    out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
+    return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest),
+                str(_existing_parent(root.absolute())), _free(root), None if out_dir is None else str(out_dir),
+                None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
+                solve_seconds, smallest).timed(None)
+
+
+def _pyramid_tasks(scan, levels) -> tuple[int, int]:
+    """``(bytes, count)`` of the largest tasks building a missing pyramid level: each reads
+    its chunk's source region (2x the chunk per side) and sums it into the wider dtype."""
+    stored, chunk = set(scan.stored_levels()), int(config.get("chunk-size"))
+    out = (0, 0)
+    for s in levels:
+        if s not in stored and s > 0:
+            shape = scan.shape(s)
+            edge = [min(2 * chunk, n) for n in scan.shape(s - 1)]
+            items = np.dtype(scan.dtype(s - 1)).itemsize + np.dtype(scan.dtype(s)).itemsize
+            out = max(out, (math.prod(edge) * items, math.prod(-(-n // chunk) for n in shape)))
+    return out
+
+
+def plan(ref, deformed, settings=None, *, roi=None, scheduler=None, output=None, init=None, mask=None,
+         memory_target=None, calibrate: bool = True, **options) -> Plan:
+    """The plan of ``correlate(ref, deformed, ...)`` with the same arguments, without running it.
+
+    Reads only the scans' metadata (and, with ``calibrate``, one region of ``g`` per task,
+    timed); writes nothing. :meth:`Plan.summary` prints it; :meth:`Plan.check` raises the
+    :class:`~chunkdic.errors.InputError` that :func:`chunkdic.correlate` would refuse the
+    run with (memory target or disk).
+
+    Parameters
+    ----------
+    ref, deformed, settings, roi, scheduler, output, init, mask, **options
+        As for :func:`chunkdic.correlate` (the mask's scratch levels, uint8 sums, are not counted).
+    memory_target : str or int, optional
+        Peak resident memory per process, ``"2GiB"`` or bytes; default
+        ``chunkdic.memory-target`` (dask.config), else none.
+    calibrate : bool
+        Time the prefilter of one region of ``g`` per task for the time estimate.
+
+    Returns
+    -------
+    Plan
+
+    Examples
+    --------
+    >>> import numpy as np, chunkdic
+    >>> f = np.random.default_rng(0).random((64, 64, 64)).astype(np.float32)
+    >>> p = chunkdic.plan(f, f, element_size=16, memory_target="4GiB")
+    >>> [lv.level for lv in p.levels], p.process_bytes < 2**32
+    ([1, 0], True)
+    """
+    from ..io.scan import open_scan
+    from .initial import open_init
+    from .planning import plan_meshes
+    from .settings import Settings
+
+    unknown = set(options) - set(Settings.names())
+    if unknown:
+        raise TypeError(f"plan() got unexpected keyword arguments {sorted(unknown)}")
+    settings = dataclasses.replace(settings, **options) if settings is not None else Settings(**options)
+    f_scan, g_scan = open_scan(ref), open_scan(deformed)
+    if init is not None:
+        open_init(init, f_scan.shape(0))
+    coarsest = settings.level if init is not None and settings.coarsest is None else settings.coarsest
+    meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi, level=settings.level,
+                         coarsest=coarsest, min_margin=face_margin(settings.smoothing))
+    out = make_plan(f_scan, g_scan, meshes, settings, scheduler=scheduler, output=output,
+                    target=memory_target_of(memory_target))
+    return calibrated(out, g_scan, settings) if calibrate else out
+
+
+def calibrated(p: Plan, g_scan, settings) -> Plan:
+    """``p`` timed by :func:`calibrate` on ``g_scan``'s first stored level (as it is without one)."""
+    stored = g_scan.stored_refs()
+    if not stored or not (settings.interpolation == "cubic" or settings.smoothing > 0):
+        return p
+    return p.timed(calibrate(stored[min(stored)], settings.smoothing, settings.interpolation, p.threads))
+
+
+def _existing_parent(path: Path) -> Path:
+    while not path.exists() and path.parent != path:
+        path = path.parent
+    return path
+
+
+def _free(path: Path) -> int:
+    """Free bytes for this user on the file system holding ``path`` (or its nearest parent)."""
+    return int(shutil.disk_usage(_existing_parent(Path(path).absolute())).free)
+
+
+def _device(path) -> int:
+    return os.stat(_existing_parent(Path(path).absolute())).st_dev
+
+
+def _b(n: float) -> str:
+    for unit, size in (("GiB", GiB), ("MiB", MiB)):
+        if n >= size or unit == "MiB":
+            return f"{n / size:.2f} {unit}" if unit == "GiB" else f"{n / size:.0f} MiB"
+    return f"{n} B"
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"

@@ -1,0 +1,170 @@
+"""The plan of a run (issue 21 item 4): `--plan` writes nothing, its memory estimate holds,
+a memory target changes the blocks and is honoured, a run the disk cannot hold is refused
+before anything is written."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import dask.config
+import numpy as np
+import pytest
+
+import chunkdic
+from chunkdic.cli.app import main
+from chunkdic.engine import budget
+from chunkdic.errors import InputError
+
+from textures import smooth_noise
+
+N = 128
+MiB = 2**20
+
+# runs the correlation in a fresh process and prints its peak resident memory (VmHWM) and blocks
+RUN = textwrap.dedent("""
+    import json, sys, chunkdic
+    blocks = {}
+    def progress(e):
+        if e["stage"] == "matrix":
+            blocks[e["level"]] = e["blocks"]
+    res = chunkdic.correlate(sys.argv[1], sys.argv[2], element_size=16, memory_target=sys.argv[3] or None,
+                             progress=progress)
+    peak = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM")][0]
+    print(json.dumps({"peak": peak, "blocks": blocks, "status": res.info["status"]}))
+""")
+
+
+@pytest.fixture(scope="module")
+def pair(tmp_path_factory):
+    d = tmp_path_factory.mktemp("budget")
+    f = smooth_noise((N, N, N), sigma=1.5, seed=3)
+    f = ((f - f.min()) / (f.max() - f.min()) * 50000 + 5000).astype(np.uint16)
+    np.save(d / "ref.npy", f)
+    np.save(d / "def.npy", np.roll(f, (1, -1, 0), axis=(0, 1, 2)))
+    return d
+
+
+def _measure(pair, scratch, target=""):
+    env = dict(os.environ, DASK_CHUNKDIC__SCRATCH_DIRECTORY=str(scratch),
+               PYTHONPATH=os.pathsep.join([str(Path(chunkdic.__file__).parents[1]), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", RUN, str(pair / "ref.npy"), str(pair / "def.npy"), target],
+                         env=env, capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _plan(pair, scratch, **kw):
+    with dask.config.set({"chunkdic.scratch-directory": str(scratch)}):
+        return chunkdic.plan(pair / "ref.npy", pair / "def.npy", element_size=16, calibrate=False, **kw)
+
+
+def test_plan_writes_nothing_and_its_memory_estimate_holds(pair, tmp_path, capsys):
+    scratch, out = tmp_path / "scratch", tmp_path / "res.zarr"
+    scratch.mkdir()
+    with dask.config.set({"chunkdic.scratch-directory": str(scratch)}):
+        code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size",
+                     "16", "--plan"])
+    assert code == 0
+    printed = capsys.readouterr().out
+    assert "level 0: 8x8x8 nodes" in printed and "peak per process" in printed and "scratch" in printed
+    assert "time: ~" in printed and "calibrated now" in printed
+    assert not out.exists() and os.listdir(scratch) == [] and sorted(os.listdir(tmp_path)) == ["scratch"]
+    estimate = _plan(pair, scratch).process_bytes
+    measured = _measure(pair, scratch)
+    assert measured["status"] == "converged"
+    assert abs(estimate - measured["peak"]) <= 0.25 * measured["peak"], (estimate / MiB, measured["peak"] / MiB)
+
+
+def test_memory_target_changes_blocks_and_is_honoured(pair, tmp_path):
+    default = _plan(pair, tmp_path)
+    target = default.process_bytes - 30 * MiB
+    planned = _plan(pair, tmp_path, memory_target=target)
+    assert planned.block_voxels < default.block_voxels
+    assert planned.levels[-1].blocks > default.levels[-1].blocks
+    assert planned.process_bytes <= target
+    measured = _measure(pair, tmp_path, str(target))
+    assert measured["blocks"]["0"] == planned.levels[-1].blocks > 1
+    assert measured["peak"] <= 1.10 * target, (measured["peak"] / MiB, target / MiB)
+
+
+def test_memory_target_too_small_is_refused_before_writing(pair, tmp_path, capsys):
+    out = tmp_path / "res.zarr"
+    code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size", "16",
+                 "--memory-target", "200MiB"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "memory target 200 MiB" in err[0]
+    assert not out.exists()
+    with dask.config.set({"chunkdic.memory-target": "200MiB"}), pytest.raises(InputError, match="memory target"):
+        chunkdic.correlate(pair / "ref.npy", pair / "def.npy", element_size=16)
+
+
+@pytest.fixture
+def small_disk(tmp_path, monkeypatch):
+    """A 2 MiB file system: a real tmpfs when this process may mount one, else a free-space probe that says so."""
+    d = tmp_path / "small"
+    d.mkdir()
+    mounted = os.geteuid() == 0 and subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(d)],
+                                                   capture_output=True).returncode == 0
+    if not mounted:
+        real = budget._free
+        monkeypatch.setattr(budget, "_free", lambda p: 2 * MiB if str(Path(p).absolute()).startswith(str(d))
+                            else real(p))
+    yield d
+    if mounted:
+        subprocess.run(["umount", str(d)], check=True)
+
+
+def test_run_refused_for_lack_of_disk_leaves_nothing(pair, small_disk, capsys):
+    out = small_disk / "res.zarr"
+    with dask.config.set({"chunkdic.scratch-directory": str(small_disk / "scratch")}):
+        code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size",
+                     "16"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not enough disk" in err[0]
+    assert os.listdir(small_disk) == []
+
+
+def test_parse_memory():
+    assert budget.parse_memory("2GiB") == 2**31 and budget.parse_memory(None) is None
+    assert budget.parse_memory(1000) == 1000
+    for bad in ("lots", "-1GB", 0):
+        with pytest.raises(InputError):
+            budget.parse_memory(bad)
+
+
+def test_quantised_reference_copy_is_block_independent_and_close_to_float32():
+    """The uint16 haloed copy of a low-passed 16-bit scan (chunkdic.scratch-precision): a grid of the
+    level, not of the block, so the field does not depend on the blocks; half the disk of float32."""
+    f = smooth_noise((48, 48, 48), sigma=1.2, seed=5)
+    f = ((f - f.min()) / (f.max() - f.min()) * 60000 + 2000).astype(np.uint16)
+    g = np.roll(f, (1, 2, -1), axis=(0, 1, 2))
+    runs = {}
+    for prec, m in (("uint16", 1), ("uint16", 4), ("float32", 4)):
+        with dask.config.set({"chunkdic.scratch-precision": prec}):
+            runs[prec, m] = chunkdic.correlate(f, g, element_size=8, block_elements=m, coarsest=0).displacement
+    np.testing.assert_allclose(runs["uint16", 1], runs["uint16", 4], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(runs["uint16", 4], runs["float32", 4], rtol=0, atol=1e-4)
+    from chunkdic.engine.haloed import quantization
+    assert quantization("uint16") == (0.0, 1.0) and quantization("uint8") == (0.0, 2.0**-8)
+    assert quantization("float32") == (0.0, 0.0) and quantization("uint32") == (0.0, 0.0)
+
+
+def test_prepared_grid_holds_the_coefficients_without_clipping():
+    """The 16-bit grid of the prepared g covers the coefficients' overshoot (σ = 1: 1.9 % of the range)."""
+    from chunkdic.engine.prefilter import dequantize, prepare_deformed, prepared_grid, quantize
+
+    rng = np.random.default_rng(0)
+    raw = np.where(rng.random((40, 40, 40)) > 0.5, 65535, 0).astype(np.uint16)  # the worst texture: sharp, full range
+    with dask.config.set({"chunkdic.scratch-precision": "uint16"}):
+        grid = prepared_grid("uint16", 1.0, "cubic")
+        assert prepared_grid("uint16", 0.0, "cubic") == (0.0, 0.0) and prepared_grid("float32", 1.0, "cubic") == (0, 0)
+    coeffs = prepare_deformed(raw, 1.0, "cubic")
+    q = quantize(coeffs, grid)
+    assert q.dtype == np.uint16 and 0 < q.min() and q.max() < 65535
+    assert np.abs(dequantize(q, grid) - coeffs).max() <= 0.5 * grid[1] + 0.01  # + float32 round-off at 4e4
