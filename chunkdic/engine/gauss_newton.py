@@ -78,9 +78,8 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             t1 = time.perf_counter()
             # (M + λR) δa = b − λ R a: the penalty acts on the whole field, not the increment
             rhs = p.b - lvl.solver.penalty_gradient(np.moveaxis(state.u, 0, -1))
-            lvl.solver.largest_rhs = max(lvl.solver.largest_rhs, state.largest_rhs)  # as before a resume
             delta, cg_iterations = lvl.solver.solve(rhs)
-            state.largest_rhs = lvl.solver.largest_rhs
+            state.largest_rhs = lvl.solver.largest_rhs  # recorded for the checkpoint; the solver owns it
             t2 = time.perf_counter()
             state.note_noise_step(noise_step(lvl, p, delta))
             if float(np.abs(delta).max()) >= tolerance:

@@ -113,6 +113,8 @@ def open_level(ctx: RunContext, run: RunState, s: int, start: np.ndarray) -> Lev
     lvl = Level(s, mesh, ctx.f_refs[s], ctx.g_refs[s], ctx.runner, ctx.settings, ctx.scratch, ctx.progress,
                 None if ctx.mask_refs is None else ctx.mask_refs[s], start=start)
     lvl.m_start = start
+    if run.gn is not None:  # resumed: the solver's CG reference as before the interruption
+        lvl.solver.largest_rhs = run.gn.largest_rhs
     emit(ctx.progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
          voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
     return lvl

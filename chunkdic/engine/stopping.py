@@ -98,7 +98,7 @@ class State:
     elements: np.ndarray | None = None
     best_elements: np.ndarray | None = None
     reg_length: float = math.nan  # automatic regularisation length once chosen (voxels of the level)
-    largest_rhs: float = 0.0  # the level solver's CG reference (StencilSolver.largest_rhs)
+    largest_rhs: float = 0.0  # a record of the level solver's CG reference (StencilSolver.largest_rhs owns it)
     # the latest pass's noise (σ_r², κ): the nodal uncertainty of a level resumed after its end
     noise_variance: float = math.nan
     kappa: float = math.nan
