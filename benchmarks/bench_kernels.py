@@ -29,8 +29,8 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import scipy.ndimage as ndi  # noqa: E402
 
-from chunkdic.kernels.jit import warmup  # noqa: E402
 from chunkdic.kernels.b import b_block  # noqa: E402
+from chunkdic.kernels.jit import warmup  # noqa: E402
 from chunkdic.kernels.m import m_block  # noqa: E402
 from chunkdic.kernels.warp import warp_block  # noqa: E402
 from chunkdic.kernels.window import g_window, prepare_window  # noqa: E402

@@ -95,8 +95,8 @@ def evaluate_one(path: Path) -> dict:
     from chunkdic.solve.cg import StencilSolver
     from chunkdic.solve.regularization import Regularizer, plane_wave_weight
     from chunkdic.solve.stencil import stencil_matvec
-    from chunkdic.synth.fields import Field
     from chunkdic.synth import shear  # noqa: F401  (registers wave and slip)
+    from chunkdic.synth.fields import Field
 
     d = np.load(path)
     half, a, b = d["half"], d["a"], d["b"]

@@ -24,7 +24,6 @@ import tempfile
 import time
 
 
-
 def _peak_rss_mb() -> float:
     import resource
 
@@ -79,8 +78,8 @@ def main(argv=None) -> int:
     p.add_argument("--dir", default=None, help="scratch directory (default: system temp)")
     args = p.parse_args(argv)
 
-    from chunkdic.synth import synthetic as S
     from chunkdic.synth import foam
+    from chunkdic.synth import synthetic as S
 
     def field_for(n):
         c = (n - 1) / 2.0

@@ -140,8 +140,8 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
     label = f"{name}/{specimen}"
     if name == "shift":
         if specimen == "foam":
-            from chunkdic.synth.fourier_shift import fourier_shift_scan
             from chunkdic.io.scan import open_scan
+            from chunkdic.synth.fourier_shift import fourier_shift_scan
 
             paths = _pair(out, n, args, specimen, field=None)
             shifted = out / "shifted.zarr"
@@ -180,8 +180,8 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
 
 def pair_case(path: str) -> Case:
     """A synthesized pair directory (``ref.zarr``, ``def.zarr``, ``field.json``)."""
-    from chunkdic.synth import synthetic
     from chunkdic.io.scan import open_scan
+    from chunkdic.synth import synthetic
 
     d = Path(path)
     ref, dfm = d / "ref.zarr", d / "def.zarr"

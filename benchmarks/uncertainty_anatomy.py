@@ -33,8 +33,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spl
 
 import chunkdic
-from chunkdic.synth import synthetic
 from chunkdic.analysis.scoring import scored_region
+from chunkdic.synth import synthetic
 
 
 def load(path) -> np.ndarray:

@@ -5,12 +5,12 @@ computed tomography of solid foam* (C8-DIC). Conventions: shared/DESIGN.md and
 docs/architecture.md.
 """
 
-from . import config as _config  # noqa: F401  (registers the chunkdic.* dask.config defaults)
-
 # Public names, imported on first use (PEP 562 through lazy_loader, as scikit-image does) so
 # that ``import chunkdic`` stays light: numba, distributed and zarr load only when needed.
 # ``__init__.pyi`` is the one list of them, with the module each comes from.
 import lazy_loader as _lazy
+
+from . import config as _config  # noqa: F401  (registers the chunkdic.* dask.config defaults)
 
 __getattr__, _, _lazy_all = _lazy.attach_stub(__name__, __file__)
 

@@ -30,8 +30,8 @@ import dask.config
 import numpy as np
 
 import chunkdic
-from chunkdic.synth import synthetic
 from chunkdic.results.strain import strain_summary
+from chunkdic.synth import synthetic
 
 
 def show(event: dict) -> None:

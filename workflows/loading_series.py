@@ -38,8 +38,7 @@ from pathlib import Path
 import numpy as np
 
 import chunkdic
-from chunkdic.synth import foam
-from chunkdic.synth import synthetic
+from chunkdic.synth import foam, synthetic
 
 
 def show(event: dict) -> None:

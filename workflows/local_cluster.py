@@ -31,8 +31,8 @@ import numpy as np
 from distributed import Client, LocalCluster
 
 import chunkdic
-from chunkdic.synth import synthetic
 from chunkdic.results.strain import strain_summary
+from chunkdic.synth import synthetic
 
 
 def show(event: dict) -> None:

@@ -46,8 +46,8 @@ from dask.utils import format_bytes, parse_bytes
 from distributed import Client, LocalCluster
 
 import chunkdic
-from chunkdic.synth import synthetic
 from chunkdic.results.strain import strain_summary
+from chunkdic.synth import synthetic
 
 
 def show(event: dict) -> None:

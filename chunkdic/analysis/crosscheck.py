@@ -53,10 +53,22 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..views.figures import AXES, level_label, result_label
-from .q4 import Q4Result, correlate2d
-from .q4mesh import plan2d
+from ..io.outputs import Outputs
 from ..results.result import Result, open_result
+from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
+from ..scheduler import check_scheduler, open_runner
+from ..views import correction
+from ..views.figures import (
+    AXES,
+    check_figure_options,
+    figure,
+    level_label,
+    mid_planes,
+    result_label,
+    save,
+)
+from .q4 import Q4Result, _Level, correlate2d
+from .q4mesh import plan2d
 
 __all__ = ["Cut", "cutcheck", "correlation_length", "plot_cutcheck", "noise_floor", "measured_nodes"]
 
@@ -225,8 +237,6 @@ def noise_floor(prepared: np.ndarray, corrected: np.ndarray, element_size: int, 
         components, ``κ^(2/3) σ_r² 1ᵀ M⁻¹ 1 / n²``): far below ``floor``, it is what makes an
         error with a mean (an offset, a bump) visible through the noise.
     """
-    from .q4 import _Level
-    from .q4mesh import plan2d
 
     if not (math.isfinite(sigma_r) and math.isfinite(kappa)):
         return math.nan, math.nan
@@ -331,11 +341,6 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     ----------
     Roux, Hild, Viot, Bernard, section 5.3 ("Check of correction from mid-plane cuts").
     """
-    from ..views import correction
-    from ..views.figures import check_figure_options, mid_planes
-    from ..io.outputs import Outputs
-    from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
-    from ..scheduler import check_scheduler, open_runner
 
     res = result if isinstance(result, Result) else open_result(result)
     res.check_displacement()
@@ -377,7 +382,6 @@ def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path,
     the cut's figures. Written by :func:`chunkdic.views.figures.save` (format from the extension
     of ``path``, resolution ``dpi``).
     """
-    from ..views.figures import figure, save
 
     roi = result.mesh.roi
     lengths = [np.sqrt((q.displacement**2).sum(axis=0)) for q in fields]

@@ -48,18 +48,19 @@ import numpy as np
 
 from ..engine.checkpoint import fingerprint, identify_input
 from ..engine.driver import correlate, settings_from, voxel_lengths
-from ..errors import InputError
 from ..engine.initial import filled
-from ..mesh import carry_field
-from ..io.outputs import Outputs, inside
-from ..io.ownership import OutputLock
 from ..engine.planning import parse_roi, plan_meshes
 from ..engine.prefilter import face_margin
-from ..results.result import HISTORY_FIELDS, Result, open_result
-from ..scheduler import check_scheduler
 from ..engine.settings import Settings
-from ..results.strain import strain_summary
+from ..errors import InputError
+from ..io.kinds import kind_of
+from ..io.outputs import Outputs, inside
+from ..io.ownership import OutputLock
 from ..io.scan import open_scan
+from ..mesh import carry_field
+from ..results.result import HISTORY_FIELDS, Result, open_result
+from ..results.strain import strain_summary
+from ..scheduler import check_scheduler, local_workers, start_local_cluster
 
 __all__ = ["series", "open_series", "SeriesResult", "compose", "MODES"]
 
@@ -226,8 +227,6 @@ def open_series(path) -> SeriesResult:
     """
     import zarr
 
-    from ..io.kinds import kind_of
-
     path = Path(path)
     found, complete = kind_of(path)
     if found != "series":
@@ -248,7 +247,6 @@ def _one_cluster(scheduler):
     if not (isinstance(scheduler, str) and scheduler.startswith("local")):
         yield scheduler
         return
-    from ..scheduler import local_workers, start_local_cluster
 
     client, cluster = start_local_cluster(local_workers(scheduler))
     try:
@@ -359,7 +357,6 @@ def _composed(out: Path, k: int, previous: Result, increment: Result, rows: list
 
 
 def _complete(path: Path) -> bool:
-    from ..io.kinds import kind_of
 
     found, complete = kind_of(path)
     return found == "result" and complete

@@ -27,12 +27,19 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.driver import correlate
+from ..engine.planning import box_at_level, parse_roi, plan_meshes
+from ..engine.prefilter import face_margin
 from ..engine.settings import Settings
 from ..errors import InputError
-from ..synth.fourier_shift import fourier_shift_scan
 from ..inputs import number
-from ..results.strain import strain_summary
 from ..io.handles import ArrayRef
+from ..io.outputs import Outputs
+from ..io.scan import open_scan
+from ..results.strain import strain_summary
+from ..scheduler import check_scheduler
+from ..synth.fourier_shift import fourier_shift_scan
+from ..views.report import plot_uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -176,7 +183,6 @@ def _ref_path(ref: ArrayRef) -> str:
 
 
 def _roi_at_level(roi, level: int):
-    from ..engine.planning import box_at_level, parse_roi
 
     box = parse_roi(roi)
     return box if box is None else box_at_level(box, 2**level)
@@ -232,8 +238,6 @@ def with_settings(settings: Settings | None, level: int, interpolation: str, opt
 
 def check_plan(scan, sizes, roi, level: int, interpolation: str, options: dict | None = None) -> None:
     """Every element size must fit the scan's ROI at ``level`` (checked before any output)."""
-    from ..engine.planning import plan_meshes
-    from ..engine.prefilter import face_margin
     given = {k: v for k, v in {**PAPER_SETTINGS, **(options or {})}.items() if k in Settings.names()}
     for ell in sizes:
         settings = Settings(element_size=ell, level=level, interpolation=interpolation, **given)  # validates
@@ -296,10 +300,6 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     Roux, Hild, Viot, Bernard, section 4.2 (Fig. 5, ``A = 2.4`` voxels, ``alpha = 1.07``)
     and 5.2 (strain uncertainty, last column of Table 1).
     """
-    from ..io.scan import open_scan
-
-    from ..io.outputs import Outputs
-    from ..scheduler import check_scheduler
 
     sizes = check_element_sizes(element_sizes)
     level, interpolation, options = with_settings(settings, level, interpolation, options)
@@ -317,8 +317,6 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
 def _uncertainty(src_scan, sizes, out: Path, t, roi, level: int, interpolation: str, scheduler,
                  progress, options) -> UncertaintyReport:
     """:func:`uncertainty` once every input is checked and ``out`` is prepared."""
-    from ..engine.driver import correlate
-    from ..views.report import plot_uncertainty
 
     emit = progress or (lambda event: None)
     # a stored level is used in place; a missing one is written once into out_dir

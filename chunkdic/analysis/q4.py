@@ -44,11 +44,15 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from ..engine.rigid import phase_correlation
+from ..engine.stopping import (  # the engine's stopping rule, shared on purpose
+    State,
+    decide,
+)
 from ..errors import InputError
-from ..engine.stopping import State, decide  # the engine's stopping rule, shared on purpose
+from ..inputs import number
 from ..mesh import level_to_level
 from .q4mesh import Mesh2D, plan2d, pyramid2d
-from ..engine.rigid import phase_correlation
 
 __all__ = ["Q4Result", "correlate2d"]
 
@@ -265,7 +269,6 @@ def correlate2d(ref, deformed, *, element_size: int, roi=None, coarsest: int | N
     >>> res.status, np.round(res.displacement.mean(axis=(1, 2)), 3).tolist()
     ('converged', [0.0, 2.0])
     """
-    from ..inputs import number
 
     t_start = time.perf_counter()
     f0, g0 = _image(ref, "the reference"), _image(deformed, "the deformed image")

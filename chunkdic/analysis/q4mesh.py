@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import InputError
 from ..engine.planning import MIN_COARSE_EDGE, box_at_level, default_margin
+from ..errors import InputError
 
 __all__ = ["Mesh2D", "plan2d", "pyramid2d", "read_image"]
 

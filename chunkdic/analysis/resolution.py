@@ -50,11 +50,19 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.driver import correlate
 from ..errors import InputError
 from ..inputs import number
 from ..io.handles import ArrayRef
+from ..io.outputs import Outputs
+from ..io.scan import open_scan
+from ..mesh import Mesh
+from ..scheduler import check_scheduler, open_runner
+from ..synth.boolean import stream_key
 from ..synth.fields import Star
-from .metrology import check_shift, write_table
+from ..synth.fourier_shift import fourier_shift_scan
+from ..synth.scanpairs import NOISE_KEYS, grey_moments, moved_copy
+from .metrology import check_element_sizes, check_plan, check_shift, write_table
 from .scoring import score_displacement
 
 log = logging.getLogger(__name__)
@@ -152,7 +160,6 @@ def star_ratios_nodes(node_axes, u, star: Star, volume_shape, ell: float) -> tup
     star, volume_shape, ell
         As in :func:`star_ratios` (``ell``: distance from the faces of the voxels read).
     """
-    from ..mesh import Mesh
 
     node_axes = [np.asarray(a, np.float64) for a in node_axes]
     grid = float(node_axes[0][1] - node_axes[0][0])
@@ -299,10 +306,6 @@ def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, 
     ----------
     Reu et al., DIC Challenge 2.0, Exp. Mech. 62 (2022): the star, l10 % and MEI.
     """
-    from ..io.outputs import Outputs
-    from ..io.scan import open_scan
-    from ..scheduler import check_scheduler
-    from .metrology import check_element_sizes, check_plan
 
     sizes = check_element_sizes(element_sizes)
     t = check_shift(shift)
@@ -328,11 +331,6 @@ def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, 
 
 def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, scheduler, progress,
                 options) -> ResolutionReport:
-    from ..engine.driver import correlate
-    from ..scheduler import open_runner
-    from ..synth.boolean import stream_key
-    from ..synth.fourier_shift import fourier_shift_scan
-    from ..synth.scanpairs import NOISE_KEYS, grey_moments, moved_copy
 
     emit = progress or (lambda event: None)
     src = src_scan.refs([0], out)[0]

@@ -13,20 +13,25 @@ import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from ..engine.driver import correlate
 from ..engine.settings import Settings
 from ..errors import InputError
 from ..inputs import number
+from ..io.outputs import Outputs
+from ..io.scan import open_scan
+from ..results.result import Result, open_result
+from ..results.strain import strain_summary
+from ..scheduler import check_scheduler
 from .metrology import (
     PAPER_SETTINGS,
     UncertaintyReport,
     check_element_sizes,
     check_plan,
-    with_settings,
     check_shift,
     uncertainty,
+    with_settings,
     write_table,
 )
-from ..results.strain import strain_summary
 
 __all__ = ["read_delta_eps", "sweep", "write_zoi_table", "zoi_table"]
 
@@ -88,7 +93,6 @@ def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dic
         without the outermost elements), ``volume_change_corrected`` and
         ``eps_zz_corrected`` (times ``1 - 2 ell / L``), ``delta_eps``, ``status``, ``result``.
     """
-    from ..results.result import Result, open_result
 
     rows = []
     for r in results:
@@ -150,9 +154,6 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
         ``rows`` (see :func:`zoi_table`), ``markdown``, ``csv``/``md`` paths and
         ``uncertainty`` (the report, if run).
     """
-    from ..io.outputs import Outputs
-    from ..scheduler import check_scheduler
-    from ..io.scan import open_scan
 
     sizes = check_element_sizes(element_sizes)
     level, interpolation, options = with_settings(settings, level, interpolation, options)
@@ -176,7 +177,6 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
 def _sweep(ref, deformed, sizes, out: Path, roi, level: int, interpolation: str, d_eps, a_priori: bool, shift,
            scheduler, progress, options) -> dict:
     """:func:`sweep` once every input is checked and ``out`` is prepared."""
-    from ..engine.driver import correlate
 
     emit = progress or (lambda event: None)
     results = []

@@ -17,10 +17,18 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import (EXPLAIN, add_engine_options, add_length_options, engine_options, length_options, new_run,
-                          print_progress, say)
 from ..errors import InputError
 from ..scheduler import SCHEDULER_HELP
+from .common import (
+    EXPLAIN,
+    add_engine_options,
+    add_length_options,
+    engine_options,
+    length_options,
+    new_run,
+    print_progress,
+    say,
+)
 
 EXIT_BAD_INPUT = 2
 
@@ -189,8 +197,8 @@ def _wait_for_compile(processes, *, every: float | None = None, clock=time.monot
 
 
 def _demo(args) -> int:
-    from ..synth import synthetic
     from ..engine.driver import correlate
+    from ..synth import synthetic
 
     out = Path(args.directory)
     result_path = out / "result.zarr"

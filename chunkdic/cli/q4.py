@@ -11,6 +11,7 @@ import argparse
 import json
 import math
 import time
+
 from .common import add_figure_options, say
 
 
@@ -62,9 +63,9 @@ def _fmt(v: float, spec: str = ".4f") -> str:
 
 
 def run_correlate2d(args: argparse.Namespace) -> int:
-    from ..inputs import number
     from ..analysis.q4 import correlate2d
     from ..analysis.q4mesh import read_image
+    from ..inputs import number
 
     number(args.element_size, "--element-size", minimum=2, integer=True)  # before reading anything
     f, g = read_image(args.ref), read_image(args.deformed)

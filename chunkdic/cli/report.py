@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import Progress, add_figure_options, say
 from ..errors import InputError
+from .common import Progress, add_figure_options, say
 
 
 def _sizes_arg(p) -> None:
@@ -334,8 +334,8 @@ def run_table(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from ..views.report import report
     from ..scheduler import check_scheduler
+    from ..views.report import report
 
     check_scheduler(args.scheduler)
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
@@ -348,11 +348,11 @@ def run_report(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
-    from ..views import export
-    from ..results import scans as resultscans
     from ..io.outputs import Outputs
+    from ..results import scans as resultscans
     from ..results.result import open_result
     from ..scheduler import check_scheduler
+    from ..views import export
 
     if not (args.vtk or args.csv or args.corrected or args.fields):
         raise InputError("nothing to export: give --vtk, --csv, --corrected and/or --fields")

@@ -10,7 +10,14 @@ from __future__ import annotations
 import argparse
 import time
 
-from .common import add_engine_options, add_length_options, engine_options, length_options, print_progress, say
+from .common import (
+    add_engine_options,
+    add_length_options,
+    engine_options,
+    length_options,
+    print_progress,
+    say,
+)
 
 
 def register(subparsers) -> None:

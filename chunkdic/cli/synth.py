@@ -182,9 +182,9 @@ def _specimen_options(args) -> dict:
 
 def run(args) -> int:
     """Run ``chunkdic synth``; returns the exit code."""
-    from ..synth import synthetic as S
     from ..io.outputs import Outputs
     from ..scheduler import check_scheduler
+    from ..synth import synthetic as S
 
     shape = _shape(args.shape)
     _check_options(args)

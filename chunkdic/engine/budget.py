@@ -38,10 +38,22 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers
 from .haloed import quantization
-from .prefilter import face_margin, gaussian_radius, prepare_voxels, prepared_grid, prepared_halo, task_edge
+from .initial import open_init
+from .planning import plan_meshes
+from .prefilter import (
+    face_margin,
+    gaussian_radius,
+    prepare_deformed,
+    prepare_voxels,
+    prepared_grid,
+    prepared_halo,
+    task_edge,
+)
+from .settings import Settings
 
 GiB, MiB = 2**30, 2**20
 
@@ -342,7 +354,6 @@ def calibrate(g_ref, sigma: float, interpolation: str, threads: int) -> float:
     the fastest wall time, times ``threads``, over the voxels filtered: what one task pays
     per voxel now (load included; about 0.3 s).
     """
-    from .prefilter import prepare_deformed
 
     h = prepared_halo(sigma, interpolation, int(config.get("bspline-halo")))
     shape = g_ref.shape
@@ -482,10 +493,6 @@ def plan(ref, deformed, settings=None, *, roi=None, scheduler=None, output=None,
     >>> [lv.level for lv in p.levels], p.process_bytes < 2**32
     ([1, 0], True)
     """
-    from ..io.scan import open_scan
-    from .initial import open_init
-    from .planning import plan_meshes
-    from .settings import Settings
 
     unknown = set(options) - set(Settings.names())
     if unknown:

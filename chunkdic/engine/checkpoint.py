@@ -26,6 +26,8 @@ import numpy as np
 from ..errors import InputError
 from ..io.formats.detect import is_foreign
 from ..io.integrity import content_identity
+from ..io.kinds import kind_of
+from ..results.result import open_result
 
 
 def fingerprint(description: dict) -> str:
@@ -131,8 +133,6 @@ def completed_already(path, print_: str):
     their contents, settings, ROI, start field), else None. A re-run of the same command
     (a batch job re-queued after a kill that landed just after the save) then has nothing
     to do, as ``make``."""
-    from ..results.result import open_result
-    from ..io.kinds import kind_of
 
     p = Path(path)
     if p.is_symlink() or kind_of(p) != ("result", True):

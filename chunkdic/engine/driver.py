@@ -33,7 +33,13 @@ from ..results.result import Result
 from ..scheduler import check_scheduler, open_runner
 from ..solve import cg as solve
 from .budget import calibrated, make_plan, memory_target_of
-from .checkpoint import Checkpoint, completed_already, fingerprint, identify_input, kept_checkpoint_error
+from .checkpoint import (
+    Checkpoint,
+    completed_already,
+    fingerprint,
+    identify_input,
+    kept_checkpoint_error,
+)
 from .events import emit
 from .initial import init_identity, open_init
 from .masks import check_mask_shape, prepare_mask
@@ -41,8 +47,17 @@ from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
 from .runstate import LevelOutcome, RunState
 from .settings import Settings
-from .steps import (RunContext, assemble_result, finish_level, measure_start_gaps, open_level, regularization_length,
-                    solve_level, start_field, start_state)
+from .steps import (
+    RunContext,
+    assemble_result,
+    finish_level,
+    measure_start_gaps,
+    open_level,
+    regularization_length,
+    solve_level,
+    start_field,
+    start_state,
+)
 
 __all__ = ["correlate", "Settings"]
 

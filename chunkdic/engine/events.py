@@ -12,6 +12,8 @@ import logging
 import math
 from collections.abc import Callable
 
+from .stopping import STALL_PATIENCE
+
 log = logging.getLogger(__name__)
 
 #: one-line explanations of terms that appear in progress lines and summaries
@@ -52,7 +54,6 @@ class EventText:
         if not self.explains or term not in EXPLAIN or term in self.explained:
             return ""
         self.explained.add(term)
-        from .stopping import STALL_PATIENCE
 
         return "\n  (" + EXPLAIN[term].format(patience=STALL_PATIENCE) + ")"
 

@@ -18,6 +18,7 @@ from .events import emit
 from .level import Level
 from .stopping import History, State, decide
 
+
 def element_fields(p) -> np.ndarray:
     """Per-element gain, offset (at the centre), valid voxels of a pass, and the drift
     (grey levels per voxel, z, y, x, repeated per element): shape (6, ez, ey, ex)."""

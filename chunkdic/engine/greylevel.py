@@ -36,8 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..kernels.blocks import LAGS, ElementSums
 from ..kernels.b import element_to_nodes
+from ..kernels.blocks import LAGS, ElementSums
 
 MODELS = ("none", "global", "drift", "element")
 #: bounds of a per-element gain (``element`` model)

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import config
 from ..io.handles import open_zarr_array
 
 __all__ = ["HaloedBlocks"]
@@ -115,7 +116,6 @@ def quantization(dtype) -> tuple[float, float]:
     """``(offset, step)`` of the 16-bit grid for low-passed values of an integer ``dtype`` of
     1 or 2 bytes (``step`` a power of two, 65535 steps cover the dtype's range); ``(0, 0)``:
     not quantised (other dtypes, or ``chunkdic.scratch-precision`` is ``"float32"``)."""
-    from .. import config
 
     if dtype is None or config.get("scratch-precision") != "uint16":
         return 0.0, 0.0

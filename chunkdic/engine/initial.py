@@ -37,6 +37,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..inputs import check_shape_for_result
+from ..io.kinds import kind_of
 from ..mesh import Mesh, carry_field
 from ..results.result import Result, open_result
 
@@ -65,7 +66,6 @@ def open_init(init, ref_shape) -> Result:
         path = Path(os.fspath(init))
         if not path.exists():
             raise InputError(f"--init {path} does not exist")
-        from ..io.kinds import kind_of
 
         kind, _ = kind_of(path)
         if kind is not None and kind != "result":

@@ -19,21 +19,21 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.handles import ArrayRef, forget_open_arrays
+from ..kernels.blocks import LAGS
+from ..mesh import Mesh
+from ..solve.cg import PoorTextureWarning, StencilSolver
+from ..solve.regularization import Regularizer, plane_wave_weight
+from ..solve.stencil import rigid_restriction, stencil_matvec
 from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
 from .greylevel import Fit, combine
 from .haloed import HaloedBlocks
-from ..kernels.blocks import LAGS
-from ..mesh import Mesh
 from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
 from .prefilter import build_prepared, face_margin, reachable_box
 from .settings import Settings
-from ..solve.regularization import Regularizer, plane_wave_weight
-from ..solve.cg import PoorTextureWarning, StencilSolver
-from ..solve.stencil import rigid_restriction, stencil_matvec
 from .tasks import BlockJob, LevelInputs, b_task, m_task
-from ..io.handles import ArrayRef, forget_open_arrays
 
 log = logging.getLogger(__name__)
 

@@ -22,8 +22,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..io.coarsen import pyramid_dtype
 from ..io.handles import ArrayRef
+from ..io.levels import create_level, mark_complete
 from ..io.scan import open_scan
+from ..io.scratch_levels import build_level, region_chunks, task_regions
+from ..io.store import check_write_alignment, chunk_shape_for, write_region
 
 #: an element takes part when at least this fraction of its voxels is material
 MIN_MATERIAL = 0.5
@@ -41,11 +45,6 @@ def prepare_mask(src, ref_shape0, levels, scratch: Path, runner) -> dict[int, Ar
     Raises :class:`InputError` if the mask is not 3-D of the reference's level-0 shape.
     """
     import zarr
-
-    from ..io.coarsen import pyramid_dtype
-    from ..io.levels import create_level, mark_complete
-    from ..io.scratch_levels import build_level, region_chunks, task_regions
-    from ..io.store import check_write_alignment, chunk_shape_for
 
     mask = open_scan(src)
     check_mask_shape(mask, ref_shape0)
@@ -73,7 +72,6 @@ def binarise_task(src: ArrayRef, out: ArrayRef, region) -> int:
 
     The region covers whole chunks of ``out``. Returns the voxels written.
     """
-    from ..io.store import write_region
 
     data = (src.read(region) != 0).astype(np.uint8)
     write_region(out.path, out.key, region, data)

@@ -23,6 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..solve.cg import StencilSolver
+from ..solve.regularization import Regularizer
+from ..solve.stencil import stencil_matvec
+
 #: the estimate is kept within these bounds (an anticorrelated residual gives κ < 1)
 BOUNDS = (0.25, 1000.0)
 
@@ -89,7 +93,6 @@ def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray
     kappa : float
         Noise correlation factor (:func:`correlation_factor`).
     """
-    from ..solve.cg import StencilSolver
 
     H = solver.matrix
     n = H.shape[:3]
@@ -101,7 +104,6 @@ def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray
     sub = tuple(slice(max((k - PROBE_EDGE) // 2, 0), max((k - PROBE_EDGE) // 2, 0) + min(k, PROBE_EDGE)) for k in n)
     small = StencilSolver(np.ascontiguousarray(H[sub]).copy(), multigrid=False)  # matvec only
     if solver.regularizer is not None:
-        from ..solve.regularization import Regularizer
 
         reg = Regularizer(solver.regularizer.kind, small.nodes_shape, solver.regularizer.ell)
         small.regularize(reg, solver.weight)
@@ -127,8 +129,6 @@ def exact_diagonal(small, region: tuple[slice, slice, slice] | None = None) -> n
     """
     import scipy.linalg as sla
     import scipy.sparse as sp
-
-    from ..solve.stencil import stencil_matvec
 
     shape = tuple(small.nodes_shape)
     size = 3 * int(np.prod(shape))

@@ -33,9 +33,9 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.handles import ArrayRef
 from ..kernels.lowpass import TRUNCATE, lowpass_bspline
 from ..mesh import Mesh
-from ..io.handles import ArrayRef
 
 #: chunk edge of the prepared store: small, so a block's window reads little extra
 CHUNK = 64

@@ -13,17 +13,27 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
-from ..kernels.blocks import ElementSums
+from ..io.handles import ArrayRef
 from ..kernels.b import b_sums
+from ..kernels.blocks import ElementSums
 from ..kernels.m import m_block
 from ..kernels.window import g_window
+from ..mesh import Block, Mesh
 from .greylevel import Partials, reduce_block
 from .haloed import HaloedBlocks
-from ..mesh import Block, Mesh
 from .masks import active_elements, element_fractions
-from .prefilter import (PreparedImage, check_finite, dequantize, face_margin, gaussian_radius, prepare_deformed,
-                        prepare_reference, prepared_grid, prepared_halo, quantize)
-from ..io.handles import ArrayRef
+from .prefilter import (
+    PreparedImage,
+    check_finite,
+    dequantize,
+    face_margin,
+    gaussian_radius,
+    prepare_deformed,
+    prepare_reference,
+    prepared_grid,
+    prepared_halo,
+    quantize,
+)
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,14 @@ import logging
 
 import numpy as np
 
+from ..errors import InputError
+from ..scheduler import open_runner
+from .handles import ref_dask
+from .ngff import complete_levels, ngff_attrs, omero, update_group_metadata
+from .ownership import final_name
+from .scan import open_scan
+from .store import compressors, store_array
+
 log = logging.getLogger(__name__)
 
 __all__ = ["own_display", "check_display_slot", "scan_window", "store_window", "write_display", "windows", "sample_step", "DISPLAY_GROUP",
@@ -65,7 +73,6 @@ def own_display(path) -> bool | None:
 
 def check_display_slot(path) -> None:
     """Refuse (one line) to write ``--display`` where the scan holds a ``display`` node chunkdic did not write."""
-    from ..errors import InputError
 
     if own_display(path) is False:
         raise InputError(f"{path}/{DISPLAY_GROUP} exists and chunkdic did not write it: refusing to replace it "
@@ -147,8 +154,6 @@ def windows(store: str, path: str, *, channels=(None,), scale: float = 1.0, runn
 
     import zarr
 
-    from ..scheduler import open_runner
-
     arr = zarr.open_array(store=str(store), path=path, mode="r")
     shape, chunks = arr.shape[-3:], arr.chunks[-3:]
     step = sample_step(shape, samples or WINDOW_SAMPLES)
@@ -194,8 +199,6 @@ def scan_window(path: str, runner=None) -> list[float] | None:
     """
     import zarr
 
-    from .ngff import complete_levels
-
     g = zarr.open_group(store=str(path), mode="r")
     levels = complete_levels(g)
     if not levels:
@@ -208,8 +211,6 @@ def store_window(path: str) -> list[float] | None:
     """Compute :func:`scan_window` and keep it in ``attrs["chunkdic"]["display_window"]``,
     from which :func:`chunkdic.io.ngff.update_group_metadata` writes the scan's ``omero``."""
     import zarr
-
-    from .ngff import update_group_metadata
 
     window = scan_window(path)
     g = zarr.open_group(store=str(path), mode="r+")
@@ -239,13 +240,6 @@ def write_display(path: str, *, progress=None) -> list[int]:
     its chunk); the group's OME-NGFF metadata is written last.
     """
     import zarr
-
-    from ..errors import InputError
-    from .handles import ref_dask
-    from .ngff import ngff_attrs, omero
-    from .ownership import final_name
-    from .store import compressors, store_array
-    from .scan import open_scan
 
     scan = open_scan(path)
     levels = [s for s in scan.stored_levels() if s > 0]

@@ -38,7 +38,13 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..scheduler import check_scheduler, open_runner
+from .formats.anyscan import open_any
 from .handles import ArrayRef
+from .levels import create_level, mark_complete
+from .ngff import multiscales
+from .outputs import Outputs
+from .ownership import final_name, make_scratch
 
 __all__ = ["make_mask", "otsu", "parse_cylinder", "parse_box", "MASK_COLOR"]
 
@@ -250,11 +256,6 @@ def make_mask(scan, out, *, threshold: float | str | None = "otsu", fill_holes: 
     """
     import shutil
 
-    from ..scheduler import check_scheduler, open_runner
-    from .formats.anyscan import open_any
-    from .outputs import Outputs
-    from .ownership import make_scratch
-
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     src = open_any(scan)
@@ -329,8 +330,6 @@ def _create(work: Path, shape, chunk: int, src, threshold, fill_holes, largest, 
     """The labels group and its level-0 array, flagged incomplete."""
     import zarr
 
-    from .levels import create_level
-
     root = zarr.open_group(str(work), mode="w", zarr_format=3)
     root.attrs["chunkdic"] = {
         "kind": "mask", "complete": False, "source": str(Path(str(scan)).resolve()) if isinstance(scan, (str, Path))
@@ -344,10 +343,6 @@ def _create(work: Path, shape, chunk: int, src, threshold, fill_holes, largest, 
 def _finish(work: Path, material: int, shape) -> None:
     """Metadata last: the NGFF ``multiscales`` and ``image-label``, complete."""
     import zarr
-
-    from .levels import mark_complete
-    from .ngff import multiscales
-    from .ownership import final_name
 
     mark_complete(str(work), 0)
     root = zarr.open_group(str(work), mode="r+")

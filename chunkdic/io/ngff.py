@@ -8,7 +8,6 @@ a group written by another tool.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from ..errors import InputError

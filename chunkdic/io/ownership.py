@@ -27,6 +27,7 @@ import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+from .. import config
 from ..errors import InputError
 
 log = logging.getLogger(__name__)
@@ -232,7 +233,6 @@ def reclaim_stale_partials(final: Path) -> list[Path]:
 
 
 def scratch_root() -> Path:
-    from .. import config
 
     return Path(config.get("scratch-directory") or tempfile.gettempdir())
 

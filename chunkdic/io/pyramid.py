@@ -19,14 +19,20 @@ from pathlib import Path
 
 import numpy as np
 
-from .coarsen import coarsen_sum, pyramid_dtype
-from .display import DISPLAY_GROUP, check_display_slot, own_display, store_window
 from ..errors import InputError
+from .coarsen import coarsen_sum, pyramid_dtype
+from .display import (
+    DISPLAY_GROUP,
+    check_display_slot,
+    own_display,
+    store_window,
+    write_display,
+)
+from .handles import forget_open_arrays, ref_dask
+from .levels import check_levels, write_level
 from .ngff import update_group_metadata
 from .outputs import check_writable
 from .ownership import OutputLock
-from .handles import forget_open_arrays, ref_dask
-from .levels import check_levels, write_level
 from .scan import Scan, open_scan
 
 log = logging.getLogger(__name__)
@@ -144,7 +150,6 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
     with OutputLock(p):  # one writer per scan: two builds never interleave their levels
         scan = build_levels(str(p), levels, rebuild=overwrite, progress=progress)
         if display:
-            from .display import write_display
 
             write_display(str(p))
     return scan

@@ -28,12 +28,18 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
-from .coarsen import coarsen_sum, pyramid_dtype
 from ..errors import InputError
+from ..scheduler import DistributedRunner, ThreadRunner
+from .coarsen import coarsen_sum, pyramid_dtype
 from .handles import ArrayRef, ref_dask
 from .integrity import check_chunks_present
 from .levels import write_level
-from .ngff import complete_levels, normalize_unit, normalize_voxel_size, voxel_from_group_attrs
+from .ngff import (
+    complete_levels,
+    normalize_unit,
+    normalize_voxel_size,
+    voxel_from_group_attrs,
+)
 from .scratch_levels import build_level
 from .store import chunk_shape_for
 
@@ -209,7 +215,6 @@ def _task_runner(runner):
     if runner is not None:
         yield runner
         return
-    from ..scheduler import DistributedRunner, ThreadRunner
 
     client = _current_client()
     if client is not None:

@@ -12,8 +12,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .coarsen import pyramid_dtype
 from ..errors import InputError
+from .coarsen import pyramid_dtype
 from .handles import forget_open_arrays
 from .levels import check_levels, write_level
 from .ngff import normalize_unit, normalize_voxel_size, update_group_metadata

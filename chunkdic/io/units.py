@@ -13,6 +13,7 @@ import re
 
 from ..errors import InputError
 from .ngff import normalize_unit
+from .scan import open_scan
 
 #: metres per unit, for the units a scan's metadata and a user are likely to use
 METERS = {"angstrom": 1e-10, "picometer": 1e-12, "nanometer": 1e-9, "micrometer": 1e-6,
@@ -145,7 +146,6 @@ def lengths_in_voxels(element_size, roi=None, *, roi_unit: str | None = None, re
         raise InputError("roi_unit applies to a ROI given as a string 'z0:z1,y0:y1,x0:x1'")
     scan = None
     if has_unit(element_size, roi, roi_unit):
-        from .scan import open_scan
 
         scan = reference if hasattr(reference, "voxel_size") else open_scan(reference)
     notes = []

@@ -65,10 +65,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .b import b_sums, element_to_nodes
-from .m import m_block
-from .warp import warp_block
+from .b import b_kernel, b_sums, element_to_nodes
 from .lowpass import lowpass_bspline
+from .m import m_block, m_kernel
+from .warp import warp_block
 from .window import INTERPOLATIONS
 
 __all__ = ["warmup", "compiled_on_disk"]
@@ -103,9 +103,6 @@ def compiled_on_disk() -> bool:
     (no notice), never an error.
     """
     import os
-
-    from .b import b_kernel
-    from .m import m_kernel
 
     try:
         return all(os.path.exists(d._cache._cache_file._index_path) for d in (b_kernel, m_kernel))

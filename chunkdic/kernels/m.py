@@ -11,7 +11,15 @@ from __future__ import annotations
 import numpy as np
 
 from . import twins as kernels_numpy
-from .blocks import LAG_STRIDE, LAGS, check_nodes, core_shape, elements_of, grad_index, voxel_xi
+from .blocks import (
+    LAG_STRIDE,
+    LAGS,
+    check_nodes,
+    core_shape,
+    elements_of,
+    grad_index,
+    voxel_xi,
+)
 from .interp import jit, lerp, segment_inside
 from .rows import row_field, taper
 from .window import IMPLEMENTATIONS, check_choice, element_activity

@@ -11,7 +11,15 @@ functions of other modules, so they are imported at module level there.
 
 from __future__ import annotations
 
-from .interp import interp_cubic, interp_inside, interp_linear, jit, jit_inline, lerp, segment_inside
+from .interp import (
+    interp_cubic,
+    interp_inside,
+    interp_linear,
+    jit,
+    jit_inline,
+    lerp,
+    segment_inside,
+)
 
 __all__ = ["row_field", "segment_samples", "taper", "valid_bounds"]
 

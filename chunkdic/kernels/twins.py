@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 import scipy.ndimage as ndi
 
-from .blocks import ElementSums, gradient_block, voxel_xi
 from ..mesh import LOCAL_NODES, shape_table
+from .blocks import ElementSums, gradient_block, voxel_xi
 
 
 def _stencil_index(offset) -> int:

@@ -18,6 +18,7 @@ from pathlib import Path
 from ..errors import InputError
 from ..inputs import check_scan_for_result
 from ..io.ownership import make_scratch
+from ..io.scan import open_scan
 from .result import Result, open_result
 
 __all__ = ["as_result", "input_scan", "input_scans", "input_paths", "level_refs", "interpolation_of"]
@@ -37,7 +38,6 @@ def input_scan(result: Result, role: str, given=None, *, optional: bool = False)
     ``optional``: None instead of a refusal when nothing is given and the recorded scan is
     not on disk (in memory, moved).
     """
-    from ..io.scan import open_scan
 
     src = given if given is not None else (result.info.get("inputs") or {}).get(role)
     missing = src is None or (isinstance(src, str) and src.startswith("<in-memory"))

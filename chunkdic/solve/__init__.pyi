@@ -1,5 +1,5 @@
 from .cg import PoorTextureWarning, StencilSolver, warmup
-from .stencil import stencil_matvec
 from .multigrid import VCycle
 from .regchoice import choose_length
 from .regularization import Regularizer
+from .stencil import stencil_matvec

@@ -29,7 +29,14 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .galerkin import ClassStencil, assemble_dense, identity_transfer, node_stencil, regularizer_hierarchy, transfer
+from .galerkin import (
+    ClassStencil,
+    assemble_dense,
+    identity_transfer,
+    node_stencil,
+    regularizer_hierarchy,
+    transfer,
+)
 from .regularization import Regularizer, add_weighted
 from .stencil import axpy, block_jacobi, dot, half_matvec
 

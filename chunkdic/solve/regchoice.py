@@ -20,7 +20,6 @@ from ..mesh import STENCIL_OFFSETS
 from .regularization import Regularizer, plane_wave_weight
 from .stencil import stencil_matvec
 
-
 #: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)
 CANDIDATES = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
 #: the criteria :func:`choose_length` knows; the first is the default (docs/engine.md, the comparison)

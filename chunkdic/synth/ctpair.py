@@ -30,10 +30,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .ctsim import GreyChange, Imaging, reconstruct_slice, Geometry
 from ..errors import InputError
+from ..io.handles import ArrayRef
+from .ctsim import Geometry, GreyChange, Imaging, reconstruct_slice
 from .fields import Band, Field, Translation
-from .microstructure import ConcreteParams, GrainsParams, render_phantom, specimen_params
+from .fourier_shift import fourier_shift_scan
+from .microstructure import (
+    ConcreteParams,
+    GrainsParams,
+    render_phantom,
+    specimen_params,
+)
 
 __all__ = ["CTSpecimen", "INTENSITY_RANGE", "SLAB", "render_ct", "as_dask_ct", "quantise",
            "standard_field", "STANDARD_CASES"]
@@ -198,9 +205,6 @@ def fourier_deformed(ref_scan_path: str, out_dir: str, spec: CTSpecimen, schedul
     """
     import dask.array as da
     import zarr
-
-    from .fourier_shift import fourier_shift_scan
-    from ..io.handles import ArrayRef
 
     scratch = os.path.join(out_dir, "def.fourier.tmp.zarr")
     shutil.rmtree(scratch, ignore_errors=True)

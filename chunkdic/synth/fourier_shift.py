@@ -35,8 +35,11 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from ..io.handles import ArrayRef
 from ..inputs import check_finite
+from ..io.handles import ArrayRef, forget_open_arrays
+from ..io.kinds import kind_of
+from ..io.ownership import partial_name
+from ..scheduler import open_runner
 
 __all__ = ["PENCIL_EDGE", "fourier_shift_line", "fourier_shift_rows", "fourier_shift_scan", "shift_pencil_task"]
 
@@ -183,10 +186,7 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
     """
     import zarr
 
-    from ..scheduler import open_runner
 
-    from ..io.kinds import kind_of
-    from ..io.ownership import partial_name
 
     t = tuple(float(v) for v in np.broadcast_to(np.asarray(t, float), (3,)))
     out = Path(out)
@@ -228,7 +228,6 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
         raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-    from ..io.handles import forget_open_arrays
 
     forget_open_arrays()
     return ArrayRef("zarr", str(out), "", shape, "float32")

@@ -53,8 +53,15 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from numba import njit
 
-from .boolean import build_table, hash3, mean_r3, phase_at, population_vector, stream_key
 from ..errors import InputError
+from .boolean import (
+    build_table,
+    hash3,
+    mean_r3,
+    phase_at,
+    population_vector,
+    stream_key,
+)
 
 __all__ = [
     "GrainsParams",

@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.handles import ArrayRef
+from ..io.handles import ArrayRef, forget_open_arrays
 from .fields import Star
+from .foam_kernels import add_gaussian_noise
 from .fourier_shift import PENCIL_EDGE, fourier_shift_rows
 
 __all__ = ["NOISE_KEYS", "grey_moments", "moved_copy"]
@@ -61,8 +62,6 @@ def grey_moments(src: ArrayRef, runner) -> tuple[float, float]:
 
 def _moved_task(src: ArrayRef, out_path: str, region, star: dict | None, key: int, std: float) -> int:
     import zarr
-
-    from .foam_kernels import add_gaussian_noise
 
     a = src.read(region)
     if star is not None:
@@ -125,7 +124,6 @@ def moved_copy(src: ArrayRef, out, *, runner, noise: float = 0.0, key: int = NOI
     except BaseException:
         shutil.rmtree(out, ignore_errors=True)
         raise
-    from ..io.handles import forget_open_arrays
 
     forget_open_arrays()
     return ArrayRef("zarr", str(out), "", shape, "float32")

@@ -15,9 +15,21 @@ import shutil
 
 import numpy as np
 
+from .. import config
 from ..errors import InputError
+from ..io.scanwrite import write_scan
+from .ctpair import CTSpecimen, as_dask_ct, fourier_deformed, standard_field
 from .fields import Affine, Band, Field, Star, Translation, true_displacement
-from .foam import INT_HI, INT_LO, TextureParams, as_dask, check_dtype, shape3, texture_params
+from .foam import (
+    INT_HI,
+    INT_LO,
+    TextureParams,
+    as_dask,
+    check_dtype,
+    shape3,
+    texture_params,
+)
+from .microstructure import specimen_params
 from .shear import Slip, Wave
 
 __all__ = [
@@ -119,7 +131,6 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
     >>> synthesize("band", 96, specimen="grains", field=fld, noise=0.02,
     ...            gain=1.1, offset=0.05, drift=0.03)  # doctest: +SKIP
     """
-    from .. import config
 
     shape = shape3(shape)
     if chunks is None:
@@ -139,7 +150,6 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
             return as_dask(shape, chunks=chunks, field=field, seed=p, which=which, dtype=dt,
                            noise=noise)
     else:
-        from .ctpair import CTSpecimen, as_dask_ct, fourier_deformed
 
         p = CTSpecimen.build(specimen, shape, seed=seed, field=field, dtype=dtype,
                              fourier_shift=fourier_shift, noise=noise, **params)
@@ -174,7 +184,6 @@ def standard_case(out_dir, case: str, shape=128, *, specimen: str = "grains", **
     >>> standard_case("band128", "band", 128, noise=0.02, gain=1.1, offset=0.05,
     ...               drift=0.03)  # doctest: +SKIP
     """
-    from .ctpair import standard_field
 
     shape = shape3(shape)
     fld, fourier = standard_field(case, shape)
@@ -184,7 +193,6 @@ def standard_case(out_dir, case: str, shape=128, *, specimen: str = "grains", **
 def _write_pair(out_dir, shape, make, meta, *, chunks, voxel_size, unit, levels, overwrite,
                 progress) -> dict:
     """Write ``make(which, ref_path, scratch)`` for both scans, then ``field.json``."""
-    from ..io.scanwrite import write_scan
 
     out_dir = os.fspath(out_dir)
     ref, dfm = os.path.join(out_dir, "ref.zarr"), os.path.join(out_dir, "def.zarr")
@@ -279,6 +287,5 @@ def load_specimen(path):
     meta = load_metadata(path)
     if "texture" in meta:
         return TextureParams(**meta["texture"])
-    from .microstructure import specimen_params
 
     return specimen_params(dict(meta["specimen"]))

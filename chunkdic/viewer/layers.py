@@ -42,8 +42,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ..analysis.loadseries import open_series
 from ..errors import InputError
+from ..io.display import sample_step
+from ..io.kinds import kind_of
+from ..io.scan import open_scan
 from ..mesh import level0_position
+from ..results.scans import as_result, input_scan
+from ..views.fields import CHANNELS, open_levels
+from ..views.images import scan_frame
 
 __all__ = ["layers_of", "result_layers", "series_layers", "fields_layers", "find_fields", "MAX_VECTORS"]
 
@@ -115,7 +122,6 @@ def layers_of(path, *, fields=None, scan: bool = True, max_vectors: int = MAX_VE
     InputError
         Not one of chunkdic's outputs above, or an incomplete one.
     """
-    from ..io.kinds import kind_of
 
     kind, complete = kind_of(path)
     if kind not in ("result", "series", "fields"):
@@ -141,7 +147,6 @@ def result_layers(result, *, fields=None, scan: bool = True, max_vectors: int = 
     fields, scan, max_vectors
         As in :func:`layers_of`.
     """
-    from ..results.scans import as_result
 
     res = as_result(result)
     ref = _reference(res) if scan else None
@@ -161,7 +166,6 @@ def result_layers(result, *, fields=None, scan: bool = True, max_vectors: int = 
 
 def _reference(res):
     """The result's reference scan (recorded path), or None when it is not on disk."""
-    from ..results.scans import input_scan
 
     try:
         return input_scan(res, "reference", optional=True)
@@ -170,7 +174,6 @@ def _reference(res):
 
 
 def _frame(scan, info: dict) -> Frame:
-    from ..views.images import scan_frame
 
     scale, shift, unit = scan_frame(scan, info)
     return Frame(tuple(scale), tuple(shift), unit)
@@ -239,7 +242,6 @@ def _contiguous(levels) -> list[int]:
 def _scan_window(scan, coarsest) -> list[float]:
     """The scan's stored level-0 window (``display_window``), else 1st/99th percentiles of
     a strided sample of its coarsest level (as means)."""
-    from ..io.display import sample_step
 
     stored = _store_meta(Path(scan.path)).get("display_window") if scan.path else None
     if stored:
@@ -270,8 +272,6 @@ def fields_layers(path) -> list[Layer]:
     multiscale images on their stored frame, each with its stored contrast window; only
     ``|U|`` visible. The residual only when it was computed."""
     import dask.array as da
-
-    from ..views.fields import CHANNELS, open_levels
 
     levels, attrs = open_levels(path)
     meta = attrs["chunkdic"]
@@ -365,7 +365,6 @@ def _mask_layer(res, frame: Frame) -> Layer | None:
     src = (res.info.get("inputs") or {}).get("mask")
     kw = {"name": "mask", "opacity": 0.3, "visible": False, "metadata": {"source": src}}
     if isinstance(src, str) and Path(src).exists():
-        from ..io.scan import open_scan
 
         try:
             level0 = open_scan(src).level(0)
@@ -443,7 +442,6 @@ def series_layers(path, *, scan: bool = True, max_vectors: int = MAX_VECTORS) ->
     The fields are the cumulative ``u_0→t`` (the cumulative correlation, else the composed
     field) at the reference mesh's nodes; ``t = 0`` is the reference (zero field).
     """
-    from ..analysis.loadseries import open_series
 
     sr = open_series(path)
     steps = [sr.cumulative[k] for k in sorted(sr.cumulative)]
@@ -469,7 +467,6 @@ def series_layers(path, *, scan: bool = True, max_vectors: int = MAX_VECTORS) ->
 
 def _series_scans(path, first) -> list:
     """The scans of a series (recorded paths), or only its reference; [] when not on disk."""
-    from ..io.scan import open_scan
 
     paths = _store_meta(Path(path)).get("scans") or []
     try:

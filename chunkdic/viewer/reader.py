@@ -11,6 +11,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..io.kinds import kind_of
+from .layers import layers_of
+
 __all__ = ["napari_get_reader", "read"]
 
 #: what the reader opens
@@ -24,7 +27,6 @@ def napari_get_reader(path):
     ----------
     path : str or list of str
     """
-    from ..io.kinds import kind_of
 
     paths = path if isinstance(path, (list, tuple)) else [path]
     if not paths or any(kind_of(Path(str(p).rstrip("/")))[0] not in KINDS for p in paths):
@@ -34,7 +36,6 @@ def napari_get_reader(path):
 
 def read(path) -> list[tuple]:
     """Layer-data tuples ``(data, kwargs, layer_type)`` of one path or a list of paths."""
-    from .layers import layers_of
 
     paths = path if isinstance(path, (list, tuple)) else [path]
     return [layer for p in paths for layer in layers_of(str(p).rstrip("/"))]

@@ -29,11 +29,20 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.ngff import level_frame
 from ..io.outputs import Outputs
-from .correction import Correction, active_slice, correct_block, element_slice
 from ..mesh import Block, Mesh
 from ..results.result import Result
-from ..results.scans import as_result, input_paths, input_scans, interpolation_of, level_refs
+from ..results.scans import (
+    as_result,
+    input_paths,
+    input_scans,
+    interpolation_of,
+    level_refs,
+)
+from ..scheduler import open_runner
+from .correction import Correction, active_slice, correct_block, element_slice
+from .images import field_levels, scan_frame, write_image
 
 log = logging.getLogger(__name__)
 
@@ -164,9 +173,6 @@ def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation
                      progress) -> dict:
     """:func:`write_corrected` into ``work`` (renamed to ``out`` by the caller); ``scans``:
     the result's reference and deformed scans, opened and checked."""
-    from .images import field_levels, scan_frame, write_image
-    from ..io.ngff import level_frame
-    from ..scheduler import open_runner
 
     mesh = result.mesh
     s = int(result.info.get("level", 0))

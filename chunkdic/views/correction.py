@@ -19,12 +19,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
-from ..kernels.warp import warp_block
-from ..kernels.blocks import voxel_xi
-from ..mesh import Block, Mesh
-from ..results.result import Result
 from ..engine.tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
 from ..io.handles import ArrayRef
+from ..kernels.blocks import voxel_xi
+from ..kernels.warp import warp_block
+from ..mesh import Block, Mesh
+from ..results.result import Result
 
 __all__ = ["Correction", "correct_block", "element_slice", "plane_jobs", "plane_task", "active_slice", "fill_missing_nodes", "assemble_plane", "planes"]
 

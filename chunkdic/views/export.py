@@ -16,12 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import __version__
 from ..errors import InputError
-from ..mesh import level0_position
+from ..io.kinds import VTK_TITLE, VTU_MARK
 from ..io.outputs import Outputs
+from ..mesh import level0_position
 from ..results.result import Result, jsonable
 from ..results.scans import as_result
-from ..results.strain import DEFAULT_MEASURE, check_measure
+from ..results.strain import DEFAULT_MEASURE, check_measure, principal_strains
 
 __all__ = ["write_vtk", "write_nodes_csv", "write_nodes_csv_files", "read_vtk_metadata", "csv_sidecar",
            "CSV_COLUMNS", "CSV_PHYSICAL_COLUMNS", "VTK_HEX_ORDER"]
@@ -110,8 +112,6 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False, s
     """
     import meshio
 
-    from ..results.strain import principal_strains
-
     result = as_result(result)
     check_measure(strain)
     plan = Outputs(inputs=[result.path] if result.path else [], overwrite=overwrite)
@@ -152,7 +152,6 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False, s
 
 
 def _version_of(result: Result) -> str:
-    from .. import __version__
 
     return str(result.info.get("chunkdic_version") or __version__)
 
@@ -205,7 +204,6 @@ def _mark_vtk(path: Path) -> None:
     """Put chunkdic's own mark in the header of the VTK file meshio wrote at ``path``
     (:data:`chunkdic.io.kinds.VTU_MARK` / ``VTK_TITLE``): ``--overwrite`` replaces only a
     file that carries it, never another meshio user's file."""
-    from ..io.kinds import VTK_TITLE, VTU_MARK
 
     text = path.read_bytes()
     if text.startswith(b"<?xml"):

@@ -40,11 +40,21 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
-from .images import field_levels, scan_frame, write_image
-from ..mesh import Block, Mesh, level_to_level
 from ..io.outputs import Outputs
+from ..mesh import Block, Mesh, level_to_level
 from ..results.result import Result
-from ..results.strain import DEFAULT_MEASURE, check_measure
+from ..results.scans import (
+    as_result,
+    input_paths,
+    input_scan,
+    input_scans,
+    interpolation_of,
+    level_refs,
+)
+from ..results.strain import DEFAULT_MEASURE, check_measure, element_strain
+from ..scheduler import open_runner
+from .correction import Correction, correct_block, element_slice
+from .images import field_levels, scan_frame, write_image
 
 log = logging.getLogger(__name__)
 
@@ -117,7 +127,6 @@ def chunk_tasks(job: FieldsJob, result: Result, chunks: tuple[int, int, int]) ->
 
     Each carries only its own elements' nodes, brightness and activity (mesh-sized slices).
     """
-    from .correction import element_slice
 
     u = result.displacement
     args = []
@@ -181,7 +190,6 @@ def fields_values(job: FieldsJob, region, block: Block, u_block: np.ndarray, bri
     ndarray, shape (len(CHANNELS), nz, ny, nx), float32
         NaN outside the ROI (and in inactive elements); see the module docstring for units.
     """
-    from ..results.strain import element_strain
 
     mesh, s = job.mesh, job.level
     ell = mesh.element_size
@@ -206,7 +214,6 @@ def fields_values(job: FieldsJob, region, block: Block, u_block: np.ndarray, bri
     values[4] = eps[0, 0][per_voxel]
     values[5] = equivalent_strain(eps)[per_voxel]
     if job.correction is not None:
-        from .correction import correct_block
 
         f, corrected, valid = correct_block(job.correction, block, u_block, brightness, active)
         residual = np.where(valid, f - corrected, np.nan)
@@ -276,7 +283,6 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
     --------
     >>> chunkdic.write_fields("result.zarr", "fields.zarr")  # doctest: +SKIP
     """
-    from ..results.scans import as_result, input_paths
 
     result = as_result(result)
     result.check_displacement()
@@ -308,7 +314,6 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
 def _scans(result: Result, ref, deformed, residual: bool) -> tuple:
     """The scans, opened and checked once: both when the residual needs them, else the
     reference alone, or None when it is not on disk but the result recorded its shape."""
-    from ..results.scans import input_scan, input_scans
 
     if residual:
         return input_scans(result, ref, deformed)
@@ -321,10 +326,6 @@ def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, 
     """:func:`write_fields` into ``work`` (renamed to ``out`` by the caller); ``scans``:
     the result's scans for the residual (None: no residual)."""
     import contextlib
-
-    from .correction import Correction
-    from ..results.scans import interpolation_of, level_refs
-    from ..scheduler import open_runner
 
     t0 = time.perf_counter()
     c = int(config.get("chunk-size"))

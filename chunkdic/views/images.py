@@ -17,7 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io.display import windows as channel_windows
+from ..io.ngff import image_attrs
 from ..io.ownership import final_name
+from ..io.store import compressors
 
 #: the coarsest pyramid level keeps every axis at least this long (voxels)
 MIN_COARSE_EDGE = 8
@@ -178,10 +181,6 @@ def write_image(runner, work, task: Callable, args: list, *, meta: dict, channel
         Per channel.
     """
     import zarr
-
-    from ..io.display import windows as channel_windows
-    from ..io.ngff import image_attrs
-    from ..io.store import compressors
 
     root = zarr.open_group(str(work), mode="w", zarr_format=3)
     root.attrs["chunkdic"] = meta

@@ -20,10 +20,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from .figures import (as_results, common_frame, figure, mid_planes, panel, plane_extent, result_label, save,
-                      shared_colorbar, symmetric_limit)
-from ..results.strain import DEFAULT_MEASURE, MEASURE_SYMBOLS
 from ..results.result import Result
+from ..results.strain import DEFAULT_MEASURE, MEASURE_SYMBOLS
+from .figures import (
+    as_results,
+    common_frame,
+    figure,
+    mid_planes,
+    panel,
+    plane_extent,
+    result_label,
+    save,
+    shared_colorbar,
+    symmetric_limit,
+)
 
 __all__ = ["plot_u_maps", "plot_uz_maps", "plot_epszz_maps", "plot_uncertainty_map", "COMPONENTS"]
 

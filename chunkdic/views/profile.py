@@ -26,9 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..synth.fields import Field
+from ..errors import InputError
 from ..mesh import level0_position
 from ..results.result import Result
+from ..synth import synthetic
+from ..synth.fields import Field
 
 __all__ = ["LayerProfile", "epszz_profile", "synthetic_field", "true_layer_strain", "write_profile_csv",
            "PROFILE_COLUMNS"]
@@ -66,8 +68,6 @@ def synthetic_field(result: Result, ref=None, deformed=None) -> Field | None:
     """The field that made the result's pair, when both scans are a synthetic pair's
     reference and deformed scan (their Zarr attributes, :mod:`chunkdic.synth.synthetic`);
     ``None`` otherwise (measured scans, scans not on disk, a pair without a field)."""
-    from ..synth import synthetic
-    from ..errors import InputError
 
     inputs = result.info.get("inputs") or {}
     metas = []

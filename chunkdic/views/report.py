@@ -36,13 +36,32 @@ from pathlib import Path
 
 import numpy as np
 
-from . import correction
 from ..errors import InputError
-from .figures import (AXES, as_results, check_figure_options, common_frame, curve_style, figure, frame, mid_planes,
-                      panel, plane_extent, result_label, save, shared_colorbar, symmetric_limit, with_labels)
-from .maps import plot_epszz_maps, plot_u_maps, plot_uncertainty_map, plot_uz_maps
+from ..io.outputs import Outputs
 from ..results.result import Result
+from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
 from ..results.strain import DEFAULT_MEASURE, MEASURE_SYMBOLS, check_measure
+from ..scheduler import open_runner
+from . import correction
+from .figures import (
+    AXES,
+    as_results,
+    check_figure_options,
+    common_frame,
+    curve_style,
+    figure,
+    frame,
+    mid_planes,
+    panel,
+    plane_extent,
+    result_label,
+    save,
+    shared_colorbar,
+    symmetric_limit,
+    with_labels,
+)
+from .maps import plot_epszz_maps, plot_u_maps, plot_uncertainty_map, plot_uz_maps
+from .profile import epszz_profile, synthetic_field, true_curve, write_profile_csv
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +102,6 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
     dict of str to str
         Figure name -> path.
     """
-    from ..results.scans import interpolation_of, level_refs
-    from ..scheduler import open_runner
 
     result = as_results(result)[0]
     out_dir = Path(out_dir)
@@ -240,7 +257,6 @@ def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | Non
     dict
         ``{"epszz_profile": figure path, "epszz_profile_csv": CSV path}``.
     """
-    from .profile import epszz_profile, synthetic_field, true_curve, write_profile_csv
 
     results = as_results(results)
     frames = common_frame(results)
@@ -371,8 +387,6 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     dict of str to str
         Figure name -> path (and ``epszz_profile_csv`` -> the profile's numbers).
     """
-    from ..results.scans import input_paths, input_scans, interpolation_of
-    from ..io.outputs import Outputs
 
     results = as_results(results)
     for res in results:

@@ -9,15 +9,12 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic.cli import report as _cli_report
-from chunkdic.synth import foam
-from chunkdic.synth import fourier_shift
-from chunkdic.analysis import metrology
-from chunkdic.synth import synthetic
-from chunkdic.analysis import zoisweep
-from chunkdic.errors import InputError
+from chunkdic.analysis import metrology, zoisweep
 from chunkdic.analysis.metrology import PowerLaw, fit_power_law
+from chunkdic.cli import report as _cli_report
+from chunkdic.errors import InputError
 from chunkdic.io.handles import ArrayRef
+from chunkdic.synth import foam, fourier_shift, synthetic
 
 
 def _parser():

@@ -6,17 +6,14 @@ import json
 
 import numpy as np
 import pytest
+from textures import fourier_shift, smooth_noise
 
 import chunkdic
-from chunkdic.synth import foam
-from chunkdic.synth import synthetic
-from chunkdic.cli.app import main
 from chunkdic.analysis.crosscheck import correlation_length
 from chunkdic.analysis.q4 import correlate2d
 from chunkdic.analysis.q4mesh import Mesh2D, read_image
-
-from textures import fourier_shift, smooth_noise
-
+from chunkdic.cli.app import main
+from chunkdic.synth import foam, synthetic
 
 # --------------------------------------------------------------------------- mesh
 
@@ -148,11 +145,11 @@ def test_cutcheck_flags_a_wrong_field(synthetic_result):
     d = synthetic_result
     good = chunkdic.cutcheck(d / "good.zarr")
     res = chunkdic.open_result(d / "wrong.zarr")
-    from chunkdic.views import correction
     from chunkdic.analysis.crosscheck import check_cut
-    from chunkdic.views.figures import mid_planes
     from chunkdic.results.scans import level_refs
     from chunkdic.scheduler import open_runner
+    from chunkdic.views import correction
+    from chunkdic.views.figures import mid_planes
 
     with level_refs(res) as (f, g), open_runner(None) as runner:
         for normal, axis in enumerate("zyx"):
@@ -192,8 +189,8 @@ def test_cli_cutcheck_figure_format_and_resolution(synthetic_result, tmp_path, c
 
 
 def test_cli_correlate2d_on_image_files(tmp_path, shifted, capsys):
-    from PIL import Image
     import tifffile
+    from PIL import Image
 
     f, g = shifted
     np.save(tmp_path / "a.npy", f.astype(np.float32))

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic.errors import InputError
 from chunkdic.analysis.scoring import score_displacement, scored_region
+from chunkdic.errors import InputError
 
 
 def test_border_exclusion_uses_the_outer_voxel_faces():

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic.synth import synthetic
 from chunkdic.cli.app import main
+from chunkdic.synth import synthetic
 
 # end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
 pytestmark = pytest.mark.slow

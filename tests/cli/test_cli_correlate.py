@@ -7,11 +7,10 @@ import sys
 
 import numpy as np
 import pytest
+from textures import smooth_noise
 
 import chunkdic
 from chunkdic.cli.app import main
-
-from textures import smooth_noise
 
 
 @pytest.fixture(scope="module")
@@ -97,8 +96,7 @@ def test_no_traceback_from_the_installed_command(pair, tmp_path):
 
 
 def test_long_passes_report_blocks_rate_and_eta(pair, tmp_path, capsys, monkeypatch):
-    from chunkdic.engine import level
-    from chunkdic.engine import prefilter
+    from chunkdic.engine import level, prefilter
 
     monkeypatch.setattr(level, "PROGRESS_SECONDS", 0.0)  # every block counts as "long"
     monkeypatch.setattr(prefilter, "TASK_EDGE", 16)  # several prefilter tasks on this small pair

@@ -28,10 +28,9 @@ import tifffile
 import zarr
 
 import chunkdic
-from chunkdic.synth import foam
-from chunkdic.synth import synthetic
 from chunkdic.cli.app import main
 from chunkdic.io.integrity import MissingChunksWarning
+from chunkdic.synth import foam, synthetic
 
 # end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
 pytestmark = pytest.mark.slow

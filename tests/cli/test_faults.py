@@ -23,6 +23,7 @@ import meshio
 import numpy as np
 import pytest
 import zarr
+from test_data_safety import N, T, nothing_left, refused, tree
 
 import chunkdic
 from chunkdic.cli.app import main
@@ -31,8 +32,6 @@ from chunkdic.io import ownership
 from chunkdic.io.integrity import content_identity
 from chunkdic.io.outputs import check_output
 from chunkdic.synth import synthetic
-
-from test_data_safety import N, T, nothing_left, refused, tree
 
 # kills, races and full disks on whole commands: `pytest -m 'not slow'` leaves them out
 pytestmark = pytest.mark.slow

@@ -14,13 +14,12 @@ from pathlib import Path
 import dask.config
 import numpy as np
 import pytest
+from textures import smooth_noise
 
 import chunkdic
 from chunkdic.cli.app import main
 from chunkdic.engine import budget
 from chunkdic.errors import InputError
-
-from textures import smooth_noise
 
 N = 128
 MiB = 2**20
@@ -157,7 +156,12 @@ def test_quantised_reference_copy_is_block_independent_and_close_to_float32():
 
 def test_prepared_grid_holds_the_coefficients_without_clipping():
     """The 16-bit grid of the prepared g covers the coefficients' overshoot (σ = 1: 1.9 % of the range)."""
-    from chunkdic.engine.prefilter import dequantize, prepare_deformed, prepared_grid, quantize
+    from chunkdic.engine.prefilter import (
+        dequantize,
+        prepare_deformed,
+        prepared_grid,
+        quantize,
+    )
 
     rng = np.random.default_rng(0)
     raw = np.where(rng.random((40, 40, 40)) > 0.5, 65535, 0).astype(np.uint16)  # the worst texture: sharp, full range

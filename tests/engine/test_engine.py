@@ -4,13 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from textures import fourier_shift, smooth_noise
 
 import chunkdic
-from chunkdic.synth import foam
-from chunkdic.synth import synthetic
 from chunkdic.engine.planning import plan_meshes
-
-from textures import fourier_shift, smooth_noise
+from chunkdic.synth import foam, synthetic
 
 
 def test_integer_translation_is_recovered_at_every_node(noise64):

@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from textures import smooth_noise
 
 import chunkdic
-from textures import smooth_noise
 
 N, ELL = 48, 12
 A, B, C = 1.25, 40.0, 0.5

@@ -19,10 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from textures import smooth_noise
 
 from chunkdic.cli.app import main
-
-from textures import smooth_noise
 
 # end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
 pytestmark = pytest.mark.slow

@@ -56,9 +56,9 @@ def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
 
     import numpy as np
 
-    from chunkdic.synth import foam
     from chunkdic.cli.app import main
     from chunkdic.io.scan import open_scan
+    from chunkdic.synth import foam
 
     out = tmp_path / "pair"
     assert main(["synth", str(out), "--shape", "32", "--chunks", "8", "--dtype", "uint16", "--seed", "3",
@@ -125,9 +125,9 @@ def test_numpy_inputs_on_a_two_worker_local_cluster_send_no_voxels_in_any_graph(
     distributed's large-graph threshold lowered to 2 MiB and its warning made an error, no
     graph may carry a scan; the field is the known translation (exact Fourier shift)."""
     import dask
+    from textures import smooth_noise
 
     import chunkdic
-    from textures import smooth_noise
 
     n, t = 128, np.array([0.4, -0.3, 0.25])
     f = smooth_noise((n, n, n), sigma=2.0, seed=5)

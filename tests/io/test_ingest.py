@@ -11,8 +11,8 @@ import tifffile
 
 from chunkdic.cli import scan as _cli_scan
 from chunkdic.errors import InputError
-from chunkdic.io.formats.ingest import ingest, slab_chunks
 from chunkdic.io.formats.base import natural_key
+from chunkdic.io.formats.ingest import ingest, slab_chunks
 
 SHAPE = (13, 17, 19)
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import zarr
 
-import chunkdic.io.store as store
 import chunkdic.io.levels as levels
+import chunkdic.io.store as store
 from chunkdic.errors import InputError
 from chunkdic.io.pyramid import build_pyramid
-from chunkdic.io.scanwrite import write_scan
 from chunkdic.io.scan import open_scan
+from chunkdic.io.scanwrite import write_scan
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:

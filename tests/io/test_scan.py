@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic.io.coarsen import coarsen_sum, pyramid_dtype
 from chunkdic.errors import InputError
-from chunkdic.io.store import store_array, check_write_alignment
+from chunkdic.io.coarsen import coarsen_sum, pyramid_dtype
 from chunkdic.io.handles import ArrayRef
-from chunkdic.io.scanwrite import write_scan
 from chunkdic.io.scan import open_scan
+from chunkdic.io.scanwrite import write_scan
+from chunkdic.io.store import check_write_alignment, store_array
 
 
 def block_sums(x: np.ndarray, s: int) -> np.ndarray:

@@ -15,13 +15,13 @@ import pytest
 import scipy.ndimage as ndi
 
 from chunkdic.kernels import warp as kernels_warp
+from chunkdic.kernels.b import b_block, b_sums
 from chunkdic.kernels.blocks import gradient_block, voxel_xi
 from chunkdic.kernels.jit import warmup
-from chunkdic.kernels.b import b_block, b_sums
 from chunkdic.kernels.m import m_block
+from chunkdic.kernels.twins import nodal_field
 from chunkdic.kernels.warp import warp_block
 from chunkdic.kernels.window import IMPLEMENTATIONS, g_window, prepare_window
-from chunkdic.kernels.twins import nodal_field
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS, shape_table
 
 INTERPS = ("linear", "cubic")

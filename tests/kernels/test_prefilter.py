@@ -7,8 +7,8 @@ import pytest
 import scipy.ndimage as ndi
 
 from chunkdic.engine.prefilter import build_prepared, prepared_halo
-from chunkdic.scheduler import open_runner
 from chunkdic.io.handles import ArrayRef
+from chunkdic.scheduler import open_runner
 
 
 @pytest.mark.parametrize("sigma", [0.0, 1.0], ids=["no-low-pass", "low-pass"])

@@ -102,10 +102,10 @@ def test_mean_strain_of_a_masked_result_counts_its_active_elements_only(tmp_path
     inactive ones (their nodes measured, at the mask's rim) would change."""
     import json
 
-    from chunkdic.cli.app import main
     from chunkdic.analysis.loadseries import _row
-    from chunkdic.results.strain import strain_summary
     from chunkdic.analysis.zoisweep import zoi_table
+    from chunkdic.cli.app import main
+    from chunkdic.results.strain import strain_summary
 
     mesh = Mesh((0, 0, 0), 8, (6, 6, 6))
     z = mesh.node_coords()[0]
@@ -156,7 +156,12 @@ def test_rigid_rotation_gives_no_strain_with_the_default_measure(capsys):
     strain shows the known false strain cos 10° - 1 = -0.01519 on the in-plane axes, and
     the command-level warning says so."""
     from chunkdic.cli.report import rotation_warning
-    from chunkdic.results.strain import DEFAULT_MEASURE, element_strain, rotation_angle, displacement_gradient
+    from chunkdic.results.strain import (
+        DEFAULT_MEASURE,
+        displacement_gradient,
+        element_strain,
+        rotation_angle,
+    )
 
     mesh = Mesh((0, 0, 0), 8, (4, 4, 4))
     X = mesh.node_coords()

@@ -14,22 +14,25 @@ import warnings
 
 import numpy as np
 import pytest
+from textures import cylinder_pair, smooth_noise
 
 import chunkdic
-from chunkdic.synth import foam
-from chunkdic.synth import synthetic
+from chunkdic.analysis.scoring import scored_region
 from chunkdic.cli.app import main
-from chunkdic.errors import InputError
 from chunkdic.engine.planning import plan_meshes
 from chunkdic.engine.prefilter import face_margin
-from chunkdic.solve.regchoice import CANDIDATES, choose_length, dof_fraction, regions
-from chunkdic.solve.regularization import Regularizer, plane_wave_weight, plane_waves, reference_wavelength
+from chunkdic.errors import InputError
 from chunkdic.results.result import FLAG_MASKED, FLAG_WEAK
-from chunkdic.analysis.scoring import scored_region
-from chunkdic.solve.stencil import half_stencil, stencil_matvec
 from chunkdic.results.strain import strain_summary
-
-from textures import cylinder_pair, smooth_noise
+from chunkdic.solve.regchoice import CANDIDATES, choose_length, dof_fraction, regions
+from chunkdic.solve.regularization import (
+    Regularizer,
+    plane_wave_weight,
+    plane_waves,
+    reference_wavelength,
+)
+from chunkdic.solve.stencil import half_stencil, stencil_matvec
+from chunkdic.synth import foam, synthetic
 
 KINDS = ("tikhonov", "equilibrium-gap")
 SMALL_SIZE = 64  # ℓ = 6 and 4: 3 375 and 15 625 nodes at 64³
@@ -514,7 +517,9 @@ def test_bad_regularisation_and_mask_input_on_the_command_line(small_pair, tmp_p
     lines = capsys.readouterr().err.strip().splitlines()
     errors = [ln for ln in lines if "error:" in ln]
     assert len(errors) == 1 and errors[0] == lines[-1] and message in errors[0], lines
-    assert len(lines) == (2 if found_in_data else 1), lines
+    # found in the data: the run's start line and its plan line (issue 21) come first
+    assert len(lines) == (3 if found_in_data else 1), lines
+    assert not found_in_data or lines[1].startswith("plan:"), lines
     assert not out.exists()
 
 

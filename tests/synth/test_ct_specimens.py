@@ -7,12 +7,18 @@ import math
 import numpy as np
 import pytest
 
+from chunkdic.errors import InputError
 from chunkdic.synth import boolean as B
 from chunkdic.synth import ctsim as C
 from chunkdic.synth import microstructure as M
 from chunkdic.synth import synthetic as S
-from chunkdic.synth.ctpair import CTSpecimen, as_dask_ct, quantise, render_ct, standard_field
-from chunkdic.errors import InputError
+from chunkdic.synth.ctpair import (
+    CTSpecimen,
+    as_dask_ct,
+    quantise,
+    render_ct,
+    standard_field,
+)
 
 BAND = S.Band(center_z=15.5, width=6.0, strain=-0.08, lateral=0.3, center_y=20.0, center_x=18.0)
 FIELDS = {

@@ -8,10 +8,9 @@ import os
 import numpy as np
 import pytest
 
-from chunkdic.synth import synthetic as S
-from chunkdic.synth import foam
-from chunkdic.synth import foam_kernels
 from chunkdic.errors import InputError
+from chunkdic.synth import foam, foam_kernels
+from chunkdic.synth import synthetic as S
 
 FIELDS = {
     "translation": S.Translation((2.3, -1.4, 0.7)),

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 import chunkdic
-from chunkdic.synth import synthetic
 from chunkdic.cli.app import main
+from chunkdic.mesh import Mesh
+from chunkdic.synth import synthetic
 from chunkdic.views.corrected_image import open_corrected, write_corrected
 from chunkdic.views.fields import CHANNELS, equivalent_strain, open_levels, write_fields
-from chunkdic.mesh import Mesh
 
 A = ((-0.02, 0.0, 0.0), (0.0, 0.01, 0.0), (0.005, 0.0, 0.01))  # dU_i / dX_j, axes (z, y, x)
 CENTER, T = (24.0, 24.0, 24.0), (1.3, -0.7, 0.4)
@@ -206,9 +206,9 @@ def test_corrected_is_an_image_on_the_scan_grid(affine, tmp_path):
     """``export --corrected``: an OME-NGFF image on the scan's grid whose channels are the
     corrected image and residual of one whole-ROI block (independent of the chunking)
     and whose residual is the fields image's."""
-    from chunkdic.views.correction import Correction, correct_block
     from chunkdic.mesh import Block
     from chunkdic.results.scans import level_refs
+    from chunkdic.views.correction import Correction, correct_block
 
     pair, res, d, _ = affine
     with dask.config.set({"chunkdic.chunk-size": 16}):  # 27 tasks; the ROI [6, 42) cuts chunks

@@ -5,13 +5,13 @@ from __future__ import annotations
 import argparse
 
 import numpy as np
-import scipy.ndimage as ndi
 import pytest
+import scipy.ndimage as ndi
 
 import chunkdic
 from chunkdic.cli import report as _cli_report
-from chunkdic.synth import synthetic
 from chunkdic.errors import InputError
+from chunkdic.synth import synthetic
 from chunkdic.views.corrected_image import open_corrected, write_corrected
 from chunkdic.views.export import VTK_HEX_ORDER, hexahedra
 from chunkdic.views.report import plot_epszz_maps, plot_uz_maps, report

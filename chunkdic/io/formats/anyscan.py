@@ -11,7 +11,6 @@ file needs its shape and dtype: ingest it first.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from ...errors import InputError

@@ -26,11 +26,11 @@ import numpy as np
 from ...errors import InputError
 from ...inputs import check_finite
 from ..ngff import normalize_unit, normalize_voxel_size
+from ..scan import Scan, open_scan
+from ..scanwrite import write_scan
+from ..store import chunk_shape_for
 from .base import Layout
 from .detect import open_source
-from ..store import chunk_shape_for
-from ..scanwrite import write_scan
-from ..scan import Scan, open_scan
 
 log = logging.getLogger(__name__)
 
