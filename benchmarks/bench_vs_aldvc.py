@@ -4,16 +4,25 @@ For each case (a reference scan, a deformed scan and, when known, the true displ
 field) and each node spacing ``ell``, both tools run on the same data in this session:
 
 - chunkdic: ``chunkdic.correlate(ref, def, element_size=ell)`` with its defaults, in a
-  fresh Python process, reading the Zarr scans; scored at its nodes
-  (``result.node_coords``, ``result.displacement``, level-0 voxels);
+  fresh Python process, reading the Zarr scans (its nodes ``result.node_coords``,
+  ``result.displacement``, in level-0 voxels);
 - al-dvc: ``al-dvc run --volumes REF.npy DEF.npy --winsize 2ell --step ell`` with its
   defaults, from its own virtual environment (created on first use, outside the
   repository; see ``benchmarks/aldvc.py``), reading ``.npy`` copies of the same scans.
 
-Both are scored by :func:`chunkdic.score_displacement`: points at least ``ell`` voxels
-from the volume's faces; sigma pooled over the three components
-(``sqrt(mean of the three variances)``); RMS vector error; points a tool flags as failed
-are counted (``failed``), not scored. The table gives medians over ``--repeats`` runs;
+With a known field both are scored **between the nodes** (issue 20's rule,
+:func:`chunkdic.analysis.scoring.score_between_nodes`): the field trilinear on the tool's
+own node grid, as a viewer shows it, against the truth at every voxel at least ``ell``
+from the faces and inside the grid's hull; ``rms`` = RMS of the vector error, ``sigma``
+pooled over the three components (``sqrt(mean of the three variances)``, the figure for
+translations). al-dvc's grid starts about ``2 ell`` from the faces (its first node at
+``winsize - 1``), so its hull is smaller than chunkdic's: ``rms_common`` /
+``sigma_common`` score both tools on the same voxels (every voxel ``>= ell`` from the faces
+inside both hulls; the fields are cropped exactly, a trilinear cell cut by a plane staying
+trilinear), and the summary table compares those. al-dvc's field is scored as it comes out
+(its flagged nodes hold inpainted values); ``failed`` counts the nodes it flags. The
+nodal scores of :func:`chunkdic.score_displacement` (at the points, flagged points left
+out) stay in the record as ``nodal_*``. The table gives medians over ``--repeats`` runs;
 ``wall`` is the tool's own correlation time (chunkdic: the ``correlate`` call, its modules
 imported before; al-dvc: its "Done in" time, input reading included, printed after its
 imports), ``proc`` the whole process (interpreter start and imports included),
@@ -38,6 +47,14 @@ Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` 
   measure the basis rather than the tools);
 - ``band-grey``: ``band`` with the deformed scan's grey levels changed (gain 1.1, +5 %
   offset, 3 % drift along z; CT specimens only);
+- ``wave24`` … ``wave64`` (group ``heterogeneous`` with ``slip`` and ``band``): shear waves
+  ``Ux = 0.5 sin(2π (z − c) / T)`` of period ``T`` = 24, 32, 48, 64 voxels
+  (:class:`chunkdic.synth.shear.Wave`), independent noise in each scan;
+- ``slip``: a shear slip ``Ux = 0.5 tanh((z − c) / 3)`` (:class:`chunkdic.synth.shear.Slip`,
+  1 voxel across about 6), independent noise in each scan;
+- ``comp10`` / ``comp20`` / ``rot10`` (group ``large``): 10 / 20 % axial compression along z
+  with 3 / 6 % lateral expansion, and a 10° rotation about z, about the volume's centre
+  (the fields of ``bench_large_strain.py``), independent noise in each scan;
 - ``star``: issue 20's 3-D star, ``Ux = 0.5 sin(2π (z − z_c) / λ(y))`` with ``λ`` from 10 to
   100 voxels across y, rendered from the geometry, independent noise in each scan; besides
   the scores, each tool's spatial resolution ``l10 %`` read between its points
@@ -55,6 +72,14 @@ Usage::
     python benchmarks/bench_vs_aldvc.py --sizes 300 --cases shift --spacings 12 --repeats 3
     python benchmarks/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
     python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimens grains --spacings 16 12 8
+    python benchmarks/bench_vs_aldvc.py --sizes 100 --cases heterogeneous large noise \
+        --spacings 16 12 8 --solo-spacings 6 --repeats 1          # issue 20's table
+
+The run ends with a Markdown table (:func:`summary_table`): per case and ``ell`` both
+tools' between-node error on the common voxels (RMS; sigma for the translations), the ratio
+chunkdic / al-dvc, chunkdic's error over all its voxels, status, regularisation length and
+wall times. The record is rewritten after each case and spacing (``"complete": false``
+until the end), so an interrupted run keeps what completed.
 """
 
 from __future__ import annotations
