@@ -71,7 +71,7 @@ Usage::
     python benchmarks/bench_vs_aldvc.py --sizes 128 --spacings 16 12 8 --repeats 1
     python benchmarks/bench_vs_aldvc.py --sizes 300 --cases shift --spacings 12 --repeats 3
     python benchmarks/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
-    python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimens grains --spacings 16 12 8
+    python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimen grains --spacings 16 12 8
     python benchmarks/bench_vs_aldvc.py --sizes 100 --cases heterogeneous large noise \
         --spacings 16 12 8 --solo-spacings 6 --repeats 1          # issue 20's table
 
