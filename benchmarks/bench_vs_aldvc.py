@@ -381,9 +381,9 @@ def between_common(fields: dict, case: Case, ell: int) -> dict:
     from the faces and inside every tool's node hull (al-dvc's first and last nodes sit about
     ``2 ell`` from the faces, chunkdic's half a voxel outside its ROI). ``fields``: tool ->
     (points, u); returns tool -> score dict (keys suffixed ``_common``). ``floor_common``: the
-    same score of the exact field sampled at the tool's nodes, trilinear between them (what
-    the node grid alone allows: a slip or band centred on a node costs more than one
-    between two nodes, whatever the tool)."""
+    same score of the exact field sampled at the tool's nodes, trilinear between them: what
+    the node grid alone costs (a slip or band centred on a node costs more than one between
+    two nodes, whatever the tool; a least-squares fit on the same grid can go somewhat below)."""
     from chunkdic.analysis.scoring import score_between_nodes
 
     grids = {t: _to_grid(p, u) for t, (p, u) in fields.items() if p is not None}
