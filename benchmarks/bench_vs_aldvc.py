@@ -169,6 +169,9 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
     tag = f"{name}-{n}-{specimen}-{args.dtype}-n{args.noise:g}-s{args.seed}"
     if name.startswith("band") and args.band_lateral is not None:
         tag += f"-lat{args.band_lateral:g}"
+    offset = getattr(args, "feature_offset", 0.0) or 0.0
+    if offset and (name in WAVES or name == "slip" or name.startswith("band")):
+        tag += f"-off{offset:g}"
     out = workdir / tag
     label = f"{name}/{specimen}"
     if name == "shift":
@@ -200,7 +203,7 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
     if name in WAVES or name == "slip":
         from chunkdic.synth.shear import Slip, Wave
 
-        c = (n - 1) / 2.0
+        c = (n - 1) / 2.0 + offset
         if name == "slip":  # Ux = 0.5 tanh((z - c) / 3): a 1-voxel slip across ~6 voxels
             field, note = Slip(center=c, jump=1.0, edge=3.0), "shear slip 1 voxel, edge 3"
         else:  # Ux = 0.5 sin(2 pi (z - c) / period)
@@ -219,6 +222,10 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
                     f"{note}, independent noise {args.noise:g}")
     field = _band(n, args.band_lateral)
+    if offset:
+        from dataclasses import replace
+
+        field = replace(field, center_z=field.center_z + offset)
     if name == "band":
         paths = _pair(out, n, args, specimen, field=field)
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3, "band -8 %, width 6")
@@ -658,6 +665,10 @@ def parse_args(argv=None):
                    help="acquisition noise std, texture units (grey range ~1); independent per scan")
     p.add_argument("--band-lateral", type=float, default=None,
                    help="lateral expansion factor of the band cases (default: the standard case's 0.05)")
+    p.add_argument("--feature-offset", type=float, default=0.0, metavar="VOXELS",
+                   help="move the centre of the slip and band cases (and the waves' phase) along z by this "
+                        "much from the volume's centre: the score of a sharp feature depends on where it "
+                        "falls between each tool's nodes (default 0)")
     p.add_argument("--dtype", default="uint16", choices=["uint8", "uint16", "float32"])
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--specimen", nargs="+", default=["grains", "concrete"], choices=["grains", "concrete", "foam"],
