@@ -564,7 +564,7 @@ def selfcheck(exe: Path, args, workdir: Path) -> int:
     ok = True
     record = {}
     for name, field in fields.items():
-        paths = _pair(workdir / f"selfcheck-{name}", n, A, field=field, noise=0.0)
+        paths = _pair(workdir / f"selfcheck-{name}", n, A, "foam", field=field)  # noise-free foam (A.noise)
         case = Case(name, paths["reference"], paths["deformed"], field, (n,) * 3)
         ref, dfm = npy_copies(case, workdir)
         a = peer.run_aldvc(exe, ref, dfm, workdir / "runs" / f"selfcheck-{name}",
