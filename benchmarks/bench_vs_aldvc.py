@@ -770,9 +770,9 @@ def summary_table(results: list[dict]) -> str:
     """Markdown: per case and ell, both tools' between-node error (sigma for translations),
     the ratio chunkdic / al-dvc, chunkdic's status and regularisation length, wall times, and
     each grid's floor (the exact field at its nodes, trilinear between them, same voxels)."""
-    lines = ["| case | ell | chunkdic | al-dvc | ratio | chunkdic, all voxels >= ell | chunkdic status "
-             "| reg. length | wall chunkdic / al-dvc (s) | grid floor chunkdic / al-dvc |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    head = ("| case | ell | chunkdic | al-dvc | ratio | chunkdic, all voxels >= ell | chunkdic status "
+            "| reg. length | wall chunkdic / al-dvc (s) | grid floor chunkdic / al-dvc |")
+    lines = [head, "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         c, a = r["chunkdic"], r.get("al-dvc") or {}
         name = r["case"].split("/")[0]
