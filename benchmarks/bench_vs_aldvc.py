@@ -4,16 +4,25 @@ For each case (a reference scan, a deformed scan and, when known, the true displ
 field) and each node spacing ``ell``, both tools run on the same data in this session:
 
 - chunkdic: ``chunkdic.correlate(ref, def, element_size=ell)`` with its defaults, in a
-  fresh Python process, reading the Zarr scans; scored at its nodes
-  (``result.node_coords``, ``result.displacement``, level-0 voxels);
+  fresh Python process, reading the Zarr scans (its nodes ``result.node_coords``,
+  ``result.displacement``, in level-0 voxels);
 - al-dvc: ``al-dvc run --volumes REF.npy DEF.npy --winsize 2ell --step ell`` with its
   defaults, from its own virtual environment (created on first use, outside the
   repository; see ``benchmarks/aldvc.py``), reading ``.npy`` copies of the same scans.
 
-Both are scored by :func:`chunkdic.score_displacement`: points at least ``ell`` voxels
-from the volume's faces; sigma pooled over the three components
-(``sqrt(mean of the three variances)``); RMS vector error; points a tool flags as failed
-are counted (``failed``), not scored. The table gives medians over ``--repeats`` runs;
+With a known field both are scored **between the nodes** (issue 20's rule,
+:func:`chunkdic.analysis.scoring.score_between_nodes`): the field trilinear on the tool's
+own node grid, as a viewer shows it, against the truth at every voxel at least ``ell``
+from the faces and inside the grid's hull; ``rms`` = RMS of the vector error, ``sigma``
+pooled over the three components (``sqrt(mean of the three variances)``, the figure for
+translations). al-dvc's grid starts about ``2 ell`` from the faces (its first node at
+``winsize - 1``), so its hull is smaller than chunkdic's: ``rms_common`` /
+``sigma_common`` score both tools on the same voxels (every voxel ``>= ell`` from the faces
+inside both hulls; the fields are cropped exactly, a trilinear cell cut by a plane staying
+trilinear), and the summary table compares those. al-dvc's field is scored as it comes out
+(its flagged nodes hold inpainted values); ``failed`` counts the nodes it flags. The
+nodal scores of :func:`chunkdic.score_displacement` (at the points, flagged points left
+out) stay in the record as ``nodal_*``. The table gives medians over ``--repeats`` runs;
 ``wall`` is the tool's own correlation time (chunkdic: the ``correlate`` call, its modules
 imported before; al-dvc: its "Done in" time, input reading included, printed after its
 imports), ``proc`` the whole process (interpreter start and imports included),
@@ -38,6 +47,14 @@ Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` 
   measure the basis rather than the tools);
 - ``band-grey``: ``band`` with the deformed scan's grey levels changed (gain 1.1, +5 %
   offset, 3 % drift along z; CT specimens only);
+- ``wave24`` … ``wave64`` (group ``heterogeneous`` with ``slip`` and ``band``): shear waves
+  ``Ux = 0.5 sin(2π (z − c) / T)`` of period ``T`` = 24, 32, 48, 64 voxels
+  (:class:`chunkdic.synth.shear.Wave`), independent noise in each scan;
+- ``slip``: a shear slip ``Ux = 0.5 tanh((z − c) / 3)`` (:class:`chunkdic.synth.shear.Slip`,
+  1 voxel across about 6), independent noise in each scan;
+- ``comp10`` / ``comp20`` / ``rot10`` (group ``large``): 10 / 20 % axial compression along z
+  with 3 / 6 % lateral expansion, and a 10° rotation about z, about the volume's centre
+  (the fields of ``bench_large_strain.py``), independent noise in each scan;
 - ``star``: issue 20's 3-D star, ``Ux = 0.5 sin(2π (z − z_c) / λ(y))`` with ``λ`` from 10 to
   100 voxels across y, rendered from the geometry, independent noise in each scan; besides
   the scores, each tool's spatial resolution ``l10 %`` read between its points
@@ -54,7 +71,15 @@ Usage::
     python benchmarks/bench_vs_aldvc.py --sizes 128 --spacings 16 12 8 --repeats 1
     python benchmarks/bench_vs_aldvc.py --sizes 300 --cases shift --spacings 12 --repeats 3
     python benchmarks/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
-    python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimens grains --spacings 16 12 8
+    python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimen grains --spacings 16 12 8
+    python benchmarks/bench_vs_aldvc.py --sizes 100 --cases heterogeneous large noise \
+        --spacings 16 12 8 --solo-spacings 6 --repeats 1          # issue 20's table
+
+The run ends with a Markdown table (:func:`summary_table`): per case and ``ell`` both
+tools' between-node error on the common voxels (RMS; sigma for the translations), the ratio
+chunkdic / al-dvc, chunkdic's error over all its voxels, status, regularisation length and
+wall times. The record is rewritten after each case and spacing (``"complete": false``
+until the end), so an interrupted run keeps what completed.
 """
 
 from __future__ import annotations
@@ -78,7 +103,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import aldvc as peer  # noqa: E402  (benchmarks/aldvc.py, next to this file)
 
 RECORDS = Path(__file__).resolve().parent / "records"
-CASE_NAMES = ("shift", "noise", "band", "band-grey", "star")
+#: heterogeneous fields of issue 20 (independent noise in each scan): shear waves, a shear slip
+WAVES = ("wave24", "wave32", "wave48", "wave64")
+HETEROGENEOUS = WAVES + ("slip", "band")
+#: large deformations (bench_large_strain.py's fields): 10 / 20 % compression, 10 degree rotation
+LARGE = ("comp10", "comp20", "rot10")
+CASE_NAMES = ("shift", "noise", "band", "band-grey", "star", *WAVES, "slip", *LARGE)
+#: the default case list (the cases of issue 20 plus the two translations)
+DEFAULT_CASES = ("shift", "noise", "band", "band-grey", "star")
+CASE_GROUPS = {"heterogeneous": HETEROGENEOUS, "large": LARGE, "all": CASE_NAMES}
 #: the star of issue 20: Ux = 0.5 sin(2 pi (z - zc) / period(y)), period 10 -> 100 voxels across y
 STAR = {"amplitude": 0.5, "period_min": 10.0, "period_max": 100.0}
 SHIFT = (0.5, 0.5, 0.5)
@@ -136,6 +169,9 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
     tag = f"{name}-{n}-{specimen}-{args.dtype}-n{args.noise:g}-s{args.seed}"
     if name.startswith("band") and args.band_lateral is not None:
         tag += f"-lat{args.band_lateral:g}"
+    offset = getattr(args, "feature_offset", 0.0) or 0.0
+    if offset and (name in WAVES or name == "slip" or name.startswith("band")):
+        tag += f"-off{offset:g}"
     out = workdir / tag
     label = f"{name}/{specimen}"
     if name == "shift":
@@ -164,7 +200,32 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
         paths = _pair(out, n, args, specimen, field=field)
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
                     f"star, period 10-100 across y, independent noise {args.noise:g}")
+    if name in WAVES or name == "slip":
+        from chunkdic.synth.shear import Slip, Wave
+
+        c = (n - 1) / 2.0 + offset
+        if name == "slip":  # Ux = 0.5 tanh((z - c) / 3): a 1-voxel slip across ~6 voxels
+            field, note = Slip(center=c, jump=1.0, edge=3.0), "shear slip 1 voxel, edge 3"
+        else:  # Ux = 0.5 sin(2 pi (z - c) / period)
+            field = Wave(period=float(name[4:]), amplitude=0.5, phase=c)
+            note = f"shear wave period {name[4:]}, amplitude 0.5"
+        paths = _pair(out, n, args, specimen, field=field)
+        return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
+                    f"{note}, independent noise {args.noise:g}")
+    if name in LARGE:
+        from bench_large_strain import large_field
+
+        field = large_field(name, n)
+        note = {"comp10": "compression 10 %, lateral +3 %", "comp20": "compression 20 %, lateral +6 %",
+                "rot10": "rotation 10 deg about z"}[name]
+        paths = _pair(out, n, args, specimen, field=field)
+        return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
+                    f"{note}, independent noise {args.noise:g}")
     field = _band(n, args.band_lateral)
+    if offset:
+        from dataclasses import replace
+
+        field = replace(field, center_z=field.center_z + offset)
     if name == "band":
         paths = _pair(out, n, args, specimen, field=field)
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3, "band -8 %, width 6")
@@ -230,6 +291,7 @@ def _chunkdic_child(args) -> None:
         "final_gap": res.info.get("final_gap"), "level": res.info.get("level"), "scale": scale,
         "iterations": int(np.sum(np.asarray(hist["level"]) == res.info.get("level"))),
         "nodes": int(points.shape[1]), "roi": res.info.get("roi_level0"),
+        "reg_length": (res.info.get("regularization") or {}).get("length"),
     }
     with open(args.out + ".json", "w") as fh:
         json.dump(summary, fh)
@@ -274,13 +336,9 @@ def _score(points, u, valid, case: Case, ell: int) -> dict:
     return score_displacement(points, u, truth, case.shape, ell, valid=valid).as_dict()
 
 
-def _star(points, u, valid, case: Case, ell: int) -> dict:
-    """l10 % of a field on a regular grid of points (either tool), read between the points."""
-    from chunkdic.analysis.resolution import l10, star_ratios_nodes
-    from chunkdic.synth.fields import Star
-
-    if points is None or not isinstance(case.field, Star):
-        return {}
+def _to_grid(points, u, valid=None):
+    """A field given at the points of a regular grid (either tool), as node axes ``(z, y, x)``
+    and a nodal array ``(3, nz, ny, nx)``; points flagged ``valid=False`` become NaN."""
     axes = [np.unique(np.round(c, 6)) for c in points]
     grid = np.full((3, *(a.size for a in axes)), np.nan)
     idx = [np.searchsorted(a, np.round(c, 6)) for a, c in zip(axes, points)]
@@ -288,6 +346,87 @@ def _star(points, u, valid, case: Case, ell: int) -> dict:
     if valid is not None:
         uu[:, ~np.asarray(valid, bool)] = np.nan
     grid[:, idx[0], idx[1], idx[2]] = uu
+    return axes, grid
+
+
+def _between(points, u, case: Case, ell: int) -> dict:
+    """The field between the points (issue 20's rule, the same for both tools): trilinear on
+    the tool's node grid at every voxel at least ``ell`` from the faces
+    (:func:`chunkdic.analysis.scoring.score_between_nodes`); RMS of the vector error, sigma
+    pooled over the components. al-dvc's field is scored as it comes out (the nodes it
+    flags hold its inpainted values: what a viewer shows); ``failed`` counts them."""
+    from chunkdic.analysis.scoring import score_between_nodes
+
+    if points is None or case.field is None:
+        return {}
+    axes, grid = _to_grid(points, u)
+    if grid.size != np.asarray(u).size:  # not a full regular grid: no between-node score
+        return {"between_error": "points are not a full regular grid"}
+    s = score_between_nodes(axes, grid, case.field, case.shape, ell)
+    return {"rms": s.rms, "sigma": s.sigma, "bias": list(s.bias), "max_error": s.max_error,
+            "n_points": s.n_points, "n_voxels_outside_hull": s.n_outside}
+
+
+def _crop_grid(axes, grid, hull):
+    """The same trilinear field on a node grid cropped to the box ``hull`` (per axis (lo, hi)):
+    nodes outside dropped, nodes added on the box's faces with the field's trilinear value there.
+    Inside the box the field is unchanged (a trilinear cell cut by a plane stays trilinear), so
+    :func:`score_between_nodes` on the cropped grid scores exactly the voxels inside the box."""
+    from scipy.interpolate import RegularGridInterpolator
+
+    new = []
+    for a, (lo, hi) in zip(axes, hull):
+        inner = a[(a > lo + 1e-9) & (a < hi - 1e-9)]
+        new.append(np.concatenate([[lo], inner, [hi]]))
+    pts = np.stack(np.meshgrid(*new, indexing="ij"), axis=-1)
+    out = np.stack([RegularGridInterpolator(axes, g, method="linear")(pts) for g in grid])
+    return new, out
+
+
+def between_common(fields: dict, case: Case, ell: int) -> dict:
+    """Each tool's field between its nodes on the *same* voxels: every voxel at least ``ell``
+    from the faces and inside every tool's node hull (al-dvc's first and last nodes sit about
+    ``2 ell`` from the faces, chunkdic's half a voxel outside its ROI). ``fields``: tool ->
+    (points, u); returns tool -> score dict (keys suffixed ``_common``). ``floor_common``: the
+    same score of the exact field sampled at the tool's nodes, trilinear between them: what
+    the node grid alone costs (a slip or band centred on a node costs more than one between
+    two nodes, whatever the tool; a least-squares fit on the same grid can go somewhat below)."""
+    from chunkdic.analysis.scoring import score_between_nodes
+
+    grids = {t: _to_grid(p, u) for t, (p, u) in fields.items() if p is not None}
+    if case.field is None or len(grids) < 2 or any(g.size != np.asarray(fields[t][1]).size
+                                                   for t, (_, g) in grids.items()):
+        return {}
+    hull = [(max(ax[i][0] for ax, _ in grids.values()), min(ax[i][-1] for ax, _ in grids.values()))
+            for i in range(3)]
+    from chunkdic.synth.fields import true_displacement
+
+    out = {}
+    for t, (axes, grid) in grids.items():
+        s = score_between_nodes(*_crop_grid(axes, grid, hull), case.field, case.shape, ell)
+        # the grid's own floor: the exact field at this tool's nodes, trilinear between them
+        pts = fields[t][0]
+        exact = _to_grid(pts, true_displacement(case.field, pts[0], pts[1], pts[2]))
+        f = score_between_nodes(*_crop_grid(*exact, hull), case.field, case.shape, ell)
+        out[t] = {"rms_common": s.rms, "sigma_common": s.sigma, "max_error_common": s.max_error,
+                  "n_points_common": s.n_points, "common_hull": [list(h) for h in hull],
+                  "floor_common": f.rms}
+    return out
+
+
+def _nodal(score: dict) -> dict:
+    """The nodal score (``score_displacement`` at the points), kept beside the between-node one."""
+    return {f"nodal_{k}": v for k, v in score.items() if k in ("rms", "sigma", "max_error", "n_points", "n_failed")}
+
+
+def _star(points, u, valid, case: Case, ell: int) -> dict:
+    """l10 % of a field on a regular grid of points (either tool), read between the points."""
+    from chunkdic.analysis.resolution import l10, star_ratios_nodes
+    from chunkdic.synth.fields import Star
+
+    if points is None or not isinstance(case.field, Star):
+        return {}
+    axes, grid = _to_grid(points, u, valid)
     try:
         per, rat = star_ratios_nodes(axes, grid, case.field, case.shape, ell)
         v, bound = l10(per, rat)
@@ -336,15 +475,24 @@ def row(size, case, ell, tool, m: dict, ratio=None) -> str:
 # --------------------------------------------------------------------------- runs
 
 
-def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys) -> dict:
-    """Both tools on one case at one spacing, ``--repeats`` times; scored medians."""
-    runs = {"chunkdic": [], "al-dvc": []}
+def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_too: bool = True) -> dict:
+    """Both tools (chunkdic alone when not ``peer_too``) on one case at one spacing,
+    ``--repeats`` times; scored medians.
+
+    With a known field the main scores (``rms``, ``sigma``, ``bias``, ``max_error``,
+    ``n_points``) are between the nodes (:func:`_between`, both tools alike); the nodal
+    scores of :func:`chunkdic.score_displacement` stay in the record as ``nodal_*``.
+    """
+    runs = {"chunkdic": []} | ({"al-dvc": []} if peer_too else {})
     for rep in range(args.repeats):
         base = workdir / "runs" / f"{case.name}-{case.shape[0]}-ell{ell}-r{rep}"
         c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout, args.options)
         pts, uc = c.pop("points", None), c.pop("u", None)
         score = _score(pts, uc, None, case, ell)
-        runs["chunkdic"].append({**c, **score, **_star(pts, uc, None, case, ell)})
+        runs["chunkdic"].append({**c, **score, **_nodal(score), **_between(pts, uc, case, ell),
+                                 **_star(pts, uc, None, case, ell)})
+        if not peer_too:
+            continue
         a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
                            threads=args.threads, timeout=args.timeout)
         score = _score(a.points, a.u, a.valid, case, ell)
@@ -352,9 +500,13 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys) -> dict:
         every = _score(a.points, a.u, None, case, ell) if a.points is not None else {}
         info = {k: v for k, v in a.info.items() if k not in ("para", "command")}
         runs["al-dvc"].append({"status": a.status, "wall": a.pipeline_seconds, "proc": a.wall,
-                               "peak_rss_mb": a.peak_rss_mb, **score, **_star(a.points, a.u, a.valid, case, ell),
+                               "peak_rss_mb": a.peak_rss_mb, **score, **_nodal(score),
+                               **_between(a.points, a.u, case, ell), **_star(a.points, a.u, a.valid, case, ell),
                                "rms_all_nodes": every.get("rms"), "sigma_all_nodes": every.get("sigma"),
                                "info": info})
+        common = between_common({"chunkdic": (pts, uc), "al-dvc": (a.points, a.u)}, case, ell)
+        for tool, extra in common.items():
+            runs[tool][-1].update(extra)
     return {tool: _summarise(r) | {"runs": r} for tool, r in runs.items()}
 
 
@@ -412,7 +564,7 @@ def selfcheck(exe: Path, args, workdir: Path) -> int:
     ok = True
     record = {}
     for name, field in fields.items():
-        paths = _pair(workdir / f"selfcheck-{name}", n, A, field=field, noise=0.0)
+        paths = _pair(workdir / f"selfcheck-{name}", n, A, "foam", field=field)  # noise-free foam (A.noise)
         case = Case(name, paths["reference"], paths["deformed"], field, (n,) * 3)
         ref, dfm = npy_copies(case, workdir)
         a = peer.run_aldvc(exe, ref, dfm, workdir / "runs" / f"selfcheck-{name}",
@@ -473,7 +625,7 @@ def selfcheck(exe: Path, args, workdir: Path) -> int:
 # --------------------------------------------------------------------------- main
 
 
-def _write_record(args, payload: dict) -> None:
+def _write_record(args, payload: dict, quiet: bool = False) -> None:
     path = Path(args.record) if args.record else RECORDS / (
         "bench_vs_aldvc_selfcheck.json" if args.selfcheck else
         f"bench_vs_aldvc_{'-'.join(str(s) for s in args.sizes)}.json")
@@ -483,7 +635,8 @@ def _write_record(args, payload: dict) -> None:
             "argv": sys.argv[1:]}
     with open(path, "w") as fh:
         json.dump({"meta": meta, **payload}, fh, indent=1, default=_json_default)
-    print(f"# record: {path}")
+    if not quiet:
+        print(f"# record: {path}")
 
 
 def _json_default(o):
@@ -496,19 +649,26 @@ def _json_default(o):
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--cases", nargs="+", default=list(CASE_NAMES), choices=CASE_NAMES,
-                   help="built-in cases (default: all)")
+    p.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES), choices=CASE_NAMES + tuple(CASE_GROUPS),
+                   help="built-in cases, or a group: heterogeneous (waves, slip, band), large (comp10, "
+                        f"comp20, rot10), all (default: {' '.join(DEFAULT_CASES)})")
     p.add_argument("--pair", action="append", default=[], metavar="DIR",
                    help="also run a synthesized pair directory (ref.zarr, def.zarr, field.json); repeatable")
     p.add_argument("--sizes", type=int, nargs="+", default=[128], help="scan edges of the built-in cases")
     p.add_argument("--spacings", type=int, nargs="+", default=[16, 12, 8],
                    help="ell: chunkdic element size, al-dvc --step ell --winsize 2ell")
+    p.add_argument("--solo-spacings", type=int, nargs="+", default=[], metavar="ELL",
+                   help="further spacings run with chunkdic alone (e.g. 6: al-dvc is not run there)")
     p.add_argument("--repeats", type=int, default=3, help="runs per case and spacing (medians)")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="cores given to each tool")
     p.add_argument("--noise", type=float, default=0.02,
                    help="acquisition noise std, texture units (grey range ~1); independent per scan")
     p.add_argument("--band-lateral", type=float, default=None,
                    help="lateral expansion factor of the band cases (default: the standard case's 0.05)")
+    p.add_argument("--feature-offset", type=float, default=0.0, metavar="VOXELS",
+                   help="move the centre of the slip and band cases (and the waves' phase) along z by this "
+                        "much from the volume's centre: the score of a sharp feature depends on where it "
+                        "falls between each tool's nodes (default 0)")
     p.add_argument("--dtype", default="uint16", choices=["uint8", "uint16", "float32"])
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--specimen", nargs="+", default=["grains", "concrete"], choices=["grains", "concrete", "foam"],
@@ -529,8 +689,14 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if args.child:
         return args
-    if any(s < 4 for s in args.spacings):
-        _error("--spacings must be >= 4")
+    if any(s < 4 for s in args.spacings + args.solo_spacings):
+        _error("--spacings and --solo-spacings must be >= 4")
+    cases = []
+    for c in args.cases:
+        for name in CASE_GROUPS.get(c, (c,)):
+            if name not in cases:
+                cases.append(name)
+    args.cases = cases
     if any(s < 32 for s in args.sizes):
         _error("--sizes must be >= 32")
     if args.repeats < 1 or args.threads < 1 or args.timeout <= 0:
@@ -569,29 +735,56 @@ def main(argv=None) -> int:
                 if c is not None:
                     cases.append(c)
     cases += [pair_case(p) for p in args.pair]
-    print(f"# medians of {args.repeats} run(s); sigma pooled, RMS vector error, points >= ell from the "
-          f"faces; x = al-dvc wall / chunkdic wall\n" + HEADER, flush=True)
+    print(f"# medians of {args.repeats} run(s); with a known field: between the nodes (trilinear on each "
+          f"tool's node grid, every voxel >= ell from the faces), sigma pooled, RMS vector error; "
+          f"x = al-dvc wall / chunkdic wall\n" + HEADER, flush=True)
     results = []
+    spacings = [(ell, True) for ell in args.spacings] + [(ell, False) for ell in args.solo_spacings
+                                                         if ell not in args.spacings]
     for case in cases:
         npys = npy_copies(case, workdir)
-        for ell in args.spacings:
+        for ell, peer_too in spacings:
             if min(case.shape) < 3 * ell + 11:  # al-dvc needs two nodes per axis
                 print(f"# {case.name} {case.shape[0]}^3: ell {ell} too large for this size, skipped")
                 continue
-            r = compare(case, ell, args, exe, workdir, npys)
-            c, a = r["chunkdic"], r["al-dvc"]
+            r = compare(case, ell, args, exe, workdir, npys, peer_too=peer_too)
+            c, a = r["chunkdic"], r.get("al-dvc", {})
             ratio = a["wall"] / c["wall"] if c.get("wall") and a.get("wall") else None
             print(row(case.shape[0], case.name, ell, "chunkdic", c), flush=True)
-            print(row(case.shape[0], case.name, ell, "al-dvc", a, ratio), flush=True)
+            if peer_too:
+                print(row(case.shape[0], case.name, ell, "al-dvc", a, ratio), flush=True)
             for tool, m in (("chunkdic", c), ("al-dvc", a)):
                 if "l10" in m:  # the star: spatial resolution read between the points (analysis/resolution.py)
                     print(f"{'':>4} {case.name:<18} {ell:>3} {tool:<8} l10 % {m.get('l10_bound', '')}"
                           f" {m['l10']:.1f} voxels", flush=True)
             results.append({"case": case.name, "note": case.note, "shape": case.shape, "ell": ell,
                             "field": None if case.field is None else case.field.to_json(),
-                            "chunkdic": c, "al-dvc": a, "wall_ratio": ratio})
-    _write_record(args, {"results": results})
+                            "chunkdic": c, "al-dvc": a or None, "wall_ratio": ratio})
+            _write_record(args, {"results": results, "complete": False}, quiet=True)  # what completed so far
+    print(summary_table(results))
+    _write_record(args, {"results": results, "complete": True})
     return 0
+
+
+def summary_table(results: list[dict]) -> str:
+    """Markdown: per case and ell, both tools' between-node error (sigma for translations),
+    the ratio chunkdic / al-dvc, chunkdic's status and regularisation length, wall times, and
+    each grid's floor (the exact field at its nodes, trilinear between them, same voxels)."""
+    head = ("| case | ell | chunkdic | al-dvc | ratio | chunkdic, all voxels >= ell | chunkdic status "
+            "| reg. length | wall chunkdic / al-dvc (s) | grid floor chunkdic / al-dvc |")
+    lines = [head, "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        c, a = r["chunkdic"], r.get("al-dvc") or {}
+        name = r["case"].split("/")[0]
+        key = "sigma" if name in ("shift", "noise") else "rms"
+        ce, ae = (c.get(f"{key}_common"), a.get(f"{key}_common")) if a else (None, None)
+        ratio = ce / ae if ce is not None and ae and math.isfinite(ce) and math.isfinite(ae) else None
+        label = f"{r['case']} ({'σ' if key == 'sigma' else 'RMS'})"
+        lines.append(f"| {label} | {r['ell']} | {_fmt(ce, '.4f')} | {_fmt(ae, '.4f')} | {_fmt(ratio, '.2f')} | "
+                     f"{_fmt(c.get(key), '.4f')} | {c.get('status', '-')} | {_fmt(c.get('reg_length'), '.0f')} | "
+                     f"{_fmt(c.get('wall'), '.1f')} / {_fmt(a.get('wall'), '.1f')} | "
+                     f"{_fmt(c.get('floor_common'), '.4f')} / {_fmt(a.get('floor_common'), '.4f')} |")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
