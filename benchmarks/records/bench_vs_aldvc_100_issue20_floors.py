@@ -1,8 +1,14 @@
 """Grid floors for the issue-20 records (the node grids do not depend on specimen or seed)."""
-import sys, json, numpy as np
+import json
+import sys
+
+import numpy as np
+
 sys.path.insert(0, 'benchmarks')
 import bench_vs_aldvc as b
+
 from chunkdic.synth.fields import true_displacement
+
 
 class A:
     band_lateral = None; seed = 1; dtype = "uint16"; noise = 0.02
