@@ -183,6 +183,8 @@ def _iterate(lvl: _Level, u: np.ndarray, tolerance: float, max_iterations: int, 
     """Modified Gauss–Newton on one level with the engine's stopping rule."""
     state = State(u=u)
     n = lvl.phi.shape[1]
+    diag = lvl.M.diagonal()
+    measured = diag > 0
     while state.status is None:
         p = lvl.assemble(state.u)
         if math.isfinite(p.gap):
@@ -191,6 +193,12 @@ def _iterate(lvl: _Level, u: np.ndarray, tolerance: float, max_iterations: int, 
         row = dict(level=s, iteration=state.iteration, gap=p.gap, max_delta=math.nan, excluded=p.n_excluded)
         if state.status is None:
             delta = lvl.solve(p.b)
+            # the increment in units of the field's own uncertainty, sigma_u^2 ~ sigma_r^2 / M_ii (the
+            # diagonal bound the 3-D engine uses): the stopping rule ends a level whose increments
+            # stay at the noise level as converged (chunkdic.engine.stopping)
+            sigma_r2 = (p.gap * lvl.range) ** 2
+            if sigma_r2 > 0 and measured.any():
+                state.note_noise_step(float(np.sqrt(np.mean(delta[measured] ** 2 * diag[measured] / sigma_r2))))
             state.step(np.stack([delta[:n], delta[n:]], axis=-1).reshape(*lvl.mesh.nodes_shape, 2))
             row["max_delta"] = state.last_delta
         history.append(row)

@@ -244,3 +244,16 @@ def test_cli_cutcheck_json_and_exit_status(synthetic_result, capsys):
     assert all(r["max"] < 0.05 and r["std"] < 0.02 for r in rows)
     assert main(["cutcheck", str(d / "wrong.zarr"), "-o", str(d / "cli-wrong")]) == 1
     assert "FAILED" in capsys.readouterr().out
+
+
+def test_increments_at_the_noise_level_end_converged_not_max_iterations():
+    """Two noisy copies of one image (5 % of its range, independent): no motion to find, and
+    with an unreachable tolerance the increments stay at the noise level. The 2-D check uses
+    the 3-D engine's rule (chunkdic.engine.stopping): converged at the noise level (before:
+    max-iterations with the very same field). Measured: RMS 0.44 px, 39 passes."""
+    f = smooth_noise((1, 96, 96), sigma=1.5, seed=3)[0]
+    rng = np.random.default_rng(1)
+    a, b = f + rng.normal(0, 5.0, f.shape), f + rng.normal(0, 5.0, f.shape)
+    res = correlate2d(a.astype(np.float32), b.astype(np.float32), element_size=8, tolerance=1e-6, coarsest=0)
+    assert res.status == "converged"
+    assert float(np.sqrt(np.mean(res.displacement**2))) < 0.6
