@@ -53,6 +53,7 @@ from ..engine.planning import parse_roi, plan_meshes
 from ..engine.prefilter import face_margin
 from ..engine.settings import Settings
 from ..errors import InputError
+from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.outputs import Outputs, inside
 from ..io.ownership import OutputLock
@@ -197,7 +198,7 @@ def series(
     entry = plan.add(output, "series", resumable=True)
     identities = [identify_input(s, sc) for s, sc in zip(scans, opened)]
     series_print = fingerprint({"scans": identities, "settings": settings.to_json(), "roi": parse_roi(roi),
-                                "mode": mode, "mask": None if mask is None else identify_input(mask, open_scan(mask))})
+                                "mode": mode, "mask": None if mask is None else identify_input(mask, open_any(mask))})
     out = Path(output)
     with OutputLock(out):
         fresh = entry.state != "resume"

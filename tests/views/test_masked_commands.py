@@ -127,3 +127,22 @@ def test_strain_report_and_cutcheck_of_a_masked_result(masked, capsys):
     rows = json.loads(capsys.readouterr().out)
     assert [r["status"] for r in rows] == ["converged"] * 3
     assert all(r["passed"] and r["nodes"] > 0 for r in rows)
+
+
+def test_masked_series_equals_the_masked_correlation(masked, tmp_path):
+    """``series --mask``: the one step of a two-scan series is the masked correlation itself
+    (same mask elements, same field), and its table row gives the cylinder's -2 % axial strain."""
+    import chunkdic
+
+    d, res, mask = masked
+    out = tmp_path / "s.zarr"
+    assert main(["series", str(d / "f.npy"), str(d / "g.npy"), "-o", str(out), "-l", str(ELL), "--incremental",
+                 "--mask", str(d / "mask.tif"), "-q"]) == 0
+    s = chunkdic.open_series(out)
+    step = chunkdic.open_result(out / "steps" / "001-incremental")
+    np.testing.assert_array_equal(step.active > 0, _active_truth(step, mask))
+    inside = np.isfinite(step.displacement).all(axis=0)
+    assert inside.any() and (~inside).any()  # NaN outside the material only
+    np.testing.assert_allclose(step.displacement[:, inside], res.displacement[:, inside], atol=1e-6)
+    row = [r for r in s.rows if r["kind"] == "incremental"][0]
+    assert row["eps_zz"] == pytest.approx(-0.02, abs=2e-3)
