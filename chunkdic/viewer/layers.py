@@ -45,6 +45,7 @@ import numpy as np
 from ..analysis.loadseries import open_series
 from ..errors import InputError
 from ..io.display import sample_step
+from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.scan import open_scan
 from ..mesh import level0_position
@@ -365,9 +366,8 @@ def _mask_layer(res, frame: Frame) -> Layer | None:
     src = (res.info.get("inputs") or {}).get("mask")
     kw = {"name": "mask", "opacity": 0.3, "visible": False, "metadata": {"source": src}}
     if isinstance(src, str) and Path(src).exists():
-
         try:
-            level0 = open_scan(src).level(0)
+            level0 = open_any(src).level(0)  # a TIFF or HDF5 mask too, read in place
         except InputError:
             level0 = None
         if level0 is not None:
