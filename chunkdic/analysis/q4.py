@@ -228,7 +228,10 @@ def _image(a, name: str) -> np.ndarray:
     a = np.asarray(a)
     if a.ndim != 2 or min(a.shape) < 2:
         raise InputError(f"{name} must be a 2-D image, got shape {a.shape}")
-    if a.dtype.kind not in "uif" and a.dtype != bool:
+    if a.dtype == bool:
+        raise InputError(f"{name} is a two-level (bool) image: it has no sub-pixel information; correlate the "
+                         "grey-level image it was segmented from")
+    if a.dtype.kind not in "uif":
         raise InputError(f"{name} has dtype {a.dtype}: expected numbers")
     return a.astype(np.float64)
 

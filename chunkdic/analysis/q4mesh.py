@@ -152,6 +152,9 @@ def plan2d(shape, element_size: int, roi=None, coarsest: int | None = None) -> d
         box = box_at_level(box0, 2**s)
         edge = min(b - a for a, b in box)
         if edge < (MIN_COARSE_EDGE if coarsest is None else 2):
+            if coarsest is not None:  # asked for, as the 3-D engine refuses it (engine.planning)
+                raise InputError(f"coarsest level {coarsest} is too coarse for this ROI (edge {edge} pixels at "
+                                 f"level {s})")
             break
         meshes[s] = _centred(box, min(ell, edge))
     return meshes

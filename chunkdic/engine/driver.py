@@ -151,6 +151,10 @@ def correlate(
     options, roi = voxel_lengths(settings, options, roi, roi_unit, ref)
     settings = settings_from(settings, options)
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
+    for role, scan in (("reference", f_scan), ("deformed scan", g_scan)):
+        if scan.dtype(0) == bool:  # a mask is bool; a scan to correlate must have grey levels
+            raise InputError(f"the {role} is a two-level (bool) image: it has no sub-voxel information; correlate "
+                             "the grey-level scan it was segmented from")
     init_result = None if init is None else open_init(init, f_scan.shape(0))
     # with a start field, no coarse level is needed to find the large displacements (chunkdic.engine.initial)
     coarsest = settings.level if init is not None and settings.coarsest is None else settings.coarsest

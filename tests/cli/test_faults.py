@@ -397,3 +397,30 @@ def test_a_result_whose_element_size_is_zero_is_refused_in_one_line(data, tmp_pa
              tmp_path / "o.zarr"], capsys, "do not describe a mesh")
     nothing_left(tmp_path / "o.zarr")
     assert tree(res, data / "s") == before
+
+
+def test_two_level_scans_are_refused_in_one_line(tmp_path, capsys):
+    """A bool scan has no sub-voxel information (a 0.28-voxel error was once called converged):
+    refused by correlate and correlate2d, one line, exit 2, nothing written; a bool mask stays fine."""
+    rng = np.random.default_rng(0)
+    b = rng.random((32, 32, 32)) > 0.5
+    np.save(tmp_path / "b.npy", b)
+    np.save(tmp_path / "g.npy", np.roll(b, 1, axis=0))
+    out = tmp_path / "o.zarr"
+    assert main(["correlate", str(tmp_path / "b.npy"), str(tmp_path / "g.npy"), "-l", "8", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "two-level (bool)" in err[0] and "Traceback" not in err[0]
+    assert not out.exists()
+    np.save(tmp_path / "b2.npy", b[16])
+    assert main(["correlate2d", str(tmp_path / "b2.npy"), str(tmp_path / "b2.npy"), "-l", "8"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "two-level (bool)" in err[0]
+
+
+def test_correlate2d_refuses_a_coarsest_level_the_image_cannot_hold(tmp_path, capsys):
+    """--coarsest 99 was silently clamped by the 2-D check; the 3-D engine refuses it, so does 2-D."""
+    f = np.random.default_rng(1).random((64, 64)).astype(np.float32)
+    np.save(tmp_path / "f.npy", f)
+    assert main(["correlate2d", str(tmp_path / "f.npy"), str(tmp_path / "f.npy"), "-l", "8", "--coarsest", "99"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "coarsest level 99 is too coarse" in err[0]
