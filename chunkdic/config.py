@@ -44,6 +44,9 @@ DEFAULTS = {
         # A correlation whose final pass excludes more than this fraction of the ROI's
         # voxels (X + u(X) outside the deformed scan) is reported "excluded", not converged.
         "max-excluded-fraction": 0.2,
+        # ... and "weak-texture" when more than this fraction of its measured nodes see too
+        # little texture (their values come from the regularisation, not the images).
+        "max-weak-fraction": 0.2,
         # A node whose elements hold fewer valid voxels than this fraction of one element
         # has no data: NaN in the result, flagged.
         "min-node-support": 0.1,

@@ -103,6 +103,10 @@ def _summary(result, seconds: float) -> str:
     if info["status"] == "excluded":
         line += (f"\n  excluded: {100 * info.get('excluded_fraction', 0):.0f}% of the ROI maps outside the deformed "
                  "scan; the rest converged, but so large a share left out is not called converged")
+    elif info["status"] == "weak-texture":
+        line += (f"\n  weak-texture: {info.get('weak_nodes', 0)} of the measured nodes see too little texture to be "
+                 "measured (their values come from the regularisation); the rest converged, but so large a share "
+                 "is not called converged (mask the untextured region, or a larger --element-size)")
     elif info["status"] in ("stalled", "diverged", "max-iterations"):
         from ..engine.stopping import STALL_PATIENCE
 

@@ -241,6 +241,12 @@ def assemble_result(ctx: RunContext, run: RunState, final: State, outcome: Level
     excluded_fraction = final.excluded / max(final.excluded + final.n_valid, 1)
     if status == "converged" and excluded_fraction > config.get("max-excluded-fraction"):
         status = run.statuses[finest] = "excluded"
+    measured = int(np.count_nonzero((flags & (FLAG_NO_DATA | FLAG_MASKED)) == 0))
+    weak_fraction = int(np.count_nonzero(flags & FLAG_WEAK)) / max(measured, 1)
+    if status == "converged" and weak_fraction > config.get("max-weak-fraction"):
+        # a half-untextured scan "converged" with 2-3.5 voxel errors on its flat half: the
+        # iterations converged, but so many nodes are the regularisation's guesses
+        status = run.statuses[finest] = "weak-texture"
     reg_length = outcome.reg_length
     info = {
         "element_size": settings.element_size,
