@@ -125,6 +125,7 @@ class Level:
         self.regularization_length = math.nan
         self.regularization_weight = 0.0
         # the operator is assembled here, so that no method can run before it exists
+        self.m_start = start  # the field M is built at (a checkpoint keeps it: a resumed level rebuilds this M)
         self._assemble_m(start)
 
     @property

@@ -112,7 +112,6 @@ def open_level(ctx: RunContext, run: RunState, s: int, start: np.ndarray) -> Lev
         start = run.gn.m_start
     lvl = Level(s, mesh, ctx.f_refs[s], ctx.g_refs[s], ctx.runner, ctx.settings, ctx.scratch, ctx.progress,
                 None if ctx.mask_refs is None else ctx.mask_refs[s], start=start)
-    lvl.m_start = start
     if run.gn is not None:  # resumed: the solver's CG reference as before the interruption
         lvl.solver.largest_rhs = run.gn.largest_rhs
     emit(ctx.progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
