@@ -52,6 +52,7 @@ import numpy as np
 
 from ..engine.driver import correlate
 from ..errors import InputError
+from ..solve.transfer import THRESHOLD, c8_l10, c8_ratio  # noqa: F401  (c8_ratio: re-exported, used by tests)
 from ..inputs import number
 from ..io.handles import ArrayRef
 from ..io.outputs import Outputs
@@ -70,7 +71,6 @@ log = logging.getLogger(__name__)
 __all__ = ["ResolutionReport", "c8_ratio", "c8_l10", "l10", "resolution", "star_ratios", "star_ratios_nodes"]
 
 #: the threshold of the DIC Challenge 2.0 rule: amplitude attenuated by 10 %
-THRESHOLD = 0.9
 
 RESOLUTION_COLUMNS = [
     ("element_size", "ℓ (vox.)", "d"),
@@ -88,36 +88,6 @@ RESOLUTION_COLUMNS = [
 
 
 # --------------------------------------------------------------------------- C8 projection
-
-
-def c8_ratio(period, ell):
-    """Amplitude ratio of the unregularised C8 field of a sine of ``period``, read between the nodes.
-
-    The L2 projection of ``sin(k z)`` onto linear elements of edge ``ell`` (a trilinear C8
-    field of a function of ``z`` alone is the 1-D projection along z) has nodal values
-    ``G(θ) sin(k z_j)`` with ``θ = k ℓ`` and ``G = 3 sinc²(θ/2) / (2 + cos θ)``; its
-    interpolant's component at ``k`` is ``sinc²(θ/2)`` of that (docs/engine.md,
-    "Spatial resolution"): ``R(θ) = 3 sinc⁴(θ/2) / (2 + cos θ)``, ``sinc x = sin x / x``.
-
-    Parameters
-    ----------
-    period : float or ndarray, voxels
-    ell : float, voxels
-
-    Returns
-    -------
-    float or ndarray
-    """
-    th = 2.0 * np.pi * ell / np.asarray(period, np.float64)
-    return 3.0 * np.sinc(th / (2.0 * np.pi)) ** 4 / (2.0 + np.cos(th))
-
-
-def c8_l10(ell: float) -> float:
-    """The period at which :func:`c8_ratio` equals 0.9: ``2.767 ℓ`` (θ = 2.2704)."""
-    from scipy.optimize import brentq
-
-    th = brentq(lambda t: 3.0 * np.sinc(t / (2 * np.pi)) ** 4 / (2.0 + np.cos(t)) - THRESHOLD, 0.1, 3.0)
-    return float(2.0 * np.pi * ell / th)
 
 
 # --------------------------------------------------------------------------- reading the star

@@ -92,6 +92,11 @@ def _summary(result, seconds: float) -> str:
         f"rigid {100 * info['rigid_gap']:.3f}%); {mean} voxels of level {info['level']}{physical}; "
         f"ROI {roi}; excluded voxels {info['excluded_voxels']}; {seconds:.1f} s"
     )
+    reg = info.get("regularization") or {}
+    if reg.get("nominal_l10"):
+        line += (f"; spatial resolution >= {reg['nominal_l10']:.0f} level-0 voxels (l10 %, from l and "
+                 + (f"the {reg['kind']} length {reg['length']:.0f}" if reg.get("length") else "no regularisation")
+                 + "; `chunkdic resolution` measures it)")
     if result.uncertainty is not None and np.isfinite(result.uncertainty).any():
         sigma = np.nanmedian(result.uncertainty)
         line += f"; median nodal uncertainty {sigma:.4f} voxel"

@@ -236,6 +236,12 @@ def _correction_lines(summary, factors: str) -> list[str]:
             "above is the estimate)"]
 
 
+def _resolution_note(result) -> str:
+    """``; spatial resolution >= N voxels`` when the result records its nominal l10 %."""
+    l10 = (result.info.get("regularization") or {}).get("nominal_l10")
+    return f"; spatial resolution >= {l10:.0f} level-0 voxels (nominal l10 %)" if l10 else ""
+
+
 def format_strain(summary, result) -> str:
     """Text block printed by ``chunkdic strain``."""
     ell = result.info["element_size"]
@@ -248,7 +254,7 @@ def format_strain(summary, result) -> str:
                                       + f" {result.info.get('unit') or 'unit'}")
     return "\n".join([
         f"{result.path}: {'x'.join(map(str, n))} elements of ell = {ell} voxels{size} "
-        f"(level {result.info.get('level', 0)})",
+        f"(level {result.info.get('level', 0)})" + _resolution_note(result),
         f"{_MEASURE_NAMES[summary.measure]} strain, mean over {used} elements ({excl}), axes (z, y, x); "
         f"largest element rotation {summary.max_rotation:.2f} deg:",
         _fmt_tensor(summary.mean),

@@ -22,6 +22,7 @@ from ..mesh import Mesh, transfer
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.cg import StencilSolver
 from ..solve.regchoice import choose_length
+from ..solve.transfer import nominal_l10
 from .affine import affine_step
 from .checkpoint import Checkpoint, resumed_pass
 from .events import emit
@@ -271,7 +272,11 @@ def assemble_result(ctx: RunContext, run: RunState, final: State, outcome: Level
         "noise": outcome.noise,
         "regularization": {"kind": settings.regularization,
                            "length": None if not np.isfinite(reg_length) else float(reg_length),
-                           "automatic": settings.regularization_length is None},
+                           "automatic": settings.regularization_length is None,
+                           # what l and the length let through of a sine, level-0 voxels (a lower
+                           # bound of the spatial resolution; `chunkdic resolution` measures it)
+                           "nominal_l10": nominal_l10(settings.element_size * 2**finest,
+                                                      reg_length if np.isfinite(reg_length) else None)},
         "settings": settings.to_json(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "chunkdic_version": _version(),

@@ -188,6 +188,8 @@ def vtk_field_data(result: Result, coordinates: str) -> dict[str, np.ndarray]:
     for key in ("final_gap", "initial_gap"):
         if info.get(key) is not None:
             data[key] = np.array([float(info[key])])
+    if (info.get("regularization") or {}).get("nominal_l10"):  # level-0 voxels, a lower bound
+        data["nominal_l10"] = np.array([float(info["regularization"]["nominal_l10"])])
     data["converged"] = np.array([int(bool(info.get("converged", False)))], np.int32)
     texts = {"unit": info.get("unit") if info.get("voxel_size") else None, "coordinates": coordinates,
              "status": info.get("status"), "chunkdic_version": _version_of(result)}
@@ -349,6 +351,7 @@ def _csv_metadata(result: Result, unit: str, name: str) -> dict:
         "flags": {"1": "no data (displacement NaN)", "2": "weak texture (regularised, unreliable)",
                   "4": "outside the specimen mask (NaN)"},
         "element_size": info.get("element_size"),
+        "regularization": info.get("regularization"),
         "level": info.get("level", 0),
         "scale": info.get("scale", 1),
         "voxel_size": info.get("voxel_size"),

@@ -241,3 +241,16 @@ def test_half_untextured_scan_is_not_called_converged():
     assert res.info["weak_nodes"] > 0.2 * res.displacement[0].size
     textured = res.node_coords[0] > 40
     np.testing.assert_allclose(res.displacement[:, textured].mean(axis=1), [0.5, 0.3, -0.4], atol=0.01)
+
+
+def test_result_records_the_nominal_spatial_resolution():
+    """Unregularised, the C8 basis alone sets l10 %: 2.767 l by the derivation of
+    docs/engine.md ("Spatial resolution"); regularised, at least that and at least 9^(1/4)
+    times the length's share (a lower bound recorded with the length)."""
+    f = smooth_noise((48, 48, 48), sigma=1.2, seed=4).astype(np.float32)
+    g = np.roll(f, 1, axis=0)
+    plain = chunkdic.correlate(f, g, element_size=8, coarsest=0, regularization="none")
+    assert plain.info["regularization"]["nominal_l10"] == pytest.approx(2.767 * 8, rel=1e-3)
+    reg = chunkdic.correlate(f, g, element_size=8, coarsest=0, regularization_length=40.0)
+    l10 = reg.info["regularization"]["nominal_l10"]
+    assert l10 > 2.767 * 8 and l10 > 9.0**0.25 * 40.0
