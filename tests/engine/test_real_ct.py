@@ -124,7 +124,8 @@ def test_the_papers_plain_settings_are_still_reachable(ct_cases):
                               regularization="none")
     assert res.info["status"] == "converged"
     assert res.info["settings"]["smoothing"] == 0 and res.info["grey_level"]["model"] == "none"
-    assert res.info["regularization"] == {"kind": "none", "length": None, "automatic": True}
+    assert res.info["regularization"] == {"kind": "none", "length": None, "automatic": True,
+                                          "nominal_l10": pytest.approx(2.767 * 12, rel=1e-3)}  # C8 alone
     assert 0.005 < score.sigma < 0.015
     _, default = ct_cases.run("grains", "fourier-shift", SHIFT_SIZE, 12)
     assert default.sigma < score.sigma / 10
