@@ -285,7 +285,6 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
         characterises the C8 basis (the paper's power law of ``σ`` against ``ℓ``), so it runs
         without regularisation (:data:`PAPER_SETTINGS`) unless ``options`` asks for one: a
         regularised field's noise depends on ``ℓ_reg`` more than on ``ℓ``.
-
     settings : Settings, optional
         Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
         ``element_size`` is replaced by each of ``element_sizes``, and it sets ``level`` and

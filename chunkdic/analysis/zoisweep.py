@@ -142,7 +142,6 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     options : dict, optional
         More :class:`chunkdic.Settings` fields; as for :func:`uncertainty`, the paper's
         analysis runs without regularisation unless asked for (:data:`PAPER_SETTINGS`).
-
     settings : Settings, optional
         Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
         ``element_size`` is replaced by each of ``element_sizes``, and it sets ``level`` and

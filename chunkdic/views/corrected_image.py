@@ -175,7 +175,7 @@ def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation
     the result's reference and deformed scans, opened and checked."""
 
     mesh = result.mesh
-    s = int(result.info.get("level", 0))
+    s = result.level
     c = int(config.get("chunk-size"))
     u = result.displacement
     scale0, shift0, unit = scan_frame(scans[0], result.info)

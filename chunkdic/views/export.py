@@ -39,7 +39,7 @@ def _nodal_uncertainty(result: Result, units: str) -> np.ndarray | None:
         return None
     if units != "physical":
         return result.uncertainty
-    scale = float(result.info.get("scale", 1))
+    scale = result.scale
     return result.uncertainty * scale * np.asarray(result.info["voxel_size"], float)[:, None, None, None]
 
 
@@ -47,13 +47,13 @@ def _positions(result: Result, units: str):
     """Node positions and displacement, shape (3, nz, ny, nx), in level voxels or physical units."""
     X, u = result.node_coords, result.displacement
     if units == "voxels":
-        return X, u, "voxel, level %d" % int(result.info.get("level", 0))
+        return X, u, "voxel, level %d" % result.level
     if units != "physical":
         raise InputError(f"units must be 'voxels' or 'physical', got {units!r}")
     vs = result.info.get("voxel_size")
     if not vs:
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
-    scale = float(result.info.get("scale", 1))
+    scale = result.scale
     v = np.asarray(vs, float)[:, None, None, None]
     level0 = level0_position(X, scale)
     return level0 * v, u * scale * v, result.info.get("unit") or "unit"

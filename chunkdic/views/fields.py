@@ -296,7 +296,7 @@ def write_fields(result, out, *, ref=None, deformed=None, residual: bool = True,
     shape0 = tuple(int(n) for n in (f_scan.shape(0) if f_scan is not None
                                     else result.info["input_shapes"]["reference"]))
     scale0, shift0, unit = scan_frame(f_scan, result.info)
-    s = int(result.info.get("level", 0))
+    s = result.level
     if units == "physical":
         vs = result.info.get("voxel_size") or (f_scan.voxel_size if f_scan is not None else None)
         if not vs:
@@ -329,7 +329,7 @@ def _write(result: Result, work: Path, out: Path, scans, shape0, frame, factor, 
 
     t0 = time.perf_counter()
     c = int(config.get("chunk-size"))
-    mesh, s = result.mesh, int(result.info.get("level", 0))
+    mesh, s = result.mesh, result.level
     meta = {"kind": "fields", "complete": False, "result": result.path, "level": s,
             "element_size": mesh.element_size, "roi_level0": [list(r) for r in roi_level0(mesh, s)],
             "channels": list(CHANNELS), "displacement_unit": disp_unit, "residual": scans is not None,

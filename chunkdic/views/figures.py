@@ -145,7 +145,7 @@ def frame(result: Result, *, physical: bool = True) -> Frame:
     length = result.voxel_length() if physical else None
     if length is None:
         return Frame((0.0,) * 3, (1.0,) * 3, (1.0,) * 3, level_label(result), False)
-    scale = float(result.info.get("scale", 1))
+    scale = result.scale
     vs = np.asarray(result.info["voxel_size"], dtype=np.float64)
     unit = result.info.get("unit") or "unit"
     return Frame(tuple(level0_position(0.0, scale) * vs), tuple(scale * vs), tuple(length),

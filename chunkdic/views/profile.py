@@ -89,7 +89,7 @@ def synthetic_field(result: Result, ref=None, deformed=None) -> Field | None:
 
 def _level0(result: Result, c):
     """Level-0 voxel coordinate of level coordinate ``c`` (DESIGN.md voxel centres)."""
-    return level0_position(c, float(result.info.get("scale", 1)))
+    return level0_position(c, result.scale)
 
 
 def _zz(dU_dZ: np.ndarray, strain: str) -> np.ndarray:
@@ -186,7 +186,7 @@ def write_profile_csv(rows: list[tuple[Result, LayerProfile, object]], path) -> 
             name = res.path or f"result {i}"
             for k in range(len(prof.z)):
                 zp = fr.position(0, prof.z[k]) if fr.physical else None
-                w.writerow([name, res.info["element_size"], int(res.info.get("level", 0)), k, num(prof.z[k]),
+                w.writerow([name, res.info["element_size"], res.level, k, num(prof.z[k]),
                             num(zp), fr.unit if fr.physical else "", num(prof.eps_zz[k]),
                             num(None if prof.eps_zz_true is None else prof.eps_zz_true[k]), int(prof.elements[k])])
     return str(path)
