@@ -5,7 +5,7 @@ from the scans' shapes and dtypes and the settings alone,
 
 - the levels, their meshes and blocks;
 - the memory of one task and of the client, hence the peak of each process: a process
-  holds :func:`base_bytes` (Python, NumPy, numba, zarr and the compiled kernels), the
+  holds :data:`BASE_BYTES` (Python, NumPy, numba, zarr and the compiled kernels), the
   client's mesh-sized data (:data:`CLIENT_BYTES_PER_NODE` per node of the finest mesh) and,
   with the embedded thread pool, one task per thread;
 - the scratch disk (missing pyramid levels for the whole run; per level the haloed copy of
@@ -39,7 +39,6 @@ import numpy as np
 from .. import config
 from ..errors import InputError
 from ..io.scan import open_scan
-from ..kernels.jit import compiled_on_disk
 from ..mesh import Mesh
 from ..scheduler import local_workers
 from .haloed import quantization
@@ -59,18 +58,9 @@ from .settings import Settings
 GiB, MiB = 2**30, 2**20
 
 #: resident memory of a running correlation's process besides its tasks and mesh data
-#: (bytes). The first run on a machine compiles the numba kernels, and LLVM's memory stays
-#: in the process: 0.32-0.33 GiB for whole 128³ runs whose tasks are small, 389 MiB peak at
-#: 128³. With the kernels loaded from numba's cache it is lower: 0.20 GiB after importing
-#: chunkdic and loading them, 317-321 MiB peak for the same 128³ run (measured), where a
-#: single cold figure overestimated the peak by 29 % (outside the 25 % the plan promises).
-BASE_BYTES_COLD = 330 * MiB
-BASE_BYTES_WARM = 240 * MiB
-
-
-def base_bytes() -> int:
-    """:data:`BASE_BYTES_WARM` when the kernels are in numba's cache, else the cold figure."""
-    return BASE_BYTES_WARM if compiled_on_disk() else BASE_BYTES_COLD
+#: (bytes; measured: 0.26 GiB after importing chunkdic and loading its kernels, 0.32-0.33
+#: GiB for whole 128³ runs whose tasks are small)
+BASE_BYTES = 330 * MiB
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
 #: solver's block inverse and CG vectors, the regulariser, the nodal fields and the
 #: result (measured: 3.0 GB at 128³ nodes, docs/distributed.md)
@@ -229,7 +219,7 @@ class Plan:
             finest = self.levels[-1]
             raise InputError(
                 f"memory target {_b(self.memory_target)} per process cannot hold this run: the client alone needs "
-                f"{_b(base_bytes() + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
+                f"{_b(BASE_BYTES + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
                 f"is {_b(self.smallest_bytes)} with the smallest blocks: raise the target, or use larger elements "
                 f"or a coarser level")
         same_disk = self.output_dir is not None and _device(self.scratch_dir) == _device(self.output_dir)
@@ -419,8 +409,8 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
                 held.append(prepare_bytes(max(edges), sigma, interp) * min(threads, n_prep))
         task = max(held)
         if separate:
-            return task, base_bytes() + max(client, task)
-        return task, base_bytes() + client + task
+            return task, BASE_BYTES + max(client, task)
+        return task, BASE_BYTES + client + task
 
     edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
     smallest = peak(1, MIN_PREPARE_EDGE)[1]
