@@ -206,7 +206,8 @@ class State:
         """Record the increment ``q`` measured in units of the field's uncertainty over the
         settled nodes (:func:`noise_step_of`), the unsettled nodes (bool, nodes shape) and
         their ``fraction`` of the measured nodes."""
-        ratio = float(q) / self.last_noise_step if self.last_noise_step > 0 else math.inf
+        last = self.last_noise_step  # inf before the first increment (or after a restart): no ratio yet
+        ratio = float(q) / last if math.isfinite(last) and last > 0 else math.inf
         self.noise_remaining = float(q) * ratio / (1.0 - ratio) if ratio < 1.0 else math.inf
         self.last_noise_step = float(q)
         quiet = q < NOISE_STEP and fraction <= UNSETTLED_FRACTION
