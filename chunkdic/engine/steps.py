@@ -172,7 +172,7 @@ def solve_level(ctx: RunContext, run: RunState, lvl: Level) -> None:
 def finish_level(ctx: RunContext, run: RunState, lvl: Level, t0: float) -> LevelOutcome:
     """Record the level's status, checkpoint, free its scratch; what it leaves for the result."""
     s = lvl.s
-    outcome = LevelOutcome(weak=lvl.weak_nodes(), masked=lvl.masked_nodes(), active=lvl.active,
+    outcome = LevelOutcome(weak=unreliable_nodes(lvl, run.gn), masked=lvl.masked_nodes(), active=lvl.active,
                            reg_length=lvl.regularization_length * 2**s)
     lvl.release()
     run.statuses[s] = run.gn.status
@@ -184,6 +184,20 @@ def finish_level(ctx: RunContext, run: RunState, lvl: Level, t0: float) -> Level
         outcome.sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
         outcome.noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
     return outcome
+
+
+def unreliable_nodes(lvl: Level, state: State) -> np.ndarray:
+    """The level's weak nodes (index triples, shape (n, 3)) and, when it converged at the
+    noise level, the nodes its latest increment still moved by more than ``STEP_CAP`` σ_u:
+    a few poorly seen nodes at the specimen's edge can run away while the rest of the field
+    has stopped (docs/engine.md, "Iterations and stopping"); their values are not measured
+    and are flagged ``FLAG_WEAK`` with the poorly textured ones."""
+    weak = lvl.weak_nodes()
+    if state.status != "converged" or state.unsettled is None or not state.unsettled.any():
+        return weak
+    moving = state.unsettled & ~lvl.masked_nodes()
+    emit(lvl.progress, stage="unsettled", level=lvl.s, nodes=int(moving.sum()))
+    return np.unique(np.concatenate([weak.reshape(-1, 3), np.argwhere(moving)]), axis=0)
 
 
 def regularization_length(settings: Settings, state: State, s: int, mesh: Mesh) -> float:
