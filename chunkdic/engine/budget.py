@@ -54,7 +54,7 @@ from .prefilter import (
     prepared_halo,
     task_edge,
 )
-from .scratchstore import COMPACT_RATIO, layout
+from .scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
 from .settings import Settings
 
 GiB, MiB = 2**30, 2**20
@@ -537,13 +537,15 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
 
 def compact_level(lv: LevelPlan, f_dtype, g_dtype, sigma: float, interpolation: str) -> LevelPlan:
     """``lv`` with its 16-bit scratch stores planned at :data:`COMPACT_RATIO` of their bytes
-    (the compact layout compresses those only: float32 stores stay as they are)."""
+    (the compact layout compresses those only: float32 stores stay as they are), and its
+    work :data:`COMPACT_WORK` times larger when it has such stores."""
     f_copy, prep = lv.f_copy_bytes, lv.prepared_bytes
     if sigma > 0 and quantization(f_dtype)[1] > 0:
         f_copy = int(f_copy * COMPACT_RATIO["f"])
     if prep and prepared_grid(g_dtype, sigma, interpolation)[1] > 0:
         prep = int(prep * COMPACT_RATIO["g"])
-    return dataclasses.replace(lv, f_copy_bytes=f_copy, prepared_bytes=prep)
+    slower = COMPACT_WORK if (f_copy, prep) != (lv.f_copy_bytes, lv.prepared_bytes) else 1.0
+    return dataclasses.replace(lv, f_copy_bytes=f_copy, prepared_bytes=prep, work=lv.work * slower)
 
 
 def _pyramid_tasks(scan, levels) -> tuple[int, int]:
