@@ -22,6 +22,11 @@ the level's, not the block's, so results stay independent of the block size; and
 scratch store of a level-0 run (17 GB of 35 at 2048³); its effect on the measured field
 is in docs/engine.md ("Scratch disk"). Other levels and float scans stay float32.
 
+When the disk cannot hold the run, the plan picks the compact layout
+(:mod:`chunkdic.engine.scratchstore`): a 16× coarser grid, chunks compressed with
+blosc zstd (0.55 of the bytes). Either way a task reads its chunk's file itself
+(:func:`chunkdic.engine.scratchstore.read_chunk`: 2 ms for a 130³ chunk, 18 ms through zarr).
+
 Retried tasks are safe: a task writes exactly one whole chunk, always the same values.
 """
 
