@@ -97,7 +97,7 @@ class StencilSolver:
         self._diag = diag.reshape(self.nodes_shape + (3, 3))
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
-        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0)
+        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0)
         self.block_inverse = np.linalg.inv(self._diag)
         self.multigrid = multigrid
         self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
@@ -156,7 +156,7 @@ class StencilSolver:
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
-        code, Ke, Kf, sw = self._reg_args
+        code, Ke, Kf, sw, ew = self._reg_args
         norm = float(np.sqrt(np.sum(b * b)))
         self.largest_rhs = max(self.largest_rhs, norm)
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
@@ -164,7 +164,7 @@ class StencilSolver:
             iterations = pcg(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
         else:
             iterations = pcg_block_jacobi(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
-                              code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
+                              code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)
