@@ -26,11 +26,13 @@ from .stencil import pcg, pcg_block_jacobi, stencil_matvec
 
 log = logging.getLogger(__name__)
 
-#: multigrid replaces block-Jacobi (Tikhonov only) from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii``
-#: (medians over nodes): from about 7ℓ, where block-Jacobi CG needs ~100 iterations and
-#: the V-cycle 9 (docs/engine.md, "Solve"). The equilibrium gap keeps block-Jacobi: its
-#: large non-smooth near-null space (every field in equilibrium) defeats the point
-#: smoother, and the V-cycle saved iterations but not time (measured).
+#: multigrid replaces block-Jacobi from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii`` (medians
+#: over nodes): from about 7ℓ with Tikhonov, where block-Jacobi CG needs ~100 iterations and
+#: the V-cycle 9 (docs/engine.md, "Solve"); about 9ℓ with the equilibrium gap, whose
+#: diagonal is smaller at equal length. The equilibrium gap used to keep block-Jacobi: its
+#: null space then held every field set by the box's edges, which defeated the V-cycle
+#: (1 012 iterations at 16ℓ); with the edge term it has 24 fields, like Tikhonov's, and the
+#: V-cycle needs 27-74 iterations from 8ℓ to 32ℓ where block-Jacobi needs 214-1 861.
 MULTIGRID_FROM = 100.0
 
 
@@ -62,9 +64,9 @@ class StencilSolver:
         CG iterations before giving up with a warning.
     multigrid : bool or None
         Precondition with a multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) instead of
-        block-Jacobi: ``None`` (default) when it pays, i.e. with Tikhonov regularisation
-        whose weight makes ``λ R`` dominate ``M`` (:data:`MULTIGRID_FROM`); ``True`` whenever
-        regularised, ``False`` never.
+        block-Jacobi: ``None`` (default) when it pays, i.e. with a regularisation whose weight
+        makes ``λ R`` dominate ``M`` (:data:`MULTIGRID_FROM`); ``True`` whenever regularised,
+        ``False`` never.
 
     Raises
     ------
@@ -132,8 +134,6 @@ class StencilSolver:
             return False
         if self.multigrid:
             return True
-        if self.regularizer.kind != "tikhonov":
-            return False
         return self.weight * self._regularizer_diagonal >= MULTIGRID_FROM * self._matrix_diagonal
 
     def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
