@@ -82,7 +82,7 @@ def block_jacobi(Binv, r, z):
 
 
 @numba.njit(nogil=True, cache=True)
-def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
+def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
 
     Written out (rather than scipy's ``cg``) so that its vector operations are plain
@@ -105,7 +105,7 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
     for it in range(1, maxiter + 1):
         half_matvec(H, p, q)
         if code != 0:
-            add_weighted(code, Ke, Kf, sw, lam, p, q)
+            add_weighted(code, Ke, Kf, sw, ew, lam, p, q)
         alpha = rz / dot(pf, qf)
         axpy(alpha, pf, xf)
         axpy(-alpha, qf, rf)
