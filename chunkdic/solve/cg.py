@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from ..errors import InputError
-from .galerkin import matrix_hierarchy
+from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .regularization import Regularizer, add_weighted
 from .stencil import pcg, pcg_block_jacobi, stencil_matvec
@@ -185,3 +185,8 @@ def warmup() -> None:
     solver = StencilSolver(half, multigrid=True)
     solver.regularize(Regularizer("tikhonov", (7, 7, 7), 2.0), 1.0)
     solver.solve(np.ones((7, 7, 7, 3)))
+    # the V-cycle's coarse penalty product (reached only on larger meshes): compiled here
+    # too, so that every kernel of a run is in numba's cache after a first run
+    # (chunkdic.engine.budget.kernels_cached)
+    regularizer_stencil(Regularizer("tikhonov", (3, 3, 3), 2.0)).matvec_add(1.0, np.ones((3, 3, 3, 3)),
+                                                                           np.zeros((3, 3, 3, 3)))
