@@ -10,12 +10,19 @@ with a penalty ``aᵀ R a`` that damps the short wavelengths of the field and le
 long ones to the images (the usual regularised global DVC: pyxel, UFreckles, Correli):
 
 ``tikhonov``
-    ``R = Σ_axes D2ᵀ D2``, the squared second differences of each component along every
-    grid line of nodes (a discrete curvature, in voxel units scaled away by the
-    normalisation). It reaches every node, the ROI's edges and corners included, and costs
-    nothing for rigid and linear fields: it penalises the curvature of the field, not its
-    gradient (the H¹ energy ``∫ |∇u|²`` would pull a homogeneous strain towards zero: on a
-    5³-node mesh of a −2 % compression it measured −1.7 %). A fourth-order low-pass.
+    ``R = Σ_axes D2ᵀ D2 + 2 Σ_planes Dmᵀ Dm``, the squared Frobenius norm of the discrete
+    Hessian of each component: second differences along every grid line of nodes plus
+    twice the squared mixed differences ``u₀₀ − u₁₀ − u₀₁ + u₁₁`` of every 2×2 square of
+    nodes in the three grid planes (a discrete curvature, in voxel units scaled away by the
+    normalisation). Its plane-wave symbol is ``(Σ_i s_i)²`` with ``s_i = 2 − 2 cos θ_i``,
+    ``|θ|⁴`` to leading order: a wave is damped by its wavelength whatever its direction.
+    The second differences alone (``Σ s_i²``, the form until issue 20) damp a wave along a
+    grid diagonal 2–3× less than one along an axis, so at the same resolution along the
+    axes the field kept 1.2× more noise (measured on the star, docs/engine.md). It reaches
+    every node, the ROI's edges and corners included, and costs nothing for rigid and
+    linear fields: it penalises the curvature of the field, not its gradient (the H¹
+    energy ``∫ |∇u|²`` would pull a homogeneous strain towards zero: on a 5³-node mesh of a
+    −2 % compression it measured −1.7 %). A fourth-order low-pass.
 ``equilibrium-gap``
     ``R = Kᵀ P K + μ_s Σ_faces Lᵀ P_s L + μ_e Σ_edges D2ᵀ D2``: ``K`` the stiffness of a
     homogeneous isotropic elastic solid on the C8 mesh (Poisson ratio ``POISSON``), ``P``
@@ -157,6 +164,43 @@ def _apply_curvature(x, y, w):
 
 
 @numba.njit(nogil=True, cache=True)
+def _apply_mixed(x, y, w):
+    """y += w Σ_planes Dmᵀ Dm x: the mixed difference of every 2×2 square of nodes, per component."""
+    nz, ny, nx = x.shape[0], x.shape[1], x.shape[2]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for c in range(3):
+                    v = x[i, j, k, c]
+                    if i < nz - 1 and j < ny - 1:  # the (z, y) square
+                        t = w * (v - x[i + 1, j, k, c] - x[i, j + 1, k, c] + x[i + 1, j + 1, k, c])
+                        y[i, j, k, c] += t
+                        y[i + 1, j, k, c] -= t
+                        y[i, j + 1, k, c] -= t
+                        y[i + 1, j + 1, k, c] += t
+                    if i < nz - 1 and k < nx - 1:  # (z, x)
+                        t = w * (v - x[i + 1, j, k, c] - x[i, j, k + 1, c] + x[i + 1, j, k + 1, c])
+                        y[i, j, k, c] += t
+                        y[i + 1, j, k, c] -= t
+                        y[i, j, k + 1, c] -= t
+                        y[i + 1, j, k + 1, c] += t
+                    if j < ny - 1 and k < nx - 1:  # (y, x)
+                        t = w * (v - x[i, j + 1, k, c] - x[i, j, k + 1, c] + x[i, j + 1, k + 1, c])
+                        y[i, j, k, c] += t
+                        y[i, j + 1, k, c] -= t
+                        y[i, j, k + 1, c] -= t
+                        y[i, j + 1, k + 1, c] += t
+
+
+@numba.njit(nogil=True, cache=True)
+def _apply_hessian(x, y, w):
+    """y += w R x for Tikhonov: the squared Frobenius norm of the discrete Hessian (the mixed
+    terms counted twice, as ``∂_i∂_j`` and ``∂_j∂_i``)."""
+    _apply_curvature(x, y, w)
+    _apply_mixed(x, y, 2.0 * w)
+
+
+@numba.njit(nogil=True, cache=True)
 def _face_node(axis, k0, i1, i2):
     """(z, y, x) of node (i1, i2) of the face ``axis = k0`` (in-plane axes in cyclic order)."""
     if axis == 0:
@@ -228,7 +272,7 @@ def _apply_edges(x, y, w):
 def add_weighted(code, Ke, Kf, surface_weight, edge_weight, lam, x, y):
     """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve.cg`); ``code`` 1 Tikhonov, 2 equilibrium gap."""
     if code == 1:
-        _apply_curvature(x, y, lam)
+        _apply_hessian(x, y, lam)
         return
     k = np.zeros_like(x)
     _apply_vector(Ke, x, k)
@@ -312,7 +356,7 @@ class Regularizer:
         x = np.ascontiguousarray(x, dtype=np.float64)
         if self.kind == "tikhonov":
             y = np.zeros_like(x)
-            _apply_curvature(x, y, 1.0)
+            _apply_hessian(x, y, 1.0)
             return y
         y = self._K(_interior(self._K(x)))
         if self.surface_weight:

@@ -90,6 +90,11 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     than the whole stencil product. The vector operations run on flat views through
     :func:`dot` and :func:`axpy`: written as 4-D array expressions they took numba 41 s
     to compile (the first run's largest single wait), as flat loops under a second.
+
+    ``λ R`` comes from :func:`chunkdic.solve.regularization.add_weighted`, compiled into this
+    function's Numba cache: a change of ``R`` (the Tikhonov Hessian of issue 20) is seen here
+    only once this file changes too or the cache is cleared (docs/architecture.md,
+    development notes).
     """
     r = b.copy()  # x starts at zero
     z = np.empty_like(b)

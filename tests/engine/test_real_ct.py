@@ -217,6 +217,8 @@ def test_a_24_voxel_wave_at_ell_6_converges_at_the_noise_level(wave24_pair):
     not ``stalled`` (before: stalled on all four 64³ pairs, grains / concrete × 2 seeds, with
     fields as good as the converged 80³ ones). Scored between the nodes against the analytic
     wave (RMS 0.354 for a zero field). Measured: RMS 0.0916 (before: 0.1007, stalled);
+    with the Tikhonov Hessian (issue 20 item 4) 0.0821, final gap 3.2 % above the level's
+    best (the runaway nodes; 1.6 % with the second differences alone);
     docs/engine.md, "Iterations and stopping"."""
     import chunkdic
     from chunkdic.analysis.scoring import score_between_nodes
@@ -227,9 +229,9 @@ def test_a_24_voxel_wave_at_ell_6_converges_at_the_noise_level(wave24_pair):
     assert res.info["status"] == "converged" and res.converged
     h = res.history
     fine = (h["level"] == 0) & (h["iteration"] >= 0)
-    # stopped at the noise level, not by the tolerance: the gap near its best (within 2 %; the
-    # runaway nodes cost 1.6 %), the increments far above 1e-3 voxel
-    assert res.final_gap <= 1.02 * h["gap"][fine].min()
+    # stopped at the noise level, not by the tolerance: the gap near its best (within 5 %; the
+    # runaway nodes cost 3.2 %), the increments far above 1e-3 voxel
+    assert res.final_gap <= 1.05 * h["gap"][fine].min()
     assert np.nanmin(h["max_delta"][fine]) > 0.01
     axes = [np.unique(c) for c in res.node_coords]
     score = score_between_nodes(axes, res.displacement, field, (n,) * 3, 6)

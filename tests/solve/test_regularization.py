@@ -62,12 +62,15 @@ def test_penalty_vanishes_on_rigid_and_linear_fields_at_every_node(kind):
     assert np.abs(reg.apply(X**2 / X.max())).max() > 1e-3 * scale  # a curved field is penalised
 
 
-def test_tikhonov_is_the_sum_of_squared_second_differences_along_grid_lines():
+def test_tikhonov_is_the_squared_norm_of_the_discrete_hessian():
+    """``xᵀRx`` = Σ second differences² along the grid lines + 2 Σ mixed differences² of the
+    2×2 squares of nodes in the three planes (``np.diff`` by hand)."""
     shape = (6, 7, 5)
     rng = np.random.default_rng(1)
     reg = Regularizer("tikhonov", shape, 4.0)
     x = rng.standard_normal(shape + (3,))
     by_hand = sum(float(np.sum(np.diff(x, n=2, axis=a) ** 2)) for a in range(3))
+    by_hand += 2 * sum(float(np.sum(np.diff(np.diff(x, axis=a), axis=b) ** 2)) for a, b in ((0, 1), (0, 2), (1, 2)))
     assert float(np.sum(x * reg.apply(x))) == pytest.approx(by_hand, rel=1e-12)
     # D2ᵀ D2 of x⁴ along one axis is the fourth difference: 24 (node units) at nodes >= 2 from its faces
     k = np.arange(shape[2], dtype=np.float64)
@@ -76,6 +79,31 @@ def test_tikhonov_is_the_sum_of_squared_second_differences_along_grid_lines():
     r = reg.apply(quartic)
     np.testing.assert_allclose(r[:, :, 2:-2, 1], 24.0, rtol=1e-12)
     assert not r[..., [0, 2]].any()
+
+
+@pytest.mark.parametrize("direction", [(1, 1, 0), (0, 1, 1), (1, 1, 1), (1, 2, 0)])
+def test_tikhonov_damps_a_plane_wave_by_its_wavelength_whatever_its_direction(direction):
+    """Issue 20 (the star's noise): a long plane wave along a grid diagonal costs what the
+    same wavelength along an axis costs. Truth: the continuous Hessian norm, ``|k|⁴`` for
+    ``sin(k · X)`` whatever the direction of ``k``. Wavelength 12 nodes on 41³ nodes: the
+    Rayleigh quotients ``vᵀRv / vᵀv`` agree within 4 % (discrete: ``(Σ s_i)²`` against
+    ``s²``, 1.02 along (1, 1, 0), 1.03 along (1, 1, 1)). The second differences alone gave
+    0.51 and 0.34: diagonal noise was damped 2–3× less than the resolution along the axes
+    implies."""
+    shape = (41, 41, 41)
+    reg = Regularizer("tikhonov", shape, 1.0)
+    X = _node_positions(shape, 1.0)
+    k = 2 * np.pi / 12.0
+
+    def quotient(d):
+        d = np.asarray(d, np.float64) / np.linalg.norm(d)
+        v = np.zeros(shape + (3,))
+        v[..., 2] = np.sin(k * (X @ d) + 0.3)
+        inner = (slice(2, -2),) * 3  # away from the faces, where R is translation invariant
+        return float(np.sum((v * reg.apply(v))[inner]) / np.sum((v * v)[inner]))
+
+    ratio = quotient(direction) / quotient((1, 0, 0))
+    assert ratio == pytest.approx(1.0, abs=0.04)
 
 
 def test_equilibrium_gap_vanishes_for_a_field_in_equilibrium():
@@ -399,9 +427,11 @@ def test_predicted_risk_picks_the_length_of_least_error_on_noisy_known_fields():
     a linear field (pure noise). The predicted risk (``rule="upre"``) picks
     the candidate of least error or one whose error is within 10 % of it; on pure noise
     a long one (at least 8ℓ). Measured (7³ nodes, seed 5): the least-error candidate for
-    every wave (as the discrepancy rule); on pure noise 8ℓ (error 1.3× the longest's, where
-    the risk is flat: the trace and the misfit change by less than the noise there; seed 6:
-    the longest).
+    every wave (as the discrepancy rule); on pure noise 8ℓ, where the risk is flat (the
+    trace and the misfit change by less than the noise there; seed 6: the longest): its
+    error was 1.3× the longest's with the second differences alone, 1.73× with the full
+    Hessian (issue 20), whose long lengths damp the noise of every direction further
+    (least error 0.0165 at 32ℓ, 0.0285 at 8ℓ): bound 2×.
     """
     shape, ell, sigma = (7, 7, 7), 4.0, 0.2
     half = _identity_stencil(shape)
@@ -420,7 +450,7 @@ def test_predicted_risk_picks_the_length_of_least_error_on_noisy_known_fields():
         pick = choose_length("tikhonov", half, ell, data, zero, sigma**2, _direct_solve, rule="upre")
         k = int(np.argmin(np.abs(lengths - pick.length)))
         if name == "linear":
-            assert lengths[k] >= 8 * ell and errors[k] <= 1.5 * min(errors), (k, errors)
+            assert lengths[k] >= 8 * ell and errors[k] <= 2.0 * min(errors), (k, errors)
         else:
             assert errors[k] <= 1.1 * min(errors), (name, k, errors)
 
