@@ -270,8 +270,10 @@ def test_equilibrium_gap_converges_on_the_band_at_small_elements(ct_cases, speci
     increments of 1-88 voxels at edge nodes, and grains ℓ = 6 stopped "at the noise level"
     with increments of 0.057 voxel; at 96³ concrete ℓ = 4 diverged. Now each converges by the
     tolerance (last increment < 1e-3 voxel; measured 3-5e-4) with the increments shrinking
-    ×0.1-0.4 per pass. The field, scored between the nodes against the known band, is within
-    1.5× Tikhonov's at the same ℓ (measured 1.17-1.32×: a localised band is not in
+    ×0.1-0.4 per pass; with the stopping rule of the false-'stalled' fix (a geometric
+    extrapolation of the increments left below half the noise ends the level) one or two
+    passes earlier, last increments 0.0015-0.0056. The field, scored between the nodes against the known band, is within
+    1.7× Tikhonov's at the same ℓ (measured 1.17-1.32×, 1.50× once Tikhonov became the Hessian norm: a localised band is not in
     equilibrium for a homogeneous solid, so the equilibrium gap damps it more at any
     length: at ℓ = 6 on grains every fixed length from 6 to 24 voxels gave 0.057-0.073).
     """
@@ -287,10 +289,16 @@ def test_equilibrium_gap_converges_on_the_band_at_small_elements(ct_cases, speci
         if kind == "equilibrium-gap":
             h = res.history
             steps = h["max_delta"][(h["level"] == res.info["level"]) & np.isfinite(h["max_delta"])]
-            assert steps[-1] < res.info["settings"]["tolerance"], steps  # converged by the tolerance
+            # converged by shrinking increments (by the tolerance, or by the stopping rule's
+            # geometric extrapolation of what is left, below half the noise), not by the old
+            # noise-level stop with increments stuck at 0.057 voxel: after the length choice
+            # the increments fall x0.06-0.4 per pass, the last one 0.0015-0.0056 voxel
+            assert steps[-1] < 0.01 and steps[-1] < 0.5 * steps[-2], steps
     measured_eq, _ = EQGAP_BAND[specimen, ell]
     assert rms["equilibrium-gap"] <= 1.4 * measured_eq
-    assert rms["equilibrium-gap"] <= 1.5 * rms["tikhonov"]
+    # 1.17-1.32x measured before Tikhonov's penalty became the whole Hessian, which lowered
+    # Tikhonov's error (concrete l = 4: 0.0522 -> 0.0459) and not the equilibrium gap's: 1.50x
+    assert rms["equilibrium-gap"] <= 1.7 * rms["tikhonov"]
 
 
 @pytest.fixture(scope="module")
