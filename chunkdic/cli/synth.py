@@ -203,17 +203,20 @@ def run(args) -> int:
     extra = _specimen_options(args)
     check_scheduler(args.scheduler)
     plan = Outputs(overwrite=args.overwrite)
-    plan.add(args.out_dir, "synth")  # checked before anything is written; removed if the run fails
+    # checked before anything is written; removed if a fresh run fails. A folder left
+    # incomplete by a killed run is continued (resume): its complete chunks are kept.
+    entry = plan.add(args.out_dir, "synth", resumable=True)
     t0 = time.perf_counter()
     # the header is said once writing starts: a refused run prints its error line only
+    again = " (resuming an interrupted run: its complete chunks are kept)" if entry.state == "resume" else ""
     progress = Progress("synth", header=f"synth: {args.out_dir} {args.specimen} shape {shape}, field "
-                                        f"{'none' if fld is None else fld.to_json()}", indent="")
+                                        f"{'none' if fld is None else fld.to_json()}{again}", indent="")
 
     with plan, dask_scheduler(args.scheduler, announce=lambda msg: print(f"synth: {msg}", file=sys.stderr,
                                                                           flush=True)):
         res = S.synthesize(
             args.out_dir, shape, field=fld, seed=args.seed, dtype=args.dtype, chunks=args.chunks,
-            voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=False,
+            voxel_size=vs, unit=args.unit, levels=args.levels, overwrite=False, resume=entry.state == "resume",
             progress=progress, specimen=args.specimen, noise=args.noise, fourier_shift=fourier,
             **extra,
         )
