@@ -71,7 +71,7 @@ def _metadata(field, p: TextureParams, shape, dtype, noise) -> dict:
 
 
 SPECIMEN_NAMES = ("foam", "grains", "concrete")
-_CT_ONLY = ("angles", "filter", "blur", "rings", "gain", "offset", "drift")
+_CT_ONLY = ("angles", "filter", "blur", "rings", "gain", "offset", "drift", "mode", "imaging")
 
 
 def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "foam",
@@ -120,7 +120,8 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
     **params
         Foam: other :class:`TextureParams` fields. CT specimens: specimen parameters
         (:class:`~chunkdic.synth.microstructure.GrainsParams`, ``ConcreteParams``), imaging
-        (``angles``, ``filter``, ``blur``, ``rings``) and the grey-level change of the
+        (``imaging="fbp"`` or ``"local"``, :mod:`chunkdic.synth.ctlocal`; ``angles``, ``filter``,
+        ``blur``, ``rings``) and the grey-level change of the
         deformed scan (``gain``, ``offset``, ``drift``; :class:`~chunkdic.synth.ctsim.GreyChange`).
 
     Returns
@@ -170,7 +171,7 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
                 arr, tmp = fourier_deformed(ref_path, os.path.dirname(ref_path), p)
                 scratch.append(tmp)
                 return arr
-            return as_dask_ct(p, which)
+            return as_dask_ct(p, which, chunks)
     out = _write_pair(out_dir, shape, make, meta, chunks=chunks, voxel_size=voxel_size,
                       unit=unit, levels=levels, overwrite=overwrite, progress=progress, resume=resume)
     return {**out, "field": field, "texture": p if specimen == "foam" else p.params}
