@@ -8,7 +8,7 @@ Prints (docs/synthetic.md, "Local imaging"):
 - ``engine``: what ``chunkdic.correlate`` measures on pairs of both imagings at ``--n``:
   sigma of a (0.5, 0.5, 0.5) translation rendered with independent noise (case b) and the
   RMS error of the band case (c, no grey change) at the nodes at least ``ell`` from the
-  faces, ``ell`` = 16 and 8;
+  faces, ``ell`` = 16 and 8; the translation also without regularisation (raw sigma);
 - ``speed``: CPU time of a local pair (``synthesize``, band, uint16) at ``--sizes``,
   Mvoxel per CPU s (both scans counted) and the 2048³ pair extrapolated on 2 cores.
 
@@ -82,29 +82,34 @@ def spectra(n: int, slices: int = 8) -> None:
         print(f"{mode:>5}: log-log slope of the NPS over 0.04 < k < 0.3: {slope:.2f}")
 
 
-def engine(n: int, root: str) -> None:
+def engine(n: int, root: str, cases=("shift", "band")) -> None:
     import chunkdic
     from chunkdic import score_displacement
     from chunkdic.synth import synthetic as S
     from chunkdic.synth.fields import true_displacement
 
     print(f"# engine at {n}^3, grains, noise 0.02, uint16, CT defaults; nodes >= ell from the faces")
-    print(f"{'imaging':>7} {'case':>6} {'ell':>4} {'sigma':>8} {'RMS':>8} {'status':>10} {'wall s':>7}")
+    print(f"{'imaging':>7} {'case':>12} {'ell':>4} {'sigma':>8} {'RMS':>8} {'status':>10} {'wall s':>7}")
     for mode in ("fbp", "local"):
-        for case in ("shift", "band"):
+        for case in cases:
             out = os.path.join(root, f"{mode}-{case}")
             res = S.standard_case(out, case, n, specimen="grains", noise=0.02, imaging=mode)
             fld = res["field"]
-            for ell in (16, 8):
+            runs = [(ell, {}) for ell in (16, 8)]
+            if case == "shift":  # sigma of a translation without the regularisation, which hides it
+                runs += [(ell, {"regularization": "none"}) for ell in (16, 8)]
+            for ell, opts in runs:
                 t0 = time.perf_counter()
-                r = chunkdic.correlate(os.path.join(out, "ref.zarr"), os.path.join(out, "def.zarr"), element_size=ell)
+                r = chunkdic.correlate(os.path.join(out, "ref.zarr"), os.path.join(out, "def.zarr"), element_size=ell,
+                                       **opts)
                 wall = time.perf_counter() - t0
                 scale = float(r.info.get("scale", 1))
                 pts = r.node_coords.reshape(3, -1) * scale + (scale - 1) / 2
                 u = r.displacement.reshape(3, -1) * scale
                 truth = true_displacement(fld, pts[0], pts[1], pts[2])
                 s = score_displacement(pts, u, truth, (n, n, n), ell)
-                print(f"{mode:>7} {case:>6} {ell:>4} {s.sigma:8.4f} {s.rms:8.4f} {str(r.info.get('status')):>10} "
+                name = case + (" noreg" if opts else "")
+                print(f"{mode:>7} {name:>12} {ell:>4} {s.sigma:8.4f} {s.rms:8.4f} {str(r.info.get('status')):>10} "
                       f"{wall:7.1f}", flush=True)
 
 
@@ -133,13 +138,14 @@ def main() -> None:
     ap.add_argument("--n", type=int, default=128)
     ap.add_argument("--sizes", type=int, nargs="+", default=[128, 256])
     ap.add_argument("--dir", default=None)
+    ap.add_argument("--cases", nargs="+", default=["shift", "band"])
     a = ap.parse_args()
     print(f"# load {open('/proc/loadavg').read().split()[:3]}")
     with tempfile.TemporaryDirectory(dir=a.dir) as root:
         if "spectra" in a.parts:
             spectra(a.n)
         if "engine" in a.parts:
-            engine(a.n, root)
+            engine(a.n, root, a.cases)
         if "speed" in a.parts:
             speed(a.sizes, root)
     print(f"# load {open('/proc/loadavg').read().split()[:3]}")
