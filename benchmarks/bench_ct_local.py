@@ -89,7 +89,7 @@ def engine(n: int, root: str, cases=("shift", "band")) -> None:
     from chunkdic.synth.fields import true_displacement
 
     print(f"# engine at {n}^3, grains, noise 0.02, uint16, CT defaults; nodes >= ell from the faces")
-    print(f"{'imaging':>7} {'case':>12} {'ell':>4} {'sigma':>8} {'RMS':>8} {'status':>10} {'wall s':>7}")
+    print(f"{'imaging':>7} {'case':>12} {'ell':>4} {'sigma':>8} {'RMS':>8} {'status':>10} {'wall s':>7} reg. length")
     for mode in ("fbp", "local"):
         for case in cases:
             out = os.path.join(root, f"{mode}-{case}")
@@ -110,7 +110,7 @@ def engine(n: int, root: str, cases=("shift", "band")) -> None:
                 s = score_displacement(pts, u, truth, (n, n, n), ell)
                 name = case + (" noreg" if opts else "")
                 print(f"{mode:>7} {name:>12} {ell:>4} {s.sigma:8.4f} {s.rms:8.4f} {str(r.info.get('status')):>10} "
-                      f"{wall:7.1f}", flush=True)
+                      f"{wall:7.1f} {(r.info.get('regularization') or {}).get('length')}", flush=True)
 
 
 def speed(sizes, root: str) -> None:

@@ -28,9 +28,11 @@ def register(subparsers) -> None:
             "OUT_DIR/field.json, the analytic displacement field. --specimen foam (default): "
             "a smooth procedural foam, g(X + u(X)) = f(X) exactly (up to rounding for integer "
             "dtypes). --specimen grains|concrete: a sharp-edged microstructure imaged like a "
-            "CT scan slice by slice (projections, noise, filtered back-projection), each scan "
-            "with its own noise; the deformed scan is rendered from the deformed geometry "
-            "(docs/synthetic.md)."
+            "CT scan slice by slice (projections, noise, filtered back-projection; or, with "
+            "--imaging local, the reconstruction's measured blur and ramp-spectrum noise computed "
+            "per chunk, for large scans), each scan with its own noise; the deformed scan is "
+            "rendered from the deformed geometry (docs/synthetic.md). A synth killed midway "
+            "resumes when the same command runs again (chunks already written are kept)."
         ),
     )
     p.add_argument("out_dir", metavar="OUT_DIR")

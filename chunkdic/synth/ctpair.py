@@ -17,6 +17,10 @@ contrast spans 32768 levels; ``uint8``: 128 levels), rounded and clipped: the ha
 margins hold the FBP overshoot at edges (up to ~0.2) and noise (at noise 0.02 a voxel
 clips only 14 sigma beyond the worst overshoot). ``float32`` keeps phase units.
 
+With ``imaging="local"`` (:mod:`chunkdic.synth.ctlocal`) a scan is computed per Zarr chunk
+instead (any box, from global in-plane tiles with halos; cost per voxel independent of the
+slice size), see :meth:`CTSpecimen.block`.
+
 The deformed scan of a ``fourier_shift`` pair is not rendered: it is the stored reference
 translated by a Fourier phase shift (:func:`chunkdic.synth.fourier_shift.fourier_shift_scan`, the
 paper's section 4.2 test), rounded to the reference's dtype.
