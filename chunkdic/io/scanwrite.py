@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import json
 import logging
+import os
+import re
 import time
 from collections.abc import Callable
 
@@ -143,7 +145,9 @@ def write_scan_resumable(path, data, *, attrs: dict, voxel_size=None, unit=None,
     forget_open_arrays()
     cuts = np.cumsum([0.0, 1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)])
     cuts = cuts / cuts[-1]
-    if not resumed:
+    if resumed:
+        _remove_partial_chunk_files(os.path.join(path, "0"))
+    else:
         g = zarr.open_group(store=path, mode="w-", zarr_format=3)
         g.update_attributes({"chunkdic": own, "ome": {"version": "0.5"}})
         create_level(path, 0, data.shape, data.dtype, chunk_shape)
@@ -159,12 +163,27 @@ def write_scan_resumable(path, data, *, attrs: dict, voxel_size=None, unit=None,
     return resumed
 
 
+def _remove_partial_chunk_files(level_dir: str) -> None:
+    """Remove the temporary files of chunk writes a killed process left in ``level_dir``.
+
+    zarr's local store writes a chunk to ``KEY.<uuid hex>.partial`` and renames it onto
+    ``KEY`` (so a chunk file is never half written by a kill); a kill between the two
+    leaves the temporary file, which nothing else would ever remove.
+    """
+    for root, _, names in os.walk(level_dir):
+        for name in names:
+            if _ZARR_PARTIAL.fullmatch(name):
+                os.remove(os.path.join(root, name))
+
+
+_ZARR_PARTIAL = re.compile(r".+\.[0-9a-f]{32}\.partial")
+
+
 def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
     """Whether ``path`` holds an interrupted write of the same scan (else it must not exist).
 
     A group killed before its level 0 array was created is just started again.
     """
-    import os
     import shutil
 
     if not os.path.exists(path):

@@ -86,3 +86,27 @@ def test_a_different_command_on_an_interrupted_synth_is_refused(tmp_path, capsys
     # the same command then still resumes
     assert main(["synth", str(out), *ARGS]) == 0
     assert (out / "field.json").is_file()
+
+
+MID = ["--shape", "64", "--specimen", "grains", "--case", "band", "--chunks", "16"]
+
+
+def test_synth_killed_inside_the_reference_resumes_bit_for_bit(tmp_path, capsys):
+    """Killed once the reference's level 0 is partly written (the usual case in a long run)."""
+    full = tmp_path / "full"
+    assert main(["synth", str(full), *MID]) == 0
+    out = tmp_path / "pair"
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", "synth", str(out), *MID], stderr=subprocess.DEVNULL)
+    t0 = time.monotonic()
+    while not ((out / "ref.zarr" / "0" / "c").is_dir() and len(chunk_files(out / "ref.zarr")) >= 16):
+        assert proc.poll() is None, "the synth ended before it could be killed"
+        assert time.monotonic() - t0 < 300
+        time.sleep(0.002)
+    os.kill(proc.pid, signal.SIGKILL)
+    assert proc.wait() == -signal.SIGKILL
+    level0 = json.loads((out / "ref.zarr" / "0" / "zarr.json").read_text())
+    assert level0["attributes"]["chunkdic"]["complete"] is False  # killed inside level 0
+    assert len(chunk_files(out / "ref.zarr")) < 64 and not (out / "def.zarr").exists()
+    capsys.readouterr()
+    assert main(["synth", str(out), *MID]) == 0
+    assert files(out) == files(full)
