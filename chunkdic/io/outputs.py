@@ -367,6 +367,8 @@ class Outputs:
             elif e.state == "absent":
                 e.final.mkdir()
                 e.created = True
+            elif e.state == "resume":  # an interrupted folder continued: what it holds stays on failure
+                e.keep = {x.name for x in e.final.iterdir()}
             mark_folder(e.final, e.kind.name, complete=False)
         elif e.state == "replace":
             _remove(e.final)

@@ -6,7 +6,10 @@ written, staged in a hidden sibling and renamed into place once complete).
 
 from __future__ import annotations
 
+import json
 import logging
+import os
+import re
 import time
 from collections.abc import Callable
 
@@ -104,3 +107,108 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     finally:
         forget_open_arrays()
     return open_scan(str(path))
+
+
+def write_scan_resumable(path, data, *, attrs: dict, voxel_size=None, unit=None, chunks=None,
+                         levels: int = 0, progress: Callable[[float], None] | None = None) -> bool:
+    """Write a scan in place inside a folder output, continuing an interrupted write.
+
+    For the scans of a folder that :class:`chunkdic.io.outputs.Outputs` writes in place
+    (a synthetic pair: the folder's marker says ``complete: false`` until the end, and the
+    folder's lock keeps other writers out). ``attrs`` (JSON) is stored in
+    ``attrs["chunkdic"]`` when the group is created, before any chunk: it is what a re-run
+    must match to continue. If ``path`` holds a group with the same ``attrs``, the same
+    voxel size and a level 0 of the same shape, dtype and chunks, the chunks of level 0
+    already stored complete are kept (:func:`chunkdic.io.store.store_array` with
+    ``resume=True``) and the pyramid levels are rebuilt; a group with other attributes is
+    refused (:class:`InputError`). ``data`` must be deterministic: the resumed scan then
+    equals an uninterrupted one bit for bit.
+
+    Returns
+    -------
+    bool
+        True if an earlier, interrupted write was continued.
+    """
+    import zarr
+
+    from .levels import create_level, mark_complete
+    from .store import aligned, chunk_shape_for, store_array
+
+    path = str(path)
+    voxel_size = normalize_voxel_size(voxel_size)
+    unit = normalize_unit(unit)
+    check_levels(data.shape, int(levels))
+    chunk_shape = chunk_shape_for(data.shape, chunks)
+    own = {"kind": "scan", "voxel_size": list(voxel_size) if voxel_size else None, "unit": unit, **attrs}
+    own = json.loads(json.dumps(own))  # as stored (tuples become lists): compared with the stored one
+    resumed = _matching_partial_scan(path, own, data, chunk_shape)
+    forget_open_arrays()
+    cuts = np.cumsum([0.0, 1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)])
+    cuts = cuts / cuts[-1]
+    if resumed:
+        _remove_partial_chunk_files(os.path.join(path, "0"))
+    else:
+        g = zarr.open_group(store=path, mode="w-", zarr_format=3)
+        g.update_attributes({"chunkdic": own, "ome": {"version": "0.5"}})
+        create_level(path, 0, data.shape, data.dtype, chunk_shape)
+    # resumed: every stored chunk is checked (decoded) again, even in a level marked
+    # complete, so a chunk damaged since is rewritten rather than read by the pyramid
+    n = store_array(aligned(data, chunk_shape), path, "0", progress, cuts[0], cuts[1], resume=resumed)
+    log.info("level 0 of %s: %d blocks written%s", path, n, " (resumed)" if resumed else "")
+    mark_complete(path, 0)
+    update_group_metadata(path)
+    if levels:  # cheap (1/7 of level 0's reads); always rebuilt, whatever state it was left in
+        build_levels(path, levels, rebuild=True, progress=progress, cuts=cuts)
+    forget_open_arrays()
+    return resumed
+
+
+def _remove_partial_chunk_files(level_dir: str) -> None:
+    """Remove the temporary files of chunk writes a killed process left in ``level_dir``.
+
+    zarr's local store writes a chunk to ``KEY.<uuid hex>.partial`` and renames it onto
+    ``KEY`` (so a chunk file is never half written by a kill); a kill between the two
+    leaves the temporary file, which nothing else would ever remove.
+    """
+    for root, _, names in os.walk(level_dir):
+        for name in names:
+            if _ZARR_PARTIAL.fullmatch(name):
+                os.remove(os.path.join(root, name))
+
+
+_ZARR_PARTIAL = re.compile(r".+\.[0-9a-f]{32}\.partial")
+
+
+def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
+    """Whether ``path`` holds an interrupted write of the same scan (else it must not exist).
+
+    A group killed before its level 0 array was created is just started again.
+    """
+    import shutil
+
+    if not os.path.exists(path):
+        return False
+    try:
+        with open(os.path.join(path, "zarr.json")) as fh:
+            ck = (json.load(fh).get("attributes") or {}).get("chunkdic")
+    except (OSError, ValueError):
+        ck = None
+    if ck is None:  # killed between mkdir and the group's metadata: nothing of value yet
+        shutil.rmtree(path)
+        return False
+    if any(ck.get(k) != v for k, v in own.items()):  # later stages add keys (levels, display window)
+        raise InputError(f"{path} holds an interrupted write of another scan (other settings): "
+                         "pass --overwrite to start again")
+    try:
+        with open(os.path.join(path, "0", "zarr.json")) as fh:
+            meta = json.load(fh)
+    except (OSError, ValueError):
+        shutil.rmtree(path)  # killed before level 0 existed: start again
+        return False
+    same = (tuple(meta.get("shape", ())) == tuple(data.shape)
+            and np.dtype(meta.get("data_type")) == np.dtype(data.dtype)
+            and tuple(meta["chunk_grid"]["configuration"]["chunk_shape"]) == tuple(chunk_shape))
+    if not same:
+        raise InputError(f"{path} holds an interrupted write of another scan (shape, dtype or chunks "
+                         "differ): pass --overwrite to start again")
+    return True

@@ -10,6 +10,7 @@ callers can remove a half-written output safely.
 from __future__ import annotations
 
 import concurrent.futures
+import itertools
 import os
 
 import numpy as np
@@ -179,7 +180,8 @@ def _compute(x, progress=None, start=0.0, end=1.0):
     import dask.threaded
     from dask.base import get_scheduler
 
-    sched = get_scheduler(collections=[x])
+    many = isinstance(x, list)  # a list of delayed blocks (a resumed write) or one array
+    sched = get_scheduler(collections=x if many else [x])
     client = getattr(sched, "__self__", None)  # the bound ``Client.get`` of a distributed client
     if progress is not None and client is not None:
         from distributed import Client
@@ -191,10 +193,12 @@ def _compute(x, progress=None, start=0.0, end=1.0):
             n = config.get("num-threads") or os.cpu_count() or 1
             pool = concurrent.futures.ThreadPoolExecutor(n)
             try:
-                return dask.compute(x, scheduler="threads", pool=pool)[0]
+                out = dask.compute(*(x if many else [x]), scheduler="threads", pool=pool)
             finally:
                 pool.shutdown(wait=True, cancel_futures=True)
-        return dask.compute(x)[0]
+        else:
+            out = dask.compute(*(x if many else [x]))
+        return list(out) if many else out[0]
 
 
 def _compute_on_client(client, x, progress, start: float, end: float) -> None:
@@ -202,7 +206,7 @@ def _compute_on_client(client, x, progress, start: float, end: float) -> None:
     (at most every 1 %) as their futures finish; on failure cancel what has not run."""
     from distributed import as_completed
 
-    futures = client.compute(list(x.to_delayed().ravel()))
+    futures = client.compute(x if isinstance(x, list) else list(x.to_delayed().ravel()))
     done, last = 0, -1.0
     try:
         for fut in as_completed(futures):
@@ -219,10 +223,14 @@ def _compute_on_client(client, x, progress, start: float, end: float) -> None:
         progress(end)
 
 
-def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0) -> None:
+def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0, resume: bool = False) -> int:
     """Write dask array ``data`` into the existing Zarr array ``path``/``key``, block by block.
 
-    Each task owns whole chunks (shards): checked up front.
+    Each task owns whole chunks (shards): checked up front. ``resume``: blocks whose every
+    chunk is already stored and complete (:func:`chunk_is_complete`: present, decodable,
+    the right shape) are neither computed nor written again, the rest are (an interrupted
+    ``chunkdic synth`` continues; the data must be a deterministic function of the block,
+    as every synthetic scan is). Returns the number of blocks written.
 
     Not ``dask.array.store``: it neither checks that tasks own whole shards (zarr 3.1
     silently loses data otherwise, shared/DESIGN.md) nor reports progress from a
@@ -239,7 +247,49 @@ def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0) ->
     out_chunks = tuple((1,) * len(c) for c in data.chunks)
     done = data.map_blocks(_write_block, path=str(path), key=key, dtype=np.int64, chunks=out_chunks,
                            meta=np.empty((0, 0, 0), np.int64))
-    _compute(done, progress, start, end)
+    if not resume:
+        _compute(done, progress, start, end)
+        return int(np.prod(done.numblocks))
+    # only the blocks still missing: computing a subset of the delayed blocks culls the
+    # graph, so the source tasks of complete blocks never run
+    todo = [blk for idx, blk in zip(np.ndindex(*done.numblocks), done.to_delayed().ravel())
+            if not _block_complete(arr, data.chunks, idx, unit)]
+    if todo:
+        _compute(todo, progress, start, end)
+    elif progress is not None:
+        progress(end)
+    return len(todo)
+
+
+def chunk_is_complete(arr, coords) -> bool:
+    """Whether chunk ``coords`` of the Zarr array ``arr`` is stored and decodes to its shape.
+
+    A chunk file cut short by a killed writer fails to decode (its codec's frame is
+    incomplete) and counts as missing; so does an absent one. Reads the one chunk.
+    """
+    import zarr
+
+    key = arr.metadata.encode_chunk_key(tuple(int(c) for c in coords))
+    root = getattr(arr.store, "root", None)
+    if root is None or not os.path.isfile(os.path.join(str(root), arr.path, key)):
+        return False
+    region = tuple(slice(c * e, min((c + 1) * e, n)) for c, e, n in zip(coords, arr.chunks, arr.shape))
+    try:
+        block = zarr.open_array(store=arr.store, path=arr.path, mode="r")[region]
+    except Exception:  # noqa: BLE001 - any decoding failure means "write it again"
+        return False
+    return tuple(block.shape) == tuple(s.stop - s.start for s in region)
+
+
+def _block_complete(arr, dask_chunks, idx, unit) -> bool:
+    """Whether every chunk of Dask block ``idx`` is stored complete in ``arr`` (a sharded
+    array is always written again: its shard files are not checked chunk by chunk)."""
+    if tuple(unit) != tuple(arr.chunks):
+        return False
+    lo = [int(sum(c[:i])) for c, i in zip(dask_chunks, idx)]
+    hi = [a + int(c[i]) for a, c, i in zip(lo, dask_chunks, idx)]
+    grid = [range(a // e, -(-b // e)) for a, b, e in zip(lo, hi, arr.chunks)]
+    return all(chunk_is_complete(arr, c) for c in itertools.product(*grid))
 
 
 def aligned(data, chunk_shape):

@@ -17,6 +17,10 @@ contrast spans 32768 levels; ``uint8``: 128 levels), rounded and clipped: the ha
 margins hold the FBP overshoot at edges (up to ~0.2) and noise (at noise 0.02 a voxel
 clips only 14 sigma beyond the worst overshoot). ``float32`` keeps phase units.
 
+With ``imaging="local"`` (:mod:`chunkdic.synth.ctlocal`) a scan is computed per Zarr chunk
+instead (any box, from global in-plane tiles with halos; cost per voxel independent of the
+slice size), see :meth:`CTSpecimen.block`.
+
 The deformed scan of a ``fourier_shift`` pair is not rendered: it is the stored reference
 translated by a Fourier phase shift (:func:`chunkdic.synth.fourier_shift.fourier_shift_scan`, the
 paper's section 4.2 test), rounded to the reference's dtype.
@@ -32,6 +36,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.handles import ArrayRef
+from . import ctlocal
 from .ctsim import Geometry, GreyChange, Imaging, reconstruct_slice
 from .fields import Band, Field, Translation
 from .fourier_shift import fourier_shift_scan
@@ -47,7 +52,7 @@ __all__ = ["CTSpecimen", "INTENSITY_RANGE", "SLAB", "render_ct", "as_dask_ct", "
 
 INTENSITY_RANGE = (-0.5, 1.5)  # phase units mapped to the whole integer range
 SLAB = 16  # z-slices per Dask task
-IMAGING_KEYS = ("noise", "angles", "filter", "blur", "rings")
+IMAGING_KEYS = ("noise", "angles", "filter", "blur", "rings", "mode")
 GREY_KEYS = ("gain", "offset", "drift")
 STANDARD_CASES = ("fourier-shift", "shift", "band")
 
@@ -93,6 +98,8 @@ class CTSpecimen:
               **kw) -> "CTSpecimen":
         """Validate options (``Imaging``, ``GreyChange`` and specimen keywords mixed)."""
         img = {k: kw.pop(k) for k in IMAGING_KEYS if k in kw}
+        if "imaging" in kw:  # the API's and the CLI's name of Imaging.mode
+            img["mode"] = kw.pop("imaging")
         grey = {k: kw.pop(k) for k in GREY_KEYS if k in kw}
         img = {k: v for k, v in img.items() if v is not None}  # None: the default
         grey = {k: v for k, v in grey.items() if v is not None}
@@ -110,21 +117,47 @@ class CTSpecimen:
     def metadata(self) -> dict:
         """JSON metadata (``attrs["chunkdic"]["synthetic"]`` and ``field.json``)."""
         lo, hi = INTENSITY_RANGE
+        if self.imaging.mode == "local":
+            geometry = {"model": "local: in-plane Gaussian PSF and ramp-spectrum noise (chunkdic.synth.ctlocal)",
+                        "psf_sigma": ctlocal.PSF_SIGMA, "noise_sigma": ctlocal.NOISE_SIGMA,
+                        "tile": ctlocal.TILE}
+        else:
+            geometry = {"angles": Geometry.of(*self.shape[1:], self.imaging.angles).angles,
+                        "detector_pixels": Geometry.of(*self.shape[1:]).ndet,
+                        "beam": "parallel, one CT slice per z"}
         return {
             "specimen": self.params.to_json(),
             "imaging": self.imaging.to_json(),
-            "geometry": {"angles": Geometry.of(*self.shape[1:], self.imaging.angles).angles,
-                         "detector_pixels": Geometry.of(*self.shape[1:]).ndet,
-                         "beam": "parallel, one CT slice per z"},
+            "geometry": geometry,
             "grey_change": self.grey.to_json(),
             "deformed": "fourier_shift of the reference" if self.fourier_shift
             else "rendered from the deformed geometry",
             "intensity_map": None if np.dtype(self.dtype).kind == "f" else [lo, hi],
         }
 
+    def block(self, which: str, box) -> np.ndarray:
+        """Voxels ``box = ((z0, z1), (y0, y1), (x0, x1))`` of one scan, ``dtype``.
+
+        Local imaging: any box (:func:`chunkdic.synth.ctlocal.local_block`); FBP: whole
+        slices only (``box`` must span y and x).
+        """
+        (z0, z1), (y0, y1), (x0, x1) = box
+        if self.imaging.mode != "local":
+            if (y0, y1, x0, x1) != (0, self.shape[1], 0, self.shape[2]):
+                raise ValueError("the FBP imaging computes whole slices only")
+            return self.slab(which, z0, z1)
+        fld = self.field if which == "deformed" and not self.fourier_shift else None
+        v = ctlocal.local_block(self.params, fld, self.imaging.noise, self.params.seed, which, box)
+        if which == "deformed" and not self.grey.identity:
+            for k, z in enumerate(range(z0, z1)):
+                v[k] = self.grey.apply(v[k], z, self.shape[0])
+        return quantise(v, self.dtype)
+
     def slab(self, which: str, z0: int, z1: int) -> np.ndarray:
         """Slices ``z0 <= z < z1`` of the reference or the deformed scan, ``dtype``."""
         nz, ny, nx = self.shape
+        if self.imaging.mode == "local":
+            return self.block(which, ((z0, z1), (0, ny), (0, nx)))
         geo = Geometry.of(ny, nx, self.imaging.angles)
         fld = self.field if which == "deformed" and not self.fourier_shift else None
         out = np.empty((z1 - z0, ny, nx), self.dtype)
@@ -176,12 +209,12 @@ def render_ct(shape, *, specimen="grains", which: str = "reference", z_range=Non
 
 
 def _slab_block(*, spec, which, block_info=None):
-    (z0, z1), _, _ = block_info[None]["array-location"]
-    return spec.slab(which, z0, z1)
+    return spec.block(which, block_info[None]["array-location"])
 
 
-def as_dask_ct(spec: CTSpecimen, which: str):
-    """One scan as a lazy Dask array of ``SLAB``-slice blocks (whole xy slices).
+def as_dask_ct(spec: CTSpecimen, which: str, chunks=None):
+    """One scan as a lazy Dask array: ``SLAB``-slice blocks of whole xy slices (FBP), or
+    blocks of the Zarr chunk shape ``chunks`` (local imaging: default 128).
 
     Returns
     -------
@@ -192,8 +225,14 @@ def as_dask_ct(spec: CTSpecimen, which: str):
 
     nz, ny, nx = spec.shape
     zc = tuple(min(SLAB, nz - z) for z in range(0, nz, SLAB))
+    blocks = (zc, (ny,), (nx,))
+    if spec.imaging.mode == "local":
+        from ..io.store import chunk_shape_for
+
+        c = chunk_shape_for(spec.shape, chunks)
+        blocks = tuple(tuple(min(e, n - a) for a in range(0, n, e)) for e, n in zip(c, spec.shape))
     dt = np.dtype(spec.dtype)
-    return da.map_blocks(_slab_block, chunks=(zc, (ny,), (nx,)), dtype=dt,
+    return da.map_blocks(_slab_block, chunks=blocks, dtype=dt,
                          meta=np.empty((0, 0, 0), dt), spec=spec, which=which,
                          name=f"chunkdic-ct-{which}-" + tokenize(repr(spec), which))
 

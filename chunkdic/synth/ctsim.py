@@ -53,9 +53,11 @@ __all__ = [
     "ring_gain",
     "reconstruct_slice",
     "FILTERS",
+    "MODES",
 ]
 
 FILTERS = ("ramp", "hann")
+MODES = ("fbp", "local")
 CH_NOISE_REF, CH_NOISE_DEF, CH_RINGS = 31, 32, 33
 _INV32 = 1.0 / (1 << 32)
 _S32 = np.uint64(32)
@@ -90,6 +92,12 @@ class Imaging:
         Std of the Gaussian detector blur, detector pixels (>= 0), default 0.
     rings : float
         RMS of the ring pattern as a fraction of the phase contrast (>= 0), default 0.
+    mode : {"fbp", "local"}
+        ``"fbp"`` (default): projections, noise and filtered back-projection, slice by
+        slice (cost per voxel ``∝ N``). ``"local"``: the local stand-in of
+        :mod:`chunkdic.synth.ctlocal` (in-plane PSF and ramp-spectrum noise of the same
+        std, cost per voxel independent of ``N``); ``angles``, ``filter``, ``blur`` and
+        ``rings`` are FBP settings and refused with it.
     """
 
     noise: float = 0.02
@@ -97,6 +105,7 @@ class Imaging:
     filter: str = "ramp"
     blur: float = 0.0
     rings: float = 0.0
+    mode: str = "fbp"
 
     def __post_init__(self):
         for name in ("noise", "blur", "rings"):
@@ -111,6 +120,14 @@ class Imaging:
             object.__setattr__(self, "angles", int(a))
         if self.filter not in FILTERS:
             raise InputError(f"filter must be one of {FILTERS}, got {self.filter!r}")
+        if self.mode not in MODES:
+            raise InputError(f"imaging must be one of {MODES}, got {self.mode!r}")
+        if self.mode == "local":
+            fbp_only = [n for n, v in (("angles", self.angles is not None), ("filter", self.filter != "ramp"),
+                                       ("blur", self.blur != 0), ("rings", self.rings != 0)) if v]
+            if fbp_only:
+                raise InputError(f"{', '.join(fbp_only)}: only with the FBP imaging (imaging='fbp'), "
+                                 "not with imaging='local'")
 
     def to_json(self) -> dict:
         return asdict(self)

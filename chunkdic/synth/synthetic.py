@@ -12,12 +12,14 @@ import json
 import logging
 import os
 import shutil
+from pathlib import Path
 
 import numpy as np
 
 from .. import config
 from ..errors import InputError
-from ..io.scanwrite import write_scan
+from ..io.scanwrite import write_scan_resumable
+from ..io.kinds import kind_of
 from .ctpair import CTSpecimen, as_dask_ct, fourier_deformed, standard_field
 from .fields import Affine, Band, Field, Star, Translation, true_displacement
 from .foam import (
@@ -69,17 +71,18 @@ def _metadata(field, p: TextureParams, shape, dtype, noise) -> dict:
 
 
 SPECIMEN_NAMES = ("foam", "grains", "concrete")
-_CT_ONLY = ("angles", "filter", "blur", "rings", "gain", "offset", "drift")
+_CT_ONLY = ("angles", "filter", "blur", "rings", "gain", "offset", "drift", "mode", "imaging")
 
 
 def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "foam",
                seed: int = 0, dtype=None, chunks=None, voxel_size=None, unit=None,
                levels: int = 0, overwrite: bool = False, progress=None,
                cell_size: float = 8.0, bead_size: float = 64.0, noise: float | None = None,
-               fourier_shift: bool = False, **params) -> dict:
+               fourier_shift: bool = False, resume: bool = False, **params) -> dict:
     """Write a synthetic reference/deformed pair ``out_dir/ref.zarr``, ``out_dir/def.zarr``.
 
-    Both scans are written chunk by chunk with :func:`chunkdic.io.scanwrite.write_scan`. The field
+    Both scans are written chunk by chunk, in place, with
+    :func:`chunkdic.io.scanwrite.write_scan_resumable`. The field
     JSON, seed and specimen parameters go to ``attrs["chunkdic"]["synthetic"]`` of both
     groups and to ``out_dir/field.json`` (written last: its presence marks a complete pair).
 
@@ -100,7 +103,7 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
         rounded, so ``g(X + u(X)) = f(X)`` holds to half a grey level. CT specimens:
         ``uint16`` (default; phase units ``[-0.5, 1.5]`` over the range) or ``float32``.
     chunks, voxel_size, unit, levels, overwrite, progress
-        Passed to ``write_scan``.
+        Passed to the scan writer.
     seed, cell_size, bead_size
         Foam texture parameters (see :func:`chunkdic.synth.foam.render`); ``seed`` for every specimen.
     noise : float, optional
@@ -110,10 +113,15 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
     fourier_shift : bool
         CT specimens: the deformed scan is the stored reference translated by a Fourier
         phase shift of ``field.t`` (a :class:`Translation`; the paper's section 4.2 test).
+    resume : bool
+        Continue an interrupted write of the same pair in ``out_dir`` (no ``field.json``
+        yet): chunks already stored complete are kept, the rest written; the result equals
+        an uninterrupted run bit for bit. Scans written with other settings are refused.
     **params
         Foam: other :class:`TextureParams` fields. CT specimens: specimen parameters
         (:class:`~chunkdic.synth.microstructure.GrainsParams`, ``ConcreteParams``), imaging
-        (``angles``, ``filter``, ``blur``, ``rings``) and the grey-level change of the
+        (``imaging="fbp"`` or ``"local"``, :mod:`chunkdic.synth.ctlocal`; ``angles``, ``filter``,
+        ``blur``, ``rings``) and the grey-level change of the
         deformed scan (``gain``, ``offset``, ``drift``; :class:`~chunkdic.synth.ctsim.GreyChange`).
 
     Returns
@@ -163,9 +171,9 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
                 arr, tmp = fourier_deformed(ref_path, os.path.dirname(ref_path), p)
                 scratch.append(tmp)
                 return arr
-            return as_dask_ct(p, which)
+            return as_dask_ct(p, which, chunks)
     out = _write_pair(out_dir, shape, make, meta, chunks=chunks, voxel_size=voxel_size,
-                      unit=unit, levels=levels, overwrite=overwrite, progress=progress)
+                      unit=unit, levels=levels, overwrite=overwrite, progress=progress, resume=resume)
     return {**out, "field": field, "texture": p if specimen == "foam" else p.params}
 
 
@@ -191,30 +199,45 @@ def standard_case(out_dir, case: str, shape=128, *, specimen: str = "grains", **
 
 
 def _write_pair(out_dir, shape, make, meta, *, chunks, voxel_size, unit, levels, overwrite,
-                progress) -> dict:
-    """Write ``make(which, ref_path, scratch)`` for both scans, then ``field.json``."""
+                progress, resume=False) -> dict:
+    """Write ``make(which, ref_path, scratch)`` for both scans, then ``field.json``.
+
+    ``resume``: ``out_dir`` is an interrupted pair of the same request (a synthetic pair
+    folder marked incomplete, held by the caller's :class:`~chunkdic.io.outputs.Outputs`):
+    the scans are written in place and their chunks already stored complete are kept
+    (:func:`chunkdic.io.scanwrite.write_scan_resumable`). Without it, existing scans are
+    refused unless ``overwrite``.
+    """
 
     out_dir = os.fspath(out_dir)
     ref, dfm = os.path.join(out_dir, "ref.zarr"), os.path.join(out_dir, "def.zarr")
     fjson = os.path.join(out_dir, "field.json")
     existing = [q for q in (ref, dfm, fjson) if os.path.exists(q)]
-    if existing and not overwrite:
+    if os.path.exists(fjson) and resume and not overwrite:
+        raise InputError(f"{out_dir} is a complete synthetic pair: nothing to resume")
+    if existing and not overwrite and not resume:
         raise InputError(f"{existing[0]} exists (use overwrite=True / --overwrite)")
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise InputError(f"{out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)
     if os.path.exists(fjson):
         os.remove(fjson)  # the pair is incomplete until field.json is back
+    if overwrite:
+        for path in (ref, dfm):
+            if os.path.exists(path):
+                if kind_of(Path(path))[0] != "scan":  # never a store chunkdic did not write
+                    raise InputError(f"{path} is not a scan chunkdic wrote: refusing to replace it")
+                shutil.rmtree(path)
+    # scans this call began (removed on failure); a resumed scan was there before: kept
     written, scratch = [], []
     try:
         for i, (which, path) in enumerate((("reference", ref), ("deformed", dfm))):
             arr = make(which, ref, scratch)
             log.info("writing %s scan %s, shape %s, %s", which, path, shape, arr.dtype)
             sub = None if progress is None else _sub_progress(progress, i / 2.0, (i + 1) / 2.0)
-            written.append(path)
-            write_scan(path, arr, voxel_size=voxel_size, unit=unit, chunks=chunks,
-                       overwrite=overwrite, levels=levels, progress=sub)
-            _set_synthetic_attrs(path, {**meta, "role": which})
+            if not os.path.exists(path):
+                written.append(path)
+            write_scan_resumable(path, arr, attrs={_SYNTH_ATTR: {**meta, "role": which}}, voxel_size=voxel_size, unit=unit, chunks=chunks, levels=levels, progress=sub)
         tmp = fjson + ".tmp"
         with open(tmp, "w") as fh:
             json.dump(meta, fh, indent=2)
@@ -234,15 +257,6 @@ def _sub_progress(progress, start: float, end: float):
         progress(start + (end - start) * float(frac))
 
     return report
-
-
-def _set_synthetic_attrs(path: str, meta: dict) -> None:
-    import zarr
-
-    g = zarr.open_group(path, mode="r+")
-    ck = dict(g.attrs.get("chunkdic", {}))
-    ck[_SYNTH_ATTR] = meta
-    g.attrs["chunkdic"] = ck
 
 
 def load_metadata(path) -> dict:
