@@ -377,13 +377,32 @@ def main(argv=None) -> int:
         sys.stderr = stderr
 
 
+def _check_cwd() -> None:
+    """A working directory removed under the process (``cd d; rm -r ../d``): every relative
+    path and ``os.getcwd()`` fail, and so would LocalCluster workers started in it; refused
+    in one line before anything starts (the same wording as the output checks)."""
+    try:
+        os.getcwd()
+    except FileNotFoundError:
+        from ..io.outputs import CWD_GONE
+
+        raise InputError(CWD_GONE) from None
+
+
 def _dispatch(args) -> int:
     try:
+        _check_cwd()
         return args.func(args)
     except InputError as exc:
         say(f"chunkdic: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
         return EXIT_BAD_INPUT
     except OSError as exc:
+        if isinstance(exc, FileNotFoundError) and not _cwd_exists():
+            # the working directory was removed while the run worked (its outputs with it)
+            from ..io.outputs import CWD_GONE
+
+            say(f"chunkdic: error: {CWD_GONE.replace('(it was removed)', '(it was removed during the run)')}")
+            return EXIT_BAD_INPUT
         if exc.errno not in _FS_ERRORS:
             raise
         # the outputs of the run were removed on the way out (chunkdic.io.outputs)
@@ -393,6 +412,14 @@ def _dispatch(args) -> int:
     except KeyboardInterrupt:
         say("chunkdic: interrupted")
         return 130
+
+
+def _cwd_exists() -> bool:
+    try:
+        os.getcwd()
+    except FileNotFoundError:
+        return False
+    return True
 
 
 if __name__ == "__main__":

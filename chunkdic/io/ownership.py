@@ -15,6 +15,7 @@ output, see :mod:`chunkdic.io.outputs`) and ``chunkdic-*`` scratch directories h
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -33,12 +34,47 @@ from ..errors import InputError
 log = logging.getLogger(__name__)
 
 __all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
-           "reclaim_stale_partials", "LOCK_SUFFIX", "SCRATCH_MARKER"]
+           "reclaim_stale_partials", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER"]
 
 LOCK_SUFFIX = ".chunkdic-lock"
 PARTIAL_TAG = ".chunkdic-partial-"
 SCRATCH_PREFIX = "chunkdic-"
 SCRATCH_MARKER = ".chunkdic-scratch.json"
+
+
+#: bytes kept free in a derived name for the longest suffix added to it later (the
+#: ``.stale-XXXXXXXX`` of a lock taken over)
+_SPARE = 16
+
+
+def name_limits(directory) -> tuple[int, int]:
+    """``(NAME_MAX, PATH_MAX)`` in bytes for ``directory``'s file system (255, 4096 where unknown)."""
+    limits = []
+    for key, default in (("PC_NAME_MAX", 255), ("PC_PATH_MAX", 4096)):
+        try:
+            limits.append(int(os.pathconf(directory, key)))
+        except (OSError, ValueError):
+            limits.append(default)
+    return limits[0], limits[1]
+
+
+def _hidden_sibling(final: Path, stem: str, tail: str) -> Path:
+    """``final.parent / ("." + stem + tail)``, or, when that name would be longer than the
+    file system allows (a valid output name of 240 bytes plus ``.chunkdic-partial-HOST-…``),
+    the same with ``stem`` cut short and a digest of the whole output name appended
+    (``.aaaa…~1f2e3d4c5b6a.chunkdic-lock``). Deterministic: two runs on one output derive
+    the same lock name, and different outputs never share one."""
+    name = f".{stem}{tail}"
+    name_max = name_limits(final.parent if final.parent.is_dir() else ".")[0]
+    budget = name_max - _SPARE
+    if len(os.fsencode(name)) <= budget:
+        return final.parent / name
+    digest = "~" + hashlib.sha256(os.fsencode(final.name)).hexdigest()[:12]
+    room = budget - len(os.fsencode(f".{digest}{tail}"))
+    short = stem
+    while short and len(os.fsencode(short)) > room:  # by characters: never a broken UTF-8 sequence
+        short = short[:-1]
+    return final.parent / f".{short}{digest}{tail}"
 
 
 def _start_time(pid: int) -> str | None:
@@ -101,7 +137,7 @@ class OutputLock:
     def __init__(self, output):
         out = Path(output)
         self.output = out
-        self.path = out.parent / f".{out.name}{LOCK_SUFFIX}"
+        self.path = _hidden_sibling(out, out.name, LOCK_SUFFIX)
         self.held = False
 
     def acquire(self) -> "OutputLock":
@@ -193,7 +229,7 @@ def partial_name(final: Path) -> Path:
     its owner and keeps the suffix (writers such as meshio choose the format by it)."""
     me = Owner.me()
     host = re.sub(r"[^A-Za-z0-9_]", "_", me.host)
-    return final.parent / f".{final.stem}{PARTIAL_TAG}{host}-{me.pid}-{uuid.uuid4().hex[:6]}{final.suffix}"
+    return _hidden_sibling(final, final.stem, f"{PARTIAL_TAG}{host}-{me.pid}-{uuid.uuid4().hex[:6]}{final.suffix}")
 
 
 def final_name(path) -> str:
