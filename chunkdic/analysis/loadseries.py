@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -52,7 +53,7 @@ from ..engine.initial import filled
 from ..engine.planning import parse_roi, plan_meshes
 from ..engine.prefilter import face_margin
 from ..engine.settings import Settings
-from ..errors import InputError
+from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.outputs import Outputs, inside
@@ -210,12 +211,52 @@ def series(
         try:
             with inside(out), _one_cluster(scheduler) as sched:
                 result = _run(scans, out, settings, mode, roi, sched, progress, mask)
-        except InputError:
-            if fresh:  # a refused step: nothing of this run stays (docs/safety.md)
+        except (InputError, OSError) as exc:
+            cause = _disk_cause(exc)
+            if cause is not None and _resumable(out):
+                # a full (read-only, failing) disk is no bad input: the complete steps and the
+                # interrupted step's checkpoint stay, and the message says how to resume
+                done = sum(_complete(p) for p in sorted((out / "steps").glob("*")))
+                raise DiskSpaceError(f"{cause}; the series in {out} is kept (marked incomplete, {done} step"
+                                     f"{'' if done == 1 else 's'} complete): free space and run the same command "
+                                     "again to resume, or remove it", cause=cause, kept=True) from None
+            if fresh:  # a refused step, or a disk error before anything resumable: nothing of this run stays
                 plan.rollback()
+            if isinstance(exc, OSError) and cause is not None:
+                raise DiskSpaceError(f"{cause}: nothing of the series {out} was kept", cause=cause) from None
             raise
         _finish(out, result.rows)
     return result
+
+
+#: disk errors (full, quota, read-only, I/O): the run cannot write, its inputs are fine
+_DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
+
+
+def _disk_cause(exc: BaseException) -> str | None:
+    """The disk error behind ``exc`` in one phrase naming the path, or None (another refusal)."""
+    if isinstance(exc, DiskSpaceError):
+        return exc.cause
+    if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
+        return f"{exc.strerror or exc} ({exc.filename})" if exc.filename else f"{exc.strerror or exc}"
+    return None
+
+
+def _resumable(out: Path) -> bool:
+    """The series holds something a re-run continues from: a complete step result, or a
+    step's saved checkpoint (:mod:`chunkdic.engine.checkpoint`)."""
+    for step in sorted((out / "steps").glob("*")) if (out / "steps").is_dir() else []:
+        found, complete = kind_of(step)
+        if found == "result" and (complete or "checkpoint" in _attrs(step)):
+            return True
+    return False
+
+
+def _attrs(group: Path) -> dict:
+    try:
+        return dict(json.loads((group / "zarr.json").read_text()).get("attributes", {}).get("chunkdic", {}))
+    except (OSError, ValueError, AttributeError):
+        return {}
 
 
 def open_series(path) -> SeriesResult:

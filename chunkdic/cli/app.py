@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, WorkerLostError
 from ..scheduler import SCHEDULER_HELP
 from .common import (
     EXPLAIN,
@@ -31,6 +31,7 @@ from .common import (
 )
 
 EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1  # the run could not finish (not converged, a cluster that lost its workers)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -409,6 +410,9 @@ def _dispatch(args) -> int:
         where = f": {exc.filename}" if exc.filename else ""
         say(f"chunkdic: error: {exc.strerror or exc}{where}")
         return EXIT_BAD_INPUT
+    except WorkerLostError as exc:  # no bad input: the cluster failed; the same command resumes
+        say(f"chunkdic: error: {exc}")
+        return EXIT_FAILED
     except KeyboardInterrupt:
         say("chunkdic: interrupted")
         return 130

@@ -158,8 +158,12 @@ class OutputLock:
                 continue
             except OSError as exc:
                 raise InputError(f"cannot create the lock {self.path}: {exc.strerror}") from None
-            with os.fdopen(fd, "w") as fh:
-                fh.write(record)
+            try:
+                with os.fdopen(fd, "w") as fh:
+                    fh.write(record)
+            except OSError as exc:  # a full disk: the empty lock file would outlive the refusal
+                self.path.unlink(missing_ok=True)
+                raise InputError(f"cannot write the lock {self.path}: {exc.strerror}") from None
             self.held = True
             _HELD.add(key)
             return self
