@@ -61,20 +61,25 @@ def name_limits(directory) -> tuple[int, int]:
 def _hidden_sibling(final: Path, stem: str, tail: str) -> Path:
     """``final.parent / ("." + stem + tail)``, or, when that name would be longer than the
     file system allows (a valid output name of 240 bytes plus ``.chunkdic-partial-HOST-…``),
-    the same with ``stem`` cut short and a digest of the whole output name appended
-    (``.aaaa…~1f2e3d4c5b6a.chunkdic-lock``). Deterministic: two runs on one output derive
-    the same lock name, and different outputs never share one."""
+    the same with the middle of ``stem`` replaced by a digest of the whole output name
+    (``.aaaa~1f2e3d4c5b6aaaaa.chunkdic-lock``). Deterministic: two runs on one output derive
+    the same lock name, and different outputs never share one. The end of ``stem`` is kept:
+    the lock of a staged copy (``export --fields`` stages inside a staged copy) keeps the
+    copy's ``…chunkdic-partial-HOST-PID-XXXXXX`` so that it is reclaimed with it."""
     name = f".{stem}{tail}"
     name_max = name_limits(final.parent if final.parent.is_dir() else ".")[0]
     budget = name_max - _SPARE
     if len(os.fsencode(name)) <= budget:
         return final.parent / name
-    digest = "~" + hashlib.sha256(os.fsencode(final.name)).hexdigest()[:12]
+    digest = "~" + hashlib.sha256(os.fsencode(final.name)).hexdigest()[:12] + "~"
     room = budget - len(os.fsencode(f".{digest}{tail}"))
-    short = stem
-    while short and len(os.fsencode(short)) > room:  # by characters: never a broken UTF-8 sequence
-        short = short[:-1]
-    return final.parent / f".{short}{digest}{tail}"
+    front, back = stem[:-96], stem[-96:]  # the end (a staged copy's owner) is cut last
+    while len(os.fsencode(front + back)) > room:  # by characters: never a broken UTF-8 sequence
+        if len(front) > 16 or not back:
+            front = front[:-1]
+        else:
+            back = back[1:]
+    return final.parent / f".{front}{digest}{back}{tail}"
 
 
 def _start_time(pid: int) -> str | None:
@@ -169,6 +174,19 @@ class OutputLock:
             return self
         raise InputError(f"output {self.output} is locked by {self.path} and the lock could not be taken")
 
+    def live_owner(self) -> str | None:
+        """Who holds this lock, if a live process (or one on another host) does: ``"pid 12 on
+        host since …"``; None when the lock is free, stale, unreadable or held by this process.
+        No side effects."""
+        if _lock_key(self.path) in _HELD:
+            return None
+        try:
+            info = json.loads(self.path.read_text())
+            owner = Owner.from_dict(info)
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        return None if owner.is_dead() else f"{owner.describe()} since {info.get('since', '?')}"
+
     def _take_over_if_stale(self) -> None:
         try:
             info = json.loads(self.path.read_text())
@@ -250,7 +268,10 @@ def reclaim_stale_partials(final: Path) -> list[Path]:
     beside its output, which the next run of any command writing there reclaims). Only
     entries named as chunkdic's staged outputs whose owner pid is dead; returns them."""
     host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
-    pattern = re.compile(r"\..+" + re.escape(f"{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}(\.[^.]*)?$")
+    # a staged copy, or the lock of one (an output staged inside a staged copy, as export
+    # --fields does, locks that copy: its lock is orphaned with it)
+    pattern = re.compile(r"\..+" + re.escape(f"{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}(\.[^.]*)?"
+                         + f"({re.escape(LOCK_SUFFIX)})?$")
     removed = []
     try:
         entries = list(final.parent.iterdir())
