@@ -57,7 +57,7 @@ from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.outputs import Outputs, inside
-from ..io.ownership import OutputLock
+from ..io.ownership import OutputLock, reclaim_stale_locks, reclaim_stale_partials
 from ..io.scan import open_scan
 from ..mesh import carry_field
 from ..results.result import HISTORY_FIELDS, Result, open_result
@@ -205,6 +205,7 @@ def series(
         fresh = entry.state != "resume"
         if not fresh:
             _check_resumable(out, series_print)
+            _reclaim_dead_runs(out)
         else:
             plan.__enter__()  # removes the old series that --overwrite replaces (checked: ours)
             _create(out, series_print, scans, settings, mode)
@@ -307,6 +308,16 @@ def _create(out: Path, print_: str, scans, settings: Settings, mode: str) -> Non
     root.require_group("steps")
     if mode != "cumulative":
         root.require_group("composed")
+
+
+def _reclaim_dead_runs(out: Path) -> None:
+    """What a killed run left inside the series (it holds the series' lock now): the locks and
+    staged copies of its steps. A step killed right after its commit is complete, so no
+    run writes it again and takes its lock over: the lock would stay for ever."""
+    for folder in (out / "steps", out / "composed"):
+        if folder.is_dir():
+            reclaim_stale_partials(folder / "_")
+            reclaim_stale_locks(folder)
 
 
 def _check_resumable(out: Path, print_: str) -> None:

@@ -34,7 +34,7 @@ from ..errors import InputError
 log = logging.getLogger(__name__)
 
 __all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
-           "reclaim_stale_partials", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER"]
+           "reclaim_stale_partials", "reclaim_stale_locks", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER"]
 
 LOCK_SUFFIX = ".chunkdic-lock"
 PARTIAL_TAG = ".chunkdic-partial-"
@@ -287,6 +287,29 @@ def reclaim_stale_partials(final: Path) -> list[Path]:
             _remove(entry)
             removed.append(entry)
             log.info("removed %s, left by a dead run", entry)
+    return removed
+
+
+def reclaim_stale_locks(directory: Path) -> list[Path]:
+    """Remove the locks in ``directory`` whose owner is dead (this host). A lock is taken over
+    by the next run on its output; this is for the outputs no run will write again, such as
+    a loading series' step that a killed run had just completed (the re-run skips it). The
+    caller holds the lock of what contains ``directory``, so no live run can be taking one
+    of them over meanwhile."""
+    removed = []
+    try:
+        entries = [e for e in Path(directory).iterdir() if e.name.endswith(LOCK_SUFFIX)]
+    except OSError:
+        return removed
+    for entry in entries:
+        try:
+            owner = Owner.from_dict(json.loads(entry.read_text()))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if owner.is_dead():
+            entry.unlink(missing_ok=True)
+            removed.append(entry)
+            log.info("removed the lock %s of a dead run (%s)", entry, owner.describe())
     return removed
 
 
