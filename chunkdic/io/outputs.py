@@ -246,12 +246,11 @@ def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable:
         return "absent"
     if kind.form == "folder" and real.is_dir() and not any(real.iterdir()):
         return "empty-folder"
+    holder = OutputLock(real).live_owner()
+    if holder is not None:  # not interrupted nor foreign: another run is writing it now (two writers racing)
+        raise InputError(f"output {_say(p)} is being written by another chunkdic run ({holder}): wait for it "
+                         "to finish or choose another path")
     found, complete = kind_of(real)
-    if found == kind.name and not complete:
-        holder = OutputLock(real).live_owner()
-        if holder is not None:  # not interrupted: another run is writing it now (two writers racing)
-            raise InputError(f"output {_say(p)} is being written by another chunkdic run ({holder}): wait for it "
-                             "to finish or choose another path")
     if found == kind.name and not complete and resumable and not overwrite:
         return "resume"
     if not overwrite:
