@@ -57,7 +57,7 @@ from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.outputs import Outputs, inside
-from ..io.ownership import OutputLock, reclaim_stale_locks, reclaim_stale_partials
+from ..io.ownership import OutputLock, reclaim_stale_locks, reclaim_stale_partials, reclaim_stale_scratch
 from ..io.scan import open_scan
 from ..mesh import carry_field
 from ..results.result import HISTORY_FIELDS, Result, open_result
@@ -313,7 +313,10 @@ def _create(out: Path, print_: str, scans, settings: Settings, mode: str) -> Non
 def _reclaim_dead_runs(out: Path) -> None:
     """What a killed run left inside the series (it holds the series' lock now): the locks and
     staged copies of its steps. A step killed right after its commit is complete, so no
-    run writes it again and takes its lock over: the lock would stay for ever."""
+    run writes it again and takes its lock over: the lock would stay for ever. The killed
+    run's scratch too: a re-run with only complete steps left makes none (which would
+    reclaim it)."""
+    reclaim_stale_scratch()
     for folder in (out / "steps", out / "composed"):
         if folder.is_dir():
             reclaim_stale_partials(folder / "_")

@@ -121,25 +121,33 @@ def _leftovers(*roots: Path) -> list[str]:
                                           ("after-renames", "steps/002-incremental"),
                                           ("half-removed", "steps/002-incremental"),
                                           ("before-rename", "composed/002")])
-def test_series_killed_while_a_step_commits_resumes_to_the_same_fields(data, tmp_path, capsys, point, target):
+def test_series_killed_while_a_step_commits_resumes_to_the_same_fields(data, tmp_path, capsys, monkeypatch, point,
+                                                                      target):
     out = tmp_path / "ser.zarr"
     argv = ["series", *_scans(data), "-o", str(out), *_SERIES_OPTS]
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    monkeypatch.setenv("DASK_CHUNKDIC__SCRATCH_DIRECTORY", str(scratch))  # the killed run's
     before = tree(data / "s")
     killed = _die(point, target, argv)
     assert killed.returncode == -signal.SIGKILL, killed.stderr[-2000:]
     assert kind_of(out) == ("series", False)
     # what the kill left: a stale lock and staged copies, reclaimed by the next run (below)
     assert _leftovers(tmp_path), "the kill left nothing to reclaim: not at a commit"
-    code = main(argv)
+    import dask.config
+
+    with dask.config.set({"chunkdic.scratch-directory": str(scratch)}):
+        code = main(argv)
     err = capsys.readouterr().err
     assert "Traceback" not in err and code == int((data / "full.code").read_text()), err
+    assert list(scratch.iterdir()) == []  # the killed run's scratch reclaimed, even when only steps were skipped
     a, b = chunkdic.open_series(out), chunkdic.open_series(data / "full.zarr")
     assert sorted(a.cumulative) == sorted(b.cumulative) == [1, 2]
     for k in a.cumulative:
         np.testing.assert_allclose(a.cumulative[k].displacement, b.cumulative[k].displacement, rtol=0, atol=1e-6)
     assert [r["group"] for r in a.rows] == [r["group"] for r in b.rows]
     assert _leftovers(tmp_path) == []  # no lock, staged copy or half-removed checkpoint
-    assert _listing(tmp_path) == ["ser.zarr"]
+    assert _listing(tmp_path) == ["scratch", "ser.zarr"]
     assert tree(data / "s") == before
 
 
