@@ -104,9 +104,9 @@ def test_a_longest_valid_name_works_though_its_lock_and_partial_would_not_fit(da
     r = chunkdic.open_result(result)
     assert abs(float(r.displacement[0].mean()) - T[0]) < 0.05
     # and the second writer of one of them is still refused by that (shortened) lock
-    holder = subprocess.Popen([sys.executable, "-c", "import sys, time; from chunkdic.io.ownership import OutputLock; "
-                               "OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(60)",
-                               str(vtu)], stdout=subprocess.PIPE, text=True)
+    hold = ("import sys, time; from chunkdic.io.ownership import OutputLock; "
+            "OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(60)")
+    holder = subprocess.Popen([sys.executable, "-c", hold, str(vtu)], stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "locked"
         refused(["export", res, "--vtk", vtu, "--overwrite"], capsys, "being written by another chunkdic run")

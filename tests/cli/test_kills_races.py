@@ -374,8 +374,7 @@ def test_the_distributed_runner_turns_a_task_that_kills_its_workers_into_one_err
     from chunkdic.errors import WorkerLostError
     from chunkdic.scheduler import open_runner
 
-    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
-        with open_runner("local:1") as runner:
-            assert sorted(runner.map_unordered(abs, [(-1,), (-2,)])) == [1, 2]
-            with pytest.raises(WorkerLostError, match="lost the workers this run needs .*KilledWorker"):
-                list(runner.map_unordered(os._exit, [(3,)]))
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}), open_runner("local:1") as runner:
+        assert sorted(runner.map_unordered(abs, [(-1,), (-2,)])) == [1, 2]
+        with pytest.raises(WorkerLostError, match="lost the workers this run needs .*KilledWorker"):
+            list(runner.map_unordered(os._exit, [(3,)]))
