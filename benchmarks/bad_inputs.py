@@ -1024,6 +1024,7 @@ dd if=/dev/zero of="$mnt/filler" bs=4k 2>/dev/null
 wait $pid; echo "first=$?"
 rm -f "$mnt/filler"
 tail -1 "$mnt.err"
+ls -A "$mnt/out.zarr/steps" 2>/dev/null | tr '\n' ' '; echo
 "$@" > /dev/null 2> "$mnt.err"; echo "second=$?"
 ls -A "$mnt" | tr '\n' ' '; echo
 ls -A "$mnt/out.zarr/steps" | tr '\n' ' '; echo
@@ -1042,17 +1043,19 @@ def _full_series(case, d, scratch) -> str:
                           text=True, timeout=case.timeout)
     lines = proc.stdout.splitlines()
     (d / "mnt.err").unlink(missing_ok=True)
-    if len(lines) < 5:
+    if len(lines) < 6:
         return f"harness: {proc.stdout!r} {proc.stderr[-200:]!r}"
     if lines[0] != "first=2" or not lines[1].startswith("chunkdic: error:"):
         return f"first run: {lines[0]}, last line {lines[1][:160]!r}"
     if "is kept" not in lines[1] or "run the same command again to resume" not in lines[1] or "mnt/out.zarr" not in \
             lines[1]:
         return f"error line does not name the kept series and how to resume: {lines[1][:200]!r}"
-    if lines[2] not in ("second=0", "second=1"):
-        return f"the same command after freeing space: {lines[2]}"
-    if lines[3].split() != ["out.zarr"] or any("chunkdic-" in n for n in lines[4].split()):
-        return f"left on the disk: {lines[3]} / {lines[4]}"
+    if "001-incremental" not in lines[2].split():
+        return f"the series said kept was not: steps {lines[2].split()}"
+    if lines[3] not in ("second=0", "second=1"):
+        return f"the same command after freeing space: {lines[3]}"
+    if lines[4].split() != ["out.zarr"] or any("chunkdic-" in n for n in lines[5].split()):
+        return f"left on the disk: {lines[4]} / {lines[5]}"
     return ""
 
 
