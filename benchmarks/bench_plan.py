@@ -8,9 +8,16 @@ and the scratch directory's peak size (sampled every 0.1 s, in total and per sto
 pyramid levels ``scan-*``, haloed ``f`` ``f-level*``, prepared ``g`` ``g-level*``).
 Medians of the repeats. Writes a JSON record with ``--record``.
 
+With ``--plan-only`` nothing runs: each size gets a pair of scan groups holding only
+metadata (uint16, no chunk written: no disk), and the plan of a level-0 run is printed,
+uncalibrated; ``--free`` plans as if the scratch disk had that much free space (e.g.
+what is left once the scans are written), so the scratch layout the plan would choose
+shows (issue 21: the 2048³ pair on this machine's disk).
+
 Usage::
 
     python benchmarks/bench_plan.py --sizes 128 256 512 --repeats 2 --record benchmarks/records/bench_plan.json
+    python benchmarks/bench_plan.py --plan-only --sizes 2048 --free 39GB
 """
 
 from __future__ import annotations
@@ -76,6 +83,37 @@ def synthesize(workdir: Path, n: int) -> Path:
     return d
 
 
+def empty_pair(workdir: Path, n: int) -> Path:
+    """A uint16 pair of ``n``³ scan groups with metadata only (chunks never written)."""
+    import zarr
+
+    d = workdir / f"empty{n}"
+    for name in ("ref.zarr", "def.zarr"):
+        g = zarr.open_group(str(d / name), mode="w", zarr_format=3)
+        g.create_array("0", shape=(n,) * 3, chunks=(128,) * 3, dtype="uint16", fill_value=0)
+    return d
+
+
+def plan_only(args, workdir: Path) -> None:
+    import dask.utils
+
+    import chunkdic
+    from chunkdic.engine import budget
+
+    if args.free:
+        free = int(dask.utils.parse_bytes(args.free))
+        budget._free = lambda path: free
+    for n in args.sizes:
+        d = empty_pair(workdir, n)
+        p = chunkdic.plan(d / "ref.zarr", d / "def.zarr", element_size=args.element_size,
+                          memory_target=args.memory_target or None, calibrate=False)
+        print(f"{n}³ uint16 pair ({2 * n**3 * 2 / 1e9:.1f} GB of scans), level 0, ell {args.element_size}"
+              + (f", scratch disk free {args.free} (simulated)" if args.free else ""))
+        print(p.summary())
+        print(f"  scratch {p.scratch_bytes / 1e9:.1f} GB ({p.layout}; fast layout {p.fast_scratch_bytes / 1e9:.1f} GB), "
+              f"with the scans {(p.scratch_bytes + 2 * n**3 * 2) / 1e9:.1f} GB")
+
+
 def one_run(d: Path, ell: int, target: str, scratch: Path) -> dict:
     scratch.mkdir(exist_ok=True)
     env = dict(os.environ, DASK_CHUNKDIC__SCRATCH_DIRECTORY=str(scratch))
@@ -98,12 +136,17 @@ def main() -> None:
     ap.add_argument("--memory-target", default="")
     ap.add_argument("--workdir", default=None)
     ap.add_argument("--record", default=None)
+    ap.add_argument("--plan-only", action="store_true", help="plan metadata-only pairs, run nothing")
+    ap.add_argument("--free", default="", help="with --plan-only: free scratch disk to plan for (e.g. 39GB)")
     args = ap.parse_args()
     import dask.config
 
     import chunkdic
 
     workdir = Path(args.workdir or tempfile.mkdtemp(prefix="bench-plan-"))
+    if args.plan_only:
+        plan_only(args, workdir)
+        return
     rows = []
     print(f"load average at start: {os.getloadavg()}")
     for n in args.sizes:

@@ -60,7 +60,9 @@ Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` 
   the scores, each tool's spatial resolution ``l10 %`` read between its points
   (:func:`chunkdic.analysis.resolution.star_ratios_nodes`: chunkdic's C8 nodes, al-dvc's
   grid of step ``ell``, both trilinear between points). ``chunkdic resolution`` measures the
-  same on a scan's own texture, with the noise of the same setting.
+  same on a scan's own texture, with the noise of the same setting;
+  ``bench_star_vs_aldvc.py`` makes issue 20's star table (star ``2ell … 20ell``, each tool's
+  noise at the setting of its star run, MEI and the ratios).
 
 ``--set KEY=VALUE`` passes settings to chunkdic (e.g. ``--set smoothing=0 --set grey=none``
 for the paper's plain C8).

@@ -24,6 +24,10 @@ DEFAULTS = {
         # integer scan level: "uint16" (on a 16-bit grid of the dtype's range: half the disk)
         # or "float32" (exact). docs/engine.md, "Scratch disk".
         "scratch-precision": "uint16",
+        # Layout of those stores: "fast" (uncompressed), "compact" (a 16x coarser grid,
+        # compressed: 0.65 of the bytes, slower passes) or "auto": the plan chooses compact
+        # only when the fast layout does not fit the free disk. docs/engine.md, "Scratch disk".
+        "scratch-layout": "auto",
         # Halo (voxels) around a window prefiltered for cubic B-spline interpolation.
         "bspline-halo": 12,
         # Chunk edge of arrays chunkdic writes (scans, pyramid levels, scratch).

@@ -48,6 +48,7 @@ from ..engine.rigid import phase_correlation
 from ..engine.stopping import (  # the engine's stopping rule, shared on purpose
     State,
     decide,
+    noise_step_of,
 )
 from ..errors import InputError
 from ..inputs import number
@@ -198,7 +199,8 @@ def _iterate(lvl: _Level, u: np.ndarray, tolerance: float, max_iterations: int, 
             # stay at the noise level as converged (chunkdic.engine.stopping)
             sigma_r2 = (p.gap * lvl.range) ** 2
             if sigma_r2 > 0 and measured.any():
-                state.note_noise_step(float(np.sqrt(np.mean(delta[measured] ** 2 * diag[measured] / sigma_r2))))
+                q, unsettled = noise_step_of(delta[measured][:, None], (sigma_r2 / diag[measured])[:, None], tolerance)
+                state.note_noise_step(q, fraction=float(unsettled.mean()))
             state.step(np.stack([delta[:n], delta[n:]], axis=-1).reshape(*lvl.mesh.nodes_shape, 2))
             row["max_delta"] = state.last_delta
         history.append(row)

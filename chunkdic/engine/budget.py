@@ -5,7 +5,8 @@ from the scans' shapes and dtypes and the settings alone,
 
 - the levels, their meshes and blocks;
 - the memory of one task and of the client, hence the peak of each process: a process
-  holds :data:`BASE_BYTES` (Python, NumPy, numba, zarr and the compiled kernels), the
+  holds a base (Python, NumPy, numba, zarr and the kernels: :data:`BASE_BYTES` when it
+  compiles them, :data:`WARM_BASE_BYTES` when they load from numba's cache), the
   client's mesh-sized data (:data:`CLIENT_BYTES_PER_NODE` per node of the finest mesh) and,
   with the embedded thread pool, one task per thread;
 - the scratch disk (missing pyramid levels for the whole run; per level the haloed copy of
@@ -53,14 +54,24 @@ from .prefilter import (
     prepared_halo,
     task_edge,
 )
+from .scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
 from .settings import Settings
 
 GiB, MiB = 2**30, 2**20
 
 #: resident memory of a running correlation's process besides its tasks and mesh data
-#: (bytes; measured: 0.26 GiB after importing chunkdic and loading its kernels, 0.32-0.33
-#: GiB for whole 128³ runs whose tasks are small)
-BASE_BYTES = 330 * MiB
+#: when it compiles its numba kernels (bytes; measured: a 128³ run whose tasks and mesh
+#: planned 84 MiB peaked at 450-456 MiB with an empty numba cache, NUMBA_CACHE_DIR=$(mktemp -d))
+BASE_BYTES = 372 * MiB
+#: the same when every kernel the run uses loads from numba's cache (:func:`kernels_cached`;
+#: the same runs peaked at 303-312 MiB: compiling holds LLVM's memory besides)
+WARM_BASE_BYTES = 245 * MiB
+#: modules whose numba kernels a correlation runs: the block kernels, the pyramid's sums,
+#: the client's solver (a run compiles those missing from numba's cache)
+KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.interp", "chunkdic.kernels.rows",
+                  "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.io.coarsen",
+                  "chunkdic.solve.stencil", "chunkdic.solve.galerkin", "chunkdic.solve.multigrid",
+                  "chunkdic.solve.regularization")
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
 #: solver's block inverse and CG vectors, the regulariser, the nodal fields and the
 #: result (measured: 3.0 GB at 128³ nodes, docs/distributed.md)
@@ -135,8 +146,13 @@ class Plan:
     process_bytes : int
         Estimated peak resident memory of the largest process.
     pyramid_bytes, scratch_bytes, output_bytes : int
-        Scratch pyramid levels (held the whole run); peak scratch (those plus the largest
-        level's haloed ``f`` and prepared ``g``); the result.
+        Scratch pyramid levels (all of them at the start; each deleted when its level
+        ends); peak scratch (the largest, over levels, of a level's haloed ``f`` and
+        prepared ``g`` plus the pyramid levels still held); the result.
+    layout : {"fast", "compact"}
+        How the levels' scratch stores are kept (:mod:`chunkdic.engine.scratchstore`):
+        compact when the fast layout's ``fast_scratch_bytes`` do not fit the free disk
+        (``chunkdic.scratch-layout: auto``), or when forced.
     scratch_dir, output_dir : str
         Where they go; ``scratch_free``, ``output_free`` their free bytes now.
     seconds : float
@@ -168,6 +184,9 @@ class Plan:
     fixed_work: float = 0.0
     solve_seconds: float = 0.0
     smallest_bytes: int = 0
+    layout: str = "fast"
+    fast_scratch_bytes: int = 0
+    base_bytes: int = BASE_BYTES
 
     def timed(self, seconds_per_voxel: float | None, label: str | None = None) -> "Plan":
         """The plan with its times from ``seconds_per_voxel`` of one task's prefilter of ``g``
@@ -195,7 +214,7 @@ class Plan:
         out.append(f"  memory: client {_b(self.client_bytes)} of mesh data, tasks {_b(self.task_bytes)} at once; "
                    f"peak per process ~{_b(self.process_bytes)}{target}")
         disk = f"  disk: scratch {_b(self.scratch_bytes)} (pyramids {_b(self.pyramid_bytes)}) in {self.scratch_dir} " \
-               f"({_b(self.scratch_free)} free)"
+               f"({_b(self.scratch_free)} free), {self._layout_words()}"
         if self.output_dir is not None:
             disk += f"; output {_b(self.output_bytes)} in {self.output_dir} ({_b(self.output_free)} free)"
         out.append(disk)
@@ -208,7 +227,14 @@ class Plan:
         return (f"plan: levels {[lv.level for lv in self.levels]}, level {finest.level} "
                 f"{'x'.join(map(str, finest.nodes))} nodes in {finest.blocks} blocks of {finest.block_edge}³; "
                 f"memory ~{_b(self.process_bytes)} per process (client {_b(self.client_bytes)}, tasks "
-                f"{_b(self.task_bytes)}); scratch {_b(self.scratch_bytes)}; ~{_duration(self.seconds)}")
+                f"{_b(self.task_bytes)}); scratch {_b(self.scratch_bytes)} {self.layout}; ~{_duration(self.seconds)}")
+
+    def _layout_words(self) -> str:
+        if self.layout == "fast":
+            return "fast layout (uncompressed)"
+        why = (f"the fast layout's {_b(self.fast_scratch_bytes)} do not fit"
+               if self.fast_scratch_bytes * DISK_MARGIN > self.scratch_free else "chunkdic.scratch-layout")
+        return f"compact layout (coarser grid, compressed; {why}; passes slower)"
 
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
@@ -219,19 +245,53 @@ class Plan:
             finest = self.levels[-1]
             raise InputError(
                 f"memory target {_b(self.memory_target)} per process cannot hold this run: the client alone needs "
-                f"{_b(BASE_BYTES + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
+                f"{_b(self.base_bytes + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
                 f"is {_b(self.smallest_bytes)} with the smallest blocks: raise the target, or use larger elements "
                 f"or a coarser level")
         same_disk = self.output_dir is not None and _device(self.scratch_dir) == _device(self.output_dir)
         need = self.scratch_bytes + (self.output_bytes if same_disk else 0)
         if need * DISK_MARGIN > self.scratch_free:
             what = "scratch and output need" if same_disk else "scratch needs"
+            what += " in the compact layout" if self.layout == "compact" else ""
             raise DiskSpaceError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
                              f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
                              "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
         if self.output_dir is not None and not same_disk and self.output_bytes * DISK_MARGIN > self.output_free:
             raise DiskSpaceError(f"not enough disk for the output: {_b(self.output_bytes)} needed in "
                                  f"{self.output_dir}, {_b(self.output_free)} free")
+
+
+def kernels_cached() -> bool:
+    """Whether numba's on-disk cache holds every kernel of :data:`KERNEL_MODULES`, so a run
+    loads them rather than compiling (its base memory is then :data:`WARM_BASE_BYTES`).
+
+    Probing only the ``b`` and ``M`` kernels (:func:`chunkdic.kernels.compiled_on_disk`) is
+    not enough: on a fresh clone whose first test ran those, the next run still compiled
+    the solver's and the low-pass's kernels, and peaked 21 % above a plan that assumed
+    the warm base. Reads numba's cache locator (not a public API): any surprise answers
+    False, the higher estimate.
+    """
+    import importlib
+
+    try:
+        from numba.core.dispatcher import Dispatcher
+
+        for name in KERNEL_MODULES:
+            module = importlib.import_module(name)
+            for obj in vars(module).values():
+                if (isinstance(obj, Dispatcher) and obj.py_func.__module__ == name
+                        and obj.targetoptions.get("inline") != "always"):  # inlined helpers have no cache
+                    if not os.path.exists(obj._cache._cache_file._index_path):
+                        return False
+    except Exception:  # noqa: BLE001 - numba internals changed: assume a compiling run
+        return False
+    return True
+
+
+def base_bytes() -> int:
+    """A process's memory besides its tasks and mesh data: :data:`WARM_BASE_BYTES` when
+    every kernel loads from numba's cache, else :data:`BASE_BYTES`."""
+    return WARM_BASE_BYTES if kernels_cached() else BASE_BYTES
 
 
 _LIBC: list = []
@@ -314,12 +374,28 @@ def prepare_bytes(edge: int, sigma: float, interpolation: str) -> int:
 
 def pyramid_bytes(scan, levels) -> int:
     """Scratch bytes of the pyramid levels a scan lacks (uncompressed: an upper bound)."""
+    return sum(pyramid_levels(scan, levels).values())
+
+
+def pyramid_levels(scan, levels) -> dict[int, int]:
+    """Scratch bytes of each pyramid level a scan lacks (uncompressed: an upper bound); a
+    scan held in memory has its level 0 written to scratch too."""
     stored = set(scan.stored_levels())
-    total = 0
-    for s in sorted(set(levels) | ({0} if not stored else set())):  # a scan in memory: level 0 too
+    out = {}
+    for s in sorted(set(levels) | ({0} if not stored else set())):
         if s not in stored:
-            total += math.prod(scan.shape(s)) * np.dtype(scan.dtype(s)).itemsize
-    return int(total)
+            out[s] = int(math.prod(scan.shape(s)) * np.dtype(scan.dtype(s)).itemsize)
+    return out
+
+
+def peak_scratch(pyramids: dict[int, int], stores: dict[int, int]) -> int:
+    """Peak scratch bytes of a run: every missing pyramid level is built at the start, and
+    a level's (``stores``: its haloed ``f`` and prepared ``g``) is held with the pyramid levels
+    at or below it (coarser ones are deleted when their level ends,
+    :func:`chunkdic.engine.steps.release_scan_levels`)."""
+    held = [sum(pyramids.values())]
+    held += [stores[s] + sum(b for t, b in pyramids.items() if t <= s) for s in stores]
+    return int(max(held))
 
 
 def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: bool, g_dtype=None,
@@ -383,6 +459,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     the prefilter's task edge: the largest (up to ``chunkdic.block-voxels`` and
     :data:`~chunkdic.engine.prefilter.TASK_EDGE`) whose estimated peak fits."""
     threads, concurrency, separate = threads_of(scheduler)
+    base = base_bytes()
     levels = sorted(meshes, reverse=True)
     sigma, interp = settings.smoothing, settings.interpolation
     prepared = interp == "cubic" or sigma > 0
@@ -409,8 +486,8 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
                 held.append(prepare_bytes(max(edges), sigma, interp) * min(threads, n_prep))
         task = max(held)
         if separate:
-            return task, BASE_BYTES + max(client, task)
-        return task, BASE_BYTES + client + task
+            return task, base + max(client, task)
+        return task, base + client + task
 
     edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
     smallest = peak(1, MIN_PREPARE_EDGE)[1]
@@ -436,16 +513,39 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
         work = mesh.n_voxels * (COSTS["m"] + passes * COSTS["b"]) + filtered
         plans.append(LevelPlan(s, tuple(mesh.nodes_shape), int(mesh.n_voxels), int(m), int(m * mesh.element_size),
                                int(n_blocks), f_copy, prep, task_bytes(m * mesh.element_size, sigma, interp), work))
-    pyr = pyramid_bytes(f_scan, levels) + pyramid_bytes(g_scan, levels)
-    scratch = pyr + max(lv.f_copy_bytes + lv.prepared_bytes for lv in plans)
+    pyramids = {}
+    for scan in (f_scan, g_scan):
+        for s, b in pyramid_levels(scan, levels).items():
+            pyramids[s] = pyramids.get(s, 0) + b
+    pyr = sum(pyramids.values())
+    root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
+    fast = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
+    chosen = layout()
+    if chosen == "auto":
+        chosen = "compact" if fast * DISK_MARGIN > _free(root) else "fast"
+    if chosen == "compact":
+        plans = [compact_level(lv, f_scan.dtype(lv.level), g_scan.dtype(lv.level), sigma, interp) for lv in plans]
+    scratch = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
     pyr_work = 2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0
     solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
-    root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
     out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
     return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest),
                 str(_existing_parent(root.absolute())), _free(root), None if out_dir is None else str(out_dir),
                 None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
-                solve_seconds, smallest).timed(None)
+                solve_seconds, smallest, chosen, fast, base).timed(None)
+
+
+def compact_level(lv: LevelPlan, f_dtype, g_dtype, sigma: float, interpolation: str) -> LevelPlan:
+    """``lv`` with its 16-bit scratch stores planned at :data:`COMPACT_RATIO` of their bytes
+    (the compact layout compresses those only: float32 stores stay as they are), and its
+    work :data:`COMPACT_WORK` times larger when it has such stores."""
+    f_copy, prep = lv.f_copy_bytes, lv.prepared_bytes
+    if sigma > 0 and quantization(f_dtype)[1] > 0:
+        f_copy = int(f_copy * COMPACT_RATIO["f"])
+    if prep and prepared_grid(g_dtype, sigma, interpolation)[1] > 0:
+        prep = int(prep * COMPACT_RATIO["g"])
+    slower = COMPACT_WORK if (f_copy, prep) != (lv.f_copy_bytes, lv.prepared_bytes) else 1.0
+    return dataclasses.replace(lv, f_copy_bytes=f_copy, prepared_bytes=prep, work=lv.work * slower)
 
 
 def _pyramid_tasks(scan, levels) -> tuple[int, int]:

@@ -54,6 +54,7 @@ from .steps import (
     measure_start_gaps,
     open_level,
     regularization_length,
+    release_scan_levels,
     solve_level,
     start_field,
     start_state,
@@ -199,6 +200,8 @@ def correlate(
             if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
                 stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
                                                      "chunkdic.prepare-voxels": budget.prepare_edge}))
+            # the scratch layout the plan chose (compact only when the fast one does not fit)
+            stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout}))
             if output is not None:
                 stack.enter_context(OutputLock(output))  # one writer per output
             runner = stack.enter_context(open_runner(scheduler))
@@ -298,6 +301,7 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
     u, outcome = None, LevelOutcome()
     for s in ctx.levels:
         if run.done_before_resume(s):
+            release_scan_levels(ctx, s)
             continue
         if run.level_to_solve(s, ctx.finest):
             t0 = time.perf_counter()
@@ -311,6 +315,7 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
                 measure_start_gaps(ctx, run, lvl)
             solve_level(ctx, run, lvl)
             outcome = finish_level(ctx, run, lvl, t0)
+        release_scan_levels(ctx, s)
         final, u, run.gn = run.gn, run.gn.u, None
     return assemble_result(ctx, run, final, outcome)
 

@@ -12,7 +12,7 @@ import logging
 import math
 from collections.abc import Callable
 
-from .stopping import STALL_PATIENCE
+from .stopping import STALL_PATIENCE, STEP_CAP
 
 log = logging.getLogger(__name__)
 
@@ -125,6 +125,9 @@ class EventText:
         if stage == "resume":
             return (f"resuming the interrupted run from its checkpoint: level {event['level']}, "
                     f"iteration {event['iteration']}")
+        if stage == "unsettled":
+            return (f"level {event['level']}: converged at the noise level; {event['nodes']} poorly seen nodes still "
+                    f"moved by more than {STEP_CAP:g}x their uncertainty and are flagged weak (unreliable)")
         if stage == "level":
             return (f"level {event['level']}: {event['status']}, gap {100 * event['gap']:.3f}% "
                     f"({event['seconds']:.1f} s)" + explain(event["status"]))

@@ -16,7 +16,7 @@ import numpy as np
 
 from .events import emit
 from .level import Level
-from .stopping import History, State, decide
+from .stopping import History, State, decide, noise_step_of
 
 
 def element_fields(p) -> np.ndarray:
@@ -26,20 +26,26 @@ def element_fields(p) -> np.ndarray:
     return np.concatenate([np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element]), drift])
 
 
-def noise_step(lvl: Level, p, delta: np.ndarray) -> float:
-    """The increment in units of the field's own uncertainty: RMS over the unknowns of
-    ``δa / σ_u``, with ``σ_u² = κ σ_r² [A_ii⁻¹ M_ii A_ii⁻¹]`` from each node's diagonal block
-    (``A = M + λR``; the coupling to the neighbours, which :func:`~chunkdic.engine.noise.nodal_uncertainty`
-    adds, only raises ``σ_u``: this is the stricter measure). Weak nodes are left out."""
+def noise_step(lvl: Level, p, delta: np.ndarray, tolerance: float) -> tuple[float, np.ndarray, float]:
+    """The increment ``delta`` (nz, ny, nx, 3) in units of the field's own uncertainty
+    (:func:`~chunkdic.engine.stopping.noise_step_of`: RMS of ``δa / σ_u`` over the settled
+    nodes), the unsettled nodes (bool, shape (nz, ny, nx): beyond ``STEP_CAP`` σ_u and
+    ``tolerance``, voxels of the level) and their fraction of the measured nodes.
+
+    ``σ_u² = κ σ_r² [A_ii⁻¹ M_ii A_ii⁻¹]`` from each node's diagonal block (``A = M + λR``;
+    the coupling to the neighbours, which :func:`~chunkdic.engine.noise.nodal_uncertainty`
+    adds, only raises ``σ_u``: this is the stricter measure). Weak nodes are left out.
+    """
     solver = lvl.solver
     Ainv, Mii = solver.block_inverse, solver.diagonal_blocks
     var = float(p.kappa * p.noise_variance) * np.einsum("...ij,...jk,...ki->...i", Ainv, Mii, Ainv)
-    ok = var > 0
+    ok = (var > 0).all(axis=-1)
     if solver.weak_nodes.size:
         ok[tuple(solver.weak_nodes.T)] = False
-    if not ok.any():
-        return math.inf
-    return float(np.sqrt(np.mean(delta[ok] ** 2 / var[ok])))
+    q, moving = noise_step_of(delta[ok], var[ok], tolerance)
+    unsettled = np.zeros(ok.shape, bool)
+    unsettled[ok] = moving
+    return q, unsettled, float(moving.mean()) if moving.size else 0.0
 
 
 def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, history: History, progress,
@@ -82,7 +88,8 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             delta, cg_iterations = lvl.solver.solve(rhs)
             state.largest_rhs = lvl.solver.largest_rhs  # recorded for the checkpoint; the solver owns it
             t2 = time.perf_counter()
-            state.note_noise_step(noise_step(lvl, p, delta))
+            q, unsettled, fraction = noise_step(lvl, p, delta, tolerance)
+            state.note_noise_step(q, unsettled, fraction)
             if float(np.abs(delta).max()) >= tolerance:
                 state.step(delta)
             else:
@@ -95,7 +102,8 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
                 state.finish("converged", keep_current=True)
                 event.update(status=state.status)
             history.add(lvl.s, it, p.gap, state.last_delta, p.n_excluded)
-            event.update(max_delta=state.last_delta, noise_step=state.last_noise_step, seconds=t2 - t0,
+            event.update(max_delta=state.last_delta, noise_step=state.last_noise_step,
+                         unsettled=int(unsettled.sum()), seconds=t2 - t0,
                          assemble_seconds=t1 - t0, solve_seconds=t2 - t1, cg_iterations=cg_iterations,
                          voxels=lvl.mesh.n_voxels, assemble_cpu_seconds=cpu)
             emit(progress, **event)

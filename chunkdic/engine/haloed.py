@@ -22,6 +22,11 @@ the level's, not the block's, so results stay independent of the block size; and
 scratch store of a level-0 run (17 GB of 35 at 2048³); its effect on the measured field
 is in docs/engine.md ("Scratch disk"). Other levels and float scans stay float32.
 
+When the disk cannot hold the run, the plan picks the compact layout
+(:mod:`chunkdic.engine.scratchstore`): a 16× coarser grid, chunks compressed with
+blosc zstd (0.55 of the bytes). Either way a task reads its chunk's file itself
+(:func:`chunkdic.engine.scratchstore.read_chunk`: 2 ms for a 130³ chunk, 18 ms through zarr).
+
 Retried tasks are safe: a task writes exactly one whole chunk, always the same values.
 """
 
@@ -33,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
-from ..io.handles import open_zarr_array
+from . import scratchstore
 
 __all__ = ["HaloedBlocks"]
 
@@ -53,6 +58,10 @@ class HaloedBlocks:
         origin, zero-padded.
     dtype : str
         Dtype of the scan level (stored as read, converted by the reader).
+    offset, step : float
+        The 16-bit grid of a quantised store (``step`` 0: stored as ``dtype``).
+    compressed : bool
+        Chunks compressed (the compact layout, :mod:`chunkdic.engine.scratchstore`).
     """
 
     path: str
@@ -61,6 +70,7 @@ class HaloedBlocks:
     dtype: str
     offset: float = 0.0
     step: float = 0.0
+    compressed: bool = False
 
     @property
     def quantized(self) -> bool:
@@ -78,9 +88,10 @@ class HaloedBlocks:
         grid, chunk, dtype = tuple(map(int, grid)), tuple(map(int, chunk)), np.dtype(dtype)
         offset, step = quantization(quantize_from) if dtype.kind == "f" else (0.0, 0.0)
         stored = np.dtype("uint16") if step > 0 else dtype
+        codecs = scratchstore.compressors("f", stored.itemsize) if step > 0 else None
         zarr.create_array(str(path), shape=grid + chunk, chunks=(1, 1, 1) + chunk, dtype=stored,
-                          compressors=None, fill_value=0, zarr_format=3, overwrite=True)
-        return cls(str(path), grid, chunk, dtype.name, offset, step)
+                          compressors=codecs, fill_value=0, zarr_format=3, overwrite=True)
+        return cls(str(path), grid, chunk, dtype.name, offset, step, codecs is not None)
 
     def write(self, index: tuple[int, int, int], region: np.ndarray) -> np.ndarray:
         """Task side: store block ``index``'s haloed region (one whole chunk); returns the
@@ -101,7 +112,10 @@ class HaloedBlocks:
     def read(self, index: tuple[int, int, int], shape: tuple[int, int, int]) -> np.ndarray:
         """Task side: block ``index``'s haloed region of ``shape`` voxels (stored dtype, or
         float32 when quantised)."""
-        chunk = np.asarray(open_zarr_array(self.path, "")[tuple(index)])
+        stored = np.dtype("uint16") if self.quantized else np.dtype(self.dtype)
+        # the chunk's file read directly: 3-6x faster than through zarr (scratchstore.read_chunk)
+        chunk = scratchstore.read_chunk(self.path, tuple(index) + (0, 0, 0), (1, 1, 1) + self.chunk, stored,
+                                        self.compressed)[0, 0, 0]
         chunk = chunk[tuple(slice(0, n) for n in shape)]
         return self._dequantize(chunk) if self.quantized else chunk
 
@@ -114,8 +128,9 @@ class HaloedBlocks:
 
 def quantization(dtype) -> tuple[float, float]:
     """``(offset, step)`` of the 16-bit grid for low-passed values of an integer ``dtype`` of
-    1 or 2 bytes (``step`` a power of two, 65535 steps cover the dtype's range); ``(0, 0)``:
-    not quantised (other dtypes, or ``chunkdic.scratch-precision`` is ``"float32"``)."""
+    1 or 2 bytes (``step`` a power of two, 65535 steps cover the dtype's range; the compact
+    layout's steps are :data:`~chunkdic.engine.scratchstore.COMPACT_STEP` times larger);
+    ``(0, 0)``: not quantised (other dtypes, or ``chunkdic.scratch-precision`` is ``"float32"``)."""
 
     if dtype is None or config.get("scratch-precision") != "uint16":
         return 0.0, 0.0
@@ -124,4 +139,4 @@ def quantization(dtype) -> tuple[float, float]:
         return 0.0, 0.0
     info = np.iinfo(dtype)
     step = 2.0 ** np.ceil(np.log2((float(info.max) - float(info.min)) / 65535.0))
-    return float(info.min), float(step)
+    return float(info.min), float(step * scratchstore.step_factor())

@@ -36,6 +36,7 @@ from ..errors import InputError
 from ..io.handles import ArrayRef
 from ..kernels.lowpass import TRUNCATE, lowpass_bspline
 from ..mesh import Mesh
+from . import scratchstore
 
 #: chunk edge of the prepared store: small, so a block's window reads little extra
 CHUNK = 64
@@ -116,7 +117,8 @@ def prepared_grid(dtype, sigma: float, interpolation: str) -> tuple[float, float
     ``(0, 0)``: float32 (a float or wider scan, no low-pass, an overshoot above 0.5 of the
     range, or ``chunkdic.scratch-precision`` ``"float32"``). The grid covers the dtype's
     range widened by :func:`overshoot` on each side, so nothing is clipped: 1.04 grey
-    levels per step for a 16-bit scan at σ = 1 (docs/engine.md, "Scratch disk")."""
+    levels per step for a 16-bit scan at σ = 1, 16.6 in the compact layout
+    (:mod:`chunkdic.engine.scratchstore`; docs/engine.md, "Scratch disk")."""
     if dtype is None or sigma <= 0 or config.get("scratch-precision") != "uint16":
         return 0.0, 0.0
     dtype = np.dtype(dtype)
@@ -127,7 +129,8 @@ def prepared_grid(dtype, sigma: float, interpolation: str) -> tuple[float, float
         return 0.0, 0.0
     info = np.iinfo(dtype)
     span = float(info.max) - float(info.min)
-    return float(info.min) - over * span, span * (1 + 2 * over) / 65535.0 * (1 + 1e-9)
+    step = span * (1 + 2 * over) / 65535.0 * (1 + 1e-9)
+    return float(info.min) - over * span, step * scratchstore.step_factor()
 
 
 def quantize(data: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
@@ -157,17 +160,22 @@ def dequantize(q: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
 @dataclass(frozen=True)
 class PreparedImage:
     """The prepared ``g`` (samples or B-spline coefficients) over ``box`` (absolute level indices),
-    stored as float32 or on the 16-bit ``grid`` (:func:`prepared_grid`)."""
+    stored as float32 or on the 16-bit ``grid`` (:func:`prepared_grid`); ``compressed``: a
+    compact layout's Zarr array of :data:`CHUNK`³ chunks, read from its chunk files
+    (:func:`chunkdic.engine.scratchstore.read_window`)."""
 
     ref: ArrayRef
     box: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
     grid: tuple[float, float] = (0.0, 0.0)
+    compressed: bool = False
 
     def covers(self, window: tuple[slice, slice, slice]) -> bool:
         return all(a <= w.start and w.stop <= b for w, (a, b) in zip(window, self.box))
 
     def read(self, window: tuple[slice, slice, slice]) -> np.ndarray:
         local = tuple(slice(w.start - a, w.stop - a) for w, (a, _) in zip(window, self.box))
+        if self.compressed:
+            return dequantize(scratchstore.read_window(self.ref.path, local, CHUNK, self.ref.dtype, True), self.grid)
         return dequantize(self.ref.read(local), self.grid)
 
 
@@ -245,12 +253,14 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
     file, whose windows read 3-4x cheaper than from Zarr chunks (no chunk assembly; it
     is on the hot path of every iteration). (Hence tasks that write into it rather than
     ``dask.array.map_overlap``, whose result would still have to be stored, as Zarr.) Otherwise an uncompressed Zarr array, safe
-    for workers on other hosts sharing the file system.
+    for workers on other hosts sharing the file system; in the compact layout
+    (:mod:`chunkdic.engine.scratchstore`) a compressed Zarr array in either case.
     """
     shape = tuple(b - a for a, b in box)
     grid = prepared_grid(g_ref.dtype, sigma, interpolation)
     dtype = "uint16" if grid[1] > 0 else "float32"
-    if local:
+    compact = scratchstore.compact() and grid[1] > 0
+    if local and not compact:
         path = path.with_suffix(".npy")
         np.lib.format.open_memmap(path, mode="w+", dtype=dtype, shape=shape).flush()
         out = ArrayRef("npy", str(path), "", shape, dtype)
@@ -258,9 +268,10 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
         import zarr
 
         zarr.create_array(str(path), shape=shape, chunks=(CHUNK,) * 3, dtype=dtype,
-                          compressors=None, zarr_format=3, overwrite=True)
+                          compressors=scratchstore.compressors("g", np.dtype(dtype).itemsize) if compact else None,
+                          zarr_format=3, overwrite=True)
         out = ArrayRef("zarr", str(path), "", shape, dtype)
-    edges = [task_edge(b - a, 1 if local else CHUNK) for a, b in box]
+    edges = [task_edge(b - a, 1 if out.kind == "npy" else CHUNK) for a, b in box]
     starts = [range(a, b, e) for (a, b), e in zip(box, edges)]
     regions = [
         tuple(slice(s, min(s + e, b)) for s, e, (_, b) in zip(corner, edges, box))
@@ -269,4 +280,4 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
     args = [(g_ref, out, box, r, halo, float(sigma), interpolation, grid) for r in regions]
     for _ in map_tasks(prepare_task, args):
         pass
-    return PreparedImage(out, box, grid)
+    return PreparedImage(out, box, grid, compact)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
+from ..io.handles import forget_open_arrays
 from ..mesh import Mesh, transfer
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.cg import StencilSolver
@@ -172,7 +174,7 @@ def solve_level(ctx: RunContext, run: RunState, lvl: Level) -> None:
 def finish_level(ctx: RunContext, run: RunState, lvl: Level, t0: float) -> LevelOutcome:
     """Record the level's status, checkpoint, free its scratch; what it leaves for the result."""
     s = lvl.s
-    outcome = LevelOutcome(weak=lvl.weak_nodes(), masked=lvl.masked_nodes(), active=lvl.active,
+    outcome = LevelOutcome(weak=unreliable_nodes(lvl, run.gn), masked=lvl.masked_nodes(), active=lvl.active,
                            reg_length=lvl.regularization_length * 2**s)
     lvl.release()
     run.statuses[s] = run.gn.status
@@ -184,6 +186,45 @@ def finish_level(ctx: RunContext, run: RunState, lvl: Level, t0: float) -> Level
         outcome.sigma_u = nodal_uncertainty(lvl.solver, p.noise_variance, p.kappa)
         outcome.noise = {"sigma_r": float(np.sqrt(p.noise_variance)), "kappa": float(p.kappa)}
     return outcome
+
+
+def unreliable_nodes(lvl: Level, state: State) -> np.ndarray:
+    """The level's weak nodes (index triples, shape (n, 3)) and, when it converged at the
+    noise level, the nodes its latest increment still moved by more than ``STEP_CAP`` σ_u:
+    a few poorly seen nodes at the specimen's edge can run away while the rest of the field
+    has stopped (docs/engine.md, "Iterations and stopping"); their values are not measured
+    and are flagged ``FLAG_WEAK`` with the poorly textured ones."""
+    weak = lvl.weak_nodes()
+    if state.status != "converged" or state.unsettled is None or not state.unsettled.any():
+        return weak
+    moving = state.unsettled & ~lvl.masked_nodes()
+    emit(lvl.progress, stage="unsettled", level=lvl.s, nodes=int(moving.sum()))
+    return np.unique(np.concatenate([weak.reshape(-1, 3), np.argwhere(moving)]), axis=0)
+
+
+def release_scan_levels(ctx: RunContext, s: int) -> None:
+    """Delete the pyramid level ``s`` of both scans (and the mask) that the run wrote into scratch,
+    once level ``s`` is done and a finer one follows.
+
+    Every missing level is built at the start (each from the finest on disk below it), and
+    nothing reads level ``s`` after its own Gauss–Newton iterations: at 2048³ the levels
+    1–3 of a pair hold up to 9.8 GB that the level-0 run no longer needs
+    (docs/engine.md, "Scratch disk"). Stored levels (the user's) are never touched.
+    """
+    if s == ctx.finest:
+        return
+    doomed = []
+    for refs in (ctx.f_refs, ctx.g_refs, ctx.mask_refs or {}):
+        ref = refs.get(s)
+        if ref is None or ref.kind != "zarr" or not ref.key:
+            continue
+        path = Path(ref.path) / ref.key
+        if Path(ctx.scratch).resolve() in path.resolve().parents:
+            doomed.append(path)
+    if doomed:
+        ctx.runner.run_everywhere(forget_open_arrays)
+        for path in doomed:
+            shutil.rmtree(path, ignore_errors=True)
 
 
 def regularization_length(settings: Settings, state: State, s: int, mesh: Mesh) -> float:

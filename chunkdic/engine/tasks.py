@@ -104,6 +104,10 @@ class LevelInputs:
         The pyramid level.
     mask : ArrayRef or None
         The binary specimen mask's sums at this level (:mod:`chunkdic.engine.masks`).
+    g_grid : (float, float)
+        ``(offset, step)`` of the grid the prepared ``g`` is kept on
+        (:func:`chunkdic.engine.prefilter.prepared_grid`, chosen on the client for the run's
+        scratch layout); a task that prepares its own window rounds it to the same grid.
     """
 
     f: ArrayRef
@@ -118,6 +122,7 @@ class LevelInputs:
     prepared: PreparedImage | None = None
     level: int = 0
     mask: ArrayRef | None = None
+    g_grid: tuple[float, float] = (0.0, 0.0)
 
     @classmethod
     def for_settings(cls, f: ArrayRef, g: ArrayRef, f_copy: HaloedBlocks | None, *, level: int,
@@ -126,7 +131,8 @@ class LevelInputs:
         ``chunkdic.bspline-halo`` and the margin near the faces of ``g`` from the low-pass
         (:func:`chunkdic.engine.prefilter.face_margin`) are derived here, once."""
         return cls(f, g, f_copy, interpolation, float(smoothing), grey, int(config.get("bspline-halo")),
-                   face_margin(smoothing), level=int(level), mask=mask)
+                   face_margin(smoothing), level=int(level), mask=mask,
+                   g_grid=prepared_grid(g.dtype, smoothing, interpolation))
 
     @property
     def g_needs_preparing(self) -> bool:
@@ -229,7 +235,8 @@ def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
                       margin=inputs.g_margin)
     raw = inputs.g.read(window)
     check_finite(raw, "deformed", window)
-    # on the prepared store's grid, so that a result never depends on the store's box
-    grid = prepared_grid(inputs.g.dtype, inputs.sigma, interp)
+    # on the prepared store's grid (chosen on the client: the layout is the run's), so that a
+    # result never depends on the store's box
+    grid = inputs.g_grid
     prepared = dequantize(quantize(prepare_deformed(raw, inputs.sigma, interp), grid), grid)
     return prepared, tuple(s.start for s in window)

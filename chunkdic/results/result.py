@@ -35,7 +35,9 @@ HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
 #: displacement is NaN (not measured)
 FLAG_NO_DATA = 1
 #: node flag: poorly textured (its 3x3 block of ``M`` is nearly singular); regularised,
-#: its value is unreliable
+#: its value is unreliable. Also set on the few nodes a level converged at the noise level
+#: still moved by more than ``STEP_CAP`` × their uncertainty (docs/engine.md, "Iterations
+#: and stopping"): poorly seen too, their value is not settled
 FLAG_WEAK = 2
 #: node flag: outside the specimen mask (no active element around it); NaN, not measured
 FLAG_MASKED = 4
@@ -95,7 +97,7 @@ class Result:
         ``(z, y, x)``; ``None`` until computed (:meth:`element_strain` computes it).
     flags : ndarray, shape (nz, ny, nx), uint8, optional
         Per-node flags, bits :data:`FLAG_NO_DATA` (displacement NaN: not measured),
-        :data:`FLAG_WEAK` (poorly textured, regularised) and :data:`FLAG_MASKED` (outside
+        :data:`FLAG_WEAK` (poorly textured, regularised, or not settled at the noise level) and :data:`FLAG_MASKED` (outside
         the specimen mask, NaN).
     active : ndarray, shape (ez, ey, ex), uint8, optional
         Elements that took part (a specimen mask's material elements, :mod:`chunkdic.engine.masks`);

@@ -19,18 +19,20 @@ import warnings
 import numpy as np
 
 from ..errors import InputError
-from .galerkin import matrix_hierarchy
+from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .regularization import Regularizer, add_weighted
 from .stencil import pcg, pcg_block_jacobi, stencil_matvec
 
 log = logging.getLogger(__name__)
 
-#: multigrid replaces block-Jacobi (Tikhonov only) from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii``
-#: (medians over nodes): from about 7ℓ, where block-Jacobi CG needs ~100 iterations and
-#: the V-cycle 9 (docs/engine.md, "Solve"). The equilibrium gap keeps block-Jacobi: its
-#: large non-smooth near-null space (every field in equilibrium) defeats the point
-#: smoother, and the V-cycle saved iterations but not time (measured).
+#: multigrid replaces block-Jacobi from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii`` (medians
+#: over nodes): from about 7ℓ with Tikhonov, where block-Jacobi CG needs ~100 iterations and
+#: the V-cycle 9 (docs/engine.md, "Solve"); about 9ℓ with the equilibrium gap, whose
+#: diagonal is smaller at equal length. The equilibrium gap used to keep block-Jacobi: its
+#: null space then held every field set by the box's edges, which defeated the V-cycle
+#: (1 012 iterations at 16ℓ); with the edge term it has 24 fields, like Tikhonov's, and the
+#: V-cycle needs 27-74 iterations from 8ℓ to 32ℓ where block-Jacobi needs 214-1 861.
 MULTIGRID_FROM = 100.0
 
 
@@ -62,9 +64,9 @@ class StencilSolver:
         CG iterations before giving up with a warning.
     multigrid : bool or None
         Precondition with a multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) instead of
-        block-Jacobi: ``None`` (default) when it pays, i.e. with Tikhonov regularisation
-        whose weight makes ``λ R`` dominate ``M`` (:data:`MULTIGRID_FROM`); ``True`` whenever
-        regularised, ``False`` never.
+        block-Jacobi: ``None`` (default) when it pays, i.e. with a regularisation whose weight
+        makes ``λ R`` dominate ``M`` (:data:`MULTIGRID_FROM`); ``True`` whenever regularised,
+        ``False`` never.
 
     Raises
     ------
@@ -97,7 +99,7 @@ class StencilSolver:
         self._diag = diag.reshape(self.nodes_shape + (3, 3))
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
-        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0)
+        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0)
         self.block_inverse = np.linalg.inv(self._diag)
         self.multigrid = multigrid
         self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
@@ -132,8 +134,6 @@ class StencilSolver:
             return False
         if self.multigrid:
             return True
-        if self.regularizer.kind != "tikhonov":
-            return False
         return self.weight * self._regularizer_diagonal >= MULTIGRID_FROM * self._matrix_diagonal
 
     def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
@@ -156,7 +156,7 @@ class StencilSolver:
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
-        code, Ke, Kf, sw = self._reg_args
+        code, Ke, Kf, sw, ew = self._reg_args
         norm = float(np.sqrt(np.sum(b * b)))
         self.largest_rhs = max(self.largest_rhs, norm)
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
@@ -164,7 +164,7 @@ class StencilSolver:
             iterations = pcg(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
         else:
             iterations = pcg_block_jacobi(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
-                              code if self.regularizer is not None else 0, Ke, Kf, sw, self.weight)
+                              code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)
@@ -185,3 +185,8 @@ def warmup() -> None:
     solver = StencilSolver(half, multigrid=True)
     solver.regularize(Regularizer("tikhonov", (7, 7, 7), 2.0), 1.0)
     solver.solve(np.ones((7, 7, 7, 3)))
+    # the V-cycle's coarse penalty product (reached only on larger meshes): compiled here
+    # too, so that every kernel of a run is in numba's cache after a first run
+    # (chunkdic.engine.budget.kernels_cached)
+    regularizer_stencil(Regularizer("tikhonov", (3, 3, 3), 2.0)).matvec_add(1.0, np.ones((3, 3, 3, 3)),
+                                                                           np.zeros((3, 3, 3, 3)))

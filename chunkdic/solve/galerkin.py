@@ -357,8 +357,7 @@ def regularizer_stencil(reg: Regularizer) -> ClassStencil:
     small_shape = tuple(len(r) for _, r in maps)
     small = reg
     if small_shape != reg.nodes_shape:
-        small = Regularizer(reg.kind, small_shape, reg.ell)
-        small.surface_weight = reg.surface_weight
+        small = reg.resized(small_shape)
     w = 2 * reach + 1
     kc = (w**3 - 1) // 2
     offsets = np.array([(k // (w * w) - reach, (k // w) % w - reach, k % w - reach) for k in range(kc, w**3)])

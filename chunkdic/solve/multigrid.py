@@ -5,10 +5,11 @@ regularisation ``λ R`` of a long length is a fourth-order operator whose smooth
 block-Jacobi cannot reach: 600–1 300 iterations at 25³ nodes (docs/engine.md, "Solve").
 One V-cycle of this module takes their place as the preconditioner: 7 to 16 iterations
 from ℓ to 32ℓ there, the same counts at 16³ to 48³ nodes. :class:`~chunkdic.solve.cg.StencilSolver`
-uses it with Tikhonov at long lengths only: the equilibrium gap's large non-smooth
-near-null space (every field in equilibrium, set by its boundary values) is out of reach
-of a point smoother and of the coarse grid alike (measured: 627 iterations instead of
-2 000 at 32ℓ, but no faster).
+uses it at long lengths, for both kinds. The equilibrium gap was left out until its edge
+term (issue 20): its null space then held every field set by the box's edges, out of
+reach of a point smoother and of the coarse grid alike (measured: 627 iterations instead
+of 2 000 at 32ℓ, but no faster); with 24 null fields, as Tikhonov's, 27–74 iterations
+from 8ℓ to 32ℓ on 24³ nodes, where block-Jacobi needs 214–1 861.
 
 Smoother: Chebyshev polynomial of degree :data:`DEGREE` in the block-Jacobi-preconditioned
 operator, over ``[λ_max / 30, 1.1 λ_max]`` (``λ_max`` of ``D⁻¹A`` from 10 Lanczos steps of

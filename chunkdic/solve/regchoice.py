@@ -242,9 +242,7 @@ def dof_fraction(half: np.ndarray, reg: Regularizer, weights) -> np.ndarray:
     for h in range(1, 14):
         phase = np.exp(1j * sum(offsets[h][d] * theta[d] for d in range(3)))[..., None, None]
         Mh = Mh + S[h] * phase + S[h].T * np.conj(phase)
-    probe = Regularizer(reg.kind, (9, 9, 9), reg.ell)
-    if reg.kind == "equilibrium-gap":
-        probe.surface_weight = reg.surface_weight
+    probe = reg.resized((9, 9, 9))
     Rh = np.zeros(fshape + (3, 3), np.complex128)
     for j in range(3):
         e = np.zeros((9, 9, 9, 3))

@@ -10,22 +10,36 @@ with a penalty ``aᵀ R a`` that damps the short wavelengths of the field and le
 long ones to the images (the usual regularised global DVC: pyxel, UFreckles, Correli):
 
 ``tikhonov``
-    ``R = Σ_axes D2ᵀ D2``, the squared second differences of each component along every
-    grid line of nodes (a discrete curvature, in voxel units scaled away by the
-    normalisation). It reaches every node, the ROI's edges and corners included, and costs
-    nothing for rigid and linear fields: it penalises the curvature of the field, not its
-    gradient (the H¹ energy ``∫ |∇u|²`` would pull a homogeneous strain towards zero: on a
-    5³-node mesh of a −2 % compression it measured −1.7 %). A fourth-order low-pass.
+    ``R = Σ_axes D2ᵀ D2 + 2 Σ_planes Dmᵀ Dm``, the squared Frobenius norm of the discrete
+    Hessian of each component: second differences along every grid line of nodes plus
+    twice the squared mixed differences ``u₀₀ − u₁₀ − u₀₁ + u₁₁`` of every 2×2 square of
+    nodes in the three grid planes (a discrete curvature, in voxel units scaled away by the
+    normalisation). Its plane-wave symbol is ``(Σ_i s_i)²`` with ``s_i = 2 − 2 cos θ_i``,
+    ``|θ|⁴`` to leading order: a wave is damped by its wavelength whatever its direction.
+    The second differences alone (``Σ s_i²``, the form until issue 20) damp a wave along a
+    grid diagonal 2–3× less than one along an axis, so at the same resolution along the
+    axes the field kept 1.2× more noise (measured on the star, docs/engine.md). It reaches
+    every node, the ROI's edges and corners included, and costs nothing for rigid and
+    linear fields: it penalises the curvature of the field, not its gradient (the H¹
+    energy ``∫ |∇u|²`` would pull a homogeneous strain towards zero: on a 5³-node mesh of a
+    −2 % compression it measured −1.7 %). A fourth-order low-pass.
 ``equilibrium-gap``
-    ``R = Kᵀ P K + μ_s Σ_faces Lᵀ P_s L``: ``K`` the stiffness of a homogeneous isotropic
-    elastic solid on the C8 mesh (Poisson ratio ``POISSON``), ``P`` keeps its rows at
-    interior nodes: the equilibrium gap, zero for any field in equilibrium (Tomičević,
-    Hild, Roux 2013). On the ROI faces, where ``K u`` is a traction the images cannot
-    constrain, ``L`` is the in-plane (Q4) Laplacian of each face, ``P_s`` keeps the rows
-    inside the face and ``μ_s`` balances the two terms for a plane wave. It couples the
-    components as an elastic solid does; a localised band (a local softening) is not in
-    equilibrium for a homogeneous material, and the equilibrium gap damps it more than
-    Tikhonov does.
+    ``R = Kᵀ P K + μ_s Σ_faces Lᵀ P_s L + μ_e Σ_edges D2ᵀ D2``: ``K`` the stiffness of a
+    homogeneous isotropic elastic solid on the C8 mesh (Poisson ratio ``POISSON``), ``P``
+    keeps its rows at interior nodes: the equilibrium gap, zero for any field in
+    equilibrium (Tomičević, Hild, Roux 2013). On the ROI faces, where ``K u`` is a traction
+    the images cannot constrain, ``L`` is the in-plane (Q4) Laplacian of each face, ``P_s``
+    keeps the rows inside the face; on the 12 edges of the box, which the face rows leave
+    out, ``D2`` is the second difference along the edge. ``μ_s`` and ``μ_e`` make a plane
+    wave cost as much per face node and per edge node as per interior node. Each term sets
+    the next lower-dimensional part from its boundary (interior from the faces, faces from
+    the edges, edges from the corners), so the null space is 24 fields fixed by the 8
+    corners, as many as Tikhonov's; without the edge term it held every field set by its
+    edge values (3 (12 (n - 2) + 8) of them), left to the few voxels of the edge nodes, and
+    Gauss–Newton on CT scans at ℓ = 6 and 4 moved those nodes by up to 88 voxels and ended
+    stalled or diverged (issue 20, docs/engine.md). It couples the components as an
+    elastic solid does; a localised band (a local softening) is not in equilibrium for a
+    homogeneous material, and the equilibrium gap damps it more than Tikhonov does.
 
 Normalisation (as pyxel does for its weak regularisation): ``λ`` is such that a plane
 wave of wavelength ``T`` is penalised ``(ℓ_reg / T)^4`` times its image term
@@ -150,6 +164,43 @@ def _apply_curvature(x, y, w):
 
 
 @numba.njit(nogil=True, cache=True)
+def _apply_mixed(x, y, w):
+    """y += w Σ_planes Dmᵀ Dm x: the mixed difference of every 2×2 square of nodes, per component."""
+    nz, ny, nx = x.shape[0], x.shape[1], x.shape[2]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for c in range(3):
+                    v = x[i, j, k, c]
+                    if i < nz - 1 and j < ny - 1:  # the (z, y) square
+                        t = w * (v - x[i + 1, j, k, c] - x[i, j + 1, k, c] + x[i + 1, j + 1, k, c])
+                        y[i, j, k, c] += t
+                        y[i + 1, j, k, c] -= t
+                        y[i, j + 1, k, c] -= t
+                        y[i + 1, j + 1, k, c] += t
+                    if i < nz - 1 and k < nx - 1:  # (z, x)
+                        t = w * (v - x[i + 1, j, k, c] - x[i, j, k + 1, c] + x[i + 1, j, k + 1, c])
+                        y[i, j, k, c] += t
+                        y[i + 1, j, k, c] -= t
+                        y[i, j, k + 1, c] -= t
+                        y[i + 1, j, k + 1, c] += t
+                    if j < ny - 1 and k < nx - 1:  # (y, x)
+                        t = w * (v - x[i, j + 1, k, c] - x[i, j, k + 1, c] + x[i, j + 1, k + 1, c])
+                        y[i, j, k, c] += t
+                        y[i, j + 1, k, c] -= t
+                        y[i, j, k + 1, c] -= t
+                        y[i, j + 1, k + 1, c] += t
+
+
+@numba.njit(nogil=True, cache=True)
+def _apply_hessian(x, y, w):
+    """y += w R x for Tikhonov: the squared Frobenius norm of the discrete Hessian (the mixed
+    terms counted twice, as ``∂_i∂_j`` and ``∂_j∂_i``)."""
+    _apply_curvature(x, y, w)
+    _apply_mixed(x, y, 2.0 * w)
+
+
+@numba.njit(nogil=True, cache=True)
 def _face_node(axis, k0, i1, i2):
     """(z, y, x) of node (i1, i2) of the face ``axis = k0`` (in-plane axes in cyclic order)."""
     if axis == 0:
@@ -195,10 +246,33 @@ def _apply_faces(Kf, x, y, w):
 
 
 @numba.njit(nogil=True, cache=True)
-def add_weighted(code, Ke, Kf, surface_weight, lam, x, y):
+def _apply_edges(x, y, w):
+    """y += w Σ over the 12 edges of the box of D2ᵀ D2 x, D2 the second difference along the edge, per component."""
+    dims = (x.shape[0], x.shape[1], x.shape[2])
+    for axis in range(3):
+        n = dims[axis]
+        if n < 3:
+            continue
+        m1 = dims[(axis + 1) % 3] - 1
+        m2 = dims[(axis + 2) % 3] - 1
+        for s1 in range(2):
+            for s2 in range(2):
+                for k in range(1, n - 1):
+                    z0, y0, x0 = _face_node(axis, k - 1, s1 * m1, s2 * m2)
+                    z1, y1, x1 = _face_node(axis, k, s1 * m1, s2 * m2)
+                    z2, y2, x2 = _face_node(axis, k + 1, s1 * m1, s2 * m2)
+                    for c in range(3):
+                        t = w * (x[z0, y0, x0, c] - 2.0 * x[z1, y1, x1, c] + x[z2, y2, x2, c])
+                        y[z0, y0, x0, c] += t
+                        y[z1, y1, x1, c] -= 2.0 * t
+                        y[z2, y2, x2, c] += t
+
+
+@numba.njit(nogil=True, cache=True)
+def add_weighted(code, Ke, Kf, surface_weight, edge_weight, lam, x, y):
     """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve.cg`); ``code`` 1 Tikhonov, 2 equilibrium gap."""
     if code == 1:
-        _apply_curvature(x, y, lam)
+        _apply_hessian(x, y, lam)
         return
     k = np.zeros_like(x)
     _apply_vector(Ke, x, k)
@@ -212,6 +286,8 @@ def add_weighted(code, Ke, Kf, surface_weight, lam, x, y):
     _apply_vector(Ke, k, t)
     if surface_weight != 0.0:
         _apply_faces(Kf, x, t, surface_weight)
+    if edge_weight != 0.0:
+        _apply_edges(x, t, edge_weight)
     for i in range(x.shape[0]):
         for j in range(x.shape[1]):
             for l in range(x.shape[2]):
@@ -247,21 +323,28 @@ class Regularizer:
             raise ValueError(f"unknown regularisation {self.kind!r}")
         self.nodes_shape = tuple(int(n) for n in self.nodes_shape)
         self._Kf = face_laplacian_element()
+        self.surface_weight = self.edge_weight = 0.0
         if self.kind == "tikhonov":
             self._Ke = np.zeros((24, 24))
-            self.surface_weight = 0.0
         else:
             self._Ke = elastic_element(self.ell)
-            self.surface_weight = 1.0
-            self.surface_weight = self._balance_surface()
+            self.surface_weight, self.edge_weight = self._balance_boundary()
 
     @property
     def order(self) -> int:
         return ORDER[self.kind]
 
     def numba_args(self) -> tuple:
-        """``(code, Ke, Kf, surface weight)`` for :func:`add_weighted`."""
-        return (1 if self.kind == "tikhonov" else 2), self._Ke, self._Kf, float(self.surface_weight)
+        """``(code, Ke, Kf, surface weight, edge weight)`` for :func:`add_weighted`."""
+        return ((1 if self.kind == "tikhonov" else 2), self._Ke, self._Kf, float(self.surface_weight),
+                float(self.edge_weight))
+
+    def resized(self, nodes_shape) -> "Regularizer":
+        """The same operator on a mesh of ``nodes_shape`` nodes, with this one's boundary weights
+        (for probing its stencil on a small mesh: the weights balanced on the small mesh differ)."""
+        small = Regularizer(self.kind, nodes_shape, self.ell)
+        small.surface_weight, small.edge_weight = self.surface_weight, self.edge_weight
+        return small
 
     def _K(self, x: np.ndarray) -> np.ndarray:
         y = np.zeros_like(x)
@@ -273,33 +356,39 @@ class Regularizer:
         x = np.ascontiguousarray(x, dtype=np.float64)
         if self.kind == "tikhonov":
             y = np.zeros_like(x)
-            _apply_curvature(x, y, 1.0)
+            _apply_hessian(x, y, 1.0)
             return y
         y = self._K(_interior(self._K(x)))
         if self.surface_weight:
             _apply_faces(self._Kf, x, y, float(self.surface_weight))
+        if self.edge_weight:
+            _apply_edges(x, y, float(self.edge_weight))
         return y
 
-    def _volume_and_surface(self, x: np.ndarray) -> tuple[float, float]:
-        """The two terms of ``xᵀ R x`` (volume, surface with unit weight)."""
+    def _boundary_terms(self, x: np.ndarray) -> tuple[float, float, float]:
+        """The three terms of ``xᵀ R x`` (volume; faces and edges with unit weight)."""
         vol = float(np.sum(_interior(self._K(x)) ** 2))
         y = np.zeros_like(x)
         _apply_faces(self._Kf, x, y, 1.0)
-        return vol, float(np.sum(x * y))
+        z = np.zeros_like(x)
+        _apply_edges(x, z, 1.0)
+        return vol, float(np.sum(x * y)), float(np.sum(x * z))
 
-    def _balance_surface(self) -> float:
-        """``μ_s``: a transverse wave along each face costs the same per face node as per interior node."""
-        vol = surf = 0.0
-        n_int = max(int(np.prod([max(n - 2, 0) for n in self.nodes_shape])), 1)
-        n_face = max(sum(2 * max(self.nodes_shape[(a + 1) % 3] - 2, 0) * max(self.nodes_shape[(a + 2) % 3] - 2, 0)
-                         for a in range(3)), 1)
+    def _balance_boundary(self) -> tuple[float, float]:
+        """``(μ_s, μ_e)``: plane waves cost the same per face node and per edge node as per interior node."""
+        n = [int(k) for k in self.nodes_shape]
+        n_int = max(int(np.prod([max(k - 2, 0) for k in n])), 1)
+        n_face = max(sum(2 * max(n[(a + 1) % 3] - 2, 0) * max(n[(a + 2) % 3] - 2, 0) for a in range(3)), 1)
+        n_edge = max(sum(4 * max(n[a] - 2, 0) for a in range(3)), 1)
+        vol = surf = edge = 0.0
         for v in plane_waves(self.nodes_shape, self.ell, reference_wavelength(self.nodes_shape, self.ell)):
-            a, b = self._volume_and_surface(v)
-            vol += a
-            surf += b
-        if surf <= 0 or vol <= 0:
-            return 0.0
-        return (vol / n_int) / (surf / n_face)
+            a, b, c = self._boundary_terms(v)
+            vol, surf, edge = vol + a, surf + b, edge + c
+        if vol <= 0:
+            return 0.0, 0.0
+        mu_s = (vol / n_int) / (surf / n_face) if surf > 0 else 0.0
+        mu_e = (vol / n_int) / (edge / n_edge) if edge > 0 else 0.0
+        return mu_s, mu_e
 
     def diagonal_blocks(self) -> np.ndarray:
         """The 3×3 diagonal blocks of ``R``, shape (nz, ny, nx, 3, 3) (for the preconditioner).
@@ -312,11 +401,7 @@ class Regularizer:
         reach = 2
         core = reach + 1
         small_shape = tuple(min(n, 2 * core + 1) for n in self.nodes_shape)
-        small = self
-        if small_shape != self.nodes_shape:
-            small = Regularizer(self.kind, small_shape, self.ell)
-            if self.kind == "equilibrium-gap":
-                small.surface_weight = self.surface_weight
+        small = self if small_shape == self.nodes_shape else self.resized(small_shape)
         period = 2 * reach + 1
         blocks = np.zeros(small_shape + (3, 3))
         grid = np.indices(small_shape)

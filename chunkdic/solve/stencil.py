@@ -82,7 +82,7 @@ def block_jacobi(Binv, r, z):
 
 
 @numba.njit(nogil=True, cache=True)
-def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
+def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
 
     Written out (rather than scipy's ``cg``) so that its vector operations are plain
@@ -90,6 +90,11 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
     than the whole stencil product. The vector operations run on flat views through
     :func:`dot` and :func:`axpy`: written as 4-D array expressions they took numba 41 s
     to compile (the first run's largest single wait), as flat loops under a second.
+
+    ``λ R`` comes from :func:`chunkdic.solve.regularization.add_weighted`, compiled into this
+    function's Numba cache: a change of ``R`` (the Tikhonov Hessian of issue 20) is seen here
+    only once this file changes too or the cache is cleared (docs/architecture.md,
+    development notes).
     """
     r = b.copy()  # x starts at zero
     z = np.empty_like(b)
@@ -105,7 +110,7 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, lam):
     for it in range(1, maxiter + 1):
         half_matvec(H, p, q)
         if code != 0:
-            add_weighted(code, Ke, Kf, sw, lam, p, q)
+            add_weighted(code, Ke, Kf, sw, ew, lam, p, q)
         alpha = rz / dot(pf, qf)
         axpy(alpha, pf, xf)
         axpy(-alpha, qf, rf)

@@ -73,6 +73,28 @@ def result_label(result: Result) -> str:
     return stem
 
 
+#: the regularisation kinds as figure titles name them
+REGULARIZATION_NAMES = {"tikhonov": "Tikhonov", "equilibrium-gap": "equilibrium gap"}
+
+
+def resolution_text(result: Result) -> str:
+    """ℓ and the resolution it buys, for every title that names ℓ (issue 20 item 5):
+    ``ℓ = 8 vox, Tikhonov 16 vox, l10 % ≥ 28 vox`` (level-0 voxels, as ``Result.info``
+    records them: the element size, the regularisation's kind and length, and the nominal
+    l10 % they imply, a lower bound of the spatial resolution that ``chunkdic resolution``
+    measures). A result without a regularisation record (older ones) says ``ℓ`` alone."""
+    info = result.info or {}
+    text = f"ℓ = {info['element_size']} vox"
+    reg = info.get("regularization") or {}
+    if reg.get("kind") == "none":
+        text += ", unregularised"
+    elif reg.get("length"):
+        text += f", {REGULARIZATION_NAMES.get(reg['kind'], reg['kind'])} {reg['length']:.0f} vox"
+    if reg.get("nominal_l10"):
+        text += f", l10 % ≥ {reg['nominal_l10']:.0f} vox"
+    return text
+
+
 #: line styles of curves 11-20, 21-30, ... (the first ten: solid, in matplotlib's ten colours)
 LINE_STYLES = ("-", "--", ":", "-.")
 

@@ -29,6 +29,7 @@ from .figures import (
     mid_planes,
     panel,
     plane_extent,
+    resolution_text,
     result_label,
     save,
     shared_colorbar,
@@ -70,7 +71,7 @@ def _panels(results, maps, extents, frames, title, path, *, cbar, cmap, vmin, vm
     im = None
     for ax, res, m, e, fr in zip(axs, results, maps, extents, frames):
         if m is None:
-            ax.set_title(f"{result_label(res)}, ℓ = {res.info['element_size']}: {empty}", fontsize=10)
+            ax.set_title(f"{result_label(res)}, {resolution_text(res)}: {empty}", fontsize=10)
             ax.set_axis_off()
             continue
         im = panel(fig, ax, m, e, f"{result_label(res)}: {title(res)}", f"y ({fr.unit})", f"z ({fr.unit})", None, cmap=cmap,
@@ -86,7 +87,7 @@ def _panels(results, maps, extents, frames, title, path, *, cbar, cmap, vmin, vm
 
 
 def _ell(res: Result) -> str:
-    return f"ℓ = {res.info['element_size']}"
+    return resolution_text(res)
 
 
 def plot_u_maps(results, path, component: str = "z", *, x: int | None = None, dpi: int | None = None) -> str:

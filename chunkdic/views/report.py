@@ -54,6 +54,7 @@ from .figures import (
     mid_planes,
     panel,
     plane_extent,
+    resolution_text,
     result_label,
     save,
     shared_colorbar,
@@ -164,7 +165,7 @@ def _cut_figure(result: Result, normal: int, idx: int, cut: dict, fr, path, dpi)
     shared_colorbar(fig, bottom[0], axs[1, :2], "difference (grey level)")
     axs[1, 2].set_visible(False)
     fig.suptitle(f"{result_label(result)}: mid-plane cut normal to {name}, {name} = {idx} (voxel of level "
-                 f"{result.info.get('level', 0)}); ℓ = {result.info['element_size']}")
+                 f"{result.info.get('level', 0)}); {resolution_text(result)}")
     return save(fig, path, dpi)
 
 
@@ -274,7 +275,7 @@ def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | Non
     for i, (res, prof, fr) in enumerate(rows):
         name = result_label(res)
         line, = ax.plot(prof.eps_zz, fr.position(0, prof.z), marker="o", ms=5, **curve_style(i),
-                        label=f"{name}: ℓ = {res.info['element_size']} (level {res.info.get('level', 0)})")
+                        label=f"{name}: {resolution_text(res)} (level {res.info.get('level', 0)})")
         if prof.eps_zz_true is not None:
             ax.plot(prof.eps_zz_true, fr.position(0, prof.z), "x", ms=7, color=line.get_color(),
                     label=f"{name}: truth per layer")

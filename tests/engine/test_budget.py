@@ -172,3 +172,37 @@ def test_prepared_grid_holds_the_coefficients_without_clipping():
     q = quantize(coeffs, grid)
     assert q.dtype == np.uint16 and 0 < q.min() and q.max() < 65535
     assert np.abs(dequantize(q, grid) - coeffs).max() <= 0.5 * grid[1] + 0.01  # + float32 round-off at 4e4
+
+
+def test_plan_chooses_the_compact_layout_only_when_the_fast_one_does_not_fit(pair, tmp_path, monkeypatch):
+    """Issue 21: the fast (uncompressed) scratch layout while the disk holds it; the compact one,
+    said in the plan's line and summary and used by the run, when it does not; refused when
+    neither fits."""
+    from chunkdic.engine.scratchstore import COMPACT_RATIO
+
+    fast = _plan(pair, tmp_path)
+    assert fast.layout == "fast" and fast.scratch_bytes == fast.fast_scratch_bytes
+    assert "fast layout" in fast.summary() and "scratch" in fast.line()
+    free = int(fast.scratch_bytes * 0.8)
+    monkeypatch.setattr(budget, "_free", lambda path: free)
+    compact = _plan(pair, tmp_path)
+    assert compact.layout == "compact" and compact.fast_scratch_bytes == fast.scratch_bytes
+    assert " compact;" in compact.line() and "compact layout" in compact.summary() and "do not fit" in compact.summary()
+    f0, c0 = fast.levels[-1], compact.levels[-1]  # the 16-bit level-0 stores, planned at the measured ratios
+    assert c0.f_copy_bytes == int(f0.f_copy_bytes * COMPACT_RATIO["f"])
+    assert c0.prepared_bytes == int(f0.prepared_bytes * COMPACT_RATIO["g"])
+    assert compact.scratch_bytes < free
+    codecs = {}
+
+    def progress(event):  # what the run's level-0 stores are, while they exist
+        if event["stage"] == "matrix" and event["level"] == 0:
+            for path in tmp_path.rglob("f-level0.zarr/zarr.json"):
+                codecs["f"] = json.loads(path.read_text())["codecs"]
+
+    with dask.config.set({"chunkdic.scratch-directory": str(tmp_path)}):
+        res = chunkdic.correlate(pair / "ref.npy", pair / "def.npy", element_size=16, progress=progress)
+    assert res.info["status"] == "converged"
+    assert any(c.get("name") == "blosc" for c in codecs["f"]), codecs
+    monkeypatch.setattr(budget, "_free", lambda path: int(compact.scratch_bytes * 0.5))
+    with pytest.raises(InputError, match="not enough disk: .* in the compact layout"):
+        _plan(pair, tmp_path).check()

@@ -159,6 +159,24 @@ def test_unrelated_images_are_not_reported_as_converged():
     assert res.final_gap == min(res.history["gap"][res.history["level"] == 0])  # the best field is kept
 
 
+def test_a_wrong_start_is_not_reported_as_converged():
+    """A start 5 voxels off the true translation (``init``, no coarser level to correct it),
+    on a texture whose correlation length is ~1 voxel: the iterations cannot find the
+    translation and must not call the field they end with converged, the noise-level rule
+    included (issue 20 item 6). Measured (30 passes): ``max-iterations`` with the old rule
+    and the new alike, mean error 3.9 voxels."""
+    f = smooth_noise((48, 48, 48), sigma=1.2, seed=1).astype(np.float32)
+    g = np.roll(f, (2, 0, -1), axis=(0, 1, 2))
+    nodes = chunkdic.correlate(f, g, element_size=8, coarsest=0)
+    assert nodes.converged
+    u = nodes.displacement.copy()
+    u[0] += 5.0
+    wrong = chunkdic.Result(u, nodes.node_coords, nodes.history, dict(nodes.info))
+    res = chunkdic.correlate(f, g, element_size=8, init=wrong, max_iterations=15)
+    assert res.info["status"] in {"stalled", "diverged", "max-iterations"} and not res.converged
+    assert abs(np.nanmean(res.displacement[0]) - 2.0) > 1.0  # the field is indeed wrong
+
+
 def test_deformed_scan_of_another_shape(noise64):
     """g is a larger crop: f(X) = g(X + t) with t = crop offset; voxels mapped outside g are excluded."""
     big = smooth_noise((72, 70, 68), sigma=1.2, seed=9).astype(np.float32)
@@ -226,6 +244,53 @@ def test_a_field_moving_within_its_noise_is_converged_not_stalled():
     assert wrong.status == "stalled" and wrong.iteration == 6
     shrinking = _run_rule(flat + [0.005] * 6, [0.8 * 0.5**k for k in range(14)], [0.3] * 14)
     assert shrinking.status == "converged" and shrinking.last_delta < 1e-3
+
+
+def test_increments_shrinking_within_the_noise_end_converged_before_max_iterations():
+    """Issue 20 item 6 (72³ grains, ℓ = 6: 29 passes at 0.1 → 0.01 σ_u, increments shrinking
+    by ×0.88 per pass, then max-iterations): when the passes still to come, if they keep
+    shrinking as the last two did, would move the field by less than half its uncertainty
+    (``q r / (1 - r)``, ``r`` the ratio of the last two), the level has converged at the noise
+    level. Here q = 0.2 · 0.88^k: the sum still to come falls under 0.5 once q < 0.068, at the
+    10th increment (the pass after it stops); without the geometric test, increments shrinking by 0.88 never stop the
+    level before the tolerance (0.3 · 0.88^k < 1e-3 after 45 passes) or 30 passes. Increments
+    shrinking slowly at 0.45 σ_u (r = 0.99: 45 σ_u still to come) are left to go on, to the
+    last pass."""
+    flat = [0.0100, 0.0050] + [0.0050] * 40
+    deltas = [0.8] + [0.3 * 0.88**k for k in range(41)]
+    fast = _run_rule(flat, deltas, [5.0] + [0.2 * 0.88**k for k in range(41)])
+    assert fast.status == "converged" and fast.iteration == 11 and fast.last_delta > 0.05
+    slow = _run_rule(flat, deltas, [5.0] + [0.45 * 0.99**k for k in range(41)])
+    assert slow.iteration == 30  # not stopped early (then converged: out of passes, within the noise)
+
+
+def test_a_few_running_away_nodes_do_not_hide_a_field_at_its_noise_level():
+    """Issue 20 item 6: nodes moving by more than ``STEP_CAP`` (3) σ_u are unsettled and left
+    out of the noise-level measure. 4 of 1 000 nodes running away by 40 σ_u (the ℓ = 6 waves:
+    specimen-edge nodes moving by 1-2.5 voxels) while the rest moves by 0.05 σ_u: q = 0.05,
+    0.4 % unsettled, a field within its noise (the plain RMS said 2.53: stalled). A wrong
+    field, every node moving by 1-6 σ_u: most nodes unsettled and the rest at ~2 σ_u, not
+    quiet. A component below the tolerance never unsettles its node."""
+    from chunkdic.engine.stopping import NOISE_STEP, STEP_CAP, UNSETTLED_FRACTION, State, noise_step_of
+
+    sigma = np.full((1000, 3), 0.02)
+    delta = np.full((1000, 3), 0.05 * 0.02)
+    delta[:4] = 40 * 0.02
+    q, unsettled = noise_step_of(delta, sigma**2, 1e-3)
+    assert q == pytest.approx(0.05, rel=1e-12) and np.flatnonzero(unsettled).tolist() == [0, 1, 2, 3]
+    assert np.sqrt(np.mean(delta**2 / sigma**2)) > 2.5  # what the plain RMS said
+    state = State(np.zeros((3, 10, 10, 10)))
+    state.note_noise_step(q, unsettled.reshape(10, 10, 10), unsettled.mean())
+    assert q < NOISE_STEP and state.noise_quiet == 1
+    wrong = np.random.default_rng(0).uniform(1, 6, (1000, 3)) * 0.02
+    q, unsettled = noise_step_of(wrong, sigma**2, 1e-3)
+    assert unsettled.mean() > UNSETTLED_FRACTION and 1 < q < STEP_CAP
+    state.note_noise_step(q, unsettled.reshape(10, 10, 10), unsettled.mean())
+    assert state.noise_quiet == 0
+    # an exact pair: σ_u of 1e-5 voxel, increments of 5e-4 < tolerance 1e-3: nothing unsettled, q = 50
+    q, unsettled = noise_step_of(np.full((8, 3), 5e-4), np.full((8, 3), 1e-10), 1e-3)
+    assert not unsettled.any() and q == pytest.approx(50.0)
+    assert noise_step_of(np.zeros((0, 3)), np.zeros((0, 3)))[0] == np.inf
 
 
 def test_half_untextured_scan_is_not_called_converged():

@@ -196,3 +196,46 @@ def test_smaller_elements_measure_a_32_voxel_wave_better(wave32_pair):
         rms[ell] = score_between_nodes(axes, res.displacement, field, (n,) * 3, ell).rms
     assert rms[8] < rms[12]
     assert rms[8] <= 0.07
+
+
+@pytest.fixture(scope="module")
+def wave24_pair(tmp_path_factory):
+    """Grains CT pair, 64³, shear wave ``Ux = 0.5 sin(2π (Z - 31.5) / 24)``, independent 2 % noise."""
+    from chunkdic.synth import synthetic
+
+    n = 64
+    field = synthetic.Wave(period=24.0, amplitude=0.5, phase=(n - 1) / 2)
+    pair = synthetic.synthesize(tmp_path_factory.mktemp("wave24") / "pair", (n,) * 3, field=field,
+                                specimen="grains", noise=0.02, seed=1)
+    return pair, field, n
+
+
+def test_a_24_voxel_wave_at_ell_6_converges_at_the_noise_level(wave24_pair):
+    """Issue 20 item 6: ℓ = 6 on a 24-voxel wave stops improving at the noise level while a
+    few poorly seen nodes at the specimen's edge run away (1-2.5 voxels per pass, 0.5-5 % of
+    the nodes; the median node moves by 0.01 σ_u): ``converged``, those nodes flagged weak,
+    not ``stalled`` (before: stalled on all four 64³ pairs, grains / concrete × 2 seeds, with
+    fields as good as the converged 80³ ones). Scored between the nodes against the analytic
+    wave (RMS 0.354 for a zero field). Measured: RMS 0.0916 (before: 0.1007, stalled);
+    with the Tikhonov Hessian (issue 20 item 4) 0.0821, final gap 3.2 % above the level's
+    best (the runaway nodes; 1.6 % with the second differences alone);
+    docs/engine.md, "Iterations and stopping"."""
+    import chunkdic
+    from chunkdic.analysis.scoring import score_between_nodes
+    from chunkdic.results.result import FLAG_WEAK
+
+    pair, field, n = wave24_pair
+    res = chunkdic.correlate(pair["reference"], pair["deformed"], element_size=6)
+    assert res.info["status"] == "converged" and res.converged
+    h = res.history
+    fine = (h["level"] == 0) & (h["iteration"] >= 0)
+    # stopped at the noise level, not by the tolerance: the gap near its best (within 5 %; the
+    # runaway nodes cost 3.2 %), the increments far above 1e-3 voxel
+    assert res.final_gap <= 1.05 * h["gap"][fine].min()
+    assert np.nanmin(h["max_delta"][fine]) > 0.01
+    axes = [np.unique(c) for c in res.node_coords]
+    score = score_between_nodes(axes, res.displacement, field, (n,) * 3, 6)
+    assert score.rms < 0.10
+    # the nodes left unsettled are flagged, and few (the measured nodes' error stays small)
+    weak = (res.flags & FLAG_WEAK) > 0
+    assert 0 < weak.mean() < 0.2

@@ -62,12 +62,15 @@ def test_penalty_vanishes_on_rigid_and_linear_fields_at_every_node(kind):
     assert np.abs(reg.apply(X**2 / X.max())).max() > 1e-3 * scale  # a curved field is penalised
 
 
-def test_tikhonov_is_the_sum_of_squared_second_differences_along_grid_lines():
+def test_tikhonov_is_the_squared_norm_of_the_discrete_hessian():
+    """``xᵀRx`` = Σ second differences² along the grid lines + 2 Σ mixed differences² of the
+    2×2 squares of nodes in the three planes (``np.diff`` by hand)."""
     shape = (6, 7, 5)
     rng = np.random.default_rng(1)
     reg = Regularizer("tikhonov", shape, 4.0)
     x = rng.standard_normal(shape + (3,))
     by_hand = sum(float(np.sum(np.diff(x, n=2, axis=a) ** 2)) for a in range(3))
+    by_hand += 2 * sum(float(np.sum(np.diff(np.diff(x, axis=a), axis=b) ** 2)) for a, b in ((0, 1), (0, 2), (1, 2)))
     assert float(np.sum(x * reg.apply(x))) == pytest.approx(by_hand, rel=1e-12)
     # D2ᵀ D2 of x⁴ along one axis is the fourth difference: 24 (node units) at nodes >= 2 from its faces
     k = np.arange(shape[2], dtype=np.float64)
@@ -76,6 +79,31 @@ def test_tikhonov_is_the_sum_of_squared_second_differences_along_grid_lines():
     r = reg.apply(quartic)
     np.testing.assert_allclose(r[:, :, 2:-2, 1], 24.0, rtol=1e-12)
     assert not r[..., [0, 2]].any()
+
+
+@pytest.mark.parametrize("direction", [(1, 1, 0), (0, 1, 1), (1, 1, 1), (1, 2, 0)])
+def test_tikhonov_damps_a_plane_wave_by_its_wavelength_whatever_its_direction(direction):
+    """Issue 20 (the star's noise): a long plane wave along a grid diagonal costs what the
+    same wavelength along an axis costs. Truth: the continuous Hessian norm, ``|k|⁴`` for
+    ``sin(k · X)`` whatever the direction of ``k``. Wavelength 12 nodes on 41³ nodes: the
+    Rayleigh quotients ``vᵀRv / vᵀv`` agree within 4 % (discrete: ``(Σ s_i)²`` against
+    ``s²``, 1.02 along (1, 1, 0), 1.03 along (1, 1, 1)). The second differences alone gave
+    0.51 and 0.34: diagonal noise was damped 2–3× less than the resolution along the axes
+    implies."""
+    shape = (41, 41, 41)
+    reg = Regularizer("tikhonov", shape, 1.0)
+    X = _node_positions(shape, 1.0)
+    k = 2 * np.pi / 12.0
+
+    def quotient(d):
+        d = np.asarray(d, np.float64) / np.linalg.norm(d)
+        v = np.zeros(shape + (3,))
+        v[..., 2] = np.sin(k * (X @ d) + 0.3)
+        inner = (slice(2, -2),) * 3  # away from the faces, where R is translation invariant
+        return float(np.sum((v * reg.apply(v))[inner]) / np.sum((v * v)[inner]))
+
+    ratio = quotient(direction) / quotient((1, 0, 0))
+    assert ratio == pytest.approx(1.0, abs=0.04)
 
 
 def test_equilibrium_gap_vanishes_for_a_field_in_equilibrium():
@@ -94,6 +122,52 @@ def test_equilibrium_gap_vanishes_for_a_field_in_equilibrium():
     # hence R u vanishes at nodes >= 2 from the faces (the face term acts on the faces only)
     r = reg.apply(u)
     assert np.abs(r[2:-2, 2:-2, 2:-2]).max() < 1e-12 * np.abs(r).max()
+
+
+def _dense_operator(reg):
+    """``R`` of ``reg`` as a dense matrix (3N × 3N), column by column."""
+    shape = tuple(reg.nodes_shape)
+    n = 3 * int(np.prod(shape))
+    return np.stack([reg.apply(e.reshape(shape + (3,))).ravel() for e in np.eye(n)], axis=1)
+
+
+@pytest.mark.parametrize("shape", [(6, 6, 6), (7, 8, 6)])
+def test_equilibrium_gap_leaves_only_the_fields_of_the_eight_corners_free(shape):
+    """Issue 20 item 3. The null space of ``R`` counted on the dense operator: the interior
+    rows of ``K`` set the interior from the faces, the face Laplacians set the faces from
+    their edges, and the second differences along the 12 edges set the edges from the 8
+    corners: 24 fields (3 components × 8 corners), as many as Tikhonov's (the multilinear
+    fields), each fixed by its corner values. Without the edge term the null space holds
+    every field set by its values on the edges, 3 (12 (n - 2) + 8) = 168 at 6³ (204 at
+    7×8×6): the edge nodes (a quarter of an element's voxels each) were left to the images
+    alone, and Gauss–Newton at ℓ = 4-6 on the CT band moved them by up to 88 voxels
+    (docs/engine.md, "Regularisation").
+    """
+    reg = Regularizer("equilibrium-gap", shape, 4.0)
+    R = _dense_operator(reg)
+    np.testing.assert_allclose(R, R.T, rtol=0, atol=1e-12 * np.abs(R).max())
+    lam, Q = np.linalg.eigh(0.5 * (R + R.T))
+    null = Q[:, lam < 1e-9 * lam.max()]
+    assert null.shape[1] == 24
+    corners = np.zeros(shape + (3,), bool)
+    corners[::shape[0] - 1, ::shape[1] - 1, ::shape[2] - 1] = True
+    assert np.linalg.matrix_rank(null[corners.ravel()], tol=1e-8) == 24  # zero at the corners: zero
+    # the edge term: Σ over the 12 edges of the squared second differences along the edge
+    x = np.random.default_rng(2).standard_normal(shape + (3,))
+    by_hand = 0.0
+    for a in range(3):
+        for i in (0, -1):
+            for j in (0, -1):
+                idx = [i, j]
+                idx.insert(a, slice(None))
+                line = x[tuple(idx)]
+                by_hand += float(np.sum(np.diff(line, n=2, axis=0) ** 2))
+    with_edges, mu_e = float(np.sum(x * reg.apply(x))), reg.edge_weight
+    reg.edge_weight = 0.0
+    assert mu_e > 0 and with_edges - float(np.sum(x * reg.apply(x))) == pytest.approx(mu_e * by_hand, rel=1e-10)
+    R0 = _dense_operator(reg)
+    lam0 = np.linalg.eigvalsh(0.5 * (R0 + R0.T))
+    assert int(np.sum(lam0 < 1e-9 * lam0.max())) == 3 * (sum(4 * (n - 2) for n in shape) + 8)
 
 
 def _texture_half_stencil(shape, ell, seed=1):
@@ -177,6 +251,46 @@ def test_band_at_ell_4_with_regularisation_beats_unregularised_ell_8_and_12(ct_c
         plain_res, plain = ct_cases.run("grains", "band", SMALL_SIZE, ell, regularization="none")
         assert plain_res.info["status"] == "converged"
         assert score.rms < plain.rms
+
+
+# 64³ band, independent noise, between the nodes (border ℓ): (equilibrium gap, Tikhonov) RMS
+# measured with the defaults (automatic length 17 / 11.3 voxels at ℓ = 6 / 4 for both kinds)
+EQGAP_BAND = {("grains", 6): (0.0570, 0.0453), ("grains", 4): (0.0566, 0.0483),
+              ("concrete", 6): (0.0612, 0.0470), ("concrete", 4): (0.0691, 0.0522)}
+
+
+@pytest.mark.parametrize("specimen, ell", [pytest.param(*k, marks=[pytest.mark.slow] if k[0] == "concrete" else [])
+                                           for k in EQGAP_BAND])  # concrete: a pair and two runs more
+def test_equilibrium_gap_converges_on_the_band_at_small_elements(ct_cases, specimen, ell):
+    """Issue 20 item 3: ``--regularization equilibrium-gap`` at ℓ = 6 and 4 on the CT-like band
+    (64³, independent 2 % noise), default settings otherwise.
+
+    Before the edge term (docs/engine.md, "Regularisation") the box's edge nodes were in the
+    penalty's null space: grains ℓ = 4 and concrete ℓ = 6 / 4 ended ``stalled`` with
+    increments of 1-88 voxels at edge nodes, and grains ℓ = 6 stopped "at the noise level"
+    with increments of 0.057 voxel; at 96³ concrete ℓ = 4 diverged. Now each converges by the
+    tolerance (last increment < 1e-3 voxel; measured 3-5e-4) with the increments shrinking
+    ×0.1-0.4 per pass. The field, scored between the nodes against the known band, is within
+    1.5× Tikhonov's at the same ℓ (measured 1.17-1.32×: a localised band is not in
+    equilibrium for a homogeneous solid, so the equilibrium gap damps it more at any
+    length: at ℓ = 6 on grains every fixed length from 6 to 24 voxels gave 0.057-0.073).
+    """
+    from chunkdic.analysis.scoring import score_between_nodes
+
+    field = ct_cases.pair(specimen, "band", SMALL_SIZE)["field"]
+    rms = {}
+    for kind in KINDS:
+        options = {} if kind == "tikhonov" else {"regularization": kind}
+        res, _ = ct_cases.run(specimen, "band", SMALL_SIZE, ell, **options)
+        assert res.info["status"] == "converged" and res.info["regularization"]["kind"] == kind
+        rms[kind] = score_between_nodes(res.mesh.node_axes(), res.displacement, field, (SMALL_SIZE,) * 3, ell).rms
+        if kind == "equilibrium-gap":
+            h = res.history
+            steps = h["max_delta"][(h["level"] == res.info["level"]) & np.isfinite(h["max_delta"])]
+            assert steps[-1] < res.info["settings"]["tolerance"], steps  # converged by the tolerance
+    measured_eq, _ = EQGAP_BAND[specimen, ell]
+    assert rms["equilibrium-gap"] <= 1.4 * measured_eq
+    assert rms["equilibrium-gap"] <= 1.5 * rms["tikhonov"]
 
 
 @pytest.fixture(scope="module")
@@ -313,9 +427,11 @@ def test_predicted_risk_picks_the_length_of_least_error_on_noisy_known_fields():
     a linear field (pure noise). The predicted risk (``rule="upre"``) picks
     the candidate of least error or one whose error is within 10 % of it; on pure noise
     a long one (at least 8ℓ). Measured (7³ nodes, seed 5): the least-error candidate for
-    every wave (as the discrepancy rule); on pure noise 8ℓ (error 1.3× the longest's, where
-    the risk is flat: the trace and the misfit change by less than the noise there; seed 6:
-    the longest).
+    every wave (as the discrepancy rule); on pure noise 8ℓ, where the risk is flat (the
+    trace and the misfit change by less than the noise there; seed 6: the longest): its
+    error was 1.3× the longest's with the second differences alone, 1.73× with the full
+    Hessian (issue 20), whose long lengths damp the noise of every direction further
+    (least error 0.0165 at 32ℓ, 0.0285 at 8ℓ): bound 2×.
     """
     shape, ell, sigma = (7, 7, 7), 4.0, 0.2
     half = _identity_stencil(shape)
@@ -334,7 +450,7 @@ def test_predicted_risk_picks_the_length_of_least_error_on_noisy_known_fields():
         pick = choose_length("tikhonov", half, ell, data, zero, sigma**2, _direct_solve, rule="upre")
         k = int(np.argmin(np.abs(lengths - pick.length)))
         if name == "linear":
-            assert lengths[k] >= 8 * ell and errors[k] <= 1.5 * min(errors), (k, errors)
+            assert lengths[k] >= 8 * ell and errors[k] <= 2.0 * min(errors), (k, errors)
         else:
             assert errors[k] <= 1.1 * min(errors), (name, k, errors)
 
