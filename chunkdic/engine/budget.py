@@ -254,8 +254,8 @@ class Plan:
             what = "scratch and output need" if same_disk else "scratch needs"
             what += " in the compact layout" if self.layout == "compact" else ""
             raise DiskSpaceError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
-                             f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
-                             "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
+                                 f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
+                                 "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
         if self.output_dir is not None and not same_disk and self.output_bytes * DISK_MARGIN > self.output_free:
             raise DiskSpaceError(f"not enough disk for the output: {_b(self.output_bytes)} needed in "
                                  f"{self.output_dir}, {_b(self.output_free)} free")
