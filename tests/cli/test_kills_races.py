@@ -262,8 +262,10 @@ ls -A "$mnt" | tr '\n' ' '; echo
 
 
 @pytest.mark.skipif(not _unshare_ok(), reason="needs a private mount namespace (unshare -m) for a full disk")
-@pytest.mark.parametrize("at,done", [("correlating 002-incremental", 1), ("level 0 iter  1", 0)])
-def test_series_on_a_full_disk_keeps_what_resumes_and_says_so(data, tmp_path, at, done):
+@pytest.mark.parametrize("at", ["correlating 002-incremental", "level 0 iter  1"])
+def test_series_on_a_full_disk_keeps_what_resumes_and_says_so(data, tmp_path, at):
+    """The disk fills on the line ``at`` (asynchronously: the step may still complete, or keep its
+    checkpoint); either way the series is kept, said so in one line, and resumed."""
     mnt = tmp_path / "mnt"
     mnt.mkdir()
     copy = tmp_path / "copy.zarr"
@@ -277,10 +279,11 @@ def test_series_on_a_full_disk_keeps_what_resumes_and_says_so(data, tmp_path, at
     assert len(lines) == 1 and first.strip().splitlines()[-1] == lines[0], first[-2000:]
     # the step's plan may see the full disk first (chunkdic.engine.budget): the same promise
     assert re.search(rf"(No space left on device|not enough disk).*; the series in {re.escape(str(mnt / 'ser.zarr'))} is kept "
-                     rf"\(marked incomplete, {done} steps? complete\): free space and run the same command again to "
+                     r"\(marked incomplete, [01] steps? complete\): free space and run the same command again to "
                      "resume", lines[0]), lines[0]
     assert report[1].split() == ["ser.zarr"]  # kept, and no lock or staged copy beside it
-    assert report[2].split() == ["001-incremental", "zarr.json"]  # step 1 complete, or its checkpoint
+    steps = report[2].split()  # step 1 complete or its checkpoint (and maybe step 2's), nothing else
+    assert "001-incremental" in steps and not [s for s in steps if "chunkdic-" in s], steps
     assert report[3] == f"second={(data / 'full.code').read_text()}", (mnt.parent / "mnt.err2").read_text()[-2000:]
     assert report[4].split() == ["ser.zarr"]  # no lock or staged copy left on the disk
     a, b = chunkdic.open_series(copy), chunkdic.open_series(data / "full.zarr")
