@@ -226,11 +226,13 @@ class Case:
     argv: list
     setup: object = None  # callable(d)
     cwd: str = "."
-    kind: str = "refuse"  # refuse | concurrent | changed | scratch
+    kind: str = "refuse"  # refuse | concurrent | changed | scratch | locked | resumes | completes | gone_cwd |
+    #                       commit_kill | worker | race2 | full_series
     mount: str | None = None  # "ro:DIR" or "full:DIR" (a private tmpfs at DIR)
     timeout: float = 120.0
     env: dict = field(default_factory=dict)
     change: object = None  # kind "changed": callable(d) applied after the kill
+    expect: str | None = None  # a refusal's error line must match this regex (it names the real cause)
 
     tree: ClassVar[str] = str(HERE)  # the tree under test (one per sweep)
 
@@ -573,6 +575,7 @@ def cases(servers: Servers | None) -> list[Case]:
     add("H2", "sweep -l 1", ["sweep", "s/ref.zarr", "s/def.zarr", "-l", "1", "--no-a-priori", "-o", "sw"])
     add("H2", "sweep --level -1", ["sweep", "s/ref.zarr", "s/def.zarr", "-l", "8", "--level", "-1", "-o", "sw"])
     issue24(add, cor, ov)
+    faults2(add, cor, ov)
     return C
 
 
@@ -696,6 +699,366 @@ def issue24(add, cor, ov) -> None:
          "2", "-o", "out.zarr"], kind="resumes", env={"AT": "level 0: tikhonov regularisation length"})
 
 
+# --------------------------------------------------------------------------- issue 24, second part
+
+#: runs the CLI (argv after POINT and TARGET) and SIGKILLs itself at one point of a commit:
+#: before the first rename, between the two renames, after them, half-way through removing
+#: the old checkpoint, or after TARGET chunk writes into a staged copy ("chunk-writes")
+DIE = r"""
+import os, shutil, signal, sys
+point, target = sys.argv[1], sys.argv[2]
+from chunkdic.io import outputs
+from chunkdic.cli.app import main
+def die():
+    os.kill(os.getpid(), signal.SIGKILL)
+def ours(p):
+    return str(p).rstrip("/").endswith(target)
+real_rename, real_replace, real_remove = os.rename, os.replace, outputs._remove
+def rename(src, dst, *a, **k):
+    if point == "before-rename" and ours(src):
+        die()
+    real_rename(src, dst, *a, **k)
+    if point == "between-renames" and ours(src):
+        die()
+    if point == "after-renames" and ours(dst):
+        die()
+def replace(src, dst, *a, **k):
+    if point == "before-rename" and ours(dst):
+        die()
+    real_replace(src, dst, *a, **k)
+def remove(path):
+    if point == "half-removed" and ".chunkdic-partial-" in path.name and target.split("/")[-1] in path.name:
+        shutil.rmtree(path / "checkpoint", ignore_errors=True)
+        die()
+    real_remove(path)
+os.rename, os.replace, outputs._remove = rename, replace, remove
+if point == "chunk-writes":
+    from zarr.storage import LocalStore
+    real_set, count = LocalStore.set, [0]
+    async def counted(self, key, value):
+        await real_set(self, key, value)
+        if ".chunkdic-partial-" in str(self.root) and "/c/" in "/" + key:
+            count[0] += 1
+            if count[0] >= int(target):
+                die()
+    LocalStore.set = counted
+sys.exit(main(sys.argv[3:]))
+"""
+
+
+def _loop(*names: str):
+    """Symbolic links that resolve to each other (``la -> lb -> la``) or to themselves."""
+    def setup(d: Path) -> None:
+        for a, b in zip(names, names[1:] + names[:1]):
+            (d / a).parent.mkdir(parents=True, exist_ok=True)
+            os.symlink(Path(b).name, d / a)
+    return setup
+
+
+def _causes(d: Path) -> None:
+    """hf/hg.npy: the pair with its upper part (z < 20) constant; m.npy keeps z < 12 only."""
+    import numpy as np
+
+    f, g = np.load(d / "f.npy"), np.load(d / "g.npy")
+    f[:20], g[:20] = 100.0, 100.0
+    np.save(d / "hf.npy", f)
+    np.save(d / "hg.npy", g)
+    m = np.zeros(f.shape, np.uint8)
+    m[:12] = 1
+    np.save(d / "m.npy", m)
+
+
+def _far(shift: float):
+    def setup(d: Path) -> None:
+        shutil.copytree(d / "r.zarr", d / "far.zarr")
+        py = (f"import zarr; a = zarr.open_array({str(d / 'far.zarr/displacement')!r}, mode='r+'); "
+              f"a[...] = a[...] + {shift}")
+        subprocess.run([sys.executable, "-c", py], check=True, env=Case.env_for(Case.tree))
+    return setup
+
+
+def faults2(add, cor, ov) -> None:
+    """The cases of issue 24 left open by the first part: symbolic-link loops, names too long
+    for the file system (and the longest that fit), a removed working directory, an empty M
+    blamed on its real cause, workers killed in a LocalCluster, kills at a series step's
+    commit and mid-write of an export, races on in-place outputs, a series on a full disk."""
+    J = "J24"
+    outs = {"correlate": [*cor, "-o", "{}.zarr"], "series": ["series", "s/ref.zarr", "s/def.zarr", "-l", "8", "-o",
+                                                             "{}.zarr"],
+            "export --vtk": ["export", "r.zarr", "--vtk", "{}.vtu"], "export --csv": ["export", "r.zarr", "--csv",
+                                                                                     "{}.csv"],
+            "export --fields": ["export", "r.zarr", "--fields", "{}.zarr"],
+            "export --corrected": ["export", "r.zarr", "--corrected", "{}.zarr"],
+            "ingest": ["ingest", "f.npy", "{}.zarr"], "synth": ["synth", "{}", "--shape", "16"],
+            "report": ["report", "r.zarr", "-o", "{}"], "table": ["table", "r.zarr", "-o", "{}"],
+            "uncertainty": ["uncertainty", "s/ref.zarr", "-l", "8", "-o", "{}"],
+            "sweep": ["sweep", "s/ref.zarr", "s/def.zarr", "-l", "8", "--no-a-priori", "-o", "{}"],
+            "demo": ["demo", "{}", "--size", "32", "--element-size", "8"]}
+
+    def with_out(cmd: str, stem: str) -> list:
+        return [a.replace("{}", stem) for a in outs[cmd]]
+
+    # 1. outputs under a loop of symbolic links
+    for cmd in outs:
+        add(J, f"{cmd} -o under a symlink loop", with_out(cmd, "la/o"), setup=_loop("la", "lb"),
+            expect="loop of symbolic links")
+    add(J, "ingest -o under a symlink loop, missing parents", ["ingest", "f.npy", "la/x/y/o.zarr"],
+        setup=_loop("la", "lb"), expect="loop of symbolic links")
+    add(J, "correlate -o under a link to itself", with_out("correlate", "self/o"), setup=_loop("self"),
+        expect="loop of symbolic links")
+    add(J, "correlate -o under a loop in a subfolder", with_out("correlate", "sub/la/o"),
+        setup=_loop("sub/la", "sub/lb"), expect="loop of symbolic links")
+    add(J, "correlate, input under a symlink loop", ["correlate", "la/ref.zarr", "s/def.zarr", "-l", "8", "-o",
+                                                     "o.zarr"], setup=_loop("la", "lb"))
+    add(J, "pyramid of a scan under a symlink loop", ["pyramid", "la/ref.zarr", "--levels", "1"],
+        setup=_loop("la", "lb"))
+    # 2. names too long for the file system (NAME_MAX 255 bytes), and the longest that fit
+    for cmd in outs:
+        add(J, f"{cmd} -o a 300-byte name", with_out(cmd, "a" * 296), expect="ENAMETOOLONG")
+    add(J, "correlate -o a 256-byte name", with_out("correlate", "a" * 251), expect="ENAMETOOLONG")
+    add(J, "correlate -o 130 two-byte characters (265 bytes)", with_out("correlate", "é" * 130),
+        expect="ENAMETOOLONG")
+    add(J, "export --csv whose sidecar NAME.csv.json is 256 bytes", with_out("export --csv", "c" * 247),
+        expect="ENAMETOOLONG")
+    longest = {"correlate": 250, "series": 250, "export --vtk": 251, "export --csv": 246, "export --fields": 250,
+               "export --corrected": 250, "ingest": 250, "synth": 255}
+    for cmd, n in longest.items():
+        argv = with_out(cmd, "b" * n)
+        out = next(a for a in argv if a.startswith("bbb"))
+        add(J, f"{cmd} -o a {len(out)}-byte name (its lock and partial shortened)", argv, kind="completes",
+            env={"OUT": out})
+    # 3. a working directory removed under the process (absolute inputs)
+    for name, argv in (("correlate -o relative", ["correlate", "{d}/s/ref.zarr", "{d}/s/def.zarr", "-l", "8", "-o",
+                                                  "o.zarr"]),
+                       ("correlate, all paths absolute", ["correlate", "{d}/s/ref.zarr", "{d}/s/def.zarr", "-l", "8",
+                                                          "-o", "{d}/o.zarr"]),
+                       ("correlate, relative inputs", ["correlate", "s/ref.zarr", "s/def.zarr", "-l", "8", "-o",
+                                                       "{d}/o.zarr"]),
+                       ("ingest", ["ingest", "{d}/f.npy", "o.zarr"]), ("export --vtk", ["export", "{d}/r.zarr",
+                                                                                        "--vtk", "m.vtu"]),
+                       ("series", ["series", "{d}/s/ref.zarr", "{d}/s/def.zarr", "-l", "8", "-o", "{d}/o.zarr"]),
+                       ("synth", ["synth", "p", "--shape", "16"])):
+        add(J, f"{name} from a removed working directory", argv, kind="gone_cwd",
+            expect="the current directory no longer exists")
+    # 4. an empty M blamed on its real cause
+    add(J, "correlate --mask keeping only untextured voxels", ["correlate", "hf.npy", "hg.npy", "-l", "8", "--mask",
+                                                               "m.npy", "-o", "o.zarr"], setup=_causes,
+        expect="the mask keeps no textured voxel")
+    for shift in (200, 40):
+        add(J, f"correlate --init moving the ROI {shift} voxels out", [*cor, "--init", "far.zarr", "-o", "o.zarr"],
+            setup=_far(shift), expect="the start field of level 0 maps 100% of the ROI's elements outside")
+    add(J, "correlate, constant ROI (no warning line first)", ["correlate", "hf.npy", "hg.npy", "-l", "8", "--roi",
+                                                                "0:12,0:32,0:32", "-o", "o.zarr"], setup=_causes,
+        expect="the reference is constant|no gradient")
+    # 5. a worker killed in a LocalCluster
+    ser3 = ["series", "s/ref.zarr", "s/def.zarr", "s/def.zarr", "-l", "6", "--tolerance", "1e-4",
+            "--block-elements", "2", "--incremental", "-o", "out.zarr"]
+    for at in ("correlating 002-incremental", "level 0: starting from", "level 0 iter  1"):
+        add(J, f"series --scheduler local:2, a worker killed at {at!r}", [*ser3, "--scheduler", "local:2"],
+            kind="worker", env={"AT": at}, timeout=300)
+    add(J, "correlate --scheduler local:2, a worker killed at the plan line",
+        ["correlate", "s/ref.zarr", "s/def.zarr", "-l", "8", "-o", "out.zarr", "--scheduler", "local:2"],
+        kind="worker", env={"AT": "plan:"}, timeout=300)
+    # 6. a series killed while a step commits; 9. an export killed mid-write
+    for point, target in (("before-rename", "steps/002-incremental"), ("between-renames", "steps/002-incremental"),
+                          ("after-renames", "steps/002-incremental"), ("half-removed", "steps/002-incremental"),
+                          ("between-renames", "steps/001-incremental"), ("before-rename", "composed/002")):
+        add(J, f"series killed {point} of {target}, resumed", ser3, kind="commit_kill",
+            env={"POINT": point, "TARGET": target}, timeout=300)
+    for what in ("fields", "corrected"):
+        for n in (1, 3):
+            add(J, f"export --{what} killed after {n} chunk writes, the same command", ["export", "r.zarr",
+                                                                                         f"--{what}", "out.zarr"],
+                kind="commit_kill", env={"POINT": "chunk-writes", "TARGET": str(n)})
+    # 8. two writers on one new in-place output
+    for name, argv in (("series", ["series", "s/ref.zarr", "s/def.zarr", "-l", "8", "-o", "out.zarr"]),
+                       ("synth", ["synth", "out", "--shape", "32", "--chunks", "16"]),
+                       ("report", ["report", "r.zarr", "-o", "out"]), ("table", ["table", "r.zarr", "-o", "out"])):
+        add(J, f"{name}: a second writer while the first writes", argv, kind="race2", timeout=300)
+    # 7. a series on a full disk
+    for at in ("correlating 002-incremental", "level 0 iter  1"):
+        add(J, f"series, the disk fills at {at!r}", ser3, kind="full_series", env={"AT": at}, timeout=600)
+
+
+def _env(scratch: Path) -> dict:
+    env = Case.env_for(Case.tree)
+    env["DASK_CHUNKDIC__SCRATCH_DIRECTORY"] = str(scratch)
+    return env
+
+
+def _stray(d: Path) -> list:
+    return [str(p.relative_to(d)) for p in d.rglob("*") if "chunkdic-" in p.name]
+
+
+def _is_complete(d: Path, out: str) -> str:
+    """'' when ``out`` is a complete chunkdic output (its kind's own reader or marker)."""
+    py = ("import sys; from chunkdic.io.kinds import kind_of; k, c = kind_of(sys.argv[1]); "
+          "sys.exit(0 if k is not None and c else 3)")
+    ok = subprocess.run([sys.executable, "-c", py, str(d / out)], env=Case.env_for(Case.tree), capture_output=True,
+                        text=True)
+    return "" if ok.returncode == 0 else f"{out} not complete ({ok.returncode}: {ok.stderr.strip()[-120:]})"
+
+
+def _completes(case, d, scratch) -> str:
+    proc, _ = _run(case, case.argv, d, scratch)
+    if "Traceback" in proc.stderr or proc.returncode not in (0, 1):
+        return f"exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]!r}"
+    stray = _stray(d)
+    left = list(scratch.iterdir())
+    return _is_complete(d, case.env["OUT"]) or (f"left: {stray[:3]}" if stray else "") or \
+        (f"scratch left: {[p.name for p in left][:3]}" if left else "")
+
+
+def _gone_cwd(case, d, scratch) -> str:
+    gone = d.parent / f"gone-{d.name}"
+    gone.mkdir()
+    argv = [a.replace("{d}", str(d)) for a in case.argv]
+    before = snapshot(d)
+    script = 'cd "$1" && rmdir "$1" && shift && exec "$@"'
+    proc = subprocess.run(["sh", "-c", script, "sh", str(gone), sys.executable, "-m", "chunkdic", *argv],
+                          env=_env(scratch), capture_output=True, text=True, timeout=case.timeout)
+    return _promise(proc, "", before, snapshot(d), scratch) or _expected(case, proc.stderr)
+
+
+def _commit_kill(case, d, scratch) -> str:
+    """Killed (SIGKILL) at one point of a commit (DIE); the same command then completes."""
+    first = subprocess.run([sys.executable, "-c", DIE, case.env["POINT"], case.env["TARGET"], *case.argv], cwd=d,
+                           env=_env(scratch), capture_output=True, text=True, timeout=case.timeout)
+    if first.returncode != -signal.SIGKILL:
+        return f"harness: the first run was not killed (exit {first.returncode})"
+    proc = subprocess.run([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=_env(scratch),
+                          capture_output=True, text=True, timeout=case.timeout)
+    if "Traceback" in proc.stderr or proc.returncode not in (0, 1):
+        return f"resume: exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]!r}"
+    stray = _stray(d)
+    left = list(scratch.iterdir())
+    return _is_complete(d, "out.zarr") or (f"left: {stray[:3]}" if stray else "") or \
+        (f"scratch left: {[p.name for p in left][:3]}" if left else "")
+
+
+def _descendants(pid: int) -> dict:
+    kids = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{entry}/stat").read_text()
+            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            kids[int(entry)] = cmdline
+            kids.update(_descendants(int(entry)))
+    return kids
+
+
+def _worker(case, d, scratch) -> str:
+    """One LocalCluster worker killed on the line AT: the run goes on (or says why not in one
+    line, exit 1); its output is complete or the same command completes it."""
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=_env(scratch),
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    victim, lines = None, []
+    for line in proc.stderr:
+        lines.append(line)
+        if victim is None and case.env["AT"] in line:
+            workers = [p for p, c in _descendants(proc.pid).items() if "spawn_main" in c]
+            if workers:
+                victim = workers[-1]
+                os.kill(victim, signal.SIGKILL)
+    rc = proc.wait(timeout=case.timeout)
+    err = "".join(lines)
+    if victim is None:
+        return "harness: no worker to kill at the line"
+    if "Traceback" in err or rc not in (0, 1):
+        return f"exit {rc}: {err.strip().splitlines()[-1:]!r}"
+    if _is_complete(d, "out.zarr"):
+        errors = [ln for ln in err.splitlines() if ln.startswith("chunkdic: error:")]
+        if len(errors) != 1 or "run the same command again" not in errors[0]:
+            return f"stopped without one line saying how to resume: {err.strip().splitlines()[-1:]!r}"
+        again = subprocess.run([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=_env(scratch),
+                               capture_output=True, text=True, timeout=case.timeout)
+        if again.returncode not in (0, 1):
+            return f"the same command: exit {again.returncode}"
+    stray = _stray(d)
+    return _is_complete(d, "out.zarr") or (f"left: {stray[:3]}" if stray else "")
+
+
+def _race2(case, d, scratch) -> str:
+    """The same command twice on one new output: the second starts while the first holds
+    the output's lock (stopped there); refused in one line; the first completes, whole."""
+    out = next(a for a in case.argv if a.startswith("out"))
+    lock = d / f".{out}.chunkdic-lock"
+    first = subprocess.Popen([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=_env(scratch),
+                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    deadline = time.time() + case.timeout
+    while not lock.exists() and first.poll() is None and time.time() < deadline:
+        time.sleep(0.02)
+    if not lock.exists():
+        first.wait()
+        return "harness: the first run never held its lock"
+    os.kill(first.pid, signal.SIGSTOP)
+    try:
+        second = subprocess.run([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=_env(scratch),
+                                capture_output=True, text=True, timeout=case.timeout)
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
+    first.stderr.read()
+    rc = first.wait(timeout=case.timeout)
+    err = second.stderr.strip().splitlines()
+    if "Traceback" in second.stderr or second.returncode != 2 or len(err) != 1:
+        return f"second run: exit {second.returncode}, {len(err)} lines: {second.stderr[-300:]!r}"
+    if rc not in (0, 1):
+        return f"first run: exit {rc}"
+    stray = _stray(d)
+    return _is_complete(d, out) or (f"left: {stray[:3]}" if stray else "")
+
+
+FULL_SERIES = r"""
+mnt=$1; at=$2; shift 2
+mount -t tmpfs -o size=4m tmpfs "$mnt" || exit 90
+: > "$mnt.err"
+"$@" > /dev/null 2> "$mnt.err" &
+pid=$!
+while ! grep -q "$at" "$mnt.err"; do kill -0 $pid 2>/dev/null || break; sleep 0.02; done
+dd if=/dev/zero of="$mnt/filler" bs=4k 2>/dev/null
+wait $pid; echo "first=$?"
+rm -f "$mnt/filler"
+tail -1 "$mnt.err"
+ls -A "$mnt/out.zarr/steps" 2>/dev/null | tr '\n' ' '; echo
+"$@" > /dev/null 2> "$mnt.err"; echo "second=$?"
+ls -A "$mnt" | tr '\n' ' '; echo
+ls -A "$mnt/out.zarr/steps" | tr '\n' ' '; echo
+"""
+
+
+def _full_series(case, d, scratch) -> str:
+    """The disk fills on the line AT: one line naming the series, saying it is kept and that
+    the same command resumes; after freeing space the same command completes it."""
+    if not (shutil.which("unshare") and subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode == 0):
+        return "harness: needs unshare -m"
+    (d / "mnt").mkdir()
+    argv = [a if a != "out.zarr" else "mnt/out.zarr" for a in case.argv]
+    proc = subprocess.run(["unshare", "-m", "sh", "-c", FULL_SERIES, "sh", str(d / "mnt"), case.env["AT"],
+                           sys.executable, "-m", "chunkdic", *argv], cwd=d, env=_env(scratch), capture_output=True,
+                          text=True, timeout=case.timeout)
+    lines = proc.stdout.splitlines()
+    (d / "mnt.err").unlink(missing_ok=True)
+    if len(lines) < 6:
+        return f"harness: {proc.stdout!r} {proc.stderr[-200:]!r}"
+    if lines[0] != "first=2" or not lines[1].startswith("chunkdic: error:"):
+        return f"first run: {lines[0]}, last line {lines[1][:160]!r}"
+    if "is kept" not in lines[1] or "run the same command again to resume" not in lines[1] or "mnt/out.zarr" not in \
+            lines[1]:
+        return f"error line does not name the kept series and how to resume: {lines[1][:200]!r}"
+    if "001-incremental" not in lines[2].split():
+        return f"the series said kept was not: steps {lines[2].split()}"
+    if lines[3] not in ("second=0", "second=1"):
+        return f"the same command after freeing space: {lines[3]}"
+    if lines[4].split() != ["out.zarr"] or any("chunkdic-" in n for n in lines[5].split()):
+        return f"left on the disk: {lines[4]} / {lines[5]}"
+    return ""
+
+
 # --------------------------------------------------------------------------- running
 
 
@@ -777,7 +1140,9 @@ def run_case(case: Case, base: Path, work: Path, index: int) -> Outcome:
         if case.setup is not None:
             case.setup(d)
         why = {"refuse": _refuse, "concurrent": _concurrent, "changed": _changed, "scratch": _scratch,
-               "locked": _locked, "resumes": _resumes}[case.kind](case, d, scratch)
+               "locked": _locked, "resumes": _resumes, "completes": _completes, "gone_cwd": _gone_cwd,
+               "commit_kill": _commit_kill, "worker": _worker, "race2": _race2,
+               "full_series": _full_series}[case.kind](case, d, scratch)
     except subprocess.TimeoutExpired:
         why = f"hang (> {case.timeout:.0f} s)"
     except Exception as exc:  # noqa: BLE001 - a harness problem is reported, not hidden
@@ -791,7 +1156,15 @@ def run_case(case: Case, base: Path, work: Path, index: int) -> Outcome:
 def _refuse(case, d, scratch) -> str:
     before = snapshot(d)
     proc, mounted = _run(case, case.argv, d, scratch)
-    return _promise(proc, mounted, before, snapshot(d), scratch)
+    return _promise(proc, mounted, before, snapshot(d), scratch) or _expected(case, proc.stderr)
+
+
+def _expected(case, stderr: str) -> str:
+    """'' when the error line names what the case expects (``Case.expect``)."""
+    if case.expect is None:
+        return ""
+    last = stderr.strip().splitlines()[-1:] or [""]
+    return "" if re.search(case.expect, last[0]) else f"error line does not name the cause: {last[0][:160]!r}"
 
 
 _HOLD = ("import sys, time; from chunkdic.io.ownership import OutputLock; "

@@ -20,7 +20,7 @@ from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 from . import config
-from .errors import InputError
+from .errors import InputError, WorkerLostError
 
 log = logging.getLogger(__name__)
 
@@ -103,7 +103,10 @@ class DistributedRunner:
         done = as_completed(futures, with_results=True)
         del futures
         try:
-            for fut, result in done:
+            # a task whose worker dies is run again by the scheduler on another worker (up to
+            # distributed.scheduler.allowed-failures times); only when it gives up, or when
+            # the connection to the cluster is lost, does the run stop, in one line
+            for fut, result in _stop_if_workers_lost(done):
                 pending.discard(fut)
                 fut.release()
                 del fut
@@ -112,7 +115,22 @@ class DistributedRunner:
             self.client.cancel(list(pending))
 
     def run_everywhere(self, fn: Callable) -> None:
-        self.client.run(fn)
+        """Run ``fn`` on every worker (the kernels' warm-up). A worker that died meanwhile (its
+        nanny starts another, which compiles on its first task) is skipped; no live worker at
+        all is :class:`WorkerLostError`; any other failure is raised as it is."""
+        try:
+            results = self.client.run(fn, on_error="return")
+        except _lost_worker_errors() as exc:
+            raise WorkerLostError(_lost_message(exc)) from None
+        failed = {w: r for w, r in results.items() if isinstance(r, BaseException)}
+        other = [r for r in failed.values() if not isinstance(r, _lost_worker_errors())]
+        if other:
+            raise other[0]
+        if len(failed) == len(results):
+            raise WorkerLostError(_lost_message(next(iter(failed.values()), None)))
+        if failed:
+            log.warning("%d of %d Dask workers died before this run started; continuing on the others",
+                        len(failed), len(results))
 
     def close(self) -> None:
         if self._cluster is not None:
@@ -121,6 +139,29 @@ class DistributedRunner:
 
     def __repr__(self) -> str:
         return f"dask.distributed cluster ({self.n_workers} threads), dashboard {self.dashboard_link}"
+
+
+def _lost_worker_errors() -> tuple[type, ...]:
+    """The exceptions by which distributed says that workers died (imported lazily)."""
+    from distributed import KilledWorker
+    from distributed.comm.core import CommClosedError
+
+    return (KilledWorker, CommClosedError)
+
+
+def _lost_message(exc) -> str:
+    detail = str(exc).splitlines()[0] if exc is not None and str(exc) else ""
+    detail = detail if len(detail) <= 120 else detail[:119] + "…"
+    what = "" if exc is None else f" ({type(exc).__name__}{': ' + detail if detail else ''})"
+    return (f"the Dask cluster lost the workers this run needs{what}: the run cannot continue; what it saved is "
+            "kept (a checkpoint, complete steps): run the same command again to resume")
+
+
+def _stop_if_workers_lost(results):
+    try:
+        yield from results
+    except _lost_worker_errors() as exc:
+        raise WorkerLostError(_lost_message(exc)) from None
 
 
 def _on_loopback(address: str) -> bool:

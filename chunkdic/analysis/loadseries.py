@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -52,11 +53,11 @@ from ..engine.initial import filled
 from ..engine.planning import parse_roi, plan_meshes
 from ..engine.prefilter import face_margin
 from ..engine.settings import Settings
-from ..errors import InputError
+from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.outputs import Outputs, inside
-from ..io.ownership import OutputLock
+from ..io.ownership import OutputLock, reclaim_stale_locks, reclaim_stale_partials, reclaim_stale_scratch
 from ..io.scan import open_scan
 from ..mesh import carry_field
 from ..results.result import HISTORY_FIELDS, Result, open_result
@@ -204,18 +205,59 @@ def series(
         fresh = entry.state != "resume"
         if not fresh:
             _check_resumable(out, series_print)
+            _reclaim_dead_runs(out)
         else:
             plan.__enter__()  # removes the old series that --overwrite replaces (checked: ours)
             _create(out, series_print, scans, settings, mode)
         try:
             with inside(out), _one_cluster(scheduler) as sched:
                 result = _run(scans, out, settings, mode, roi, sched, progress, mask)
-        except InputError:
-            if fresh:  # a refused step: nothing of this run stays (docs/safety.md)
+        except (InputError, OSError) as exc:
+            cause = _disk_cause(exc)
+            if cause is not None and _resumable(out):
+                # a full (read-only, failing) disk is no bad input: the complete steps and the
+                # interrupted step's checkpoint stay, and the message says how to resume
+                done = sum(_complete(p) for p in sorted((out / "steps").glob("*")))
+                raise DiskSpaceError(f"{cause}; the series in {out} is kept (marked incomplete, {done} step"
+                                     f"{'' if done == 1 else 's'} complete): free space and run the same command "
+                                     "again to resume, or remove it", cause=cause, kept=True) from None
+            if fresh:  # a refused step, or a disk error before anything resumable: nothing of this run stays
                 plan.rollback()
+            if isinstance(exc, OSError) and cause is not None:
+                raise DiskSpaceError(f"{cause}: nothing of the series {out} was kept", cause=cause) from None
             raise
         _finish(out, result.rows)
     return result
+
+
+#: disk errors (full, quota, read-only, I/O): the run cannot write, its inputs are fine
+_DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
+
+
+def _disk_cause(exc: BaseException) -> str | None:
+    """The disk error behind ``exc`` in one phrase naming the path, or None (another refusal)."""
+    if isinstance(exc, DiskSpaceError):
+        return exc.cause
+    if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
+        return f"{exc.strerror or exc} ({exc.filename})" if exc.filename else f"{exc.strerror or exc}"
+    return None
+
+
+def _resumable(out: Path) -> bool:
+    """The series holds something a re-run continues from: a complete step result, or a
+    step's saved checkpoint (:mod:`chunkdic.engine.checkpoint`)."""
+    for step in sorted((out / "steps").glob("*")) if (out / "steps").is_dir() else []:
+        found, complete = kind_of(step)
+        if found == "result" and (complete or "checkpoint" in _attrs(step)):
+            return True
+    return False
+
+
+def _attrs(group: Path) -> dict:
+    try:
+        return dict(json.loads((group / "zarr.json").read_text()).get("attributes", {}).get("chunkdic", {}))
+    except (OSError, ValueError, AttributeError):
+        return {}
 
 
 def open_series(path) -> SeriesResult:
@@ -266,6 +308,19 @@ def _create(out: Path, print_: str, scans, settings: Settings, mode: str) -> Non
     root.require_group("steps")
     if mode != "cumulative":
         root.require_group("composed")
+
+
+def _reclaim_dead_runs(out: Path) -> None:
+    """What a killed run left inside the series (it holds the series' lock now): the locks and
+    staged copies of its steps. A step killed right after its commit is complete, so no
+    run writes it again and takes its lock over: the lock would stay for ever. The killed
+    run's scratch too: a re-run with only complete steps left makes none (which would
+    reclaim it)."""
+    reclaim_stale_scratch()
+    for folder in (out / "steps", out / "composed"):
+        if folder.is_dir():
+            reclaim_stale_partials(folder / "_")
+            reclaim_stale_locks(folder)
 
 
 def _check_resumable(out: Path, print_: str) -> None:

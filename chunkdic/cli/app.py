@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, WorkerLostError
 from ..scheduler import SCHEDULER_HELP
 from .common import (
     EXPLAIN,
@@ -31,6 +31,7 @@ from .common import (
 )
 
 EXIT_BAD_INPUT = 2
+EXIT_FAILED = 1  # the run could not finish (not converged, a cluster that lost its workers)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -377,22 +378,52 @@ def main(argv=None) -> int:
         sys.stderr = stderr
 
 
+def _check_cwd() -> None:
+    """A working directory removed under the process (``cd d; rm -r ../d``): every relative
+    path and ``os.getcwd()`` fail, and so would LocalCluster workers started in it; refused
+    in one line before anything starts (the same wording as the output checks)."""
+    try:
+        os.getcwd()
+    except FileNotFoundError:
+        from ..io.outputs import CWD_GONE
+
+        raise InputError(CWD_GONE) from None
+
+
 def _dispatch(args) -> int:
     try:
+        _check_cwd()
         return args.func(args)
     except InputError as exc:
         say(f"chunkdic: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
         return EXIT_BAD_INPUT
     except OSError as exc:
+        if isinstance(exc, FileNotFoundError) and not _cwd_exists():
+            # the working directory was removed while the run worked (its outputs with it)
+            from ..io.outputs import CWD_GONE
+
+            say(f"chunkdic: error: {CWD_GONE.replace('(it was removed)', '(it was removed during the run)')}")
+            return EXIT_BAD_INPUT
         if exc.errno not in _FS_ERRORS:
             raise
         # the outputs of the run were removed on the way out (chunkdic.io.outputs)
         where = f": {exc.filename}" if exc.filename else ""
         say(f"chunkdic: error: {exc.strerror or exc}{where}")
         return EXIT_BAD_INPUT
+    except WorkerLostError as exc:  # no bad input: the cluster failed; the same command resumes
+        say(f"chunkdic: error: {exc}")
+        return EXIT_FAILED
     except KeyboardInterrupt:
         say("chunkdic: interrupted")
         return 130
+
+
+def _cwd_exists() -> bool:
+    try:
+        os.getcwd()
+    except FileNotFoundError:
+        return False
+    return True
 
 
 if __name__ == "__main__":

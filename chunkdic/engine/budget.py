@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
-from ..errors import InputError
+from ..errors import DiskSpaceError, InputError
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers
@@ -253,12 +253,12 @@ class Plan:
         if need * DISK_MARGIN > self.scratch_free:
             what = "scratch and output need" if same_disk else "scratch needs"
             what += " in the compact layout" if self.layout == "compact" else ""
-            raise InputError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
-                             f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
-                             "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
+            raise DiskSpaceError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
+                                 f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
+                                 "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
         if self.output_dir is not None and not same_disk and self.output_bytes * DISK_MARGIN > self.output_free:
-            raise InputError(f"not enough disk for the output: {_b(self.output_bytes)} needed in {self.output_dir}, "
-                             f"{_b(self.output_free)} free")
+            raise DiskSpaceError(f"not enough disk for the output: {_b(self.output_bytes)} needed in "
+                                 f"{self.output_dir}, {_b(self.output_free)} free")
 
 
 def kernels_cached() -> bool:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import DiskSpaceError, InputError
 from ..io.formats.detect import is_foreign
 from ..io.integrity import content_identity
 from ..io.kinds import kind_of
@@ -135,7 +135,10 @@ def completed_already(path, print_: str):
     to do, as ``make``."""
 
     p = Path(path)
-    if p.is_symlink() or kind_of(p) != ("result", True):
+    try:
+        if p.is_symlink() or kind_of(p) != ("result", True):
+            return None
+    except OSError:  # a name too long, a loop of links: not this run's result (the output checks say why)
         return None
     attrs = _read_attrs(p)
     if attrs is None or attrs.get("fingerprint") != print_:
@@ -156,8 +159,9 @@ def kept_checkpoint_error(exc: OSError, output) -> InputError:
     """The one line for a disk error (full, read-only, I/O) met after a checkpoint was saved:
     the checkpoint stays (marked incomplete) and the same command resumes from it."""
     where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
-    return InputError(f"{exc.strerror or exc}{where}; the checkpoint in {output} is kept (marked incomplete): "
-                      "free space and run the same command again to resume, or remove it")
+    cause = f"{exc.strerror or exc}{where}"
+    return DiskSpaceError(f"{cause}; the checkpoint in {output} is kept (marked incomplete): "
+                          "free space and run the same command again to resume, or remove it", cause=cause, kept=True)
 
 
 def identify_input(src, scan) -> dict:

@@ -198,8 +198,36 @@ class Level:
         self.inputs = dataclasses.replace(self.inputs, center=0.5 * float(fmin + fmax))
         # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
         self.rigid_matrix = rigid_restriction(S)
-        self.solver = StencilSolver(S)
+        try:
+            self.solver = StencilSolver(S)
+        except InputError as exc:  # M is empty: name the cause when it is not the reference itself
+            raise InputError(self._why_no_gradient(u) or str(exc)) from None
         self._warn_weak_nodes()
+
+    def _why_no_gradient(self, u: np.ndarray) -> str | None:
+        """The real cause of an empty ``M`` when it is not the reference's texture (issue 24).
+
+        ``M`` sums only voxels that the start field maps inside ``g`` and that a mask keeps,
+        so "the reference has no gradient" misled when the start field (``--init``, or the
+        field carried from the coarser level) moved the ROI out of the deformed scan, or when
+        the mask kept only untextured voxels. Both are told from mesh-sized data: the start
+        field at the element centres, the mask's element activity. None: the reference.
+        """
+        mesh = self.mesh
+        centres = mesh.element_axes()
+        moved = np.stack(np.meshgrid(*centres, indexing="ij")) + mesh.evaluate_grid(u, centres)
+        upper = np.asarray(self.inputs.g.shape, dtype=float).reshape(3, 1, 1, 1) - 1.0
+        outside = np.any((moved < 0) | (moved > upper), axis=0)
+        if outside.mean() >= 0.5:
+            shift = ", ".join(f"{float(c.mean()):+.1f}" for c in u)
+            return (f"the start field of level {self.s} maps {outside.mean():.0%} of the ROI's elements outside the "
+                    f"deformed scan (mean displacement {shift} voxels of the level): nothing left to correlate; "
+                    "check --init (a result of another pair or level?) or the ROI")
+        if self.active is not None:
+            return (f"the mask keeps no textured voxel of the ROI at level {self.s} ({int(self.active.sum())} of "
+                    f"{self.active.size} elements kept, most without a gradient): the textured material lies outside "
+                    "the mask; check the mask (inverted? of another scan?)")
+        return None
 
     def regularize(self, length: float) -> None:
         """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularization`); ``length``: ``ℓ_reg``, voxels of the level.

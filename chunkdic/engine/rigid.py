@@ -49,7 +49,9 @@ def phase_correlation(f: np.ndarray, g: np.ndarray) -> np.ndarray:
     G = np.fft.rfftn((g - g.mean()) * window)
     del window
     cross = G * np.conj(F)
-    cross /= np.maximum(np.abs(cross), 1e-12 * np.abs(cross).max())
+    # a floor above zero: a constant block (all-zero spectrum) gives no peak, not 0/0 and a
+    # RuntimeWarning line before the refusal that follows ("the reference is constant")
+    cross /= np.maximum(np.abs(cross), max(1e-12 * float(np.abs(cross).max()), np.finfo(np.float32).tiny))
     corr = np.fft.irfftn(cross, s=f.shape, axes=(0, 1, 2))
     peak = np.array(np.unravel_index(np.argmax(corr), corr.shape))
     t = peak.astype(np.float64)

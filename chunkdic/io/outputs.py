@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import errno
 import logging
 import os
 import shutil
@@ -43,12 +44,16 @@ from pathlib import Path
 
 from ..errors import InputError
 from .kinds import KINDS, Kind, kind_of, mark_folder, ours_in_folder
-from .ownership import OutputLock, partial_name, reclaim_stale_partials
+from .ownership import OutputLock, name_limits, partial_name, reclaim_stale_partials
 from .store import drain_zarr_io
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Outputs", "check_output", "check_writable", "input_roots", "inside"]
+__all__ = ["Outputs", "check_output", "check_writable", "input_roots", "inside", "CWD_GONE"]
+
+#: the refusal of a run whose working directory was removed (``os.getcwd()`` fails)
+CWD_GONE = ("the current directory no longer exists (it was removed): relative paths cannot be resolved; "
+            "cd to an existing directory and run again")
 
 #: the Zarr store (resolved path) of a container this process is writing, whose members
 #: may be outputs (a loading series' step results) and inputs (the step that initialises
@@ -135,13 +140,44 @@ def _say(path) -> str:
 
 
 def _real(path: Path) -> Path:
-    """Absolute path with every directory component resolved (the last one kept as is)."""
+    """Absolute path with every directory component resolved (the last one kept as is).
+
+    A directory that is a loop of symbolic links (``ln -s a b; ln -s b a``, then ``-o
+    a/o.zarr``) cannot be resolved: refused in one line (pathlib raises RuntimeError on
+    Python 3.11, OSError ELOOP on later versions).
+    """
     a = Path(os.path.abspath(path))
-    return a.parent.resolve() / a.name
+    try:
+        return a.parent.resolve() / a.name
+    except (RuntimeError, OSError):
+        raise InputError(f"output {_say(path)} lies under a loop of symbolic links ({os.strerror(errno.ELOOP)}): "
+                         "choose another path") from None
+
+
+def _check_name_lengths(p: Path, real: Path) -> None:
+    """Refuse a path the file system cannot hold before anything is written: a component
+    longer than ``NAME_MAX`` bytes (255 on most file systems) or a whole path longer than
+    ``PATH_MAX``. The sibling names derived from the output (``.NAME.chunkdic-lock``, the
+    staged ``.NAME.chunkdic-partial-…``) are shortened by :mod:`chunkdic.io.ownership`
+    when they would not fit, so any name that fits by itself is usable."""
+    name_max, path_max = name_limits(_existing_ancestor(p))
+    for part in real.parts:
+        size = len(os.fsencode(part))
+        if size > name_max:
+            shown = part if len(part) <= 40 else part[:40] + "…"
+            raise InputError(f"output {shown!s} ({size} bytes) is a name longer than the file system allows "
+                             f"({name_max} bytes, ENAMETOOLONG: {os.strerror(errno.ENAMETOOLONG)}): choose a "
+                             "shorter name")
+    if len(os.fsencode(str(real))) >= path_max:
+        raise InputError(f"output path ({len(os.fsencode(str(real)))} bytes) is longer than the file system allows "
+                         f"({path_max} bytes, ENAMETOOLONG): choose a shorter path")
 
 
 def _check_cwd(p: Path, real: Path) -> None:
-    cwd = Path.cwd().resolve()
+    try:
+        cwd = Path.cwd().resolve()
+    except FileNotFoundError:  # removed under this process: no output can be it, but nothing relative resolves
+        raise InputError(CWD_GONE) from None
     if real == cwd or real in cwd.parents:
         raise InputError(f"output {_say(p)} is the current directory or contains it: choose a new path")
     if not p.name or p.name in (".", ".."):
@@ -210,6 +246,10 @@ def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable:
         return "absent"
     if kind.form == "folder" and real.is_dir() and not any(real.iterdir()):
         return "empty-folder"
+    holder = OutputLock(real).live_owner()
+    if holder is not None:  # not interrupted nor foreign: another run is writing it now (two writers racing)
+        raise InputError(f"output {_say(p)} is being written by another chunkdic run ({holder}): wait for it "
+                         "to finish or choose another path")
     found, complete = kind_of(real)
     if found == kind.name and not complete and resumable and not overwrite:
         return "resume"
@@ -263,6 +303,7 @@ def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumab
     k = KINDS[kind]
     p = Path(path)
     real = _real(p)
+    _check_name_lengths(p, real)
     _check_cwd(p, real)
     _check_inputs(p, real, input_roots(inputs))
     _check_location(p, real, k, parents)

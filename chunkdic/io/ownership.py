@@ -15,6 +15,7 @@ output, see :mod:`chunkdic.io.outputs`) and ``chunkdic-*`` scratch directories h
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import os
@@ -33,12 +34,52 @@ from ..errors import InputError
 log = logging.getLogger(__name__)
 
 __all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
-           "reclaim_stale_partials", "LOCK_SUFFIX", "SCRATCH_MARKER"]
+           "reclaim_stale_partials", "reclaim_stale_locks", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER"]
 
 LOCK_SUFFIX = ".chunkdic-lock"
 PARTIAL_TAG = ".chunkdic-partial-"
 SCRATCH_PREFIX = "chunkdic-"
 SCRATCH_MARKER = ".chunkdic-scratch.json"
+
+
+#: bytes kept free in a derived name for the longest suffix added to it later (the
+#: ``.stale-XXXXXXXX`` of a lock taken over)
+_SPARE = 16
+
+
+def name_limits(directory) -> tuple[int, int]:
+    """``(NAME_MAX, PATH_MAX)`` in bytes for ``directory``'s file system (255, 4096 where unknown)."""
+    limits = []
+    for key, default in (("PC_NAME_MAX", 255), ("PC_PATH_MAX", 4096)):
+        try:
+            limits.append(int(os.pathconf(directory, key)))
+        except (OSError, ValueError):
+            limits.append(default)
+    return limits[0], limits[1]
+
+
+def _hidden_sibling(final: Path, stem: str, tail: str) -> Path:
+    """``final.parent / ("." + stem + tail)``, or, when that name would be longer than the
+    file system allows (a valid output name of 240 bytes plus ``.chunkdic-partial-HOST-…``),
+    the same with the middle of ``stem`` replaced by a digest of the whole output name
+    (``.aaaa~1f2e3d4c5b6aaaaa.chunkdic-lock``). Deterministic: two runs on one output derive
+    the same lock name, and different outputs never share one. The end of ``stem`` is kept:
+    the lock of a staged copy (``export --fields`` stages inside a staged copy) keeps the
+    copy's ``…chunkdic-partial-HOST-PID-XXXXXX`` so that it is reclaimed with it."""
+    name = f".{stem}{tail}"
+    name_max = name_limits(final.parent if final.parent.is_dir() else ".")[0]
+    budget = name_max - _SPARE
+    if len(os.fsencode(name)) <= budget:
+        return final.parent / name
+    digest = "~" + hashlib.sha256(os.fsencode(final.name)).hexdigest()[:12] + "~"
+    room = budget - len(os.fsencode(f".{digest}{tail}"))
+    front, back = stem[:-96], stem[-96:]  # the end (a staged copy's owner) is cut last
+    while len(os.fsencode(front + back)) > room:  # by characters: never a broken UTF-8 sequence
+        if len(front) > 16 or not back:
+            front = front[:-1]
+        else:
+            back = back[1:]
+    return final.parent / f".{front}{digest}{back}{tail}"
 
 
 def _start_time(pid: int) -> str | None:
@@ -101,7 +142,7 @@ class OutputLock:
     def __init__(self, output):
         out = Path(output)
         self.output = out
-        self.path = out.parent / f".{out.name}{LOCK_SUFFIX}"
+        self.path = _hidden_sibling(out, out.name, LOCK_SUFFIX)
         self.held = False
 
     def acquire(self) -> "OutputLock":
@@ -122,12 +163,29 @@ class OutputLock:
                 continue
             except OSError as exc:
                 raise InputError(f"cannot create the lock {self.path}: {exc.strerror}") from None
-            with os.fdopen(fd, "w") as fh:
-                fh.write(record)
+            try:
+                with os.fdopen(fd, "w") as fh:
+                    fh.write(record)
+            except OSError as exc:  # a full disk: the empty lock file would outlive the refusal
+                self.path.unlink(missing_ok=True)
+                raise InputError(f"cannot write the lock {self.path}: {exc.strerror}") from None
             self.held = True
             _HELD.add(key)
             return self
         raise InputError(f"output {self.output} is locked by {self.path} and the lock could not be taken")
+
+    def live_owner(self) -> str | None:
+        """Who holds this lock, if a live process (or one on another host) does: ``"pid 12 on
+        host since …"``; None when the lock is free, stale, unreadable or held by this process.
+        No side effects."""
+        if _lock_key(self.path) in _HELD:
+            return None
+        try:
+            info = json.loads(self.path.read_text())
+            owner = Owner.from_dict(info)
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+        return None if owner.is_dead() else f"{owner.describe()} since {info.get('since', '?')}"
 
     def _take_over_if_stale(self) -> None:
         try:
@@ -193,7 +251,7 @@ def partial_name(final: Path) -> Path:
     its owner and keeps the suffix (writers such as meshio choose the format by it)."""
     me = Owner.me()
     host = re.sub(r"[^A-Za-z0-9_]", "_", me.host)
-    return final.parent / f".{final.stem}{PARTIAL_TAG}{host}-{me.pid}-{uuid.uuid4().hex[:6]}{final.suffix}"
+    return _hidden_sibling(final, final.stem, f"{PARTIAL_TAG}{host}-{me.pid}-{uuid.uuid4().hex[:6]}{final.suffix}")
 
 
 def final_name(path) -> str:
@@ -210,7 +268,10 @@ def reclaim_stale_partials(final: Path) -> list[Path]:
     beside its output, which the next run of any command writing there reclaims). Only
     entries named as chunkdic's staged outputs whose owner pid is dead; returns them."""
     host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
-    pattern = re.compile(r"\..+" + re.escape(f"{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}(\.[^.]*)?$")
+    # a staged copy, or the lock of one (an output staged inside a staged copy, as export
+    # --fields does, locks that copy: its lock is orphaned with it)
+    pattern = re.compile(r"\..+" + re.escape(f"{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}(\.[^.]*)?"
+                         + f"({re.escape(LOCK_SUFFIX)})?$")
     removed = []
     try:
         entries = list(final.parent.iterdir())
@@ -226,6 +287,29 @@ def reclaim_stale_partials(final: Path) -> list[Path]:
             _remove(entry)
             removed.append(entry)
             log.info("removed %s, left by a dead run", entry)
+    return removed
+
+
+def reclaim_stale_locks(directory: Path) -> list[Path]:
+    """Remove the locks in ``directory`` whose owner is dead (this host). A lock is taken over
+    by the next run on its output; this is for the outputs no run will write again, such as
+    a loading series' step that a killed run had just completed (the re-run skips it). The
+    caller holds the lock of what contains ``directory``, so no live run can be taking one
+    of them over meanwhile."""
+    removed = []
+    try:
+        entries = [e for e in Path(directory).iterdir() if e.name.endswith(LOCK_SUFFIX)]
+    except OSError:
+        return removed
+    for entry in entries:
+        try:
+            owner = Owner.from_dict(json.loads(entry.read_text()))
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if owner.is_dead():
+            entry.unlink(missing_ok=True)
+            removed.append(entry)
+            log.info("removed the lock %s of a dead run (%s)", entry, owner.describe())
     return removed
 
 
