@@ -69,9 +69,13 @@ def test_compact_run_is_block_independent_and_close_to_the_fast_one():
     f = ((f - f.min()) / (f.max() - f.min()) * 60000 + 2000).astype(np.uint16)
     g = np.roll(f, (1, 2, -1), axis=(0, 1, 2))  # f(X) = g(X + (1, 2, -1))
     runs = {}
+    # a fixed length: on this noise-free pair the misfit the automatic choice weighs is the
+    # compact grid's own rounding, and the discrepancy sat on a tie between 45 and 64 voxels
+    # that the blocks' summation order (1e-7) decided; the choice is not what is tested here
     for layout, m in (("compact", 1), ("compact", 4), ("fast", 4)):
         with dask.config.set({"chunkdic.scratch-layout": layout}):
-            runs[layout, m] = chunkdic.correlate(f, g, element_size=8, block_elements=m, coarsest=0).displacement
+            runs[layout, m] = chunkdic.correlate(f, g, element_size=8, block_elements=m, coarsest=0,
+                                                 regularization_length=64.0).displacement
     np.testing.assert_allclose(runs["compact", 1], runs["compact", 4], rtol=0, atol=1e-6)
     truth = np.array([1.0, 2.0, -1.0])[:, None, None, None]
     inner = (slice(None), slice(1, -1), slice(1, -1), slice(1, -1))
