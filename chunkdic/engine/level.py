@@ -303,15 +303,19 @@ class Level:
             stacklevel=4,
         )
 
+    def prepared_for(self, u: np.ndarray) -> bool:
+        """Whether ``u`` (3, nz, ny, nx) reads only the part of ``g`` already prepared (no prefilter pass)."""
+        if not self.inputs.g_needs_preparing:
+            return True
+        needed = reachable_box(self.mesh, u, self.inputs.g.shape, margin=0)
+        current = self.inputs.prepared
+        return needed is None or (current is not None and current.covers(tuple(slice(a, b) for a, b in needed)))
+
     def prepare_interpolation(self, u: np.ndarray) -> None:
         """Prepare once the part of ``g`` that ``u`` (± a margin) can reach (low-pass, B-spline)."""
-        if not self.inputs.g_needs_preparing:
+        if self.prepared_for(u):
             return
         g_ref = self.inputs.g
-        needed = reachable_box(self.mesh, u, g_ref.shape, margin=0)
-        current = self.inputs.prepared
-        if needed is None or (current is not None and current.covers(tuple(slice(a, b) for a, b in needed))):
-            return
         box = reachable_box(self.mesh, u, g_ref.shape, margin=max(8, self.mesh.element_size))
         self._release_prepared()
         self._builds += 1

@@ -140,7 +140,10 @@ def best_start(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_
     Candidates: no motion (the zero field), the rigid translation refined by Gauss–Newton
     then an affine field (paper section 5.1), and with ``init`` the earlier result's field
     (``start``; ``t_int`` is then ``None`` and the phase-correlation translation is found
-    here). Each is measured by :meth:`Level.gap` and the lowest wins: an earlier result is
+    here). Without ``init``, no motion is a candidate only when the part of ``g`` prepared
+    for the rigid field covers it (a motion within about an element): a larger translation
+    found by phase correlation is trusted as before, without a second prefilter of ``g``
+    for a field that cannot win. Each is measured by :meth:`Level.gap` and the lowest wins: an earlier result is
     a good start only when the motion goes on as before, and between two identical scans
     of a loading series the previous increment started the iterations at 13 % instead of
     0.001 % and stalled them (docs/engine.md, "The start"). With ``init`` the rigid and
@@ -159,7 +162,8 @@ def best_start(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_
     if t_int is not None:  # a new run: the rigid step as before, then compared with no motion
         fields["rigid"] = rigid_and_affine(ctx, run, lvl, t_int)
         measure("rigid", fields["rigid"])
-        measure("zero", zero)
+        if lvl.prepared_for(zero):  # a motion within the prepared window's margin (≥ 8 voxels): no prefilter pass
+            measure("zero", zero)
     else:  # from an earlier result: that field, no motion, the translation alone
         measure("init", start)
         measure("zero", zero)
