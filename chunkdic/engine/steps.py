@@ -143,10 +143,10 @@ def best_start(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_
     here). Without ``init``, no motion is a candidate only when the part of ``g`` prepared
     for the rigid field covers it (a motion within about an element): a larger translation
     found by phase correlation is trusted as before, without a second prefilter of ``g``
-    for a field that cannot win. Each is measured by :meth:`Level.gap` and the lowest wins: an earlier result is
-    a good start only when the motion goes on as before, and between two identical scans
-    of a loading series the previous increment started the iterations at 13 % instead of
-    0.001 % and stalled them (docs/engine.md, "The start"). With ``init`` the rigid and
+    for a field that cannot win. Each is measured by :meth:`Level.gap` and the lowest wins:
+    an earlier result is a good start only when the motion goes on as before, and between
+    two identical scans of a loading series the previous increment started the iterations
+    at 13 % instead of 0.001 % and stalled them (docs/engine.md, "The start"). With ``init`` the rigid and
     affine passes run only when the translation alone already beats the other candidates,
     so a good earlier field costs three gap passes and one small task, not ten passes.
     ``run.rigid_t`` becomes the chosen start's translation (refined, or its mean).
@@ -162,7 +162,7 @@ def best_start(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_
     if t_int is not None:  # a new run: the rigid step as before, then compared with no motion
         fields["rigid"] = rigid_and_affine(ctx, run, lvl, t_int)
         measure("rigid", fields["rigid"])
-        if lvl.prepared_for(zero):  # a motion within the prepared window's margin (≥ 8 voxels): no prefilter pass
+        if lvl.prepared_for(zero):  # a motion within the prepared window's margin (≥ 8 voxels)
             measure("zero", zero)
     else:  # from an earlier result: that field, no motion, the translation alone
         measure("init", start)
