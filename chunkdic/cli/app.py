@@ -249,9 +249,9 @@ def _add_correlate(sub) -> None:
     add_length_options(p)
     add_engine_options(p)
     p.add_argument("--init", default=None, metavar="RESULT",
-                   help="start from this earlier result's field instead of the rigid translation (any element "
-                        "size, ROI or level of the same reference; the run then starts on --level unless "
-                        "--coarsest is given)")
+                   help="start from this earlier result's field when it matches better than no motion and "
+                        "the rigid translation (lowest gap; any element size, ROI or level of the same "
+                        "reference; the run then starts on --level unless --coarsest is given)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--memory-target", default=None, metavar="SIZE",
                    help="peak memory per process to plan for, e.g. 2GiB (default: chunkdic.memory-target, else "

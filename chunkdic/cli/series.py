@@ -25,7 +25,8 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "series", help="correlate a loading series: each scan against the previous one and the first",
         description="Scans in loading order, the reference first. Each scan is correlated against the previous "
-                    "one (incremental, started from the previous increment) and against the first (cumulative, "
+                    "one (incremental, started from the previous increment, or from no motion or the rigid "
+                    "translation when either matches better) and against the first (cumulative, "
                     "started from the previous cumulative field composed with the new increment, "
                     "u_0k(X) = u_0,k-1(X) + u_k-1,k(X + u_0,k-1(X))). Every step is a result group inside the "
                     "series output (steps/001-incremental, composed/002, steps/002-cumulative, ...). An "

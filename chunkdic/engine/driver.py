@@ -114,8 +114,9 @@ def correlate(
         reads; non-zero = material): only elements with enough material take part, nodes
         outside are NaN (:mod:`chunkdic.engine.masks`).
     init : str, Path or Result, optional
-        An earlier result to start from instead of the rigid translation (a previous
-        step of a loading series, another element size, ROI or level): its field is
+        An earlier result to start from (a previous step of a loading series, another
+        element size, ROI or level), when its gap is lower than no motion's and the rigid
+        translation's (docs/engine.md, "The start"): its field is
         evaluated at this run's nodes on the level the run starts on, which is the
         finest level unless ``coarsest`` is given (:mod:`chunkdic.engine.initial`). Checked
         before any output (a result of the same reference shape); recorded in

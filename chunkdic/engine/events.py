@@ -93,6 +93,11 @@ class EventText:
             return (f"level {event['level']} affine {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  "
                     f"max|da| {event['max_delta']:.2e}  dU/dX diagonal ({g[0][0]:+.4f}, {g[1][1]:+.4f}, "
                     f"{g[2][2]:+.4f})")
+        if stage == "start-choice":
+            names = {"rigid": "rigid + affine", "zero": "no motion", "init": "earlier field",
+                     "translation": "translation alone"}
+            gaps = ", ".join(f"{names.get(k, k)} {100 * v:.3f}%" for k, v in event["gaps"].items())
+            return f"level {event['level']}: start {names.get(event['chosen'], event['chosen'])} (lowest gap of {gaps})"
         if stage == "gaps":
             worse = explain("rigid-worse") if event["rigid_gap"] > event["initial_gap"] else ""
             return (f"level {event['level']}: initial gap {100 * event['initial_gap']:.3f}%, after rigid translation "

@@ -108,7 +108,8 @@ class Level:
     """
 
     def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
-                 scratch: Path, progress=None, mask: ArrayRef | None = None, *, start: np.ndarray):
+                 scratch: Path, progress=None, mask: ArrayRef | None = None, *, start: np.ndarray,
+                 start_to_choose: bool = False):
         self.s, self.mesh, self.runner, self.settings = s, mesh, runner, settings
         self.scratch = scratch
         self.progress = progress
@@ -125,6 +126,8 @@ class Level:
         self.regularization_length = math.nan
         self.regularization_weight = 0.0
         # the operator is assembled here, so that no method can run before it exists
+        # a start still to choose (steps.best_start): the weak-node warning waits for the M it is built with
+        self.start_to_choose = start_to_choose
         self.m_start = start  # the field M is built at (a checkpoint keeps it: a resumed level rebuilds this M)
         self._assemble_m(start)
 
@@ -202,7 +205,8 @@ class Level:
             self.solver = StencilSolver(S)
         except InputError as exc:  # M is empty: name the cause when it is not the reference itself
             raise InputError(self._why_no_gradient(u) or str(exc)) from None
-        self._warn_weak_nodes()
+        if not self.start_to_choose:
+            self._warn_weak_nodes()
 
     def _why_no_gradient(self, u: np.ndarray) -> str | None:
         """The real cause of an empty ``M`` when it is not the reference's texture (issue 24).
@@ -228,6 +232,23 @@ class Level:
                     f"{self.active.size} elements kept, most without a gradient): the textured material lies outside "
                     "the mask; check the mask (inverted? of another scan?)")
         return None
+
+    def settle_start(self, start: np.ndarray, *, rebuild: bool) -> None:
+        """The start chosen after the level was opened (:func:`chunkdic.engine.steps.best_start`).
+
+        ``rebuild``: assemble ``M`` again around ``start`` (3, nz, ny, nx), voxels of the
+        level, and record it as the field ``M`` is built at. ``M`` sums only the voxels its
+        field maps inside ``g``: built around a discarded start 5 voxels off, three corner
+        nodes lost their texture and the iterations from the chosen start diverged after
+        the regularisation length was chosen (docs/engine.md, "The start"). Then the
+        weak-node warning, held back until the ``M`` the level iterates with is known.
+        """
+        self.start_to_choose = False
+        if rebuild:
+            self.m_start = start
+            self._assemble_m(start)
+        else:
+            self._warn_weak_nodes()
 
     def regularize(self, length: float) -> None:
         """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularization`); ``length``: ``ℓ_reg``, voxels of the level.
@@ -282,15 +303,19 @@ class Level:
             stacklevel=4,
         )
 
+    def prepared_for(self, u: np.ndarray) -> bool:
+        """Whether ``u`` (3, nz, ny, nx) reads only the part of ``g`` already prepared (no prefilter pass)."""
+        if not self.inputs.g_needs_preparing:
+            return True
+        needed = reachable_box(self.mesh, u, self.inputs.g.shape, margin=0)
+        current = self.inputs.prepared
+        return needed is None or (current is not None and current.covers(tuple(slice(a, b) for a, b in needed)))
+
     def prepare_interpolation(self, u: np.ndarray) -> None:
         """Prepare once the part of ``g`` that ``u`` (± a margin) can reach (low-pass, B-spline)."""
-        if not self.inputs.g_needs_preparing:
+        if self.prepared_for(u):
             return
         g_ref = self.inputs.g
-        needed = reachable_box(self.mesh, u, g_ref.shape, margin=0)
-        current = self.inputs.prepared
-        if needed is None or (current is not None and current.covers(tuple(slice(a, b) for a, b in needed))):
-            return
         box = reachable_box(self.mesh, u, g_ref.shape, margin=max(8, self.mesh.element_size))
         self._release_prepared()
         self._builds += 1

@@ -41,6 +41,8 @@ from .stopping import State
 START_LENGTH = 2.0
 #: Gauss-Newton passes of the rigid step (a uniform translation: three unknowns)
 RIGID_ITERATIONS = 10
+#: a chosen start farther than this (voxels of the level) from the field M was built at rebuilds M
+MOVED_START = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -114,7 +116,8 @@ def open_level(ctx: RunContext, run: RunState, s: int, start: np.ndarray) -> Lev
     if run.gn is not None and run.gn.m_start is not None:
         start = run.gn.m_start
     lvl = Level(s, mesh, ctx.f_refs[s], ctx.g_refs[s], ctx.runner, ctx.settings, ctx.scratch, ctx.progress,
-                None if ctx.mask_refs is None else ctx.mask_refs[s], start=start)
+                None if ctx.mask_refs is None else ctx.mask_refs[s], start=start,
+                start_to_choose=run.gn is None and s == ctx.coarsest)
     if run.gn is not None:  # resumed: the solver's CG reference as before the interruption
         lvl.solver.largest_rhs = run.gn.largest_rhs
     emit(ctx.progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
@@ -123,19 +126,75 @@ def open_level(ctx: RunContext, run: RunState, s: int, start: np.ndarray) -> Lev
 
 
 def start_state(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_int) -> None:
-    """The Gauss–Newton state a level starts with. On the coarsest level of a new run: the
-    rigid translation refined by Gauss–Newton (paper section 5.1), or an ``init`` field as it
-    is (its mean reported as the start translation); on finer levels the carried field."""
-    if lvl.s == ctx.coarsest and t_int is None:
-        run.rigid_t = start.mean(axis=(1, 2, 3))
-    elif lvl.s == ctx.coarsest:
-        lvl.prepare_interpolation(start)
-        run.rigid_t = rigid_step(lvl, t_int, ctx.tolerance(lvl.s), RIGID_ITERATIONS, run.history, ctx.progress)
-        # then an affine field (12 unknowns, M restricted to affine fields: no extra voxel pass):
-        # a uniform translation cannot start 10-20 % strain or a 10° rotation (docs/engine.md)
-        start = affine_step(lvl, run.rigid_t, ctx.tolerance(lvl.s), run.history, ctx.progress)
+    """The Gauss–Newton state a level starts with: on the coarsest level of a new run the
+    best of the candidate starts (:func:`best_start`), on finer levels the carried field."""
+    if lvl.s == ctx.coarsest:
+        start = best_start(ctx, run, lvl, start, t_int)
     run.gn = State(start)
     run.gn.m_start = lvl.m_start  # in the checkpoint: a resumed level rebuilds the very same M
+
+
+def best_start(ctx: RunContext, run: RunState, lvl: Level, start: np.ndarray, t_int) -> np.ndarray:
+    """The start of lowest gap on the coarsest level, shape (3, nz, ny, nx), voxels of the level.
+
+    Candidates: no motion (the zero field), the rigid translation refined by Gauss–Newton
+    then an affine field (paper section 5.1), and with ``init`` the earlier result's field
+    (``start``; ``t_int`` is then ``None`` and the phase-correlation translation is found
+    here). Without ``init``, no motion is a candidate only when the part of ``g`` prepared
+    for the rigid field covers it (a motion within about an element): a larger translation
+    found by phase correlation is trusted as before, without a second prefilter of ``g``
+    for a field that cannot win. Each is measured by :meth:`Level.gap` and the lowest wins:
+    an earlier result is a good start only when the motion goes on as before, and between
+    two identical scans of a loading series the previous increment started the iterations
+    at 13 % instead of 0.001 % and stalled them (docs/engine.md, "The start"). With ``init`` the rigid and
+    affine passes run only when the translation alone already beats the other candidates,
+    so a good earlier field costs three gap passes and one small task, not ten passes.
+    ``run.rigid_t`` becomes the chosen start's translation (refined, or its mean).
+    """
+    mesh = lvl.mesh
+    zero = np.zeros((3,) + mesh.nodes_shape)
+    gaps, fields = {}, {}
+
+    def measure(name: str, u: np.ndarray) -> None:
+        lvl.prepare_interpolation(u)
+        gaps[name], fields[name] = lvl.gap(u), u
+
+    if t_int is not None:  # a new run: the rigid step as before, then compared with no motion
+        fields["rigid"] = rigid_and_affine(ctx, run, lvl, t_int)
+        measure("rigid", fields["rigid"])
+        if lvl.prepared_for(zero):  # a motion within the prepared window's margin (≥ 8 voxels)
+            measure("zero", zero)
+    else:  # from an earlier result: that field, no motion, the translation alone
+        measure("init", start)
+        measure("zero", zero)
+        t_int = run_one(ctx.runner, translation_task, (ctx.f_refs[lvl.s], ctx.g_refs[lvl.s], mesh.roi))
+        measure("translation", uniform(t_int, mesh))
+        if min(gaps, key=gaps.get) == "translation":
+            measure("rigid", rigid_and_affine(ctx, run, lvl, t_int))
+    chosen = min(gaps, key=gaps.get)  # ties: the first measured (the rigid step, or the earlier field)
+    emit(ctx.progress, stage="start-choice", level=lvl.s, chosen=chosen, gaps=dict(gaps))
+    if chosen != "rigid":
+        run.rigid_t = fields[chosen].mean(axis=(1, 2, 3))
+    # M was built around the earlier field (init) or the translation: again around another
+    # start that moves some node by more than MOVED_START voxels (voxels mapped out of g differ)
+    built_at = "init" if "init" in gaps else "rigid"
+    moved = chosen != built_at and float(np.abs(fields[chosen] - lvl.m_start).max()) > MOVED_START
+    t0, c0 = time.perf_counter(), time.process_time()
+    lvl.settle_start(fields[chosen], rebuild=moved)
+    if moved:
+        emit(ctx.progress, stage="matrix", level=lvl.s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
+             voxels=mesh.n_voxels, seconds=time.perf_counter() - t0,
+             cpu_seconds=time.process_time() - c0)
+    return fields[chosen]
+
+
+def rigid_and_affine(ctx: RunContext, run: RunState, lvl: Level, t_int) -> np.ndarray:
+    """The rigid translation from ``t_int`` refined by Gauss–Newton (``run.rigid_t``), then
+    the affine field from it: a uniform translation cannot start 10-20 % strain or a 10°
+    rotation (12 unknowns, ``M`` restricted to affine fields: no extra voxel pass; docs/engine.md)."""
+    lvl.prepare_interpolation(uniform(t_int, lvl.mesh))
+    run.rigid_t = rigid_step(lvl, t_int, ctx.tolerance(lvl.s), RIGID_ITERATIONS, run.history, ctx.progress)
+    return affine_step(lvl, run.rigid_t, ctx.tolerance(lvl.s), run.history, ctx.progress)
 
 
 def measure_start_gaps(ctx: RunContext, run: RunState, lvl: Level) -> None:
