@@ -31,7 +31,6 @@ import tempfile
 import tracemalloc
 from pathlib import Path
 
-import numpy as np
 
 
 def _sweeping_choice() -> None:

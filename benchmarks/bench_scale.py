@@ -372,7 +372,6 @@ def main(argv=None) -> dict:
     if args.texture_scale is None:
         args.texture_scale = float(2**args.level)
 
-    import numpy as np
     from distributed import Client, LocalCluster
 
     import chunkdic

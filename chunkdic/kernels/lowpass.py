@@ -177,6 +177,5 @@ def _recursive_rows(p, z):
 @jit
 def _recursive_planes(a, z):
     """The prefilter along the first axis of a 3-D array, (y, x) planes at a time."""
-    n = a.shape[0]
     for j in range(a.shape[1]):
         _recursive_rows(a[:, j, :], z)
