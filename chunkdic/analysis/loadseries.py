@@ -41,6 +41,7 @@ import contextlib
 import dataclasses
 import errno
 import json
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -371,6 +372,7 @@ def _step(out: Path, name: str, ref, deformed, start: Result | None, settings: S
     path = out / "steps" / name
     t0 = time.perf_counter()
     run = "computed"
+    _remove_debris(path)
     if path.exists() and _complete(path):
         res, run = open_result(path), "done before"
         _emit(progress, stage="series-step", group=name, pair=pair, run=run)
@@ -410,6 +412,17 @@ def _composed(out: Path, k: int, previous: Result, increment: Result, rows: list
         run = "computed"
     rows.append(_row(res, k, f"0→{k}", "composed", f"composed/{k:03d}", run, 0.0))
     return res
+
+
+def _remove_debris(path: Path) -> None:
+    """Remove what a write of this series left at one of its own step paths without a result's
+    readable metadata: a full disk (or a kill) while the step was being created can leave its
+    ``zarr.json`` cut short, and correlate would refuse the folder as foreign, so that the same
+    command could never resume. Only the series writes under its ``steps/``, and it holds the
+    series' lock (its fingerprint checked): a folder there that is not a result is its own
+    debris. A recognisable result (complete, or with its checkpoint) is kept."""
+    if path.is_dir() and not path.is_symlink() and kind_of(path)[0] is None:
+        shutil.rmtree(path)
 
 
 def _complete(path: Path) -> bool:

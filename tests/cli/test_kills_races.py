@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -383,3 +384,25 @@ def test_the_distributed_runner_turns_a_task_that_kills_its_workers_into_one_err
         assert sorted(runner.map_unordered(abs, [(-1,), (-2,)])) == [1, 2]
         with pytest.raises(WorkerLostError, match="lost the workers this run needs .*KilledWorker"):
             list(runner.map_unordered(os._exit, [(3,)]))
+
+
+def test_a_step_left_without_readable_metadata_is_computed_again(data, tmp_path, capsys):
+    """A full disk can cut a step's ``zarr.json`` short while the step is being created (CI
+    saw it once: the re-run said "resuming 002-incremental" and correlate refused the step
+    as a foreign folder). The series owns everything under ``steps/``: such debris is
+    removed and the step computed again, to the uninterrupted fields."""
+    out = tmp_path / "ser.zarr"
+    shutil.copytree(data / "full.zarr", out)
+    root = zarr.open_group(str(out), mode="r+")
+    root.attrs["chunkdic"] = {**dict(root.attrs["chunkdic"]), "complete": False}
+    for gone in ("steps/002-incremental", "composed/002"):
+        shutil.rmtree(out / gone)
+    (out / "steps/002-incremental").mkdir()
+    (out / "steps/002-incremental/zarr.json").write_bytes(b"")  # cut short by the full disk
+    capsys.readouterr()
+    code = main(["series", *_scans(data), "-o", str(out), *_SERIES_OPTS])
+    err = capsys.readouterr().err
+    assert code == int((data / "full.code").read_text()) and "Traceback" not in err, err[-2000:]
+    a, b = chunkdic.open_series(out), chunkdic.open_series(data / "full.zarr")
+    for k in b.cumulative:
+        np.testing.assert_allclose(a.cumulative[k].displacement, b.cumulative[k].displacement, rtol=0, atol=1e-6)
