@@ -58,7 +58,17 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import aldvc as peer  # noqa: E402
 from bench_vs_aldvc import (  # noqa: E402
-    RECORDS, Case, _between, _fmt, _star, between_common, npy_copies, run_chunkdic, warm_up)
+    RECORDS,
+    Case,
+    _between,
+    _fmt,
+    _star,
+    between_common,
+    npy_copies,
+    run_chunkdic,
+    set_options,
+    warm_up,
+)
 
 SHIFT = (0.5, 0.5, 0.5)
 AMPLITUDE = 0.5
@@ -251,15 +261,7 @@ def parse_args(argv=None):
         _error("--shape too small for the largest spacing (al-dvc needs 3 ell + 11 voxels a side)")
     if args.threads < 1 or args.timeout <= 0:
         _error("--threads and --timeout must be positive")
-    args.options = {}
-    for item in args.set:
-        key, sep, value = item.partition("=")
-        if not sep:
-            _error(f"--set {item!r}: expected KEY=VALUE")
-        try:
-            args.options[key.replace("-", "_")] = json.loads(value)
-        except json.JSONDecodeError:
-            args.options[key.replace("-", "_")] = value
+    args.options = set_options(args.set)
     return args
 
 

@@ -703,16 +703,22 @@ def parse_args(argv=None):
         _error("--sizes must be >= 32")
     if args.repeats < 1 or args.threads < 1 or args.timeout <= 0:
         _error("--repeats, --threads and --timeout must be positive")
-    args.options = {}
-    for item in args.set:
+    args.options = set_options(args.set)
+    return args
+
+
+def set_options(items) -> dict:
+    """``--set KEY=VALUE`` items as chunkdic settings (values read as JSON where they parse)."""
+    options = {}
+    for item in items:
         key, sep, value = item.partition("=")
         if not sep:
             _error(f"--set {item!r}: expected KEY=VALUE")
         try:
-            args.options[key.replace("-", "_")] = json.loads(value)
+            options[key.replace("-", "_")] = json.loads(value)
         except json.JSONDecodeError:
-            args.options[key.replace("-", "_")] = value
-    return args
+            options[key.replace("-", "_")] = value
+    return options
 
 
 def main(argv=None) -> int:
