@@ -12,7 +12,7 @@ from .common import add_engine_options, engine_options, format_event, say
 def register(subparsers) -> None:
     """Add ``resolution`` to an ``argparse`` subparsers object."""
     p = subparsers.add_parser(
-        "resolution", help="noise, spatial resolution l10 % and MEI of a correlation setting on a scan's texture",
+        "resolution", help="noise, spatial resolution l10 %% and MEI of a correlation setting on a scan's texture",
         description="From the reference scan REF, write a translated pair (Fourier shift) and a 3-D star "
                     "(Ux = A sin(2 pi (z - zc) / period(y)), period rising across y), each scan with its "
                     "own independent noise, correlate both with the given settings for each element size, "
