@@ -264,14 +264,26 @@ def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0, re
 def chunk_is_complete(arr, coords) -> bool:
     """Whether chunk ``coords`` of the Zarr array ``arr`` is stored and decodes to its shape.
 
-    A chunk file cut short by a killed writer fails to decode (its codec's frame is
-    incomplete) and counts as missing; so does an absent one. Reads the one chunk.
+    A chunk file cut short (a copy, a disk) counts as missing; so does an absent one.
+    Reads the one chunk.
+
+    A Blosc chunk is first checked against its frame header (:func:`blosc_frame_is_whole`):
+    the Blosc 1 decoder does not know the length of the buffer it is given, trusts the
+    header's and reads past the end of a cut-short one, so a truncated chunk decodes, or
+    not, depending on what lies beyond it in memory (the rest of the same chunk, freed
+    after an earlier read of the whole file, decodes to the former voxels; a few bytes of
+    it changed, to a few wrong ones). A resumed ``chunkdic synth`` then kept the cut
+    chunk, or failed in its pyramid: 3 runs in 34 (docs/safety.md, "Resuming a synthetic
+    pair").
     """
     import zarr
 
     key = arr.metadata.encode_chunk_key(tuple(int(c) for c in coords))
     root = getattr(arr.store, "root", None)
-    if root is None or not os.path.isfile(os.path.join(str(root), arr.path, key)):
+    path = None if root is None else os.path.join(str(root), arr.path, key)
+    if path is None or not os.path.isfile(path):
+        return False
+    if _last_codec_is_blosc(arr) and not blosc_frame_is_whole(path, _chunk_nbytes(arr)):
         return False
     region = tuple(slice(c * e, min((c + 1) * e, n)) for c, e, n in zip(coords, arr.chunks, arr.shape))
     try:
@@ -279,6 +291,42 @@ def chunk_is_complete(arr, coords) -> bool:
     except Exception:  # noqa: BLE001 - any decoding failure means "write it again"
         return False
     return tuple(block.shape) == tuple(s.stop - s.start for s in region)
+
+
+#: bytes of a Blosc 1 frame header: version, versionlz, flags, typesize, then
+#: nbytes, blocksize, cbytes as little-endian uint32 (c-blosc README_HEADER.rst)
+BLOSC_HEADER = 16
+
+
+def blosc_frame_is_whole(path: str, nbytes: int) -> bool:
+    """Whether the file ``path`` holds one whole Blosc 1 frame of ``nbytes`` decoded bytes.
+
+    The frame's ``cbytes`` (header included) must equal the file's size, and its
+    ``nbytes`` the chunk's: checked before decoding because the decoder reads ``cbytes``
+    bytes whatever the buffer's length (numcodecs issue #228; c-blosc2 issue #40: "you
+    cannot trust the output of blosc_cbuffer_sizes(), but you can trust your buffer.len").
+    """
+    size = os.path.getsize(path)
+    with open(path, "rb") as fh:
+        head = fh.read(BLOSC_HEADER)
+    if len(head) < BLOSC_HEADER:
+        return False
+    frame_nbytes = int.from_bytes(head[4:8], "little")
+    cbytes = int.from_bytes(head[12:16], "little")
+    return cbytes == size and frame_nbytes == nbytes
+
+
+def _last_codec_is_blosc(arr) -> bool:
+    """Whether a chunk file of ``arr`` is one Blosc frame (Zarr v3, Blosc the outermost codec)."""
+    from zarr.codecs import BloscCodec
+
+    codecs = tuple(getattr(arr.metadata, "codecs", ()) or ())
+    return bool(codecs) and isinstance(codecs[-1], BloscCodec)
+
+
+def _chunk_nbytes(arr) -> int:
+    """Decoded bytes of one chunk (edge chunks are stored at the full chunk shape)."""
+    return int(np.prod(arr.chunks)) * np.dtype(arr.dtype).itemsize
 
 
 def _block_complete(arr, dask_chunks, idx, unit) -> bool:
