@@ -463,6 +463,39 @@ def test_predicted_risk_picks_the_length_of_least_error_on_noisy_known_fields():
             assert errors[k] <= 1.1 * min(errors), (name, k, errors)
 
 
+def test_a_sweep_of_any_rule_carries_the_risk_so_upre_can_be_applied_to_its_curves():
+    """``benchmarks/bench_reg_criteria.py`` sweeps once (default rule, the discrepancy) and
+    applies every rule to the per-region curves. The sweep left the risk's trace term at
+    zero unless the rule was ``upre``, so ``argmin(misfit + penalty)`` was the shortest
+    candidate on every case, pure noise included (issue 20's records, after the default
+    became the discrepancy). Same known fields as above (``M = I``, white noise of variance
+    ``σ²``): the risk read from a discrepancy sweep's curves picks what ``rule="upre"``
+    picks; on pure noise (a linear truth) not the shortest (at least 8ℓ), on a wave of
+    period 3ℓ not the longest (at most 2ℓ: its least-error length, 1.4ℓ).
+    """
+    shape, ell, sigma = (7, 7, 7), 4.0, 0.2
+    half = _identity_stencil(shape)
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij")
+    rng = np.random.default_rng(5)
+    zero = np.zeros(shape + (3,))
+    lengths = np.array(CANDIDATES) * ell
+    truths = {"noise": np.stack([0.01 * z, 0.02 * y + 0.1, -0.01 * x], -1),
+              "wave": np.stack([np.sin(2 * np.pi * z / 3), np.zeros_like(z), np.cos(2 * np.pi * y / 3)], -1)}
+    for name, truth in truths.items():
+        data = truth + sigma * rng.standard_normal(truth.shape)
+        upre = choose_length("tikhonov", half, ell, data, zero, sigma**2, _direct_solve, rule="upre")
+        swept = choose_length("tikhonov", half, ell, data, zero, sigma**2, _direct_solve, sweep=True,
+                              rule="discrepancy")
+        (curve,) = swept.curves  # 7³ nodes: one region
+        assert np.all(curve["penalty"] > 0) and np.all(np.diff(curve["penalty"]) < 0)
+        from_curves = lengths[int(np.argmin(curve["misfit"] + curve["penalty"]))]
+        assert from_curves == pytest.approx(upre.length), name
+        if name == "noise":
+            assert from_curves >= 8 * ell, from_curves
+        else:
+            assert from_curves <= 2 * ell, from_curves
+
+
 # -------------------------------------------------------------------------------- masks
 
 
