@@ -30,14 +30,18 @@ def fourier_shift(volume: np.ndarray, t) -> np.ndarray:
     return np.fft.ifftn(np.fft.fftn(volume) * np.exp(-2j * np.pi * phase)).real
 
 
-def cylinder_pair(n=64, radius=24.0):
+def cylinder_pair(n=64, radius=24.0, *, field=None, noise=0.0, seed=7):
     """Foam cylinder (axis z) in air, -2 % axial / +0.6 % lateral strain, partial-volume edges.
 
     The edge is a one-voxel linear ramp of the material weight, evaluated at ``X`` in the
     reference and at the undeformed position ``field.inverse(x)`` in the deformed scan, so
     the edge moves with the material (a binary edge would jump by whole voxels).
+    ``field``: another motion (a :class:`chunkdic.synth.fields.Field`); ``noise``: the std
+    of independent white noise added to each scan, as a fraction of the foam's grey range
+    (the air is then noise alone, as in a CT scan).
     """
-    field = Affine(matrix=((-0.02, 0, 0), (0, 0.006, 0), (0, 0, 0.006)), center=(n / 2,) * 3)
+    if field is None:
+        field = Affine(matrix=((-0.02, 0, 0), (0, 0.006, 0), (0, 0, 0.006)), center=(n / 2,) * 3)
     f0 = render((n,) * 3, seed=3, cell_size=5.0)
     g0 = render((n,) * 3, seed=3, cell_size=5.0, field=field, which="deformed")
     Z, Y, X = np.indices((n,) * 3).astype(float)
@@ -49,6 +53,11 @@ def cylinder_pair(n=64, radius=24.0):
     back = field.inverse(Z, Y, X)
     wf, wg = weight(Y, X), weight(back[1], back[2])
     air = 0.05
-    f = (wf * f0 + (1 - wf) * air).astype(np.float32)
-    g = (wg * g0 + (1 - wg) * air).astype(np.float32)
-    return f, g, wf, field
+    f = wf * f0 + (1 - wf) * air
+    g = wg * g0 + (1 - wg) * air
+    if noise:
+        rng = np.random.default_rng(seed)
+        span = float(f0.max() - f0.min())
+        f = f + noise * span * rng.standard_normal(f.shape)
+        g = g + noise * span * rng.standard_normal(g.shape)
+    return f.astype(np.float32), g.astype(np.float32), wf, field

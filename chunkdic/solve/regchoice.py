@@ -2,11 +2,11 @@
 
 Once the correlated level has converged without knowing ``ℓ_reg``, :func:`choose_length`
 picks one of :data:`CANDIDATES` by one of :data:`RULES` (docs/engine.md, "Automatic
-length"): by default the length of least *predicted* total error (``"upre"``: the
-linearised misfit plus twice the noise that the field's remaining degrees of freedom
-absorb, Mallows' C_L / the unbiased predictive risk), or Morozov's discrepancy principle
-(``"discrepancy"``, the earlier default, which over-smooths: issue 20). Mesh-sized work
-only (sub-meshes of at most :data:`CHOICE_EDGE`³ nodes), no voxels.
+length"): by default Morozov's discrepancy principle (``"discrepancy"``), or the length
+of least *predicted* total error (``"upre"``: the linearised misfit plus twice the noise
+that the field's remaining degrees of freedom absorb, Mallows' C_L / the unbiased
+predictive risk), among others compared in docs/engine.md. Mesh-sized work only
+(sub-meshes of at most :data:`CHOICE_EDGE`³ nodes), no voxels.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from .stencil import stencil_matvec
 
 #: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)
 CANDIDATES = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
-#: the criteria :func:`choose_length` knows; the first is the default (docs/engine.md, the comparison)
+#: the criteria :func:`choose_length` knows (docs/engine.md, the comparison); :data:`DEFAULT_RULE` is the default
 RULES = ("upre", "discrepancy", "discrepancy-half", "gcv", "l-curve")
 #: the engine's default (:class:`chunkdic.engine.settings.Settings` ``regularization_rule``):
 #: the predicted risk measured better on translations at ℓ = 8 (2×) and level on
@@ -56,7 +56,8 @@ class Choice:
         The rule that chose (:data:`RULES`).
     curves : list of dict
         With ``sweep``: per region, ``misfit`` (increase over the shortest candidate),
-        ``roughness``, ``penalty`` (the risk's trace term, zeros for other rules), ``budget``.
+        ``roughness``, ``penalty`` (the risk's trace term ``2 s² tr(A⁻¹M)``, ``s² = κ σ_r²``
+        (``σ_r²`` for ``"gcv"``), whatever the rule), ``budget``.
     """
 
     length: float
@@ -102,7 +103,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     rules weigh. A fitted unknown absorbs ``s² = κ σ_r²`` of the misfit from the noise
     (:mod:`chunkdic.engine.noise`), ``N`` unknowns in all:
 
-    ``"upre"`` (default)
+    ``"upre"``
         The least predicted mean-square error of the field in the data norm:
         ``E‖x_λ - u‖²_M = D(λ) + 2 s² tr(A⁻¹M) + const`` (``A = M + λR``; Mallows' C_L, the
         unbiased predictive risk), the trace estimated from the sub-mesh's mean stencils
@@ -111,7 +112,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     ``"gcv"``
         The same with white noise (``s² = σ_r²``, i.e. ``κ = 1``): what generalised
         cross-validation reduces to when the voxels far outnumber the unknowns.
-    ``"discrepancy"``, ``"discrepancy-half"``
+    ``"discrepancy"`` (default), ``"discrepancy-half"``
         Morozov's principle: the longest length with ``D(λ) - D(ℓ) <= τ s² N``, ``τ`` = 1
         or 1/2 (a safety factor).
     ``"l-curve"``
@@ -184,13 +185,16 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
 
         n_unknowns = 3 * int(np.prod(H.shape[:3]))
         budget = float(noise_variance) * n_unknowns
-        if rule in ("upre", "gcv"):
+        tau = 0.5 if rule == "discrepancy-half" else 1.0
+        if rule in ("upre", "gcv") or sweep:
+            # A sweep keeps the risk's trace term whatever the rule, so that a benchmark can
+            # apply every rule to its curves (with the penalty left at zero, "upre" applied
+            # to a discrepancy sweep's curves picked the shortest candidate on every case).
             s2 = float(noise_variance) / (float(kappa) if rule == "gcv" else 1.0)
             penalty = 2.0 * s2 * n_unknowns * dof_fraction(H, reg, weights)
             risk = lambda i: evaluate(i) + penalty[i]  # noqa: E731
         else:
             penalty = np.zeros(len(lengths))
-            tau = 0.5 if rule == "discrepancy-half" else 1.0
         base = evaluate(0)
         if sweep:
             for i in range(1, len(lengths)):
