@@ -4,9 +4,10 @@ One idea: :func:`write_fields` turns a result (a nodal field on a mesh of some p
 level) into volumes a viewer lays over the scan with no code: ``Uz, Uy, Ux``, ``|U|``,
 ``eps_zz``, the equivalent (von Mises) strain and the residual, as the channels of one
 multiscale OME-NGFF 0.5 image (axes ``c, z, y, x``) on the reference scan's **full level-0
-grid**, with its scale, unit and origin, NaN outside the ROI (and outside a specimen mask).
-napari (napari-ome-zarr) opens it as one layer per channel, named, with its contrast
-window; neuroglancer opens it as one layer with a channel dimension.
+grid**, or on its level-``S`` grid (``grid_level=S``, ``export --fields-level S``: ``8^-S``
+of the size, for whole specimens), with its scale, unit and origin, NaN outside the ROI (and
+outside a specimen mask). napari (napari-ome-zarr) opens it as one layer per channel, named,
+with its contrast window; neuroglancer opens it as one layer with a channel dimension.
 
 Everything voxel-sized is made by tasks, one per output chunk (shared/DESIGN.md,
 "Out-of-core shape"): a task receives the nodes, element values and brightness of the
@@ -14,18 +15,28 @@ elements its chunk touches (kilobytes) and writes its chunk of every channel; th
 pyramid levels ``1..k`` are 2×2×2 means (NaN-aware) made by tasks from the level below;
 the contrast windows come from a bounded sample of the coarsest level, read by tasks
 (:func:`chunkdic.views.images.write_image`, the writer shared with the corrected image).
+Before anything is written, the image's size (every chunk stored whole, uncompressed: an
+upper bound) is compared with the free disk of where it goes (:func:`plan_fields`).
 
-- Displacement: the C8 field (trilinear shape functions) at level-0 voxel centres. A
-  level-0 voxel ``x0`` lies at level-``s`` position ``(x0 + 0.5) / 2^s - 0.5``
+- Grid: level-``S`` voxel ``j`` has its centre at level-0 coordinate ``2^S j + (2^S - 1)/2``
+  (shared/DESIGN.md); the image's level 0 carries the scan's level-``S`` scale and
+  translation (:func:`chunkdic.io.ngff.level_frame`). A voxel is in the ROI when its centre
+  lies in the mesh's box (:func:`roi_on_grid`).
+- Displacement: the C8 field (trilinear shape functions) sampled at those centres. A
+  level-``S`` centre lies at level-``s`` position ``(2^S (j + 1/2)) / 2^s - 1/2``
   (:func:`chunkdic.mesh.level_to_level`) and the displacement in level-0 voxels is
-  ``2^s`` times the level-``s`` value (physical units: times the voxel size per axis).
+  ``2^s`` times the level-``s`` value (physical units: times the voxel size per axis),
+  whatever ``S``.
 - Strain: per element, constant over the element, the value of :mod:`chunkdic.results.strain`
   (the C8 gradient at the element centre = its average; paper section 5.4), as the
-  result's ``strain`` array and ``chunkdic strain`` use. The equivalent strain is
-  ``sqrt(2/3 e:e)`` with ``e`` the deviatoric part.
+  result's ``strain`` array and ``chunkdic strain`` use; a voxel takes the element holding
+  its centre. The equivalent strain is ``sqrt(2/3 e:e)`` with ``e`` the deviatoric part.
 - Residual: ``f̃(X) - corrected g(X + u(X))`` of :mod:`chunkdic.views.correction` (what the
-  engine compared), in grey levels of the result's level, computed per task at that level
-  and repeated (nearest) over the ``2^s`` level-0 voxels each level-``s`` voxel sums.
+  engine compared), in grey levels of the result's level, computed per task at that level.
+  On a grid at least as fine as the result's (``S <= s``): the residual of the level-``s``
+  voxel holding the centre, repeated (nearest). On a coarser grid (``S > s``): the mean of
+  ``|r|`` over the level-``s`` voxels each level-``S`` voxel holds (:func:`mean_abs_residual`;
+  a signed mean would cancel).
 """
 
 from __future__ import annotations
