@@ -6,6 +6,7 @@ from __future__ import annotations
 import dask.config
 import numpy as np
 import pytest
+import zarr
 
 import chunkdic
 from chunkdic.cli.app import main
@@ -152,6 +153,32 @@ def test_level_s_residual_is_the_mean_abs_residual_over_each_voxel(affine, tmp_p
     assert np.array_equal(np.isfinite(got), np.isfinite(expect))
     scale = np.nanmax(expect)
     assert scale > 0 and np.nanmax(np.abs(got - expect)) < 1e-5 * scale
+
+
+def test_level_s_residual_on_the_results_own_grid_is_the_corrected_images(affine, tmp_path):
+    """A level-1 result exported on the level-1 grid (S = s): the residual channel is the
+    corrected image's residual, voxel for voxel (both on the scan's level-1 grid); on the
+    level-0 grid (S < s) each level-1 value is repeated over its 2³ level-0 voxels."""
+    from chunkdic.views.corrected_image import write_corrected
+
+    _, res, _ = affine
+    mesh = Mesh((3, 3, 3), 6, (3, 3, 3))  # level-1 ROI [3, 21)
+    nodes = mesh.node_coords()
+    info = {**res.info, "level": 1, "scale": 2, "element_size": 6, "roi": [[3, 21]] * 3}
+    fake = chunkdic.Result(_affine(2.0 * nodes + 0.5) / 2.0, nodes, res.history, info)
+    write_corrected(fake, tmp_path / "c.zarr")
+    with dask.config.set({"chunkdic.chunk-size": 8}):
+        write_fields(fake, tmp_path / "f1.zarr", grid_level=1)
+        write_fields(fake, tmp_path / "f0.zarr", grid_level=0)
+    truth = np.asarray(zarr.open_array(str(tmp_path / "c.zarr"), path="0")[1])
+    one = np.asarray(open_levels(tmp_path / "f1.zarr")[0][0][6])
+    zero = np.asarray(open_levels(tmp_path / "f0.zarr")[0][0][6])
+    assert one.shape == truth.shape == (24, 24, 24) and np.isfinite(truth[3:21, 3:21, 3:21]).all()
+    scale = np.nanmax(np.abs(truth))
+    np.testing.assert_array_equal(np.isfinite(one), np.isfinite(truth))
+    assert np.nanmax(np.abs(one - truth)) < 1e-5 * scale
+    repeated = truth.repeat(2, 0).repeat(2, 1).repeat(2, 2)
+    assert np.nanmax(np.abs(zero - repeated)) < 1e-5 * scale
 
 
 # hand-computed sizes (float32, chunks of 128 voxels hold each level whole; pyramid down to an edge of 8):
