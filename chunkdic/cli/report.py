@@ -393,9 +393,11 @@ def run_export(args: argparse.Namespace) -> int:
                 ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
                 ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"))
                if path}
-    if args.corrected or args.fields:
-        _plan_images(res, args, scans[0].shape(0))  # the free disk, once the paths are checked
+    # the free disk, once the paths are checked; the sizes are said once the outputs are ours (locked)
+    sizes = _plan_images(res, args, scans[0].shape(0)) if args.corrected or args.fields else []
     with plan:
+        for line in sizes:
+            say(line)
         _export(res, args, {k: e.work for k, e in entries.items()})
     for name in ("vtk", "csv", "corrected", "fields"):
         if name in entries:
@@ -403,10 +405,10 @@ def run_export(args: argparse.Namespace) -> int:
     return 0
 
 
-def _plan_images(res, args: argparse.Namespace, shape0) -> None:
+def _plan_images(res, args: argparse.Namespace, shape0) -> list[str]:
     """The size of ``--corrected`` and ``--fields`` against the free disk of where they go (both
-    counted together when on one file system), said before the export starts; refused in one
-    line (exit 2) when they cannot fit."""
+    counted together when on one file system): refused in one line (exit 2) when they cannot
+    fit, else one line per image to say before the export starts."""
     from ..io.diskspace import same_device
     from ..views.corrected_image import plan_corrected
     from ..views.fields import plan_fields
@@ -419,8 +421,7 @@ def _plan_images(res, args: argparse.Namespace, shape0) -> None:
         also = first["bytes"] if first is not None and same_device(args.corrected, args.fields) else 0
         lines.append(f"{args.fields}: " + plan_fields(shape0, args.fields, grid_level=args.fields_level,
                                                       also=also)["line"])
-    for line in lines:  # once every output fits
-        say(line)
+    return lines
 
 
 def _export(res, args: argparse.Namespace, work: dict) -> None:

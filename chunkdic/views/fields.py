@@ -618,7 +618,8 @@ def open_fields(path, level: int = 0):
     path : path
         The image (``chunkdic export RESULT --fields fields.zarr``).
     level : int
-        Pyramid level of the image (0: the scan's level-0 grid; ``t``: the 2^t mean).
+        Pyramid level of the image (0: its finest, on the scan's level-``grid_level`` grid, see
+        ``attrs["chunkdic"]["grid_level"]``; ``t``: the 2^t mean).
 
     Returns
     -------
