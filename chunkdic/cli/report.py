@@ -116,14 +116,19 @@ def register(subparsers) -> None:
                     "data); --csv: one line per node under one header line (pandas.read_csv reads it), "
                     "metadata in NODES.csv.json; --corrected: g(X+u(X)) and f - g(X+u(X)) over the ROI as "
                     "Zarr arrays; --fields: Uz, Uy, Ux, |U|, eps_zz, equivalent strain and residual as one "
-                    "OME-NGFF multiscale image on the scan's level-0 grid (napari, neuroglancer). Strains of "
-                    "--vtk and --fields: --strain (default Green-Lagrange).")
+                    "OME-NGFF multiscale image on the scan's level-0 grid (--fields-level S: its level-S grid) "
+                    "(napari, neuroglancer). The size of --corrected and --fields is said first and refused when "
+                    "the free disk cannot hold it. Strains of --vtk and --fields: --strain (default Green-Lagrange).")
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
     p.add_argument("--corrected", metavar="OUT.zarr", help="OME-NGFF image (channels corrected, residual) on the scan's grid at the result's level")
     p.add_argument("--fields", metavar="OUT.zarr",
                    help="OME-NGFF image (channels Uz, Uy, Ux, |U|, eps_zz, eps_eq, residual) on the scan's grid")
+    p.add_argument("--fields-level", metavar="S", type=_level, default=0,
+                   help="write --fields on the scan's level-S grid (2^S voxels per axis; 8^-S of the size): "
+                        "0 (default) the full grid; 2 puts a 2048^3 scan's fields on 512^3. The residual channel "
+                        "is the mean |r| over each voxel when S is coarser than the result's level")
     p.add_argument("--units", choices=("voxels", "physical"), default="voxels",
                    help="coordinates of --vtk/--csv (voxels of the result's level) and displacement of --fields "
                         "(level-0 voxels): voxels (default) or physical")
@@ -137,6 +142,16 @@ def register(subparsers) -> None:
 
 
 # --------------------------------------------------------------------------- helpers
+
+
+def _level(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
 
 
 def _shift(text: str):
@@ -366,8 +381,10 @@ def run_export(args: argparse.Namespace) -> int:
     res.check_displacement()
     if args.units == "physical" and not res.info.get("voxel_size"):
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
+    if args.fields_level and not args.fields:
+        raise InputError("--fields-level applies to --fields: give --fields OUT.zarr")
     if args.corrected or args.fields:
-        resultscans.input_scans(res, args.ref, args.deformed)
+        scans = resultscans.input_scans(res, args.ref, args.deformed)
         check_scheduler(args.scheduler)
     # every output checked (and every input) before the first is written; all or nothing
     plan = Outputs(inputs=resultscans.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
@@ -376,12 +393,35 @@ def run_export(args: argparse.Namespace) -> int:
                 ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
                 ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"))
                if path}
+    # the free disk, once the paths are checked; the sizes are said once the outputs are ours (locked)
+    sizes = _plan_images(res, args, scans[0].shape(0)) if args.corrected or args.fields else []
     with plan:
+        for line in sizes:
+            say(line)
         _export(res, args, {k: e.work for k, e in entries.items()})
     for name in ("vtk", "csv", "corrected", "fields"):
         if name in entries:
             print(getattr(args, name))
     return 0
+
+
+def _plan_images(res, args: argparse.Namespace, shape0) -> list[str]:
+    """The size of ``--corrected`` and ``--fields`` against the free disk of where they go (both
+    counted together when on one file system): refused in one line (exit 2) when they cannot
+    fit, else one line per image to say before the export starts."""
+    from ..io.diskspace import same_device
+    from ..views.corrected_image import plan_corrected
+    from ..views.fields import plan_fields
+
+    lines, first = [], None
+    if args.corrected:
+        first = plan_corrected(shape0, res.level, args.corrected)
+        lines.append(f"{args.corrected}: {first['line']}")
+    if args.fields:
+        also = first["bytes"] if first is not None and same_device(args.corrected, args.fields) else 0
+        lines.append(f"{args.fields}: " + plan_fields(shape0, args.fields, grid_level=args.fields_level,
+                                                      also=also)["line"])
+    return lines
 
 
 def _export(res, args: argparse.Namespace, work: dict) -> None:
@@ -415,8 +455,9 @@ def _export_fields(res, args: argparse.Namespace, work) -> None:
 
     progress = Progress("fields")  # its stages: "fields" (level 0), then "level t" of the pyramid
     out = write_fields(res, work, ref=args.ref, deformed=args.deformed, units=args.units,
-                       scheduler=args.scheduler, progress=lambda stage, f: progress(_whole(stage, f), stage),
+                       grid_level=args.fields_level, scheduler=args.scheduler, progress=lambda stage, f: progress(_whole(stage, f), stage),
                        strain=args.strain)
     progress.done()
     say(f"{args.fields}: {', '.join(CHANNELS)} on {len(out['levels'])} levels "
-         f"({'x'.join(map(str, out['levels'][0]))} voxels at level 0, {out['voxels']} in the ROI)")
+         f"({'x'.join(map(str, out['levels'][0]))} voxels at level 0 = the scan's level {args.fields_level}, "
+         f"{out['voxels']} in the ROI)")

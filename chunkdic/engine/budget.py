@@ -30,7 +30,6 @@ import ctypes
 import dataclasses
 import math
 import os
-import shutil
 import tempfile
 import time
 from pathlib import Path
@@ -39,6 +38,9 @@ import numpy as np
 
 from .. import config
 from ..errors import DiskSpaceError, InputError
+from ..io.diskspace import DISK_MARGIN
+from ..io.diskspace import existing_parent as _existing_parent
+from ..io.diskspace import free_bytes as _free
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers
@@ -107,8 +109,6 @@ CALIBRATION_EDGE = 64
 TRIM_SECONDS = 0.1
 #: times the calibration runs (the fastest counts)
 CALIBRATION_REPEATS = 3
-#: free disk kept beyond the estimate (file-system metadata, other writers)
-DISK_MARGIN = 1.05
 
 
 @dataclasses.dataclass(frozen=True)
@@ -617,19 +617,8 @@ def calibrated(p: Plan, g_scan, settings) -> Plan:
     return p.timed(calibrate(stored[min(stored)], settings.smoothing, settings.interpolation, p.threads))
 
 
-def _existing_parent(path: Path) -> Path:
-    while not path.exists() and path.parent != path:
-        path = path.parent
-    return path
-
-
-def _free(path: Path) -> int:
-    """Free bytes for this user on the file system holding ``path`` (or its nearest parent)."""
-    return int(shutil.disk_usage(_existing_parent(Path(path).absolute())).free)
-
-
 def _device(path) -> int:
-    return os.stat(_existing_parent(Path(path).absolute())).st_dev
+    return os.stat(_existing_parent(path)).st_dev
 
 
 def _b(n: float) -> str:

@@ -29,6 +29,7 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io import diskspace
 from ..io.ngff import level_frame
 from ..io.outputs import Outputs
 from ..mesh import Block, Mesh
@@ -42,11 +43,11 @@ from ..results.scans import (
 )
 from ..scheduler import open_runner
 from .correction import Correction, active_slice, correct_block, element_slice
-from .images import field_levels, scan_frame, write_image
+from .images import field_levels, image_bytes, scan_frame, write_image
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CORRECTED_CHANNELS", "write_corrected", "open_corrected", "corrected_task"]
+__all__ = ["CORRECTED_CHANNELS", "write_corrected", "plan_corrected", "open_corrected", "corrected_task"]
 
 #: channel labels of the corrected image, in order
 CORRECTED_CHANNELS = ("corrected", "residual")
@@ -165,8 +166,57 @@ def write_corrected(result, out, *, ref=None, deformed=None, interpolation: str 
     plan = Outputs(inputs=input_paths(result, ref, deformed), overwrite=overwrite)
     entry = plan.add(out, "corrected")
     scans = input_scans(result, ref, deformed)  # every input checked before anything is written
+    plan_corrected(scans[0].shape(0), result.level, out, levels=levels)  # and the free disk
     with plan:
         return _write_corrected(result, entry.work, out, scans, interpolation, levels, scheduler, progress)
+
+
+def plan_corrected(shape0, level: int, out, *, levels: int | None = None, also: int = 0) -> dict:
+    """The size of a corrected image and the free disk for it, refused when it cannot fit.
+
+    The image lies on the scan's grid at the result's level ``s`` (what the engine compared,
+    voxel for voxel): ``2 x 8^-s`` of the scan's level-0 voxels, float32, plus its pyramid.
+    No coarser grid is offered: a mean of the corrected image over coarse voxels is what the
+    image's own pyramid levels hold; a coarse look at the residual is ``export --fields
+    --fields-level S`` (the mean ``|r|``), which the refusal names.
+
+    Parameters
+    ----------
+    shape0 : tuple of 3 int
+        The reference scan's level-0 shape.
+    level : int
+        The result's level ``s``.
+    out : path
+        Where the image goes.
+    levels : int, optional
+        As in :func:`write_corrected`.
+    also : int
+        Bytes other outputs of the same command put on that file system first.
+
+    Returns
+    -------
+    dict
+        ``shape``, ``shapes``, ``bytes`` (upper bound, uncompressed), ``free``, ``line``.
+
+    Raises
+    ------
+    DiskSpaceError
+        One line: the need, the free space, and what to do.
+    """
+    shape = tuple(int(n) >> int(level) for n in shape0)
+    shapes = field_levels(shape, levels)
+    size = image_bytes(shapes, len(CORRECTED_CHANNELS), int(config.get("chunk-size")))
+    room = diskspace.free_bytes(out)
+    if (size + also) * diskspace.DISK_MARGIN > room:
+        diskspace.check_disk(size + also, out, f"the corrected image at the result's level {level} "
+                                               f"({'x'.join(map(str, shape))} voxels x {len(CORRECTED_CHANNELS)} "
+                                               "channels)",
+                             "free some disk or write it to a larger one; --fields with --fields-level S holds "
+                             "the residual (mean |r|) on a coarser grid")
+    line = (f"{len(CORRECTED_CHANNELS)} channels on the scan's level-{level} grid ({'x'.join(map(str, shape))} "
+            f"voxels, {len(shapes)} levels): up to {diskspace.format_bytes(size)} (uncompressed), "
+            f"{diskspace.format_bytes(room)} free")
+    return {"shape": shape, "shapes": shapes, "bytes": size, "free": room, "line": line}
 
 
 def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation: str, levels, scheduler,

@@ -89,6 +89,27 @@ def field_levels(shape0, levels: int | None = None) -> list[tuple[int, int, int]
     return shapes
 
 
+def image_bytes(shapes, n_channels: int, chunk: int) -> int:
+    """Bytes an image of :func:`write_image` takes at most: every chunk of every level and
+    channel stored whole and uncompressed (float32; a chunk left at the fill value is not
+    stored and compression only shrinks the rest, so this is an upper bound). The pyramid
+    adds at most 1/7 to level 0 (``8/7`` in all).
+
+    Examples
+    --------
+    >>> image_bytes([(256, 256, 256), (128, 128, 128)], 7, 128) / 2**20  # 7 x 64 MiB + 7 x 8 MiB
+    504.0
+    """
+    total = 0
+    for shape in shapes:
+        stored = 1
+        for n in shape:
+            c = min(chunk, n)
+            stored *= -(-n // c) * c  # edge chunks are stored whole
+        total += n_channels * stored * 4
+    return total
+
+
 # --------------------------------------------------------------------------- metadata
 
 
