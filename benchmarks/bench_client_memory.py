@@ -34,8 +34,43 @@ from pathlib import Path
 
 
 def _hwm_mib() -> float:
+    return _status_mib("VmHWM")
+
+
+def _status_mib(field: str) -> float:
     with open("/proc/self/status") as fh:
-        return int(re.search(r"VmHWM:\s+(\d+)\s+kB", fh.read()).group(1)) / 1024
+        return int(re.search(field + r":\s+(\d+)\s+kB", fh.read()).group(1)) / 1024
+
+
+class _Steps:
+    """Peak and resident memory of each step of the client (``--steps``).
+
+    The peak of one step is ``VmHWM`` after it with the high-water mark reset before it
+    (``/proc/self/clear_refs``, Linux); the process's peak is the largest of them.
+    """
+
+    def __init__(self, show: bool):
+        self.show, self.rows, self.peak = show, [], _hwm_mib()
+
+    def run(self, name: str, fn):
+        before = _status_mib("VmRSS")
+        try:
+            with open("/proc/self/clear_refs", "w") as fh:
+                fh.write("5")
+        except OSError:  # not Linux: the peaks are the process's so far
+            pass
+        out = fn()
+        peak = _hwm_mib()
+        self.peak = max(self.peak, peak)
+        self.rows.append((name, before, peak, _status_mib("VmRSS")))
+        return out
+
+    def print(self) -> None:
+        if not self.show:
+            return
+        print(f"  {'step':<34} {'RSS before':>10} {'peak':>8} {'RSS after':>10}  MiB")
+        for name, before, peak, after in self.rows:
+            print(f"  {name:<34} {before:>10.0f} {peak:>8.0f} {after:>10.0f}")
 
 
 class _StandInRunner:
@@ -64,36 +99,43 @@ class _StandInRunner:
         fn()
 
 
-def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid: bool = True) -> None:
+def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid: bool = True,
+           show_steps: bool = False) -> None:
     import numpy as np
 
     from chunkdic.engine.level import Level
     from chunkdic.engine.planning import plan_meshes
     from chunkdic.engine.settings import Settings
     from chunkdic.io.handles import ArrayRef
+    from chunkdic.solve.cg import warmup
 
+    steps = _Steps(show_steps)
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened
+    runner = _StandInRunner()
+    steps.run("kernels loaded", warmup)
     with tempfile.TemporaryDirectory() as scratch:
         t0 = time.perf_counter()
-        lvl = Level(0, mesh, f_ref, f_ref, _StandInRunner(), Settings(element_size=ell), Path(scratch),
-                    start=np.zeros((3,) + mesh.nodes_shape))
+        lvl = steps.run("M pass", lambda: Level(0, mesh, f_ref, f_ref, runner, Settings(element_size=ell),
+                                                Path(scratch), start=np.zeros((3,) + mesh.nodes_shape)))
         t_m = time.perf_counter() - t0
+        runner._cache.clear()  # the stand-in's blocks: not the client's
         rng = np.random.default_rng(1)
         times, its = [], []
         if not multigrid:
             lvl.solver.multigrid = False
-        for _ in range(solves):
+        for k in range(solves):
             b = rng.normal(size=mesh.nodes_shape + (3,))
             t0 = time.perf_counter()
             if regularize:
-                lvl.regularize(regularize * ell)
-            _, it = lvl.solver.solve(b)
+                steps.run(f"regularisation {k + 1}", lambda: lvl.regularize(regularize * ell))
+            _, it = steps.run(f"solve {k + 1}", lambda: lvl.solver.solve(b))
             times.append(time.perf_counter() - t0)
             its.append(it)
     nodes = int(np.prod(mesh.nodes_shape))
     print(f"{size:>6} {ell:>4} {nodes:>10} {len(lvl.blocks):>7} {t_m:>12.1f} {statistics.median(times):>9.2f} "
-          f"{statistics.median(its):>6.0f} {_hwm_mib():>14.0f}", flush=True)
+          f"{statistics.median(its):>6.0f} {steps.peak:>14.0f}", flush=True)
+    steps.print()
 
 
 def main(argv=None) -> None:
@@ -103,16 +145,18 @@ def main(argv=None) -> None:
     p.add_argument("--solves", type=int, default=3)
     p.add_argument("--regularize", type=float, default=0.0, help="Tikhonov length, element sizes (0: none)")
     p.add_argument("--no-multigrid", action="store_true", help="block-Jacobi even where the V-cycle would be used")
+    p.add_argument("--steps", action="store_true", help="print each step's peak and resident memory")
     p.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
-        _child(args.child, args.element_size, args.solves, args.regularize, not args.no_multigrid)
+        _child(args.child, args.element_size, args.solves, args.regularize, not args.no_multigrid, args.steps)
         return
     print("  size  ell      nodes  blocks  M assembly s   solve s  CG it  client peak MiB")
     for size in args.sizes:  # one process per size: each peak is its own
         subprocess.run([sys.executable, __file__, "--child", str(size), "--element-size", str(args.element_size),
                         "--solves", str(args.solves), "--regularize", str(args.regularize)]
-                       + (["--no-multigrid"] if args.no_multigrid else []), check=True)
+                       + (["--no-multigrid"] if args.no_multigrid else []) + (["--steps"] if args.steps else []),
+                       check=True)
 
 
 if __name__ == "__main__":

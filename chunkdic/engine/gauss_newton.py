@@ -37,8 +37,8 @@ def noise_step(lvl: Level, p, delta: np.ndarray, tolerance: float) -> tuple[floa
     adds, only raises ``σ_u``: this is the stricter measure). Weak nodes are left out.
     """
     solver = lvl.solver
-    Ainv, Mii = solver.block_inverse, solver.diagonal_blocks
-    var = float(p.kappa * p.noise_variance) * np.einsum("...ij,...jk,...ki->...i", Ainv, Mii, Ainv)
+    var = solver.local_variances()
+    var *= float(p.kappa * p.noise_variance)
     ok = (var > 0).all(axis=-1)
     if solver.weak_nodes.size:
         ok[tuple(solver.weak_nodes.T)] = False

@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 #: (1 012 iterations at 16ℓ); with the edge term it has 24 fields, like Tikhonov's, and the
 #: V-cycle needs 27-74 iterations from 8ℓ to 32ℓ where block-Jacobi needs 214-1 861.
 MULTIGRID_FROM = 100.0
+#: nodes per slab of planes of the client's node-by-node work (:func:`z_slabs`): the
+#: float64 temporaries of a slab (a few of 72 B per node) stay under ~20 MB
+SLAB_NODES = 65536
 
 
 class PoorTextureWarning(UserWarning):
@@ -81,52 +84,104 @@ class StencilSolver:
         #: resumed run stops CG where the uninterrupted one did)
         self.largest_rhs = 0.0
         self.nodes_shape = half.shape[:3]
-        diag = half[..., 0, :, :].reshape(-1, 3, 3).astype(np.float64)
-        eig = np.linalg.eigvalsh(diag)  # ascending
-        scale = float(np.median(eig.mean(axis=1)))
+        # the eigenvalues of the diagonal blocks, a slab of planes at a time: the client
+        # never holds the float64 blocks of the whole mesh (docs/distributed.md)
+        smallest, mean = np.empty(self.nodes_shape), np.empty(self.nodes_shape)
+        for planes in z_slabs(self.nodes_shape):
+            eig = np.linalg.eigvalsh(half[planes, :, :, 0, :, :].astype(np.float64))  # ascending
+            smallest[planes], mean[planes] = eig[..., 0], eig.mean(axis=-1)
+        scale = float(np.median(mean))
+        del mean
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("the reference image has no gradient in the ROI: nothing to correlate")
-        weak = eig[:, 0] < weak_threshold * scale
-        self.weak_nodes = np.argwhere(weak.reshape(self.nodes_shape))
-        if weak.any():
-            diag[weak] += weak_threshold * scale * np.eye(3)
-            half[..., 0, :, :] = diag.reshape(self.nodes_shape + (3, 3))
+        weak = smallest < weak_threshold * scale
+        del smallest
+        self.weak_nodes = np.argwhere(weak)
+        # the held blocks of the weak nodes in float64 (the stencil keeps them in float32)
+        self._weak_blocks = half[(*self.weak_nodes.T, 0)].astype(np.float64) + weak_threshold * scale * np.eye(3)
+        if len(self._weak_blocks):
+            half[(*self.weak_nodes.T, 0)] = self._weak_blocks
         self.scale = scale
         # float32 for the matrix-vector product: CG is bound by memory traffic through the
         # stencil, and M only steers the modified Gauss-Newton steps (the converged field
         # solves b = λ R a whatever M), so its round-off at 6e-8 changes nothing measurable.
         self.matrix = half if half.dtype == np.float32 else half.astype(np.float32)
-        self._diag = diag.reshape(self.nodes_shape + (3, 3))
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0)
-        self.block_inverse = np.linalg.inv(self._diag)
+        self.block_inverse = None
+        self._build_block_inverse()
         self.multigrid = multigrid
         self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
         self._vcycle = None
 
-    @property
-    def diagonal_blocks(self) -> np.ndarray:
-        """The 3×3 diagonal blocks of ``M`` (nz, ny, nx, 3, 3), float64, weak nodes held."""
-        return self._diag
+    def diagonal_blocks(self, planes: slice = slice(None)) -> np.ndarray:
+        """The 3×3 diagonal blocks of ``M`` on the z planes ``planes`` (default: all), weak
+        nodes held: shape (nz', ny, nx, 3, 3), float64 (a copy)."""
+        out = self.matrix[planes, :, :, 0, :, :].astype(np.float64)
+        if len(self._weak_blocks):
+            z = np.arange(self.nodes_shape[0])[planes]
+            inside = np.isin(self.weak_nodes[:, 0], z)
+            if inside.any():
+                nodes = self.weak_nodes[inside]
+                out[(np.searchsorted(z, nodes[:, 0]), nodes[:, 1], nodes[:, 2])] = self._weak_blocks[inside]
+        return out
+
+    def diagonal_inverse(self, planes: slice = slice(None)) -> np.ndarray:
+        """The inverse 3×3 diagonal blocks of ``M + λ R`` on the z planes ``planes``, float64
+        (nz', ny, nx, 3, 3): the exact blocks that :attr:`block_inverse` rounds to float32."""
+        diag = self.diagonal_blocks(planes)
+        if self.regularizer is not None:
+            diag += self.weight * self.regularizer.diagonal_blocks(planes)
+        return np.linalg.inv(diag)
+
+    def local_variances(self) -> np.ndarray:
+        """``diag(A_ii⁻¹ M_ii A_ii⁻¹)`` of every node (nz, ny, nx, 3), float64, ``A = M + λ R``:
+        each node's variance per unit noise when its neighbours are held
+        (:func:`chunkdic.engine.noise.nodal_uncertainty`), computed a slab of planes at a time
+        from the float64 blocks (not the preconditioner's float32 ones)."""
+        out = np.empty(self.nodes_shape + (3,))
+        for planes in z_slabs(self.nodes_shape):
+            inv = self.diagonal_inverse(planes)
+            out[planes] = np.einsum("...ij,...jk,...ki->...i", inv, self.diagonal_blocks(planes), inv)
+        return out
+
+    def _build_block_inverse(self) -> None:
+        """:attr:`block_inverse`: the preconditioner's blocks, float32, built a slab of planes at
+        a time into the array of the previous ones (no second copy, no float64 array of the mesh).
+
+        float32 halves them (36 B per node instead of 72) and changes only the preconditioner:
+        CG still converges to its tolerance on ``M + λ R``, whose product stays as it was
+        (docs/distributed.md, "Where the client's memory goes"). Each block is symmetrised
+        before rounding, so that the preconditioner stays exactly symmetric.
+        """
+        if self.block_inverse is None:
+            self.block_inverse = np.empty(self.nodes_shape + (3, 3), np.float32)
+        for planes in z_slabs(self.nodes_shape):
+            inv = self.diagonal_inverse(planes)
+            self.block_inverse[planes] = 0.5 * (inv + np.swapaxes(inv, -1, -2))
 
     def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
         """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
         self.regularizer = regularizer if weight > 0 else None
         self.weight = float(weight) if self.regularizer is not None else 0.0
-        diag = self._diag
+        self._vcycle = None  # its own arrays freed before the new ones are built
         if self.regularizer is not None:
             self._reg_args = self.regularizer.numba_args()
-            reg_diag = self.regularizer.diagonal_blocks()
-            diag = diag + self.weight * reg_diag
-            self._regularizer_diagonal = float(np.median(np.trace(reg_diag, axis1=-2, axis2=-1)))
-            self._matrix_diagonal = float(np.median(np.trace(self._diag, axis1=-2, axis2=-1)))
-        self.block_inverse = np.linalg.inv(diag)
-        self._vcycle = None
+            self._regularizer_diagonal, self._matrix_diagonal = self._median_traces()
+        self._build_block_inverse()
         if self._use_multigrid():
             if self._matrices is None:
                 self._matrices = matrix_hierarchy(self.matrix)
             self._vcycle = VCycle(self._matrices, self.block_inverse, self.regularizer, self.weight)
+
+    def _median_traces(self) -> tuple[float, float]:
+        """Medians over nodes of ``tr R_ii`` and ``tr M_ii`` (which preconditioner pays, :meth:`_use_multigrid`)."""
+        reg, mat = np.empty(self.nodes_shape), np.empty(self.nodes_shape)
+        for planes in z_slabs(self.nodes_shape):
+            reg[planes] = np.trace(self.regularizer.diagonal_blocks(planes), axis1=-2, axis2=-1)
+            mat[planes] = np.trace(self.diagonal_blocks(planes), axis1=-2, axis2=-1)
+        return float(np.median(reg)), float(np.median(mat))
 
     def _use_multigrid(self) -> bool:
         """Whether :meth:`regularize` builds a V-cycle (:data:`MULTIGRID_FROM`)."""
@@ -170,6 +225,16 @@ class StencilSolver:
                           stacklevel=2)
             iterations = self.maxiter
         return x, iterations
+
+
+def z_slabs(nodes_shape, nodes: int = None):
+    """Slices of whole z planes of about ``nodes`` nodes each (default :data:`SLAB_NODES`)
+    covering ``nodes_shape``: the unit of the client's node-by-node work on the whole mesh."""
+    nodes = SLAB_NODES if nodes is None else nodes
+    per_plane = max(int(nodes_shape[1]) * int(nodes_shape[2]), 1)
+    step = max(1, nodes // per_plane)
+    for z in range(0, int(nodes_shape[0]), step):
+        yield slice(z, min(z + step, int(nodes_shape[0])))
 
 
 def warmup() -> None:
