@@ -85,6 +85,9 @@ class _StandInRunner:
         self._cache: dict = {}
 
     def map_unordered(self, fn, args):
+        if fn.__name__ == "b_task":
+            yield from self._b_pass(args)
+            return
         from chunkdic.kernels.m import m_block
 
         for _inputs, job, _u in args:
@@ -95,12 +98,31 @@ class _StandInRunner:
             stencil, fmin, fmax, lags = self._cache[key]
             yield job.block, stencil, fmin, fmax, lags, None
 
+    def _b_pass(self, args):
+        """A ``b`` pass: each block's partials reduced by the real ``reduce_block`` from random
+        element sums of the block's shape (the same for every block: one draw per shape)."""
+        import numpy as np
+
+        from chunkdic.engine.greylevel import reduce_block
+        from chunkdic.kernels.blocks import LAGS, ElementSums
+
+        for inputs, job, _u, _active in args:
+            key = ("b", inputs.grey) + tuple(job.block.n_elements)
+            if key not in self._cache:
+                n = tuple(job.block.n_elements)
+                v = self._rng.normal(size=n + (6, 10))
+                v[..., 2, :] = 1.0  # the quantity ``1``: the element's voxel count on the diagonal
+                gram = np.einsum("...ik,...jk->...ij", v, v) * job.ell**3 / 10
+                B = self._rng.normal(size=n + (6, 8, 3))
+                self._cache[key] = reduce_block(ElementSums(B, gram, 0, np.zeros((6, LAGS + 1))), inputs.grey)
+            yield job.block, self._cache[key]
+
     def run_everywhere(self, fn):
         fn()
 
 
 def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid: bool = True,
-           show_steps: bool = False) -> None:
+           show_steps: bool = False, iterations: int = 0) -> None:
     import numpy as np
 
     from chunkdic.engine.level import Level
@@ -132,10 +154,30 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
             _, it = steps.run(f"solve {k + 1}", lambda: lvl.solver.solve(b))
             times.append(time.perf_counter() - t0)
             its.append(it)
+        del b
+        if iterations:
+            _gauss_newton(lvl, iterations, steps)
     nodes = int(np.prod(mesh.nodes_shape))
     print(f"{size:>6} {ell:>4} {nodes:>10} {len(lvl.blocks):>7} {t_m:>12.1f} {statistics.median(times):>9.2f} "
           f"{statistics.median(its):>6.0f} {steps.peak:>14.0f}", flush=True)
     steps.print()
+
+
+def _gauss_newton(lvl, iterations: int, steps: "_Steps") -> None:
+    """``iterations`` passes of the engine's own Gauss–Newton loop (``gauss_newton.iterate``:
+    the ``b`` pass's sums on the client, the brightness fit, the penalty, the solve, the
+    noise step, the state and its best field) on stand-in ``b`` partials, then the nodal
+    uncertainty a result reports: what a level-0 run holds on top of ``M`` and its solver."""
+    import numpy as np
+
+    from chunkdic.engine.gauss_newton import iterate
+    from chunkdic.engine.noise import nodal_uncertainty
+    from chunkdic.engine.stopping import History, State
+
+    state = State(np.zeros((3,) + lvl.mesh.nodes_shape))
+    state = steps.run(f"Gauss-Newton, {iterations} passes",
+                      lambda: iterate(lvl, state, 0.0, iterations, History(), None))
+    steps.run("nodal uncertainty", lambda: nodal_uncertainty(lvl.solver, 1.0, 1.0))
 
 
 def main(argv=None) -> None:
@@ -146,16 +188,20 @@ def main(argv=None) -> None:
     p.add_argument("--regularize", type=float, default=0.0, help="Tikhonov length, element sizes (0: none)")
     p.add_argument("--no-multigrid", action="store_true", help="block-Jacobi even where the V-cycle would be used")
     p.add_argument("--steps", action="store_true", help="print each step's peak and resident memory")
+    p.add_argument("--iterations", type=int, default=0,
+                   help="then this many Gauss-Newton passes of the engine's loop on stand-in b partials")
     p.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
-        _child(args.child, args.element_size, args.solves, args.regularize, not args.no_multigrid, args.steps)
+        _child(args.child, args.element_size, args.solves, args.regularize, not args.no_multigrid, args.steps,
+               args.iterations)
         return
     print("  size  ell      nodes  blocks  M assembly s   solve s  CG it  client peak MiB")
     for size in args.sizes:  # one process per size: each peak is its own
         subprocess.run([sys.executable, __file__, "--child", str(size), "--element-size", str(args.element_size),
                         "--solves", str(args.solves), "--regularize", str(args.regularize)]
-                       + (["--no-multigrid"] if args.no_multigrid else []) + (["--steps"] if args.steps else []),
+                       + (["--no-multigrid"] if args.no_multigrid else []) + (["--steps"] if args.steps else [])
+                       + ["--iterations", str(args.iterations)],
                        check=True)
 
 

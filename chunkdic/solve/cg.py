@@ -22,7 +22,7 @@ from ..errors import InputError
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .regularization import Regularizer, add_weighted
-from .stencil import pcg, pcg_block_jacobi, stencil_matvec
+from .stencil import half_matvec, pcg, pcg_block_jacobi
 
 log = logging.getLogger(__name__)
 
@@ -197,12 +197,15 @@ class StencilSolver:
             return np.zeros(a.shape)
         return self.weight * self.regularizer.apply(a)
 
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        """``(M + λ R) x``."""
-        y = stencil_matvec(self.matrix, x)
+    def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``(M + λ R) x``, into ``out`` (float64, x's shape, contiguous) when given."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        if out is None:
+            out = np.empty(x.shape)
+        half_matvec(self.matrix, x, out)
         if self.regularizer is not None:
-            add_weighted(*self._reg_args, self.weight, np.ascontiguousarray(x, dtype=np.float64), y)
-        return y
+            add_weighted(*self._reg_args, self.weight, x, out)
+        return out
 
     def solve(self, b: np.ndarray) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
@@ -216,7 +219,8 @@ class StencilSolver:
         self.largest_rhs = max(self.largest_rhs, norm)
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
         if self._vcycle is not None:
-            iterations = pcg(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
+            vcycle = self._vcycle
+            iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter)
         else:
             iterations = pcg_block_jacobi(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
                               code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight)

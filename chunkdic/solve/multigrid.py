@@ -160,9 +160,9 @@ class VCycle:
         """Largest eigenvalue of ``D⁻¹A`` on level ``k`` (10 Lanczos steps of block-Jacobi CG from a fixed random start)."""
         lev = self.levels[k]
         rng = np.random.default_rng(0)
-        b = rng.standard_normal(lev.shape + (3,))
-        r = b.copy()  # CG from x = 0: only its coefficients are used
-        z, q = np.empty_like(b), np.empty_like(b)
+        r = rng.standard_normal(lev.shape + (3,))  # the right-hand side, then the residual of
+        # CG from x = 0 (only its coefficients are used)
+        z, q = np.empty_like(r), np.empty_like(r)
         block_jacobi(lev.Binv, r, z)
         p = z.copy()
         rz = dot(r.reshape(-1), z.reshape(-1))
@@ -192,22 +192,23 @@ class VCycle:
                 T[i, i + 1] = T[i + 1, i] = np.sqrt(betas[i]) / alphas[i]
         return float(np.linalg.eigvalsh(T)[-1])
 
-    def _smooth(self, k: int, b: np.ndarray, x: np.ndarray, zero_start: bool) -> None:
-        """Chebyshev smoothing of ``A_k x = b`` in place (degree :data:`DEGREE`)."""
+    def _smooth(self, k: int, b: np.ndarray, x: np.ndarray, zero_start: bool, r: np.ndarray, d: np.ndarray) -> None:
+        """Chebyshev smoothing of ``A_k x = b`` in place (degree :data:`DEGREE`); ``r``, ``d``:
+        work vectors of ``b``'s shape (the cycle's own, reused: no vector per call)."""
         lev = self.levels[k]
         hi = lev.lmax
         lo = hi / SMOOTH_RANGE
         theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
         sigma = theta / delta
         rho = 1.0 / sigma
-        r = b.copy()
-        t = np.empty_like(b)
-        if not zero_start:
-            self.apply(k, x, t)
-            r -= t
-        d = np.empty_like(b)
+        if zero_start:
+            np.copyto(r, b)
+        else:
+            self.apply(k, x, r)
+            np.subtract(b, r, out=r)
         block_jacobi(lev.Binv, r, d)
         d /= theta
+        t = np.empty_like(b) if DEGREE > 1 else None
         for step in range(DEGREE):
             x += d
             if step == DEGREE - 1:
@@ -220,22 +221,29 @@ class VCycle:
             d += (2.0 * rho_new / delta) * t
             rho = rho_new
 
-    def cycle(self, b: np.ndarray, k: int = 0) -> np.ndarray:
-        """One V-cycle from level ``k``: an approximation of ``A_k⁻¹ b`` (a symmetric positive definite map)."""
+    def cycle(self, b: np.ndarray, k: int = 0, out: np.ndarray | None = None) -> np.ndarray:
+        """One V-cycle from level ``k``: an approximation of ``A_k⁻¹ b`` (a symmetric positive
+        definite map), into ``out`` when given.
+
+        A level holds two work vectors during its cycle (the residual, the smoother's step)
+        besides ``b`` and the result: the client's peak is a solve's (docs/distributed.md).
+        """
+        x = np.empty_like(b) if out is None else out
         if k == len(self.levels) - 1:
-            x = np.empty_like(b)
             _cholesky_solve(self._coarse, b.reshape(-1), x.reshape(-1))
             return x
         lev = self.levels[k]
-        x = np.zeros_like(b)
-        self._smooth(k, b, x, True)
-        r = np.empty_like(b)
+        x.fill(0.0)
+        r, d = np.empty_like(b), np.empty_like(b)
+        self._smooth(k, b, x, True, r, d)
         self.apply(k, x, r)
         np.subtract(b, r, out=r)
         coarse_shape = self.levels[k + 1].shape
         rc = np.empty(coarse_shape + (3,))
         transfer(r, *lev.tables, rc, True)
         xc = self.cycle(rc, k + 1)
+        del rc
         transfer(x, *lev.tables, xc, False)
-        self._smooth(k, b, x, False)
+        del xc
+        self._smooth(k, b, x, False, r, d)
         return x
