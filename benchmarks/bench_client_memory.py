@@ -154,7 +154,7 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
             _, it = steps.run(f"solve {k + 1}", lambda: lvl.solver.solve(b))
             times.append(time.perf_counter() - t0)
             its.append(it)
-        del b
+        b = None  # not the client's: the engine holds its own right-hand sides
         if iterations:
             _gauss_newton(lvl, iterations, steps)
     nodes = int(np.prod(mesh.nodes_shape))

@@ -151,7 +151,9 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
     ``center`` is the centring constant ``c`` the tasks used (grey levels), ``element_size``
     the element edge (voxels; the drift's unit in the sums is one element).
     """
-    n_e = elements[0]
+    # a copy: a view would keep every row of ``elements`` (7 float64 per element with the
+    # drift model) alive in the pass the level holds (docs/distributed.md)
+    n_e = elements[0].copy()
     n = scalars[0]
     ones = np.ones_like(n_e)
     zero3 = np.zeros(3)

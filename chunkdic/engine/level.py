@@ -398,6 +398,7 @@ class Level:
         (:meth:`gap`); default: every active element.
         """
         mesh = self.mesh
+        self.last_pass = None  # not held while the next one is summed (mesh-sized)
         nodal = scalars = None
         elements = None
         n_excluded = 0

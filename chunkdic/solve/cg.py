@@ -195,7 +195,9 @@ class StencilSolver:
         """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3); zeros without regularisation."""
         if self.regularizer is None:
             return np.zeros(a.shape)
-        return self.weight * self.regularizer.apply(a)
+        y = self.regularizer.apply(a)
+        y *= self.weight
+        return y
 
     def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(M + λ R) x``, into ``out`` (float64, x's shape, contiguous) when given."""
@@ -207,9 +209,11 @@ class StencilSolver:
             add_weighted(*self._reg_args, self.weight, x, out)
         return out
 
-    def solve(self, b: np.ndarray) -> tuple[np.ndarray, int]:
+    def solve(self, b: np.ndarray, *, overwrite_b: bool = False) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
 
+        ``overwrite_b``: CG may use ``b`` (float64, contiguous) as its residual vector,
+        leaving it changed: one mesh-sized vector fewer at the client's peak.
         Returns the solution and the number of CG iterations.
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
@@ -220,10 +224,11 @@ class StencilSolver:
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
         if self._vcycle is not None:
             vcycle = self._vcycle
-            iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter)
+            iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
         else:
             iterations = pcg_block_jacobi(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
-                              code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight)
+                                          code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight,
+                                          overwrite_b)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)

@@ -39,7 +39,7 @@ from .galerkin import (
     transfer,
 )
 from .regularization import Regularizer, add_weighted
-from .stencil import axpy, block_jacobi, dot, half_matvec
+from .stencil import axpy, block_jacobi, block_jacobi_step, dot, half_matvec
 
 DEGREE = 1
 #: the smoothing interval is ``[λ_max / SMOOTH_RANGE, 1.1 λ_max]`` of ``D⁻¹A``
@@ -192,23 +192,29 @@ class VCycle:
                 T[i, i + 1] = T[i + 1, i] = np.sqrt(betas[i]) / alphas[i]
         return float(np.linalg.eigvalsh(T)[-1])
 
-    def _smooth(self, k: int, b: np.ndarray, x: np.ndarray, zero_start: bool, r: np.ndarray, d: np.ndarray) -> None:
-        """Chebyshev smoothing of ``A_k x = b`` in place (degree :data:`DEGREE`); ``r``, ``d``:
-        work vectors of ``b``'s shape (the cycle's own, reused: no vector per call)."""
+    def _smooth(self, k: int, b: np.ndarray, x: np.ndarray, zero_start: bool, r: np.ndarray) -> None:
+        """Chebyshev smoothing of ``A_k x = b`` in place (degree :data:`DEGREE`); ``r``: a work
+        vector of ``b``'s shape (the cycle's own residual, reused: no vector per call)."""
         lev = self.levels[k]
         hi = lev.lmax
         lo = hi / SMOOTH_RANGE
         theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
         sigma = theta / delta
         rho = 1.0 / sigma
+        if zero_start and DEGREE == 1:
+            block_jacobi_step(lev.Binv, b, x, theta)  # x = 0: the residual is b itself
+            return
         if zero_start:
             np.copyto(r, b)
         else:
             self.apply(k, x, r)
             np.subtract(b, r, out=r)
+        if DEGREE == 1:  # damped block-Jacobi: x += D⁻¹ r / θ, fused (no vector for the step)
+            block_jacobi_step(lev.Binv, r, x, theta)
+            return
+        d, t = np.empty_like(b), np.empty_like(b)
         block_jacobi(lev.Binv, r, d)
         d /= theta
-        t = np.empty_like(b) if DEGREE > 1 else None
         for step in range(DEGREE):
             x += d
             if step == DEGREE - 1:
@@ -225,8 +231,8 @@ class VCycle:
         """One V-cycle from level ``k``: an approximation of ``A_k⁻¹ b`` (a symmetric positive
         definite map), into ``out`` when given.
 
-        A level holds two work vectors during its cycle (the residual, the smoother's step)
-        besides ``b`` and the result: the client's peak is a solve's (docs/distributed.md).
+        A level holds one work vector during its cycle (the residual, which the smoother
+        shares) besides ``b`` and the result: a solve is the client's peak (docs/distributed.md).
         """
         x = np.empty_like(b) if out is None else out
         if k == len(self.levels) - 1:
@@ -234,8 +240,8 @@ class VCycle:
             return x
         lev = self.levels[k]
         x.fill(0.0)
-        r, d = np.empty_like(b), np.empty_like(b)
-        self._smooth(k, b, x, True, r, d)
+        r = np.empty_like(b)
+        self._smooth(k, b, x, True, r)
         self.apply(k, x, r)
         np.subtract(b, r, out=r)
         coarse_shape = self.levels[k + 1].shape
@@ -245,5 +251,5 @@ class VCycle:
         del rc
         transfer(x, *lev.tables, xc, False)
         del xc
-        self._smooth(k, b, x, False, r, d)
+        self._smooth(k, b, x, False, r)
         return x

@@ -82,7 +82,22 @@ def block_jacobi(Binv, r, z):
 
 
 @numba.njit(nogil=True, cache=True)
-def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
+def block_jacobi_step(Binv, r, x, theta):
+    """``x += (Binv r) / θ`` node by node: :func:`block_jacobi` and the step in one loop, the
+    same operations in the same order, without a vector for ``Binv r`` (the V-cycle's
+    degree-1 smoother, :mod:`chunkdic.solve.multigrid`)."""
+    nz, ny, nx = r.shape[:3]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for a in range(3):
+                    s = (Binv[i, j, k, a, 0] * r[i, j, k, 0] + Binv[i, j, k, a, 1] * r[i, j, k, 1]
+                         + Binv[i, j, k, a, 2] * r[i, j, k, 2])
+                    x[i, j, k, a] += s / theta
+
+
+@numba.njit(nogil=True, cache=True)
+def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam, overwrite_b=False):
     """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
 
     Written out (rather than scipy's ``cg``) so that its vector operations are plain
@@ -94,9 +109,10 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     ``λ R`` comes from :func:`chunkdic.solve.regularization.add_weighted`, compiled into this
     function's Numba cache: a change of ``R`` (the Tikhonov Hessian of issue 20) is seen here
     only once this file changes too or the cache is cleared (docs/architecture.md,
-    development notes).
+    development notes). ``overwrite_b``: ``b`` becomes the residual (changed on return).
     """
-    r = b.copy()  # x starts at zero
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    r = b if overwrite_b else b.copy()  # x starts at zero
     z = np.empty_like(b)
     q = np.empty_like(b)
     rf, zf, qf, xf = r.reshape(-1), z.reshape(-1), q.reshape(-1), x.reshape(-1)
@@ -104,7 +120,6 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     p = z.copy()
     pf = p.reshape(-1)
     rz = dot(rf, zf)
-    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
     if bnorm == 0.0:
         return 0
     for it in range(1, maxiter + 1):
@@ -125,7 +140,7 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     return -1
 
 
-def pcg(matvec, precondition, b, x, rtol, maxiter) -> int:
+def pcg(matvec, precondition, b, x, rtol, maxiter, overwrite_b: bool = False) -> int:
     """:func:`pcg_block_jacobi` with any symmetric positive definite preconditioner.
 
     ``matvec(p, out)`` writes ``A p`` into ``out``, ``precondition(r, out)`` the
@@ -133,11 +148,12 @@ def pcg(matvec, precondition, b, x, rtol, maxiter) -> int:
     ``b``, ``x`` and four vectors of its own whatever the iterations (a new vector per call
     held up to two more at once: 48 B per node, 100 MB at 128³ nodes). Written in Python
     around the numba vector kernels: with a V-cycle per iteration, a few tens of
-    iterations, the interpreter's share is negligible.
+    iterations, the interpreter's share is negligible. ``overwrite_b``: ``b`` becomes the
+    residual (changed on return).
     """
-    r = b.copy()
-    rf, xf = r.reshape(-1), x.reshape(-1)
     bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    r = b if overwrite_b else b.copy()
+    rf, xf = r.reshape(-1), x.reshape(-1)
     if bnorm == 0.0:
         return 0
     z = np.empty_like(b)
