@@ -22,8 +22,10 @@ from .stopping import History, State, decide, noise_step_of
 def element_fields(p) -> np.ndarray:
     """Per-element gain, offset (at the centre), valid voxels of a pass, and the drift
     (grey levels per voxel, z, y, x, repeated per element): shape (6, ez, ey, ex)."""
-    drift = np.broadcast_to(p.fit.drift[:, None, None, None], (3,) + p.fit.gain.shape)
-    return np.concatenate([np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element]), drift])
+    out = np.empty((6,) + p.fit.gain.shape)  # filled row by row: no stacked temporary
+    out[0], out[1], out[2] = p.fit.gain, p.fit.offset, p.fit.valid_per_element
+    out[3:] = p.fit.drift[:, None, None, None]
+    return out
 
 
 def noise_step(lvl: Level, p, delta: np.ndarray, tolerance: float) -> tuple[float, np.ndarray, float]:
@@ -42,6 +44,9 @@ def noise_step(lvl: Level, p, delta: np.ndarray, tolerance: float) -> tuple[floa
     ok = (var > 0).all(axis=-1)
     if solver.weak_nodes.size:
         ok[tuple(solver.weak_nodes.T)] = False
+    if ok.all():  # every node: no mesh-sized copies of the increment and the variances
+        q, moving = noise_step_of(delta.reshape(-1, 3), var.reshape(-1, 3), tolerance)
+        return q, moving.reshape(ok.shape), float(moving.mean()) if moving.size else 0.0
     q, moving = noise_step_of(delta[ok], var[ok], tolerance)
     unsettled = np.zeros(ok.shape, bool)
     unsettled[ok] = moving

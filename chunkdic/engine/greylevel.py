@@ -170,11 +170,12 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
         S = scalars[1:].reshape(5, 5)
         A, rhs = S[1:, 1:], S[1:, 0]
         theta = np.linalg.lstsq(A, rhs, rcond=None)[0] if np.trace(A) > 0 else np.zeros(4)
-        b = nodal[0] - np.tensordot(theta, nodal[1:], axes=1)
+        b = np.tensordot(theta, nodal[1:], axes=1)
+        np.subtract(nodal[0], b, out=b)  # b = nodal[0] - Σ θ_k nodal[k], in the product's array
         ssr = S[0, 0] - 2 * theta @ rhs + theta @ A @ theta
         alpha, beta = theta[0], theta[1:]
         mean = elements[1:]  # element means of d, g', 1, z~, y~, x~
-        mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[[_Z, _Y, _X]], axes=1)
+        mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[_Z:_X + 1], axes=1)  # a view: no copy
         # offset at the element centre (q~ = 0): μ_e - α c
         return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, mu - alpha * center,
                    beta / float(element_size), n_e)
