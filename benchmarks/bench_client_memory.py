@@ -138,8 +138,11 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
     steps.run("kernels loaded", warmup)
     with tempfile.TemporaryDirectory() as scratch:
         t0 = time.perf_counter()
+        # the start field, as a run's: a resident array (the carried field) that the level
+        # (its M's field) and the Gauss-Newton state share
+        start = np.full((3,) + mesh.nodes_shape, 0.5)
         lvl = steps.run("M pass", lambda: Level(0, mesh, f_ref, f_ref, runner, Settings(element_size=ell),
-                                                Path(scratch), start=np.zeros((3,) + mesh.nodes_shape)))
+                                                Path(scratch), start=start))
         t_m = time.perf_counter() - t0
         runner._cache.clear()  # the stand-in's blocks: not the client's
         rng = np.random.default_rng(1)
@@ -168,13 +171,11 @@ def _gauss_newton(lvl, iterations: int, steps: "_Steps") -> None:
     the ``b`` pass's sums on the client, the brightness fit, the penalty, the solve, the
     noise step, the state and its best field) on stand-in ``b`` partials, then the nodal
     uncertainty a result reports: what a level-0 run holds on top of ``M`` and its solver."""
-    import numpy as np
-
     from chunkdic.engine.gauss_newton import iterate
     from chunkdic.engine.noise import nodal_uncertainty
     from chunkdic.engine.stopping import History, State
 
-    state = State(np.zeros((3,) + lvl.mesh.nodes_shape))
+    state = State(lvl.m_start)  # the level's start, as the engine's start_state
     state = steps.run(f"Gauss-Newton, {iterations} passes",
                       lambda: iterate(lvl, state, 0.0, iterations, History(), None))
     steps.run("nodal uncertainty", lambda: nodal_uncertainty(lvl.solver, 1.0, 1.0))

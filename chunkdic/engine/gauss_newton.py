@@ -81,7 +81,10 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
         event = dict(stage="iteration", level=lvl.s, iteration=it, gap=p.gap, max_delta=None,
                      excluded=p.n_excluded, gain=float(np.median(p.fit.gain)))
         if math.isfinite(p.gap):
-            state.record(p, element_fields(p))
+            fields = element_fields(p)
+            state.record(p, fields)
+            p.fit.share(fields)
+            del fields
         decide(state, p.gap, tolerance, max_iterations)
         if state.status is not None:
             history.add(lvl.s, it, p.gap, math.nan, p.n_excluded)

@@ -103,6 +103,12 @@ class Fit:
     drift: np.ndarray
     valid_per_element: np.ndarray
 
+    def share(self, fields: np.ndarray) -> None:
+        """Point gain, offset and valid counts at rows 0-2 of ``fields`` (the same values, as
+        :func:`chunkdic.engine.gauss_newton.element_fields` copies them): the pass and the
+        state then hold them once (48 MB at 128³ elements)."""
+        self.gain, self.offset, self.valid_per_element = fields[0], fields[1], fields[2]
+
 
 def _nodes(B, coef) -> np.ndarray:
     """Nodal sum of ``Σ_q coef[q] B[:, :, :, q]`` over the elements (``coef``: per element or scalar)."""
@@ -155,7 +161,7 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
     # drift model) alive in the pass the level holds (docs/distributed.md)
     n_e = elements[0].copy()
     n = scalars[0]
-    ones = np.ones_like(n_e)
+    ones = np.ones_like(n_e) if model in ("none", "global") else None  # not held by the other models
     zero3 = np.zeros(3)
     if model == "none":
         return Fit(nodal[0], float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e)
@@ -177,7 +183,7 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
         mean = elements[1:]  # element means of d, g', 1, z~, y~, x~
         mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[_Z:_X + 1], axes=1)  # a view: no copy
         # offset at the element centre (q~ = 0): μ_e - α c
-        return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, mu - alpha * center,
+        return Fit(b, float(max(ssr, 0.0)), float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
                    beta / float(element_size), n_e)
     if model == "element":
         alpha, mu = elements[1], elements[2]

@@ -22,7 +22,7 @@ from ..errors import InputError
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .regularization import Regularizer, add_weighted
-from .stencil import half_matvec, pcg, pcg_block_jacobi
+from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi
 
 log = logging.getLogger(__name__)
 
@@ -109,8 +109,9 @@ class StencilSolver:
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0)
-        self.block_inverse = None
-        self._build_block_inverse()
+        # block-Jacobi solves each node's 3×3 block of M + λ R as it goes (stencil.block_solve):
+        # no stored inverse (72 B per node in float64, 150 MB at 128³ nodes)
+        self._diag_args = no_diagonal(self.nodes_shape)
         self.multigrid = multigrid
         self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
         self._vcycle = None
@@ -129,7 +130,9 @@ class StencilSolver:
 
     def diagonal_inverse(self, planes: slice = slice(None)) -> np.ndarray:
         """The inverse 3×3 diagonal blocks of ``M + λ R`` on the z planes ``planes``, float64
-        (nz', ny, nx, 3, 3): the exact blocks that :attr:`block_inverse` rounds to float32."""
+        (nz', ny, nx, 3, 3), weak nodes' blocks as held in float64 (block-Jacobi's, which
+        :func:`~chunkdic.solve.stencil.block_solve` forms from the float32 stencil, differ by
+        its rounding only)."""
         diag = self.diagonal_blocks(planes)
         if self.regularizer is not None:
             diag += self.weight * self.regularizer.diagonal_blocks(planes)
@@ -146,34 +149,22 @@ class StencilSolver:
             out[planes] = np.einsum("...ij,...jk,...ki->...i", inv, self.diagonal_blocks(planes), inv)
         return out
 
-    def _build_block_inverse(self) -> None:
-        """:attr:`block_inverse`: the preconditioner's blocks, float32, built a slab of planes at
-        a time into the array of the previous ones (no second copy, no float64 array of the mesh).
-
-        float32 halves them (36 B per node instead of 72) and changes only the preconditioner:
-        CG still converges to its tolerance on ``M + λ R``, whose product stays as it was
-        (docs/distributed.md, "Where the client's memory goes"). Each block is symmetrised
-        before rounding, so that the preconditioner stays exactly symmetric.
-        """
-        if self.block_inverse is None:
-            self.block_inverse = np.empty(self.nodes_shape + (3, 3), np.float32)
-        for planes in z_slabs(self.nodes_shape):
-            inv = self.diagonal_inverse(planes)
-            self.block_inverse[planes] = 0.5 * (inv + np.swapaxes(inv, -1, -2))
-
     def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
         """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
         self.regularizer = regularizer if weight > 0 else None
         self.weight = float(weight) if self.regularizer is not None else 0.0
         self._vcycle = None  # its own arrays freed before the new ones are built
+        self._diag_args = no_diagonal(self.nodes_shape)
         if self.regularizer is not None:
             self._reg_args = self.regularizer.numba_args()
             self._regularizer_diagonal, self._matrix_diagonal = self._median_traces()
-        self._build_block_inverse()
+            blocks, index = self.regularizer._diagonal_classes()
+            self._diag_args = (np.ascontiguousarray(blocks, np.float64),
+                               *(np.ascontiguousarray(i, np.int64) for i in index))
         if self._use_multigrid():
             if self._matrices is None:
                 self._matrices = matrix_hierarchy(self.matrix)
-            self._vcycle = VCycle(self._matrices, self.block_inverse, self.regularizer, self.weight)
+            self._vcycle = VCycle(self._matrices, self._diag_args, self.regularizer, self.weight)
 
     def _median_traces(self) -> tuple[float, float]:
         """Medians over nodes of ``tr R_ii`` and ``tr M_ii`` (which preconditioner pays, :meth:`_use_multigrid`)."""
@@ -226,7 +217,7 @@ class StencilSolver:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
         else:
-            iterations = pcg_block_jacobi(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
+            iterations = pcg_block_jacobi(self.matrix, *self._diag_args, b, x, rtol, self.maxiter,
                                           code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight,
                                           overwrite_b)
         if iterations < 0:

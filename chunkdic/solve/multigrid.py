@@ -39,7 +39,7 @@ from .galerkin import (
     transfer,
 )
 from .regularization import Regularizer, add_weighted
-from .stencil import axpy, block_jacobi, block_jacobi_step, dot, half_matvec
+from .stencil import axpy, block_jacobi, block_jacobi_step, block_solve, block_solve_step, dot, half_matvec
 
 DEGREE = 1
 #: the smoothing interval is ``[λ_max / SMOOTH_RANGE, 1.1 λ_max]`` of ``D⁻¹A``
@@ -96,7 +96,8 @@ class _Level:
     M: np.ndarray                 # half stencil (nz, ny, nx, 14, 3, 3), float32
     R: ClassStencil | None        # None on the fine level (R applied matrix-free there)
     transfers: tuple | None = None  # per-axis axis_transfer (None: axis kept) to the next coarser level
-    Binv: np.ndarray | None = None  # block-Jacobi of M + λR
+    Binv: np.ndarray | None = None  # block-Jacobi of M + λR (coarse levels; the fine one solves its blocks)
+    diag: tuple | None = None  # the fine level: (Rd, iz, iy, ix, λ) of stencil.block_solve
     lmax: float = 0.0
 
     def __post_init__(self):
@@ -112,14 +113,16 @@ class VCycle:
     ----------
     matrices : list
         :func:`matrix_hierarchy` of the fine half stencil (reusable for every ``λ``).
-    fine_block_inverse : ndarray, shape (nz, ny, nx, 3, 3), float64
-        Inverse diagonal blocks of ``M + λ R`` on the fine level.
+    fine_diagonal : tuple
+        ``(Rd, iz, iy, ix)``: the class blocks of ``R_ii`` and each node's class per axis, from
+        which block-Jacobi forms the fine level's diagonal blocks of ``M + λ R`` as it goes
+        (:func:`~chunkdic.solve.stencil.block_solve`: no stored inverse on the fine level).
     regularizer : Regularizer
     weight : float
         ``λ``.
     """
 
-    def __init__(self, matrices, fine_block_inverse: np.ndarray, regularizer: Regularizer, weight: float):
+    def __init__(self, matrices, fine_diagonal: tuple, regularizer: Regularizer, weight: float):
         self.weight = float(weight)
         self._reg_args = regularizer.numba_args()
         coarse_R = regularizer_hierarchy(regularizer)
@@ -130,7 +133,7 @@ class VCycle:
             R = None if k == 0 else coarse_R[k]
             lev = _Level(shape, M, R, tr)
             if k == 0:
-                lev.Binv = fine_block_inverse
+                lev.diag = (*fine_diagonal, self.weight)
             else:
                 diag = M[..., 0, :, :].astype(np.float64) + self.weight * R.diagonal_blocks()
                 lev.Binv = np.linalg.inv(diag)
@@ -156,6 +159,22 @@ class VCycle:
         else:
             lev.R.matvec_add(self.weight, x, y)
 
+    def _precondition(self, k: int, r: np.ndarray, z: np.ndarray) -> None:
+        """``z = D_k⁻¹ r``, block-Jacobi of level ``k``."""
+        lev = self.levels[k]
+        if lev.diag is not None:
+            block_solve(lev.M, *lev.diag, r, z)
+        else:
+            block_jacobi(lev.Binv, r, z)
+
+    def _precondition_step(self, k: int, r: np.ndarray, x: np.ndarray, theta: float) -> None:
+        """``x += D_k⁻¹ r / θ`` (the damped block-Jacobi step, fused)."""
+        lev = self.levels[k]
+        if lev.diag is not None:
+            block_solve_step(lev.M, *lev.diag, r, x, theta)
+        else:
+            block_jacobi_step(lev.Binv, r, x, theta)
+
     def _lambda_max(self, k: int) -> float:
         """Largest eigenvalue of ``D⁻¹A`` on level ``k`` (10 Lanczos steps of block-Jacobi CG from a fixed random start)."""
         lev = self.levels[k]
@@ -163,7 +182,7 @@ class VCycle:
         r = rng.standard_normal(lev.shape + (3,))  # the right-hand side, then the residual of
         # CG from x = 0 (only its coefficients are used)
         z, q = np.empty_like(r), np.empty_like(r)
-        block_jacobi(lev.Binv, r, z)
+        self._precondition(k, r, z)
         p = z.copy()
         rz = dot(r.reshape(-1), z.reshape(-1))
         alphas, betas = [], []
@@ -174,7 +193,7 @@ class VCycle:
                 break
             alpha = rz / pq
             axpy(-alpha, q.reshape(-1), r.reshape(-1))
-            block_jacobi(lev.Binv, r, z)
+            self._precondition(k, r, z)
             rz_new = dot(r.reshape(-1), z.reshape(-1))
             beta = rz_new / rz
             alphas.append(alpha)
@@ -202,7 +221,7 @@ class VCycle:
         sigma = theta / delta
         rho = 1.0 / sigma
         if zero_start and DEGREE == 1:
-            block_jacobi_step(lev.Binv, b, x, theta)  # x = 0: the residual is b itself
+            self._precondition_step(k, b, x, theta)  # x = 0: the residual is b itself
             return
         if zero_start:
             np.copyto(r, b)
@@ -210,10 +229,10 @@ class VCycle:
             self.apply(k, x, r)
             np.subtract(b, r, out=r)
         if DEGREE == 1:  # damped block-Jacobi: x += D⁻¹ r / θ, fused (no vector for the step)
-            block_jacobi_step(lev.Binv, r, x, theta)
+            self._precondition_step(k, r, x, theta)
             return
         d, t = np.empty_like(b), np.empty_like(b)
-        block_jacobi(lev.Binv, r, d)
+        self._precondition(k, r, d)
         d /= theta
         for step in range(DEGREE):
             x += d
@@ -222,7 +241,7 @@ class VCycle:
             self.apply(k, d, t)
             r -= t
             rho_new = 1.0 / (2.0 * sigma - rho)
-            block_jacobi(lev.Binv, r, t)
+            self._precondition(k, r, t)
             d *= rho_new * rho
             d += (2.0 * rho_new / delta) * t
             rho = rho_new
