@@ -27,7 +27,7 @@ from ..solve.regularization import Regularizer, plane_wave_weight
 from ..solve.stencil import rigid_restriction, stencil_matvec
 from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
-from .greylevel import Fit, combine
+from .greylevel import Fit, element_fit, nodal_rhs
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
@@ -421,7 +421,12 @@ class Level:
             n_excluded += part.n_excluded
             lags += part.lags
         part = None
-        fit = combine(self.settings.grey, nodal, scalars, elements, self.inputs.center, mesh.element_size)
+        # b first, then the nodal rows go (5 per node with the drift model, 240 MB at 128³ nodes)
+        # before the element rows are fitted: they never coexist with the fit's arrays
+        b = nodal_rhs(self.settings.grey, nodal, scalars)
+        nodal = None
+        fit = element_fit(self.settings.grey, b, scalars, elements, self.inputs.center, mesh.element_size)
+        elements = b = None
         gap = math.sqrt(fit.ssr / fit.weight) / self.dynamic_range if fit.weight > 0 else math.inf
         kappa = correlation_factor(lags, self.sensitivity_lags, float(np.median(fit.gain)),
                                    fit.ssr / fit.weight if fit.weight > 0 else None)
