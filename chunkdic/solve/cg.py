@@ -141,8 +141,8 @@ class StencilSolver:
     def local_variances(self) -> np.ndarray:
         """``diag(A_ii⁻¹ M_ii A_ii⁻¹)`` of every node (nz, ny, nx, 3), float64, ``A = M + λ R``:
         each node's variance per unit noise when its neighbours are held
-        (:func:`chunkdic.engine.noise.nodal_uncertainty`), computed a slab of planes at a time
-        from the float64 blocks (not the preconditioner's float32 ones)."""
+        (:func:`chunkdic.engine.noise.nodal_uncertainty`), computed in float64 a slab of
+        planes at a time (the former whole-mesh arrays: 3 × 72 B per node)."""
         out = np.empty(self.nodes_shape + (3,))
         for planes in z_slabs(self.nodes_shape):
             inv = self.diagonal_inverse(planes)
@@ -158,7 +158,7 @@ class StencilSolver:
         if self.regularizer is not None:
             self._reg_args = self.regularizer.numba_args()
             self._regularizer_diagonal, self._matrix_diagonal = self._median_traces()
-            blocks, index = self.regularizer._diagonal_classes()
+            blocks, index = self.regularizer.diagonal_classes()
             self._diag_args = (np.ascontiguousarray(blocks, np.float64),
                                *(np.ascontiguousarray(i, np.int64) for i in index))
         if self._use_multigrid():

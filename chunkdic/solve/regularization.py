@@ -401,11 +401,14 @@ class Regularizer:
         The probed blocks are kept (a few kB): a slab of planes costs only its own copy,
         so that the client never needs all of them at once (72 B per node).
         """
-        blocks, index = self._diagonal_classes()
+        blocks, index = self.diagonal_classes()
         return blocks[np.ix_(index[0][planes], index[1], index[2])]
 
-    def _diagonal_classes(self) -> tuple[np.ndarray, list]:
-        """The diagonal blocks probed on the small mesh and, per axis, each node's row in it."""
+    def diagonal_classes(self) -> tuple[np.ndarray, list]:
+        """``(blocks, index)``: the diagonal blocks probed on the small mesh (float64) and, per
+        axis, each node's position in it (int64 arrays of the mesh's length): block ``(i, j, k)``
+        is ``blocks[index[0][i], index[1][j], index[2][k]]`` (block-Jacobi reads them so,
+        :func:`chunkdic.solve.stencil.block_solve`)."""
         cached = getattr(self, "_diagonal", None)
         if cached is not None:
             return cached
