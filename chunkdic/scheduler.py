@@ -29,6 +29,10 @@ SCHEDULER_HELP = ("where tasks run: threads (default, this process), local[:N] (
                   "on loopback), or the address of an existing scheduler (tcp://host:8786, tls://...)")
 
 
+#: tasks per thread the embedded pool has submitted ahead of the results handed over
+WINDOW = 4
+
+
 class ThreadRunner:
     """Embedded default: a pool of threads in this process (no cluster to set up).
 
@@ -43,14 +47,34 @@ class ThreadRunner:
         self.local = True  # tasks run on this machine
 
     def map_unordered(self, fn: Callable, args: Iterable[tuple]) -> Iterator[Any]:
+        """Results as they complete; at most :data:`WINDOW` tasks per thread submitted ahead.
+
+        ``args`` is consumed as tasks are submitted: a generator of arguments (the engine's
+        passes slice each block's nodal field as its task is submitted) then holds only
+        those of the window, not a pass's worth (70 MB at 128³ nodes, docs/distributed.md).
+        """
         # Each result is handed over and forgotten (module docstring).
-        pending = {self._pool.submit(fn, *a) for a in args}
+        todo = iter(args)
+        window = WINDOW * self.n_workers
+        pending: set = set()
+
+        def submit() -> None:
+            for a in todo:
+                pending.add(self._pool.submit(fn, *a))
+                if len(pending) >= window:
+                    return
+
         try:
-            for fut in concurrent.futures.as_completed(pending):
-                pending.discard(fut)
-                result = fut.result()
-                del fut
-                yield result
+            submit()
+            while pending:
+                done, _ = concurrent.futures.wait(pending, return_when=concurrent.futures.FIRST_COMPLETED)
+                pending -= done
+                submit()  # the threads stay busy while the client adds the results up
+                while done:
+                    fut = done.pop()
+                    result = fut.result()
+                    del fut
+                    yield result
         finally:
             for fut in pending:
                 fut.cancel()

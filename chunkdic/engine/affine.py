@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..solve.cg import stencil_matvec
+from ..solve.stencil import stencil_matvec
 from .level import Level, emit
 
 #: passes of the affine step at most

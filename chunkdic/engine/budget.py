@@ -75,9 +75,13 @@ KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.
                   "chunkdic.solve.stencil", "chunkdic.solve.galerkin", "chunkdic.solve.multigrid",
                   "chunkdic.solve.regularization")
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
-#: solver's block inverse and CG vectors, the regulariser, the nodal fields and the
-#: result (measured: 3.0 GB at 128³ nodes, docs/distributed.md)
-CLIENT_BYTES_PER_NODE = 1300
+#: V-cycle's coarse ``M``, the fields of the Gauss–Newton state, a ``b`` pass's nodal and
+#: element rows and a solve's vectors at their peak (measured at 128³ nodes with 182 MiB of
+#: kernels, ``bench_client_memory.py --steps --iterations 2``: 2 157 MiB with a length that
+#: takes the V-cycle, 988 B per node; 1 967 MiB, 892 B, with block-Jacobi; 1 300 before the
+#: cuts of docs/distributed.md, "Where the client's memory goes"). The automatic length is
+#: not known before the run: the larger.
+CLIENT_BYTES_PER_NODE = 1000
 #: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
 #: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
 #: blocks of 32-128 voxels)

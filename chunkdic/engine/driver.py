@@ -316,6 +316,9 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
                 measure_start_gaps(ctx, run, lvl)
             solve_level(ctx, run, lvl)
             outcome = finish_level(ctx, run, lvl, t0)
+            # the level's M, solver and last pass go now: not held through the next level's
+            # M pass (an eighth of its own) or the result's assembly (docs/distributed.md)
+            lvl = None
         release_scan_levels(ctx, s)
         final, u, run.gn = run.gn, run.gn.u, None
     return assemble_result(ctx, run, final, outcome)

@@ -22,8 +22,10 @@ from .stopping import History, State, decide, noise_step_of
 def element_fields(p) -> np.ndarray:
     """Per-element gain, offset (at the centre), valid voxels of a pass, and the drift
     (grey levels per voxel, z, y, x, repeated per element): shape (6, ez, ey, ex)."""
-    drift = np.broadcast_to(p.fit.drift[:, None, None, None], (3,) + p.fit.gain.shape)
-    return np.concatenate([np.stack([p.fit.gain, p.fit.offset, p.fit.valid_per_element]), drift])
+    out = np.empty((6,) + p.fit.gain.shape)  # filled row by row: no stacked temporary
+    out[0], out[1], out[2] = p.fit.gain, p.fit.offset, p.fit.valid_per_element
+    out[3:] = p.fit.drift[:, None, None, None]
+    return out
 
 
 def noise_step(lvl: Level, p, delta: np.ndarray, tolerance: float) -> tuple[float, np.ndarray, float]:
@@ -37,11 +39,14 @@ def noise_step(lvl: Level, p, delta: np.ndarray, tolerance: float) -> tuple[floa
     adds, only raises ``σ_u``: this is the stricter measure). Weak nodes are left out.
     """
     solver = lvl.solver
-    Ainv, Mii = solver.block_inverse, solver.diagonal_blocks
-    var = float(p.kappa * p.noise_variance) * np.einsum("...ij,...jk,...ki->...i", Ainv, Mii, Ainv)
+    var = solver.local_variances()
+    var *= float(p.kappa * p.noise_variance)
     ok = (var > 0).all(axis=-1)
     if solver.weak_nodes.size:
         ok[tuple(solver.weak_nodes.T)] = False
+    if ok.all():  # every node: no mesh-sized copies of the increment and the variances
+        q, moving = noise_step_of(delta.reshape(-1, 3), var.reshape(-1, 3), tolerance)
+        return q, moving.reshape(ok.shape), float(moving.mean()) if moving.size else 0.0
     q, moving = noise_step_of(delta[ok], var[ok], tolerance)
     unsettled = np.zeros(ok.shape, bool)
     unsettled[ok] = moving
@@ -76,7 +81,10 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
         event = dict(stage="iteration", level=lvl.s, iteration=it, gap=p.gap, max_delta=None,
                      excluded=p.n_excluded, gain=float(np.median(p.fit.gain)))
         if math.isfinite(p.gap):
-            state.record(p, element_fields(p))
+            fields = element_fields(p)
+            state.record(p, fields)
+            p.fit.share(fields)
+            del fields
         decide(state, p.gap, tolerance, max_iterations)
         if state.status is not None:
             history.add(lvl.s, it, p.gap, math.nan, p.n_excluded)
@@ -84,8 +92,10 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
         else:
             t1 = time.perf_counter()
             # (M + λR) δa = b − λ R a: the penalty acts on the whole field, not the increment
-            rhs = p.b - lvl.solver.penalty_gradient(np.moveaxis(state.u, 0, -1))
-            delta, cg_iterations = lvl.solver.solve(rhs)
+            rhs = lvl.solver.penalty_gradient(np.moveaxis(state.u, 0, -1))
+            np.subtract(p.b, rhs, out=rhs)  # in place: one mesh-sized vector fewer
+            delta, cg_iterations = lvl.solver.solve(rhs, overwrite_b=True)
+            del rhs
             state.largest_rhs = lvl.solver.largest_rhs  # recorded for the checkpoint; the solver owns it
             t2 = time.perf_counter()
             q, unsettled, fraction = noise_step(lvl, p, delta, tolerance)
@@ -109,6 +119,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             emit(progress, **event)
         if on_iteration is not None:
             on_iteration(state)
+        p = None  # the pass is not held while the next one is summed (the level keeps it)
     return state
 
 

@@ -103,6 +103,12 @@ class Fit:
     drift: np.ndarray
     valid_per_element: np.ndarray
 
+    def share(self, fields: np.ndarray) -> None:
+        """Point gain, offset and valid counts at rows 0-2 of ``fields`` (the same values, as
+        :func:`chunkdic.engine.gauss_newton.element_fields` copies them): the pass and the
+        state then hold them once (48 MB at 128³ elements)."""
+        self.gain, self.offset, self.valid_per_element = fields[0], fields[1], fields[2]
+
 
 def _nodes(B, coef) -> np.ndarray:
     """Nodal sum of ``Σ_q coef[q] B[:, :, :, q]`` over the elements (``coef``: per element or scalar)."""
@@ -149,34 +155,70 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
     """Finish a pass on the client from the summed partials of every block.
 
     ``center`` is the centring constant ``c`` the tasks used (grey levels), ``element_size``
-    the element edge (voxels; the drift's unit in the sums is one element).
+    the element edge (voxels; the drift's unit in the sums is one element). The two halves,
+    :func:`nodal_rhs` and :func:`element_fit`, let a caller drop ``nodal`` in between
+    (:meth:`chunkdic.engine.level.Level.assemble_b`).
     """
-    n_e = elements[0]
+    return element_fit(model, nodal_rhs(model, nodal, scalars), scalars, elements, center, element_size)
+
+
+def _global_coefficients(model: str, scalars: np.ndarray):
+    """The models' global unknowns from the summed scalars: ``(α, μ)`` of ``global``, ``θ`` of
+    ``drift`` (gain, then the drift per axis), None for the others."""
     n = scalars[0]
-    ones = np.ones_like(n_e)
-    zero3 = np.zeros(3)
-    if model == "none":
-        return Fit(nodal[0], float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e)
     if model == "global":
         sdd, sdg, sd, sgg, sg, _ = scalars[1:]
         A = np.array([[sgg, sg], [sg, n]])
-        alpha, mu = np.linalg.solve(A, [sdg, sd]) if np.linalg.det(A) > FLAT * sgg * n else (0.0, sd / max(n, 1))
-        b = nodal[0] - alpha * nodal[1] - mu * nodal[2]
+        return np.linalg.solve(A, [sdg, sd]) if np.linalg.det(A) > FLAT * sgg * n else (0.0, sd / max(n, 1))
+    if model == "drift":
+        S = scalars[1:].reshape(5, 5)
+        A, rhs = S[1:, 1:], S[1:, 0]
+        return np.linalg.lstsq(A, rhs, rcond=None)[0] if np.trace(A) > 0 else np.zeros(4)
+    return None
+
+
+def nodal_rhs(model: str, nodal: np.ndarray, scalars: np.ndarray) -> np.ndarray:
+    """``b`` (nz, ny, nx, 3) with the optimal global brightness, from the summed nodal rows."""
+    if model in ("none", "element"):
+        return nodal[0]
+    if model == "global":
+        alpha, mu = _global_coefficients(model, scalars)
+        return nodal[0] - alpha * nodal[1] - mu * nodal[2]
+    if model == "drift":
+        b = np.tensordot(_global_coefficients(model, scalars), nodal[1:], axes=1)
+        np.subtract(nodal[0], b, out=b)  # b = nodal[0] - Σ θ_k nodal[k], in the product's array
+        return b
+    raise ValueError(f"unknown brightness model {model!r}")
+
+
+def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.ndarray, center: float,
+                element_size: float = 1.0) -> Fit:
+    """The :class:`Fit` of a pass from its ``b`` (:func:`nodal_rhs`), scalars and element rows."""
+    # a copy: a view would keep every row of ``elements`` (7 float64 per element with the
+    # drift model) alive in the pass the level holds (docs/distributed.md)
+    n_e = elements[0].copy()
+    n = scalars[0]
+    ones = np.ones_like(n_e) if model in ("none", "global") else None  # not held by the other models
+    zero3 = np.zeros(3)
+    if model == "none":
+        return Fit(b, float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e)
+    if model == "global":
+        sdd, sdg, sd, sgg, sg, _ = scalars[1:]
+        alpha, mu = _global_coefficients(model, scalars)
         ssr = sdd - 2 * alpha * sdg - 2 * mu * sd + alpha**2 * sgg + 2 * alpha * mu * sg + mu**2 * n
         return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e)
     if model == "drift":
         S = scalars[1:].reshape(5, 5)
         A, rhs = S[1:, 1:], S[1:, 0]
-        theta = np.linalg.lstsq(A, rhs, rcond=None)[0] if np.trace(A) > 0 else np.zeros(4)
-        b = nodal[0] - np.tensordot(theta, nodal[1:], axes=1)
+        theta = _global_coefficients(model, scalars)
         ssr = S[0, 0] - 2 * theta @ rhs + theta @ A @ theta
         alpha, beta = theta[0], theta[1:]
         mean = elements[1:]  # element means of d, g', 1, z~, y~, x~
-        mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[[_Z, _Y, _X]], axes=1)
+        mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[_Z:_X + 1], axes=1)  # a view: no copy
         # offset at the element centre (q~ = 0): μ_e - α c
-        return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, mu - alpha * center,
+        return Fit(b, float(max(ssr, 0.0)), float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
                    beta / float(element_size), n_e)
     if model == "element":
         alpha, mu = elements[1], elements[2]
-        return Fit(nodal[0], float(scalars[1]), float(n), 1 + alpha, mu - alpha * center, zero3, n_e)
+        return Fit(b, float(scalars[1]), float(n), 1 + alpha, mu - alpha * center, zero3, n_e)
     raise ValueError(f"unknown brightness model {model!r}")

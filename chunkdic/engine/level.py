@@ -27,7 +27,7 @@ from ..solve.regularization import Regularizer, plane_wave_weight
 from ..solve.stencil import rigid_restriction, stencil_matvec
 from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
-from .greylevel import Fit, combine
+from .greylevel import Fit, element_fit, nodal_rhs
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
@@ -135,14 +135,15 @@ class Level:
     def blocks(self) -> list:
         return [job.block for job in self.jobs]
 
-    def _map(self, fn, args, label: str, voxels: int | None = None):
+    def _map(self, fn, args, label: str, voxels: int | None = None, total: int | None = None):
         """Run one task per argument tuple, yield results as they come, report long passes.
 
         A pass that lasts more than ``PROGRESS_SECONDS`` emits ``stage="blocks"`` events
         (done/total, voxel rate, ETA) at that interval, for a person at a terminal.
-        ``voxels``: what the tasks cover together (default: the mesh's ROI).
+        ``voxels``: what the tasks cover together (default: the mesh's ROI). ``total``: the
+        number of tasks when ``args`` is a generator (default ``len(args)``).
         """
-        total = len(args)
+        total = len(args) if total is None else total
         voxels_per_block = (self.mesh.n_voxels if voxels is None else voxels) / max(total, 1)
         t0 = last = trimmed = time.perf_counter()
         for done, result in enumerate(self.runner.map_unordered(fn, args), start=1):
@@ -180,11 +181,14 @@ class Level:
         # partial is summed in float64 by its task.
         S = np.zeros(mesh.nodes_shape + (14, 3, 3), dtype=np.float32)
         fmin, fmax = np.inf, -np.inf
-        args = [(self.inputs, job, self._nodes_of(u, job)) for job in self.jobs]
+        # a generator: each block's slice of u is made as its task is submitted (the embedded
+        # runner holds a window of them, not a pass's worth)
+        inputs = self.inputs
+        args = ((inputs, job, self._nodes_of(u, job)) for job in self.jobs)
         self.sensitivity_lags = np.zeros((3, LAGS + 1))
         fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
         self.active = None  # element activity of a specimen mask (None: every element)
-        for blk, part, lo, hi, lags, frac in self._map(m_task, args, "M pass"):
+        for blk, part, lo, hi, lags, frac in self._map(m_task, args, "M pass", total=len(self.jobs)):
             S[blk.node_slices] += part[..., 13:, :, :]
             fmin, fmax = min(fmin, lo), max(fmax, hi)
             self.sensitivity_lags += lags
@@ -398,13 +402,15 @@ class Level:
         (:meth:`gap`); default: every active element.
         """
         mesh = self.mesh
+        self.last_pass = None  # not held while the next one is summed (mesh-sized)
         nodal = scalars = None
         elements = None
         n_excluded = 0
         lags = np.zeros((6, LAGS + 1))
         active = self.active if sample is None else sample
-        args = [(self.inputs, job, self._nodes_of(u, job), self._active_of(active, job)) for job in self.jobs]
-        for blk, part in self._map(b_task, args, "b pass"):
+        inputs = self.inputs
+        args = ((inputs, job, self._nodes_of(u, job), self._active_of(active, job)) for job in self.jobs)
+        for blk, part in self._map(b_task, args, "b pass", total=len(self.jobs)):
             if nodal is None:
                 nodal = np.zeros((part.nodal.shape[0],) + mesh.nodes_shape + (3,))
                 scalars = np.zeros_like(part.scalars)
@@ -414,7 +420,13 @@ class Level:
             elements[(slice(None), *(slice(e0, e1) for e0, e1 in blk.elements))] = part.elements
             n_excluded += part.n_excluded
             lags += part.lags
-        fit = combine(self.settings.grey, nodal, scalars, elements, self.inputs.center, mesh.element_size)
+        part = None
+        # b first, then the nodal rows go (5 per node with the drift model, 240 MB at 128³ nodes)
+        # before the element rows are fitted: they never coexist with the fit's arrays
+        b = nodal_rhs(self.settings.grey, nodal, scalars)
+        nodal = None
+        fit = element_fit(self.settings.grey, b, scalars, elements, self.inputs.center, mesh.element_size)
+        elements = b = None
         gap = math.sqrt(fit.ssr / fit.weight) / self.dynamic_range if fit.weight > 0 else math.inf
         kappa = correlation_factor(lags, self.sensitivity_lags, float(np.median(fit.gain)),
                                    fit.ssr / fit.weight if fit.weight > 0 else None)

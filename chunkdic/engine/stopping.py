@@ -79,9 +79,10 @@ def noise_step_of(delta: np.ndarray, variance: np.ndarray, tolerance: float = 0.
     stopped improving (docs/engine.md, "Iterations and stopping").
     """
     d = np.asarray(delta, np.float64)
-    ratio2 = d**2 / np.asarray(variance, np.float64)
+    ratio2 = d**2
+    ratio2 /= np.asarray(variance, np.float64)  # in place: the same quotients, one array fewer
     unsettled = ((ratio2 > STEP_CAP**2) & (np.abs(d) >= tolerance)).any(axis=-1)
-    settled = ratio2[~unsettled]
+    settled = ratio2[~unsettled] if unsettled.any() else ratio2  # all settled: no copy
     return (float(np.sqrt(np.mean(settled))) if settled.size else math.inf), unsettled
 
 

@@ -22,7 +22,7 @@ from ..errors import InputError
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .regularization import Regularizer, add_weighted
-from .stencil import pcg, pcg_block_jacobi, stencil_matvec
+from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +34,9 @@ log = logging.getLogger(__name__)
 #: (1 012 iterations at 16ℓ); with the edge term it has 24 fields, like Tikhonov's, and the
 #: V-cycle needs 27-74 iterations from 8ℓ to 32ℓ where block-Jacobi needs 214-1 861.
 MULTIGRID_FROM = 100.0
+#: nodes per slab of planes of the client's node-by-node work (:func:`z_slabs`): the
+#: float64 temporaries of a slab (a few of 72 B per node) stay under ~20 MB
+SLAB_NODES = 65536
 
 
 class PoorTextureWarning(UserWarning):
@@ -81,52 +84,95 @@ class StencilSolver:
         #: resumed run stops CG where the uninterrupted one did)
         self.largest_rhs = 0.0
         self.nodes_shape = half.shape[:3]
-        diag = half[..., 0, :, :].reshape(-1, 3, 3).astype(np.float64)
-        eig = np.linalg.eigvalsh(diag)  # ascending
-        scale = float(np.median(eig.mean(axis=1)))
+        # the eigenvalues of the diagonal blocks, a slab of planes at a time: the client
+        # never holds the float64 blocks of the whole mesh (docs/distributed.md)
+        smallest, mean = np.empty(self.nodes_shape), np.empty(self.nodes_shape)
+        for planes in z_slabs(self.nodes_shape):
+            eig = np.linalg.eigvalsh(half[planes, :, :, 0, :, :].astype(np.float64))  # ascending
+            smallest[planes], mean[planes] = eig[..., 0], eig.mean(axis=-1)
+        scale = float(np.median(mean))
+        del mean
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("the reference image has no gradient in the ROI: nothing to correlate")
-        weak = eig[:, 0] < weak_threshold * scale
-        self.weak_nodes = np.argwhere(weak.reshape(self.nodes_shape))
-        if weak.any():
-            diag[weak] += weak_threshold * scale * np.eye(3)
-            half[..., 0, :, :] = diag.reshape(self.nodes_shape + (3, 3))
+        weak = smallest < weak_threshold * scale
+        del smallest
+        self.weak_nodes = np.argwhere(weak)
+        # the held blocks of the weak nodes in float64 (the stencil keeps them in float32)
+        self._weak_blocks = half[(*self.weak_nodes.T, 0)].astype(np.float64) + weak_threshold * scale * np.eye(3)
+        if len(self._weak_blocks):
+            half[(*self.weak_nodes.T, 0)] = self._weak_blocks
         self.scale = scale
         # float32 for the matrix-vector product: CG is bound by memory traffic through the
         # stencil, and M only steers the modified Gauss-Newton steps (the converged field
         # solves b = λ R a whatever M), so its round-off at 6e-8 changes nothing measurable.
         self.matrix = half if half.dtype == np.float32 else half.astype(np.float32)
-        self._diag = diag.reshape(self.nodes_shape + (3, 3))
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0)
-        self.block_inverse = np.linalg.inv(self._diag)
+        # block-Jacobi solves each node's 3×3 block of M + λ R as it goes (stencil.block_solve):
+        # no stored inverse (72 B per node in float64, 150 MB at 128³ nodes)
+        self._diag_args = no_diagonal(self.nodes_shape)
         self.multigrid = multigrid
         self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
         self._vcycle = None
 
-    @property
-    def diagonal_blocks(self) -> np.ndarray:
-        """The 3×3 diagonal blocks of ``M`` (nz, ny, nx, 3, 3), float64, weak nodes held."""
-        return self._diag
+    def diagonal_blocks(self, planes: slice = slice(None)) -> np.ndarray:
+        """The 3×3 diagonal blocks of ``M`` on the z planes ``planes`` (default: all), weak
+        nodes held: shape (nz', ny, nx, 3, 3), float64 (a copy)."""
+        out = self.matrix[planes, :, :, 0, :, :].astype(np.float64)
+        if len(self._weak_blocks):
+            z = np.arange(self.nodes_shape[0])[planes]
+            inside = np.isin(self.weak_nodes[:, 0], z)
+            if inside.any():
+                nodes = self.weak_nodes[inside]
+                out[(np.searchsorted(z, nodes[:, 0]), nodes[:, 1], nodes[:, 2])] = self._weak_blocks[inside]
+        return out
+
+    def diagonal_inverse(self, planes: slice = slice(None)) -> np.ndarray:
+        """The inverse 3×3 diagonal blocks of ``M + λ R`` on the z planes ``planes``, float64
+        (nz', ny, nx, 3, 3), weak nodes' blocks as held in float64 (block-Jacobi's, which
+        :func:`~chunkdic.solve.stencil.block_solve` forms from the float32 stencil, differ by
+        its rounding only)."""
+        diag = self.diagonal_blocks(planes)
+        if self.regularizer is not None:
+            diag += self.weight * self.regularizer.diagonal_blocks(planes)
+        return np.linalg.inv(diag)
+
+    def local_variances(self) -> np.ndarray:
+        """``diag(A_ii⁻¹ M_ii A_ii⁻¹)`` of every node (nz, ny, nx, 3), float64, ``A = M + λ R``:
+        each node's variance per unit noise when its neighbours are held
+        (:func:`chunkdic.engine.noise.nodal_uncertainty`), computed in float64 a slab of
+        planes at a time (the former whole-mesh arrays: 3 × 72 B per node)."""
+        out = np.empty(self.nodes_shape + (3,))
+        for planes in z_slabs(self.nodes_shape):
+            inv = self.diagonal_inverse(planes)
+            out[planes] = np.einsum("...ij,...jk,...ki->...i", inv, self.diagonal_blocks(planes), inv)
+        return out
 
     def regularize(self, regularizer: Regularizer | None, weight: float) -> None:
         """Solve ``(M + weight R)`` from now on (``None`` or 0: plain ``M``)."""
         self.regularizer = regularizer if weight > 0 else None
         self.weight = float(weight) if self.regularizer is not None else 0.0
-        diag = self._diag
+        self._vcycle = None  # its own arrays freed before the new ones are built
+        self._diag_args = no_diagonal(self.nodes_shape)
         if self.regularizer is not None:
             self._reg_args = self.regularizer.numba_args()
-            reg_diag = self.regularizer.diagonal_blocks()
-            diag = diag + self.weight * reg_diag
-            self._regularizer_diagonal = float(np.median(np.trace(reg_diag, axis1=-2, axis2=-1)))
-            self._matrix_diagonal = float(np.median(np.trace(self._diag, axis1=-2, axis2=-1)))
-        self.block_inverse = np.linalg.inv(diag)
-        self._vcycle = None
+            self._regularizer_diagonal, self._matrix_diagonal = self._median_traces()
+            blocks, index = self.regularizer.diagonal_classes()
+            self._diag_args = (np.ascontiguousarray(blocks, np.float64),
+                               *(np.ascontiguousarray(i, np.int64) for i in index))
         if self._use_multigrid():
             if self._matrices is None:
                 self._matrices = matrix_hierarchy(self.matrix)
-            self._vcycle = VCycle(self._matrices, self.block_inverse, self.regularizer, self.weight)
+            self._vcycle = VCycle(self._matrices, self._diag_args, self.regularizer, self.weight)
+
+    def _median_traces(self) -> tuple[float, float]:
+        """Medians over nodes of ``tr R_ii`` and ``tr M_ii`` (which preconditioner pays, :meth:`_use_multigrid`)."""
+        reg, mat = np.empty(self.nodes_shape), np.empty(self.nodes_shape)
+        for planes in z_slabs(self.nodes_shape):
+            reg[planes] = np.trace(self.regularizer.diagonal_blocks(planes), axis1=-2, axis2=-1)
+            mat[planes] = np.trace(self.diagonal_blocks(planes), axis1=-2, axis2=-1)
+        return float(np.median(reg)), float(np.median(mat))
 
     def _use_multigrid(self) -> bool:
         """Whether :meth:`regularize` builds a V-cycle (:data:`MULTIGRID_FROM`)."""
@@ -140,18 +186,25 @@ class StencilSolver:
         """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3); zeros without regularisation."""
         if self.regularizer is None:
             return np.zeros(a.shape)
-        return self.weight * self.regularizer.apply(a)
-
-    def matvec(self, x: np.ndarray) -> np.ndarray:
-        """``(M + λ R) x``."""
-        y = stencil_matvec(self.matrix, x)
-        if self.regularizer is not None:
-            add_weighted(*self._reg_args, self.weight, np.ascontiguousarray(x, dtype=np.float64), y)
+        y = self.regularizer.apply(a)
+        y *= self.weight
         return y
 
-    def solve(self, b: np.ndarray) -> tuple[np.ndarray, int]:
+    def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``(M + λ R) x``, into ``out`` (float64, x's shape, contiguous) when given."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        if out is None:
+            out = np.empty(x.shape)
+        half_matvec(self.matrix, x, out)
+        if self.regularizer is not None:
+            add_weighted(*self._reg_args, self.weight, x, out)
+        return out
+
+    def solve(self, b: np.ndarray, *, overwrite_b: bool = False) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
 
+        ``overwrite_b``: CG may use ``b`` (float64, contiguous) as its residual vector,
+        leaving it changed: one mesh-sized vector fewer at the client's peak.
         Returns the solution and the number of CG iterations.
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
@@ -161,15 +214,27 @@ class StencilSolver:
         self.largest_rhs = max(self.largest_rhs, norm)
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
         if self._vcycle is not None:
-            iterations = pcg(self.matvec, self._vcycle.cycle, b, x, rtol, self.maxiter)
+            vcycle = self._vcycle
+            iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
         else:
-            iterations = pcg_block_jacobi(self.matrix, self.block_inverse, b, x, rtol, self.maxiter,
-                              code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight)
+            iterations = pcg_block_jacobi(self.matrix, *self._diag_args, b, x, rtol, self.maxiter,
+                                          code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight,
+                                          overwrite_b)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)
             iterations = self.maxiter
         return x, iterations
+
+
+def z_slabs(nodes_shape, nodes: int = None):
+    """Slices of whole z planes of about ``nodes`` nodes each (default :data:`SLAB_NODES`)
+    covering ``nodes_shape``: the unit of the client's node-by-node work on the whole mesh."""
+    nodes = SLAB_NODES if nodes is None else nodes
+    per_plane = max(int(nodes_shape[1]) * int(nodes_shape[2]), 1)
+    step = max(1, nodes // per_plane)
+    for z in range(0, int(nodes_shape[0]), step):
+        yield slice(z, min(z + step, int(nodes_shape[0])))
 
 
 def warmup() -> None:

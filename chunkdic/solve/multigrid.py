@@ -39,7 +39,7 @@ from .galerkin import (
     transfer,
 )
 from .regularization import Regularizer, add_weighted
-from .stencil import axpy, block_jacobi, dot, half_matvec
+from .stencil import axpy, block_jacobi, block_jacobi_step, block_solve, block_solve_step, dot, half_matvec
 
 DEGREE = 1
 #: the smoothing interval is ``[λ_max / SMOOTH_RANGE, 1.1 λ_max]`` of ``D⁻¹A``
@@ -96,7 +96,8 @@ class _Level:
     M: np.ndarray                 # half stencil (nz, ny, nx, 14, 3, 3), float32
     R: ClassStencil | None        # None on the fine level (R applied matrix-free there)
     transfers: tuple | None = None  # per-axis axis_transfer (None: axis kept) to the next coarser level
-    Binv: np.ndarray | None = None  # block-Jacobi of M + λR
+    Binv: np.ndarray | None = None  # block-Jacobi of M + λR (coarse levels; the fine one solves its blocks)
+    diag: tuple | None = None  # the fine level: (Rd, iz, iy, ix, λ) of stencil.block_solve
     lmax: float = 0.0
 
     def __post_init__(self):
@@ -112,14 +113,16 @@ class VCycle:
     ----------
     matrices : list
         :func:`matrix_hierarchy` of the fine half stencil (reusable for every ``λ``).
-    fine_block_inverse : ndarray, shape (nz, ny, nx, 3, 3), float64
-        Inverse diagonal blocks of ``M + λ R`` on the fine level.
+    fine_diagonal : tuple
+        ``(Rd, iz, iy, ix)``: the class blocks of ``R_ii`` and each node's class per axis, from
+        which block-Jacobi forms the fine level's diagonal blocks of ``M + λ R`` as it goes
+        (:func:`~chunkdic.solve.stencil.block_solve`: no stored inverse on the fine level).
     regularizer : Regularizer
     weight : float
         ``λ``.
     """
 
-    def __init__(self, matrices, fine_block_inverse: np.ndarray, regularizer: Regularizer, weight: float):
+    def __init__(self, matrices, fine_diagonal: tuple, regularizer: Regularizer, weight: float):
         self.weight = float(weight)
         self._reg_args = regularizer.numba_args()
         coarse_R = regularizer_hierarchy(regularizer)
@@ -130,7 +133,7 @@ class VCycle:
             R = None if k == 0 else coarse_R[k]
             lev = _Level(shape, M, R, tr)
             if k == 0:
-                lev.Binv = fine_block_inverse
+                lev.diag = (*fine_diagonal, self.weight)
             else:
                 diag = M[..., 0, :, :].astype(np.float64) + self.weight * R.diagonal_blocks()
                 lev.Binv = np.linalg.inv(diag)
@@ -156,14 +159,30 @@ class VCycle:
         else:
             lev.R.matvec_add(self.weight, x, y)
 
+    def _precondition(self, k: int, r: np.ndarray, z: np.ndarray) -> None:
+        """``z = D_k⁻¹ r``, block-Jacobi of level ``k``."""
+        lev = self.levels[k]
+        if lev.diag is not None:
+            block_solve(lev.M, *lev.diag, r, z)
+        else:
+            block_jacobi(lev.Binv, r, z)
+
+    def _precondition_step(self, k: int, r: np.ndarray, x: np.ndarray, theta: float) -> None:
+        """``x += D_k⁻¹ r / θ`` (the damped block-Jacobi step, fused)."""
+        lev = self.levels[k]
+        if lev.diag is not None:
+            block_solve_step(lev.M, *lev.diag, r, x, theta)
+        else:
+            block_jacobi_step(lev.Binv, r, x, theta)
+
     def _lambda_max(self, k: int) -> float:
         """Largest eigenvalue of ``D⁻¹A`` on level ``k`` (10 Lanczos steps of block-Jacobi CG from a fixed random start)."""
         lev = self.levels[k]
         rng = np.random.default_rng(0)
-        b = rng.standard_normal(lev.shape + (3,))
-        r = b.copy()  # CG from x = 0: only its coefficients are used
-        z, q = np.empty_like(b), np.empty_like(b)
-        block_jacobi(lev.Binv, r, z)
+        r = rng.standard_normal(lev.shape + (3,))  # the right-hand side, then the residual of
+        # CG from x = 0 (only its coefficients are used)
+        z, q = np.empty_like(r), np.empty_like(r)
+        self._precondition(k, r, z)
         p = z.copy()
         rz = dot(r.reshape(-1), z.reshape(-1))
         alphas, betas = [], []
@@ -174,7 +193,7 @@ class VCycle:
                 break
             alpha = rz / pq
             axpy(-alpha, q.reshape(-1), r.reshape(-1))
-            block_jacobi(lev.Binv, r, z)
+            self._precondition(k, r, z)
             rz_new = dot(r.reshape(-1), z.reshape(-1))
             beta = rz_new / rz
             alphas.append(alpha)
@@ -192,21 +211,28 @@ class VCycle:
                 T[i, i + 1] = T[i + 1, i] = np.sqrt(betas[i]) / alphas[i]
         return float(np.linalg.eigvalsh(T)[-1])
 
-    def _smooth(self, k: int, b: np.ndarray, x: np.ndarray, zero_start: bool) -> None:
-        """Chebyshev smoothing of ``A_k x = b`` in place (degree :data:`DEGREE`)."""
+    def _smooth(self, k: int, b: np.ndarray, x: np.ndarray, zero_start: bool, r: np.ndarray) -> None:
+        """Chebyshev smoothing of ``A_k x = b`` in place (degree :data:`DEGREE`); ``r``: a work
+        vector of ``b``'s shape (the cycle's own residual, reused: no vector per call)."""
         lev = self.levels[k]
         hi = lev.lmax
         lo = hi / SMOOTH_RANGE
         theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
         sigma = theta / delta
         rho = 1.0 / sigma
-        r = b.copy()
-        t = np.empty_like(b)
-        if not zero_start:
-            self.apply(k, x, t)
-            r -= t
-        d = np.empty_like(b)
-        block_jacobi(lev.Binv, r, d)
+        if zero_start and DEGREE == 1:
+            self._precondition_step(k, b, x, theta)  # x = 0: the residual is b itself
+            return
+        if zero_start:
+            np.copyto(r, b)
+        else:
+            self.apply(k, x, r)
+            np.subtract(b, r, out=r)
+        if DEGREE == 1:  # damped block-Jacobi: x += D⁻¹ r / θ, fused (no vector for the step)
+            self._precondition_step(k, r, x, theta)
+            return
+        d, t = np.empty_like(b), np.empty_like(b)
+        self._precondition(k, r, d)
         d /= theta
         for step in range(DEGREE):
             x += d
@@ -215,27 +241,34 @@ class VCycle:
             self.apply(k, d, t)
             r -= t
             rho_new = 1.0 / (2.0 * sigma - rho)
-            block_jacobi(lev.Binv, r, t)
+            self._precondition(k, r, t)
             d *= rho_new * rho
             d += (2.0 * rho_new / delta) * t
             rho = rho_new
 
-    def cycle(self, b: np.ndarray, k: int = 0) -> np.ndarray:
-        """One V-cycle from level ``k``: an approximation of ``A_k⁻¹ b`` (a symmetric positive definite map)."""
+    def cycle(self, b: np.ndarray, k: int = 0, out: np.ndarray | None = None) -> np.ndarray:
+        """One V-cycle from level ``k``: an approximation of ``A_k⁻¹ b`` (a symmetric positive
+        definite map), into ``out`` when given.
+
+        A level holds one work vector during its cycle (the residual, which the smoother
+        shares) besides ``b`` and the result: a solve is the client's peak (docs/distributed.md).
+        """
+        x = np.empty_like(b) if out is None else out
         if k == len(self.levels) - 1:
-            x = np.empty_like(b)
             _cholesky_solve(self._coarse, b.reshape(-1), x.reshape(-1))
             return x
         lev = self.levels[k]
-        x = np.zeros_like(b)
-        self._smooth(k, b, x, True)
+        x.fill(0.0)
         r = np.empty_like(b)
+        self._smooth(k, b, x, True, r)
         self.apply(k, x, r)
         np.subtract(b, r, out=r)
         coarse_shape = self.levels[k + 1].shape
         rc = np.empty(coarse_shape + (3,))
         transfer(r, *lev.tables, rc, True)
         xc = self.cycle(rc, k + 1)
+        del rc
         transfer(x, *lev.tables, xc, False)
-        self._smooth(k, b, x, False)
+        del xc
+        self._smooth(k, b, x, False, r)
         return x

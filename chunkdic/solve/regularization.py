@@ -390,14 +390,28 @@ class Regularizer:
         mu_e = (vol / n_int) / (edge / n_edge) if edge > 0 else 0.0
         return mu_s, mu_e
 
-    def diagonal_blocks(self) -> np.ndarray:
-        """The 3×3 diagonal blocks of ``R``, shape (nz, ny, nx, 3, 3) (for the preconditioner).
+    def diagonal_blocks(self, planes: slice = slice(None)) -> np.ndarray:
+        """The 3×3 diagonal blocks of ``R`` on the z planes ``planes`` of the nodes (default:
+        all), shape (nz', ny, nx, 3, 3), float64 (for the preconditioner).
 
         ``R`` is the same at every node farther than its reach (2 nodes for the equilibrium
         gap, 1 for Tikhonov) from the mesh faces: the blocks are probed on a mesh of at
         most ``2 (reach + 1) + 1`` nodes per axis, with unit vectors on a colouring of
         nodes whose supports do not overlap, and mapped back by distance to the faces.
+        The probed blocks are kept (a few kB): a slab of planes costs only its own copy,
+        so that the client never needs all of them at once (72 B per node).
         """
+        blocks, index = self.diagonal_classes()
+        return blocks[np.ix_(index[0][planes], index[1], index[2])]
+
+    def diagonal_classes(self) -> tuple[np.ndarray, list]:
+        """``(blocks, index)``: the diagonal blocks probed on the small mesh (float64) and, per
+        axis, each node's position in it (int64 arrays of the mesh's length): block ``(i, j, k)``
+        is ``blocks[index[0][i], index[1][j], index[2][k]]`` (block-Jacobi reads them so,
+        :func:`chunkdic.solve.stencil.block_solve`)."""
+        cached = getattr(self, "_diagonal", None)
+        if cached is not None:
+            return cached
         reach = 2
         core = reach + 1
         small_shape = tuple(min(n, 2 * core + 1) for n in self.nodes_shape)
@@ -418,7 +432,8 @@ class Regularizer:
         index = [np.where(np.arange(n) < core, np.arange(n),
                           np.where(np.arange(n) >= n - core, m - (n - np.arange(n)), core))
                  for n, m in zip(self.nodes_shape, small_shape)]
-        return blocks[np.ix_(*index)]
+        self._diagonal = blocks, index
+        return self._diagonal
 
 
 def reference_wavelength(nodes_shape, ell: float) -> float:

@@ -82,7 +82,85 @@ def block_jacobi(Binv, r, z):
 
 
 @numba.njit(nogil=True, cache=True)
-def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
+def block_jacobi_step(Binv, r, x, theta):
+    """``x += (Binv r) / θ`` node by node: :func:`block_jacobi` and the step in one loop, the
+    same operations in the same order, without a vector for ``Binv r`` (the V-cycle's
+    degree-1 smoother, :mod:`chunkdic.solve.multigrid`)."""
+    nz, ny, nx = r.shape[:3]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for a in range(3):
+                    s = (Binv[i, j, k, a, 0] * r[i, j, k, 0] + Binv[i, j, k, a, 1] * r[i, j, k, 1]
+                         + Binv[i, j, k, a, 2] * r[i, j, k, 2])
+                    x[i, j, k, a] += s / theta
+
+
+@numba.njit(nogil=True, cache=True)
+def _solve_block(H, Rd, iz, iy, ix, lam, i, j, k, r0, r1, r2):
+    """``D⁻¹ r`` at node (i, j, k) for ``D = M_ii + λ R_ii``: ``M_ii`` the node's diagonal
+    block in the half stencil ``H`` (float32, read as float64), ``R_ii`` the class block
+    ``Rd[iz[i], iy[j], ix[k]]`` (:meth:`~chunkdic.solve.regularization.Regularizer.diagonal_blocks`).
+    Cholesky on the lower triangle (``D`` symmetric positive definite), float64."""
+    a, b, c = iz[i], iy[j], ix[k]
+    s = H[i, j, k, 0]
+    d00 = s[0, 0] + lam * Rd[a, b, c, 0, 0]
+    d10 = s[1, 0] + lam * Rd[a, b, c, 1, 0]
+    d20 = s[2, 0] + lam * Rd[a, b, c, 2, 0]
+    d11 = s[1, 1] + lam * Rd[a, b, c, 1, 1]
+    d21 = s[2, 1] + lam * Rd[a, b, c, 2, 1]
+    d22 = s[2, 2] + lam * Rd[a, b, c, 2, 2]
+    l00 = np.sqrt(d00)
+    l10 = d10 / l00
+    l20 = d20 / l00
+    l11 = np.sqrt(d11 - l10 * l10)
+    l21 = (d21 - l20 * l10) / l11
+    l22 = np.sqrt(d22 - l20 * l20 - l21 * l21)
+    y0 = r0 / l00
+    y1 = (r1 - l10 * y0) / l11
+    y2 = (r2 - l20 * y0 - l21 * y1) / l22
+    z2 = y2 / l22
+    z1 = (y1 - l21 * z2) / l11
+    z0 = (y0 - l10 * z1 - l20 * z2) / l00
+    return z0, z1, z2
+
+
+@numba.njit(nogil=True, cache=True)
+def block_solve(H, Rd, iz, iy, ix, lam, r, z):
+    """``z = D⁻¹ r`` node by node, ``D`` the 3×3 diagonal blocks of ``M + λ R`` formed on the fly
+    (:func:`_solve_block`): block-Jacobi without a stored inverse (72 B per node in float64,
+    150 MB at 128³ nodes; docs/distributed.md)."""
+    nz, ny, nx = r.shape[:3]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                z0, z1, z2 = _solve_block(H, Rd, iz, iy, ix, lam, i, j, k, r[i, j, k, 0], r[i, j, k, 1],
+                                          r[i, j, k, 2])
+                z[i, j, k, 0], z[i, j, k, 1], z[i, j, k, 2] = z0, z1, z2
+
+
+@numba.njit(nogil=True, cache=True)
+def block_solve_step(H, Rd, iz, iy, ix, lam, r, x, theta):
+    """``x += D⁻¹ r / θ`` (:func:`block_solve` and the V-cycle's damped step in one loop)."""
+    nz, ny, nx = r.shape[:3]
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                z0, z1, z2 = _solve_block(H, Rd, iz, iy, ix, lam, i, j, k, r[i, j, k, 0], r[i, j, k, 1],
+                                          r[i, j, k, 2])
+                x[i, j, k, 0] += z0 / theta
+                x[i, j, k, 1] += z1 / theta
+                x[i, j, k, 2] += z2 / theta
+
+
+def no_diagonal(nodes_shape) -> tuple:
+    """``(Rd, iz, iy, ix)`` of a zero ``R_ii`` on a mesh of ``nodes_shape`` nodes (:func:`block_solve`
+    without regularisation: every node of class 0)."""
+    return (np.zeros((1, 1, 1, 3, 3)), *(np.zeros(int(n), np.int64) for n in nodes_shape))
+
+
+@numba.njit(nogil=True, cache=True)
+def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam, overwrite_b=False):
     """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
 
     Written out (rather than scipy's ``cg``) so that its vector operations are plain
@@ -94,17 +172,17 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     ``λ R`` comes from :func:`chunkdic.solve.regularization.add_weighted`, compiled into this
     function's Numba cache: a change of ``R`` (the Tikhonov Hessian of issue 20) is seen here
     only once this file changes too or the cache is cleared (docs/architecture.md,
-    development notes).
+    development notes). ``overwrite_b``: ``b`` becomes the residual (changed on return).
     """
-    r = b.copy()  # x starts at zero
+    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    r = b if overwrite_b else b.copy()  # x starts at zero
     z = np.empty_like(b)
     q = np.empty_like(b)
     rf, zf, qf, xf = r.reshape(-1), z.reshape(-1), q.reshape(-1), x.reshape(-1)
-    block_jacobi(Binv, r, z)
+    block_solve(H, Rd, iz, iy, ix, lam, r, z)
     p = z.copy()
     pf = p.reshape(-1)
     rz = dot(rf, zf)
-    bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
     if bnorm == 0.0:
         return 0
     for it in range(1, maxiter + 1):
@@ -116,7 +194,7 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
         axpy(-alpha, qf, rf)
         if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
             return it
-        block_jacobi(Binv, r, z)
+        block_solve(H, Rd, iz, iy, ix, lam, r, z)
         rz_new = dot(rf, zf)
         beta = rz_new / rz
         for k in range(pf.size):  # p = z + β p
@@ -125,30 +203,38 @@ def pcg_block_jacobi(H, Binv, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam):
     return -1
 
 
-def pcg(matvec, precondition, b, x, rtol, maxiter) -> int:
-    """:func:`pcg_block_jacobi` with any symmetric positive definite preconditioner ``precondition(r) -> z``.
+def pcg(matvec, precondition, b, x, rtol, maxiter, overwrite_b: bool = False) -> int:
+    """:func:`pcg_block_jacobi` with any symmetric positive definite preconditioner.
 
-    Written in Python around the numba vector kernels: with a V-cycle per iteration, a few
-    tens of iterations, the interpreter's share is negligible.
+    ``matvec(p, out)`` writes ``A p`` into ``out``, ``precondition(r, out)`` the
+    preconditioned residual: both into this function's vectors, so that a solve holds
+    ``b``, ``x`` and four vectors of its own whatever the iterations (a new vector per call
+    held up to two more at once: 48 B per node, 100 MB at 128³ nodes). Written in Python
+    around the numba vector kernels: with a V-cycle per iteration, a few tens of
+    iterations, the interpreter's share is negligible. ``overwrite_b``: ``b`` becomes the
+    residual (changed on return).
     """
-    r = b.copy()
-    rf, xf = r.reshape(-1), x.reshape(-1)
     bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
+    r = b if overwrite_b else b.copy()
+    rf, xf = r.reshape(-1), x.reshape(-1)
     if bnorm == 0.0:
         return 0
-    z = precondition(r)
+    z = np.empty_like(b)
+    q = np.empty_like(b)
+    zf, qf = z.reshape(-1), q.reshape(-1)
+    precondition(r, z)
     p = z.copy()
     pf = p.reshape(-1)
-    rz = dot(rf, z.reshape(-1))
+    rz = dot(rf, zf)
     for it in range(1, maxiter + 1):
-        q = matvec(p)
-        alpha = rz / dot(pf, q.reshape(-1))
+        matvec(p, q)
+        alpha = rz / dot(pf, qf)
         axpy(alpha, pf, xf)
-        axpy(-alpha, q.reshape(-1), rf)
+        axpy(-alpha, qf, rf)
         if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
             return it
-        z = precondition(r)
-        rz_new = dot(rf, z.reshape(-1))
+        precondition(r, z)
+        rz_new = dot(rf, zf)
         beta = rz_new / rz
         p *= beta
         p += z

@@ -49,6 +49,25 @@ def test_embedded_runner_forgets_each_result_once_handed_over():
                 assert sum(r() is not None for r in seen) <= 1, "results of the pass are still held"
 
 
+def test_embedded_runner_takes_its_arguments_as_it_submits_them():
+    # the engine's passes hand a generator of arguments (each block's slice of the nodal
+    # field made on demand): the pool takes a window ahead, not the whole pass at once
+    from chunkdic.scheduler import WINDOW
+
+    taken = []
+
+    def args():
+        for i in range(200):
+            taken.append(i)
+            yield (i, 2)
+
+    with open_runner(None) as runner:
+        results = runner.map_unordered(pow, args())
+        first = next(results)
+        assert len(taken) <= 2 * WINDOW * runner.n_workers, len(taken)  # the window and its refill
+        assert sorted([first, *results]) == [i**2 for i in range(200)]
+
+
 def test_scan_commands_run_on_a_local_cluster_with_progress(tmp_path, capsys):
     """synth, pyramid and ingest with --scheduler local:2: same voxels as the analytic
     texture / numpy sums / the source, and progress lines from the distributed futures."""
