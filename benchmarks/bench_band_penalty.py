@@ -8,7 +8,8 @@ Usage::
         --options '{"smoothing": 1.5, "roi": "2:98,2:98,2:98"}'
 
 ``capture`` correlates the issue-20 pairs of ``bench_vs_aldvc.py`` (100³, seed 1, the
-``--workdir`` of that script: ``PAIRDIR/<case>-100-<specimen>-uint16-n0.02-s1``) with the
+``--workdir`` of that script: ``PAIRDIR/<case>-100-<specimen>-uint16-n0.02-s1``, with
+``--offset N`` the ``--feature-offset N`` pairs, suffix ``-offN``) with the
 defaults at ℓ = 8 up to the automatic length choice and stores what the choice sees:
 the half stencil of ``M``, the field ``a``, ``b``, ``κ σ_r²``, the chosen length and
 weight, the node axes (level 0) and the true field.
@@ -81,8 +82,9 @@ def capture(args) -> None:
     work.mkdir(parents=True, exist_ok=True)
     for case in args.cases:
         for specimen in SPECIMENS:
-            pair = Path(args.pairs) / f"{case}-100-{specimen}-uint16-n0.02-s1"
-            out = work / f"{case}-{specimen}.npz"
+            tag = f"-off{args.offset:g}" if args.offset else ""
+            pair = Path(args.pairs) / f"{case}-100-{specimen}-uint16-n0.02-s1{tag}"
+            out = work / f"{case}-{specimen}{tag}.npz"
             if out.exists():
                 continue
             original = steps.choose_regularization
@@ -364,6 +366,8 @@ def main() -> None:
     c.add_argument("--workdir", required=True)
     c.add_argument("--pairs", required=True, help="bench_vs_aldvc.py's workdir holding the 100^3 seed-1 pairs")
     c.add_argument("--cases", nargs="+", default=list(CASES), choices=CASES)
+    c.add_argument("--offset", type=float, default=0.0,
+                   help="the pairs of bench_vs_aldvc.py --feature-offset (directory suffix -offN)")
     e = sub.add_parser("evaluate")
     e.add_argument("--workdir", required=True)
     e.add_argument("--cases", nargs="+", default=None, help="e.g. band-grains slip-concrete (default: all captured)")
