@@ -1,0 +1,206 @@
+"""A whole-specimen workflow as a user runs it, stage by stage: time, memory, bytes, error.
+
+Runs the CLI (the embedded default scheduler unless ``--scheduler``) on an existing
+synthetic pair (``chunkdic synth``: its ``field.json`` holds the known field) and prints,
+per stage — ``correlate --plan``, ``correlate``, ``strain``, ``report``, ``export``
+(VTU, node CSV, OME-NGFF fields) — the wall time, the peak resident memory of the stage's
+process (``ru_maxrss`` from ``wait4``: the largest of the process and its waited
+children), what it asked of the file system (``read_chars`` / ``write_chars``, page-cache
+hits included, sampled every 0.5 s by psutil) and what reached the disk (``ru_inblock`` /
+``ru_oublock`` × 512 B). After the correlation: the end-to-end rate in Mvoxel of ROI per
+second per core, the rate per Gauss–Newton pass on the finest level (from the run's
+event log), and the field's error against the truth by the project's scoring rule (the
+field trilinear between the nodes, as a viewer shows it, RMS of the vector error over
+voxels at least ``ell`` from the faces), evaluated at ``--points`` random voxel centres
+of that region, since every voxel of a 2048³ scan would be 8.6 G evaluations.
+
+Usage (issue 21's headline run, docs/distributed.md)::
+
+    chunkdic synth /big/grains2048 --shape 2048 --specimen grains --imaging local \\
+        --field band --strain -0.05 --noise 0.02 --dtype uint16
+    python benchmarks/bench_stages.py /big/grains2048 -l 16 --level 0 --workdir /big/run \\
+        --record benchmarks/records/bench_stages_2048.json
+
+The pair is read, never written; outputs go to ``--workdir`` (kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+GiB = 1024**3
+
+
+class IoSampler:
+    """Peak of ``read_chars``/``write_chars`` and RSS over a process tree, every ``interval`` s."""
+
+    def __init__(self, pid: int, interval: float = 0.5):
+        import psutil
+
+        self.proc = psutil.Process(pid)
+        self.interval = interval
+        self.io: dict[int, tuple[int, int]] = {}
+        self.peak_tree_rss = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _loop(self) -> None:
+        import psutil
+
+        while not self._stop.is_set():
+            try:
+                procs = [self.proc, *self.proc.children(recursive=True)]
+            except psutil.Error:
+                return
+            rss = 0
+            for p in procs:
+                try:
+                    c = p.io_counters()
+                    self.io[p.pid] = (c.read_chars, c.write_chars)
+                    rss += p.memory_info().rss
+                except psutil.Error:
+                    pass
+            self.peak_tree_rss = max(self.peak_tree_rss, rss)
+            self._stop.wait(self.interval)
+
+    def stop(self) -> dict:
+        self._stop.set()
+        self._thread.join()
+        return {"read_chars": sum(r for r, _ in self.io.values()),
+                "write_chars": sum(w for _, w in self.io.values()),
+                "peak_tree_rss": self.peak_tree_rss}
+
+
+def run_stage(name: str, args: list[str], log: Path) -> dict:
+    """Run ``python -m chunkdic ARGS``; stderr to ``log``; its figures."""
+    cmd = [sys.executable, "-m", "chunkdic", *args]
+    print(f"## {name}: {' '.join(args)}", flush=True)
+    t0 = time.perf_counter()
+    with open(log, "w") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
+        sampler = IoSampler(proc.pid)
+        _, status, ru = os.wait4(proc.pid, 0)
+        wall = time.perf_counter() - t0
+        io = sampler.stop()
+        out = proc.stdout.read()
+        proc.returncode = os.waitstatus_to_exitcode(status)
+    row = {"stage": name, "args": args, "exit": proc.returncode, "wall_s": wall,
+           "peak_rss_gib": ru.ru_maxrss * 1024 / GiB, "peak_tree_rss_gib": io["peak_tree_rss"] / GiB,
+           "read_chars_gb": io["read_chars"] / 1e9, "write_chars_gb": io["write_chars"] / 1e9,
+           "disk_read_gb": ru.ru_inblock * 512 / 1e9, "disk_write_gb": ru.ru_oublock * 512 / 1e9,
+           "user_s": ru.ru_utime, "sys_s": ru.ru_stime, "stdout": out.strip()[-2000:], "log": str(log)}
+    print(f"   exit {row['exit']}  {wall:8.1f} s  peak {row['peak_rss_gib']:.2f} GiB  "
+          f"read {row['read_chars_gb']:.1f} GB ({row['disk_read_gb']:.1f} from disk)  "
+          f"written {row['write_chars_gb']:.1f} GB ({row['disk_write_gb']:.1f} to disk)  "
+          f"cpu {ru.ru_utime + ru.ru_stime:.0f} s", flush=True)
+    return row
+
+
+def pass_seconds(log: Path, level: int) -> list[float]:
+    """Seconds of each Gauss–Newton pass of ``level``, as the run's progress lines print them."""
+    pat = re.compile(rf"^level {level} iter\s+\d+: .*\((\d+(?:\.\d+)?) s\)")
+    return [float(m.group(1)) for m in map(pat.match, log.read_text().splitlines()) if m]
+
+
+def field_error(result_path: Path, pair: Path, ell: float, n_points: int, seed: int = 0) -> dict:
+    """Between-node error (trilinear on the node grid) at random voxel centres ≥ ell from the faces."""
+    import numpy as np
+    from scipy.interpolate import RegularGridInterpolator
+
+    import chunkdic
+    from chunkdic.analysis.scoring import score_displacement
+    from chunkdic.synth.synthetic import load_field, load_metadata
+
+    res = chunkdic.open_result(result_path)
+    field = load_field(pair)
+    shape = tuple(load_metadata(pair)["shape"])
+    f = 2.0**res.level
+    axes = [np.unique(f * res.node_coords[i] + (f - 1) / 2) for i in range(3)]  # level-0 voxels
+    lo = [max(a[0], ell - 0.5) for a in axes]
+    hi = [min(a[-1], n - 0.5 - ell) for a, n in zip(axes, shape)]
+    rng = np.random.default_rng(seed)
+    pts = np.stack([rng.integers(int(np.ceil(a)), int(np.floor(b)) + 1, n_points) for a, b in zip(lo, hi)])
+    u = np.stack([RegularGridInterpolator(axes, f * res.displacement[i], method="linear")(pts.T)
+                  for i in range(3)])
+    truth = field.displacement(*pts.astype(float))
+    s = score_displacement(pts, u, truth, shape, ell)
+    out = s.as_dict()
+    out["points_drawn"] = n_points
+    out["truth_range"] = [float(np.ptp(t)) for t in truth]
+    return out
+
+
+def main(argv=None) -> dict:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("pair", type=Path, help="synthetic pair directory (ref.zarr, def.zarr, field.json)")
+    p.add_argument("-l", "--element-size", type=int, default=16)
+    p.add_argument("--level", type=int, default=0)
+    p.add_argument("--workdir", type=Path, required=True)
+    p.add_argument("--scheduler", default=None)
+    p.add_argument("--points", type=int, default=2_000_000, help="voxels drawn for the field error")
+    p.add_argument("--skip", nargs="*", default=[], choices=["plan", "strain", "report", "export"])
+    p.add_argument("--record", type=Path)
+    a = p.parse_args(argv)
+
+    import psutil
+
+    a.workdir.mkdir(parents=True, exist_ok=True)
+    res = a.workdir / f"result_l{a.element_size}_level{a.level}.zarr"
+    sched = ["--scheduler", a.scheduler] if a.scheduler else []
+    corr = ["correlate", str(a.pair / "ref.zarr"), str(a.pair / "def.zarr"), "-o", str(res),
+            "-l", str(a.element_size), "--level", str(a.level), *sched]
+    git = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                         cwd=Path(__file__).parent).stdout.strip()
+    record = {"meta": {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": git, "cores": os.cpu_count(),
+                       "ram_gib": psutil.virtual_memory().total / GiB, "argv": sys.argv[1:],
+                       "load_start": os.getloadavg()}, "stages": []}
+    if "plan" not in a.skip:
+        record["stages"].append(run_stage("plan", [*corr, "--plan"], a.workdir / "plan.log"))
+        print(record["stages"][-1]["stdout"] or (a.workdir / "plan.log").read_text()[-3000:])
+    record["stages"].append(run_stage("correlate", corr, a.workdir / "correlate.log"))
+    if "strain" not in a.skip:
+        record["stages"].append(run_stage("strain", ["strain", str(res)], a.workdir / "strain.log"))
+    if "report" not in a.skip:
+        record["stages"].append(run_stage("report", ["report", str(res), "-o", str(a.workdir / "report"),
+                                                     "--overwrite"], a.workdir / "report.log"))
+    if "export" not in a.skip:
+        record["stages"].append(run_stage("export", [
+            "export", str(res), "--vtk", str(a.workdir / "field.vtu"), "--csv", str(a.workdir / "nodes.csv"),
+            "--fields", str(a.workdir / "fields.zarr"), "--overwrite", *sched], a.workdir / "export.log"))
+    record["meta"]["load_end"] = os.getloadavg()
+
+    import chunkdic
+
+    r = chunkdic.open_result(res)
+    roi = r.info.get("roi_level0")
+    roi_voxels = int(__import__("numpy").prod([b - a for a, b in roi])) if roi else None
+    c = next(s for s in record["stages"] if s["stage"] == "correlate")
+    record["correlate"] = {"status": r.info.get("status"), "converged": r.converged, "roi_level0": roi,
+                           "nodes": int(r.displacement[0].size), "regularization": r.info.get("regularization"),
+                           "iterations": {int(lv): int((r.history["level"] == lv).sum()) for lv in set(r.history["level"])},
+                           "mvoxel_per_s_per_core": roi_voxels / c["wall_s"] / (os.cpu_count() or 1) / 1e6
+                           if roi_voxels else None}
+    passes = pass_seconds(a.workdir / "correlate.log", a.level)
+    if passes and roi_voxels:
+        med = sorted(passes)[len(passes) // 2]
+        record["correlate"].update(pass_seconds=passes, pass_median_s=med,
+                                   pass_mvoxel_per_s_per_core=roi_voxels / med / (os.cpu_count() or 1) / 1e6)
+    record["error"] = field_error(res, a.pair, a.element_size * 2**a.level, a.points)
+    print(json.dumps({"correlate": record["correlate"], "error": record["error"]}, indent=1, default=str))
+    if a.record:
+        a.record.write_text(json.dumps(record, indent=1, default=str))
+        print(f"record: {a.record}")
+    return record
+
+
+if __name__ == "__main__":
+    main()
