@@ -19,7 +19,7 @@ Usage (issue 21's headline run, docs/distributed.md)::
     chunkdic synth /big/grains2048 --shape 2048 --specimen grains --imaging local \\
         --field band --strain -0.05 --noise 0.02 --dtype uint16
     python benchmarks/bench_stages.py /big/grains2048 -l 16 --level 0 --workdir /big/run \\
-        --record benchmarks/records/bench_stages_2048.json
+        --fields-level 2 --record benchmarks/records/bench_stages_2048.json
 
 The pair is read, never written; outputs go to ``--workdir`` (kept).
 """
@@ -146,6 +146,8 @@ def main(argv=None) -> dict:
     p.add_argument("--level", type=int, default=0)
     p.add_argument("--workdir", type=Path, required=True)
     p.add_argument("--scheduler", default=None)
+    p.add_argument("--fields-level", type=int, default=0,
+                   help="grid level of the exported fields image (export --fields-level; 2 at 2048³)")
     p.add_argument("--points", type=int, default=2_000_000, help="voxels drawn for the field error")
     p.add_argument("--skip", nargs="*", default=[], choices=["plan", "strain", "report", "export"])
     p.add_argument("--record", type=Path)
@@ -175,7 +177,8 @@ def main(argv=None) -> dict:
     if "export" not in a.skip:
         record["stages"].append(run_stage("export", [
             "export", str(res), "--vtk", str(a.workdir / "field.vtu"), "--csv", str(a.workdir / "nodes.csv"),
-            "--fields", str(a.workdir / "fields.zarr"), "--overwrite", *sched], a.workdir / "export.log"))
+            "--fields", str(a.workdir / f"fields_level{a.fields_level}.zarr"), "--fields-level", str(a.fields_level),
+            "--overwrite", *sched], a.workdir / "export.log"))
     record["meta"]["load_end"] = os.getloadavg()
 
     import chunkdic
