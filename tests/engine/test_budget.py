@@ -34,7 +34,13 @@ RUN = textwrap.dedent("""
     res = chunkdic.correlate(sys.argv[1], sys.argv[2], element_size=16, memory_target=sys.argv[3] or None,
                              progress=progress)
     peak = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM")][0]
-    print(json.dumps({"peak": peak, "blocks": blocks, "status": res.info["status"]}))
+    # did the run compile a kernel (numba cache miss)? its base memory is then the cold one
+    import importlib
+    from numba.core.dispatcher import Dispatcher
+    from chunkdic.engine.budget import KERNEL_MODULES
+    compiled = sum(sum(o.stats.cache_misses.values()) for m in KERNEL_MODULES
+                   for o in vars(importlib.import_module(m)).values() if isinstance(o, Dispatcher))
+    print(json.dumps({"peak": peak, "blocks": blocks, "status": res.info["status"], "compiled": compiled}))
 """)
 
 
@@ -72,10 +78,18 @@ def test_plan_writes_nothing_and_its_memory_estimate_holds(pair, tmp_path, capsy
     assert "level 0: 8x8x8 nodes" in printed and "peak per process" in printed and "scratch" in printed
     assert "time: ~" in printed and "calibrated now" in printed
     assert not out.exists() and os.listdir(scratch) == [] and sorted(os.listdir(tmp_path)) == ["scratch"]
-    estimate = _plan(pair, scratch).process_bytes
+    plan, plan_base = _plan(pair, scratch), budget.base_bytes()
     measured = _measure(pair, scratch)
     assert measured["status"] == "converged"
-    assert abs(estimate - measured["peak"]) <= 0.25 * measured["peak"], (estimate / MiB, measured["peak"] / MiB)
+    # the plan assumes a compiling run unless every kernel of KERNEL_MODULES is cached (a
+    # safe side: kernels some runs never call keep it cold, e.g. part-way through the test
+    # suite); its model is checked for the state the measured run was in: the measured base
+    # constants (budget.BASE_BYTES, compiling; WARM_BASE_BYTES, loading) plus tasks and mesh
+    base = budget.BASE_BYTES if measured["compiled"] else budget.WARM_BASE_BYTES
+    estimate = plan.process_bytes - plan_base + base
+    assert plan_base >= base  # the plan never assumed the warm base for a run that compiled
+    assert abs(estimate - measured["peak"]) <= 0.25 * measured["peak"], (estimate / MiB, measured["peak"] / MiB,
+                                                                         measured["compiled"])
 
 
 def test_memory_target_changes_blocks_and_is_honoured(pair, tmp_path):
