@@ -656,7 +656,8 @@ def parse_args(argv=None):
                         f"comp20, rot10), all (default: {' '.join(DEFAULT_CASES)})")
     p.add_argument("--pair", action="append", default=[], metavar="DIR",
                    help="also run a synthesized pair directory (ref.zarr, def.zarr, field.json); repeatable")
-    p.add_argument("--sizes", type=int, nargs="+", default=[128], help="scan edges of the built-in cases")
+    p.add_argument("--sizes", type=int, nargs="*", default=[128],
+                   help="scan edges of the built-in cases (none: only the --pair directories)")
     p.add_argument("--spacings", type=int, nargs="+", default=[16, 12, 8],
                    help="ell: chunkdic element size, al-dvc --step ell --winsize 2ell")
     p.add_argument("--solo-spacings", type=int, nargs="+", default=[], metavar="ELL",
