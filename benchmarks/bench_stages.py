@@ -28,8 +28,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import re
+import statistics
 import subprocess
 import sys
 import threading
@@ -185,18 +187,21 @@ def main(argv=None) -> dict:
 
     r = chunkdic.open_result(res)
     roi = r.info.get("roi_level0")
-    roi_voxels = int(__import__("numpy").prod([b - a for a, b in roi])) if roi else None
+    roi_voxels = math.prod(b - a for a, b in roi) if roi else None
+
+    def mvoxel_per_s_per_core(seconds: float) -> float:
+        return roi_voxels / seconds / (os.cpu_count() or 1) / 1e6
+
     c = next(s for s in record["stages"] if s["stage"] == "correlate")
     record["correlate"] = {"status": r.info.get("status"), "converged": r.converged, "roi_level0": roi,
                            "nodes": int(r.displacement[0].size), "regularization": r.info.get("regularization"),
                            "iterations": {int(lv): int((r.history["level"] == lv).sum()) for lv in set(r.history["level"])},
-                           "mvoxel_per_s_per_core": roi_voxels / c["wall_s"] / (os.cpu_count() or 1) / 1e6
-                           if roi_voxels else None}
+                           "mvoxel_per_s_per_core": mvoxel_per_s_per_core(c["wall_s"]) if roi_voxels else None}
     passes = pass_seconds(a.workdir / "correlate.log", a.level)
-    if passes and roi_voxels:
-        med = sorted(passes)[len(passes) // 2]
+    med = statistics.median_high(passes) if passes else 0.0
+    if roi_voxels and med > 0:  # a tiny run prints its passes as "0.0 s"
         record["correlate"].update(pass_seconds=passes, pass_median_s=med,
-                                   pass_mvoxel_per_s_per_core=roi_voxels / med / (os.cpu_count() or 1) / 1e6)
+                                   pass_mvoxel_per_s_per_core=mvoxel_per_s_per_core(med))
     record["error"] = field_error(res, a.pair, a.element_size * 2**a.level, a.points)
     print(json.dumps({"correlate": record["correlate"], "error": record["error"]}, indent=1, default=str))
     if a.record:
