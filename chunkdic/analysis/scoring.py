@@ -27,6 +27,7 @@ non-uniform truth such as a compression band, bias and model error included.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -196,7 +197,8 @@ def _grid_interpolate(axes, u: np.ndarray, positions) -> np.ndarray:
     return out
 
 
-def score_between_nodes(node_axes, u, u_true, volume_shape, ell: float) -> Score:
+def score_between_nodes(node_axes, u, u_true, volume_shape, ell: float, *,
+                        slab_voxels: int = 2**21) -> Score:
     """Score a nodal field *between* its nodes: trilinear on the node grid (as a viewer shows
     it, and as the C8 basis defines it) at every voxel centre at least ``ell`` from the faces.
 
@@ -218,6 +220,9 @@ def score_between_nodes(node_axes, u, u_true, volume_shape, ell: float) -> Score
     volume_shape : tuple of 3 int
     ell : float, voxels
         Voxels nearer than ``ell`` to a face are not scored.
+    slab_voxels : int, optional
+        Voxels evaluated at once (z slabs of whole planes; at least one plane): memory
+        ~120 B per voxel, whatever the region's size. The score does not depend on it.
 
     Returns
     -------
@@ -240,8 +245,38 @@ def score_between_nodes(node_axes, u, u_true, volume_shape, ell: float) -> Score
     if min(v.size for v in vox) == 0:
         nan3 = (float("nan"),) * 3
         return Score(0, 0, outside, nan3, nan3, float("nan"), float("nan"), float("nan"))
-    field = _grid_interpolate(axes, uu, vox)
     fn = u_true.displacement if hasattr(u_true, "displacement") else u_true
-    truth = np.asarray(fn(vox[0][:, None, None], vox[1][None, :, None], vox[2][None, None, :]), np.float64)
-    pts = np.stack(np.meshgrid(*vox, indexing="ij"))
-    return replace(score_displacement(pts, field, truth, shape, ell), n_outside=outside)
+    # z slabs of at most ``slab_voxels`` voxels: a 1024³ region is 10⁹ voxels, tens of GB of
+    # float64 points, field and truth if scored at once
+    plane = vox[1].size * vox[2].size
+    step = max(1, int(slab_voxels) // plane)
+    scores = []
+    for z0 in range(0, vox[0].size, step):
+        sv = [vox[0][z0:z0 + step], vox[1], vox[2]]
+        field = _grid_interpolate(axes, uu, sv)
+        truth = np.asarray(fn(sv[0][:, None, None], sv[1][None, :, None], sv[2][None, None, :]), np.float64)
+        pts = np.stack(np.meshgrid(*sv, indexing="ij"))
+        scores.append(score_displacement(pts, field, truth, shape, ell))
+    return replace(_pooled(scores), n_outside=outside)
+
+
+def _pooled(scores: list[Score]) -> Score:
+    """One score of the union of disjoint point sets from each set's score (means, variances
+    and mean squares combined by their counts; the population variance of the union is the
+    counts' mean of each set's variance plus the spread of the sets' means)."""
+    done = [s for s in scores if s.n_points > 0]
+    failed = sum(s.n_failed for s in scores)
+    if not done:
+        nan3 = (float("nan"),) * 3
+        return Score(0, failed, 0, nan3, nan3, float("nan"), float("nan"), float("nan"))
+    n = np.array([s.n_points for s in done], np.float64)
+    bias = np.array([s.bias for s in done])
+    var = np.array([s.std for s in done]) ** 2
+    mean = (n[:, None] * bias).sum(axis=0) / n.sum()
+    pooled_var = (n[:, None] * (var + (bias - mean) ** 2)).sum(axis=0) / n.sum()
+    std = np.sqrt(pooled_var)
+    rms = math.sqrt(float((n * np.array([s.rms for s in done]) ** 2).sum() / n.sum()))
+    return Score(n_points=int(n.sum()), n_failed=failed, n_outside=0,
+                 bias=tuple(float(b) for b in mean), std=tuple(float(v) for v in std),
+                 sigma=float(np.sqrt(pooled_var.mean())), rms=rms,
+                 max_error=max(s.max_error for s in done))

@@ -121,3 +121,27 @@ def test_between_nodes_scores_every_voxel_of_the_trilinear_field():
     short = [axes[0][:3], axes[1], axes[2]]  # z nodes up to 7.5: scored z voxels 4..7 only
     s = score_between_nodes(short, np.zeros((3, 3, 6, 6)), truth, (20, 20, 20), 4)
     assert s.n_points == 4 * 144 and s.n_outside == 8 * 144
+
+
+def test_between_nodes_score_does_not_depend_on_the_slabs_it_is_evaluated_in():
+    from chunkdic.analysis.scoring import score_between_nodes
+
+    # a rough nodal field with a NaN node against a smooth truth: scored in one piece, one
+    # z plane at a time, or in slabs of a few planes, the statistics are the same numbers
+    rng = np.random.default_rng(3)
+    axes = [np.arange(7) * 5.0 - 0.5, np.arange(6) * 5.0 - 0.5, np.arange(5) * 6.0 - 0.5]
+    u = rng.normal(0.2, 0.3, (3, 7, 6, 5))
+    u[1, 3, 2, 1] = np.nan
+
+    def truth(z, y, x):
+        z, y, x = np.broadcast_arrays(z, y, x)
+        return np.stack([0.01 * z, np.sin(y / 7.0), 0.1 + 0 * x])
+
+    whole = score_between_nodes(axes, u, truth, (31, 26, 25), 3, slab_voxels=10**9)
+    assert whole.n_failed > 0 and whole.n_points > 1000
+    for slab in (1, 3 * 20 * 19, 1000):
+        s = score_between_nodes(axes, u, truth, (31, 26, 25), 3, slab_voxels=slab)
+        assert (s.n_points, s.n_failed, s.n_outside) == (whole.n_points, whole.n_failed, whole.n_outside)
+        for a, b in [(s.rms, whole.rms), (s.sigma, whole.sigma), (s.max_error, whole.max_error),
+                     *zip(s.bias, whole.bias), *zip(s.std, whole.std)]:
+            assert a == pytest.approx(b, rel=1e-10, abs=1e-14)
