@@ -57,10 +57,12 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
-import time
+import sys
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_capture.py, next to this file
 
 CASES = ("band", "slip", "wave32", "wave48", "noise")
 SPECIMENS = ("grains", "concrete")
@@ -69,14 +71,9 @@ ELL = 8
 SCORED = (13, 85)
 
 
-class _Captured(Exception):
-    pass
-
-
 def capture(args) -> None:
     import chunkdic
-    from chunkdic.engine import steps
-    from chunkdic.engine.checkpoint import resumed_pass
+    from _capture import capture_choice
 
     work = Path(args.workdir)
     work.mkdir(parents=True, exist_ok=True)
@@ -87,29 +84,16 @@ def capture(args) -> None:
             out = work / f"{case}-{specimen}{tag}.npz"
             if out.exists():
                 continue
-            original = steps.choose_regularization
 
-            def hook(lvl, state, progress, pair=pair, out=out, original=original):
-                p = resumed_pass(lvl, state)
-                a = np.moveaxis(state.u, 0, -1).copy()
-                original(lvl, state, progress)  # the engine's own choice
-                scale = 2.0**lvl.s
-                axes = [scale * x + (scale - 1) / 2 for x in lvl.mesh.node_axes()]
-                np.savez(out, half=lvl.solver.matrix, a=a, b=p.b, noise_variance=p.kappa * p.noise_variance,
-                         ell=lvl.mesh.element_size, scale=scale, length=lvl.regularization_length,
-                         weight=lvl.regularization_weight, az=axes[0], ay=axes[1], ax=axes[2],
+            def save(problem, lvl, pair=pair, out=out):
+                np.savez(out, **problem, length=lvl.regularization_length, weight=lvl.regularization_weight,
                          field=(pair / "field.json").read_text())
-                raise _Captured
 
-            steps.choose_regularization = hook
-            t0 = time.perf_counter()
-            try:
-                chunkdic.correlate(str(pair / "ref.zarr"), str(pair / "def.zarr"), element_size=ELL)
-                print(f"{case} {specimen}: no choice made", flush=True)
-            except _Captured:
-                print(f"{case} {specimen}: captured in {time.perf_counter() - t0:.1f} s", flush=True)
-            finally:
-                steps.choose_regularization = original
+            seconds = capture_choice(lambda pair=pair: chunkdic.correlate(str(pair / "ref.zarr"), str(pair / "def.zarr"),
+                                                                           element_size=ELL),
+                                     save, engine_choice=True)  # the engine's own length beside the problem
+            print(f"{case} {specimen}: " + ("no choice made" if seconds is None else f"captured in {seconds:.1f} s"),
+                  flush=True)
 
 
 def sparse_matrix(H: np.ndarray):

@@ -22,6 +22,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import resource
@@ -132,10 +133,8 @@ def child(n: int, workdir: Path, runs: int) -> dict:
     out = workdir / f"foam_{n}.zarr"
     res = {"size": n, "bytes": n**3, "make_s": make_s, "read_s": [], "ingest_s": [], "pyramid_s": [],
            "ingest_rss": [], "pyramid_rss": [], "ingest_cpu": [], "pyramid_cpu": []}
-    import dask.array  # noqa: F401  (imports out of the timings)
-    import h5py  # noqa: F401
-    import tifffile  # noqa: F401
-    import zarr  # noqa: F401
+    for module in ("dask.array", "h5py", "tifffile", "zarr"):  # imports out of the timings
+        importlib.import_module(module)
 
     from chunkdic.io.coarsen import coarsen_block
 

@@ -23,11 +23,15 @@ the error of the length each one picks, with the best candidate (the oracle) bes
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_capture.py, next to this file
 
 CASES = ("wave24", "wave32", "wave48", "wave64", "band", "slip", "shift")
 
@@ -44,13 +48,9 @@ def field_of(case: str, n: int):
     return standard_field(case, (n, n, n))[0]
 
 
-class _Captured(Exception):
-    pass
-
-
 def capture(args) -> None:
     import chunkdic
-    from chunkdic.engine import steps
+    from _capture import capture_choice
     from chunkdic.synth import synthetic
 
     work = Path(args.workdir)
@@ -67,25 +67,14 @@ def capture(args) -> None:
             if out.exists():
                 continue
 
-            def hook(lvl, state, progress, out=out):
-                p = lvl.last_pass
-                scale = 2.0**lvl.s
-                axes = [scale * a + (scale - 1) / 2 for a in lvl.mesh.node_axes()]
-                np.savez(out, half=lvl.solver.matrix, a=np.moveaxis(state.u, 0, -1), b=p.b,
-                         noise_variance=p.kappa * p.noise_variance, kappa=p.kappa, ell=lvl.mesh.element_size,
-                         scale=scale, kind=lvl.settings.regularization, n=n,
-                         field=json.dumps(fld.to_json()), az=axes[0], ay=axes[1], ax=axes[2])
-                raise _Captured
+            def save(problem, lvl, out=out):
+                np.savez(out, **problem, n=n, field=json.dumps(fld.to_json()))
 
-            saved, steps.choose_regularization = steps.choose_regularization, hook
-            t0 = time.perf_counter()
-            try:
-                chunkdic.correlate(str(pair_dir / "ref.zarr"), str(pair_dir / "def.zarr"), element_size=ell)
-                print(f"{case} {ell}: no choice made (not converged before the choice?)", flush=True)
-            except _Captured:
-                print(f"{case} {ell}: captured in {time.perf_counter() - t0:.1f} s", flush=True)
-            finally:
-                steps.choose_regularization = saved
+            seconds = capture_choice(lambda ell=ell: chunkdic.correlate(str(pair_dir / "ref.zarr"),
+                                                                         str(pair_dir / "def.zarr"), element_size=ell),
+                                     save)
+            print(f"{case} {ell}: " + ("no choice made (not converged before the choice?)" if seconds is None
+                                       else f"captured in {seconds:.1f} s"), flush=True)
 
 
 def evaluate_one(path: Path) -> dict:
@@ -94,7 +83,7 @@ def evaluate_one(path: Path) -> dict:
     from chunkdic.solve.cg import StencilSolver
     from chunkdic.solve.regularization import Regularizer, plane_wave_weight
     from chunkdic.solve.stencil import stencil_matvec
-    from chunkdic.synth import shear  # noqa: F401  (registers wave and slip)
+    importlib.import_module("chunkdic.synth.shear")  # registers the wave and slip fields
     from chunkdic.synth.fields import Field
 
     d = np.load(path)

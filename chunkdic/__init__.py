@@ -8,9 +8,11 @@ docs/architecture.md.
 # Public names, imported on first use (PEP 562 through lazy_loader, as scikit-image does) so
 # that ``import chunkdic`` stays light: numba, distributed and zarr load only when needed.
 # ``__init__.pyi`` is the one list of them, with the module each comes from.
+import importlib as _importlib
+
 import lazy_loader as _lazy
 
-from . import config as _config  # noqa: F401  (registers the chunkdic.* dask.config defaults)
+_importlib.import_module(f"{__name__}.config")  # registers the chunkdic.* dask.config defaults
 
 __getattr__, _, _lazy_all = _lazy.attach_stub(__name__, __file__)
 

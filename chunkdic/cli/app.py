@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.events import EXPLAIN
 from ..errors import InputError, WorkerLostError
 from ..scheduler import SCHEDULER_HELP
 from .common import (
-    EXPLAIN,
     add_engine_options,
     add_length_options,
     engine_options,

@@ -9,7 +9,7 @@ import math
 import sys
 import time
 
-from ..engine.events import EXPLAIN, EventText  # noqa: F401  (EXPLAIN: app's summary)
+from ..engine.events import EventText
 
 
 def say(msg: str) -> None:

@@ -16,7 +16,9 @@ def register(subparsers) -> None:
         description="Open chunkdic outputs in a napari window, in the scan's physical units: the reference scan "
                     "(multiscale), the nodal displacement as vectors coloured by |U|, |U|, eps_zz, eps_eq and the "
                     "residual from an export --fields image (given with --fields, or found beside the result), "
-                    "the specimen mask as labels; a loading series with a time axis t (scan index). The same "
+                    "the specimen mask as labels, the nodes flagged weak (poorly textured, regularised or not "
+                    "settled at the noise level) as points, their count in the layer's name; a loading series "
+                    "with a time axis t (scan index). The same "
                     "layers open with 'napari RESULT' once chunkdic is installed (its npe2 reader). Exit 2 when "
                     "napari, a Qt binding or a display is missing.")
     p.add_argument("paths", nargs="+", metavar="PATH", help="result, series or fields image (Zarr groups)")

@@ -287,7 +287,8 @@ def chunk_is_complete(arr, coords) -> bool:
     path = None if root is None else os.path.join(str(root), arr.path, key)
     if path is None or not os.path.isfile(path):
         return False
-    if _last_codec_is_blosc(arr) and not blosc_frame_is_whole(path, _chunk_nbytes(arr)):
+    nbytes = blosc_frame_bytes(arr)
+    if nbytes is not None and not blosc_frame_is_whole(path, nbytes):
         return False
     region = tuple(slice(c * e, min((c + 1) * e, n)) for c, e, n in zip(coords, arr.chunks, arr.shape))
     try:
@@ -310,27 +311,54 @@ def blosc_frame_is_whole(path: str, nbytes: int) -> bool:
     bytes whatever the buffer's length (numcodecs issue #228; c-blosc2 issue #40: "you
     cannot trust the output of blosc_cbuffer_sizes(), but you can trust your buffer.len").
     """
-    size = os.path.getsize(path)
-    with open(path, "rb") as fh:
-        head = fh.read(BLOSC_HEADER)
+    return blosc_frame_fault(path, os.path.getsize(path), nbytes) is None
+
+
+def blosc_frame_fault(path: str, size: int, nbytes: int) -> str | None:
+    """What is wrong with the file ``path`` of ``size`` bytes as one Blosc 1 frame of
+    ``nbytes`` decoded bytes (a few words), or None when its header matches both.
+
+    Reads the frame header only (:data:`BLOSC_HEADER` bytes): the header's ``cbytes`` against
+    the file's size (a cut-short or overlong file) and its ``nbytes`` against the chunk's
+    (a frame of another chunk shape or dtype).
+    """
+    fd = os.open(path, os.O_RDONLY)  # no buffered file object: the header check runs on every chunk file
+    try:
+        head = os.pread(fd, BLOSC_HEADER, 0)
+    finally:
+        os.close(fd)
     if len(head) < BLOSC_HEADER:
-        return False
+        return f"holds {len(head)} bytes, less than a Blosc frame header ({BLOSC_HEADER})"
     frame_nbytes = int.from_bytes(head[4:8], "little")
     cbytes = int.from_bytes(head[12:16], "little")
-    return cbytes == size and frame_nbytes == nbytes
+    if cbytes != size:
+        return f"holds {size} bytes where its Blosc frame header announces {cbytes}"
+    if frame_nbytes != nbytes:
+        return f"is a Blosc frame of {frame_nbytes} decoded bytes where a chunk holds {nbytes}"
+    return None
 
 
-def _last_codec_is_blosc(arr) -> bool:
-    """Whether a chunk file of ``arr`` is one Blosc frame (Zarr v3, Blosc the outermost codec)."""
+def blosc_frame_bytes(arr) -> int | None:
+    """Decoded bytes of one chunk when every chunk file of the Zarr array ``arr`` is one whole
+    Blosc 1 frame of a whole chunk, else None (no frame to check).
+
+    Zarr v3: Blosc the outermost codec with no other bytes-to-bytes codec before it (those
+    change the length), not sharded (a shard file is an index and inner chunks, a sharding
+    codec the outermost); v2: the Blosc compressor without filters. Edge chunks are stored
+    at the full chunk shape in both.
+    """
+    import numcodecs
+    from zarr.abc.codec import BytesBytesCodec
     from zarr.codecs import BloscCodec
 
-    codecs = tuple(getattr(arr.metadata, "codecs", ()) or ())
-    return bool(codecs) and isinstance(codecs[-1], BloscCodec)
-
-
-def _chunk_nbytes(arr) -> int:
-    """Decoded bytes of one chunk (edge chunks are stored at the full chunk shape)."""
-    return int(np.prod(arr.chunks)) * np.dtype(arr.dtype).itemsize
+    meta = arr.metadata
+    if meta.zarr_format == 2:
+        blosc = isinstance(meta.compressor, numcodecs.Blosc) and not meta.filters
+    else:
+        codecs = tuple(getattr(meta, "codecs", ()) or ())
+        blosc = (bool(codecs) and isinstance(codecs[-1], BloscCodec)
+                 and not any(isinstance(c, BytesBytesCodec) for c in codecs[:-1]))
+    return int(np.prod(arr.chunks)) * np.dtype(arr.dtype).itemsize if blosc else None
 
 
 def _block_complete(arr, dask_chunks, idx, unit) -> bool:

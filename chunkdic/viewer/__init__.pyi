@@ -6,5 +6,6 @@ from .layers import (
     layers_of,
     result_layers,
     series_layers,
+    weak_layer,
 )
 from .reader import napari_get_reader

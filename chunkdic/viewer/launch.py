@@ -8,6 +8,7 @@ Qt binding is, and (on Linux) that there is a display, and refuses in one line o
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 
@@ -27,7 +28,7 @@ def check_napari():
         raise InputError(f"napari is not installed: {INSTALL}, or read the layers headless with "
                          "chunkdic.viewer.layers_of") from None
     try:
-        import qtpy  # noqa: F401 - napari's windows need a Qt binding
+        importlib.import_module("qtpy")  # napari's windows need a Qt binding
     except Exception:  # noqa: BLE001 - qtpy raises its own error when no binding is found
         raise InputError(f"napari has no Qt binding to open a window: {INSTALL} (it brings PyQt5)") from None
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):

@@ -26,7 +26,11 @@ Layers of a **result** (bottom to top, napari draws later layers on top):
 - ``displacement`` (Vectors): the nodal field, sub-sampled by a stride per axis to at
   most :data:`MAX_VECTORS` nodes, coloured by ``|U|`` (feature ``|U|``, in the scan's unit
   with a voxel size), drawn with a length factor (``metadata["length"]``) that makes the
-  longest vector 0.8 of the shown node spacing (sub-voxel fields are invisible at scale 1).
+  longest vector 0.8 of the shown node spacing (sub-voxel fields are invisible at scale 1);
+- ``weak nodes (k)`` (Points): the ``k`` nodes the engine flagged weak (``FLAG_WEAK`` of
+  :attr:`chunkdic.results.result.Result.flags`: poorly textured, regularised, or not settled
+  at the noise level; the flag the VTU and CSV exports carry), at their level-0 positions;
+  no layer when no node is flagged.
 
 A **loading series** adds a leading time axis ``t`` = scan index (0 the reference): the
 scans stacked (when they share a shape; else the reference alone), the cumulative fields
@@ -49,16 +53,19 @@ from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.scan import open_scan
 from ..mesh import level0_position
+from ..results.result import FLAG_WEAK
 from ..results.scans import as_result, input_scan
 from ..views.fields import CHANNELS, open_levels
 from ..views.images import scan_frame
 
-__all__ = ["layers_of", "result_layers", "series_layers", "fields_layers", "find_fields", "MAX_VECTORS"]
+__all__ = ["layers_of", "result_layers", "series_layers", "fields_layers", "find_fields", "weak_layer", "MAX_VECTORS"]
 
 #: the most displacement vectors one layer shows per time step (a stride per axis keeps it under)
 MAX_VECTORS = 4000
 #: the longest vector is drawn this fraction of the shown node spacing
 VECTOR_FILL = 0.8
+#: a weak node's marker: this fraction of the element edge across (level-0 voxels)
+WEAK_MARKER = 0.4
 #: channels of a fields image shown as layers (Uz, Uy, Ux are the vectors)
 FIELD_LAYERS = ("|U|", "eps_zz", "eps_eq", "residual")
 _COLORMAPS = {"|U|": "viridis", "eps_zz": "bwr", "eps_eq": "magma", "residual": "gray"}
@@ -140,7 +147,7 @@ def layers_of(path, *, fields=None, scan: bool = True, max_vectors: int = MAX_VE
 
 
 def result_layers(result, *, fields=None, scan: bool = True, max_vectors: int = MAX_VECTORS) -> list[Layer]:
-    """Layers of one result (module docstring): reference, fields, mask, displacement.
+    """Layers of one result (module docstring): reference, fields, mask, displacement, weak nodes.
 
     Parameters
     ----------
@@ -162,6 +169,9 @@ def result_layers(result, *, fields=None, scan: bool = True, max_vectors: int = 
     if mask is not None:
         out.append(mask)
     out.append(vector_layer([res], frame, max_vectors))
+    weak = weak_layer([res], frame)
+    if weak is not None:
+        out.append(weak)
     return out
 
 
@@ -433,6 +443,61 @@ def vector_layer(results, frame: Frame, max_vectors: int = MAX_VECTORS) -> Layer
     return data, kw, "vectors"
 
 
+# --------------------------------------------------------------------------- weak nodes
+
+
+def weak_layer(results, frame: Frame) -> Layer | None:
+    """The nodes flagged weak (:data:`chunkdic.results.result.FLAG_WEAK`) of one result (3-D)
+    or of the steps of a series (4-D, ``t`` = step ``1..n``) as napari Points; None when no
+    node is flagged (or the results carry no flags).
+
+    A weak node's value is regularised or not settled at the noise level: the points say
+    where the field is the regulariser's rather than the scans' (what the VTU and CSV
+    exports' ``flags`` say, shown on the scan). Positions are level-0 voxels, placed in the
+    frame like every layer; the name carries the count (``weak nodes (12)``; a series: the
+    most on any step), the features the node index and its flag bits (napari's status bar
+    and tooltip show them for the point under the cursor).
+
+    Parameters
+    ----------
+    results : list of Result
+        One result, or the cumulative steps of a series (one mesh).
+    frame : Frame
+
+    Returns
+    -------
+    (data, kwargs, "points") or None
+        ``data`` shape ``(k, 3)`` (``(k, 4)`` with ``t`` first for a series), float32,
+        level-0 voxels.
+    """
+    time = len(results) > 1
+    rows, index, bits, counts = [], [], [], []
+    for t, r in enumerate(results, start=1):
+        flags = np.zeros(r.displacement.shape[1:], np.uint8) if r.flags is None else np.asarray(r.flags)
+        nodes = np.nonzero(flags & FLAG_WEAK)
+        X = level0_position(r.node_coords[(slice(None), *nodes)], 2.0**r.level).T  # (k, 3)
+        if time:
+            X = np.column_stack([np.full(len(X), float(t)), X])
+        rows.append(X)
+        index.append(np.column_stack(nodes))
+        bits.append(flags[nodes])
+        counts.append(len(X))
+    if not any(counts):
+        return None
+    index = np.concatenate(index).astype(np.int32)
+    res = results[0]
+    size = WEAK_MARKER * res.mesh.element_size * 2.0**res.level
+    name = f"weak nodes ({counts[0]})" if not time else f"weak nodes (up to {max(counts)} per step)"
+    kw = {"name": name, "symbol": "x", "size": float(size), "face_color": "orangered", "opacity": 0.9,
+          "out_of_slice_display": True,  # nodes sit half a voxel off the voxel planes a slice shows
+          "features": {"iz": index[:, 0], "iy": index[:, 1], "ix": index[:, 2],
+                       "flags": np.concatenate(bits).astype(np.int32)},
+          "metadata": {"count": counts[0] if not time else counts, "flag": FLAG_WEAK,
+                       "meaning": "weak node: poorly textured, regularised, or not settled at the noise level"},
+          **frame.kwargs(time=time)}
+    return np.concatenate(rows).astype(np.float32), kw, "points"
+
+
 # --------------------------------------------------------------------------- a series
 
 
@@ -460,6 +525,9 @@ def series_layers(path, *, scan: bool = True, max_vectors: int = MAX_VECTORS) ->
     if mask is not None:
         out.append(mask)
     out.append(vector_layer(groups[0], frame, max_vectors))
+    weak = weak_layer(groups[0], frame)
+    if weak is not None:
+        out.append(weak)
     for _, kw, _ in out:
         kw.setdefault("metadata", {})["series"] = str(path)
     return out

@@ -9,6 +9,7 @@ Qt), and every layer it returns is built by napari's layer classes.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import tomllib
 from pathlib import Path
@@ -18,8 +19,9 @@ import pytest
 
 import chunkdic
 from chunkdic.cli.app import main
+from chunkdic.results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK
 from chunkdic.synth import synthetic
-from chunkdic.viewer.layers import layers_of, stride
+from chunkdic.viewer.layers import Frame, layers_of, result_layers, stride, weak_layer
 from chunkdic.viewer.reader import napari_get_reader
 from chunkdic.views.fields import CHANNELS, open_levels, write_fields
 
@@ -129,6 +131,45 @@ def test_series_has_a_time_axis(made):
     assert data.shape == (250, 2, 4) and sorted(set(data[:, 0, 0])) == [1.0, 2.0] and not data[:, 1, 0].any()
     at2 = data[data[:, 0, 0] == 2]
     assert np.allclose(at2[:, 1, 1:], s.cumulative[2].displacement.reshape(3, -1).T, atol=1e-5)
+
+
+def test_weak_nodes_are_points_at_their_nodes(made):
+    """k nodes flagged weak: one Points layer (top) of k points at the nodes' level-0 positions
+    o + i ℓ - 1/2 = 3.5 + 8 i voxels (ROI 4:36, ℓ = 8), 6.5 µm per voxel through napari's
+    scale; the count in its name. A weak node with no data is still weak; no-data and
+    masked nodes alone are not; no weak node, no layer."""
+    res = made["res"]
+    flags = np.zeros(res.displacement.shape[1:], np.uint8)
+    weak = [(0, 0, 0), (1, 3, 4), (4, 2, 1)]
+    for node in weak:
+        flags[node] = FLAG_WEAK
+    flags[4, 2, 1] |= FLAG_NO_DATA
+    flags[2, 2, 2], flags[3, 3, 3] = FLAG_NO_DATA, FLAG_MASKED
+    layers = result_layers(dataclasses.replace(res, flags=flags), scan=False)
+    data, kw, kind = layers[-1]
+    assert (kw["name"], kind) == ("weak nodes (3)", "points") and kw["metadata"]["count"] == 3
+    assert np.array_equal(data, [[3.5, 3.5, 3.5], [11.5, 27.5, 35.5], [35.5, 19.5, 11.5]])
+    assert kw["scale"] == [VOXEL] * 3 and kw["translate"] == [0.0] * 3
+    assert kw["features"]["flags"].tolist() == [2, 2, 3]
+    assert [kw["features"][a].tolist() for a in ("iz", "iy", "ix")] == [list(c) for c in zip(*weak)]
+    none = result_layers(dataclasses.replace(res, flags=np.zeros_like(flags)), scan=False)
+    assert [kw["name"] for _, kw, _ in none] == [kw["name"] for _, kw, _ in layers[:-1]]
+    assert weak_layer([dataclasses.replace(res, flags=None)], Frame((1.0,) * 3, (0.0,) * 3, None)) is None
+
+    # a series: t = step, the count per step in the metadata, the most in the name
+    two = dataclasses.replace(res, flags=np.where(flags == FLAG_WEAK, flags, 0).astype(np.uint8))
+    data, kw, _ = weak_layer([two, dataclasses.replace(res, flags=np.zeros_like(flags))],
+                             Frame((2.0,) * 3, (1.0, 0.0, 0.0), "millimeter"))
+    assert kw["name"] == "weak nodes (up to 2 per step)" and kw["metadata"]["count"] == [2, 0]
+    assert np.array_equal(data, [[1, 3.5, 3.5, 3.5], [1, 11.5, 27.5, 35.5]])
+    assert kw["scale"] == [1.0, 2.0, 2.0, 2.0] and kw["translate"] == [0.0, 1.0, 0.0, 0.0]
+
+    pytest.importorskip("napari")
+    from napari.layers import Layer
+
+    data, kw, kind = layers[-1]
+    layer = Layer.create(data, kw, kind)
+    assert len(layer.data) == 3 and np.allclose(layer.data_to_world(layer.data[1]), VOXEL * np.array([11.5, 27.5, 35.5]))
 
 
 def test_npe2_finds_the_reader_headless_and_napari_builds_every_layer(made):
