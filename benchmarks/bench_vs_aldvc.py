@@ -351,7 +351,7 @@ def _to_grid(points, u, valid=None):
     return axes, grid
 
 
-def _between(points, u, case: Case, ell: int) -> dict:
+def _between(points, u, case: Case, ell: int, sample: int | None = None) -> dict:
     """The field between the points (issue 20's rule, the same for both tools): trilinear on
     the tool's node grid at every voxel at least ``ell`` from the faces
     (:func:`chunkdic.analysis.scoring.score_between_nodes`); RMS of the vector error, sigma
@@ -364,7 +364,7 @@ def _between(points, u, case: Case, ell: int) -> dict:
     axes, grid = _to_grid(points, u)
     if grid.size != np.asarray(u).size:  # not a full regular grid: no between-node score
         return {"between_error": "points are not a full regular grid"}
-    s = score_between_nodes(axes, grid, case.field, case.shape, ell)
+    s = score_between_nodes(axes, grid, case.field, case.shape, ell, sample=sample)
     return {"rms": s.rms, "sigma": s.sigma, "bias": list(s.bias), "max_error": s.max_error,
             "n_points": s.n_points, "n_voxels_outside_hull": s.n_outside}
 
@@ -385,7 +385,7 @@ def _crop_grid(axes, grid, hull):
     return new, out
 
 
-def between_common(fields: dict, case: Case, ell: int) -> dict:
+def between_common(fields: dict, case: Case, ell: int, sample: int | None = None) -> dict:
     """Each tool's field between its nodes on the *same* voxels: every voxel at least ``ell``
     from the faces and inside every tool's node hull (al-dvc's first and last nodes sit about
     ``2 ell`` from the faces, chunkdic's half a voxel outside its ROI). ``fields``: tool ->
@@ -405,11 +405,11 @@ def between_common(fields: dict, case: Case, ell: int) -> dict:
 
     out = {}
     for t, (axes, grid) in grids.items():
-        s = score_between_nodes(*_crop_grid(axes, grid, hull), case.field, case.shape, ell)
+        s = score_between_nodes(*_crop_grid(axes, grid, hull), case.field, case.shape, ell, sample=sample)
         # the grid's own floor: the exact field at this tool's nodes, trilinear between them
         pts = fields[t][0]
         exact = _to_grid(pts, true_displacement(case.field, pts[0], pts[1], pts[2]))
-        f = score_between_nodes(*_crop_grid(*exact, hull), case.field, case.shape, ell)
+        f = score_between_nodes(*_crop_grid(*exact, hull), case.field, case.shape, ell, sample=sample)
         out[t] = {"rms_common": s.rms, "sigma_common": s.sigma, "max_error_common": s.max_error,
                   "n_points_common": s.n_points, "common_hull": [list(h) for h in hull],
                   "floor_common": f.rms}
@@ -491,7 +491,7 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_
         c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout, args.options)
         pts, uc = c.pop("points", None), c.pop("u", None)
         score = _score(pts, uc, None, case, ell)
-        runs["chunkdic"].append({**c, **score, **_nodal(score), **_between(pts, uc, case, ell),
+        runs["chunkdic"].append({**c, **score, **_nodal(score), **_between(pts, uc, case, ell, args.points),
                                  **_star(pts, uc, None, case, ell)})
         if not peer_too:
             continue
@@ -503,10 +503,10 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_
         info = {k: v for k, v in a.info.items() if k not in ("para", "command")}
         runs["al-dvc"].append({"status": a.status, "wall": a.pipeline_seconds, "proc": a.wall,
                                "peak_rss_mb": a.peak_rss_mb, **score, **_nodal(score),
-                               **_between(a.points, a.u, case, ell), **_star(a.points, a.u, a.valid, case, ell),
+                               **_between(a.points, a.u, case, ell, args.points), **_star(a.points, a.u, a.valid, case, ell),
                                "rms_all_nodes": every.get("rms"), "sigma_all_nodes": every.get("sigma"),
                                "info": info})
-        common = between_common({"chunkdic": (pts, uc), "al-dvc": (a.points, a.u)}, case, ell)
+        common = between_common({"chunkdic": (pts, uc), "al-dvc": (a.points, a.u)}, case, ell, args.points)
         for tool, extra in common.items():
             runs[tool][-1].update(extra)
     return {tool: _summarise(r) | {"runs": r} for tool, r in runs.items()}
@@ -663,6 +663,9 @@ def parse_args(argv=None):
     p.add_argument("--solo-spacings", type=int, nargs="+", default=[], metavar="ELL",
                    help="further spacings run with chunkdic alone (e.g. 6: al-dvc is not run there)")
     p.add_argument("--repeats", type=int, default=3, help="runs per case and spacing (medians)")
+    p.add_argument("--points", type=int, default=None,
+                   help="score the field between the nodes at this many random voxels (the same for "
+                        "both tools) instead of every voxel: 1024³ is 10⁹ voxels, ~10 min per score")
     p.add_argument("--threads", type=int, default=os.cpu_count() or 1, help="cores given to each tool")
     p.add_argument("--noise", type=float, default=0.02,
                    help="acquisition noise std, texture units (grey range ~1); independent per scan")

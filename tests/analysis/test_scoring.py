@@ -145,3 +145,34 @@ def test_between_nodes_score_does_not_depend_on_the_slabs_it_is_evaluated_in():
         for a, b in [(s.rms, whole.rms), (s.sigma, whole.sigma), (s.max_error, whole.max_error),
                      *zip(s.bias, whole.bias), *zip(s.std, whole.std)]:
             assert a == pytest.approx(b, rel=1e-10, abs=1e-14)
+
+
+def test_between_nodes_sampled_score_is_the_score_of_those_voxels():
+    from chunkdic.analysis.scoring import score_between_nodes
+
+    # the trilinear chord of u_x = (x - 9.5)^2 / 16 between nodes 4 apart: at a voxel t from a
+    # node the error is t (4 - t) / 16, 7/64 or 15/64 (test above); any sample of voxels
+    # holds only those two values, so its RMS lies between them and its max is one of them
+    axes = [np.arange(6) * 4.0 - 0.5] * 3
+    u = np.zeros((3, 6, 6, 6))
+    u[2] = ((axes[2] - 9.5) ** 2 / 16)[None, None, :]
+
+    def truth(z, y, x):
+        z, y, x = np.broadcast_arrays(z, y, x)
+        return np.stack([0 * x, 0 * x, (x - 9.5) ** 2 / 16])
+
+    s = score_between_nodes(axes, u, truth, (20, 20, 20), 4, sample=1000, seed=1)
+    assert s.n_points == 1000 and s.n_outside == 0
+    assert 7 / 64 < s.rms < 15 / 64 and s.max_error == pytest.approx(15 / 64, rel=1e-12)
+    full = score_between_nodes(axes, u, truth, (20, 20, 20), 4)
+    assert s.rms == pytest.approx(full.rms, rel=0.05)  # half the voxels at each value
+    # a rough field on a larger grid (56³ scored voxels): 100 000 voxels drawn with replacement
+    # give the full statistics to sampling error (~0.3 %)
+    rng = np.random.default_rng(5)
+    axes = [np.arange(17) * 4.0 - 0.5] * 3
+    u = rng.normal(0, 0.3, (3, 17, 17, 17))
+    full = score_between_nodes(axes, u, truth, (64, 64, 64), 4)
+    s = score_between_nodes(axes, u, truth, (64, 64, 64), 4, sample=100_000)
+    assert full.n_points == 56**3 and s.n_points == 100_000
+    assert s.rms == pytest.approx(full.rms, rel=0.01) and s.sigma == pytest.approx(full.sigma, rel=0.01)
+    assert s.max_error <= full.max_error + 1e-12
