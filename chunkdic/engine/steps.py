@@ -323,10 +323,10 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
         last["solver"].regularize(reg, weight)
         return last["solver"].solve(rhs)[0]
 
-    def choose(freed):
+    def choose(freed, guess=None):
         return choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
                              p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
-                             rule=lvl.settings.regularization_rule, freed=freed)
+                             rule=lvl.settings.regularization_rule, freed=freed, guess=guess)
 
     choice = choose(None)
     scale = 2.0**lvl.s
@@ -342,7 +342,7 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
             freed = None
             emit(progress, stage="reweighting", level=lvl.s, round=k + 1, freed=0, length=length * scale)
             break
-        length = choose(freed).length
+        length = choose(freed, guess=length).length  # the plain choice probed first
         lvl.regularize(length, freed)
         emit(progress, stage="reweighting", level=lvl.s, round=k + 1, freed=terms,
              fraction=terms / (3 * len(TERM_KINDS) * int(np.prod(lvl.mesh.nodes_shape))), length=length * scale)

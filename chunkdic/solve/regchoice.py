@@ -93,7 +93,7 @@ def regions(shape, edge: int = None) -> list[tuple[slice, slice, slice]]:
 
 def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.ndarray,
                   noise_variance: float, solve_with, *, rule: str = DEFAULT_RULE, kappa: float = 1.0,
-                  sweep: bool = False, freed: np.ndarray | None = None) -> Choice:
+                  sweep: bool = False, freed: np.ndarray | None = None, guess: float | None = None) -> Choice:
     """The regularisation length by ``rule``, on the client.
 
     At a converged field ``a`` with right-hand side ``b``, the data misfit of a field
@@ -155,6 +155,10 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         Tikhonov terms left out by the robust reweighting
         (:attr:`~chunkdic.solve.regularization.Regularizer.freed`): the length is chosen for
         the reweighted penalty, ``λ`` normalised on the plain one as always.
+    guess : float, optional
+        A length (voxels of the level) the choice is expected near, e.g. the plain penalty's
+        choice before a reweighting: the discrepancy's bisection probes it first (fewer slow
+        long-length solves; the same choice, the misfit being monotone in the length).
 
     Returns
     -------
@@ -215,8 +219,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         else:
             # The first region starts in the middle (the slow long-length solves only when
             # needed); a later one first tries the best so far: one solve when it is no stricter.
+            first = len(lengths) // 2 if guess is None else int(np.argmin(np.abs(np.log(lengths / guess))))
             pick = _longest_within(lambda i: evaluate(i) - base <= tau * budget, best_index + 1,
-                                   len(lengths) // 2 if best is None else best_index)
+                                   first if best is None else best_index)
         if best is None or pick < best_index:
             corner = float(lengths[_corner(misfit - base, rough)]) if sweep else math.nan
             best, best_index = Choice(float(lengths[pick]), 0.0, lengths, misfit, rough, budget, corner), pick
