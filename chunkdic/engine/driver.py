@@ -310,7 +310,7 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
             lvl = open_level(ctx, run, s, start)
             if run.gn is None:
                 start_state(ctx, run, lvl, start, t_int)
-            lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh))
+            lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh), run.gn.freed)
             lvl.prepare_interpolation(run.gn.u)
             if s == ctx.finest and run.initial_gap is None:
                 measure_start_gaps(ctx, run, lvl)

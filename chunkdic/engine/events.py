@@ -117,6 +117,12 @@ class EventText:
             corner = f"; L-curve corner {corner:.1f}" if corner is not None and math.isfinite(corner) else ""
             return (f"level {event['level']}: {event['kind']} regularisation length {event['length']:.1f} voxels "
                     f"(chosen from the data{corner}; noise correlation factor {event['kappa']:.1f})")
+        if stage == "reweighting":
+            if not event["freed"]:
+                return (f"level {event['level']}: robust reweighting {event['round']}: no curvature term beyond "
+                        f"the threshold, length {event['length']:.1f} voxels kept")
+            return (f"level {event['level']}: robust reweighting {event['round']}: {event['freed']} curvature terms "
+                    f"({100 * event['fraction']:.2f}%) left free, length chosen again {event['length']:.1f} voxels")
         if stage == "init":
             mean = ", ".join(f"{v:+.3f}" for v in event["mean"])
             return (f"level {event['level']}: starting from the field of {event['path']} "

@@ -254,8 +254,10 @@ class Level:
         else:
             self._warn_weak_nodes()
 
-    def regularize(self, length: float) -> None:
-        """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularization`); ``length``: ``ℓ_reg``, voxels of the level.
+    def regularize(self, length: float, freed: np.ndarray | None = None) -> None:
+        """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularization`); ``length``: ``ℓ_reg``, voxels of the level;
+        ``freed``: the Tikhonov terms the robust reweighting left out (:attr:`Regularizer.freed`,
+        the correlated level only; the weight is the plain penalty's for ``length``).
 
         Coarser levels only give the finest one its starting field, and their low-passed
         sums may leave elements with too little texture: they are always regularised
@@ -270,6 +272,8 @@ class Level:
             kind = "tikhonov"
         reg = Regularizer(kind, self.mesh.nodes_shape, self.mesh.element_size)
         weight = plane_wave_weight(reg, lambda v: stencil_matvec(self.solver.matrix, v), length)
+        if freed is not None:
+            reg = reg.with_freed(freed)
         self.solver.regularize(reg, weight)
         self.regularization_length, self.regularization_weight = float(length), weight
         log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", self.s, kind, length, weight)

@@ -24,7 +24,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..solve.cg import StencilSolver
-from ..solve.regularization import Regularizer
 from ..solve.stencil import stencil_matvec
 
 #: the estimate is kept within these bounds (an anticorrelated residual gives κ < 1)
@@ -102,8 +101,7 @@ def nodal_uncertainty(solver, noise_variance: float, kappa: float) -> np.ndarray
     small = StencilSolver(np.ascontiguousarray(H[sub]).copy(), multigrid=False)  # matvec only
     if solver.regularizer is not None:
 
-        reg = Regularizer(solver.regularizer.kind, small.nodes_shape, solver.regularizer.ell)
-        small.regularize(reg, solver.weight)
+        small.regularize(solver.regularizer.sub(sub), solver.weight)
     shape = small.nodes_shape
     inner = tuple(slice(1, -1) if k > 2 else slice(None) for k in shape)
     exact = exact_diagonal(small, inner)

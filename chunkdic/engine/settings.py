@@ -17,6 +17,8 @@ from ..solve.regchoice import DEFAULT_RULE, RULES
 INTERPOLATIONS = ("cubic", "linear")
 GREY_MODELS = ("none", "global", "drift", "element")
 REGULARIZATIONS = ("none", "tikhonov", "equilibrium-gap")
+#: robust reweightings of the Tikhonov penalty by default (docs/engine.md, "Robust reweighting")
+DEFAULT_REWEIGHTS = 1
 
 
 def _option(default, help: str, *, flag: str | None = None, choices: tuple | None = None, kind=None,
@@ -60,6 +62,12 @@ class Settings:
         Its length ``ℓ_reg``, voxels of level 0 (> 0): wavelengths shorter than it are
         damped, longer ones left to the images. ``None``: chosen automatically
         (docs/engine.md, "Regularisation").
+    regularization_reweights : int or None
+        Robust reweightings of the Tikhonov penalty after the automatic length choice
+        (>= 0): each frees the curvature terms far beyond the field's robust spread (the
+        kinks of a band or a slip) and chooses the length again (docs/engine.md, "Robust
+        reweighting"). ``None``: :data:`DEFAULT_REWEIGHTS` with Tikhonov and the automatic
+        length, else 0; more than 0 is refused with the equilibrium gap or a given length.
     tolerance : float
         Convergence when ``max |δa|`` falls below it (voxels of ``level``; finite, >= 0;
         0 iterates until ``max_iterations``).
@@ -87,6 +95,9 @@ class Settings:
                                        "Morozov's principle; upre: least predicted error)", choices=RULES)
     regularization_length: float | None = _option(None, "its length, voxels of level 0 (default: chosen from the "
                                                   "data and printed)", kind=float, metavar="L")
+    regularization_reweights: int | None = _option(
+        None, "robust reweightings of the Tikhonov penalty after the length choice (default 1 with tikhonov and "
+        "the automatic length; 0: the plain penalty)", kind=int, metavar="N")
     tolerance: float = _option(1e-3, "max |da| for convergence, voxels")
     coarse_tolerance: float = 1e-2  # not a command-line option
     max_iterations: int = _option(30, "Gauss-Newton iterations per level at most")
@@ -106,11 +117,28 @@ class Settings:
         _choice(self.regularization_rule, RULES, "regularization rule")
         if self.regularization_length is not None:
             check(self, "regularization_length", _positive_float(self.regularization_length, "regularization length"))
+        if self.regularization_reweights is not None:
+            n = _integer(self.regularization_reweights, "regularization reweights", minimum=0)
+            check(self, "regularization_reweights", n)
+            if n and self.regularization != "tikhonov":
+                raise InputError("regularization reweights apply to the tikhonov penalty only, not "
+                                 f"{self.regularization}")
+            if n and self.regularization_length is not None:
+                raise InputError("regularization reweights need the automatic length (the length is chosen again "
+                                 "after each): leave out the regularization length")
         check(self, "tolerance", _nonnegative_float(self.tolerance, "tolerance"))
         check(self, "coarse_tolerance", _nonnegative_float(self.coarse_tolerance, "coarse tolerance"))
         check(self, "max_iterations", _integer(self.max_iterations, "max iterations", minimum=1))
         if self.block_elements is not None:
             check(self, "block_elements", _integer(self.block_elements, "block elements", minimum=1))
+
+    @property
+    def reweights(self) -> int:
+        """The robust reweightings the run makes (``regularization_reweights`` resolved)."""
+        if self.regularization_reweights is not None:
+            return self.regularization_reweights
+        automatic = self.regularization == "tikhonov" and self.regularization_length is None
+        return DEFAULT_REWEIGHTS if automatic else 0
 
     @classmethod
     def names(cls) -> tuple[str, ...]:

@@ -24,6 +24,8 @@ from ..mesh import Mesh, transfer
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.cg import StencilSolver
 from ..solve.regchoice import choose_length
+from ..solve.regularization import TERM_KINDS, robust_freed
+from ..solve.stencil import stencil_matvec
 from ..solve.transfer import nominal_l10
 from .affine import affine_step
 from .checkpoint import Checkpoint, resumed_pass
@@ -302,8 +304,12 @@ def length_to_choose(settings: Settings, state: State) -> bool:
 
 
 def choose_regularization(lvl: Level, state: State, progress) -> None:
-    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.solve.regchoice.choose_length`)
-    and restart ``state`` under it."""
+    """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.solve.regchoice.choose_length`),
+    then ``settings.reweights`` times: free the curvature terms of the field this length
+    gives (:func:`linearised_field`) beyond :data:`~chunkdic.solve.regularization.ROBUST_THRESHOLD`
+    robust σ (:func:`~chunkdic.solve.regularization.robust_freed`) and choose the length again
+    for the reweighted penalty (docs/engine.md, "Robust reweighting"); restart ``state``
+    under the outcome, which the checkpoint keeps (``state.reg_length``, ``state.freed``)."""
     p = resumed_pass(lvl, state)
     u = np.moveaxis(state.u, 0, -1)
     last = {"half": None, "solver": None}
@@ -317,16 +323,47 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
         last["solver"].regularize(reg, weight)
         return last["solver"].solve(rhs)[0]
 
-    choice = choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
-                           p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
-                           rule=lvl.settings.regularization_rule)
+    def choose(freed, guess=None):
+        return choose_length(lvl.settings.regularization, lvl.solver.matrix, lvl.mesh.element_size, u, p.b,
+                             p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
+                             rule=lvl.settings.regularization_rule, freed=freed, guess=guess)
+
+    choice = choose(None)
     scale = 2.0**lvl.s
     corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
     emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale, l_curve_length=corner,
          kind=lvl.settings.regularization, kappa=p.kappa, rule=choice.rule)
     lvl.regularize(choice.length)
-    state.reg_length = choice.length
+    length, freed = choice.length, None
+    for k in range(lvl.settings.reweights):
+        freed = robust_freed(linearised_field(lvl, u, p.b))
+        terms = freed_terms(freed)
+        if terms == 0:  # nothing beyond the threshold: the plain penalty, as chosen
+            freed = None
+            emit(progress, stage="reweighting", level=lvl.s, round=k + 1, freed=0, length=length * scale)
+            break
+        length = choose(freed, guess=length).length  # the plain choice probed first
+        lvl.regularize(length, freed)
+        emit(progress, stage="reweighting", level=lvl.s, round=k + 1, freed=terms,
+             fraction=terms / (3 * len(TERM_KINDS) * int(np.prod(lvl.mesh.nodes_shape))), length=length * scale)
+    state.reg_length, state.freed = length, freed
     state.restart()
+
+
+def linearised_field(lvl: Level, u: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The field the level's current regularisation gives in one modified Gauss–Newton step
+    from ``u`` (nz, ny, nx, 3) with right-hand side ``b``: ``(M + λR) x = M u + b``, shape
+    (nz, ny, nx, 3), voxels of the level; within 1 % of the converged field on the issue-20
+    cases (docs/engine.md), and no pass over the voxels. The solver's CG reference
+    (``largest_rhs``) is left as it was, so that the iterations that follow stop CG where
+    they would have without this solve."""
+    solver = lvl.solver
+    rhs = stencil_matvec(solver.matrix, u)
+    rhs += b
+    kept = solver.largest_rhs
+    x, _ = solver.solve(rhs, overwrite_b=True)
+    solver.largest_rhs = kept
+    return x
 
 
 def assemble_result(ctx: RunContext, run: RunState, final: State, outcome: LevelOutcome) -> Result:
@@ -373,6 +410,9 @@ def assemble_result(ctx: RunContext, run: RunState, final: State, outcome: Level
         "regularization": {"kind": settings.regularization,
                            "length": None if not np.isfinite(reg_length) else float(reg_length),
                            "automatic": settings.regularization_length is None,
+                           # the robust reweighting: rounds asked, Tikhonov terms left out
+                           "reweights": settings.reweights,
+                           "freed_terms": freed_terms(final.freed),
                            # what l and the length let through of a sine, level-0 voxels (a lower
                            # bound of the spatial resolution; `chunkdic resolution` measures it)
                            "nominal_l10": nominal_l10(settings.element_size * 2**finest,
@@ -384,6 +424,13 @@ def assemble_result(ctx: RunContext, run: RunState, final: State, outcome: Level
     brightness = None if final.elements is None else final.elements[:2]
     return Result(u, mesh.node_coords(), run.history.arrays(), info, flags=flags, brightness=brightness,
                   active=outcome.active, uncertainty=sigma_u)
+
+
+def freed_terms(freed: np.ndarray | None) -> int:
+    """How many Tikhonov terms (per component) the robust reweighting left out."""
+    if freed is None:
+        return 0
+    return int(sum(np.count_nonzero(freed & (1 << c)) for c in range(3)))
 
 
 def brightness_summary(model: str, elements: np.ndarray | None) -> dict:

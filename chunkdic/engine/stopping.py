@@ -153,6 +153,9 @@ class State:
     # nodes (bool, nodes shape) the latest increment left unsettled (beyond STEP_CAP × σ_u and
     # the tolerance): a level converged at the noise level flags them as unreliable
     unsettled: np.ndarray | None = None
+    # the Tikhonov terms the robust reweighting freed (uint8, nodes shape + (6,), bits per
+    # component; Regularizer.freed) once chosen with the length: a resumed level solves the same problem
+    freed: np.ndarray | None = None
 
     SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
                "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length",
@@ -160,14 +163,14 @@ class State:
                "noise_remaining")
     _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length", "largest_rhs", "noise_variance",
                "kappa", "last_noise_step", "gain_gap", "noise_remaining")
-    _ARRAYS = ("u", "best_u", "elements", "best_elements", "m_start", "unsettled")
+    _ARRAYS = ("u", "best_u", "elements", "best_elements", "m_start", "unsettled", "freed")
 
     def scalars(self) -> dict:
         return {k: json_float(getattr(self, k)) for k in self.SCALARS}
 
     def arrays(self) -> dict:
         out = {"u": self.u, "best_u": self.u if self.best_u is None else self.best_u}
-        for k in ("elements", "best_elements", "m_start", "unsettled"):
+        for k in ("elements", "best_elements", "m_start", "unsettled", "freed"):
             if getattr(self, k) is not None:
                 out[k] = getattr(self, k)
         return out

@@ -21,7 +21,7 @@ import numpy as np
 from ..errors import InputError
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
-from .regularization import Regularizer, add_weighted
+from .regularization import NO_FREED, Regularizer, add_weighted
 from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi
 
 log = logging.getLogger(__name__)
@@ -108,7 +108,7 @@ class StencilSolver:
         self.matrix = half if half.dtype == np.float32 else half.astype(np.float32)
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
-        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0)
+        self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0, NO_FREED)
         # block-Jacobi solves each node's 3×3 block of M + λ R as it goes (stencil.block_solve):
         # no stored inverse (72 B per node in float64, 150 MB at 128³ nodes)
         self._diag_args = no_diagonal(self.nodes_shape)
@@ -209,7 +209,7 @@ class StencilSolver:
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
-        code, Ke, Kf, sw, ew = self._reg_args
+        code, Ke, Kf, sw, ew, freed = self._reg_args
         norm = float(np.sqrt(np.sum(b * b)))
         self.largest_rhs = max(self.largest_rhs, norm)
         rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
@@ -218,7 +218,8 @@ class StencilSolver:
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
         else:
             iterations = pcg_block_jacobi(self.matrix, *self._diag_args, b, x, rtol, self.maxiter,
-                                          code if self.regularizer is not None else 0, Ke, Kf, sw, ew, self.weight,
+                                          code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed,
+                                          self.weight,
                                           overwrite_b)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,

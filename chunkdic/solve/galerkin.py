@@ -355,7 +355,7 @@ def regularizer_stencil(reg: Regularizer) -> ClassStencil:
     core = FINE_CORE
     maps = [class_map(n, core) for n in reg.nodes_shape]
     small_shape = tuple(len(r) for _, r in maps)
-    small = reg
+    small = reg.plain()  # the plain penalty's operators, whatever the robust reweighting freed
     if small_shape != reg.nodes_shape:
         small = reg.resized(small_shape)
     w = 2 * reach + 1

@@ -93,7 +93,7 @@ def regions(shape, edge: int = None) -> list[tuple[slice, slice, slice]]:
 
 def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.ndarray,
                   noise_variance: float, solve_with, *, rule: str = DEFAULT_RULE, kappa: float = 1.0,
-                  sweep: bool = False) -> Choice:
+                  sweep: bool = False, freed: np.ndarray | None = None, guess: float | None = None) -> Choice:
     """The regularisation length by ``rule``, on the client.
 
     At a converged field ``a`` with right-hand side ``b``, the data misfit of a field
@@ -151,6 +151,14 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         Solve every candidate on every region (the whole L-curve, and its corner in
         :attr:`Choice.l_curve_length`, and each region's curves in :attr:`Choice.curves`)
         instead of searching; for benchmarks. Same choice.
+    freed : ndarray, shape (nz, ny, nx, 6), uint8, optional
+        Tikhonov terms left out by the robust reweighting
+        (:attr:`~chunkdic.solve.regularization.Regularizer.freed`): the length is chosen for
+        the reweighted penalty, ``λ`` normalised on the plain one as always.
+    guess : float, optional
+        A length (voxels of the level) the choice is expected near, e.g. the plain penalty's
+        choice before a reweighting: the discrepancy's bisection probes it first (fewer slow
+        long-length solves; the same choice, the misfit being monotone in the length).
 
     Returns
     -------
@@ -167,7 +175,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         if best_index == 0 and not sweep:
             break  # the shortest candidate already: no region can choose shorter
         H = np.ascontiguousarray(half[sub])
-        reg = Regularizer(kind, H.shape[:3], ell)
+        reg = Regularizer(kind, H.shape[:3], ell, None if freed is None else freed[sub])
         matvec = lambda v, H=H: stencil_matvec(H, v)  # noqa: E731
         a_s, b_s = np.ascontiguousarray(a[sub]), np.ascontiguousarray(b[sub])
         rhs = matvec(a_s) + b_s
@@ -211,8 +219,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         else:
             # The first region starts in the middle (the slow long-length solves only when
             # needed); a later one first tries the best so far: one solve when it is no stricter.
+            first = len(lengths) // 2 if guess is None else int(np.argmin(np.abs(np.log(lengths / guess))))
             pick = _longest_within(lambda i: evaluate(i) - base <= tau * budget, best_index + 1,
-                                   len(lengths) // 2 if best is None else best_index)
+                                   first if best is None else best_index)
         if best is None or pick < best_index:
             corner = float(lengths[_corner(misfit - base, rough)]) if sweep else math.nan
             best, best_index = Choice(float(lengths[pick]), 0.0, lengths, misfit, rough, budget, corner), pick

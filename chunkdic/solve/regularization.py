@@ -56,7 +56,7 @@ by element loops (:func:`apply`), next to the stencil product of ``M`` in the sa
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numba
 import numpy as np
@@ -64,6 +64,16 @@ import numpy as np
 from ..mesh import LOCAL_NODES
 
 KINDS = ("none", "tikhonov", "equilibrium-gap")
+#: the kinds of terms of the Tikhonov penalty, in the order of :attr:`Regularizer.freed`'s last axis:
+#: second differences along z, y, x, then the mixed differences of the (z, y), (z, x), (y, x) squares
+TERM_KINDS = ("zz", "yy", "xx", "zy", "zx", "yx")
+#: the robust reweighting frees a term beyond this many robust standard deviations of its kind and
+#: component (:func:`robust_freed`; docs/engine.md, "The band and the slip at ℓ = 8")
+ROBUST_THRESHOLD = 6.0
+#: the robust standard deviation of a normal sample from its median absolute value
+MAD_TO_SIGMA = 1.4826
+#: an empty ``freed`` for :func:`add_weighted`: no term freed
+NO_FREED = np.zeros((0, 0, 0, len(TERM_KINDS)), np.uint8)
 #: Poisson ratio of the equilibrium-gap material (the result depends on it only weakly)
 POISSON = 0.3
 #: order of the low-pass: penalty ∝ (ℓ_reg / T)^ORDER for a plane wave of wavelength T
@@ -201,6 +211,116 @@ def _apply_hessian(x, y, w):
 
 
 @numba.njit(nogil=True, cache=True)
+def _apply_hessian_freed(x, y, w, freed):
+    """:func:`_apply_hessian` without the freed terms: bit ``c`` of ``freed[i, j, k, t]`` set
+    leaves out component ``c`` of the term of kind ``t`` (:data:`TERM_KINDS`) anchored at
+    node ``(i, j, k)``: a second difference at its centre node, a mixed difference at the
+    square's first corner (the lower indices)."""
+    nz, ny, nx = x.shape[0], x.shape[1], x.shape[2]
+    w2 = 2.0 * w
+    for i in range(nz):
+        for j in range(ny):
+            for k in range(nx):
+                for c in range(3):
+                    bit = 1 << c
+                    v = x[i, j, k, c]
+                    if 0 < i < nz - 1 and not freed[i, j, k, 0] & bit:
+                        t = w * (x[i - 1, j, k, c] - 2.0 * v + x[i + 1, j, k, c])
+                        y[i - 1, j, k, c] += t
+                        y[i, j, k, c] -= 2.0 * t
+                        y[i + 1, j, k, c] += t
+                    if 0 < j < ny - 1 and not freed[i, j, k, 1] & bit:
+                        t = w * (x[i, j - 1, k, c] - 2.0 * v + x[i, j + 1, k, c])
+                        y[i, j - 1, k, c] += t
+                        y[i, j, k, c] -= 2.0 * t
+                        y[i, j + 1, k, c] += t
+                    if 0 < k < nx - 1 and not freed[i, j, k, 2] & bit:
+                        t = w * (x[i, j, k - 1, c] - 2.0 * v + x[i, j, k + 1, c])
+                        y[i, j, k - 1, c] += t
+                        y[i, j, k, c] -= 2.0 * t
+                        y[i, j, k + 1, c] += t
+                    if i < nz - 1 and j < ny - 1 and not freed[i, j, k, 3] & bit:  # (z, y)
+                        t = w2 * (v - x[i + 1, j, k, c] - x[i, j + 1, k, c] + x[i + 1, j + 1, k, c])
+                        y[i, j, k, c] += t
+                        y[i + 1, j, k, c] -= t
+                        y[i, j + 1, k, c] -= t
+                        y[i + 1, j + 1, k, c] += t
+                    if i < nz - 1 and k < nx - 1 and not freed[i, j, k, 4] & bit:  # (z, x)
+                        t = w2 * (v - x[i + 1, j, k, c] - x[i, j, k + 1, c] + x[i + 1, j, k + 1, c])
+                        y[i, j, k, c] += t
+                        y[i + 1, j, k, c] -= t
+                        y[i, j, k + 1, c] -= t
+                        y[i + 1, j, k + 1, c] += t
+                    if j < ny - 1 and k < nx - 1 and not freed[i, j, k, 5] & bit:  # (y, x)
+                        t = w2 * (v - x[i, j + 1, k, c] - x[i, j, k + 1, c] + x[i, j + 1, k + 1, c])
+                        y[i, j, k, c] += t
+                        y[i, j + 1, k, c] -= t
+                        y[i, j, k + 1, c] -= t
+                        y[i, j + 1, k + 1, c] += t
+
+
+@numba.njit(nogil=True, cache=True)
+def _term_exists(t, i, j, k, nz, ny, nx):
+    """Whether the mesh has a term of kind ``t`` anchored at node ``(i, j, k)`` (the bits of
+    :attr:`Regularizer.freed` elsewhere mean nothing)."""
+    if t == 0:
+        return 0 < i < nz - 1
+    if t == 1:
+        return 0 < j < ny - 1
+    if t == 2:
+        return 0 < k < nx - 1
+    if t == 3:
+        return i < nz - 1 and j < ny - 1
+    if t == 4:
+        return i < nz - 1 and k < nx - 1
+    return j < ny - 1 and k < nx - 1
+
+
+@numba.njit(nogil=True, cache=True)
+def _freed_diagonal(freed, z0, out):
+    """``out -= `` the diagonal of ``R`` that the freed terms of ``freed`` take away, on the z
+    planes ``z0 … z0 + len(out) - 1`` of the mesh (``out`` (nz', ny, nx, 3)): a second
+    difference adds 1, 4, 1 to its three nodes, a mixed one 2 (its weight) to each corner."""
+    nz, ny, nx = freed.shape[0], freed.shape[1], freed.shape[2]
+    lo, hi = z0, z0 + out.shape[0]
+    for i in range(max(lo - 1, 0), min(hi + 1, nz)):
+        for j in range(ny):
+            for k in range(nx):
+                for c in range(3):
+                    bit = 1 << c
+                    for t in range(6):
+                        if not freed[i, j, k, t] & bit or not _term_exists(t, i, j, k, nz, ny, nx):
+                            continue
+                        if t < 3:  # second difference along axis t, centred at (i, j, k)
+                            for d in (-1, 0, 1):
+                                z, yy, xx = i, j, k
+                                if t == 0:
+                                    z += d
+                                elif t == 1:
+                                    yy += d
+                                else:
+                                    xx += d
+                                if lo <= z < hi:
+                                    out[z - lo, yy, xx, c] -= 4.0 if d == 0 else 1.0
+                        else:  # mixed difference of the square at (i, j, k)
+                            p = 0 if t < 5 else 1
+                            q = 1 if t == 3 else 2
+                            for a in range(2):
+                                for b in range(2):
+                                    z, yy, xx = i, j, k
+                                    if p == 0:
+                                        z += a
+                                    else:
+                                        yy += a
+                                    if q == 1:
+                                        yy += b
+                                    else:
+                                        xx += b
+                                    if lo <= z < hi:
+                                        out[z - lo, yy, xx, c] -= 2.0
+
+
+@numba.njit(nogil=True, cache=True)
 def _face_node(axis, k0, i1, i2):
     """(z, y, x) of node (i1, i2) of the face ``axis = k0`` (in-plane axes in cyclic order)."""
     if axis == 0:
@@ -269,10 +389,14 @@ def _apply_edges(x, y, w):
 
 
 @numba.njit(nogil=True, cache=True)
-def add_weighted(code, Ke, Kf, surface_weight, edge_weight, lam, x, y):
-    """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve.cg`); ``code`` 1 Tikhonov, 2 equilibrium gap."""
+def add_weighted(code, Ke, Kf, surface_weight, edge_weight, freed, lam, x, y):
+    """``y += λ R x`` (numba, for the CG of :mod:`chunkdic.solve.cg`); ``code`` 1 Tikhonov, 2 equilibrium gap;
+    ``freed`` the Tikhonov terms left out (:attr:`Regularizer.freed`; an empty array: none)."""
     if code == 1:
-        _apply_hessian(x, y, lam)
+        if freed.shape[0] == 0:
+            _apply_hessian(x, y, lam)
+        else:
+            _apply_hessian_freed(x, y, lam, freed)
         return
     k = np.zeros_like(x)
     _apply_vector(Ke, x, k)
@@ -312,16 +436,33 @@ class Regularizer:
     nodes_shape : tuple of 3 int
     ell : float
         Element edge, voxels of the level.
+    freed : ndarray, shape (nz, ny, nx, 6), uint8, optional
+        Tikhonov only: the terms the robust reweighting left out (weight 0; every other
+        term keeps weight 1). Bit ``c`` of ``freed[i, j, k, t]`` frees component ``c`` of the
+        term of kind ``TERM_KINDS[t]`` anchored at node ``(i, j, k)`` (a second difference at
+        its centre node, a mixed one at its square's first corner): 6 B per node
+        (:func:`robust_freed`). The normalisation (:func:`plane_wave_weight`), the probed
+        diagonal classes of the preconditioners and the V-cycle's coarse operators are
+        those of the plain penalty (docs/engine.md).
     """
 
     kind: str
     nodes_shape: tuple[int, int, int]
     ell: float
+    freed: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.kind not in KINDS[1:]:
             raise ValueError(f"unknown regularisation {self.kind!r}")
         self.nodes_shape = tuple(int(n) for n in self.nodes_shape)
+        if self.freed is not None:
+            if self.kind != "tikhonov":
+                raise ValueError("only the Tikhonov penalty is reweighted term by term")
+            self.freed = np.ascontiguousarray(self.freed, np.uint8)
+            if self.freed.shape != self.nodes_shape + (len(TERM_KINDS),):
+                raise ValueError(f"freed terms of shape {self.freed.shape} on a mesh of {self.nodes_shape} nodes")
+            if not self.freed.any():
+                self.freed = None
         self._Kf = face_laplacian_element()
         self.surface_weight = self.edge_weight = 0.0
         if self.kind == "tikhonov":
@@ -335,16 +476,36 @@ class Regularizer:
         return ORDER[self.kind]
 
     def numba_args(self) -> tuple:
-        """``(code, Ke, Kf, surface weight, edge weight)`` for :func:`add_weighted`."""
+        """``(code, Ke, Kf, surface weight, edge weight, freed)`` for :func:`add_weighted`."""
         return ((1 if self.kind == "tikhonov" else 2), self._Ke, self._Kf, float(self.surface_weight),
-                float(self.edge_weight))
+                float(self.edge_weight), NO_FREED if self.freed is None else self.freed)
 
     def resized(self, nodes_shape) -> "Regularizer":
-        """The same operator on a mesh of ``nodes_shape`` nodes, with this one's boundary weights
-        (for probing its stencil on a small mesh: the weights balanced on the small mesh differ)."""
+        """The same plain operator on a mesh of ``nodes_shape`` nodes, with this one's boundary
+        weights (for probing its stencil on a small mesh: the weights balanced on the small
+        mesh differ) and no freed term."""
         small = Regularizer(self.kind, nodes_shape, self.ell)
         small.surface_weight, small.edge_weight = self.surface_weight, self.edge_weight
         return small
+
+    def plain(self) -> "Regularizer":
+        """This operator with every term at weight 1 (itself when none is freed)."""
+        return self if self.freed is None else self.with_freed(None)
+
+    def with_freed(self, freed: np.ndarray | None) -> "Regularizer":
+        """The same operator with the terms ``freed`` left out (:attr:`freed`), sharing this
+        one's probed diagonal classes and V-cycle operators (those of the plain penalty)."""
+        out = Regularizer(self.kind, self.nodes_shape, self.ell, freed)
+        out.surface_weight, out.edge_weight = self.surface_weight, self.edge_weight
+        for cache in ("_diagonal", "_multigrid"):
+            if hasattr(self, cache):
+                setattr(out, cache, getattr(self, cache))
+        return out
+
+    def sub(self, region: tuple[slice, slice, slice]) -> "Regularizer":
+        """The operator on the sub-mesh ``region`` of the nodes (its freed terms with it)."""
+        shape = tuple(len(range(*r.indices(n))) for r, n in zip(region, self.nodes_shape))
+        return Regularizer(self.kind, shape, self.ell, None if self.freed is None else self.freed[region])
 
     def _K(self, x: np.ndarray) -> np.ndarray:
         y = np.zeros_like(x)
@@ -356,7 +517,10 @@ class Regularizer:
         x = np.ascontiguousarray(x, dtype=np.float64)
         if self.kind == "tikhonov":
             y = np.zeros_like(x)
-            _apply_hessian(x, y, 1.0)
+            if self.freed is None:
+                _apply_hessian(x, y, 1.0)
+            else:
+                _apply_hessian_freed(x, y, 1.0, self.freed)
             return y
         y = self._K(_interior(self._K(x)))
         if self.surface_weight:
@@ -399,23 +563,33 @@ class Regularizer:
         most ``2 (reach + 1) + 1`` nodes per axis, with unit vectors on a colouring of
         nodes whose supports do not overlap, and mapped back by distance to the faces.
         The probed blocks are kept (a few kB): a slab of planes costs only its own copy,
-        so that the client never needs all of them at once (72 B per node).
+        so that the client never needs all of them at once (72 B per node). With freed
+        terms, their share of the diagonal is taken off (``planes`` a contiguous slice).
         """
         blocks, index = self.diagonal_classes()
-        return blocks[np.ix_(index[0][planes], index[1], index[2])]
+        out = blocks[np.ix_(index[0][planes], index[1], index[2])]
+        if self.freed is not None:  # Tikhonov's blocks are diagonal: the freed terms' share off
+            z = np.arange(self.nodes_shape[0])[planes]
+            if z.size:
+                less = np.zeros(out.shape[:4])
+                _freed_diagonal(self.freed, int(z[0]), less)
+                out[..., [0, 1, 2], [0, 1, 2]] += less
+        return out
 
     def diagonal_classes(self) -> tuple[np.ndarray, list]:
         """``(blocks, index)``: the diagonal blocks probed on the small mesh (float64) and, per
         axis, each node's position in it (int64 arrays of the mesh's length): block ``(i, j, k)``
         is ``blocks[index[0][i], index[1][j], index[2][k]]`` (block-Jacobi reads them so,
-        :func:`chunkdic.solve.stencil.block_solve`)."""
+        :func:`chunkdic.solve.stencil.block_solve`). Those of the plain penalty: with freed
+        terms, block-Jacobi preconditions with a diagonal a little too large at their
+        nodes, which keeps it symmetric positive definite (docs/engine.md)."""
         cached = getattr(self, "_diagonal", None)
         if cached is not None:
             return cached
         reach = 2
         core = reach + 1
         small_shape = tuple(min(n, 2 * core + 1) for n in self.nodes_shape)
-        small = self if small_shape == self.nodes_shape else self.resized(small_shape)
+        small = self.plain() if small_shape == self.nodes_shape else self.resized(small_shape)
         period = 2 * reach + 1
         blocks = np.zeros(small_shape + (3, 3))
         grid = np.indices(small_shape)
@@ -465,6 +639,7 @@ def plane_wave_weight(reg: Regularizer, matvec, length: float) -> float:
     ``λ = (length / T)^p · Σ vᵀ M v / Σ vᵀ R v``.
     """
     T = reference_wavelength(reg.nodes_shape, reg.ell)
+    reg = reg.plain()  # one length means one weight, whatever the robust reweighting freed
     m = r = 0.0
     for v in plane_waves(reg.nodes_shape, reg.ell, T):
         m += float(np.sum(v * matvec(v)))
@@ -472,3 +647,65 @@ def plane_wave_weight(reg: Regularizer, matvec, length: float) -> float:
     if r <= 0:
         return 0.0
     return (float(length) / T) ** reg.order * m / r
+
+
+def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarray:
+    """The Tikhonov terms of the field ``x`` to free: one robust reweighting (IRLS with a
+    hard threshold) of the Hessian penalty.
+
+    Each term (a second difference along a grid line, a mixed difference of a 2×2 square,
+    per component) whose value exceeds ``threshold`` robust standard deviations of its kind
+    and component (:data:`MAD_TO_SIGMA` × the median of their absolute values over the
+    mesh) gets weight 0: the kinks of a band or a slip, where the field truly bends, while
+    the noise and smooth fields (a wave's differences are the wave itself, their robust σ
+    its amplitude) keep every term. docs/engine.md, "The band and the slip at ℓ = 8".
+
+    Parameters
+    ----------
+    x : ndarray, shape (nz, ny, nx, 3), float
+        The nodal field (voxels of the level), e.g. the regularised solution at the chosen length.
+    threshold : float
+        In robust standard deviations.
+
+    Returns
+    -------
+    freed : ndarray, shape (nz, ny, nx, 6), uint8
+        :attr:`Regularizer.freed`. Built one kind and component at a time: the client holds
+        one float64 difference array of the mesh's size at once (8 B per node).
+    """
+    x = np.asarray(x)
+    shape = x.shape[:3]
+    freed = np.zeros(shape + (len(TERM_KINDS),), np.uint8)
+    for c in range(3):
+        u = x[..., c]
+        for t in range(len(TERM_KINDS)):
+            d, anchor = _term_values(u, t)
+            if d.size == 0:
+                continue
+            a = np.abs(d)
+            sigma = MAD_TO_SIGMA * float(np.median(a))
+            if not sigma > 0:
+                continue
+            beyond = a > threshold * sigma
+            del a, d
+            freed[anchor + (t,)] |= (beyond.astype(np.uint8) << c)
+    return freed
+
+
+def _term_values(u: np.ndarray, t: int) -> tuple[np.ndarray, tuple]:
+    """The terms of kind ``TERM_KINDS[t]`` of a scalar nodal field ``u`` (nz, ny, nx) and where
+    they are anchored (a tuple of slices into the nodes): the unweighted difference."""
+    if t < 3:
+        n = u.shape[t]
+        lo, mid, hi = ([slice(None)] * 3 for _ in range(3))
+        lo[t], mid[t], hi[t] = slice(0, n - 2), slice(1, n - 1), slice(2, n)
+        return u[tuple(lo)] - 2.0 * u[tuple(mid)] + u[tuple(hi)], tuple(mid)
+    p, q = {3: (0, 1), 4: (0, 2), 5: (1, 2)}[t]
+
+    def corner(dp, dq):
+        s = [slice(None)] * 3
+        s[p] = slice(dp, u.shape[p] - 1 + dp)
+        s[q] = slice(dq, u.shape[q] - 1 + dq)
+        return tuple(s)
+
+    return u[corner(0, 0)] - u[corner(1, 0)] - u[corner(0, 1)] + u[corner(1, 1)], corner(0, 0)

@@ -160,7 +160,8 @@ def no_diagonal(nodes_shape) -> tuple:
 
 
 @numba.njit(nogil=True, cache=True)
-def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, lam, overwrite_b=False):
+def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, freed, lam,
+                     overwrite_b=False):
     """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
 
     Written out (rather than scipy's ``cg``) so that its vector operations are plain
@@ -172,7 +173,9 @@ def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, e
     ``λ R`` comes from :func:`chunkdic.solve.regularization.add_weighted`, compiled into this
     function's Numba cache: a change of ``R`` (the Tikhonov Hessian of issue 20) is seen here
     only once this file changes too or the cache is cleared (docs/architecture.md,
-    development notes). ``overwrite_b``: ``b`` becomes the residual (changed on return).
+    development notes). ``freed``: the Tikhonov terms the robust reweighting left out
+    (:attr:`~chunkdic.solve.regularization.Regularizer.freed`; the block-Jacobi blocks ``Rd``
+    stay the plain penalty's). ``overwrite_b``: ``b`` becomes the residual (changed on return).
     """
     bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
     r = b if overwrite_b else b.copy()  # x starts at zero
@@ -188,7 +191,7 @@ def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, e
     for it in range(1, maxiter + 1):
         half_matvec(H, p, q)
         if code != 0:
-            add_weighted(code, Ke, Kf, sw, ew, lam, p, q)
+            add_weighted(code, Ke, Kf, sw, ew, freed, lam, p, q)
         alpha = rz / dot(pf, qf)
         axpy(alpha, pf, xf)
         axpy(-alpha, qf, rf)

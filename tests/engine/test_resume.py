@@ -107,3 +107,37 @@ def test_worker_killed_during_an_iteration_does_not_change_the_result(pair):
         killer.join()
     assert killed, "no worker was killed during a b pass"
     np.testing.assert_allclose(res.displacement, reference.displacement, rtol=0, atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def band_pair(tmp_path_factory):
+    """The CT-like band (64³ grains, independent 2 % noise): at ℓ = 8 the robust reweighting frees
+    the band's curvature terms (a run with nothing freed would not exercise their checkpoint)."""
+    d = tmp_path_factory.mktemp("resume-band")
+    return synthetic.standard_case(d / "band", "band", 64, specimen="grains", noise=0.02)
+
+
+def test_killed_after_the_robust_reweighting_resumes_with_the_same_freed_terms(band_pair, tmp_path, capsys):
+    """Killed two passes after the reweighting (so that a checkpoint holds the freed terms), the
+    same command ends where the uninterrupted run ends, with the same length and freed terms."""
+    cmd = [sys.executable, "-m", "chunkdic", "correlate", band_pair["reference"], band_pair["deformed"], "-o",
+           str(tmp_path / "res.zarr"), "--element-size", "8"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    seen, passes = False, 0
+    for line in proc.stderr:
+        seen = seen or "robust reweighting" in line
+        passes += seen and line.startswith("level 0 iter")
+        if passes == 2:
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    assert proc.wait() == -signal.SIGKILL, "the run ended before two passes after the reweighting"
+
+    assert main(cmd[3:]) in (0, 1)
+    err = capsys.readouterr().err
+    assert "resuming the interrupted run from its checkpoint: level 0, iteration" in err, err
+    assert "robust reweighting" not in err  # the length and the freed terms came from the checkpoint
+    resumed = chunkdic.open_result(tmp_path / "res.zarr")
+    reference = chunkdic.correlate(band_pair["reference"], band_pair["deformed"], element_size=8)
+    assert reference.info["regularization"]["freed_terms"] > 0
+    assert resumed.info["regularization"] == reference.info["regularization"]
+    np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
