@@ -18,7 +18,8 @@ process's resident memory, on a real scan, in a fresh process per case:
 The store is a sparse ``.npy`` file of the box of ``g`` a level-0 run prepares (the whole
 scan for these pairs: ROI plus margins reach the faces), so the row stride of its mapping
 is the run's: the pages a task touches when writing depend on it. The tasks are those of
-:func:`chunkdic.engine.prefilter.build_prepared` nearest the centre.
+:func:`chunkdic.engine.prefilter.build_prepared` whose reads decode the most chunks of the
+scan (the run's largest), nearest the centre among them.
 
 Usage::
 
@@ -49,8 +50,8 @@ CASE = textwrap.dedent(r"""
     from chunkdic.engine import prefilter as P
     from chunkdic.engine.budget import release_freed_memory
 
-    scan, tmp, edge_max, tasks, sigma, interp, halo = sys.argv[1], sys.argv[2], int(sys.argv[3]), int(sys.argv[4]), \
-        float(sys.argv[5]), sys.argv[6], int(sys.argv[7])
+    scan, tmp, edge_max, tasks, sigma, interp, halo, per_thread = sys.argv[1], sys.argv[2], int(sys.argv[3]), \
+        int(sys.argv[4]), float(sys.argv[5]), sys.argv[6], int(sys.argv[7]), int(sys.argv[8])
     g = open_scan(scan).stored_refs()[0]
     box = tuple((0, n) for n in g.shape)
     grid = P.prepared_grid(g.dtype, sigma, interp)
@@ -64,7 +65,16 @@ CASE = textwrap.dedent(r"""
     regions = [tuple(slice(s, min(s + e, n)) for s, e, n in zip(c, edges, g.shape))
                for c in ((z, y, x) for z in starts[0] for y in starts[1] for x in starts[2])]
     centre = [n / 2 for n in g.shape]
-    regions.sort(key=lambda r: sum(((s.start + s.stop) / 2 - c) ** 2 for s, c in zip(r, centre)))
+    chunks = g.open().chunks if g.kind == "zarr" else g.shape
+
+    def touched(r):  # chunks of the scan a task's read (its region grown by the halo) decodes
+        out = 1
+        for s, c, n in zip(r, chunks, g.shape):
+            out *= (min(s.stop + halo, n) - 1) // c - max(s.start - halo, 0) // c + 1
+        return out
+
+    # the tasks that decode the most chunks first (the run's worst), nearest the centre among them
+    regions.sort(key=lambda r: (-touched(r), sum(((s.start + s.stop) / 2 - c) ** 2 for s, c in zip(r, centre))))
     P.prepare_deformed(np.zeros((8, 8, 8), np.float32), sigma, interp)  # kernels loaded
 
     def status(key):
@@ -76,7 +86,7 @@ CASE = textwrap.dedent(r"""
             fh.write("5")
         return status("VmRSS")
 
-    result = {"edges": edges, "haloed": [min(e + 2 * halo, n) for e, n in zip(edges, g.shape)], "tasks": tasks,
+    result = {"chunks_touched": touched(regions[0]), "edges": edges, "haloed": [min(e + 2 * halo, n) for e, n in zip(edges, g.shape)], "tasks": tasks,
               "n_regions": len(regions), "item": np.dtype(dtype).itemsize}
     if tasks == 1:  # the steps of prepare_task, one by one, each with its own peak
         region = regions[0]
@@ -105,7 +115,7 @@ CASE = textwrap.dedent(r"""
         result["task_peak"] = status("VmHWM") - r0
         result["task_seconds"] = time.perf_counter() - t0
     else:
-        jobs = regions[: 2 * tasks]
+        jobs = regions[: per_thread * tasks]
         seconds = []
 
         def one(region):
@@ -125,10 +135,11 @@ CASE = textwrap.dedent(r"""
 """)
 
 
-def run_case(scan: str, edge: int, tasks: int, sigma: float, interp: str, halo: int, tmp: str) -> dict:
+def run_case(scan: str, edge: int, tasks: int, sigma: float, interp: str, halo: int, tmp: str,
+             per_thread: int) -> dict:
     with tempfile.TemporaryDirectory(dir=tmp) as d:
         out = subprocess.run([sys.executable, "-c", CASE, scan, d, str(edge), str(tasks), str(sigma), interp,
-                              str(halo)], capture_output=True, text=True, env=dict(os.environ))
+                              str(halo), str(per_thread)], capture_output=True, text=True, env=dict(os.environ))
     if out.returncode:
         raise SystemExit(out.stderr)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -137,9 +148,11 @@ def run_case(scan: str, edge: int, tasks: int, sigma: float, interp: str, halo: 
 def main(argv=None) -> dict:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("scan", help="a scan group or array (level 0 is read)")
-    p.add_argument("--edge", type=int, default=None, help="largest task edge (default chunkdic.prepare-voxels)")
+    p.add_argument("--edge", type=int, nargs="+", default=[None],
+                   help="largest task edge(s) (default chunkdic.prepare-voxels)")
     p.add_argument("--tasks", type=int, nargs="+", default=[1, 2], help="tasks at once (1: with the steps' peaks)")
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--per-thread", type=int, default=2, help="tasks per thread in the concurrent case")
     p.add_argument("--sigma", type=float, default=1.0)
     p.add_argument("--interpolation", default="cubic")
     p.add_argument("--tmp", default=tempfile.gettempdir(), help="where the sparse store goes (deleted)")
@@ -150,12 +163,12 @@ def main(argv=None) -> dict:
     from chunkdic.engine.budget import prepare_bytes
     from chunkdic.engine.prefilter import prepare_voxels, prepared_halo
 
-    edge = a.edge or prepare_voxels()
     halo = prepared_halo(a.sigma, a.interpolation, int(config.get("bspline-halo")))
     print(f"load before: {open('/proc/loadavg').read().split()[:3]}")
-    record = {"scan": a.scan, "edge_max": edge, "halo": halo, "cases": {}}
-    for tasks in a.tasks:
-        runs = [run_case(a.scan, edge, tasks, a.sigma, a.interpolation, halo, a.tmp) for _ in range(a.repeats)]
+    record = {"scan": a.scan, "halo": halo, "cases": {}}
+    for edge, tasks in ((e or prepare_voxels(), t) for e in a.edge for t in a.tasks):
+        runs = [run_case(a.scan, edge, tasks, a.sigma, a.interpolation, halo, a.tmp, a.per_thread)
+                for _ in range(a.repeats)]
         first = runs[0]
         haloed = first["haloed"]
         float32_copy = 4 * haloed[0] * haloed[1] * haloed[2]
@@ -163,6 +176,7 @@ def main(argv=None) -> dict:
         secs = statistics.median(r["task_seconds"] for r in runs)
         planned = prepare_bytes(max(first["edges"]), a.sigma, a.interpolation) * tasks
         line = (f"{tasks} task(s) of {'x'.join(map(str, first['edges']))} (haloed {'x'.join(map(str, haloed))}, "
+                f"{first['chunks_touched']} chunks read, "
                 f"float32 copy {float32_copy / MiB:.1f} MiB): peak +{peak / MiB:.1f} MiB "
                 f"({[round(r['task_peak'] / MiB, 1) for r in runs]}), {peak / float32_copy / tasks:.2f} copies per task; "
                 f"planned {planned / MiB:.1f} MiB; {secs:.2f} s per task")
@@ -171,9 +185,11 @@ def main(argv=None) -> dict:
             for step in first["phases"]:
                 vals = [r["phases"][step] / MiB for r in runs]
                 print(f"    {step:9s} peak +{statistics.median(vals):6.1f} MiB  {[round(v, 1) for v in vals]}")
+            read = statistics.median((r["phases"]["read"] - r["held"]["raw"]) / MiB for r in runs)
+            print(f"    read beyond the raw region (zarr's decoded chunks): +{read:.1f} MiB")
             print(f"    held: {({k: round(v / MiB, 1) for k, v in first['held'].items()})}, step seconds "
                   f"{({k: round(v, 2) for k, v in first['step_seconds'].items()})}")
-        record["cases"][str(tasks)] = {"runs": runs, "peak": peak, "task_seconds": secs, "planned": planned,
+        record["cases"][f"{edge}/{tasks}"] = {"runs": runs, "peak": peak, "task_seconds": secs, "planned": planned,
                                        "float32_copy": float32_copy}
     print(f"load after: {open('/proc/loadavg').read().split()[:3]}")
     if a.record:
