@@ -15,6 +15,9 @@ process's resident memory, on a real scan, in a fresh process per case:
   peak over the resident memory before;
 - the seconds per task (median) for the throughput.
 
+``--level``: a level the scan does not store is built first in the temporary directory,
+as a run builds its scratch pyramid (uint32 sums in ``chunkdic.chunk-size`` chunks).
+
 The store is a sparse ``.npy`` file of the box of ``g`` a level-0 run prepares (the whole
 scan for these pairs: ROI plus margins reach the faces), so the row stride of its mapping
 is the run's: the pages a task touches when writing depend on it. The tasks are those of
@@ -50,9 +53,10 @@ CASE = textwrap.dedent(r"""
     from chunkdic.engine import prefilter as P
     from chunkdic.engine.budget import release_freed_memory
 
-    scan, tmp, edge_max, tasks, sigma, interp, halo, per_thread = sys.argv[1], sys.argv[2], int(sys.argv[3]), \
-        int(sys.argv[4]), float(sys.argv[5]), sys.argv[6], int(sys.argv[7]), int(sys.argv[8])
-    g = open_scan(scan).stored_refs()[0]
+    scan, tmp, edge_max, tasks, sigma, interp, halo, per_thread, level = sys.argv[1], sys.argv[2], int(sys.argv[3]), \
+        int(sys.argv[4]), float(sys.argv[5]), sys.argv[6], int(sys.argv[7]), int(sys.argv[8]), int(sys.argv[9])
+    # a level the scan lacks is built in scratch first, as a run does (uint32 sums, chunkdic.chunk-size chunks)
+    g = open_scan(scan).refs([level], scratch_dir=tmp)[level]
     box = tuple((0, n) for n in g.shape)
     grid = P.prepared_grid(g.dtype, sigma, interp)
     dtype = "uint16" if grid[1] > 0 else "float32"
@@ -136,10 +140,10 @@ CASE = textwrap.dedent(r"""
 
 
 def run_case(scan: str, edge: int, tasks: int, sigma: float, interp: str, halo: int, tmp: str,
-             per_thread: int) -> dict:
+             per_thread: int, level: int = 0) -> dict:
     with tempfile.TemporaryDirectory(dir=tmp) as d:
         out = subprocess.run([sys.executable, "-c", CASE, scan, d, str(edge), str(tasks), str(sigma), interp,
-                              str(halo), str(per_thread)], capture_output=True, text=True, env=dict(os.environ))
+                              str(halo), str(per_thread), str(level)], capture_output=True, text=True, env=dict(os.environ))
     if out.returncode:
         raise SystemExit(out.stderr)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -152,6 +156,7 @@ def main(argv=None) -> dict:
                    help="largest task edge(s) (default chunkdic.prepare-voxels)")
     p.add_argument("--tasks", type=int, nargs="+", default=[1, 2], help="tasks at once (1: with the steps' peaks)")
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--level", type=int, default=0, help="pyramid level of g (built in --tmp if the scan lacks it)")
     p.add_argument("--per-thread", type=int, default=2, help="tasks per thread in the concurrent case")
     p.add_argument("--sigma", type=float, default=1.0)
     p.add_argument("--interpolation", default="cubic")
@@ -167,7 +172,7 @@ def main(argv=None) -> dict:
     print(f"load before: {open('/proc/loadavg').read().split()[:3]}")
     record = {"scan": a.scan, "halo": halo, "cases": {}}
     for edge, tasks in ((e or prepare_voxels(), t) for e in a.edge for t in a.tasks):
-        runs = [run_case(a.scan, edge, tasks, a.sigma, a.interpolation, halo, a.tmp, a.per_thread)
+        runs = [run_case(a.scan, edge, tasks, a.sigma, a.interpolation, halo, a.tmp, a.per_thread, a.level)
                 for _ in range(a.repeats)]
         first = runs[0]
         haloed = first["haloed"]

@@ -255,16 +255,18 @@ def write_npy_region(path, local, data: np.ndarray) -> None:
     never touch each other's bytes (the same file pages, shared through the page cache)."""
     offset, shape, dtype = npy_layout(path)
     starts = [s.start for s in local]
-    data = np.ascontiguousarray(data, dtype=dtype)
+    if data.dtype != dtype or data.strides[-1] != dtype.itemsize:
+        data = np.ascontiguousarray(data, dtype=dtype)  # else rows are written from the view: no copy
     if data.shape != tuple(s.stop - s.start for s in local):
         raise ValueError(f"a region of shape {data.shape} written into {local}")
     item = dtype.itemsize
     row, plane = shape[2] * item, shape[1] * shape[2] * item
+    whole = data.flags.c_contiguous
     fd = os.open(path, os.O_WRONLY)
     try:
-        if data.shape[1:] == shape[1:]:  # whole planes: one run
+        if whole and data.shape[1:] == shape[1:]:  # whole planes: one run
             _pwrite_all(fd, data, offset + starts[0] * plane)
-        elif data.shape[2] == shape[2]:  # whole rows: one run per plane
+        elif whole and data.shape[2] == shape[2]:  # whole rows: one run per plane
             for z in range(data.shape[0]):
                 _pwrite_all(fd, data[z], offset + (starts[0] + z) * plane + starts[1] * row)
         else:
