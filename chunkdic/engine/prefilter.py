@@ -36,6 +36,7 @@ from .. import config
 from ..errors import InputError
 from ..io.handles import ArrayRef
 from ..kernels.lowpass import TRUNCATE, lowpass_bspline
+from ..kernels.pwrite import write_rows
 from ..mesh import Mesh
 from . import scratchstore
 
@@ -250,9 +251,10 @@ def npy_layout(path) -> tuple[int, tuple, np.dtype]:
 
 def write_npy_region(path, local, data: np.ndarray) -> None:
     """``data`` into the slices ``local`` of the 3-D ``.npy`` array at ``path``, by ``pwrite``
-    of each contiguous run of the file: a row of the region, a plane when it spans whole
-    rows, all of it when it spans whole planes. Concurrent writers of disjoint regions
-    never touch each other's bytes (the same file pages, shared through the page cache)."""
+    of each contiguous run of the file: a row of the region (all of them in one ``nogil``
+    kernel, :func:`chunkdic.kernels.pwrite.write_rows`), a plane when it spans whole rows,
+    all of it when it spans whole planes. Concurrent writers of disjoint regions never
+    touch each other's bytes (the same file pages, shared through the page cache)."""
     offset, shape, dtype = npy_layout(path)
     starts = [s.start for s in local]
     if data.dtype != dtype or data.strides[-1] != dtype.itemsize:
@@ -269,12 +271,8 @@ def write_npy_region(path, local, data: np.ndarray) -> None:
         elif whole and data.shape[2] == shape[2]:  # whole rows: one run per plane
             for z in range(data.shape[0]):
                 _pwrite_all(fd, data[z], offset + (starts[0] + z) * plane + starts[1] * row)
-        else:
-            for z in range(data.shape[0]):
-                base = offset + (starts[0] + z) * plane + starts[1] * row + starts[2] * item
-                rows = data[z]
-                for y in range(data.shape[1]):
-                    _pwrite_all(fd, rows[y], base + y * row)
+        elif write_rows(fd, data, offset + starts[0] * plane + starts[1] * row + starts[2] * item, row, plane):
+            raise OSError(f"{path}: writing a region of the prepared store failed (is the disk full?)")
     finally:
         os.close(fd)
 
