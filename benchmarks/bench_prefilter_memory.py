@@ -44,6 +44,8 @@ import tempfile
 import textwrap
 from pathlib import Path
 
+import numpy as np
+
 MiB = 2**20
 
 CASE = textwrap.dedent(r"""
@@ -165,8 +167,19 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
 
     from chunkdic import config
-    from chunkdic.engine.budget import prepare_bytes
-    from chunkdic.engine.prefilter import prepare_voxels, prepared_halo
+    from chunkdic.engine.budget import prepare_bytes, read_buffer_bytes
+    from chunkdic.engine.prefilter import prepare_voxels, prepared_grid, prepared_halo
+    from chunkdic.io.scan import open_scan
+
+    scan = open_scan(a.scan)
+
+    def model(edges) -> int:
+        """The plan's estimate of one task (budget.prepare_bytes, the read's buffers included)."""
+        shape, dtype = scan.shape(a.level), scan.dtype(a.level)
+        grown = [min(e + 2 * halo, n) for e, n in zip(edges, shape)]
+        return prepare_bytes(edges, a.sigma, a.interpolation, shape=shape, raw_itemsize=np.dtype(dtype).itemsize,
+                             quantized=prepared_grid(dtype, a.sigma, a.interpolation)[1] > 0,
+                             read_bytes=read_buffer_bytes(scan, a.level, grown))
 
     halo = prepared_halo(a.sigma, a.interpolation, int(config.get("bspline-halo")))
     print(f"load before: {open('/proc/loadavg').read().split()[:3]}")
@@ -179,12 +192,12 @@ def main(argv=None) -> dict:
         float32_copy = 4 * haloed[0] * haloed[1] * haloed[2]
         peak = statistics.median(r["task_peak"] for r in runs)
         secs = statistics.median(r["task_seconds"] for r in runs)
-        planned = prepare_bytes(max(first["edges"]), a.sigma, a.interpolation) * tasks
+        planned = model(first["edges"]) * tasks
         line = (f"{tasks} task(s) of {'x'.join(map(str, first['edges']))} (haloed {'x'.join(map(str, haloed))}, "
                 f"{first['chunks_touched']} chunks read, "
                 f"float32 copy {float32_copy / MiB:.1f} MiB): peak +{peak / MiB:.1f} MiB "
                 f"({[round(r['task_peak'] / MiB, 1) for r in runs]}), {peak / float32_copy / tasks:.2f} copies per task; "
-                f"planned {planned / MiB:.1f} MiB; {secs:.2f} s per task")
+                f"plan's model {planned / MiB:.1f} MiB; {secs:.2f} s per task")
         print(line)
         if tasks == 1:
             for step in first["phases"]:

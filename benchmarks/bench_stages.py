@@ -149,9 +149,14 @@ def run_stage(name: str, args: list[str], log: Path) -> dict:
           f"written {row['write_chars_gb']:.1f} GB ({row['disk_write_gb']:.1f} to disk)  "
           f"cpu {ru.ru_utime + ru.ru_stime:.0f} s", flush=True)
     # the last rises of the high-water mark: in which stage of the run the peak was set
-    big = [r for r in rises if r[1] >= 0.9 * (rises[-1][1] if rises else 0)]
-    for t, hwm, line in big[-4:]:
-        print(f"   peak rose to {hwm / GiB:.2f} GiB at {t:.0f} s: {line}", flush=True)
+    # (within 10 % of it; the last rise in each distinct progress line)
+    last: dict[str, tuple] = {}
+    for t, hwm, line in rises:
+        if rises and hwm >= 0.9 * rises[-1][1]:
+            last.pop(line, None)
+            last[line] = (t, hwm)
+    for line, (t, hwm) in list(last.items())[-4:]:
+        print(f"   peak rose to {hwm / GiB:.2f} GiB at {t:.0f} s: {line or '(no progress line)'}", flush=True)
     return row
 
 
