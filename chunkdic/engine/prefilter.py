@@ -234,8 +234,12 @@ def write_region(out: ArrayRef, local, data: np.ndarray) -> None:
         import zarr
 
         zarr.open_array(out.path, mode="r+")[local] = data
-        return
-    write_npy_region(out.path, local, data)
+    elif not hasattr(os, "pwrite"):  # not POSIX (Windows): through a memory map
+        target = np.load(out.path, mmap_mode="r+")
+        target[local] = data
+        del target
+    else:
+        write_npy_region(out.path, local, data)
 
 
 def npy_layout(path) -> tuple[int, tuple, np.dtype]:
