@@ -7,9 +7,10 @@ per stage — ``correlate --plan``, ``correlate``, ``strain``, ``report``, ``exp
 process (``ru_maxrss`` from ``wait4``: the largest of the process and its waited
 children), what it asked of the file system (``read_chars`` / ``write_chars``, page-cache
 hits included, sampled every 0.5 s by psutil) and what reached the disk (``ru_inblock`` /
-``ru_oublock`` × 512 B). After the correlation: the end-to-end rate in Mvoxel of ROI per
-second per core, the rate per Gauss–Newton pass on the finest level (from the run's
-event log), and the field's error against the truth by the project's scoring rule (the
+``ru_oublock`` × 512 B), and where the peak was set (the progress line when the
+process's high-water mark last rose, sampled every 0.2 s). After the correlation: the
+end-to-end rate in Mvoxel of ROI per second per core, the rate per Gauss–Newton pass on
+the finest level (from the run's event log), and the field's error against the truth by the project's scoring rule (the
 field trilinear between the nodes, as a viewer shows it, RMS of the vector error over
 voxels at least ``ell`` from the faces), evaluated at ``--points`` random voxel centres
 of that region, since every voxel of a 2048³ scan would be 8.6 G evaluations.
@@ -82,6 +83,46 @@ class IoSampler:
                 "peak_tree_rss": self.peak_tree_rss}
 
 
+class PeakTracer:
+    """Where a process's peak resident memory was set: every ``interval`` s its ``VmHWM``
+    (the kernel's high-water mark, so no peak between two samples is missed) and, when it
+    rose, the last progress line of its log (the stage it was in). Linux only."""
+
+    def __init__(self, pid: int, log: Path, interval: float = 0.2):
+        self.status, self.log, self.interval = Path(f"/proc/{pid}/status"), log, interval
+        self.rises: list[tuple[float, int, str]] = []
+        self._stop = threading.Event()
+        self._t0 = time.perf_counter()
+        self._thread = threading.Thread(target=self._loop, daemon=True)
+        self._thread.start()
+
+    def _last_line(self) -> str:
+        try:
+            with open(self.log, "rb") as fh:
+                fh.seek(max(0, fh.seek(0, 2) - 400))
+                lines = [x.strip() for x in re.split(r"[\r\n]", fh.read().decode(errors="replace")) if x.strip()]
+        except OSError:
+            return ""
+        return lines[-1] if lines else ""
+
+    def _loop(self) -> None:
+        last = 0
+        while not self._stop.is_set():
+            try:
+                hwm = [int(x.split()[1]) * 1024 for x in self.status.read_text().splitlines() if x.startswith("VmHWM")]
+            except OSError:
+                return
+            if hwm and hwm[0] > last:
+                last = hwm[0]
+                self.rises.append((round(time.perf_counter() - self._t0, 1), last, self._last_line()[:160]))
+            self._stop.wait(self.interval)
+
+    def stop(self) -> list:
+        self._stop.set()
+        self._thread.join()
+        return self.rises
+
+
 def run_stage(name: str, args: list[str], log: Path) -> dict:
     """Run ``python -m chunkdic ARGS``; stderr to ``log``; its figures."""
     cmd = [sys.executable, "-m", "chunkdic", *args]
@@ -90,20 +131,32 @@ def run_stage(name: str, args: list[str], log: Path) -> dict:
     with open(log, "w") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
         sampler = IoSampler(proc.pid)
+        tracer = PeakTracer(proc.pid, log) if sys.platform.startswith("linux") else None
         _, status, ru = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t0
         io = sampler.stop()
+        rises = tracer.stop() if tracer else []
         out = proc.stdout.read()
         proc.returncode = os.waitstatus_to_exitcode(status)
     row = {"stage": name, "args": args, "exit": proc.returncode, "wall_s": wall,
            "peak_rss_gib": ru.ru_maxrss * 1024 / GiB, "peak_tree_rss_gib": io["peak_tree_rss"] / GiB,
            "read_chars_gb": io["read_chars"] / 1e9, "write_chars_gb": io["write_chars"] / 1e9,
            "disk_read_gb": ru.ru_inblock * 512 / 1e9, "disk_write_gb": ru.ru_oublock * 512 / 1e9,
-           "user_s": ru.ru_utime, "sys_s": ru.ru_stime, "stdout": out.strip()[-2000:], "log": str(log)}
+           "user_s": ru.ru_utime, "sys_s": ru.ru_stime, "stdout": out.strip()[-2000:], "log": str(log),
+           "peak_rises": rises[-12:]}
     print(f"   exit {row['exit']}  {wall:8.1f} s  peak {row['peak_rss_gib']:.2f} GiB  "
           f"read {row['read_chars_gb']:.1f} GB ({row['disk_read_gb']:.1f} from disk)  "
           f"written {row['write_chars_gb']:.1f} GB ({row['disk_write_gb']:.1f} to disk)  "
           f"cpu {ru.ru_utime + ru.ru_stime:.0f} s", flush=True)
+    # the last rises of the high-water mark: in which stage of the run the peak was set
+    # (within 10 % of it; the last rise in each distinct progress line)
+    last: dict[str, tuple] = {}
+    for t, hwm, line in rises:
+        if rises and hwm >= 0.9 * rises[-1][1]:
+            last.pop(line, None)
+            last[line] = (t, hwm)
+    for line, (t, hwm) in list(last.items())[-4:]:
+        print(f"   peak rose to {hwm / GiB:.2f} GiB at {t:.0f} s: {line or '(no progress line)'}", flush=True)
     return row
 
 

@@ -71,7 +71,7 @@ WARM_BASE_BYTES = 245 * MiB
 #: modules whose numba kernels a correlation runs: the block kernels, the pyramid's sums,
 #: the client's solver (a run compiles those missing from numba's cache)
 KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.interp", "chunkdic.kernels.rows",
-                  "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.io.coarsen",
+                  "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.kernels.pwrite", "chunkdic.io.coarsen",
                   "chunkdic.solve.stencil", "chunkdic.solve.galerkin", "chunkdic.solve.multigrid",
                   "chunkdic.solve.regularization")
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
@@ -86,11 +86,23 @@ CLIENT_BYTES_PER_NODE = 1000
 #: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
 #: blocks of 32-128 voxels)
 TASK_COPIES = 12.0
-#: the same for a task of the prefilter of ``g``: two float32 sweeps (measured: 2.0 for the
-#: kernel alone at 96³-192³), the raw read with its decoded chunks, the quantised copy and
-#: the pages of the store it writes (measured: 6.1 for a whole 160³ task of a 512³ scan;
-#: 5 fits the peaks of 128³-512³ runs best, where two such tasks rarely peak together)
-PREPARE_COPIES = 5.0
+#: float32 copies of its haloed region a task of the prefilter of ``g`` holds besides its
+#: raw read: the copy the low-pass and B-spline sweeps work in and the z sweep's source
+#: (measured by ``benchmarks/bench_prefilter_memory.py``: +43.6 MiB for a 179³ region,
+#: +52.2 MiB for 190³: 2.0). The task's peak adds the raw region in its dtype, the cropped
+#: float32 copy and its uint16 quantisation (6 bytes per voxel of the task) and the read's
+#: buffers (:data:`READ_BUFFERS_PER_CHUNK`); two tasks at once hold twice one's (measured:
+#: 20 tasks of 147³ on 2 threads peaked at 194-242 MiB, one alone at 117-128 MiB); the
+#: store is written by ``pwrite`` and adds nothing (docs/distributed.md, "The plan's memory
+#: at 512³-2048³")
+PREPARE_COPIES = 2.0
+#: decoded chunks' worth of memory zarr holds per chunk it is reading, for up to
+#: ``async.concurrency`` (10) of the chunks a region crosses (their compressed bytes and the
+#: decoded chunks; ``benchmarks/bench_prefilter_memory.py``): a scan's own chunks, taken as
+#: noisy CT (measured: 92-100 MiB beyond the region for reads of 179³-190³ regions crossing
+#: 27 uint16 chunks of 128³, 4 MiB each, which blosc cannot compress); the scratch
+#: pyramid's uint32 sums, which compress (66 MiB for a 144³ region crossing 8 chunks of 8 MiB)
+READ_BUFFERS_PER_CHUNK = {"scan": 2.4, "scratch": 1.1}
 #: smallest edge of a prefilter task under a memory target (its halo grows its work)
 MIN_PREPARE_EDGE = 48
 #: per-voxel costs relative to the prefilter of ``g`` per filtered voxel (fitted on this
@@ -370,10 +382,63 @@ def task_bytes(block_edge: int, sigma: float, interpolation: str, span: float = 
     return int(TASK_COPIES * 4 * max(f, g))
 
 
-def prepare_bytes(edge: int, sigma: float, interpolation: str) -> int:
-    """A prefilter task's peak memory (its region grown by the prefilter's halo)."""
+def prepare_bytes(edges, sigma: float, interpolation: str, *, shape=None, raw_itemsize: int = 4,
+                  quantized: bool = False, read_bytes: int = 0) -> int:
+    """A prefilter task's peak memory (bytes).
+
+    Parameters
+    ----------
+    edges : int or tuple of 3 int
+        The task's region (voxels per axis, before the halo).
+    sigma, interpolation
+        The preparation (its halo, :func:`~chunkdic.engine.prefilter.prepared_halo`).
+    shape : tuple of 3 int, optional
+        The level's shape: the region grown by the halo is clipped to it.
+    raw_itemsize : int
+        Bytes per voxel of ``g`` as read (its dtype at the level).
+    quantized : bool
+        The store is uint16 (:func:`~chunkdic.engine.prefilter.prepared_grid`): the task
+        holds the cropped float32 copy and the uint16 one too.
+    read_bytes : int
+        The read's buffers beyond the region (:func:`read_buffer_bytes`).
+    """
+    edges = np.broadcast_to(np.asarray(edges, dtype=np.int64), (3,))
     h = prepared_halo(sigma, interpolation, int(config.get("bspline-halo")))
-    return int(PREPARE_COPIES * 4 * (edge + 2 * h) ** 3)
+    grown = [e + 2 * h if shape is None else min(e + 2 * h, n) for e, n in zip(edges, shape or (0, 0, 0))]
+    held = math.prod(grown) * (raw_itemsize + 4 * PREPARE_COPIES)
+    if quantized:
+        held += 6 * math.prod(int(e) for e in edges)
+    return int(held + read_bytes)
+
+
+def read_buffer_bytes(g_scan, s: int, edges) -> int:
+    """Bytes that reading a region of ``edges`` voxels (halo included) of level ``s`` of
+    ``g_scan`` holds besides the region, at most.
+
+    Zarr decodes up to ``async.concurrency`` of the chunks the region crosses at once,
+    each held compressed and decoded (:data:`READ_BUFFERS_PER_CHUNK` chunks' worth); a
+    level not stored in the scan is read from the scratch pyramid, in
+    ``chunkdic.chunk-size`` chunks. A ``.npy`` file is read through a memory map, which
+    holds the pages of the rows the region crosses while it is copied.
+
+    For level 0 of a 1024³ uint16 scan in chunks of 128³ and a 179³ region (a prefilter
+    task of 147³ with its halo): 27 chunks crossed, 10 at once, 2.4 × 4 MiB each, 96 MiB.
+    """
+    import zarr
+
+    from ..io.store import chunk_shape_for
+
+    shape, item = g_scan.shape(s), np.dtype(g_scan.dtype(s)).itemsize
+    ref = g_scan.stored_refs().get(s)
+    edges = [min(int(e), n) for e, n in zip(np.broadcast_to(edges, (3,)), shape)]
+    if ref is not None and ref.kind == "npy":
+        return int(edges[0] * edges[1] * shape[2] * item)
+    source = "scan" if ref is not None else "scratch"
+    chunks = tuple(ref.open().chunks) if ref is not None and ref.kind == "zarr" else chunk_shape_for(shape, None)
+    # chunks an unaligned run of e voxels crosses along an axis, at most
+    crossed = math.prod(min((e + c - 2) // c + 1, -(-n // c)) for e, c, n in zip(edges, chunks, shape))
+    at_once = min(crossed, int(zarr.config.get("async.concurrency")))
+    return int(READ_BUFFERS_PER_CHUNK[source] * at_once * math.prod(chunks) * item)
 
 
 def pyramid_bytes(scan, levels) -> int:
@@ -471,27 +536,40 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     client = CLIENT_BYTES_PER_NODE * math.prod(finest.nodes_shape)
     pyr_task, pyr_tasks = max(_pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
 
+    h = prepared_halo(sigma, interp, int(config.get("bspline-halo")))
+
+    def prepare_task_bytes(s: int, edges) -> int:
+        """The largest prefilter task of level ``s`` with tasks of ``edges`` voxels."""
+        shape = g_scan.shape(s)
+        return prepare_bytes(edges, sigma, interp, shape=shape, raw_itemsize=np.dtype(g_scan.dtype(s)).itemsize,
+                             quantized=prepared_grid(g_scan.dtype(s), sigma, interp)[1] > 0,
+                             read_bytes=read_buffer_bytes(g_scan, s, [e + 2 * h for e in edges]))
+
     def elements(edge: int, mesh: Mesh) -> int:
         return min(settings.block_elements or max(1, edge // mesh.element_size), max(mesh.shape))
 
     def peak(edge: int, prep_edge: int) -> tuple[int, int]:
         """(largest task, peak of the largest process) with blocks of ``edge`` voxels: a kind
-        of task runs at most ``threads`` at once, and never more than there are of it."""
-        held = [pyr_task * min(threads, pyr_tasks)]
+        of task runs at most ``threads`` at once, and never more than there are of it; in
+        this process, with the client's data of the level the tasks belong to (a coarse
+        level's prefilter, whose reads decode the scratch pyramid's uint32 chunks, may hold
+        more than the finest level's tasks, but beside a small mesh)."""
+        held = [(pyr_task * min(threads, pyr_tasks), 0)]  # (tasks at once, the client's data then)
         for s in levels:
             mesh = meshes[s]
+            on_client = CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape)
             m = elements(edge, mesh)
             n_blocks = math.prod(-(-n // m) for n in mesh.shape)
-            held.append(task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks))
+            held.append((task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks), on_client))
             if prepared:
                 box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)[2]
                 edges = [task_edge(b, 1, prep_edge) for b in box]
                 n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
-                held.append(prepare_bytes(max(edges), sigma, interp) * min(threads, n_prep))
-        task = max(held)
+                held.append((prepare_task_bytes(s, edges) * min(threads, n_prep), on_client))
+        task = max(t for t, _ in held)
         if separate:
             return task, base + max(client, task)
-        return task, base + client + task
+        return task, base + max(client, max(t + c for t, c in held))
 
     edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
     smallest = peak(1, MIN_PREPARE_EDGE)[1]
@@ -504,7 +582,6 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
             prep_edge = max(MIN_PREPARE_EDGE, prep_edge - 16)
     task, process = peak(edge, prep_edge)
 
-    h = prepared_halo(sigma, interp, int(config.get("bspline-halo")))
     plans = []
     for i, s in enumerate(levels):
         mesh = meshes[s]

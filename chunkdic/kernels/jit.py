@@ -63,11 +63,14 @@ Notes for callers (the engine)
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 
 from .b import b_kernel, b_sums, element_to_nodes
 from .lowpass import lowpass_bspline
 from .m import m_block, m_kernel
+from .pwrite import write_rows
 from .warp import warp_block
 from .window import INTERPOLATIONS
 
@@ -89,6 +92,13 @@ def warmup() -> None:
     m_block(f, lo, hi, ell, with_lags=True, active=np.ones((1, 1, 1), np.uint8))
     m_block(f, lo, hi, ell, u_nodes=u, core_origin=(1, 1, 1), g_shape=f.shape)
     lowpass_bspline(f, 1.0, True)
+    if hasattr(os, "pwrite"):  # POSIX: the prefilter's writes, uint16 regions and float32 crops
+        fd = os.open(os.devnull, os.O_WRONLY)
+        try:
+            write_rows(fd, np.zeros((1, 1, 2), np.uint16), 0, 4, 4)
+            write_rows(fd, f[:2, :2, 1:], 0, 16, 64)
+        finally:
+            os.close(fd)
     for interp in INTERPOLATIONS:
         sums = b_sums(f, lo, hi, ell, u, (1, 1, 1), f, (0, 0, 0), f.shape, interpolation=interp)
         element_to_nodes(sums.B[..., 0, :, :])

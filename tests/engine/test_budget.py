@@ -107,6 +107,65 @@ def test_memory_target_changes_blocks_and_is_honoured(pair, tmp_path):
     assert measured["peak"] <= 1.15 * target, (measured["peak"] / MiB, target / MiB)
 
 
+# Two prefilter tasks at once in a fresh process, as a level-0 run's embedded pool runs them,
+# on a zarr scan whose chunks their reads cross (the run's largest tasks): the peak resident
+# memory above the process's before (the kernel's high-water mark, reset first), and the
+# plan's model of it (budget.prepare_bytes with the read's buffers, times 2).
+PREFILTER = textwrap.dedent("""
+    import concurrent.futures, json, sys
+    import numpy as np
+    from chunkdic import config
+    from chunkdic.engine import budget, prefilter as P
+    from chunkdic.io.handles import ArrayRef
+    from chunkdic.io.scan import open_scan
+
+    scan, store, edge = open_scan(sys.argv[1]), sys.argv[2], int(sys.argv[3])
+    g = scan.stored_refs()[0]
+    sigma, interp = 1.0, "cubic"
+    halo = P.prepared_halo(sigma, interp, int(config.get("bspline-halo")))
+    grid = P.prepared_grid(g.dtype, sigma, interp)
+    np.lib.format.open_memmap(store, mode="w+", dtype="uint16", shape=g.shape).flush()
+    out = ArrayRef("npy", store, "", g.shape, "uint16")
+    box = tuple((0, n) for n in g.shape)
+    # 8 tasks, each read crossing a chunk boundary of y and x (chunks of 128)
+    regions = [(slice(halo + 8, halo + 8 + edge), slice(104 + 128 * (k // 4), 104 + 128 * (k // 4) + edge),
+                slice(104 + 128 * (k % 4), 104 + 128 * (k % 4) + edge)) for k in range(8)]
+    # as in a run, whose earlier levels loaded the kernels and started zarr's reading threads
+    P.prepare_deformed(np.zeros((8, 8, 8), np.float32), sigma, interp)
+    P.write_region(out, (slice(0, 1), slice(0, 1), slice(0, 2)), np.zeros((1, 1, 2), np.uint16))
+    g.read((slice(0, 1),) * 3)
+    budget.release_freed_memory()
+    open("/proc/self/clear_refs", "w").write("5")  # the high-water mark starts from here
+    before = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmRSS")][0]
+    with concurrent.futures.ThreadPoolExecutor(2) as pool:
+        for _ in pool.map(lambda r: P.prepare_task(g, out, box, r, halo, sigma, interp, grid), regions):
+            budget.release_freed_memory()  # as the passes do between results
+    peak = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM")][0] - before
+    grown = [min(edge + 2 * halo, n) for n in g.shape]
+    model = 2 * budget.prepare_bytes(edge, sigma, interp, shape=g.shape, raw_itemsize=2, quantized=grid[1] > 0,
+                                     read_bytes=budget.read_buffer_bytes(scan, 0, grown))
+    print(json.dumps({"peak": peak, "model": model}))
+""")
+
+
+@pytest.mark.skipif(not os.path.exists("/proc/self/clear_refs"), reason="needs Linux /proc")
+def test_two_prefilter_tasks_at_once_stay_within_their_memory_model(tmp_path):
+    # uint16 noise (zarr cannot compress it, as real CT noise) in chunks of 128: the reads'
+    # buffers are most of these small tasks' memory (measured 42-52 MiB, model 59 MiB; the
+    # model before issue 21's fix, 5 float32 copies of the region, said 20 MiB)
+    from chunkdic.io.scanwrite import write_scan
+
+    data = np.random.default_rng(5).integers(1000, 60000, (80, 384, 640), dtype=np.uint16)
+    write_scan(tmp_path / "g.zarr", data, chunks=128)
+    del data
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(chunkdic.__file__).parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", PREFILTER, str(tmp_path / "g.zarr"), str(tmp_path / "g.npy"), "48"],
+                         env=env, capture_output=True, text=True, check=True)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert 0.6 * got["model"] <= got["peak"] <= 1.10 * got["model"], (got["peak"] / MiB, got["model"] / MiB)
+
+
 def test_memory_target_too_small_is_refused_before_writing(pair, tmp_path, capsys):
     out = tmp_path / "res.zarr"
     code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size", "16",
