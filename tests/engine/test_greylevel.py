@@ -191,3 +191,25 @@ def test_cell_offsets_follow_a_drift_that_bends_under_a_subvoxel_translation():
                                atol=0.05)
     old = chunkdic.correlate(f.astype(np.float32), g, grey_cell=0, **kw)
     assert np.abs(old.displacement - np.asarray(t)[:, None, None, None]).max() > 0.1
+
+
+def test_cell_offsets_lower_the_noise_of_a_ct_translation(tmp_path):
+    """Independent CT noise in each scan of a 64³ concrete pair translated by (0.5, 0.5, 0.5)
+    (``standard_case("shift")``), ℓ = 8 at the regularisation length the star reads at ℓ = 8
+    (16 voxels): with the default cells σ between the nodes is 0.00826 voxel, with one offset
+    per element 0.00923 (1.12×; grains 0.00549 / 0.00607, 1.10×). Each offset takes the
+    information of the texture's mean gradient over its support from the field, and there
+    are 64 times fewer with one per cell of 4³ elements (docs/engine.md, "Brightness")."""
+    from chunkdic.analysis.scoring import score_between_nodes
+    from chunkdic.synth import synthetic
+
+    n = 64
+    pair = synthetic.standard_case(tmp_path / "shift", "shift", n, specimen="concrete", noise=0.02)
+    sigma = {}
+    for cell in (32.0, 0.0):
+        res = chunkdic.correlate(pair["reference"], pair["deformed"], element_size=8, regularization_length=16.0,
+                                 grey_cell=cell)
+        assert res.converged
+        axes = [np.unique(c) for c in res.node_coords]
+        sigma[cell] = score_between_nodes(axes, res.displacement, pair["field"], (n,) * 3, 8).sigma
+    assert sigma[32.0] < 0.009 and sigma[0.0] > 1.06 * sigma[32.0], sigma
