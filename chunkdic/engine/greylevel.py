@@ -9,13 +9,14 @@ therefore taken as ``r = f(X) - (λ g(X + u(X)) + μ(X))`` with a brightness mod
 ``global``
     one gain and one offset for the whole ROI.
 ``drift`` (default)
-    one gain, a linear drift of the offset across the ROI and one offset per *cell* of
-    ``k³`` elements on top (:func:`offset_cell`: cells of about :data:`OFFSET_CELL_VOXELS`
-    voxels, ``k = 1`` one offset per element): follows any brightness change smoother than
-    a cell (the drift is linear inside each cell), and does not read a brightness gradient
-    as motion. Cells rather than elements because every offset takes from the field the
-    information of the texture's mean gradient over its support: one per element cost about
-    10 % of noise at ℓ = 8 (docs/engine.md, "Brightness").
+    one gain and an affine offset ``a_c + b_c·(X - X_c)`` per *cell* of ``k³`` elements
+    (:func:`offset_cell`: cells of about :data:`OFFSET_CELL_VOXELS` voxels): follows any
+    brightness change that is close to linear over a cell, one that bends across the
+    specimen included, and does not read a brightness gradient as motion. With ``k = 1``
+    (large elements, or ``grey_cell`` 0) the earlier form: one gain, one linear drift across
+    the ROI and one offset per element. Cells rather than elements because every offset
+    takes from the field the information of the texture's mean gradient over its support:
+    one per element cost about 10 % of noise at ℓ = 8 (docs/engine.md, "Brightness").
 ``element``
     a gain and an offset per element (``λ`` kept within :data:`GAIN_RANGE`; an element too
     flat to fix a gain gets an offset only).
@@ -30,10 +31,10 @@ built in the ``M`` pass (:func:`chunkdic.kernels.m.m_block`; the few global unkn
 offsets of cells of several elements are left out of it, as their coupling with the nodal
 field is weak: they change the converged field, not ``M``'s role as the step's model).
 A cell never straddles two blocks: blocks hold whole cells (:func:`aligned_block_elements`),
-so a task centres its sums on its cells' means exactly, as on its elements' before. With ``α = λ - 1`` and
+so a task eliminates its cells' offsets exactly, as it did its elements'. With ``α = λ - 1`` and
 ``g' = g(X+u) - c``, ``r = d - α g' - μ'`` (``d = f - g(X+u)``); the returned gain and offset
 are in the usual form ``f ≈ gain · g(X + u) + offset`` (offset at the element centre, plus
-``drift · (X - X_e)`` for the ``drift`` model).
+``drift · (X - X_e)`` for the ``drift`` model: with cells, the cells' mean slope).
 """
 
 from __future__ import annotations
