@@ -187,8 +187,9 @@ def test_cell_offsets_follow_a_drift_that_bends_under_a_subvoxel_translation():
     np.testing.assert_allclose(got["drift"], [-(4 * 0.2 + 3 * 0.8) / 7 / A, 0.0, 0.0], atol=2e-3)
     # f(X) = g(X + t) / A - bright(z + t_z) / A: the offset at the element's centre
     want = -bright(_element_centres_z(res.mesh.origin[0], ell, res.mesh.shape[0]) + t[0]) / A
+    # within 0.15 grey level: the gain's 1e-3 (interpolation, no low-pass) times the texture's ~100
     np.testing.assert_allclose(res.brightness[1], np.broadcast_to(want[:, None, None], res.brightness[1].shape),
-                               atol=0.05)
+                               atol=0.15)
     old = chunkdic.correlate(f.astype(np.float32), g, grey_cell=0, **kw)
     assert np.abs(old.displacement - np.asarray(t)[:, None, None, None]).max() > 0.1
 
