@@ -44,6 +44,7 @@ from ..io.diskspace import free_bytes as _free
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers
+from .greylevel import aligned_block_elements, offset_cell
 from .haloed import quantization
 from .initial import open_init
 from .planning import plan_meshes
@@ -546,7 +547,10 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
                              read_bytes=read_buffer_bytes(g_scan, s, [e + 2 * h for e in edges]))
 
     def elements(edge: int, mesh: Mesh) -> int:
-        return min(settings.block_elements or max(1, edge // mesh.element_size), max(mesh.shape))
+        # as the level makes its blocks (whole brightness cells, chunkdic.engine.level.Level)
+        cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
+        m = aligned_block_elements(settings.block_elements or max(1, edge // mesh.element_size), cell)
+        return min(m, max(mesh.shape))
 
     def peak(edge: int, prep_edge: int) -> tuple[int, int]:
         """(largest task, peak of the largest process) with blocks of ``edge`` voxels: a kind

@@ -9,10 +9,14 @@ therefore taken as ``r = f(X) - (λ g(X + u(X)) + μ(X))`` with a brightness mod
 ``global``
     one gain and one offset for the whole ROI.
 ``drift`` (default)
-    one gain, a linear drift of the offset across the ROI and one offset per element on
-    top: follows any smooth brightness change (a drift is linear inside each element and
-    nearly constant from one element to the next), and does not read a brightness
-    gradient as motion.
+    one gain and an affine offset ``a_c + b_c·(X - X_c)`` per *cell* of ``k³`` elements
+    (:func:`offset_cell`: cells of about :data:`OFFSET_CELL_VOXELS` voxels): follows any
+    brightness change that is close to linear over a cell, one that bends across the
+    specimen included, and does not read a brightness gradient as motion. With ``k = 1``
+    (large elements, or ``grey_cell`` 0) the earlier form: one gain, one linear drift across
+    the ROI and one offset per element. Cells rather than elements because every offset
+    takes from the field the information of the texture's mean gradient over its support:
+    one per element cost about 10 % of noise at ℓ = 8 (docs/engine.md, "Brightness").
 ``element``
     a gain and an offset per element (``λ`` kept within :data:`GAIN_RANGE`; an element too
     flat to fix a gain gets an offset only).
@@ -23,11 +27,14 @@ from one pass over the voxels (:class:`chunkdic.kernels.blocks.ElementSums`): ea
 reduces its element sums with :func:`reduce_block` (the per-element unknowns in full) and
 the client finishes the global ones with :func:`combine`. The Gauss–Newton matrix of the
 per-element models is ``M`` minus the Schur complement of their per-element unknowns,
-built in the ``M`` pass (:func:`chunkdic.kernels.m.m_block`; the few global unknowns are left
-out of it, as their coupling with the nodal field is weak). With ``α = λ - 1`` and
+built in the ``M`` pass (:func:`chunkdic.kernels.m.m_block`; the few global unknowns and the
+offsets of cells of several elements are left out of it, as their coupling with the nodal
+field is weak: they change the converged field, not ``M``'s role as the step's model).
+A cell never straddles two blocks: blocks hold whole cells (:func:`aligned_block_elements`),
+so a task eliminates its cells' offsets exactly, as it did its elements'. With ``α = λ - 1`` and
 ``g' = g(X+u) - c``, ``r = d - α g' - μ'`` (``d = f - g(X+u)``); the returned gain and offset
 are in the usual form ``f ≈ gain · g(X + u) + offset`` (offset at the element centre, plus
-``drift · (X - X_e)`` for the ``drift`` model).
+``drift · (X - X_e)`` for the ``drift`` model: with cells, the cells' mean slope).
 """
 
 from __future__ import annotations
@@ -47,6 +54,33 @@ FLAT = 1e-12
 # positions of the quantities in ElementSums (blocks.QUANTITIES)
 _D, _G, _ONE, _Z, _Y, _X = range(6)
 _THETA = (_G, _Z, _Y, _X)  # global unknowns of the drift model: gain, then the drift per axis
+_COORDS = (_Z, _Y, _X)
+#: edge (voxels of the level) of the cells sharing one offset in the ``drift`` model
+OFFSET_CELL_VOXELS = 32
+
+
+def offset_cell(model: str, element_size: int, cell_voxels: float = OFFSET_CELL_VOXELS) -> int:
+    """Elements per side of a cell sharing one brightness offset: ``round(cell_voxels / ℓ)``
+    (at least 1) for the ``drift`` model, 1 for the others (``element`` fits per element,
+    ``none`` and ``global`` have no local offset).
+
+    >>> offset_cell("drift", 8), offset_cell("drift", 12), offset_cell("drift", 48), offset_cell("global", 8)
+    (4, 3, 1, 1)
+    """
+    if model != "drift" or cell_voxels <= 0:
+        return 1
+    return max(1, int(round(float(cell_voxels) / int(element_size))))
+
+
+def aligned_block_elements(elements_per_block: int, cell: int) -> int:
+    """Elements per block side rounded up to whole cells, so that no cell straddles two blocks
+    (blocks start at multiples of it from the mesh's first element).
+
+    >>> aligned_block_elements(8, 4), aligned_block_elements(3, 4), aligned_block_elements(5, 1)
+    (8, 4, 5)
+    """
+    k = max(1, int(cell))
+    return -(-max(1, int(elements_per_block)) // k) * k
 
 
 @dataclass
@@ -116,8 +150,54 @@ def _nodes(B, coef) -> np.ndarray:
     return element_to_nodes(E)
 
 
-def reduce_block(sums: ElementSums, model: str) -> Partials:
-    """Reduce a block's element sums for ``model`` (task side)."""
+def _cell_sum(a: np.ndarray, k: int) -> np.ndarray:
+    """Sums of ``a`` (leading axes: elements) over cells of ``k³`` elements (the last ones partial)."""
+    for ax in range(3):
+        a = np.add.reduceat(a, np.arange(0, a.shape[ax], k), axis=ax)
+    return a
+
+
+def _cell_to_elements(c: np.ndarray, k: int, shape) -> np.ndarray:
+    """Each element's copy of its cell's value (inverse of :func:`_cell_sum`'s grouping)."""
+    for ax in range(3):
+        c = np.take(np.repeat(c, k, axis=ax), np.arange(shape[ax]), axis=ax)
+    return c
+
+
+def _offsets_from_cell_centres(shape, k: int) -> np.ndarray:
+    """(ez, ey, ex, 3): each element's centre minus its cell's centre, in elements."""
+    out = np.zeros(tuple(shape) + (3,))
+    for ax, n in enumerate(shape):
+        i = np.arange(n)
+        first = (i // k) * k
+        count = np.minimum(k, n - first)
+        o = (i - first) - (count - 1) / 2.0
+        out[..., ax] = o.reshape([-1 if a == ax else 1 for a in range(3)])
+    return out
+
+
+def _cell_centred(sums: ElementSums, k: int):
+    """``(B, G, offsets)`` with the coordinate quantities centred on each element's cell
+    instead of on the element: ``q~ + o`` for an element whose centre is ``o`` elements from
+    its cell's (``o`` returned, shape (ez, ey, ex, 3))."""
+    B, G = sums.B, sums.gram
+    o = _offsets_from_cell_centres(G.shape[:3], k)
+    T = np.broadcast_to(np.eye(6), G.shape).copy()
+    for j, q in enumerate(_COORDS):
+        T[..., q, _ONE] = o[..., j]
+    Gc = np.einsum("...ij,...jk,...lk->...il", T, G, T)
+    Bc = B.copy()
+    for j, q in enumerate(_COORDS):
+        Bc[..., q, :, :] += o[..., j, None, None] * B[..., _ONE, :, :]
+    return Bc, Gc, o
+
+
+def reduce_block(sums: ElementSums, model: str, cell: int = 1) -> Partials:
+    """Reduce a block's element sums for ``model`` (task side).
+
+    ``cell``: elements per side of the cells sharing one offset (``drift``; the block holds
+    whole cells from its first element, :func:`aligned_block_elements`; 1: per element).
+    """
     B, G = sums.B, sums.gram
     lags = sums.lags if sums.lags is not None else np.zeros((6, LAGS + 1))
     n_e = G[..., _ONE, _ONE]
@@ -129,6 +209,8 @@ def reduce_block(sums: ElementSums, model: str) -> Partials:
         nodal = np.stack([_nodes(B, {q: 1.0}) for q in (_D, _G, _ONE)])
         S = G[..., [_D, _G, _ONE], :][..., [_D, _G, _ONE]].sum(axis=(0, 1, 2))
         return Partials(nodal, np.concatenate([[n], S[np.triu_indices(3)]]), n_e[None], sums.n_excluded, lags)
+    if model == "drift" and cell > 1:
+        return _reduce_cells(sums, int(cell), lags)
     # per-element offsets: centre every quantity on its element mean (weights w)
     safe = np.where(n_e > 0, n_e, 1.0)
     mean = G[..., _ONE, :] / safe[..., None]  # (ez, ey, ex, 6)
@@ -148,6 +230,46 @@ def reduce_block(sums: ElementSums, model: str) -> Partials:
         ssr = cdd - 2 * alpha * cdg + alpha * alpha * cgg
         return Partials(b[None], np.array([n, ssr.sum()]), np.stack([n_e, alpha, mu]), sums.n_excluded, lags)
     raise ValueError(f"unknown brightness model {model!r}")
+
+
+def _reduce_cells(sums: ElementSums, k: int, lags: np.ndarray) -> Partials:
+    """The ``drift`` model with an affine offset per cell of ``k³`` elements: ``a_c + b_c·(X - X_c)``,
+    eliminated per cell (every quantity's least-squares projection on the cell's ``1, z, y, x``
+    removed, the coordinates centred on the cell's centre); the gain is then the one global
+    unknown. Four unknowns per cell instead of one per element: at ``k = 4`` a sixteenth as
+    many, and a brightness that bends across the specimen is followed by the cells' slopes,
+    as well as the element offsets with one global drift followed it (docs/engine.md).
+
+    The partials keep the layout of the per-element ``drift`` model, so that :func:`nodal_rhs`
+    and :func:`element_fit` read both: the drift rows and columns of the scalars are zero (no
+    global drift to fit), the element rows hold each element's offsets ``a + b·(X_e - X_c)``
+    of ``d`` and ``g'`` (rows ``d`` and ``g``, so that the fitted offset at the element's centre is
+    ``d-row - α g-row``), and six more scalars the cells' slopes summed with their weights, from
+    which the drift reported is the mean slope."""
+    B, G, o = _cell_centred(sums, k)
+    n_e = G[..., _ONE, _ONE]
+    G_c = _cell_sum(G, k)
+    lin, fitted = [_ONE, *_COORDS], [_D, _G]
+    GLL = G_c[..., lin, :][..., lin]
+    GLQ = G_c[..., lin, :][..., fitted]
+    # per cell, the offset's coefficients for d and g'; pinv: a cell with too few voxels to fix
+    # its slopes (a thin cell at a mask's edge) gets the minimum-norm ones
+    coef = np.linalg.pinv(GLL, rcond=1e-12, hermitian=True) @ GLQ  # (cz, cy, cx, 4, 2)
+    W = G_c[..., fitted, :][..., fitted] - np.swapaxes(GLQ, -1, -2) @ coef  # within-cell, 2 x 2
+    S = np.zeros((5, 5))
+    S[:2, :2] = W.sum(axis=(0, 1, 2))
+    n_c = G_c[..., _ONE, _ONE]
+    slopes = np.einsum("abc,abcjq->qj", n_c, coef[..., 1:, :])  # Σ n_c b_c for d, g' (per element length)
+    coef_e = _cell_to_elements(coef, k, n_e.shape)
+    nodal = np.zeros((5,) + tuple(n + 1 for n in n_e.shape) + (3,))
+    for j, q in enumerate(fitted):
+        nodal[j] = _nodes(B, {q: 1.0, **{c: -coef_e[..., i, j] for i, c in enumerate(lin)}})
+    rows = np.zeros((6,) + n_e.shape)
+    for j, q in enumerate(fitted):
+        rows[q] = coef_e[..., 0, j] + np.einsum("...i,...i->...", coef_e[..., 1:, j], o)
+    rows[_ONE] = 1.0
+    return Partials(nodal, np.concatenate([[float(n_e.sum())], S.ravel(), slopes.ravel()]),
+                    np.concatenate([n_e[None], rows]), sums.n_excluded, lags)
 
 
 def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.ndarray, center: float,
@@ -171,7 +293,7 @@ def _global_coefficients(model: str, scalars: np.ndarray):
         A = np.array([[sgg, sg], [sg, n]])
         return np.linalg.solve(A, [sdg, sd]) if np.linalg.det(A) > FLAT * sgg * n else (0.0, sd / max(n, 1))
     if model == "drift":
-        S = scalars[1:].reshape(5, 5)
+        S = scalars[1:26].reshape(5, 5)  # then, with affine offsets per cell, their slopes (element_fit)
         A, rhs = S[1:, 1:], S[1:, 0]
         return np.linalg.lstsq(A, rhs, rcond=None)[0] if np.trace(A) > 0 else np.zeros(4)
     return None
@@ -208,13 +330,16 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
         ssr = sdd - 2 * alpha * sdg - 2 * mu * sd + alpha**2 * sgg + 2 * alpha * mu * sg + mu**2 * n
         return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e)
     if model == "drift":
-        S = scalars[1:].reshape(5, 5)
+        S = scalars[1:26].reshape(5, 5)
         A, rhs = S[1:, 1:], S[1:, 0]
         theta = _global_coefficients(model, scalars)
         ssr = S[0, 0] - 2 * theta @ rhs + theta @ A @ theta
         alpha, beta = theta[0], theta[1:]
         mean = elements[1:]  # element means of d, g', 1, z~, y~, x~
         mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[_Z:_X + 1], axes=1)  # a view: no copy
+        if len(scalars) > 26:  # affine offsets per cell (_reduce_cells): report their mean slope
+            slopes = scalars[26:32].reshape(2, 3)
+            beta = (slopes[0] - alpha * slopes[1]) / max(n, 1.0)
         # offset at the element centre (q~ = 0): μ_e - α c
         return Fit(b, float(max(ssr, 0.0)), float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
                    beta / float(element_size), n_e)

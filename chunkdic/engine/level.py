@@ -27,7 +27,7 @@ from ..solve.regularization import Regularizer, plane_wave_weight
 from ..solve.stencil import rigid_restriction, stencil_matvec
 from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
-from .greylevel import Fit, element_fit, nodal_rhs
+from .greylevel import Fit, aligned_block_elements, element_fit, nodal_rhs, offset_cell
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
@@ -114,7 +114,9 @@ class Level:
         self.scratch = scratch
         self.progress = progress
         self._builds = 0
-        m = settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size)
+        cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
+        m = aligned_block_elements(settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size),
+                                   cell)
         self.jobs = BlockJob.for_mesh(mesh, m)
         margin = face_margin(settings.smoothing)
         if min(g_ref.shape) <= 2 * margin + 1:
@@ -122,7 +124,7 @@ class Level:
                              f"{settings.smoothing} voxels: choose a finer coarsest level or less smoothing")
         self.inputs = LevelInputs.for_settings(f_ref, g_ref, self._create_f_copy(f_ref, settings.smoothing), level=s,
                                                interpolation=settings.interpolation, smoothing=settings.smoothing,
-                                               grey=settings.grey, mask=mask)
+                                               grey=settings.grey, mask=mask, grey_cell=cell)
         self.regularization_length = math.nan
         self.regularization_weight = 0.0
         # the operator is assembled here, so that no method can run before it exists

@@ -53,6 +53,10 @@ class Settings:
     grey : {"none", "global", "drift", "element"}
         Brightness model between the scans (:mod:`chunkdic.engine.greylevel`); ``none`` is the
         paper's plain residual.
+    grey_cell : float
+        Edge (voxels of each level, >= 0) of the cells sharing one offset in the ``drift``
+        model, rounded to whole elements (:func:`chunkdic.engine.greylevel.offset_cell`);
+        0 or at most ``ℓ``: one offset per element. docs/engine.md, "Brightness".
     regularization : {"none", "tikhonov", "equilibrium-gap"}
         Penalty on the short wavelengths of the field (:mod:`chunkdic.solve.regularization`).
     regularization_rule : {"discrepancy", "upre", "discrepancy-half", "gcv", "l-curve"}
@@ -87,8 +91,11 @@ class Settings:
     smoothing: float = _option(1.0, "Gaussian low-pass of both scans, voxels of each level (default 1; 0: the "
                                "paper's raw images)")
     grey: str = _option("drift", "brightness model between the scans (default drift: a gain, a linear drift and "
-                        "an offset per element; none: the paper's plain residual)", flag="--grey-level",
-                        choices=GREY_MODELS)
+                        "an offset per cell of --grey-level-cell voxels; none: the paper's plain residual)",
+                        flag="--grey-level", choices=GREY_MODELS)
+    grey_cell: float = _option(32.0, "edge of the cells sharing one brightness offset in the drift model, voxels of "
+                               "each level, rounded to whole elements (default 32; 0: one offset per element)",
+                               flag="--grey-level-cell")
     regularization: str = _option("tikhonov", "penalty on the field's short wavelengths (default tikhonov, on "
                                   "its curvature)", choices=REGULARIZATIONS)
     regularization_rule: str = _option(DEFAULT_RULE, "how the automatic length is chosen (default discrepancy: "
@@ -113,6 +120,7 @@ class Settings:
         _choice(self.interpolation, INTERPOLATIONS, "interpolation")
         check(self, "smoothing", _nonnegative_float(self.smoothing, "smoothing"))
         _choice(self.grey, GREY_MODELS, "grey-level model")
+        check(self, "grey_cell", _nonnegative_float(self.grey_cell, "grey-level cell"))
         _choice(self.regularization, REGULARIZATIONS, "regularization")
         _choice(self.regularization_rule, RULES, "regularization rule")
         if self.regularization_length is not None:

@@ -108,6 +108,9 @@ class LevelInputs:
         ``(offset, step)`` of the grid the prepared ``g`` is kept on
         (:func:`chunkdic.engine.prefilter.prepared_grid`, chosen on the client for the run's
         scratch layout); a task that prepares its own window rounds it to the same grid.
+    grey_cell : int
+        Elements per side of the cells sharing one brightness offset
+        (:func:`chunkdic.engine.greylevel.offset_cell`; blocks hold whole cells).
     """
 
     f: ArrayRef
@@ -123,16 +126,25 @@ class LevelInputs:
     level: int = 0
     mask: ArrayRef | None = None
     g_grid: tuple[float, float] = (0.0, 0.0)
+    grey_cell: int = 1
 
     @classmethod
     def for_settings(cls, f: ArrayRef, g: ArrayRef, f_copy: HaloedBlocks | None, *, level: int,
-                     interpolation: str, smoothing: float, grey: str, mask: ArrayRef | None = None) -> "LevelInputs":
+                     interpolation: str, smoothing: float, grey: str, mask: ArrayRef | None = None,
+                     grey_cell: int = 1) -> "LevelInputs":
         """The one way to make a level's inputs from a run's settings: the B-spline halo from
         ``chunkdic.bspline-halo`` and the margin near the faces of ``g`` from the low-pass
         (:func:`chunkdic.engine.prefilter.face_margin`) are derived here, once."""
         return cls(f, g, f_copy, interpolation, float(smoothing), grey, int(config.get("bspline-halo")),
                    face_margin(smoothing), level=int(level), mask=mask,
-                   g_grid=prepared_grid(g.dtype, smoothing, interpolation))
+                   g_grid=prepared_grid(g.dtype, smoothing, interpolation), grey_cell=int(grey_cell))
+
+    @property
+    def m_grey(self) -> str:
+        """The brightness model whose per-element unknowns condense ``M``: offsets shared by
+        cells of several elements are left out of it, like the global unknowns (their Schur
+        complement would reach across the cell, beyond ``M``'s 27-node stencil)."""
+        return "global" if self.grey == "drift" and self.grey_cell > 1 else self.grey
 
     @property
     def g_needs_preparing(self) -> bool:
@@ -184,7 +196,7 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
         fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
     # the brightness condensation is invariant to the centring constant: the block's mean
     # keeps its sums small
-    stencil, fmin, fmax, lags = m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
+    stencil, fmin, fmax, lags = m_block(f, lo, hi, job.ell, grey=inputs.m_grey, center=float(f.mean()),
                                         u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
                                         margin=inputs.g_margin, with_lags=True,
                                         active=None if fractions is None else active_elements(fractions))
@@ -212,7 +224,7 @@ def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
         sums = b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
                       interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
                       margin=inputs.g_margin, active=active)
-    return job.block, reduce_block(sums, inputs.grey)
+    return job.block, reduce_block(sums, inputs.grey, inputs.grey_cell)
 
 
 def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):

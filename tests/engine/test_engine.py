@@ -96,10 +96,15 @@ def invariance_pair():
     return f, g, ref
 
 
-@pytest.mark.parametrize("block_elements", [1, 2])
-def test_result_does_not_depend_on_block_size(invariance_pair, block_elements):
+@pytest.mark.parametrize("block_elements, grey_cell", [(1, 0.0), (2, 0.0), (2, 16.0)])
+def test_result_does_not_depend_on_block_size(invariance_pair, block_elements, grey_cell):
+    """Blocks of 1 or 2 elements against blocks of 4 (6 elements per axis): with one brightness
+    offset per element, and per cell of 2³ elements (blocks of 2 hold one cell, blocks of 4
+    two, the last block one). The default cells (4³ elements) make every block size here 4."""
     f, g, ref = invariance_pair
-    res = chunkdic.correlate(f, g, element_size=8, block_elements=block_elements, coarsest=0)
+    if grey_cell != ref.info["settings"]["grey_cell"]:
+        ref = chunkdic.correlate(f, g, element_size=8, block_elements=4, coarsest=0, grey_cell=grey_cell)
+    res = chunkdic.correlate(f, g, element_size=8, block_elements=block_elements, coarsest=0, grey_cell=grey_cell)
     assert ref.info["status"] == res.info["status"] == "converged"
     np.testing.assert_allclose(res.displacement, ref.displacement, rtol=0, atol=1e-6)
 
