@@ -222,7 +222,7 @@ def test_quantised_reference_copy_is_block_independent_and_close_to_float32():
     runs = {}
     for prec, m in (("uint16", 1), ("uint16", 4), ("float32", 4)):
         with dask.config.set({"chunkdic.scratch-precision": prec}):
-            # one offset per element: the default cells (4³ elements) would make both blocks 4
+            # one offset per element: cells of 32 voxels (4³ elements) would make both blocks 4
             runs[prec, m] = chunkdic.correlate(f, g, element_size=8, block_elements=m, coarsest=0,
                                                grey_cell=0.0).displacement
     np.testing.assert_allclose(runs["uint16", 1], runs["uint16", 4], rtol=0, atol=1e-6)

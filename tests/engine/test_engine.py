@@ -100,7 +100,7 @@ def invariance_pair():
 def test_result_does_not_depend_on_block_size(invariance_pair, block_elements, grey_cell):
     """Blocks of 1 or 2 elements against blocks of 4 (6 elements per axis): with one brightness
     offset per element, and per cell of 2³ elements (blocks of 2 hold one cell, blocks of 4
-    two, the last block one). The default cells (4³ elements) make every block size here 4."""
+    two, the last block one). Cells of 32 voxels (4³ elements) make every block size here 4."""
     f, g, ref = invariance_pair
     if grey_cell != ref.info["settings"]["grey_cell"]:
         ref = chunkdic.correlate(f, g, element_size=8, block_elements=4, coarsest=0, grey_cell=grey_cell)

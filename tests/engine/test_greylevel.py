@@ -160,7 +160,7 @@ def test_cell_offsets_are_the_least_squares_fit_over_the_voxels(k):
 def test_cell_offsets_follow_a_drift_that_bends_under_a_subvoxel_translation():
     """A smooth texture Fourier-shifted by a sub-voxel translation (exact); the deformed scan
     ×1.25, +40, and a drift along z of 0.2 grey level per voxel below mid-height, 0.8 above
-    (continuous; texture range 0-100). The default cells (32 voxels, 4 elements: the mesh's
+    (continuous; texture range 0-100). Cells of 32 voxels (, 4 elements: the mesh's
     7 elements from voxel 4 make 2 cells per axis) hold one affine piece each when the bend
     sits on their boundary (voxel 36 of the reference), so the model is exact: the
     translation within 0.015 voxel at every node (measured 0.0129; 0.0135 without any
@@ -179,7 +179,7 @@ def test_cell_offsets_follow_a_drift_that_bends_under_a_subvoxel_translation():
     z = np.arange(n, dtype=np.float64)[:, None, None]
     g = (A * fourier_shift(f, t) + bright(z)).astype(np.float32)
     kw = dict(element_size=ell, coarsest=0, regularization="none", tolerance=1e-4, smoothing=0)  # a low-pass rounds the bend
-    res = chunkdic.correlate(f.astype(np.float32), g, **kw)
+    res = chunkdic.correlate(f.astype(np.float32), g, grey_cell=32, **kw)
     assert res.info["settings"]["grey_cell"] == 32.0 and res.converged and res.mesh.origin[0] == 4
     assert np.abs(res.displacement - np.asarray(t)[:, None, None, None]).max() < 0.015
     got = res.info["grey_level"]
@@ -197,7 +197,7 @@ def test_cell_offsets_follow_a_drift_that_bends_under_a_subvoxel_translation():
 def test_cell_offsets_lower_the_noise_of_a_ct_translation(tmp_path):
     """Independent CT noise in each scan of a 64³ concrete pair translated by (0.5, 0.5, 0.5)
     (``standard_case("shift")``), ℓ = 8 at the regularisation length the star reads at ℓ = 8
-    (16 voxels): with the default cells σ between the nodes is 0.00826 voxel, with one offset
+    (16 voxels): with cells of 32 voxels σ between the nodes is 0.00826 voxel, with one offset
     per element 0.00923 (1.12×; grains 0.00549 / 0.00607, 1.10×). Each offset takes the
     information of the texture's mean gradient over its support from the field, and there
     are 64 times fewer with one per cell of 4³ elements (docs/engine.md, "Brightness")."""
