@@ -84,8 +84,10 @@ def main(argv=None) -> int:
                     help="the chunkdic checkout to run (default: this one)")
     ap.add_argument("--kill-at", default="level 0 iter  1")
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("args", nargs="*", help="correlate options after --, e.g. -- -l 16 --level 0")
-    a = ap.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []  # correlate's options, e.g. -- -l 16 --level 0
+    a = ap.parse_args(argv[:argv.index("--")] if "--" in argv else argv)
+    a.args = extra
     out, scratch = a.workdir / "out.zarr", a.workdir / "scratch"
     cmd = [sys.executable, "-m", "chunkdic", "correlate", str(a.pair / "ref.zarr"), str(a.pair / "def.zarr"),
            "-o", str(out), *a.args]

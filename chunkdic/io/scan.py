@@ -185,9 +185,11 @@ class Scan:
 
     def _adopt_scratch_levels(self, scratch_dir: Path, wanted) -> None:
         """Take the complete levels of the scratch group an interrupted run wrote for this scan
-        under ``scratch_dir`` (see :meth:`refs`); levels found incomplete are built again into it."""
+        under ``scratch_dir`` (see :meth:`refs`); levels found incomplete are built again into it,
+        and levels coarser than every wanted one (done before the interruption) are removed."""
         import concurrent.futures
         import itertools
+        import shutil
 
         import zarr
 
@@ -201,6 +203,9 @@ class Scan:
         except Exception:  # noqa: BLE001 - not a group chunkdic wrote: left alone, a new one is made
             return
         self._scratch_group = str(groups[0])
+        for name in list(root.array_keys()):  # levels coarser than any wanted: done before the kill
+            if name.isdigit() and int(name) > max(wanted):
+                shutil.rmtree(groups[0] / name, ignore_errors=True)
         for s in sorted(wanted - set(self._stored) - set(self._scratch)):
             try:
                 arr = zarr.open_array(store=str(groups[0]), path=str(s), mode="r")
