@@ -40,7 +40,9 @@ PASS = re.compile(r"level 0 iter +\d+: .*\((\d+\.\d+) s\)")
 
 
 def _spawn(cmd, env):
-    return subprocess.Popen(["nice", "-n", "12", *cmd], stderr=subprocess.PIPE, text=True, env=env)
+    # run from the checkout asked for: ``python -m`` puts the working directory first on sys.path
+    return subprocess.Popen(["nice", "-n", "12", *cmd], stderr=subprocess.PIPE, text=True, env=env,
+                            cwd=env["PYTHONPATH"])
 
 
 def kill_at(cmd, env, at: str) -> list[str]:
