@@ -58,6 +58,7 @@ from .prefilter import (
     task_edge,
 )
 from .scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
+from .stored_matrix import stored_bytes
 from .settings import Settings
 
 GiB, MiB = 2**30, 2**20
@@ -488,8 +489,11 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
 
 
 def output_bytes(mesh: Mesh) -> int:
-    """A result's size: nodal fields, flags, uncertainty, history, the checkpoint (float64)."""
-    return int(math.prod(mesh.nodes_shape) * 8 * 16 + MiB)
+    """The output's peak size: a result's nodal fields, flags, uncertainty, history, the
+    checkpoint (float64), and, while the run is incomplete, the finest level's ``M`` kept for
+    a resumed run (:func:`chunkdic.engine.stored_matrix.stored_bytes`, 504 bytes per node:
+    0.98 GiB at 2048³, ℓ = 16), which the complete result replaces with the rest of the checkpoint."""
+    return int(math.prod(mesh.nodes_shape) * 8 * 16 + stored_bytes(mesh.nodes_shape) + MiB)
 
 
 def calibrate(g_ref, sigma: float, interpolation: str, threads: int) -> float:

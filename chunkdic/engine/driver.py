@@ -22,10 +22,11 @@ from pathlib import Path
 
 import dask.config
 
+from .. import config
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.outputs import Outputs
-from ..io.ownership import OutputLock, make_scratch
+from ..io.ownership import OutputLock, adopt_scratch, make_scratch, reclaim_stale_scratch
 from ..io.scan import open_scan
 from ..io.units import lengths_in_voxels
 from ..kernels import jit as kernels
@@ -41,12 +42,15 @@ from .checkpoint import (
     kept_checkpoint_error,
 )
 from .events import emit
+from .haloed import COMPLETE
 from .initial import init_identity, open_init
+from .level import prune_adopted
 from .masks import check_mask_shape, prepare_mask
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
 from .runstate import LevelOutcome, RunState
 from .settings import Settings
+from .stored_matrix import StoredMatrix
 from .steps import (
     RunContext,
     assemble_result,
@@ -195,7 +199,7 @@ def correlate(
         plan = Outputs(inputs=(ref, deformed, mask, _init_path(init_result)), overwrite=overwrite)
         entry = plan.add(output, "result", resumable=True)
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
-    scratch = make_scratch()  # also reclaims the scratch of dead runs
+    scratch = None
     try:
         with contextlib.ExitStack() as stack:
             if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
@@ -210,19 +214,27 @@ def correlate(
             if output is not None:
                 ckpt, resume = _start_output(plan, entry, run_print, identities)
             try:
+                # an interrupted run of this very run (its output was there): its scratch is
+                # adopted when its owner is dead, else a new one (also reclaims dead runs' scratch)
+                resuming = output is not None and entry.state == "resume"
+                scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
+                                                 None if resume is None else int(resume["level"]))
                 emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
                      levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
                      requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
                      nodes=list(meshes[settings.level].nodes_shape))
+                # a resumed run needs no level coarser than the one it was solving (done)
+                needed = levels if resume is None else [s for s in levels if s <= int(resume["level"])]
                 # inside the runner: with a cluster, missing levels are built by its workers
-                f_refs = f_scan.refs(levels, scratch / "ref", runner=runner)
-                g_refs = g_scan.refs(levels, scratch / "def", runner=runner)
-                mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), levels, scratch / "mask",
+                f_refs = f_scan.refs(needed, scratch / "ref", runner=runner, adopt=adopted)
+                g_refs = g_scan.refs(needed, scratch / "def", runner=runner, adopt=adopted)
+                mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), needed, scratch / "mask",
                                                                     runner)
                 _compile_kernels(runner, progress)
                 emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
                 ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
-                                 mask_refs, init_result)
+                                 mask_refs, init_result, matrix=None if ckpt is None else StoredMatrix(ckpt.path),
+                                 adopted=adopted)
                 result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))
             except (InputError, OSError) as exc:
                 # bad input found by a pass (a constant or non-finite image), or a full or read-only
@@ -250,8 +262,42 @@ def correlate(
                 except OSError as exc:  # the staged copy is gone, the checkpoint stays
                     raise kept_checkpoint_error(exc, output) from None
     finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        if scratch is not None:
+            shutil.rmtree(scratch, ignore_errors=True)
     return result
+
+
+#: the settings of ``chunkdic.`` (dask config) that a scratch directory's stores depend on
+SCRATCH_CONFIG = ("block-voxels", "scratch-precision", "scratch-layout", "bspline-halo", "chunk-size", "compressor")
+
+
+def _scratch_identity(run_print: str, output, runner) -> str | None:
+    """What a scratch directory's stores depend on beyond the run's fingerprint: the output
+    (one run per output), the configuration of :data:`SCRATCH_CONFIG` (blocks, the scratch
+    layout the plan chose and its precision, chunks and codecs of the pyramid levels, the
+    B-spline halo) and whether every task is local (the prepared ``g`` is then a
+    memory-mapped file). None without an output: such a run never resumes."""
+    if output is None:
+        return None
+    return fingerprint({"run": run_print, "output": str(Path(output).resolve()),
+                        "config": {key: config.get(key) for key in SCRATCH_CONFIG}, "local": bool(runner.local)})
+
+
+def _open_scratch(identity: str | None, resuming: bool, level: int | None) -> tuple[Path, bool]:
+    """The run's scratch directory and whether it is adopted from the interrupted run.
+
+    Resuming (the output held this run's checkpoint), the dead run's scratch directory of the
+    same ``identity`` is adopted (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to
+    the stores of the ``level`` it was solving (:func:`chunkdic.engine.level.prune_adopted`);
+    each store is reused only when complete (checked where it is opened). Otherwise a new one.
+    """
+    if resuming and identity is not None:
+        adopted = adopt_scratch(identity)
+        if adopted is not None:
+            reclaim_stale_scratch()  # other dead runs' (make_scratch does it otherwise)
+            prune_adopted(adopted, level)
+            return adopted, True
+    return make_scratch(run=identity), False
 
 
 def _start_output(plan: Outputs, entry, run_print: str, identities: dict):
@@ -298,7 +344,8 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
     if run is None:
         run = RunState()
     else:
-        emit(ctx.progress, stage="resume", level=run.resumed_level, iteration=run.gn.iteration)
+        emit(ctx.progress, stage="resume", level=run.resumed_level, iteration=run.gn.iteration,
+             reused=_reused(ctx, run))
     u, outcome = None, LevelOutcome()
     for s in ctx.levels:
         if run.done_before_resume(s):
@@ -322,6 +369,22 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
         release_scan_levels(ctx, s)
         final, u, run.gn = run.gn, run.gn.u, None
     return assemble_result(ctx, run, final, outcome)
+
+
+def _reused(ctx: RunContext, run: RunState) -> list[str]:
+    """What a resumed run finds of the interrupted one for the first level it solves (the
+    checkpoint's, or the next finer one when that level was done): ``"M"`` (kept in the
+    output) and ``"scans"`` (its prepared scans: the haloed ``f`` of the level marked
+    complete in the adopted scratch). Each is checked again, chunk by chunk, when used."""
+    level = run.resumed_level
+    if not run.level_to_solve(level, ctx.finest):
+        level -= 1
+    reused = []
+    if ctx.matrix is not None and ctx.matrix.level() == level:
+        reused.append("M")
+    if ctx.adopted and (Path(ctx.scratch) / f"f-level{level}.zarr" / COMPLETE).is_file():
+        reused.append("scans")
+    return reused
 
 
 def _compile_kernels(runner, progress) -> None:

@@ -77,8 +77,18 @@ class EventText:
             return f"kernels compiled in {event['seconds']:.1f} s"
         if stage == "matrix":
             rate = event["voxels"] / max(event["seconds"], 1e-9) / 1e6
+            if event.get("reused"):
+                f = "; its low-passed f blocks reused" if event.get("f_adopted") else ""
+                return (f"level {event['level']}: M read from the checkpoint of the interrupted run{f} "
+                        f"({event['seconds']:.1f} s)")
             return (f"level {event['level']}: M built over {event['blocks']} blocks in {event['seconds']:.1f} s "
                     f"({rate:.1f} Mvoxel/s)")
+        if stage == "f-copy":
+            return (f"level {event['level']}: f low-passed again over {event['blocks']} blocks in "
+                    f"{event['seconds']:.1f} s (M was read from the checkpoint)")
+        if stage == "prepared":
+            return (f"level {event['level']}: g prepared over {event['voxels'] / 1e6:.1f} Mvoxel in "
+                    f"{event['seconds']:.1f} s")
         if stage == "rigid":
             t = ", ".join(f"{v:+.3f}" for v in event["translation"])
             rose = ""
@@ -134,8 +144,11 @@ class EventText:
         if stage == "complete":
             return f"{event['path']} is already complete (the same inputs and settings): nothing to do"
         if stage == "resume":
+            reused = {("M", "scans"): "; reusing M and the prepared scans of the interrupted run",
+                      ("M",): "; reusing M (the interrupted run's prepared scans are gone: prepared again)",
+                      ("scans",): "; reusing the prepared scans of the interrupted run"}
             return (f"resuming the interrupted run from its checkpoint: level {event['level']}, "
-                    f"iteration {event['iteration']}")
+                    f"iteration {event['iteration']}" + reused.get(tuple(event.get("reused", ())), ""))
         if stage == "unsettled":
             return (f"level {event['level']}: converged at the noise level; {event['nodes']} poorly seen nodes still "
                     f"moved by more than {STEP_CAP:g}x their uncertainty and are flagged weak (unreliable)")

@@ -28,10 +28,17 @@ blosc zstd (0.55 of the bytes). Either way a task reads its chunk's file itself
 (:func:`chunkdic.engine.scratchstore.read_chunk`: 2 ms for a 130³ chunk, 18 ms through zarr).
 
 Retried tasks are safe: a task writes exactly one whole chunk, always the same values.
+
+A copy whose every chunk the ``M`` pass wrote is marked complete (:data:`COMPLETE`, a file
+in the store written after the pass). A resumed run adopts the copy of the interrupted
+run's scratch (:meth:`HaloedBlocks.adopt`) only when it is so marked, laid out as this run
+would lay it out, and every chunk file is whole (:func:`chunkdic.io.store.chunk_file_is_whole`).
 """
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,7 +47,10 @@ import numpy as np
 from .. import config
 from . import scratchstore
 
-__all__ = ["HaloedBlocks"]
+__all__ = ["HaloedBlocks", "COMPLETE"]
+
+#: the file that marks a copy complete (every block's chunk written)
+COMPLETE = ".chunkdic-complete"
 
 
 @dataclass(frozen=True)
@@ -85,13 +95,59 @@ class HaloedBlocks:
         """
         import zarr
 
+        blocks, stored, codecs = cls._layout(path, grid, chunk, dtype, quantize_from)
+        Path(path, COMPLETE).unlink(missing_ok=True)
+        zarr.create_array(str(path), shape=blocks.grid + blocks.chunk, chunks=(1, 1, 1) + blocks.chunk, dtype=stored,
+                          compressors=codecs, fill_value=0, zarr_format=3, overwrite=True)
+        return blocks
+
+    @classmethod
+    def _layout(cls, path, grid, chunk, dtype, quantize_from):
+        """The store :meth:`create` makes: its descriptor, stored dtype and codecs."""
         grid, chunk, dtype = tuple(map(int, grid)), tuple(map(int, chunk)), np.dtype(dtype)
         offset, step = quantization(quantize_from) if dtype.kind == "f" else (0.0, 0.0)
         stored = np.dtype("uint16") if step > 0 else dtype
         codecs = scratchstore.compressors("f", stored.itemsize) if step > 0 else None
-        zarr.create_array(str(path), shape=grid + chunk, chunks=(1, 1, 1) + chunk, dtype=stored,
-                          compressors=codecs, fill_value=0, zarr_format=3, overwrite=True)
-        return cls(str(path), grid, chunk, dtype.name, offset, step, codecs is not None)
+        return cls(str(path), grid, chunk, dtype.name, offset, step, codecs is not None), stored, codecs
+
+    @classmethod
+    def adopt(cls, path: Path, grid, chunk, dtype, *, quantize_from=None) -> "HaloedBlocks | None":
+        """The copy an interrupted run's ``M`` pass completed at ``path``, when it is the one
+        :meth:`create` would make now (same grid, chunk, dtype, 16-bit grid and codecs),
+        marked complete, and every block's chunk file is whole; else None."""
+        import zarr
+
+        from ..io.store import chunk_file_is_whole
+
+        blocks, stored, codecs = cls._layout(path, grid, chunk, dtype, quantize_from)
+        try:
+            if not Path(path, COMPLETE).is_file():
+                return None
+            record = Path(path, COMPLETE).read_text()
+            if record != blocks._record():
+                return None
+            arr = zarr.open_array(str(path), mode="r")
+            if (tuple(arr.shape) != blocks.grid + blocks.chunk or tuple(arr.chunks) != (1, 1, 1) + blocks.chunk
+                    or arr.dtype != stored or bool(tuple(arr.compressors)) != (codecs is not None)):
+                return None
+            whole = all(chunk_file_is_whole(arr, tuple(index) + (0, 0, 0)) for index in np.ndindex(*blocks.grid))
+        except Exception:  # noqa: BLE001 - anything unreadable is "build it again"
+            return None
+        return blocks if whole else None
+
+    def _record(self) -> str:
+        return json.dumps({"grid": self.grid, "chunk": self.chunk, "dtype": self.dtype, "offset": self.offset,
+                           "step": self.step, "compressed": self.compressed})
+
+    def unmark(self) -> None:
+        """Client side, before a pass rewrites the copy: no longer complete."""
+        Path(self.path, COMPLETE).unlink(missing_ok=True)
+
+    def mark_complete(self) -> None:
+        """Client side, after the ``M`` pass: every block's chunk is written."""
+        tmp = Path(self.path, COMPLETE + ".tmp")
+        tmp.write_text(self._record())
+        os.replace(tmp, Path(self.path, COMPLETE))
 
     def write(self, index: tuple[int, int, int], region: np.ndarray) -> np.ndarray:
         """Task side: store block ``index``'s haloed region (one whole chunk); returns the

@@ -31,9 +31,10 @@ from .greylevel import Fit, aligned_block_elements, element_fit, nodal_rhs, offs
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
-from .prefilter import build_prepared, face_margin, reachable_box
+from .prefilter import adopt_prepared, build_prepared, face_margin, reachable_box, record_path
 from .settings import Settings
-from .tasks import BlockJob, LevelInputs, b_task, m_task
+from .stored_matrix import Assembled, StoredMatrix, field_hash
+from .tasks import BlockJob, LevelInputs, b_task, f_copy_task, m_task
 
 log = logging.getLogger(__name__)
 
@@ -42,6 +43,41 @@ PROGRESS_SECONDS = 5.0
 #: a diagnostic gap (:meth:`Level.gap`) is measured on one element in 8 when the mesh has
 #: at least this many elements (the sample then holds 512 or more)
 GAP_SAMPLE_MIN = 4096
+
+
+def prune_adopted(scratch: Path, level: int | None) -> None:
+    """Remove from an adopted scratch directory (:func:`chunkdic.io.ownership.adopt_scratch`) the
+    level stores no level of this run will adopt: those of levels coarser than ``level`` (the
+    level of the interrupted run's checkpoint, done or under way; None: keep every level's),
+    a prepared ``g`` left without its completion record or superseded by a later build, and
+    the mask's levels (prepared again: :func:`chunkdic.engine.masks.prepare_mask` writes a new
+    group)."""
+    scratch = Path(scratch)
+    latest: dict[int, int] = {}
+    for rec in scratch.glob("g-level*-*.prepared.json"):
+        name = rec.name[len("g-level"):].split(".")[0]
+        try:
+            s, k = (int(v) for v in name.split("-"))
+        except ValueError:
+            continue
+        latest[s] = max(latest.get(s, -1), k)
+    doomed = [scratch / "mask"]
+    for entry in scratch.iterdir():
+        name = entry.name
+        if not (name.startswith("f-level") or name.startswith("g-level")):
+            continue
+        try:
+            if name.startswith("f-level"):
+                s, k = int(name[len("f-level"):].split(".")[0]), None
+            else:
+                s, k = (int(v) for v in name[len("g-level"):].split(".")[0].split("-"))
+        except ValueError:
+            doomed.append(entry)
+            continue
+        if (level is not None and s > level) or (k is not None and k != latest.get(s)):
+            doomed.append(entry)
+    for path in doomed:
+        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
 
 
 @dataclasses.dataclass
@@ -109,22 +145,27 @@ class Level:
 
     def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
                  scratch: Path, progress=None, mask: ArrayRef | None = None, *, start: np.ndarray,
-                 start_to_choose: bool = False):
+                 start_to_choose: bool = False, matrix: StoredMatrix | None = None, adopt: bool = False):
         self.s, self.mesh, self.runner, self.settings = s, mesh, runner, settings
         self.scratch = scratch
         self.progress = progress
         self._builds = 0
+        self.matrix = matrix  # where M is kept for a resumed run (the output), None: not kept
+        self.m_reused = False  # M read from the output, not built by a pass (the last _assemble_m)
         cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
-        m = aligned_block_elements(settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size),
-                                   cell)
-        self.jobs = BlockJob.for_mesh(mesh, m)
+        self.block_elements = aligned_block_elements(
+            settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size), cell)
+        self.jobs = BlockJob.for_mesh(mesh, self.block_elements)
         margin = face_margin(settings.smoothing)
         if min(g_ref.shape) <= 2 * margin + 1:
             raise InputError(f"the deformed scan is too small at level {s} ({g_ref.shape}) for a low-pass of "
                              f"{settings.smoothing} voxels: choose a finer coarsest level or less smoothing")
-        self.inputs = LevelInputs.for_settings(f_ref, g_ref, self._create_f_copy(f_ref, settings.smoothing), level=s,
+        # the haloed f store, and whether it holds every block (adopted complete, or once a pass wrote it)
+        f_copy, self.f_copy_ready = self._f_copy(f_ref, settings.smoothing, adopt)
+        self.inputs = LevelInputs.for_settings(f_ref, g_ref, f_copy, level=s,
                                                interpolation=settings.interpolation, smoothing=settings.smoothing,
                                                grey=settings.grey, mask=mask, grey_cell=cell)
+        self.g_adopted = adopt and self._adopt_prepared()
         self.regularization_length = math.nan
         self.regularization_weight = 0.0
         # the operator is assembled here, so that no method can run before it exists
@@ -160,8 +201,10 @@ class Level:
                 emit(self.progress, stage="blocks", level=self.s, label=label, done=done, total=total,
                      rate=rate, eta=(total - done) * voxels_per_block / rate)
 
-    def _create_f_copy(self, f_ref: ArrayRef, sigma: float) -> HaloedBlocks:
-        """Empty store for the blocks' haloed ``f`` (see :mod:`chunkdic.engine.haloed`).
+    def _f_copy(self, f_ref: ArrayRef, sigma: float, adopt: bool) -> tuple[HaloedBlocks, bool]:
+        """The store of the blocks' haloed ``f`` (see :mod:`chunkdic.engine.haloed`): with
+        ``adopt``, the complete copy an interrupted run of the same run left in the adopted
+        scratch (then ``True``), else an empty store.
 
         Low-passed blocks are float32; without the low-pass the scan's own dtype (1-2
         bytes per voxel for most scans) keeps the scratch small.
@@ -170,12 +213,73 @@ class Level:
         regions = [job.haloed_region(f_ref.shape)[0] for job in self.jobs]
         chunk = tuple(max(r[a].stop - r[a].start for r in regions) for a in range(3))
         dtype = "float32" if sigma > 0 else f_ref.dtype
-        return HaloedBlocks.create(self.scratch / f"f-level{self.s}.zarr", grid, chunk, dtype,
-                                   quantize_from=f_ref.dtype)
+        path = self.scratch / f"f-level{self.s}.zarr"
+        if adopt:
+            found = HaloedBlocks.adopt(path, grid, chunk, dtype, quantize_from=f_ref.dtype)
+            if found is not None:
+                return found, True
+        return HaloedBlocks.create(path, grid, chunk, dtype, quantize_from=f_ref.dtype), False
+
+    def _adopt_prepared(self) -> bool:
+        """Take the prepared ``g`` an interrupted run completed in the adopted scratch
+        (:func:`chunkdic.engine.prefilter.adopt_prepared`): whether there was one."""
+        if not self.inputs.g_needs_preparing:
+            return False
+        found = adopt_prepared(self.scratch, self.s, self.inputs.g_grid, local=self.runner.local)
+        if found is None:
+            return False
+        prepared, self._builds = found
+        self.inputs = dataclasses.replace(self.inputs, prepared=prepared)
+        log.info("level %d: g prepared by the interrupted run over %s reused", self.s, prepared.box)
+        return True
+
+    def matrix_key(self, u: np.ndarray) -> dict:
+        """What ``M`` depends on beyond the run's fingerprint: the level, its mesh and blocks,
+        the 16-bit grid of the haloed ``f`` and the field ``u`` it is built at."""
+        mesh, f_copy = self.mesh, self.inputs.f_copy
+        return {"level": self.s, "nodes": list(mesh.nodes_shape), "roi": [[r.start, r.stop] for r in mesh.roi],
+                "element_size": mesh.element_size, "blocks": self.block_elements,
+                "f_grid": [f_copy.offset, f_copy.step, f_copy.dtype], "field": field_hash(u)}
 
     def _assemble_m(self, u: np.ndarray) -> None:
-        """``M`` pass for the level's starting field ``u``: the stencil, its rigid restriction, the
-        solver, the element activity of a mask and the reference's dynamic range."""
+        """``M`` for the level's starting field ``u``: the stencil, its rigid restriction, the
+        solver, the element activity of a mask and the reference's dynamic range.
+
+        Built by a pass over the voxels (:meth:`_m_pass`), or read from the output where an
+        interrupted run of the same run kept it (:mod:`chunkdic.engine.stored_matrix`); a pass
+        that built it keeps it there."""
+        key = None if self.matrix is None else self.matrix_key(u)
+        m = None if key is None else self.matrix.load(key)
+        self.m_reused = m is not None
+        if m is None:
+            m = self._m_pass(u)
+        # M read and the haloed f not adopted: the first b pass writes it (_f_copy_pass), not
+        # here (a finished level resumed for its uncertainty runs none)
+        self.sensitivity_lags = m.lags
+        self.active = m.active  # element activity of a specimen mask (None: every element)
+        if self.active is not None and not self.active.any():
+            raise InputError(f"the mask has no element with material in the ROI at level {self.s} "
+                             f"(at least {MIN_MATERIAL:.0%} of an element must be material)")
+        self.dynamic_range = float(m.fmax - m.fmin)
+        if not self.dynamic_range > 0:
+            raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
+        self.inputs = dataclasses.replace(self.inputs, center=0.5 * float(m.fmin + m.fmax))
+        if key is not None and not self.m_reused:
+            # for a run that resumes this level after a kill; before the solver, which holds
+            # the weak nodes' blocks in place (StencilSolver): M is kept as the pass summed it
+            self.matrix.save(key, m)
+        S, m = m.stencil, None
+        # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
+        self.rigid_matrix = rigid_restriction(S)
+        try:
+            self.solver = StencilSolver(S)
+        except InputError as exc:  # M is empty: name the cause when it is not the reference itself
+            raise InputError(self._why_no_gradient(u) or str(exc)) from None
+        if not self.start_to_choose:
+            self._warn_weak_nodes()
+
+    def _m_pass(self, u: np.ndarray) -> Assembled:
+        """The ``M`` pass for the field ``u``: every block's stencil summed, the haloed ``f`` written."""
         mesh = self.mesh
         # float32 and only the symmetric half (solve.HALF_OFFSETS): M only steers the
         # modified Gauss-Newton steps (the converged field solves b = λ R a whatever M),
@@ -187,32 +291,32 @@ class Level:
         # runner holds a window of them, not a pass's worth)
         inputs = self.inputs
         args = ((inputs, job, self._nodes_of(u, job)) for job in self.jobs)
-        self.sensitivity_lags = np.zeros((3, LAGS + 1))
+        lags = np.zeros((3, LAGS + 1))
         fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
-        self.active = None  # element activity of a specimen mask (None: every element)
-        for blk, part, lo, hi, lags, frac in self._map(m_task, args, "M pass", total=len(self.jobs)):
+        inputs.f_copy.unmark()  # rewritten (a start chosen later builds M again): complete once every block is
+        for blk, part, lo, hi, block_lags, frac in self._map(m_task, args, "M pass", total=len(self.jobs)):
             S[blk.node_slices] += part[..., 13:, :, :]
             fmin, fmax = min(fmin, lo), max(fmax, hi)
-            self.sensitivity_lags += lags
+            lags += block_lags
             if fractions is not None:
                 fractions[tuple(slice(e0, e1) for e0, e1 in blk.elements)] = frac
-        if fractions is not None:
-            self.active = active_elements(fractions)
-            if not self.active.any():
-                raise InputError(f"the mask has no element with material in the ROI at level {self.s} "
-                                 f"(at least {MIN_MATERIAL:.0%} of an element must be material)")
-        self.dynamic_range = float(fmax - fmin)
-        if not self.dynamic_range > 0:
-            raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
-        self.inputs = dataclasses.replace(self.inputs, center=0.5 * float(fmin + fmax))
-        # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
-        self.rigid_matrix = rigid_restriction(S)
-        try:
-            self.solver = StencilSolver(S)
-        except InputError as exc:  # M is empty: name the cause when it is not the reference itself
-            raise InputError(self._why_no_gradient(u) or str(exc)) from None
-        if not self.start_to_choose:
-            self._warn_weak_nodes()
+        inputs.f_copy.mark_complete()
+        self.f_copy_ready = True  # written whole by this pass
+        active = None if fractions is None else active_elements(fractions)
+        return Assembled(S, lags, active, float(fmin), float(fmax))
+
+    def _f_copy_pass(self) -> None:
+        """Write the haloed ``f`` alone (``M`` read from the output, the interrupted run's copy
+        not adopted): the ``M`` pass's reads and low-pass without its sums
+        (:func:`chunkdic.engine.tasks.f_copy_task`); before the first ``b`` pass."""
+        t0 = time.perf_counter()
+        inputs = self.inputs
+        inputs.f_copy.unmark()
+        for _ in self._map(f_copy_task, [(inputs, job) for job in self.jobs], "low-pass of f"):
+            pass
+        inputs.f_copy.mark_complete()
+        self.f_copy_ready = True
+        emit(self.progress, stage="f-copy", level=self.s, blocks=len(self.jobs), seconds=time.perf_counter() - t0)
 
     def _why_no_gradient(self, u: np.ndarray) -> str | None:
         """The real cause of an empty ``M`` when it is not the reference's texture (issue 24).
@@ -339,19 +443,20 @@ class Level:
             sigma=inp.sigma, interpolation=inp.interpolation,
         )
         self.inputs = dataclasses.replace(self.inputs, prepared=prepared)
-        log.info("level %d: g prepared over %s in %.1f s", self.s, box, time.perf_counter() - t0)
+        emit(self.progress, stage="prepared", level=self.s, box=[list(b) for b in box], voxels=voxels,
+             seconds=time.perf_counter() - t0)
 
     def _release_prepared(self) -> None:
         if self.inputs.prepared is not None:
             path = Path(self.inputs.prepared.ref.path)
             self.inputs = dataclasses.replace(self.inputs, prepared=None)
-            self._delete([path])
+            self._delete([record_path(path), path])
 
     def release(self) -> None:
         """Delete this level's scratch data (prepared ``g``, haloed ``f``) and open handles on them."""
         paths = [Path(self.inputs.f_copy.path)]
         if self.inputs.prepared is not None:
-            paths.append(Path(self.inputs.prepared.ref.path))
+            paths += [record_path(self.inputs.prepared.ref.path), Path(self.inputs.prepared.ref.path)]
         self._delete(paths)
 
     def _delete(self, paths: list[Path]) -> None:
@@ -409,6 +514,8 @@ class Level:
         """
         mesh = self.mesh
         self.last_pass = None  # not held while the next one is summed (mesh-sized)
+        if not self.f_copy_ready:
+            self._f_copy_pass()
         nodal = scalars = None
         elements = None
         n_excluded = 0

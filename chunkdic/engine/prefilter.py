@@ -25,6 +25,7 @@ the whole volume.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 from dataclasses import dataclass
@@ -233,7 +234,9 @@ def write_region(out: ArrayRef, local, data: np.ndarray) -> None:
     if out.kind != "npy":
         import zarr
 
-        zarr.open_array(out.path, mode="r+")[local] = data
+        # every chunk written, even one of zeros (a scan's empty background in float32): a
+        # resumed run adopts the store only when every chunk file is there (adopt_prepared)
+        zarr.open_array(out.path, mode="r+").with_config({"write_empty_chunks": True})[local] = data
     elif not hasattr(os, "pwrite"):  # not POSIX (Windows): through a memory map
         target = np.load(out.path, mmap_mode="r+")
         target[local] = data
@@ -351,4 +354,73 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
     args = [(g_ref, out, box, r, halo, float(sigma), interpolation, grid) for r in regions]
     for _ in map_tasks(prepare_task, args):
         pass
-    return PreparedImage(out, box, grid, compact)
+    prepared = PreparedImage(out, box, grid, compact)
+    _write_record(prepared)
+    return prepared
+
+
+def record_path(store) -> Path:
+    """The record of a prepared store (``g-level0-1.npy`` -> ``g-level0-1.prepared.json``)."""
+    store = Path(store)
+    return store.with_name(store.name.rsplit(".", 1)[0] + ".prepared.json")
+
+
+def _write_record(prepared: PreparedImage) -> None:
+    """Mark a prepared store complete (every task returned): what :func:`adopt_prepared` checks."""
+    ref = prepared.ref
+    record = {"kind": ref.kind, "file": Path(ref.path).name, "shape": list(ref.shape), "dtype": ref.dtype,
+              "box": [list(b) for b in prepared.box], "grid": list(prepared.grid), "compressed": prepared.compressed}
+    path = record_path(ref.path)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(record))
+    os.replace(tmp, path)
+
+
+def adopt_prepared(scratch: Path, level: int, grid: tuple[float, float], *, local: bool):
+    """The prepared ``g`` of ``level`` an interrupted run completed in ``scratch`` (its latest
+    build), as ``(PreparedImage, build number)``; None when there is none this run can use.
+
+    Used only when its record is there (written after every task returned), its grid is the
+    one this run prepares on (the same scratch layout and precision), it is of a kind this
+    run may read (a memory-mapped ``.npy`` file only when every task is local) and its data
+    are whole: the ``.npy`` file at its full length, every chunk file of a Zarr store whole
+    (:func:`chunkdic.io.store.chunk_file_is_whole`).
+    """
+    found = []
+    for rec in Path(scratch).glob(f"g-level{int(level)}-*.prepared.json"):
+        try:
+            found.append((int(rec.name[len(f"g-level{int(level)}-"):].split(".")[0]), rec))
+        except ValueError:
+            continue
+    if not found:
+        return None
+    k, rec = max(found)
+    try:
+        info = json.loads(rec.read_text())
+        ref = ArrayRef(info["kind"], str(Path(scratch, info["file"])), "", tuple(info["shape"]), info["dtype"])
+        box = tuple(tuple(int(v) for v in b) for b in info["box"])
+        same = (tuple(float(v) for v in info["grid"]) == tuple(float(v) for v in grid)
+                and tuple(b - a for a, b in box) == ref.shape and (ref.kind == "zarr" or local)
+                and _whole(ref, bool(info["compressed"])))
+    except Exception:  # noqa: BLE001 - a record or store that cannot be read: prepare again
+        return None
+    return (PreparedImage(ref, box, tuple(grid), bool(info["compressed"])), k) if same else None
+
+
+def _whole(ref: ArrayRef, compressed: bool) -> bool:
+    """The prepared store holds all its bytes (and is what its record says)."""
+    if ref.kind == "npy":
+        arr = np.load(ref.path, mmap_mode="r")
+        whole = (tuple(arr.shape) == ref.shape and arr.dtype == np.dtype(ref.dtype)
+                 and Path(ref.path).stat().st_size == arr.offset + arr.nbytes)
+        del arr
+        return whole
+    import zarr
+
+    from ..io.store import chunk_file_is_whole
+
+    arr = zarr.open_array(ref.path, mode="r")
+    if tuple(arr.shape) != ref.shape or arr.dtype != np.dtype(ref.dtype) or bool(tuple(arr.compressors)) != compressed:
+        return False
+    grid = [-(-n // c) for n, c in zip(arr.shape, arr.chunks)]
+    return all(chunk_file_is_whole(arr, index) for index in np.ndindex(*grid))

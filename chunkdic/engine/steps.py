@@ -38,6 +38,7 @@ from .rigid import translation_task
 from .runstate import LevelOutcome, RunState
 from .settings import Settings
 from .stopping import State
+from .stored_matrix import StoredMatrix
 
 #: the regularisation length before (coarse levels: instead of) the automatic choice, in element sizes
 START_LENGTH = 2.0
@@ -52,8 +53,11 @@ class RunContext:
     """What does not change during a run: settings, meshes, scans, where tasks run.
 
     ``levels`` are coarsest first; ``f_refs``, ``g_refs``, ``mask_refs`` map a level to the
-    :class:`~chunkdic.io.handles.ArrayRef` tasks read; ``init`` an earlier result to start
-    from (:mod:`chunkdic.engine.initial`).
+    :class:`~chunkdic.io.handles.ArrayRef` tasks read (a resumed run: the levels still to
+    solve); ``init`` an earlier result to start from (:mod:`chunkdic.engine.initial`);
+    ``matrix`` where each level's ``M`` is kept for a resumed run (the output,
+    :mod:`chunkdic.engine.stored_matrix`); ``adopted``: the scratch is an interrupted run's,
+    whose complete level stores are reused.
     """
 
     settings: Settings
@@ -67,6 +71,8 @@ class RunContext:
     checkpoint: Checkpoint | None = None
     mask_refs: dict | None = None
     init: Result | None = None
+    matrix: StoredMatrix | None = None
+    adopted: bool = False
 
     @property
     def finest(self) -> int:
@@ -119,11 +125,12 @@ def open_level(ctx: RunContext, run: RunState, s: int, start: np.ndarray) -> Lev
         start = run.gn.m_start
     lvl = Level(s, mesh, ctx.f_refs[s], ctx.g_refs[s], ctx.runner, ctx.settings, ctx.scratch, ctx.progress,
                 None if ctx.mask_refs is None else ctx.mask_refs[s], start=start,
-                start_to_choose=run.gn is None and s == ctx.coarsest)
+                start_to_choose=run.gn is None and s == ctx.coarsest, matrix=ctx.matrix, adopt=ctx.adopted)
     if run.gn is not None:  # resumed: the solver's CG reference as before the interruption
         lvl.solver.largest_rhs = run.gn.largest_rhs
     emit(ctx.progress, stage="matrix", level=s, nodes=list(mesh.nodes_shape), blocks=len(lvl.jobs),
-         voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0)
+         voxels=mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
+         reused=lvl.m_reused, f_adopted=lvl.f_copy_ready)
     return lvl
 
 
@@ -240,6 +247,8 @@ def finish_level(ctx: RunContext, run: RunState, lvl: Level, t0: float) -> Level
     lvl.release()
     run.statuses[s] = run.gn.status
     ctx.save(run, s)
+    if ctx.matrix is not None and s != ctx.finest:  # no resumed run reads it now (the finest's goes with the checkpoint)
+        ctx.matrix.drop()
     emit(ctx.progress, stage="level", level=s, status=run.gn.status, gap=run.gn.gap,
          seconds=time.perf_counter() - t0)
     if s == ctx.finest:  # the latest pass's noise (kept in the state: a level resumed after its end)

@@ -203,6 +203,15 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     return job.block, stencil, fmin, fmax, lags, fractions
 
 
+def f_copy_task(inputs: LevelInputs, job: BlockJob) -> Block:
+    """Task: this block's haloed, low-passed ``f`` into ``inputs.f_copy``, as :func:`m_task`
+    writes it, without the sums of ``M`` (a resumed level that read ``M`` from the output,
+    :mod:`chunkdic.engine.stored_matrix`)."""
+    f, _, _ = read_prepared_reference(inputs, job.start, job.shape, halo=1)
+    inputs.f_copy.write(job.index, f)
+    return job.block
+
+
 def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
            active: np.ndarray | None = None) -> tuple[Block, Partials]:
     """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.engine.greylevel.Partials`).

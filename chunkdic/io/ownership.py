@@ -11,6 +11,13 @@ Only paths that carry chunkdic's own names and owner records are ever removed he
 ``.NAME.chunkdic-lock`` (a lock), ``.NAME.chunkdic-partial-HOST-PID-XXXX`` (a staged
 output, see :mod:`chunkdic.io.outputs`) and ``chunkdic-*`` scratch directories holding
 ``SCRATCH_MARKER``.
+
+A dead run's scratch directory is either reclaimed (removed) or, by a run that resumes the
+very same run (:func:`adopt_scratch`: the identity recorded in its marker), adopted. Both
+begin with a rename of the directory, so of a reclaimer and an adopter (or two of either)
+exactly one gets it: the reclaimer renames it to ``.chunkdic-reclaimed-…`` before removing
+it, the adopter to ``.chunkdic-adopting-HOST-PID-…`` (a name that tells its live owner) before
+writing its own owner into the marker and giving it a ``chunkdic-*`` name again.
 """
 
 from __future__ import annotations
@@ -34,12 +41,17 @@ from ..errors import InputError
 log = logging.getLogger(__name__)
 
 __all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
-           "reclaim_stale_partials", "reclaim_stale_locks", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER"]
+           "reclaim_stale_partials", "reclaim_stale_locks", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER",
+           "adopt_scratch"]
 
 LOCK_SUFFIX = ".chunkdic-lock"
 PARTIAL_TAG = ".chunkdic-partial-"
 SCRATCH_PREFIX = "chunkdic-"
 SCRATCH_MARKER = ".chunkdic-scratch.json"
+#: a dead run's scratch directory being removed (renamed first: one reclaimer wins)
+RECLAIMED_TAG = ".chunkdic-reclaimed-"
+#: a dead run's scratch directory being adopted by a live run (``…HOST-PID-XXXXXXXX``)
+ADOPTING_TAG = ".chunkdic-adopting-"
 
 
 #: bytes kept free in a derived name for the longest suffix added to it later (the
@@ -321,11 +333,13 @@ def scratch_root() -> Path:
     return Path(config.get("scratch-directory") or tempfile.gettempdir())
 
 
-def make_scratch(prefix: str = SCRATCH_PREFIX) -> Path:
+def make_scratch(prefix: str = SCRATCH_PREFIX, *, run: str | None = None) -> Path:
     """A new scratch directory under ``chunkdic.scratch-directory`` that records its owner.
 
-    Stale scratch of dead runs in the same root is reclaimed first. Raises InputError if
-    the root cannot be written.
+    Stale scratch of dead runs in the same root is reclaimed first. ``run``: an identity of
+    what the directory will hold (a correlation's output, fingerprint and scratch layout),
+    recorded in the marker so that a run resuming the same correlation after this process
+    dies can adopt it (:func:`adopt_scratch`). Raises InputError if the root cannot be written.
     """
     root = scratch_root()
     if not root.is_dir():
@@ -334,37 +348,128 @@ def make_scratch(prefix: str = SCRATCH_PREFIX) -> Path:
     path = None
     try:
         path = Path(tempfile.mkdtemp(prefix=prefix, dir=root))
-        (path / SCRATCH_MARKER).write_text(json.dumps(asdict(Owner.me())))
+        _write_marker(path, run)
     except OSError as exc:
         if path is not None:  # made, but its owner record could not be written (a full disk)
             _remove(path)
-        raise InputError(f"cannot write in the scratch directory {root}: {exc.strerror} "
-                         "(set chunkdic.scratch-directory, e.g. DASK_CHUNKDIC__SCRATCH_DIRECTORY)") from None
+        raise _unwritable(root, exc) from None
     return path
+
+
+def _unwritable(root: Path, exc: OSError) -> InputError:
+    return InputError(f"cannot write in the scratch directory {root}: {exc.strerror} "
+                      "(set chunkdic.scratch-directory, e.g. DASK_CHUNKDIC__SCRATCH_DIRECTORY)")
+
+
+def _write_marker(path: Path, run: str | None) -> None:
+    """The owner record of scratch directory ``path``: this process (and ``run``), replaced atomically."""
+    record = asdict(Owner.me())
+    if run is not None:
+        record["run"] = run
+    tmp = path / f"{SCRATCH_MARKER}.{uuid.uuid4().hex[:8]}"
+    tmp.write_text(json.dumps(record))
+    os.replace(tmp, path / SCRATCH_MARKER)
+
+
+def _own_directory(entry: Path) -> bool:
+    """``entry`` is a directory (not a link to one) of this process's user."""
+    try:
+        return not entry.is_symlink() and entry.is_dir() and entry.stat().st_uid == os.getuid()
+    except OSError:
+        return False
+
+
+def _read_marker(entry: Path) -> dict | None:
+    """The owner record of a directory chunkdic made (a real directory of this user), else None."""
+    try:
+        if not _own_directory(entry):
+            return None
+        info = json.loads((entry / SCRATCH_MARKER).read_text())
+        Owner.from_dict(info)
+        return info
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
+def adopt_scratch(run: str, root: Path | None = None) -> Path | None:
+    """Claim the scratch directory a dead run of the same ``run`` left under ``root``, or None.
+
+    Only a ``chunkdic-*`` directory holding chunkdic's owner record, whose owner is known
+    dead (:meth:`Owner.is_dead`: same host, no such process) and whose recorded ``run``
+    equals ``run`` is adopted; its stores are then checked one by one by their users (a
+    store is reused only when marked complete and every chunk file is whole). The
+    directory is renamed first (one of several recovering runs wins), its marker made this
+    process's, and it gets a new ``chunkdic-*`` name. Other dead runs' directories are
+    left to :func:`reclaim_stale_scratch` (:func:`make_scratch` calls it).
+    """
+    root = scratch_root() if root is None else Path(root)
+    try:
+        entries = sorted(e for e in root.iterdir() if e.name.startswith(SCRATCH_PREFIX))
+    except OSError:
+        return None
+    host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
+    for entry in entries:
+        info = _read_marker(entry)
+        if info is None or info.get("run") != run or not Owner.from_dict(info).is_dead():
+            continue
+        claimed = root / f"{ADOPTING_TAG}{host}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        try:
+            os.rename(entry, claimed)  # fails when another run reclaimed or adopted it first
+        except OSError:
+            continue
+        final = root / f"{SCRATCH_PREFIX}{uuid.uuid4().hex[:8]}"
+        try:
+            _write_marker(claimed, run)
+            os.rename(claimed, final)
+        except OSError as exc:
+            _remove(claimed)
+            raise _unwritable(root, exc) from None
+        log.info("adopted the scratch directory %s of the interrupted run (%s is dead) as %s", entry,
+                 Owner.from_dict(info).describe(), final)
+        return final
+    return None
 
 
 def reclaim_stale_scratch(root: Path | None = None) -> list[Path]:
     """Remove ``chunkdic-*`` scratch directories under ``root`` whose owner is dead.
 
     Only directories holding chunkdic's owner record are considered, so nothing else in a
-    shared temporary directory is ever touched.
+    shared temporary directory is ever touched. Each is renamed to ``.chunkdic-reclaimed-…``
+    before it is removed (so that an adopter, :func:`adopt_scratch`, never gets a directory
+    half removed); such leftovers of a reclaimer killed while removing, and directories a
+    dead adopter had claimed (``.chunkdic-adopting-HOST-PID-…``), go too.
     """
     root = scratch_root() if root is None else Path(root)
     removed = []
     try:
-        entries = [e for e in root.iterdir() if e.name.startswith(SCRATCH_PREFIX)]
+        entries = list(root.iterdir())
     except OSError:
         return removed
+    host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
+    claim = re.compile(re.escape(f"{ADOPTING_TAG}{host}-") + r"(\d+)-[0-9a-f]{8}$")
     for entry in entries:
-        marker = entry / SCRATCH_MARKER
-        try:
-            owner = Owner.from_dict(json.loads(marker.read_text()))
-        except (OSError, ValueError, KeyError, TypeError):
+        if entry.name.startswith(RECLAIMED_TAG):
+            if _own_directory(entry):
+                _remove(entry)  # only a reclaimer names so: one died while removing it (or removes it now)
             continue
-        if owner.is_dead():
-            _remove(entry)
-            removed.append(entry)
-            log.info("reclaimed the scratch directory %s of a dead run (%s)", entry, owner.describe())
+        m = claim.match(entry.name)
+        if m is not None:
+            dead = Owner(socket.gethostname(), int(m.group(1))).is_dead()  # the claimant, named
+        elif entry.name.startswith(SCRATCH_PREFIX):
+            info = _read_marker(entry)
+            dead = info is not None and Owner.from_dict(info).is_dead()
+        else:
+            continue
+        if not dead:
+            continue
+        grave = root / f"{RECLAIMED_TAG}{uuid.uuid4().hex[:8]}"
+        try:
+            os.rename(entry, grave)  # of two reclaimers (or a reclaimer and an adopter) one wins
+        except OSError:
+            continue
+        _remove(grave)
+        removed.append(entry)
+        log.info("reclaimed the scratch directory %s of a dead run", entry)
     return removed
 
 

@@ -41,7 +41,7 @@ from .ngff import (
     voxel_from_group_attrs,
 )
 from .scratch_levels import build_level
-from .store import chunk_shape_for
+from .store import chunk_is_complete, chunk_shape_for
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ class Scan:
         """Level 0 is an array in this process's memory (NumPy, in-memory Zarr), not a graph."""
         return self._base is not None and not hasattr(self._base, "dask")
 
-    def refs(self, levels, scratch_dir=None, runner=None) -> dict[int, ArrayRef]:
+    def refs(self, levels, scratch_dir=None, runner=None, *, adopt: bool = False) -> dict[int, ArrayRef]:
         """On-disk handles for ``levels``: stored levels directly; others written chunk by
         chunk into a Zarr group under ``scratch_dir``, each from the finest level on disk
         below it, by tasks on ``runner`` (:mod:`chunkdic.io.scratch_levels`).
@@ -158,6 +158,11 @@ class Scan:
             Where the tasks run (:func:`chunkdic.scheduler.open_runner`); default the
             current ``distributed`` client if there is one (as for Dask collections),
             else an embedded thread pool for this call.
+        adopt : bool, keyword-only
+            ``scratch_dir`` is an interrupted run's, written for this very scan (the caller
+            checked: :func:`chunkdic.io.ownership.adopt_scratch`): its levels marked complete,
+            of the expected shape and dtype and whose every chunk is complete
+            (:func:`chunkdic.io.store.chunk_is_complete`), are used instead of built again.
 
         Returns
         -------
@@ -166,6 +171,8 @@ class Scan:
         wanted = {int(v) for v in levels}
         if self._in_memory() and 0 not in self._scratch:
             wanted.add(0)
+        if adopt and scratch_dir is not None:
+            self._adopt_scratch_levels(Path(scratch_dir), wanted)
         missing = [s for s in sorted(wanted) if s not in self._stored and s not in self._scratch]
         if missing:
             group = self._make_scratch_group(scratch_dir)
@@ -175,6 +182,46 @@ class Scan:
                     log.info("level %d %s written to scratch %s", s, self._scratch[s].shape, group)
         on_disk = {**self._scratch, **self._stored}
         return {s: on_disk[s] for s in sorted({int(v) for v in levels})}
+
+    def _adopt_scratch_levels(self, scratch_dir: Path, wanted) -> None:
+        """Take the complete levels of the scratch group an interrupted run wrote for this scan
+        under ``scratch_dir`` (see :meth:`refs`); levels found incomplete are built again into it,
+        and levels coarser than every wanted one (done before the interruption) are removed."""
+        import concurrent.futures
+        import itertools
+        import shutil
+
+        import zarr
+
+        groups = sorted(scratch_dir.glob("scan-*.zarr")) if scratch_dir.is_dir() else []
+        if self._scratch_group is not None or len(groups) != 1:
+            return
+        try:
+            root = zarr.open_group(store=str(groups[0]), mode="r")
+            if dict(root.attrs.get("chunkdic", {})).get("kind") != "scratch":
+                return
+        except Exception:  # noqa: BLE001 - not a group chunkdic wrote: left alone, a new one is made
+            return
+        self._scratch_group = str(groups[0])
+        for name in list(root.array_keys()):  # levels coarser than any wanted: done before the kill
+            if name.isdigit() and int(name) > max(wanted):
+                shutil.rmtree(groups[0] / name, ignore_errors=True)
+        for s in sorted(wanted - set(self._stored) - set(self._scratch)):
+            try:
+                arr = zarr.open_array(store=str(groups[0]), path=str(s), mode="r")
+                info = dict(arr.attrs.get("chunkdic", {}))
+                if (not info.get("complete") or tuple(arr.shape) != self.shape(s)
+                        or np.dtype(arr.dtype) != np.dtype(self.dtype(s))):
+                    continue
+            except Exception:  # noqa: BLE001 - absent or unreadable: built again
+                continue
+            grid = [range(-(-n // c)) for n, c in zip(arr.shape, arr.chunks)]
+            with concurrent.futures.ThreadPoolExecutor(max(1, os.cpu_count() or 1)) as pool:
+                whole = all(pool.map(lambda c: chunk_is_complete(arr, c), itertools.product(*grid)))
+            if whole:
+                self._scratch[s] = ArrayRef("zarr", str(groups[0]), str(s), tuple(int(n) for n in arr.shape),
+                                            np.dtype(arr.dtype).name)
+                log.info("level %d %s of the interrupted run reused from scratch %s", s, arr.shape, groups[0])
 
     def _make_scratch_group(self, scratch_dir) -> str:
         """The scan's scratch group (created on first use)."""

@@ -282,13 +282,7 @@ def chunk_is_complete(arr, coords) -> bool:
     """
     import zarr
 
-    key = arr.metadata.encode_chunk_key(tuple(int(c) for c in coords))
-    root = getattr(arr.store, "root", None)
-    path = None if root is None else os.path.join(str(root), arr.path, key)
-    if path is None or not os.path.isfile(path):
-        return False
-    nbytes = blosc_frame_bytes(arr)
-    if nbytes is not None and not blosc_frame_is_whole(path, nbytes):
+    if chunk_file_is_whole(arr, coords) is False:
         return False
     region = tuple(slice(c * e, min((c + 1) * e, n)) for c, e, n in zip(coords, arr.chunks, arr.shape))
     try:
@@ -296,6 +290,36 @@ def chunk_is_complete(arr, coords) -> bool:
     except Exception:  # noqa: BLE001 - any decoding failure means "write it again"
         return False
     return tuple(block.shape) == tuple(s.stop - s.start for s in region)
+
+
+def chunk_file_is_whole(arr, coords) -> bool | None:
+    """Whether the file of chunk ``coords`` of the Zarr array ``arr`` is there at its whole length,
+    without decoding it: an uncompressed chunk (the bytes codec alone) by its size, a Blosc
+    chunk by its frame header (:func:`blosc_frame_is_whole`). ``None``: present, but other
+    codecs cannot tell without decoding (:func:`chunk_is_complete` decodes).
+
+    A file that a killed writer left cut short fails; its bytes that a killed process had
+    written are in the page cache and on disk later, so a whole-length file holds them.
+    """
+    key = arr.metadata.encode_chunk_key(tuple(int(c) for c in coords))
+    root = getattr(arr.store, "root", None)
+    path = None if root is None else os.path.join(str(root), arr.path, key)
+    if path is None or not os.path.isfile(path):
+        return False
+    nbytes = blosc_frame_bytes(arr)
+    if nbytes is not None:
+        return blosc_frame_is_whole(path, nbytes)
+    if _uncompressed(arr):  # edge chunks are stored at the full chunk shape
+        return os.path.getsize(path) == int(np.prod(arr.chunks)) * np.dtype(arr.dtype).itemsize
+    return None
+
+
+def _uncompressed(arr) -> bool:
+    """Chunks stored as their raw bytes (Zarr v3, the bytes codec alone)."""
+    from zarr.codecs import BytesCodec
+
+    codecs = tuple(getattr(arr.metadata, "codecs", ()) or ())
+    return len(codecs) == 1 and isinstance(codecs[0], BytesCodec)
 
 
 #: bytes of a Blosc 1 frame header: version, versionlz, flags, typesize, then

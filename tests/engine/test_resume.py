@@ -4,15 +4,19 @@ uninterrupted run ends (issue 5)."""
 from __future__ import annotations
 
 import os
+import re
+import shutil
 import signal
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+import zarr
 
 import chunkdic
 from chunkdic.cli.app import main
+from chunkdic.results.result import FLAG_WEAK
 from chunkdic.synth import foam, synthetic
 
 # end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
@@ -141,3 +145,191 @@ def test_killed_after_the_robust_reweighting_resumes_with_the_same_freed_terms(b
     assert reference.info["regularization"]["freed_terms"] > 0
     assert resumed.info["regularization"] == reference.info["regularization"]
     np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- what a resume reuses (issue 21, item 5)
+
+#: runs the CLI and SIGKILLs itself while the level-0 M is written into the output: after its
+#: arrays, with the stencil's first chunk cut short, before the record that marks it complete
+_DIE_WRITING_M = r'''
+import os, signal, sys
+from chunkdic.engine import stored_matrix
+from chunkdic.cli.app import main
+
+real = stored_matrix.StoredMatrix._set_record
+
+def set_record(self, root, record):
+    if record is not None and record["key"]["level"] == 0:
+        stencil = self.path / "checkpoint" / "matrix_stencil"
+        chunk = next(p for p in sorted(stencil.rglob("*")) if p.is_file() and p.name != "zarr.json")
+        chunk.write_bytes(chunk.read_bytes()[:100])
+        os.kill(os.getpid(), signal.SIGKILL)
+    real(self, root, record)
+
+stored_matrix.StoredMatrix._set_record = set_record
+sys.exit(main(sys.argv[1:]))
+'''
+
+
+def _killed(cmd, at: str, scratch) -> list[str]:
+    """Run ``cmd`` with its scratch under ``scratch``, SIGKILL it at the first stderr line
+    starting with ``at`` (None: let it kill itself); the lines it printed."""
+    env = dict(os.environ, DASK_CHUNKDIC__SCRATCH_DIRECTORY=str(scratch))
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if at is not None and line.startswith(at):
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    assert proc.wait() == -signal.SIGKILL, "".join(lines)
+    return lines
+
+
+def _resume(cmd, scratch, capsys) -> list[str]:
+    """The same command run again in this process (scratch under ``scratch``): its stderr lines."""
+    import dask.config
+
+    with dask.config.set({"chunkdic.scratch-directory": str(scratch)}):
+        assert main(cmd[3:]) in (0, 1)
+    return capsys.readouterr().err.splitlines()
+
+
+def _count(lines, start: str) -> int:
+    return sum(line.startswith(start) for line in lines)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(pair):
+    """The uninterrupted run's result and its number of level-0 passes (iteration events)."""
+    events = []
+    res = chunkdic.correlate(pair / "f.npy", pair / "g.npy", element_size=8, tolerance=1e-5, progress=events.append)
+    return res, sum(e["stage"] == "iteration" and e["level"] == 0 for e in events)
+
+
+def _scratch_dirs(scratch) -> list:
+    return sorted(p.name for p in scratch.iterdir())
+
+
+def test_resume_reuses_m_and_the_prepared_scans(pair, uninterrupted, tmp_path, capsys):
+    """Killed during a level-0 pass: the resumed run neither builds the level's M nor
+    prefilters g again (counted from its own progress lines), and ends on the field of an
+    uninterrupted run; the complete result holds no M and the adopted scratch is gone."""
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    before = _killed(_cmd(pair, out), "level 0 iter  2", scratch)
+    # the killed run built both (the test can see them), and left its scratch and M behind
+    assert _count(before, "level 0: M built over") == 1 and _count(before, "level 0: g prepared over") == 1
+    assert len(_scratch_dirs(scratch)) == 1
+
+    err = _resume(_cmd(pair, out), scratch, capsys)
+    text = "\n".join(err)
+    assert re.search(r"level 0, iteration \d+; reusing M and the prepared scans of the interrupted run", text), text
+    assert _count(err, "level 0: M built over") == 0, text
+    assert _count(err, "level 0: M read from the checkpoint of the interrupted run; its low-passed f blocks "
+                       "reused") == 1, text
+    assert _count(err, "level 0: f low-passed again") == 0, text
+    assert _count(err, "level 0: g prepared over") == 0, text
+    # at most one pass lost: the passes of both runs are those of an uninterrupted run, plus one at most
+    reference, passes = uninterrupted
+    assert passes <= _count(before, "level 0 iter") + _count(err, "level 0 iter") <= passes + 1, text
+
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(resumed.history["iteration"], reference.history["iteration"])
+    # the M read back is the one the pass summed (weak nodes and uncertainty come from it)
+    np.testing.assert_array_equal(resumed.flags, reference.flags)
+    np.testing.assert_allclose(resumed.uncertainty, reference.uncertainty, rtol=1e-6)
+    # the complete result holds no M, and the scratch went with the run
+    assert not [p for p in out.rglob("*") if "matrix" in p.name]
+    assert "matrix" not in zarr.open_group(str(out), mode="r").attrs["chunkdic"]
+    assert _scratch_dirs(scratch) == []
+
+
+def test_m_read_back_is_the_one_the_pass_summed_weak_nodes_included(pair, tmp_path, capsys):
+    """A pair with an untextured corner (weak nodes, whose blocks the solver holds in place in
+    the stencil): the resumed run finds the same weak nodes and uncertainty as an
+    uninterrupted run, so the M it read is the pass's, not the solver's held copy."""
+    d = tmp_path / "flat"
+    d.mkdir()
+    for name in ("f.npy", "g.npy"):
+        a = np.load(pair / name)
+        a[:20, :20, :20] = a.mean()
+        np.save(d / name, a)
+    reference = chunkdic.correlate(d / "f.npy", d / "g.npy", element_size=8, tolerance=1e-5)
+    assert reference.flags is not None and (reference.flags & FLAG_WEAK).any()  # the case has weak nodes
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    _killed(_cmd(d, out), "level 0 iter  1", scratch)
+    err = _resume(_cmd(d, out), scratch, capsys)
+    assert _count(err, "level 0: M read from the checkpoint") == 1, "\n".join(err)
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_array_equal(resumed.flags, reference.flags)
+    np.testing.assert_allclose(resumed.uncertainty, reference.uncertainty, rtol=1e-6)
+    np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
+
+
+def test_resume_without_the_scratch_reads_m_and_low_passes_f_again(pair, uninterrupted, tmp_path, capsys):
+    """The interrupted run's scratch is gone (another host's disk, a cleaned /tmp): M still
+    comes from the output; only f is low-passed again (no M sums) and g prepared again."""
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    _killed(_cmd(pair, out), "level 0 iter  1", scratch)
+    for leftover in scratch.iterdir():
+        shutil.rmtree(leftover)
+
+    err = _resume(_cmd(pair, out), scratch, capsys)
+    text = "\n".join(err)
+    assert "reusing M (the interrupted run's prepared scans are gone: prepared again)" in text, text
+    assert _count(err, "level 0: M built over") == 0, text
+    assert _count(err, "level 0: M read from the checkpoint of the interrupted run (") == 1, text
+    assert _count(err, "level 0: f low-passed again over") == 1, text
+    assert _count(err, "level 0: g prepared over") == 1, text
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_allclose(resumed.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)
+
+
+def test_kill_while_m_is_written_builds_it_again(pair, uninterrupted, tmp_path, capsys):
+    """Killed after M's arrays were written (one chunk cut short) but before its record: the
+    resumed run does not read that M, builds it again and ends on the uninterrupted field."""
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    cmd = _cmd(pair, out)
+    _killed([sys.executable, "-c", _DIE_WRITING_M, *cmd[3:]], None, scratch)
+    # killed as it kept level 0's M: the arrays are there, the record that marks them complete is not
+    assert (out / "checkpoint" / "matrix_stencil").is_dir()
+    assert "matrix" not in zarr.open_group(str(out), mode="r").attrs["chunkdic"]
+
+    err = _resume(cmd, scratch, capsys)
+    text = "\n".join(err)
+    assert _count(err, "level 0: M built over") == 1, text
+    assert "M read from the checkpoint" not in text, text
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_allclose(resumed.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)
+
+
+def test_the_scratch_of_another_run_is_never_adopted(pair, uninterrupted, tmp_path, capsys):
+    """The only dead scratch left holds stores this run could use, but its recorded run
+    identity is another run's (other inputs or settings, another output): the resumed run
+    does not adopt it (it prepares the scans again) and reclaims it (its owner is dead)."""
+    import json
+
+    from chunkdic.io.ownership import SCRATCH_MARKER
+
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    _killed(_cmd(pair, out), "level 0 iter  1", scratch)
+    (own,) = scratch.iterdir()
+    other = scratch / "chunkdic-another"
+    own.rename(other)
+    marker = json.loads((other / SCRATCH_MARKER).read_text())
+    marker["run"] = marker["run"][::-1]  # another run's identity, everything else as it was
+    (other / SCRATCH_MARKER).write_text(json.dumps(marker))
+
+    err = _resume(_cmd(pair, out), scratch, capsys)
+    text = "\n".join(err)
+    assert "reusing M (the interrupted run's prepared scans are gone: prepared again)" in text, text
+    assert _count(err, "level 0: g prepared over") == 1, text
+    assert _scratch_dirs(scratch) == [], "the other run's scratch is reclaimed (dead owner), this run's removed"
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_allclose(resumed.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)

@@ -115,3 +115,80 @@ def test_pyramid_levels_are_deleted_once_their_level_is_done(tmp_path):
     assert seen[2] >= {1, 2}  # both built at the start
     assert 2 not in seen[1] and 1 in seen[1]
     assert not seen[0] & {1, 2}
+
+
+# --------------------------------------------------------------------------- adopted by a resumed run (issue 21, item 5)
+
+
+@pytest.mark.parametrize("layout", ["fast", "compact"])
+def test_haloed_store_is_adopted_only_complete_and_whole(tmp_path, layout):
+    """A haloed f store is reused by a resumed run only when marked complete, laid out as
+    this run lays it out and with every chunk file at its whole length."""
+    rng = np.random.default_rng(3)
+    grid, chunk = (2, 1, 2), (10, 12, 9)
+    with dask.config.set({"chunkdic.scratch-layout": layout}):
+        store = HaloedBlocks.create(tmp_path / "f.zarr", grid, chunk, "float32", quantize_from="uint16")
+        blocks = {idx: rng.uniform(0, 60000, chunk).astype(np.float32) for idx in np.ndindex(*grid)}
+        for idx, block in blocks.items():
+            store.write(idx, block)
+
+        def adopted(**kw):
+            args = dict(grid=grid, chunk=chunk, dtype="float32", quantize_from="uint16") | kw
+            return HaloedBlocks.adopt(tmp_path / "f.zarr", **args)
+
+        assert adopted() is None  # every chunk written, but not marked complete
+        store.mark_complete()
+        got = adopted()
+        assert got == store
+        for idx, block in blocks.items():
+            np.testing.assert_array_equal(got.read(idx, chunk), store.read(idx, chunk))
+        assert adopted(grid=(2, 2, 2)) is None  # other blocks
+        assert adopted(quantize_from="float32") is None  # another grid (scratch precision)
+        chunk_file = tmp_path / "f.zarr" / "c" / "1" / "0" / "1" / "0" / "0" / "0"
+        whole = chunk_file.read_bytes()
+        chunk_file.write_bytes(whole[:-1])  # a chunk cut short (a kill while it was written)
+        assert adopted() is None
+        chunk_file.write_bytes(whole)
+        assert adopted() == store
+        store.unmark()  # a pass rewriting it
+        assert adopted() is None
+    with dask.config.set({"chunkdic.scratch-layout": "compact" if layout == "fast" else "fast"}):
+        store.mark_complete()
+        assert HaloedBlocks.adopt(tmp_path / "f.zarr", grid, chunk, "float32", quantize_from="uint16") is None
+
+
+@pytest.mark.parametrize("local", [True, False])
+def test_prepared_g_is_adopted_only_complete_whole_and_on_this_runs_grid(tmp_path, local):
+    from chunkdic.engine.prefilter import adopt_prepared, build_prepared, record_path
+    from chunkdic.io.handles import ArrayRef
+
+    rng = np.random.default_rng(4)
+    g = rng.integers(0, 65535, (40, 36, 30)).astype(np.uint16)
+    zarr.create_array(str(tmp_path / "g.zarr"), data=g, chunks=(16, 16, 16), zarr_format=3)
+    g_ref = ArrayRef("zarr", str(tmp_path / "g.zarr"), "", g.shape, "uint16")
+    box = ((2, 38), (0, 36), (3, 29))
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    for k in (1, 2):  # a second build supersedes the first
+        built = build_prepared(g_ref, box, scratch / f"g-level0-{k}.zarr",
+                               lambda fn, args: (fn(*a) for a in args), halo=16, local=local, sigma=1.0)
+    grid = prepared_grid("uint16", 1.0, "cubic")
+    got, k = adopt_prepared(scratch, 0, grid, local=local)
+    assert k == 2 and got == built
+    window = (slice(5, 30), slice(1, 20), slice(3, 29))
+    np.testing.assert_array_equal(got.read(window), built.read(window))
+    assert adopt_prepared(scratch, 1, grid, local=local) is None  # another level's
+    assert adopt_prepared(scratch, 0, (grid[0], grid[1] * 16), local=local) is None  # the compact grid
+    if local:
+        assert adopt_prepared(scratch, 0, grid, local=False) is None  # a memory-mapped file: local tasks only
+        data = Path(built.ref.path)
+    else:
+        data = Path(built.ref.path, "c", "0", "0", "0")  # one 64³ chunk
+    whole = data.read_bytes()
+    data.write_bytes(whole[:-2])  # cut short
+    assert adopt_prepared(scratch, 0, grid, local=local) is None
+    data.write_bytes(whole)
+    record_path(built.ref.path).unlink()  # a build killed before its end: never trusted
+    assert adopt_prepared(scratch, 0, grid, local=local)[1] == 1  # the earlier build, complete
+    record_path(Path(scratch, Path(built.ref.path).name.replace("-2", "-1"))).unlink()
+    assert adopt_prepared(scratch, 0, grid, local=local) is None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import inspect
 import json
+from pathlib import Path
 
 import dask.array as da
 import numpy as np
@@ -381,3 +382,28 @@ def test_write_scan_of_a_numpy_array_writes_it_from_the_client(tmp_path, monkeyp
     x = np.arange(20 * 18 * 16, dtype=np.uint16).reshape(20, 18, 16)
     scan = write_scan(tmp_path / "s.zarr", x, chunks=8)
     np.testing.assert_array_equal(scan.level(0).compute(), x)
+
+
+def test_scratch_levels_of_an_interrupted_run_are_adopted_only_complete(tmp_path):
+    """``refs(..., adopt=True)`` on the scratch an interrupted run wrote for the same scan
+    (issue 21, item 5): complete levels are reused as they are (not written again), a level
+    with a chunk cut short is built again (to the right sums), and a level coarser than any
+    wanted one (done before the kill) is removed."""
+    import dask.config
+
+    rng = np.random.default_rng(12)
+    x = rng.integers(0, 4000, (40, 36, 44)).astype(np.uint16)
+    scratch = tmp_path / "ref"
+    with dask.config.set({"chunkdic.chunk-size": 8}):
+        first = open_scan(x).refs([0, 1, 2, 3], scratch)  # level 0 from memory, then the sums
+        group = Path(first[0].path)
+        chunk0, chunk1 = group / "0" / "c" / "1" / "1" / "1", group / "1" / "c" / "0" / "1" / "0"
+        stamp0 = chunk0.stat().st_mtime_ns
+        chunk1.write_bytes(chunk1.read_bytes()[:-3])  # level 1: a chunk cut short by the kill
+        again = open_scan(x).refs([0, 1, 2], scratch, adopt=True)
+    assert [r.path for r in again.values()] == [str(group)] * 3  # the same group, no new one
+    assert chunk0.stat().st_mtime_ns == stamp0  # level 0 reused, not written again
+    assert not (group / "3").exists()  # coarser than any wanted level: removed
+    for s in (0, 1, 2):
+        np.testing.assert_array_equal(again[s].read((slice(None),) * 3), block_sums(x, s))
+    assert chunk1.stat().st_size > 0 and again[1].read((slice(None),) * 3).shape == block_sums(x, 1).shape
