@@ -95,7 +95,7 @@ class Settings:
                         flag="--grey-level", choices=GREY_MODELS)
     grey_cell: float = _option(0.0, "edge of the cells sharing one brightness offset in the drift model, voxels of "
                                "each level, rounded to whole elements (default 0: one offset per element; 32 "
-                               "lowers the noise at ℓ = 8 by ~10 %, docs/engine.md)",
+                               "lowers the noise at ℓ = 8 by about a tenth, docs/engine.md)",
                                flag="--grey-level-cell")
     regularization: str = _option("tikhonov", "penalty on the field's short wavelengths (default tikhonov, on "
                                   "its curvature)", choices=REGULARIZATIONS)
