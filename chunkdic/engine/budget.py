@@ -68,8 +68,11 @@ GiB, MiB = 2**30, 2**20
 #: planned 84 MiB peaked at 450-456 MiB with an empty numba cache, NUMBA_CACHE_DIR=$(mktemp -d))
 BASE_BYTES = 372 * MiB
 #: the same when every kernel the run uses loads from numba's cache (:func:`kernels_cached`;
-#: the same runs peaked at 303-312 MiB: compiling holds LLVM's memory besides)
-WARM_BASE_BYTES = 245 * MiB
+#: the same runs peaked at 303-312 MiB: compiling holds LLVM's memory besides). Set from a
+#: fresh install (the CI's new virtual environment), whose warm 128³ run peaked at
+#: 359-366 MiB, a base of ~282 MiB; the same code and package versions in a long-lived
+#: development environment peaked 52 MiB lower (base ~246 MiB; cause not found, session 28)
+WARM_BASE_BYTES = 285 * MiB
 #: modules whose numba kernels a correlation runs: the block kernels, the pyramid's sums,
 #: the client's solver (a run compiles those missing from numba's cache)
 KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.interp", "chunkdic.kernels.rows",
