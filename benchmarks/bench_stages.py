@@ -167,12 +167,12 @@ def pass_seconds(log: Path, level: int) -> list[float]:
 
 
 def field_error(result_path: Path, pair: Path, ell: float, n_points: int, seed: int = 0) -> dict:
-    """Between-node error (trilinear on the node grid) at random voxel centres ≥ ell from the faces."""
+    """Between-node error (trilinear on the node grid) at random voxel centres ≥ ell from the faces
+    (:func:`chunkdic.analysis.scoring.score_between_nodes` on a sample of its region)."""
     import numpy as np
-    from scipy.interpolate import RegularGridInterpolator
 
     import chunkdic
-    from chunkdic.analysis.scoring import score_displacement
+    from chunkdic.analysis.scoring import score_between_nodes
     from chunkdic.synth.synthetic import load_field, load_metadata
 
     res = chunkdic.open_result(result_path)
@@ -180,16 +180,10 @@ def field_error(result_path: Path, pair: Path, ell: float, n_points: int, seed: 
     shape = tuple(load_metadata(pair)["shape"])
     f = 2.0**res.level
     axes = [np.unique(f * res.node_coords[i] + (f - 1) / 2) for i in range(3)]  # level-0 voxels
-    lo = [max(a[0], ell - 0.5) for a in axes]
-    hi = [min(a[-1], n - 0.5 - ell) for a, n in zip(axes, shape)]
-    rng = np.random.default_rng(seed)
-    pts = np.stack([rng.integers(int(np.ceil(a)), int(np.floor(b)) + 1, n_points) for a, b in zip(lo, hi)])
-    u = np.stack([RegularGridInterpolator(axes, f * res.displacement[i], method="linear")(pts.T)
-                  for i in range(3)])
-    truth = field.displacement(*pts.astype(float))
-    s = score_displacement(pts, u, truth, shape, ell)
+    s = score_between_nodes(axes, f * res.displacement, field, shape, ell, sample=n_points, seed=seed)
     out = s.as_dict()
     out["points_drawn"] = n_points
+    truth = field.displacement(*np.meshgrid(*axes, indexing="ij"))  # the truth's span over the nodes
     out["truth_range"] = [float(np.ptp(t)) for t in truth]
     return out
 

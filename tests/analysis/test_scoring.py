@@ -93,6 +93,18 @@ def test_public_export_and_bad_shapes():
         scored_region(np.zeros((3, 4)), (9, 9), 1)
 
 
+def _parabola(z, y, x):
+    """The truth u = (0, 0, (x - 9.5)² / 16) on broadcast axes."""
+    z, y, x = np.broadcast_arrays(z, y, x)
+    return np.stack([0 * x, 0 * x, (x - 9.5) ** 2 / 16])
+
+
+def _parabola_at_nodes():
+    """Nodes every 4 voxels from -0.5 to 19.5 per axis and :func:`_parabola` at them."""
+    axes = [np.arange(6) * 4.0 - 0.5] * 3
+    return axes, _parabola(*np.meshgrid(*axes, indexing="ij"))
+
+
 def test_between_nodes_scores_every_voxel_of_the_trilinear_field():
     from chunkdic.analysis.scoring import score_between_nodes
 
@@ -101,14 +113,8 @@ def test_between_nodes_scores_every_voxel_of_the_trilinear_field():
     # takes it at the nodes: between nodes 4 apart the chord of x^2/16 exceeds it by
     # t (4 - t) / 16 at t voxels from a node; voxels sit at t = 0.5, 1.5, 2.5, 3.5, so the
     # error is 7/64 (t = 0.5, 3.5) or 15/64 (t = 1.5, 2.5), half the voxels each.
-    axes = [np.arange(6) * 4.0 - 0.5] * 3
-    u = np.zeros((3, 6, 6, 6))
-    u[2] = ((axes[2] - 9.5) ** 2 / 16)[None, None, :]
-
-    def truth(z, y, x):
-        z, y, x = np.broadcast_arrays(z, y, x)
-        return np.stack([0 * x, 0 * x, (x - 9.5) ** 2 / 16])
-
+    axes, u = _parabola_at_nodes()
+    truth = _parabola
     s = score_between_nodes(axes, u, truth, (20, 20, 20), 4)
     assert s.n_points == 12**3 and s.n_failed == 0 and s.n_outside == 0
     assert s.rms == pytest.approx(math.sqrt(((7 / 64) ** 2 + (15 / 64) ** 2) / 2), rel=1e-12)
@@ -153,14 +159,8 @@ def test_between_nodes_sampled_score_is_the_score_of_those_voxels():
     # the trilinear chord of u_x = (x - 9.5)^2 / 16 between nodes 4 apart: at a voxel t from a
     # node the error is t (4 - t) / 16, 7/64 or 15/64 (test above); any sample of voxels
     # holds only those two values, so its RMS lies between them and its max is one of them
-    axes = [np.arange(6) * 4.0 - 0.5] * 3
-    u = np.zeros((3, 6, 6, 6))
-    u[2] = ((axes[2] - 9.5) ** 2 / 16)[None, None, :]
-
-    def truth(z, y, x):
-        z, y, x = np.broadcast_arrays(z, y, x)
-        return np.stack([0 * x, 0 * x, (x - 9.5) ** 2 / 16])
-
+    axes, u = _parabola_at_nodes()
+    truth = _parabola
     s = score_between_nodes(axes, u, truth, (20, 20, 20), 4, sample=1000, seed=1)
     assert s.n_points == 1000 and s.n_outside == 0
     assert 7 / 64 < s.rms < 15 / 64 and s.max_error == pytest.approx(15 / 64, rel=1e-12)
