@@ -16,7 +16,7 @@ import numpy as np
 
 from .events import emit
 from .level import Level
-from .stopping import History, State, decide, noise_step_of
+from .stopping import History, State, decide, noise_step_of, still_to_come
 
 
 def element_fields(p) -> np.ndarray:
@@ -100,13 +100,15 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             t2 = time.perf_counter()
             q, unsettled, fraction = noise_step(lvl, p, delta, tolerance)
             state.note_noise_step(q, unsettled, fraction)
-            if float(np.abs(delta).max()) >= tolerance:
+            d = float(np.abs(delta).max())
+            # converged: the increment, or once the increments shrink fast, all those still to
+            # come (a geometric series from the last two) below the tolerance; no pass
+            # confirms it (the gap differs from this pass's to second order in the increment)
+            if d >= tolerance and still_to_come(state.last_delta, d) >= tolerance:
                 state.step(delta)
             else:
-                # converged: no pass confirms a field that moved by less than the tolerance
-                # (its gap differs from this pass's to second order in the increment)
                 if resolve:
-                    state.last_delta = float(np.abs(delta).max())
+                    state.last_delta = d
                 else:
                     state.step(delta)
                 state.finish("converged", keep_current=True)

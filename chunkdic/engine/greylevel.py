@@ -313,6 +313,25 @@ def nodal_rhs(model: str, nodal: np.ndarray, scalars: np.ndarray) -> np.ndarray:
     raise ValueError(f"unknown brightness model {model!r}")
 
 
+def misfit(model: str, scalars: np.ndarray) -> tuple[float, float]:
+    """``(Σ w r², Σ w)`` of a pass with the model's optimal brightness, from its summed
+    scalars alone (the ``ssr`` and ``weight`` of :func:`element_fit`; what a gap needs)."""
+    n = float(scalars[0])
+    if model in ("none", "element"):
+        return float(scalars[1]), n
+    if model == "global":
+        sdd, sdg, sd, sgg, sg, _ = scalars[1:]
+        alpha, mu = _global_coefficients(model, scalars)
+        ssr = sdd - 2 * alpha * sdg - 2 * mu * sd + alpha**2 * sgg + 2 * alpha * mu * sg + mu**2 * n
+        return float(max(ssr, 0.0)), n
+    if model == "drift":
+        S = scalars[1:26].reshape(5, 5)
+        A, rhs = S[1:, 1:], S[1:, 0]
+        theta = _global_coefficients(model, scalars)
+        return float(max(S[0, 0] - 2 * theta @ rhs + theta @ A @ theta, 0.0)), n
+    raise ValueError(f"unknown brightness model {model!r}")
+
+
 def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.ndarray, center: float,
                 element_size: float = 1.0) -> Fit:
     """The :class:`Fit` of a pass from its ``b`` (:func:`nodal_rhs`), scalars and element rows."""
@@ -325,15 +344,12 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
     if model == "none":
         return Fit(b, float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e)
     if model == "global":
-        sdd, sdg, sd, sgg, sg, _ = scalars[1:]
         alpha, mu = _global_coefficients(model, scalars)
-        ssr = sdd - 2 * alpha * sdg - 2 * mu * sd + alpha**2 * sgg + 2 * alpha * mu * sg + mu**2 * n
-        return Fit(b, float(max(ssr, 0.0)), float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e)
+        ssr, _ = misfit(model, scalars)
+        return Fit(b, ssr, float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e)
     if model == "drift":
-        S = scalars[1:26].reshape(5, 5)
-        A, rhs = S[1:, 1:], S[1:, 0]
         theta = _global_coefficients(model, scalars)
-        ssr = S[0, 0] - 2 * theta @ rhs + theta @ A @ theta
+        ssr, _ = misfit(model, scalars)
         alpha, beta = theta[0], theta[1:]
         mean = elements[1:]  # element means of d, g', 1, z~, y~, x~
         mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[_Z:_X + 1], axes=1)  # a view: no copy
@@ -341,7 +357,7 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
             slopes = scalars[26:32].reshape(2, 3)
             beta = (slopes[0] - alpha * slopes[1]) / max(n, 1.0)
         # offset at the element centre (q~ = 0): μ_e - α c
-        return Fit(b, float(max(ssr, 0.0)), float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
+        return Fit(b, ssr, float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
                    beta / float(element_size), n_e)
     if model == "element":
         alpha, mu = elements[1], elements[2]

@@ -27,7 +27,7 @@ from ..solve.regularization import Regularizer, plane_wave_weight
 from ..solve.stencil import rigid_restriction, stencil_matvec
 from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
-from .greylevel import Fit, aligned_block_elements, element_fit, nodal_rhs, offset_cell
+from .greylevel import Fit, aligned_block_elements, element_fit, misfit, nodal_rhs, offset_cell
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
 from .noise import correlation_factor
@@ -95,6 +95,8 @@ class Pass:
     kappa : float
         How much more misfit a fitted unknown absorbs than with white noise
         (:func:`chunkdic.engine.noise.correlation_factor`).
+    probe_gaps : dict
+        The gaps of the further fields the pass measured (:meth:`Level.assemble_b`'s ``probes``).
     """
 
     fit: Fit
@@ -102,6 +104,7 @@ class Pass:
     n_valid: int
     n_excluded: int
     kappa: float = 1.0
+    probe_gaps: dict = dataclasses.field(default_factory=dict)
 
     @property
     def noise_variance(self) -> float:
@@ -172,6 +175,7 @@ class Level:
         # a start still to choose (steps.best_start): the weak-node warning waits for the M it is built with
         self.start_to_choose = start_to_choose
         self.m_start = start  # the field M is built at (a checkpoint keeps it: a resumed level rebuilds this M)
+        self._first_pass = None  # (field, pass) summed ahead of the iterations (keep_first_pass)
         self._assemble_m(start)
 
     @property
@@ -485,32 +489,54 @@ class Level:
         """A block's own slice of the nodal field: what its task receives (kilobytes)."""
         return np.ascontiguousarray(u[(slice(None), *job.block.node_slices)])
 
+    def keep_first_pass(self, u: np.ndarray, p: Pass) -> None:
+        """Hold the pass ``p`` measured at ``u`` for the iterations that start from ``u``
+        (:func:`chunkdic.engine.steps.measure_start_gaps` sums it with the reported gaps)."""
+        self._first_pass = (u, p)
+
+    def take_first_pass(self, u: np.ndarray) -> Pass | None:
+        """The pass :meth:`keep_first_pass` holds if it was measured at ``u`` (then released), else None."""
+        held, self._first_pass = self._first_pass, None
+        if held is None or held[0].shape != u.shape or not np.array_equal(held[0], u):
+            return None
+        return held[1]
+
+    def gap_sample(self) -> np.ndarray | None:
+        """The elements a diagnostic gap is measured on (uint8, the mesh's element shape), or
+        None for every active element (:meth:`gap`)."""
+        if int(np.prod(self.mesh.shape)) < GAP_SAMPLE_MIN:
+            return None
+        sample = np.zeros(self.mesh.shape, np.uint8)
+        sample[::2, ::2, ::2] = 1
+        if self.active is not None:
+            sample &= self.active.astype(np.uint8)
+        return sample if sample.any() else None
+
     def gap(self, u: np.ndarray) -> float:
         """The matching gap of the nodal field ``u`` (3, nz, ny, nx) alone: a diagnostic
-        (the initial and rigid gaps a run reports), not a step of the iterations.
+        (the gaps that choose the start), not a step of the iterations.
 
         On a mesh of at least :data:`GAP_SAMPLE_MIN` elements it is measured on the regular
         sample of one element in 8 (even indices along every axis; rows of voxels with no
         sampled element are skipped): a pass at an eighth of the cost. The gap is a root
         mean square over elements fitted independently (per-element offsets), so the sample
         estimates it closely (measured on the 300³ CT pair, ℓ = 12 and 8: within 0.9 % of the
-        full pass).
+        full pass). :meth:`assemble_b` measures the same gaps with its ``probes`` inside a
+        pass of the iterations (the finest level's reported gaps: no pass of their own).
         """
-        sample = None
-        if int(np.prod(self.mesh.shape)) >= GAP_SAMPLE_MIN:
-            sample = np.zeros(self.mesh.shape, np.uint8)
-            sample[::2, ::2, ::2] = 1
-            if self.active is not None:
-                sample &= self.active.astype(np.uint8)
-            if not sample.any():
-                sample = None
-        return self.assemble_b(u, sample).gap
+        return self.assemble_b(u, self.gap_sample()).gap
 
-    def assemble_b(self, u: np.ndarray, sample: np.ndarray | None = None) -> Pass:
+    def assemble_b(self, u: np.ndarray, sample: np.ndarray | None = None,
+                   probes: dict[str, np.ndarray] | None = None) -> Pass:
         """One pass for the nodal field ``u``: ``b``, brightness, gap and voxel counts.
 
         ``sample`` (uint8, the mesh's element shape): only its non-zero elements take part
-        (:meth:`gap`); default: every active element.
+        (:meth:`gap`); default: every active element. ``probes``: named nodal fields (each
+        (3, nz, ny, nx), voxels of the level) whose gap alone is measured in the same tasks,
+        as :meth:`gap` measures it (its sample of elements), from the blocks' reads of this
+        pass: ``Pass.probe_gaps`` maps each name to its gap (the brightness is fitted to
+        every probe as to ``u``). Their cost is the sums alone: one element in 8 on large
+        meshes, an eighth of a pass's arithmetic each and no reads.
         """
         mesh = self.mesh
         self.last_pass = None  # not held while the next one is summed (mesh-sized)
@@ -521,9 +547,20 @@ class Level:
         n_excluded = 0
         lags = np.zeros((6, LAGS + 1))
         active = self.active if sample is None else sample
+        names = list(probes or {})
+        probe_active = self.gap_sample() if names else None
+        if probe_active is None:
+            probe_active = self.active
+        probe_scalars = [None] * len(names)
         inputs = self.inputs
-        args = ((inputs, job, self._nodes_of(u, job), self._active_of(active, job)) for job in self.jobs)
-        for blk, part in self._map(b_task, args, "b pass", total=len(self.jobs)):
+
+        def args_of(job):
+            fields = tuple(self._nodes_of(probes[name], job) for name in names)
+            return (inputs, job, self._nodes_of(u, job), self._active_of(active, job), fields,
+                    self._active_of(probe_active, job))
+
+        args = (args_of(job) for job in self.jobs)
+        for blk, part, probe_parts in self._map(b_task, args, "b pass", total=len(self.jobs)):
             if nodal is None:
                 nodal = np.zeros((part.nodal.shape[0],) + mesh.nodes_shape + (3,))
                 scalars = np.zeros_like(part.scalars)
@@ -533,6 +570,8 @@ class Level:
             elements[(slice(None), *(slice(e0, e1) for e0, e1 in blk.elements))] = part.elements
             n_excluded += part.n_excluded
             lags += part.lags
+            for k, (sc, _) in enumerate(probe_parts):
+                probe_scalars[k] = sc.copy() if probe_scalars[k] is None else probe_scalars[k] + sc
         part = None
         # b first, then the nodal rows go (5 per node with the drift model, 240 MB at 128³ nodes)
         # before the element rows are fitted: they never coexist with the fit's arrays
@@ -543,5 +582,11 @@ class Level:
         gap = math.sqrt(fit.ssr / fit.weight) / self.dynamic_range if fit.weight > 0 else math.inf
         kappa = correlation_factor(lags, self.sensitivity_lags, float(np.median(fit.gain)),
                                    fit.ssr / fit.weight if fit.weight > 0 else None)
-        self.last_pass = Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded, kappa)
+        self.last_pass = Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded, kappa,
+                              {name: self._gap_of_scalars(sc) for name, sc in zip(names, probe_scalars)})
         return self.last_pass
+
+    def _gap_of_scalars(self, scalars: np.ndarray) -> float:
+        """The gap of a pass from its summed scalars alone (:func:`chunkdic.engine.greylevel.misfit`)."""
+        ssr, weight = misfit(self.settings.grey, scalars)
+        return math.sqrt(ssr / weight) / self.dynamic_range if weight > 0 else math.inf

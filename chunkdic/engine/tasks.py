@@ -213,47 +213,68 @@ def f_copy_task(inputs: LevelInputs, job: BlockJob) -> Block:
 
 
 def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
-           active: np.ndarray | None = None) -> tuple[Block, Partials]:
+           active: np.ndarray | None = None, probes: tuple = (),
+           probe_active: np.ndarray | None = None) -> tuple[Block, Partials, list]:
     """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.engine.greylevel.Partials`).
 
     ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass;
     the window of ``g`` from the level's prepared store when it covers it, else it is read
     raw with a halo and prepared here (same result to float32 precision). ``active``: the
     block's element activity (a specimen mask), default all.
+
+    ``probes``: further nodal fields over the block's nodes (each (3, ez+1, ey+1, ex+1))
+    whose misfit alone is wanted (the reported gaps of no motion and of the rigid
+    translation): summed over the elements ``probe_active`` keeps, from the same reads of
+    ``f`` and ``g`` (one window covering every field). Returns ``(block, partials, probe_parts)``,
+    ``probe_parts`` one ``(scalars, n_excluded)`` per probe (the misfit's scalars of
+    :class:`Partials`: a few numbers, no nodal rows).
     """
     region, lo, hi = job.haloed_region(inputs.f.shape)
     f = inputs.f_copy.read(job.index, tuple(r.stop - r.start for r in region))
-    g, g_origin = read_g_window(inputs, job, u_block)
-    if g is None:
-        # no voxel of the block maps inside g: every active voxel is excluded
-        n_off = 0 if active is None else int(np.sum(active == 0)) * job.ell**3
-        sums = ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
-                           np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
-    else:
-        sums = b_sums(f, lo, hi, job.ell, u_block, job.start, g, g_origin, inputs.g.shape,
+    g, g_origin = read_g_window(inputs, job, u_block, *probes)
+
+    def sums(u, act):
+        if g is None:
+            # no voxel of the block maps inside g: every active voxel is excluded
+            n_off = 0 if act is None else int(np.sum(act == 0)) * job.ell**3
+            return ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
+                               np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
+        return b_sums(f, lo, hi, job.ell, u, job.start, g, g_origin, inputs.g.shape,
                       interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
-                      margin=inputs.g_margin, active=active)
-    return job.block, reduce_block(sums, inputs.grey, inputs.grey_cell)
+                      margin=inputs.g_margin, active=act)
+
+    probe_parts = []
+    for u in probes:
+        part = reduce_block(sums(u, probe_active), inputs.grey, inputs.grey_cell)
+        probe_parts.append((part.scalars, part.n_excluded))
+    return job.block, reduce_block(sums(u_block, active), inputs.grey, inputs.grey_cell), probe_parts
 
 
-def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
-    """The prepared window of ``g`` a block needs for the field ``u_block``.
+def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray, *more: np.ndarray):
+    """The prepared window of ``g`` a block needs for the field ``u_block`` (and the fields ``more``).
 
     Returns ``(window, origin)``: float32 samples (linear) or B-spline coefficients (cubic)
-    of the low-passed ``g``; ``(None, None)`` when no voxel of the block can map inside ``g``.
+    of the low-passed ``g``; ``(None, None)`` when no voxel of the block can map inside ``g``
+    for any of the fields. With ``more``, one window covers every field's.
     """
     interp = inputs.interpolation
-    window = g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp,
-                      margin=inputs.g_margin)
-    if any(s.stop <= s.start for s in window):
+
+    def window_for(halo: int = 0):
+        boxes = [g_window(job.start, job.shape, u, inputs.g.shape, interpolation=interp, halo=halo,
+                          margin=inputs.g_margin) for u in (u_block, *more)]
+        boxes = [b for b in boxes if all(s.stop > s.start for s in b)]
+        if not boxes:
+            return None
+        return tuple(slice(min(b[a].start for b in boxes), max(b[a].stop for b in boxes)) for a in range(3))
+
+    window = window_for()
+    if window is None:
         return None, None
     if inputs.prepared is not None and inputs.prepared.covers(window):
         return inputs.prepared.read(window), tuple(s.start for s in window)
     if not inputs.g_needs_preparing:
         return np.asarray(inputs.g.read(window), dtype=np.float32), tuple(s.start for s in window)
-    halo = prepared_halo(inputs.sigma, interp, inputs.bspline_halo)
-    window = g_window(job.start, job.shape, u_block, inputs.g.shape, interpolation=interp, halo=halo,
-                      margin=inputs.g_margin)
+    window = window_for(prepared_halo(inputs.sigma, interp, inputs.bspline_halo))
     raw = inputs.g.read(window)
     check_finite(raw, "deformed", window)
     # on the prepared store's grid (chosen on the client: the layout is the run's), so that a
