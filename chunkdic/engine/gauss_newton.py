@@ -107,6 +107,9 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
             if d >= tolerance and still_to_come(state.last_delta, d) >= tolerance:
                 state.step(delta)
             else:
+                # no node moves by the tolerance any more (nor, predicted, in the passes to
+                # come): none is unsettled, whatever its step measured in its own noise
+                state.unsettled = None
                 if resolve:
                     state.last_delta = d
                 else:
@@ -115,7 +118,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
                 event.update(status=state.status)
             history.add(lvl.s, it, p.gap, state.last_delta, p.n_excluded)
             event.update(max_delta=state.last_delta, noise_step=state.last_noise_step,
-                         unsettled=int(unsettled.sum()), seconds=t2 - t0,
+                         unsettled=0 if state.unsettled is None else int(unsettled.sum()), seconds=t2 - t0,
                          assemble_seconds=t1 - t0, solve_seconds=t2 - t1, cg_iterations=cg_iterations,
                          voxels=lvl.mesh.n_voxels, assemble_cpu_seconds=cpu)
             emit(progress, **event)
