@@ -75,7 +75,11 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
     while state.status is None:
         it = state.iteration
         t0, c0 = time.perf_counter(), time.process_time()
+        ahead = first_pass is not None and not first_pass.reported  # summed ahead (steps.measure_start_gaps)
         p, first_pass = (lvl.assemble_b(state.u) if first_pass is None else first_pass), None
+        if ahead:  # its time is this iteration's
+            t0 -= p.seconds
+        p.reported = True
         state.noise_variance, state.kappa = float(p.noise_variance), float(p.kappa)
         cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
         event = dict(stage="iteration", level=lvl.s, iteration=it, gap=p.gap, max_delta=None,

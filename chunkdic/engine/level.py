@@ -97,6 +97,10 @@ class Pass:
         (:func:`chunkdic.engine.noise.correlation_factor`).
     probe_gaps : dict
         The gaps of the further fields the pass measured (:meth:`Level.assemble_b`'s ``probes``).
+    seconds : float
+        Wall time of the pass.
+    reported : bool
+        An iteration's progress event has shown it (its time is not counted twice).
     """
 
     fit: Fit
@@ -105,6 +109,8 @@ class Pass:
     n_excluded: int
     kappa: float = 1.0
     probe_gaps: dict = dataclasses.field(default_factory=dict)
+    seconds: float = 0.0
+    reported: bool = False
 
     @property
     def noise_variance(self) -> float:
@@ -539,6 +545,7 @@ class Level:
         meshes, an eighth of a pass's arithmetic each and no reads.
         """
         mesh = self.mesh
+        t0 = time.perf_counter()
         self.last_pass = None  # not held while the next one is summed (mesh-sized)
         if not self.f_copy_ready:
             self._f_copy_pass()
@@ -583,7 +590,8 @@ class Level:
         kappa = correlation_factor(lags, self.sensitivity_lags, float(np.median(fit.gain)),
                                    fit.ssr / fit.weight if fit.weight > 0 else None)
         self.last_pass = Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded, kappa,
-                              {name: self._gap_of_scalars(sc) for name, sc in zip(names, probe_scalars)})
+                              {name: self._gap_of_scalars(sc) for name, sc in zip(names, probe_scalars)},
+                              time.perf_counter() - t0)
         return self.last_pass
 
     def _gap_of_scalars(self, scalars: np.ndarray) -> float:
