@@ -106,7 +106,7 @@ class _StandInRunner:
         from chunkdic.engine.greylevel import reduce_block
         from chunkdic.kernels.blocks import LAGS, ElementSums
 
-        for inputs, job, _u, _active in args:
+        for inputs, job, _u, _active, probes, _probe_active in args:
             key = ("b", inputs.grey) + tuple(job.block.n_elements)
             if key not in self._cache:
                 n = tuple(job.block.n_elements)
@@ -115,7 +115,8 @@ class _StandInRunner:
                 gram = np.einsum("...ik,...jk->...ij", v, v) * job.ell**3 / 10
                 B = self._rng.normal(size=n + (6, 8, 3))
                 self._cache[key] = reduce_block(ElementSums(B, gram, 0, np.zeros((6, LAGS + 1))), inputs.grey)
-            yield job.block, self._cache[key]
+            part = self._cache[key]
+            yield job.block, part, [(part.scalars, part.n_excluded) for _ in probes]  # the start gaps' probes
 
     def run_everywhere(self, fn):
         fn()

@@ -327,6 +327,7 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
     robust σ (:func:`~chunkdic.solve.regularization.robust_freed`) and choose the length again
     for the reweighted penalty (docs/engine.md, "Robust reweighting"); restart ``state``
     under the outcome, which the checkpoint keeps (``state.reg_length``, ``state.freed``)."""
+    t0 = time.perf_counter()
     p = resumed_pass(lvl, state)
     u = np.moveaxis(state.u, 0, -1)
     last = {"half": None, "solver": None}
@@ -349,7 +350,7 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
     scale = 2.0**lvl.s
     corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
     emit(progress, stage="regularization", level=lvl.s, length=choice.length * scale, l_curve_length=corner,
-         kind=lvl.settings.regularization, kappa=p.kappa, rule=choice.rule)
+         kind=lvl.settings.regularization, kappa=p.kappa, rule=choice.rule, seconds=time.perf_counter() - t0)
     lvl.regularize(choice.length)
     length, freed = choice.length, None
     for k in range(lvl.settings.reweights):
@@ -357,12 +358,14 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
         terms = freed_terms(freed)
         if terms == 0:  # nothing beyond the threshold: the plain penalty, as chosen
             freed = None
-            emit(progress, stage="reweighting", level=lvl.s, round=k + 1, freed=0, length=length * scale)
+            emit(progress, stage="reweighting", level=lvl.s, round=k + 1, freed=0, length=length * scale,
+                 seconds=time.perf_counter() - t0)
             break
         length = choose(freed, guess=length).length  # the plain choice probed first
         lvl.regularize(length, freed)
         emit(progress, stage="reweighting", level=lvl.s, round=k + 1, freed=terms,
-             fraction=terms / (3 * len(TERM_KINDS) * int(np.prod(lvl.mesh.nodes_shape))), length=length * scale)
+             fraction=terms / (3 * len(TERM_KINDS) * int(np.prod(lvl.mesh.nodes_shape))), length=length * scale,
+             seconds=time.perf_counter() - t0)
     state.reg_length, state.freed = length, freed
     state.restart()
 
