@@ -58,9 +58,11 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
     """Modified Gauss–Newton on one level (paper section 3), from ``state``.
 
     Each pass evaluates ``b`` and the gap of the current field and solves for an increment;
-    an increment below ``tolerance`` is applied and ends the level as converged, without a
+    an increment below ``tolerance``, or one after which the increments still to come add
+    up to less than it (:func:`~chunkdic.engine.stopping.still_to_come`: shrinking by ×0.25
+    or faster, a geometric series), is applied and ends the level as converged, without a
     pass to confirm it: the reported gap is that of the last pass, whose field differs from
-    the returned one by less than ``tolerance`` (the gap by the square of that, relative).
+    the returned one by about ``tolerance`` (the gap by the square of that, relative).
     A run whose gap and increments both
     stop improving is *stalled*; one whose gap grows past ``DIVERGENCE_FACTOR`` × the best
     (plus ``DIVERGENCE_FLOOR``) is *diverged*; both return the best field met, never
@@ -69,7 +71,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
     pass already evaluated at ``state.u`` (``b`` and the gap depend on the images and the
     field only, not on the regularisation), used instead of evaluating it again.
     ``resolve``: the caller solves again from the last pass with another operator (the
-    regularisation about to be chosen), so an increment below ``tolerance`` ends the level
+    regularisation about to be chosen), so the increment that ends the level is left
     *unapplied*: the field stays the one that pass measured, which the next solve starts from.
     """
     while state.status is None:

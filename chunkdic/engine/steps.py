@@ -227,7 +227,8 @@ def solve_level(ctx: RunContext, run: RunState, lvl: Level) -> None:
     on the finest level when the settings leave it automatic; checkpoints every pass.
 
     With the length still to choose, the level first iterates to the coarse levels'
-    tolerance only and stops at the pass whose increment is below it without applying it:
+    tolerance only and stops at the pass whose increment (or, shrinking fast, the increments
+    still to come: :func:`~chunkdic.engine.stopping.still_to_come`) is below it without applying it:
     the choice linearises around that pass's field and ``b`` anyway, and the regularised
     iterations that follow converge it to the tolerance (each a ``b`` pass fewer).
     """
