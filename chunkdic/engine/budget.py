@@ -41,6 +41,7 @@ from ..errors import DiskSpaceError, InputError
 from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
+from ..io.ownership import reclaimable_scratch_bytes
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers
@@ -611,10 +612,13 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
             pyramids[s] = pyramids.get(s, 0) + b
     pyr = sum(pyramids.values())
     root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
+    # what dead runs left there is this run's to reclaim or (a resume) to reuse: free for the plan,
+    # or a resume would find its own interrupted run's scratch filling the disk it needs
+    free = _free(root) + reclaimable_scratch_bytes(root, release=output)
     fast = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
     chosen = layout()
     if chosen == "auto":
-        chosen = "compact" if fast * DISK_MARGIN > _free(root) else "fast"
+        chosen = "compact" if fast * DISK_MARGIN > free else "fast"
     if chosen == "compact":
         plans = [compact_level(lv, f_scan.dtype(lv.level), g_scan.dtype(lv.level), sigma, interp) for lv in plans]
     scratch = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
@@ -622,7 +626,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
     out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
     return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest),
-                str(_existing_parent(root.absolute())), _free(root), None if out_dir is None else str(out_dir),
+                str(_existing_parent(root.absolute())), free, None if out_dir is None else str(out_dir),
                 None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
                 solve_seconds, smallest, chosen, fast, base).timed(None)
 

@@ -26,7 +26,8 @@ from .. import config
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.outputs import Outputs
-from ..io.ownership import OutputLock, adopt_scratch, make_scratch, reclaim_stale_scratch
+from ..io.ownership import (OutputLock, adopt_scratch, directory_bytes, interrupted_run_of, leave_scratch,
+                            make_scratch, reclaim_stale_scratch)
 from ..io.scan import open_scan
 from ..io.units import lengths_in_voxels
 from ..kernels import jit as kernels
@@ -218,7 +219,8 @@ def correlate(
                 # adopted when its owner is dead, else a new one (also reclaims dead runs' scratch)
                 resuming = output is not None and entry.state == "resume"
                 scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
-                                                 None if resume is None else int(resume["level"]))
+                                                 None if resume is None else int(resume["level"]),
+                                                 None if output is None else (str(output), run_print))
                 emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
                      levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
                      requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
@@ -263,7 +265,7 @@ def correlate(
                     raise kept_checkpoint_error(exc, output) from None
     finally:
         if scratch is not None:
-            shutil.rmtree(scratch, ignore_errors=True)
+            _close_scratch(scratch, output, run_print, progress)
     return result
 
 
@@ -283,21 +285,44 @@ def _scratch_identity(run_print: str, output, runner) -> str | None:
                         "config": {key: config.get(key) for key in SCRATCH_CONFIG}, "local": bool(runner.local)})
 
 
-def _open_scratch(identity: str | None, resuming: bool, level: int | None) -> tuple[Path, bool]:
+def _open_scratch(identity: str | None, resuming: bool, level: int | None,
+                  resume: tuple[str, str] | None = None) -> tuple[Path, bool]:
     """The run's scratch directory and whether it is adopted from the interrupted run.
 
-    Resuming (the output held this run's checkpoint), the dead run's scratch directory of the
-    same ``identity`` is adopted (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to
-    the stores of the ``level`` it was solving (:func:`chunkdic.engine.level.prune_adopted`);
-    each store is reused only when complete (checked where it is opened). Otherwise a new one.
+    Resuming (the output held this run's checkpoint), the scratch directory the interrupted
+    run of the same ``identity`` left (its process dead, or it ended interrupted) is adopted
+    (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to the stores of the ``level``
+    it was solving (:func:`chunkdic.engine.level.prune_adopted`); each store is reused only
+    when complete (checked where it is opened). Otherwise a new one. ``resume``: ``(output,
+    fingerprint)``, recorded so that the directory is kept for the resume of that output
+    should this run be interrupted; other dead runs' scratch, and any other kept for this
+    output (this run holds its lock: it resumes or starts that run over), is reclaimed.
     """
     if resuming and identity is not None:
-        adopted = adopt_scratch(identity)
+        adopted = adopt_scratch(identity, resume=resume)
         if adopted is not None:
-            reclaim_stale_scratch()  # other dead runs' (make_scratch does it otherwise)
+            reclaim_stale_scratch(release=None if resume is None else resume[0])  # make_scratch does it otherwise
             prune_adopted(adopted, level)
             return adopted, True
-    return make_scratch(run=identity), False
+    return make_scratch(run=identity, resume=resume), False
+
+
+def _close_scratch(scratch: Path, output, run_print: str, progress) -> None:
+    """Remove the run's scratch directory, unless the run was interrupted with its checkpoint
+    kept (Ctrl-C, a lost cluster, a full disk after a checkpoint: the output holds this run's
+    checkpoint, marked incomplete): then it is left for the resume, which adopts it instead of
+    preparing the scans again, and no other run reclaims it while the output stays so
+    (:func:`chunkdic.io.ownership.leave_scratch`). The runner is closed by now: no task of
+    this run writes into it any more."""
+    if output is not None and interrupted_run_of(output, run_print):
+        try:
+            leave_scratch(scratch)
+            emit(progress, stage="scratch-kept", path=str(scratch), bytes=directory_bytes(scratch),
+                 output=str(output))
+            return
+        except OSError:  # its owner record cannot be rewritten (a full disk): it goes, as before
+            pass
+    shutil.rmtree(scratch, ignore_errors=True)
 
 
 def _start_output(plan: Outputs, entry, run_print: str, identities: dict):
@@ -358,7 +383,8 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
             if run.gn is None:
                 start_state(ctx, run, lvl, start, t_int)
             lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh), run.gn.freed)
-            lvl.prepare_interpolation(run.gn.u)
+            # a level resumed after its iterations ended (killed at "converged") may run no pass
+            lvl.prepare_interpolation(run.gn.u, when_needed=run.gn.status is not None)
             if s == ctx.finest and run.initial_gap is None:
                 measure_start_gaps(ctx, run, lvl)
             solve_level(ctx, run, lvl)
