@@ -201,71 +201,70 @@ def correlate(
         entry = plan.add(output, "result", resumable=True)
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
     scratch = None
-    try:
-        with contextlib.ExitStack() as stack:
-            if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
-                stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
-                                                     "chunkdic.prepare-voxels": budget.prepare_edge}))
-            # the scratch layout the plan chose (compact only when the fast one does not fit)
-            stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout}))
-            if output is not None:
-                stack.enter_context(OutputLock(output))  # one writer per output
-            runner = stack.enter_context(open_runner(scheduler))
-            ckpt = resume = None
-            if output is not None:
-                ckpt, resume = _start_output(plan, entry, run_print, identities)
+    with contextlib.ExitStack() as stack:
+        if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
+            stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
+                                                 "chunkdic.prepare-voxels": budget.prepare_edge}))
+        # the scratch layout the plan chose (compact only when the fast one does not fit)
+        stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout}))
+        if output is not None:
+            stack.enter_context(OutputLock(output))  # one writer per output
+        # the scratch is removed (or left for the resume) once the runner is closed (no task
+        # writes into it) and before the lock goes: the next run of the output may adopt it
+        stack.callback(lambda: scratch is not None and _close_scratch(scratch, output, run_print, progress))
+        runner = stack.enter_context(open_runner(scheduler))
+        ckpt = resume = None
+        if output is not None:
+            ckpt, resume = _start_output(plan, entry, run_print, identities)
+        try:
+            # an interrupted run of this very run (its output was there): its scratch is
+            # adopted when its owner is dead, else a new one (also reclaims dead runs' scratch)
+            resuming = output is not None and entry.state == "resume"
+            scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
+                                             None if resume is None else int(resume["level"]),
+                                             None if output is None else (str(output), run_print))
+            emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
+                 levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
+                 requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
+                 nodes=list(meshes[settings.level].nodes_shape))
+            # a resumed run needs no level coarser than the one it was solving (done)
+            needed = levels if resume is None else [s for s in levels if s <= int(resume["level"])]
+            # inside the runner: with a cluster, missing levels are built by its workers
+            f_refs = f_scan.refs(needed, scratch / "ref", runner=runner, adopt=adopted)
+            g_refs = g_scan.refs(needed, scratch / "def", runner=runner, adopt=adopted)
+            mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), needed, scratch / "mask",
+                                                                runner)
+            _compile_kernels(runner, progress)
+            emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
+            ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
+                             mask_refs, init_result, matrix=None if ckpt is None else StoredMatrix(ckpt.path),
+                             adopted=adopted)
+            result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))
+        except (InputError, OSError) as exc:
+            # bad input found by a pass (a constant or non-finite image), or a full or read-only
+            # disk before the first checkpoint: nothing to resume, so what this run created goes.
+            # A checkpoint this run saved stays for a re-run to resume (marked incomplete), and
+            # so does a resumed run's, which was there before.
+            fresh = plan is not None and resume is None
+            if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
+                plan.rollback()
+            elif isinstance(exc, OSError) and ckpt is not None:
+                raise kept_checkpoint_error(exc, output) from None  # say it is kept, and how to resume
+            raise
+        result.info.update(
+            voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
+            inputs={"reference": _describe(ref), "deformed": _describe(deformed),
+                    "mask": None if mask is None else _describe(mask)},
+            input_shapes={"reference": list(f_scan.shape(0)), "deformed": list(g_scan.shape(0))},
+            init=init_id,
+        )
+        if init_id is not None:
+            result.info["settings"] = dict(result.info["settings"], init=init_id)
+        if output is not None:  # replaces the checkpointed group once complete, under the lock
             try:
-                # an interrupted run of this very run (its output was there): its scratch is
-                # adopted when its owner is dead, else a new one (also reclaims dead runs' scratch)
-                resuming = output is not None and entry.state == "resume"
-                scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
-                                                 None if resume is None else int(resume["level"]),
-                                                 None if output is None else (str(output), run_print))
-                emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
-                     levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
-                     requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
-                     nodes=list(meshes[settings.level].nodes_shape))
-                # a resumed run needs no level coarser than the one it was solving (done)
-                needed = levels if resume is None else [s for s in levels if s <= int(resume["level"])]
-                # inside the runner: with a cluster, missing levels are built by its workers
-                f_refs = f_scan.refs(needed, scratch / "ref", runner=runner, adopt=adopted)
-                g_refs = g_scan.refs(needed, scratch / "def", runner=runner, adopt=adopted)
-                mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), needed, scratch / "mask",
-                                                                    runner)
-                _compile_kernels(runner, progress)
-                emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
-                ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
-                                 mask_refs, init_result, matrix=None if ckpt is None else StoredMatrix(ckpt.path),
-                                 adopted=adopted)
-                result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))
-            except (InputError, OSError) as exc:
-                # bad input found by a pass (a constant or non-finite image), or a full or read-only
-                # disk before the first checkpoint: nothing to resume, so what this run created goes.
-                # A checkpoint this run saved stays for a re-run to resume (marked incomplete), and
-                # so does a resumed run's, which was there before.
-                fresh = plan is not None and resume is None
-                if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
-                    plan.rollback()
-                elif isinstance(exc, OSError) and ckpt is not None:
-                    raise kept_checkpoint_error(exc, output) from None  # say it is kept, and how to resume
-                raise
-            result.info.update(
-                voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
-                inputs={"reference": _describe(ref), "deformed": _describe(deformed),
-                        "mask": None if mask is None else _describe(mask)},
-                input_shapes={"reference": list(f_scan.shape(0)), "deformed": list(g_scan.shape(0))},
-                init=init_id,
-            )
-            if init_id is not None:
-                result.info["settings"] = dict(result.info["settings"], init=init_id)
-            if output is not None:  # replaces the checkpointed group once complete, under the lock
-                try:
-                    result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
-                except OSError as exc:  # the staged copy is gone, the checkpoint stays
-                    raise kept_checkpoint_error(exc, output) from None
-    finally:
-        if scratch is not None:
-            _close_scratch(scratch, output, run_print, progress)
+                result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
+            except OSError as exc:  # the staged copy is gone, the checkpoint stays
+                raise kept_checkpoint_error(exc, output) from None
     return result
 
 

@@ -444,6 +444,16 @@ def leave_scratch(path: Path) -> None:
     os.replace(tmp, Path(path) / SCRATCH_MARKER)
 
 
+def _left_for(info: dict, output: str | None) -> bool:
+    """A scratch directory another host's run made for ``output`` (resolved path; None: no).
+    The owner check cannot see another host's processes, but the caller holds the lock of
+    ``output`` (one writer per output): the run that made it is over (dead, or its lock was
+    removed by a user who knew it was), so the caller may adopt or remove it."""
+    kept = info.get("resume")
+    return (output is not None and isinstance(kept, dict) and kept.get("output") == output
+            and str(info.get("host")) != socket.gethostname())
+
+
 def _kept_for_resume(info: dict, release: str | None) -> bool:
     """A dead run's scratch (owner record ``info``) stays for the resume of its output: the
     output still holds that run's interrupted checkpoint, and the caller is not the run that
@@ -482,7 +492,7 @@ def reclaimable_scratch_bytes(root: Path | None = None, *, release=None) -> int:
     total = 0
     for entry in entries:
         info = _read_marker(entry)
-        if info is not None and _gone(info) and not _kept_for_resume(info, release):
+        if info is not None and (_gone(info) or _left_for(info, release)) and not _kept_for_resume(info, release):
             total += directory_bytes(entry)
     return total
 
@@ -517,8 +527,11 @@ def adopt_scratch(run: str, root: Path | None = None, *, resume: tuple[str, str]
     directory is renamed first (one of several recovering runs wins), its marker made this
     process's, and it gets a new ``chunkdic-*`` name. Other dead runs' directories are
     left to :func:`reclaim_stale_scratch` (:func:`make_scratch` calls it). ``resume``:
-    ``(output, fingerprint)`` recorded in the new marker, as :func:`make_scratch` does (kept
-    for the resume again should this run be interrupted too).
+    ``(output, fingerprint)`` of the caller, which holds the lock of that output: recorded in
+    the new marker, as :func:`make_scratch` does (kept for the resume again should this run
+    be interrupted too); and a directory another host's run made for that output is adopted
+    too, though its owner cannot be checked from here (:func:`_left_for`: the lock says that
+    run is over).
     """
     root = scratch_root() if root is None else Path(root)
     try:
@@ -526,9 +539,10 @@ def adopt_scratch(run: str, root: Path | None = None, *, resume: tuple[str, str]
     except OSError:
         return None
     host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
+    mine = None if resume is None else _resolved(resume[0])
     for entry in entries:
         info = _read_marker(entry)
-        if info is None or info.get("run") != run or not _gone(info):
+        if info is None or info.get("run") != run or not (_gone(info) or _left_for(info, mine)):
             continue
         claimed = root / f"{ADOPTING_TAG}{host}-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
@@ -555,7 +569,8 @@ def reclaim_stale_scratch(root: Path | None = None, *, release=None) -> list[Pat
     shared temporary directory is ever touched. A directory kept for the resume of its
     output (that output holds the dead run's interrupted checkpoint) stays, unless its
     output is ``release``: the caller writes that output (it holds its lock), so it adopted
-    that scratch already or starts the run over. Each is renamed to ``.chunkdic-reclaimed-…``
+    that scratch already or starts the run over; such a directory goes even when another
+    host's run made it (:func:`_left_for`). Each is renamed to ``.chunkdic-reclaimed-…``
     before it is removed (so that an adopter, :func:`adopt_scratch`, never gets a directory
     half removed); such leftovers of a reclaimer killed while removing, and directories a
     dead adopter had claimed (``.chunkdic-adopting-HOST-PID-…``), go too.
@@ -579,7 +594,7 @@ def reclaim_stale_scratch(root: Path | None = None, *, release=None) -> list[Pat
             dead = Owner(socket.gethostname(), int(m.group(1))).is_dead()  # the claimant, named
         elif entry.name.startswith(SCRATCH_PREFIX):
             info = _read_marker(entry)
-            dead = info is not None and _gone(info)
+            dead = info is not None and (_gone(info) or _left_for(info, release))
             if dead and _kept_for_resume(info, release):
                 log.info("kept the scratch directory %s of the interrupted run of %s (for its resume)", entry,
                          info["resume"]["output"])

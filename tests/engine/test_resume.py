@@ -449,7 +449,10 @@ def test_ctrl_c_keeps_the_prepared_scans_for_the_resume(pair, uninterrupted, tmp
     scratch.mkdir()
     cmd = _cmd(pair, out)
     env = dict(os.environ, DASK_CHUNKDIC__SCRATCH_DIRECTORY=str(scratch))
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env)
+    # SIGINT as at a terminal: a suite started in the background (``pytest &``) ignores it, and
+    # so would the child (an ignored signal stays ignored across exec; Python then installs no handler)
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     lines = []
     for line in proc.stderr:
         lines.append(line)

@@ -199,3 +199,25 @@ def test_a_scratch_left_by_an_interrupted_call_is_adopted_even_by_the_same_proce
         got = adopt_scratch("run-a", resume=(str(out), "fp-a"))
     assert got is not None and not path.exists()
     assert "released" not in json.loads((got / SCRATCH_MARKER).read_text())  # the resumed run's, live
+
+
+def test_another_hosts_scratch_is_adopted_only_by_the_run_holding_its_outputs_lock(tmp_path):
+    """A batch job re-queued on another node with the scratch on a shared file system: the owner
+    check cannot see the first node's processes, so no run ever judges that directory dead. The
+    run that holds the lock of the output it was kept for (the lock of the dead run taken over,
+    or removed by the user) adopts it, or removes it when it starts that run over; every other
+    run leaves it alone."""
+    root, out = tmp_path / "scratch", _interrupted_output(tmp_path / "res.zarr", "fp-a")
+    other_out = _interrupted_output(tmp_path / "other.zarr", "fp-a")
+    root.mkdir()
+    left = _kept_for(root, "chunkdic-node7", 4242, out)
+    record = json.loads((left / SCRATCH_MARKER).read_text())
+    (left / SCRATCH_MARKER).write_text(json.dumps({**record, "host": "node7-elsewhere"}))
+    assert reclaim_stale_scratch(root) == [] and adopt_scratch("run-a", root) is None
+    assert adopt_scratch("run-a", root, resume=(str(other_out), "fp-a")) is None  # another output's
+    assert reclaim_stale_scratch(root, release=other_out) == [] and left.exists()
+    got = adopt_scratch("run-a", root, resume=(str(out), "fp-a"))
+    assert got is not None and not left.exists()
+    # started over instead (another identity): removed by the output's own run only
+    (got / SCRATCH_MARKER).write_text(json.dumps({**record, "host": "node7-elsewhere"}))
+    assert reclaim_stale_scratch(root) == [] and reclaim_stale_scratch(root, release=out) == [got]
