@@ -211,7 +211,8 @@ def correlate(
             stack.enter_context(OutputLock(output))  # one writer per output
         # the scratch is removed (or left for the resume) once the runner is closed (no task
         # writes into it) and before the lock goes: the next run of the output may adopt it
-        stack.callback(lambda: scratch is not None and _close_scratch(scratch, output, run_print, progress))
+        kept_for = (str(output), run_print) if _resumable(output, identities, init_id) else None
+        stack.callback(lambda: scratch is not None and _close_scratch(scratch, kept_for, progress))
         runner = stack.enter_context(open_runner(scheduler))
         ckpt = resume = None
         if output is not None:
@@ -222,7 +223,7 @@ def correlate(
             resuming = output is not None and entry.state == "resume"
             scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
                                              None if resume is None else int(resume["level"]),
-                                             None if output is None else (str(output), run_print))
+                                             kept_for)
             emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
                  levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
                  requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
@@ -306,14 +307,23 @@ def _open_scratch(identity: str | None, resuming: bool, level: int | None,
     return make_scratch(run=identity, resume=resume), False
 
 
-def _close_scratch(scratch: Path, output, run_print: str, progress) -> None:
+def _resumable(output, identities: dict, init_id: dict | None) -> bool:
+    """Whether the same command can resume this run: it has an output and every input is on
+    disk (an in-memory input's identity is random: such a run never resumes)."""
+    ids = [*(i for i in identities.values() if i is not None), init_id or {}]
+    return output is not None and not any("in-memory" in i for i in ids)
+
+
+def _close_scratch(scratch: Path, kept_for: tuple[str, str] | None, progress) -> None:
     """Remove the run's scratch directory, unless the run was interrupted with its checkpoint
-    kept (Ctrl-C, a lost cluster, a full disk after a checkpoint: the output holds this run's
-    checkpoint, marked incomplete): then it is left for the resume, which adopts it instead of
-    preparing the scans again, and no other run reclaims it while the output stays so
-    (:func:`chunkdic.io.ownership.leave_scratch`). The runner is closed by now: no task of
+    kept (Ctrl-C, a lost cluster, a full disk after a checkpoint: the output of ``kept_for =
+    (output, fingerprint)`` holds this run's checkpoint, marked incomplete): then it is left
+    for the resume, which adopts it instead of preparing the scans again, and no other run
+    reclaims it while the output stays so (:func:`chunkdic.io.ownership.leave_scratch`).
+    ``kept_for`` None: a run that cannot resume. The runner is closed by now: no task of
     this run writes into it any more."""
-    if output is not None and interrupted_run_of(output, run_print):
+    if kept_for is not None and interrupted_run_of(*kept_for):
+        output = kept_for[0]
         try:
             leave_scratch(scratch)
             emit(progress, stage="scratch-kept", path=str(scratch), bytes=directory_bytes(scratch),

@@ -471,3 +471,42 @@ def test_ctrl_c_keeps_the_prepared_scans_for_the_resume(pair, uninterrupted, tmp
     resumed = chunkdic.open_result(out)
     np.testing.assert_allclose(resumed.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)
     assert _scratch_dirs(scratch) == []
+
+
+def test_an_interrupted_call_leaves_its_scratch_only_when_it_can_resume(pair, uninterrupted, tmp_path):
+    """In a notebook: a KeyboardInterrupt during a call with an output on scans on disk leaves the
+    scratch, and the same call again in the same process (the interrupted call's owner is
+    alive) adopts it. With in-memory scans (an identity of their own each call: never resumed)
+    the scratch goes on the way out, as it did for every interrupted run before."""
+    import dask.config
+
+    def interrupt(event):
+        if event["stage"] == "iteration" and event["level"] == 0:
+            raise KeyboardInterrupt
+
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    arrays = (np.load(pair / "f.npy"), np.load(pair / "g.npy"))
+    with dask.config.set({"chunkdic.scratch-directory": str(scratch)}):
+        with pytest.raises(KeyboardInterrupt):
+            chunkdic.correlate(*arrays, element_size=8, tolerance=1e-5, output=tmp_path / "mem.zarr",
+                               progress=interrupt)
+        assert _scratch_dirs(scratch) == []
+
+        paths = (pair / "f.npy", pair / "g.npy")
+        events = []
+        with pytest.raises(KeyboardInterrupt):
+            chunkdic.correlate(*paths, element_size=8, tolerance=1e-5, output=tmp_path / "res.zarr",
+                               progress=lambda e: (events.append(e), interrupt(e)))
+        kept = [e for e in events if e["stage"] == "scratch-kept"]
+        assert len(kept) == 1 and _scratch_dirs(scratch) == [os.path.basename(kept[0]["path"])]
+        assert kept[0]["bytes"] > 0
+
+        events.clear()
+        res = chunkdic.correlate(*paths, element_size=8, tolerance=1e-5, output=tmp_path / "res.zarr",
+                                 progress=events.append)
+    (resume,) = [e for e in events if e["stage"] == "resume"]
+    assert resume["reused"] == ["M", "scans"], resume
+    assert not [e for e in events if e["stage"] == "prepared" and e["level"] == 0]
+    np.testing.assert_allclose(res.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)
+    assert _scratch_dirs(scratch) == []
