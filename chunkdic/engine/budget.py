@@ -41,7 +41,7 @@ from ..errors import DiskSpaceError, InputError
 from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
-from ..io.ownership import reclaimable_scratch_bytes
+from ..io.ownership import kept_scratch, reclaimable_scratch_bytes
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers
@@ -277,10 +277,21 @@ class Plan:
             what += " in the compact layout" if self.layout == "compact" else ""
             raise DiskSpaceError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
                                  f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
-                                 "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
+                                 f"(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk{_kept_words(self.scratch_dir)}")
         if self.output_dir is not None and not same_disk and self.output_bytes * DISK_MARGIN > self.output_free:
             raise DiskSpaceError(f"not enough disk for the output: {_b(self.output_bytes)} needed in "
                                  f"{self.output_dir}, {_b(self.output_free)} free")
+
+
+def _kept_words(scratch_dir) -> str:
+    """What the scratch kept for other outputs' resumes holds in ``scratch_dir`` (a refusal's
+    hint: resuming or removing those outputs frees it), or ``""``."""
+    kept = kept_scratch(Path(scratch_dir))
+    if not kept:
+        return ""
+    outputs = ", ".join(dict.fromkeys(out for _, out, _ in kept))
+    return (f" ({_b(sum(n for _, _, n in kept))} there is kept for the resume of {outputs}: resume, or remove "
+            "the output to free it)")
 
 
 def kernels_cached() -> bool:

@@ -48,7 +48,8 @@ log = logging.getLogger(__name__)
 
 __all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
            "reclaim_stale_partials", "reclaim_stale_locks", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER",
-           "adopt_scratch", "interrupted_run_of", "reclaimable_scratch_bytes", "directory_bytes", "leave_scratch"]
+           "adopt_scratch", "interrupted_run_of", "reclaimable_scratch_bytes", "directory_bytes", "leave_scratch",
+           "kept_scratch"]
 
 LOCK_SUFFIX = ".chunkdic-lock"
 PARTIAL_TAG = ".chunkdic-partial-"
@@ -495,6 +496,23 @@ def reclaimable_scratch_bytes(root: Path | None = None, *, release=None) -> int:
         if info is not None and (_gone(info) or _left_for(info, release)) and not _kept_for_resume(info, release):
             total += directory_bytes(entry)
     return total
+
+
+def kept_scratch(root: Path | None = None) -> list[tuple[Path, str, int]]:
+    """The scratch directories under ``root`` kept for the resume of their outputs
+    (:func:`_kept_for_resume`): ``(directory, output, bytes)``, largest first. A run refused
+    for lack of disk names them: resuming or removing those outputs frees them."""
+    root = scratch_root() if root is None else Path(root)
+    try:
+        entries = [e for e in root.iterdir() if e.name.startswith(SCRATCH_PREFIX)]
+    except OSError:
+        return []
+    kept = []
+    for entry in entries:
+        info = _read_marker(entry)
+        if info is not None and _gone(info) and _kept_for_resume(info, None):
+            kept.append((entry, str(info["resume"]["output"]), directory_bytes(entry)))
+    return sorted(kept, key=lambda k: -k[2])
 
 
 def _own_directory(entry: Path) -> bool:

@@ -324,3 +324,7 @@ def test_a_dead_runs_scratch_counts_as_free_disk(pair, tmp_path, monkeypatch):
     (left / SCRATCH_MARKER).write_text(json.dumps(record))
     plan = _plan(pair, scratch)
     assert plan.layout == "compact" and plan.scratch_free == free
+    monkeypatch.setattr(budget, "_free", lambda path: 0)  # refused: the line says what holds the disk
+    with pytest.raises(InputError, match=rf"not enough disk: .* \(\d+ MiB there is kept for the resume of "
+                                         rf"{out.resolve()}: resume, or remove the output to free it\)$"):
+        _plan(pair, scratch).check()
