@@ -219,7 +219,8 @@ def correlate(
             ckpt, resume = _start_output(plan, entry, run_print, identities)
         try:
             # an interrupted run of this very run (its output was there): its scratch is
-            # adopted when its owner is dead, else a new one (also reclaims dead runs' scratch)
+            # adopted when that run is over (killed, or ended interrupted), else a new one (also
+            # reclaims dead runs' scratch, but not what is kept for other outputs' resumes)
             resuming = output is not None and entry.state == "resume"
             scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
                                              None if resume is None else int(resume["level"]),
