@@ -41,6 +41,7 @@ from ..errors import DiskSpaceError, InputError
 from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
+from ..io.ownership import kept_scratch, reclaimable_scratch_bytes
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers
@@ -278,10 +279,21 @@ class Plan:
             what += " in the compact layout" if self.layout == "compact" else ""
             raise DiskSpaceError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
                                  f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
-                                 "(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk")
+                                 f"(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk{_kept_words(self.scratch_dir)}")
         if self.output_dir is not None and not same_disk and self.output_bytes * DISK_MARGIN > self.output_free:
             raise DiskSpaceError(f"not enough disk for the output: {_b(self.output_bytes)} needed in "
                                  f"{self.output_dir}, {_b(self.output_free)} free")
+
+
+def _kept_words(scratch_dir) -> str:
+    """What the scratch kept for other outputs' resumes holds in ``scratch_dir`` (a refusal's
+    hint: resuming or removing those outputs frees it), or ``""``."""
+    kept = kept_scratch(Path(scratch_dir))
+    if not kept:
+        return ""
+    outputs = ", ".join(dict.fromkeys(out for _, out, _ in kept))
+    return (f" ({_b(sum(n for _, _, n in kept))} there is kept for the resume of {outputs}: resume, or remove "
+            "the output to free it)")
 
 
 def kernels_cached() -> bool:
@@ -613,10 +625,13 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
             pyramids[s] = pyramids.get(s, 0) + b
     pyr = sum(pyramids.values())
     root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
+    # what dead runs left there is this run's to reclaim or (a resume) to reuse: free for the plan,
+    # or a resume would find its own interrupted run's scratch filling the disk it needs
+    free = _free(root) + reclaimable_scratch_bytes(root, release=output)
     fast = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
     chosen = layout()
     if chosen == "auto":
-        chosen = "compact" if fast * DISK_MARGIN > _free(root) else "fast"
+        chosen = "compact" if fast * DISK_MARGIN > free else "fast"
     if chosen == "compact":
         plans = [compact_level(lv, f_scan.dtype(lv.level), g_scan.dtype(lv.level), sigma, interp) for lv in plans]
     scratch = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
@@ -624,7 +639,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
     out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
     return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest),
-                str(_existing_parent(root.absolute())), _free(root), None if out_dir is None else str(out_dir),
+                str(_existing_parent(root.absolute())), free, None if out_dir is None else str(out_dir),
                 None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
                 solve_seconds, smallest, chosen, fast, base).timed(None)
 

@@ -26,7 +26,8 @@ from .. import config
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.outputs import Outputs
-from ..io.ownership import OutputLock, adopt_scratch, make_scratch, reclaim_stale_scratch
+from ..io.ownership import (OutputLock, adopt_scratch, directory_bytes, interrupted_run_of, leave_scratch,
+                            make_scratch, reclaim_stale_scratch)
 from ..io.scan import open_scan
 from ..io.units import lengths_in_voxels
 from ..kernels import jit as kernels
@@ -200,70 +201,72 @@ def correlate(
         entry = plan.add(output, "result", resumable=True)
     check_scheduler(scheduler)  # an unreachable or foreign address: refused before anything is written
     scratch = None
-    try:
-        with contextlib.ExitStack() as stack:
-            if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
-                stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
-                                                     "chunkdic.prepare-voxels": budget.prepare_edge}))
-            # the scratch layout the plan chose (compact only when the fast one does not fit)
-            stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout}))
-            if output is not None:
-                stack.enter_context(OutputLock(output))  # one writer per output
-            runner = stack.enter_context(open_runner(scheduler))
-            ckpt = resume = None
-            if output is not None:
-                ckpt, resume = _start_output(plan, entry, run_print, identities)
+    with contextlib.ExitStack() as stack:
+        if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
+            stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
+                                                 "chunkdic.prepare-voxels": budget.prepare_edge}))
+        # the scratch layout the plan chose (compact only when the fast one does not fit)
+        stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout}))
+        if output is not None:
+            stack.enter_context(OutputLock(output))  # one writer per output
+        # the scratch is removed (or left for the resume) once the runner is closed (no task
+        # writes into it) and before the lock goes: the next run of the output may adopt it
+        kept_for = (str(output), run_print) if _resumable(output, identities, init_id) else None
+        stack.callback(lambda: scratch is not None and _close_scratch(scratch, kept_for, progress))
+        runner = stack.enter_context(open_runner(scheduler))
+        ckpt = resume = None
+        if output is not None:
+            ckpt, resume = _start_output(plan, entry, run_print, identities)
+        try:
+            # an interrupted run of this very run (its output was there): its scratch is
+            # adopted when that run is over (killed, or ended interrupted), else a new one (also
+            # reclaims dead runs' scratch, but not what is kept for other outputs' resumes)
+            resuming = output is not None and entry.state == "resume"
+            scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
+                                             None if resume is None else int(resume["level"]),
+                                             kept_for)
+            emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
+                 levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
+                 requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
+                 nodes=list(meshes[settings.level].nodes_shape))
+            # a resumed run needs no level coarser than the one it was solving (done)
+            needed = levels if resume is None else [s for s in levels if s <= int(resume["level"])]
+            # inside the runner: with a cluster, missing levels are built by its workers
+            f_refs = f_scan.refs(needed, scratch / "ref", runner=runner, adopt=adopted)
+            g_refs = g_scan.refs(needed, scratch / "def", runner=runner, adopt=adopted)
+            mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), needed, scratch / "mask",
+                                                                runner)
+            _compile_kernels(runner, progress)
+            emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
+            ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
+                             mask_refs, init_result, matrix=None if ckpt is None else StoredMatrix(ckpt.path),
+                             adopted=adopted)
+            result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))
+        except (InputError, OSError) as exc:
+            # bad input found by a pass (a constant or non-finite image), or a full or read-only
+            # disk before the first checkpoint: nothing to resume, so what this run created goes.
+            # A checkpoint this run saved stays for a re-run to resume (marked incomplete), and
+            # so does a resumed run's, which was there before.
+            fresh = plan is not None and resume is None
+            if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
+                plan.rollback()
+            elif isinstance(exc, OSError) and ckpt is not None:
+                raise kept_checkpoint_error(exc, output) from None  # say it is kept, and how to resume
+            raise
+        result.info.update(
+            voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
+            inputs={"reference": _describe(ref), "deformed": _describe(deformed),
+                    "mask": None if mask is None else _describe(mask)},
+            input_shapes={"reference": list(f_scan.shape(0)), "deformed": list(g_scan.shape(0))},
+            init=init_id,
+        )
+        if init_id is not None:
+            result.info["settings"] = dict(result.info["settings"], init=init_id)
+        if output is not None:  # replaces the checkpointed group once complete, under the lock
             try:
-                # an interrupted run of this very run (its output was there): its scratch is
-                # adopted when its owner is dead, else a new one (also reclaims dead runs' scratch)
-                resuming = output is not None and entry.state == "resume"
-                scratch, adopted = _open_scratch(_scratch_identity(run_print, output, runner), resuming,
-                                                 None if resume is None else int(resume["level"]))
-                emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link,
-                     levels=levels, roi=[[r.start, r.stop] for r in meshes[settings.level].roi],
-                     requested_roi=None if roi is None else [list(p) for p in parse_roi(roi)],
-                     nodes=list(meshes[settings.level].nodes_shape))
-                # a resumed run needs no level coarser than the one it was solving (done)
-                needed = levels if resume is None else [s for s in levels if s <= int(resume["level"])]
-                # inside the runner: with a cluster, missing levels are built by its workers
-                f_refs = f_scan.refs(needed, scratch / "ref", runner=runner, adopt=adopted)
-                g_refs = g_scan.refs(needed, scratch / "def", runner=runner, adopt=adopted)
-                mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), needed, scratch / "mask",
-                                                                    runner)
-                _compile_kernels(runner, progress)
-                emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
-                ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
-                                 mask_refs, init_result, matrix=None if ckpt is None else StoredMatrix(ckpt.path),
-                                 adopted=adopted)
-                result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))
-            except (InputError, OSError) as exc:
-                # bad input found by a pass (a constant or non-finite image), or a full or read-only
-                # disk before the first checkpoint: nothing to resume, so what this run created goes.
-                # A checkpoint this run saved stays for a re-run to resume (marked incomplete), and
-                # so does a resumed run's, which was there before.
-                fresh = plan is not None and resume is None
-                if fresh and (isinstance(exc, InputError) or ckpt is None or not ckpt.saved):
-                    plan.rollback()
-                elif isinstance(exc, OSError) and ckpt is not None:
-                    raise kept_checkpoint_error(exc, output) from None  # say it is kept, and how to resume
-                raise
-            result.info.update(
-                voxel_size=f_scan.voxel_size, unit=f_scan.unit, fingerprint=run_print,
-                inputs={"reference": _describe(ref), "deformed": _describe(deformed),
-                        "mask": None if mask is None else _describe(mask)},
-                input_shapes={"reference": list(f_scan.shape(0)), "deformed": list(g_scan.shape(0))},
-                init=init_id,
-            )
-            if init_id is not None:
-                result.info["settings"] = dict(result.info["settings"], init=init_id)
-            if output is not None:  # replaces the checkpointed group once complete, under the lock
-                try:
-                    result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
-                except OSError as exc:  # the staged copy is gone, the checkpoint stays
-                    raise kept_checkpoint_error(exc, output) from None
-    finally:
-        if scratch is not None:
-            shutil.rmtree(scratch, ignore_errors=True)
+                result.save(output, overwrite=True, inputs=(ref, deformed, mask, _init_path(init_result)))
+            except OSError as exc:  # the staged copy is gone, the checkpoint stays
+                raise kept_checkpoint_error(exc, output) from None
     return result
 
 
@@ -283,21 +286,53 @@ def _scratch_identity(run_print: str, output, runner) -> str | None:
                         "config": {key: config.get(key) for key in SCRATCH_CONFIG}, "local": bool(runner.local)})
 
 
-def _open_scratch(identity: str | None, resuming: bool, level: int | None) -> tuple[Path, bool]:
+def _open_scratch(identity: str | None, resuming: bool, level: int | None,
+                  resume: tuple[str, str] | None = None) -> tuple[Path, bool]:
     """The run's scratch directory and whether it is adopted from the interrupted run.
 
-    Resuming (the output held this run's checkpoint), the dead run's scratch directory of the
-    same ``identity`` is adopted (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to
-    the stores of the ``level`` it was solving (:func:`chunkdic.engine.level.prune_adopted`);
-    each store is reused only when complete (checked where it is opened). Otherwise a new one.
+    Resuming (the output held this run's checkpoint), the scratch directory the interrupted
+    run of the same ``identity`` left (its process dead, or it ended interrupted) is adopted
+    (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to the stores of the ``level``
+    it was solving (:func:`chunkdic.engine.level.prune_adopted`); each store is reused only
+    when complete (checked where it is opened). Otherwise a new one. ``resume``: ``(output,
+    fingerprint)``, recorded so that the directory is kept for the resume of that output
+    should this run be interrupted; other dead runs' scratch, and any other kept for this
+    output (this run holds its lock: it resumes or starts that run over), is reclaimed.
     """
     if resuming and identity is not None:
-        adopted = adopt_scratch(identity)
+        adopted = adopt_scratch(identity, resume=resume)
         if adopted is not None:
-            reclaim_stale_scratch()  # other dead runs' (make_scratch does it otherwise)
+            reclaim_stale_scratch(release=None if resume is None else resume[0])  # make_scratch does it otherwise
             prune_adopted(adopted, level)
             return adopted, True
-    return make_scratch(run=identity), False
+    return make_scratch(run=identity, resume=resume), False
+
+
+def _resumable(output, identities: dict, init_id: dict | None) -> bool:
+    """Whether the same command can resume this run: it has an output and every input is on
+    disk (an in-memory input's identity is random: such a run never resumes)."""
+    ids = [*(i for i in identities.values() if i is not None), init_id or {}]
+    return output is not None and not any("in-memory" in i for i in ids)
+
+
+def _close_scratch(scratch: Path, kept_for: tuple[str, str] | None, progress) -> None:
+    """Remove the run's scratch directory, unless the run was interrupted with its checkpoint
+    kept (Ctrl-C, a lost cluster, a full disk after a checkpoint: the output of ``kept_for =
+    (output, fingerprint)`` holds this run's checkpoint, marked incomplete): then it is left
+    for the resume, which adopts it instead of preparing the scans again, and no other run
+    reclaims it while the output stays so (:func:`chunkdic.io.ownership.leave_scratch`).
+    ``kept_for`` None: a run that cannot resume. The runner is closed by now: no task of
+    this run writes into it any more."""
+    if kept_for is not None and interrupted_run_of(*kept_for):
+        output = kept_for[0]
+        try:
+            leave_scratch(scratch)
+            emit(progress, stage="scratch-kept", path=str(scratch), bytes=directory_bytes(scratch),
+                 output=str(output))
+            return
+        except OSError:  # its owner record cannot be rewritten (a full disk): it goes, as before
+            pass
+    shutil.rmtree(scratch, ignore_errors=True)
 
 
 def _start_output(plan: Outputs, entry, run_print: str, identities: dict):
@@ -358,7 +393,8 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
             if run.gn is None:
                 start_state(ctx, run, lvl, start, t_int)
             lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh), run.gn.freed)
-            lvl.prepare_interpolation(run.gn.u)
+            # a level resumed after its iterations ended (killed at "converged") may run no pass
+            lvl.prepare_interpolation(run.gn.u, when_needed=run.gn.status is not None)
             if s == ctx.finest and run.initial_gap is None:
                 measure_start_gaps(ctx, run, lvl)
             solve_level(ctx, run, lvl)

@@ -149,6 +149,10 @@ class EventText:
                       ("scans",): "; reusing the prepared scans of the interrupted run"}
             return (f"resuming the interrupted run from its checkpoint: level {event['level']}, "
                     f"iteration {event['iteration']}" + reused.get(tuple(event.get("reused", ())), ""))
+        if stage == "scratch-kept":
+            return (f"the prepared scans ({event['bytes'] / 2**30:.2f} GiB in {event['path']}) are kept for the "
+                    f"resume: run the same command again; to give up, remove {event['output']} (the next chunkdic "
+                    "run then removes them)")
         if stage == "unsettled":
             return (f"level {event['level']}: converged at the noise level; {event['nodes']} poorly seen nodes still "
                     f"moved by more than {STEP_CAP:g}x their uncertainty and are flagged weak (unreliable)")

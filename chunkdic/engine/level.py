@@ -159,6 +159,7 @@ class Level:
         self.scratch = scratch
         self.progress = progress
         self._builds = 0
+        self._deferred = None  # a field whose g is prepared by the first pass (prepare_interpolation)
         self.matrix = matrix  # where M is kept for a resumed run (the output), None: not kept
         self.m_reused = False  # M read from the output, not built by a pass (the last _assemble_m)
         cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
@@ -435,9 +436,11 @@ class Level:
         current = self.inputs.prepared
         return needed is None or (current is not None and current.covers(tuple(slice(a, b) for a, b in needed)))
 
-    def prepare_interpolation(self, u: np.ndarray) -> None:
-        """Prepare once the part of ``g`` that ``u`` (± a margin) can reach (low-pass, B-spline)."""
-        if self.prepared_for(u):
+    def prepare_interpolation(self, u: np.ndarray, *, when_needed: bool = False) -> None:
+        """Prepare once the part of ``g`` that ``u`` (± a margin) can reach (low-pass, B-spline);
+        ``when_needed``: at the first pass only (a level resumed after its iterations ended may need none)."""
+        self._deferred = u if when_needed else None
+        if when_needed or self.prepared_for(u):
             return
         g_ref = self.inputs.g
         box = reachable_box(self.mesh, u, g_ref.shape, margin=max(8, self.mesh.element_size))
@@ -549,6 +552,8 @@ class Level:
         self.last_pass = None  # not held while the next one is summed (mesh-sized)
         if not self.f_copy_ready:
             self._f_copy_pass()
+        if self._deferred is not None:
+            self.prepare_interpolation(self._deferred)
         nodal = scalars = None
         elements = None
         n_excluded = 0

@@ -286,3 +286,45 @@ def test_plan_chooses_the_compact_layout_only_when_the_fast_one_does_not_fit(pai
     monkeypatch.setattr(budget, "_free", lambda path: int(compact.scratch_bytes * 0.5))
     with pytest.raises(InputError, match="not enough disk: .* in the compact layout"):
         _plan(pair, tmp_path).check()
+
+
+def test_a_dead_runs_scratch_counts_as_free_disk(pair, tmp_path, monkeypatch):
+    """Issue 21, item 5: a run killed at 2048³ leaves ~33 GB of scratch on a disk with 37 GB
+    free; its resume found that disk full of its own interrupted run's stores and chose the
+    compact layout (another scratch identity: nothing adopted) or refused to run. The plan
+    counts the scratch of dead runs, which this run reclaims or adopts, as free; not what is
+    kept for the resume of another output."""
+    from chunkdic.io.ownership import SCRATCH_MARKER, Owner
+
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    fast = _plan(pair, scratch)
+    free = int(fast.scratch_bytes * 0.8)
+    monkeypatch.setattr(budget, "_free", lambda path: free)
+    assert _plan(pair, scratch).layout == "compact"
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()  # a dead pid
+    left = scratch / "chunkdic-killed"
+    left.mkdir()
+    with open(left / "g-level0-1.npy", "wb") as fh:
+        fh.truncate(int(fast.scratch_bytes * 0.5))  # its size without the disk (sparse)
+    record = {**Owner.me().__dict__, "pid": proc.pid, "start": None, "run": "x"}
+    (left / SCRATCH_MARKER).write_text(json.dumps(record))
+    size = sum(p.stat().st_size for p in left.iterdir())
+    plan = _plan(pair, scratch)
+    assert plan.layout == "fast" and plan.scratch_free == free + size
+    plan.check()  # not refused
+
+    out = tmp_path / "other.zarr"  # now kept for the resume of another output: not this run's to use
+    out.mkdir()
+    (out / "zarr.json").write_text(json.dumps({"zarr_format": 3, "node_type": "group", "attributes": {
+        "chunkdic": {"kind": "result", "complete": False, "fingerprint": "fp"}}}))
+    record["resume"] = {"output": str(out.resolve()), "fingerprint": "fp"}
+    (left / SCRATCH_MARKER).write_text(json.dumps(record))
+    plan = _plan(pair, scratch)
+    assert plan.layout == "compact" and plan.scratch_free == free
+    monkeypatch.setattr(budget, "_free", lambda path: 0)  # refused: the line says what holds the disk
+    with pytest.raises(InputError, match=rf"not enough disk: .* \(\d+ MiB there is kept for the resume of "
+                                         rf"{out.resolve()}: resume, or remove the output to free it\)$"):
+        _plan(pair, scratch).check()

@@ -333,3 +333,180 @@ def test_the_scratch_of_another_run_is_never_adopted(pair, uninterrupted, tmp_pa
     assert _scratch_dirs(scratch) == [], "the other run's scratch is reclaimed (dead owner), this run's removed"
     resumed = chunkdic.open_result(out)
     np.testing.assert_allclose(resumed.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- a whole job killed, Ctrl-C, a kill at the end
+
+
+def _killed_job(cmd, at: str, scratch) -> list[str]:
+    """Run ``cmd`` in a session of its own (scratch under ``scratch``) and SIGKILL its whole
+    process group at the first stderr line starting with ``at``, as the end of a batch job or
+    ``kill -9 -- -PGID`` does: the client and, with ``--scheduler local:N``, its cluster's
+    scheduler, nannies and workers. Returns once every process of the group is gone."""
+    import time
+
+    env = dict(os.environ, DASK_CHUNKDIC__SCRATCH_DIRECTORY=str(scratch))
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env, start_new_session=True)
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if line.startswith(at):
+            os.killpg(proc.pid, signal.SIGKILL)
+            break
+    assert proc.wait() == -signal.SIGKILL, "".join(lines)
+    deadline = time.time() + 60
+    while time.time() < deadline:  # the workers, reparented, are reaped by init
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        raise AssertionError("processes of the killed job outlived it")
+    return lines
+
+
+def test_a_killed_local_cluster_job_resumes_on_its_prepared_scans(pair, uninterrupted, tmp_path):
+    """Issue 21, item 5 on a LocalCluster of 2 worker processes: the whole job killed during a
+    level-0 pass, another chunkdic run in the same scratch root before the restart (a test, a
+    report, a second correlation: before this was kept, its start reclaimed the killed run's
+    scratch, and the restart prepared both scans again), then the same command: it adopts the
+    prepared scans, repeats at most the interrupted pass and ends on the uninterrupted field."""
+    import dask.config
+
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    cmd = _cmd(pair, out, "--scheduler", "local:2")
+    before = _killed_job(cmd, "level 0 iter  1", scratch)
+    assert _count(before, "level 0: M built over") == 1 and _count(before, "level 0: g prepared over") == 1
+    (left,) = _scratch_dirs(scratch)
+
+    with dask.config.set({"chunkdic.scratch-directory": str(scratch)}):  # another run meanwhile
+        other = chunkdic.correlate(pair / "f.npy", pair / "g.npy", element_size=16, tolerance=1e-2)
+    assert other.info["status"] == "converged" and _scratch_dirs(scratch) == [left], "the kept scratch went"
+
+    env = dict(os.environ, DASK_CHUNKDIC__SCRATCH_DIRECTORY=str(scratch))
+    again = subprocess.run(cmd, stderr=subprocess.PIPE, text=True, env=env)
+    err = again.stderr.splitlines()
+    text = again.stderr
+    assert again.returncode in (0, 1), text
+    assert re.search(r"level 0, iteration \d+; reusing M and the prepared scans of the interrupted run", text), text
+    assert _count(err, "level 0: M built over") == 0, text
+    assert _count(err, "level 0: f low-passed again") == 0 and _count(err, "level 0: g prepared over") == 0, text
+    reference, passes = uninterrupted
+    assert passes <= _count(before, "level 0 iter") + _count(err, "level 0 iter") <= passes + 1, text
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(resumed.history["iteration"], reference.history["iteration"])
+    assert _scratch_dirs(scratch) == []  # the scratch went with the completed run
+
+
+#: runs the CLI and SIGKILLs itself when it saves the result: the finest level has converged
+#: and its end is in the checkpoint ("level 0: converged" printed), the result not yet written
+_DIE_SAVING_RESULT = r'''
+import os, signal, sys
+from chunkdic.results import result
+from chunkdic.cli.app import main
+
+def save(self, *args, **kwargs):
+    os.kill(os.getpid(), signal.SIGKILL)
+
+result.Result.save = save
+sys.exit(main(sys.argv[1:]))
+'''
+
+
+def test_killed_after_the_finest_level_converged_runs_no_pass_and_prepares_nothing(pair, uninterrupted, tmp_path,
+                                                                                      capsys):
+    """Killed once level 0 converged (its end checkpointed, the result not yet saved; the level's
+    prepared g and haloed f were already released): the restart only assembles the result from
+    the checkpoint and the kept M. It used to prefilter g again for a level with no pass to run."""
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    cmd = _cmd(pair, out)
+    before = _killed([sys.executable, "-c", _DIE_SAVING_RESULT, *cmd[3:]], None, scratch)
+    assert _count(before, "level 0: converged") == 1, "".join(before)
+
+    err = _resume(cmd, scratch, capsys)
+    text = "\n".join(err)
+    assert "resuming the interrupted run from its checkpoint: level 0" in text, text
+    assert _count(err, "level 0: g prepared over") == 0, text
+    assert _count(err, "level 0 iter") == 0 and _count(err, "level 0: M built over") == 0, text
+    assert _count(err, "level 0: f low-passed again") == 0, text
+    reference = uninterrupted[0]
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(resumed.flags, reference.flags)
+    np.testing.assert_allclose(resumed.uncertainty, reference.uncertainty, rtol=1e-6)
+    assert _scratch_dirs(scratch) == []
+
+
+def test_ctrl_c_keeps_the_prepared_scans_for_the_resume(pair, uninterrupted, tmp_path, capsys):
+    """Ctrl-C (SIGINT) during a level-0 pass: the run says its prepared scans are kept and where;
+    the same command adopts them (it used to remove them on the way out, so a resume after
+    Ctrl-C prepared both scans again) and ends on the uninterrupted field."""
+    out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
+    scratch.mkdir()
+    cmd = _cmd(pair, out)
+    env = dict(os.environ, DASK_CHUNKDIC__SCRATCH_DIRECTORY=str(scratch))
+    # SIGINT as at a terminal: a suite started in the background (``pytest &``) ignores it, and
+    # so would the child (an ignored signal stays ignored across exec; Python then installs no handler)
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        if line.startswith("level 0 iter  1") and _count(lines, "level 0 iter  1") == 1:
+            proc.send_signal(signal.SIGINT)  # once: the run goes on until the signal lands
+    assert proc.wait() == 130, "".join(lines)
+    text = "".join(lines)
+    assert "chunkdic: interrupted" in text and _count(lines, "the prepared scans (") == 1, text
+    (left,) = _scratch_dirs(scratch)
+    assert f"in {scratch / left})" in text and f"remove {out}" in text, text
+
+    err = _resume(cmd, scratch, capsys)
+    text = "\n".join(err)
+    assert re.search(r"level 0, iteration \d+; reusing M and the prepared scans of the interrupted run", text), text
+    assert _count(err, "level 0: g prepared over") == 0 and _count(err, "level 0: M built over") == 0, text
+    resumed = chunkdic.open_result(out)
+    np.testing.assert_allclose(resumed.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)
+    assert _scratch_dirs(scratch) == []
+
+
+def test_an_interrupted_call_leaves_its_scratch_only_when_it_can_resume(pair, uninterrupted, tmp_path):
+    """In a notebook: a KeyboardInterrupt during a call with an output on scans on disk leaves the
+    scratch, and the same call again in the same process (the interrupted call's owner is
+    alive) adopts it. With in-memory scans (an identity of their own each call: never resumed)
+    the scratch goes on the way out, as it did for every interrupted run before."""
+    import dask.config
+
+    def interrupt(event):
+        if event["stage"] == "iteration" and event["level"] == 0:
+            raise KeyboardInterrupt
+
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    arrays = (np.load(pair / "f.npy"), np.load(pair / "g.npy"))
+    with dask.config.set({"chunkdic.scratch-directory": str(scratch)}):
+        with pytest.raises(KeyboardInterrupt):
+            chunkdic.correlate(*arrays, element_size=8, tolerance=1e-5, output=tmp_path / "mem.zarr",
+                               progress=interrupt)
+        assert _scratch_dirs(scratch) == []
+
+        paths = (pair / "f.npy", pair / "g.npy")
+        events = []
+        with pytest.raises(KeyboardInterrupt):
+            chunkdic.correlate(*paths, element_size=8, tolerance=1e-5, output=tmp_path / "res.zarr",
+                               progress=lambda e: (events.append(e), interrupt(e)))
+        kept = [e for e in events if e["stage"] == "scratch-kept"]
+        assert len(kept) == 1 and _scratch_dirs(scratch) == [os.path.basename(kept[0]["path"])]
+        assert kept[0]["bytes"] > 0
+
+        events.clear()
+        res = chunkdic.correlate(*paths, element_size=8, tolerance=1e-5, output=tmp_path / "res.zarr",
+                                 progress=events.append)
+    (resume,) = [e for e in events if e["stage"] == "resume"]
+    assert resume["reused"] == ["M", "scans"], resume
+    assert not [e for e in events if e["stage"] == "prepared" and e["level"] == 0]
+    np.testing.assert_allclose(res.displacement, uninterrupted[0].displacement, rtol=0, atol=1e-6)
+    assert _scratch_dirs(scratch) == []
