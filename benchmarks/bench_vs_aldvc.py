@@ -663,8 +663,9 @@ def parse_args(argv=None):
                    help="also run a synthesized pair directory (ref.zarr, def.zarr, field.json); repeatable")
     p.add_argument("--sizes", type=int, nargs="*", default=[128],
                    help="scan edges of the built-in cases (none: only the --pair directories)")
-    p.add_argument("--spacings", type=int, nargs="+", default=[16, 12, 8],
-                   help="ell: chunkdic element size, al-dvc --step ell --winsize 2ell")
+    p.add_argument("--spacings", type=int, nargs="*", default=[16, 12, 8],
+                   help="ell: chunkdic element size, al-dvc --step ell --winsize 2ell (none, with "
+                        "--solo-spacings: chunkdic alone)")
     p.add_argument("--solo-spacings", type=int, nargs="+", default=[], metavar="ELL",
                    help="further spacings run with chunkdic alone (e.g. 6: al-dvc is not run there)")
     p.add_argument("--repeats", type=int, default=3, help="runs per case and spacing (medians)")
@@ -700,6 +701,8 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if args.child:
         return args
+    if not args.spacings + args.solo_spacings:
+        _error("give --spacings or --solo-spacings (--spacings with no value and --solo-spacings: chunkdic alone)")
     if any(s < 4 for s in args.spacings + args.solo_spacings):
         _error("--spacings and --solo-spacings must be >= 4")
     cases = []
