@@ -84,7 +84,9 @@ class Settings:
     max_iterations : int
         Iteration cap per level (>= 1).
     block_elements : int or None
-        Elements per block side; ``None`` uses ``chunkdic.block-voxels`` (config).
+        Elements per block side; ``None`` uses ``chunkdic.block-voxels`` (config). Rounded
+        down to whole brightness cells, one cell at least
+        (:func:`chunkdic.engine.greylevel.aligned_block_elements`).
     """
 
     element_size: int
@@ -114,7 +116,8 @@ class Settings:
     coarse_tolerance: float = 1e-2  # not a command-line option
     max_iterations: int = _option(30, "Gauss-Newton iterations per level at most")
     block_elements: int | None = _option(None, "elements per block side (default: automatic, blocks of about "
-                                         "chunkdic.block-voxels voxels per side)", kind=int)
+                                         "chunkdic.block-voxels voxels per side; rounded down to whole brightness "
+                                         "cells, one cell at least)", kind=int)
 
     def __post_init__(self):
         check = object.__setattr__
