@@ -42,7 +42,13 @@ from ..results.scans import (
     level_refs,
 )
 from ..scheduler import open_runner
-from .correction import Correction, active_slice, brightness_fields, correct_block, element_slice
+from .correction import (
+    Correction,
+    active_slice,
+    brightness_fields,
+    correct_block,
+    element_slice,
+)
 from .images import field_levels, image_bytes, scan_frame, write_image
 
 log = logging.getLogger(__name__)

@@ -16,7 +16,12 @@ from textures import fourier_shift, smooth_noise
 import chunkdic
 from chunkdic.mesh import Block
 from chunkdic.results.scans import level_refs
-from chunkdic.views.correction import Correction, brightness_fields, cell_slopes, correct_block
+from chunkdic.views.correction import (
+    Correction,
+    brightness_fields,
+    cell_slopes,
+    correct_block,
+)
 
 
 def test_cell_slopes_read_back_from_element_offsets():
