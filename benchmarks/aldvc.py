@@ -90,6 +90,9 @@ class AldvcRun:
         Peak resident memory of the al-dvc process.
     info : dict
         Node status counts, ADMM steps, beta, grid shape, settings.
+    cpu_seconds : float, s
+        CPU time of the whole process (user + system, every thread; start-up included): on
+        a shared machine the figure that wall times cannot give.
     """
 
     points: np.ndarray | None
@@ -100,6 +103,7 @@ class AldvcRun:
     pipeline_seconds: float = float("nan")
     peak_rss_mb: float = float("nan")
     info: dict = field(default_factory=dict)
+    cpu_seconds: float = float("nan")
 
 
 def executable(venv: Path) -> Path:
@@ -192,8 +196,9 @@ def wait_with_peak(proc: subprocess.Popen, timeout: float):
     is not used where ``/proc`` exists: on Linux it starts from the RSS of the forked copy
     of the parent, so every child would report at least the benchmark's own memory.
 
-    Returns ``(exit code or None on timeout, peak MB)``. ``proc`` must have been started
-    with ``start_new_session=True``.
+    Returns ``(exit code or None on timeout, peak MB, CPU seconds)``, the CPU time being the
+    child's user + system time from ``wait4`` (every thread of the process). ``proc`` must
+    have been started with ``start_new_session=True``.
     """
     t_end = time.monotonic() + timeout
     peak = None
@@ -204,12 +209,13 @@ def wait_with_peak(proc: subprocess.Popen, timeout: float):
         pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
         if pid == proc.pid:
             proc.returncode = os.waitstatus_to_exitcode(status)
-            return proc.returncode, peak if peak is not None else usage.ru_maxrss / 1024.0
+            return (proc.returncode, peak if peak is not None else usage.ru_maxrss / 1024.0,
+                    usage.ru_utime + usage.ru_stime)
         if time.monotonic() > t_end:
             os.killpg(proc.pid, signal.SIGKILL)
             _, status, usage = os.wait4(proc.pid, 0)
             proc.returncode = None
-            return None, peak if peak is not None else usage.ru_maxrss / 1024.0
+            return None, peak if peak is not None else usage.ru_maxrss / 1024.0, usage.ru_utime + usage.ru_stime
         time.sleep(0.05)
 
 
@@ -256,22 +262,22 @@ def run_aldvc(exe: Path, ref: Path, deformed: Path, out_dir: Path, *, winsize: i
         log.flush()
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 env=child_env(threads), start_new_session=True)
-        rc, peak = wait_with_peak(proc, timeout)
+        rc, peak, cpu = wait_with_peak(proc, timeout)
     wall = time.perf_counter() - t0
     text = log_path.read_text(errors="replace")
     done = re.search(r"Done in ([0-9.]+)s", text)
     pipeline = float(done.group(1)) if done else float("nan")
     if rc is None:
-        return AldvcRun(None, None, None, "timeout", wall, pipeline, peak, {"log": str(log_path)})
+        return AldvcRun(None, None, None, "timeout", wall, pipeline, peak, {"log": str(log_path)}, cpu)
     if rc != 0 or not npz.exists():
         tail = text.strip().splitlines()[-3:]
         return AldvcRun(None, None, None, f"failed (exit {rc})", wall, pipeline, peak,
-                        {"log": str(log_path), "tail": tail})
+                        {"log": str(log_path), "tail": tail}, cpu)
     points, u, valid, info = read_result(npz)
     info.update(parse_log(text))
     info["log"] = str(log_path)
     info["command"] = cmd
-    return AldvcRun(points, u, valid, "ok", wall, pipeline, peak, info)
+    return AldvcRun(points, u, valid, "ok", wall, pipeline, peak, info, cpu)
 
 
 def parse_log(text: str) -> dict:

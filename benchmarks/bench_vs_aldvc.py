@@ -26,6 +26,9 @@ out) stay in the record as ``nodal_*``. The table gives medians over ``--repeats
 ``wall`` is the tool's own correlation time (chunkdic: the ``correlate`` call, its modules
 imported before; al-dvc: its "Done in" time, input reading included, printed after its
 imports), ``proc`` the whole process (interpreter start and imports included),
+``cpu s`` (``proc_cpu`` in the record) the whole process's CPU seconds, user + system,
+every thread (chunkdic's ``correlate`` call alone: ``cpu``): on a machine shared with other
+work the comparable figure, where wall times move with the load,
 ``x`` = al-dvc wall / chunkdic wall. Both tools get ``--threads`` cores (default: all):
 chunkdic's embedded pool (``DASK_CHUNKDIC__NUM_THREADS``), al-dvc's ``n_threads``, and
 ``NUMBA_NUM_THREADS`` / ``OMP_NUM_THREADS`` / BLAS of both children. A warm-up run of
@@ -278,10 +281,10 @@ def _chunkdic_child(args) -> None:
     import chunkdic.engine.driver  # noqa: F401  (the correlation's modules: imported before the clock
     # starts, as al-dvc's "Done in" time starts after its imports; `proc` counts both)
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     options = json.loads(args.options or "{}")
     res = chunkdic.correlate(args.ref, args.deformed, element_size=args.element_size, **options)
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     scale = float(res.info.get("scale", 1))
     # level-s voxels -> level-0 voxels (shared/DESIGN.md: centre offset (2^s - 1) / 2)
     points = res.node_coords.reshape(3, -1) * scale + (scale - 1) / 2
@@ -289,7 +292,7 @@ def _chunkdic_child(args) -> None:
     np.savez(args.out + ".npz", points=points, u=u)
     hist = res.history
     summary = {
-        "wall": wall, "status": res.info.get("status"), "converged": res.converged,
+        "wall": wall, "cpu": cpu, "status": res.info.get("status"), "converged": res.converged,
         "final_gap": res.info.get("final_gap"), "level": res.info.get("level"), "scale": scale,
         "iterations": int(np.sum(np.asarray(hist["level"]) == res.info.get("level"))),
         "nodes": int(points.shape[1]), "roi": res.info.get("roi_level0"),
@@ -309,17 +312,18 @@ def run_chunkdic(case: Case, ell: int, threads: int, out: Path, timeout: float, 
     with open(str(out) + ".log", "w") as log:
         proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 env=env, start_new_session=True)
-        rc, peak = peer.wait_with_peak(proc, timeout)
+        rc, peak, proc_cpu = peer.wait_with_peak(proc, timeout)
     proc_wall = time.perf_counter() - t0
     if rc is None:
-        return {"status": "timeout", "proc": proc_wall, "peak_rss_mb": peak}
+        return {"status": "timeout", "proc": proc_wall, "proc_cpu": proc_cpu, "peak_rss_mb": peak}
     if rc != 0:
         tail = Path(str(out) + ".log").read_text(errors="replace").strip().splitlines()[-3:]
-        return {"status": f"failed (exit {rc})", "proc": proc_wall, "peak_rss_mb": peak, "tail": tail}
+        return {"status": f"failed (exit {rc})", "proc": proc_wall, "proc_cpu": proc_cpu, "peak_rss_mb": peak,
+                "tail": tail}
     summary = json.loads(Path(str(out) + ".json").read_text())
     with np.load(str(out) + ".npz") as d:
         summary["points"], summary["u"] = d["points"], d["u"]
-    summary.update(proc=proc_wall, peak_rss_mb=peak)
+    summary.update(proc=proc_wall, proc_cpu=proc_cpu, peak_rss_mb=peak)
     return summary
 
 
@@ -457,7 +461,7 @@ def _summarise(runs: list[dict]) -> dict:
 
 HEADER = (f"{'size':>4} {'case':<18} {'ell':>3} {'tool':<8} {'sigma':>8} {'|bias|':>8} {'RMS':>8} "
           f"{'max':>7} {'points':>6} {'failed':>6} {'status':<14} {'wall s':>7} {'proc s':>7} "
-          f"{'MB':>6} {'x':>5}")
+          f"{'cpu s':>7} {'MB':>6} {'x':>5}")
 
 
 def _fmt(v, spec):
@@ -470,7 +474,8 @@ def row(size, case, ell, tool, m: dict, ratio=None) -> str:
     return (f"{size:>4} {case:<18} {ell:>3} {tool:<8} {_fmt(m.get('sigma'), '8.4f')} {_fmt(bnorm, '8.4f')} "
             f"{_fmt(m.get('rms'), '8.4f')} {_fmt(m.get('max_error'), '7.3f')} "
             f"{_fmt(m.get('n_points'), '6.0f')} {_fmt(m.get('n_failed'), '6.0f')} {m.get('status', '-'):<14} "
-            f"{_fmt(m.get('wall'), '7.1f')} {_fmt(m.get('proc'), '7.1f')} {_fmt(m.get('peak_rss_mb'), '6.0f')} "
+            f"{_fmt(m.get('wall'), '7.1f')} {_fmt(m.get('proc'), '7.1f')} {_fmt(m.get('proc_cpu'), '7.1f')} "
+            f"{_fmt(m.get('peak_rss_mb'), '6.0f')} "
             f"{_fmt(ratio, '5.1f')}")
 
 
@@ -501,7 +506,7 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_
         # the same field scored with every node al-dvc returns, flagged ones included
         every = _score(a.points, a.u, None, case, ell) if a.points is not None else {}
         info = {k: v for k, v in a.info.items() if k not in ("para", "command")}
-        runs["al-dvc"].append({"status": a.status, "wall": a.pipeline_seconds, "proc": a.wall,
+        runs["al-dvc"].append({"status": a.status, "wall": a.pipeline_seconds, "proc": a.wall, "proc_cpu": a.cpu_seconds,
                                "peak_rss_mb": a.peak_rss_mb, **score, **_nodal(score),
                                **_between(a.points, a.u, case, ell, args.points), **_star(a.points, a.u, a.valid, case, ell),
                                "rms_all_nodes": every.get("rms"), "sigma_all_nodes": every.get("sigma"),
@@ -658,8 +663,9 @@ def parse_args(argv=None):
                    help="also run a synthesized pair directory (ref.zarr, def.zarr, field.json); repeatable")
     p.add_argument("--sizes", type=int, nargs="*", default=[128],
                    help="scan edges of the built-in cases (none: only the --pair directories)")
-    p.add_argument("--spacings", type=int, nargs="+", default=[16, 12, 8],
-                   help="ell: chunkdic element size, al-dvc --step ell --winsize 2ell")
+    p.add_argument("--spacings", type=int, nargs="*", default=[16, 12, 8],
+                   help="ell: chunkdic element size, al-dvc --step ell --winsize 2ell (none, with "
+                        "--solo-spacings: chunkdic alone)")
     p.add_argument("--solo-spacings", type=int, nargs="+", default=[], metavar="ELL",
                    help="further spacings run with chunkdic alone (e.g. 6: al-dvc is not run there)")
     p.add_argument("--repeats", type=int, default=3, help="runs per case and spacing (medians)")
@@ -695,6 +701,8 @@ def parse_args(argv=None):
     args = p.parse_args(argv)
     if args.child:
         return args
+    if not args.spacings + args.solo_spacings:
+        _error("give --spacings or --solo-spacings (--spacings with no value and --solo-spacings: chunkdic alone)")
     if any(s < 4 for s in args.spacings + args.solo_spacings):
         _error("--spacings and --solo-spacings must be >= 4")
     cases = []

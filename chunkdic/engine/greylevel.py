@@ -34,7 +34,9 @@ A cell never straddles two blocks: blocks hold whole cells (:func:`aligned_block
 so a task eliminates its cells' offsets exactly, as it did its elements'. With ``α = λ - 1`` and
 ``g' = g(X+u) - c``, ``r = d - α g' - μ'`` (``d = f - g(X+u)``); the returned gain and offset
 are in the usual form ``f ≈ gain · g(X + u) + offset`` (offset at the element centre, plus
-``drift · (X - X_e)`` for the ``drift`` model: with cells, the cells' mean slope).
+``drift · (X - X_e)`` for the ``drift`` model; with cells, each cell has its own slope, which
+:func:`chunkdic.views.correction.cell_slopes` reads back from the offsets, and the drift
+reported is the plane through the offsets, :func:`offset_plane_slope`).
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ import numpy as np
 
 from ..kernels.b import element_to_nodes
 from ..kernels.blocks import LAGS, ElementSums
+from .settings import DEFAULT_GREY_CELL_VOXELS
 
 MODELS = ("none", "global", "drift", "element")
 #: bounds of a per-element gain (``element`` model)
@@ -55,8 +58,9 @@ FLAT = 1e-12
 _D, _G, _ONE, _Z, _Y, _X = range(6)
 _THETA = (_G, _Z, _Y, _X)  # global unknowns of the drift model: gain, then the drift per axis
 _COORDS = (_Z, _Y, _X)
-#: edge (voxels of the level) of the cells sharing one offset in the ``drift`` model
-OFFSET_CELL_VOXELS = 32
+#: edge (voxels of the level) of the cells sharing one offset in the ``drift`` model (the default
+#: setting, :data:`chunkdic.engine.settings.DEFAULT_GREY_CELL_VOXELS`)
+OFFSET_CELL_VOXELS = DEFAULT_GREY_CELL_VOXELS
 
 
 def offset_cell(model: str, element_size: int, cell_voxels: float = OFFSET_CELL_VOXELS) -> int:
@@ -73,14 +77,21 @@ def offset_cell(model: str, element_size: int, cell_voxels: float = OFFSET_CELL_
 
 
 def aligned_block_elements(elements_per_block: int, cell: int) -> int:
-    """Elements per block side rounded up to whole cells, so that no cell straddles two blocks
-    (blocks start at multiples of it from the mesh's first element).
+    """Elements per block side rounded down to whole cells (one cell at least), so that no cell
+    straddles two blocks (blocks start at multiples of it from the mesh's first element).
+
+    Down, not up: a block then stays within the edge asked for (``chunkdic.block-voxels``, the
+    memory plan's), and a level keeps as many blocks to share among the threads. Rounding up
+    made the 300³ run's level 1 at ℓ = 12 one block of 12³ elements (one thread) instead of
+    8 (docs/engine.md, "Brightness").
 
     >>> aligned_block_elements(8, 4), aligned_block_elements(3, 4), aligned_block_elements(5, 1)
     (8, 4, 5)
+    >>> aligned_block_elements(10, 3), aligned_block_elements(21, 5), aligned_block_elements(16, 4)
+    (9, 20, 16)
     """
     k = max(1, int(cell))
-    return -(-max(1, int(elements_per_block)) // k) * k
+    return max(1, int(elements_per_block) // k) * k
 
 
 @dataclass
@@ -244,8 +255,9 @@ def _reduce_cells(sums: ElementSums, k: int, lags: np.ndarray) -> Partials:
     and :func:`element_fit` read both: the drift rows and columns of the scalars are zero (no
     global drift to fit), the element rows hold each element's offsets ``a + b·(X_e - X_c)``
     of ``d`` and ``g'`` (rows ``d`` and ``g``, so that the fitted offset at the element's centre is
-    ``d-row - α g-row``), and six more scalars the cells' slopes summed with their weights, from
-    which the drift reported is the mean slope."""
+    ``d-row - α g-row``), and six more scalars the cells' slopes summed with their weights (their
+    presence marks the cells' partials; the drift reported is not their mean but the plane
+    through the element offsets, :func:`offset_plane_slope`: a steadier reading)."""
     B, G, o = _cell_centred(sums, k)
     n_e = G[..., _ONE, _ONE]
     G_c = _cell_sum(G, k)
@@ -272,6 +284,49 @@ def _reduce_cells(sums: ElementSums, k: int, lags: np.ndarray) -> Partials:
                     np.concatenate([n_e[None], rows]), sums.n_excluded, lags)
 
 
+def offset_plane_slope(offset: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Slope (per element length, z, y, x) of the weighted least-squares plane through the
+    offsets at the element centres: the drift the ``drift`` model reports with affine offsets
+    per cell.
+
+    Each cell has its own slope, fitted on its ~32³ voxels; their weighted mean was a noisy
+    reading of a uniform drift (the 96³ grey-level pairs of ``tests/engine/test_real_ct.py``:
+    −8.94 / 11.88 grey levels per voxel for a truth of −9.41 / 11.50), while the plane through
+    every element's offset across the ROI reads it over the whole specimen's length (−9.32 /
+    11.41, as the single global drift of one offset per element, −9.27 / 11.52). With a
+    drift that bends, it is the best straight drift.
+
+    Parameters
+    ----------
+    offset : ndarray, shape (ez, ey, ex), grey levels
+        Offset at each element's centre.
+    weight : ndarray, shape (ez, ey, ex)
+        Valid voxels per element (elements without any are left out).
+
+    >>> z = np.arange(4.0)[:, None, None] * np.ones((4, 3, 2))
+    >>> np.round(offset_plane_slope(5.0 - 2.0 * z, np.ones((4, 3, 2))), 12) + 0.0
+    array([-2.,  0.,  0.])
+    """
+    offset = np.asarray(offset, np.float64)
+    finite = np.isfinite(offset)
+    w = np.where(finite & (np.asarray(weight) > 0), np.asarray(weight, np.float64), 0.0)
+    y = np.where(finite, offset, 0.0)
+    axes = [np.arange(n, dtype=np.float64) for n in offset.shape]
+    one = [np.ones(n) for n in offset.shape]
+    # normal equations of the plane a + s·i over the element indices i, from separable sums
+    # (einsum with one vector per axis: no (elements, 4) design matrix on the client)
+    basis = [tuple(axes[a] if a == k else one[a] for a in range(3)) for k in range(3)] + [tuple(one)]
+    G = np.array([[np.einsum("zyx,z,y,x->", w, *(p * q for p, q in zip(bp, bq))) for bq in basis] for bp in basis])
+    r = np.array([np.einsum("zyx,zyx,z,y,x->", w, y, *bp) for bp in basis])
+    spread = np.array([np.count_nonzero(w.sum(axis=tuple(b for b in range(3) if b != a))) > 1 for a in range(3)])
+    if G[3, 3] <= 0:
+        return np.zeros(3)
+    keep = np.flatnonzero(np.append(spread, True))  # one element (or one with data) along an axis: no slope
+    coef = np.zeros(4)
+    coef[keep] = np.linalg.lstsq(G[np.ix_(keep, keep)], r[keep], rcond=None)[0]
+    return coef[:3]
+
+
 def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.ndarray, center: float,
             element_size: float = 1.0) -> Fit:
     """Finish a pass on the client from the summed partials of every block.
@@ -293,7 +348,7 @@ def _global_coefficients(model: str, scalars: np.ndarray):
         A = np.array([[sgg, sg], [sg, n]])
         return np.linalg.solve(A, [sdg, sd]) if np.linalg.det(A) > FLAT * sgg * n else (0.0, sd / max(n, 1))
     if model == "drift":
-        S = scalars[1:26].reshape(5, 5)  # then, with affine offsets per cell, their slopes (element_fit)
+        S = scalars[1:26].reshape(5, 5)  # then, with affine offsets per cell, their slopes (marking them)
         A, rhs = S[1:, 1:], S[1:, 0]
         return np.linalg.lstsq(A, rhs, rcond=None)[0] if np.trace(A) > 0 else np.zeros(4)
     return None
@@ -353,9 +408,8 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
         alpha, beta = theta[0], theta[1:]
         mean = elements[1:]  # element means of d, g', 1, z~, y~, x~
         mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[_Z:_X + 1], axes=1)  # a view: no copy
-        if len(scalars) > 26:  # affine offsets per cell (_reduce_cells): report their mean slope
-            slopes = scalars[26:32].reshape(2, 3)
-            beta = (slopes[0] - alpha * slopes[1]) / max(n, 1.0)
+        if len(scalars) > 26:  # affine offsets per cell (_reduce_cells): the plane through the offsets
+            beta = offset_plane_slope(mu, n_e)
         # offset at the element centre (q~ = 0): μ_e - α c
         return Fit(b, ssr, float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
                    beta / float(element_size), n_e)

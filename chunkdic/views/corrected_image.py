@@ -42,7 +42,13 @@ from ..results.scans import (
     level_refs,
 )
 from ..scheduler import open_runner
-from .correction import Correction, active_slice, correct_block, element_slice
+from .correction import (
+    Correction,
+    active_slice,
+    brightness_fields,
+    correct_block,
+    element_slice,
+)
 from .images import field_levels, image_bytes, scan_frame, write_image
 
 log = logging.getLogger(__name__)
@@ -84,7 +90,7 @@ def corrected_task(c: Correction, region, block: Block, u_block: np.ndarray, bri
     block : Block
         The elements the chunk's in-ROI voxels fall in (:func:`chunk_block`).
     u_block : ndarray, shape (3, ez+1, ey+1, ex+1), float64, voxels of the result's level
-    brightness : ndarray, shape (2, ez, ey, ex), or None
+    brightness : ndarray, shape (2 or 5, ez, ey, ex), or None
     out_path : str
         The image group (its level-0 array ``"0"``, shape ``(2, nz, ny, nx)``).
     active : ndarray, shape (ez, ey, ex), or None
@@ -251,6 +257,7 @@ def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation
                            "(chunkdic.views.correction); image level 0 is the reference scan's level `level` (same "
                            "shape and frame), NaN outside the ROI; `roi` in voxels of that level",
         }
+        brightness = brightness_fields(result)  # per element, made once (mesh-sized)
         args = []
         for z in range(0, shape[0], c):
             for y in range(0, shape[1], c):
@@ -259,7 +266,7 @@ def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation
                     blk = chunk_block(mesh, region)
                     if blk is not None:  # a chunk outside the ROI keeps the fill value (NaN)
                         args.append((corr, region, blk, np.ascontiguousarray(u[(slice(None), *blk.node_slices)]),
-                                     element_slice(result.brightness, blk), str(work), active_slice(result, blk)))
+                                     element_slice(brightness, blk), str(work), active_slice(result, blk)))
         shapes = field_levels(shape, levels)
         write_image(runner, work, corrected_task, args, meta=meta, channels=CORRECTED_CHANNELS, shapes=shapes,
                     chunk=c, frame=frame, description=description, summarize=_gap, progress=level0,

@@ -5,8 +5,10 @@ image preparation and brightness model of docs/engine.md): ``f̃``, ``g̃`` are 
 low-passed as the engine did (:mod:`chunkdic.engine.prefilter`), ``g̃`` interpolated as the engine
 did (same window reads, same kernel: :func:`chunkdic.kernels.warp.warp_block`), and ``λ``, ``μ``
 the brightness the engine found (:mod:`chunkdic.engine.greylevel`: a gain and an offset per
-element, plus a linear drift). This module computes it for one block of whole elements, in
-a task, and is the one place that knows how: the corrected volume of
+element, plus a linear drift, or with ``grey_cell`` an affine offset per cell of elements,
+whose slopes :func:`brightness_fields` reads back from the offsets at the element centres).
+This module computes it for one block of whole elements, in a task, and is the one place
+that knows how: the corrected volume of
 :func:`chunkdic.views.corrected_image.write_corrected`, the cuts of :mod:`chunkdic.views.report` and anything
 else that shows ``g(X + u(X))`` go through :func:`correct_block`. The client never reads
 voxels: a plane of the corrected image is assembled from the planes the tasks return.
@@ -19,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
+from ..engine.greylevel import offset_cell
 from ..engine.tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
 from ..io.handles import ArrayRef
 from ..kernels.blocks import voxel_xi
@@ -26,7 +29,7 @@ from ..kernels.warp import warp_block
 from ..mesh import Block, Mesh
 from ..results.result import Result
 
-__all__ = ["Correction", "correct_block", "element_slice", "plane_jobs", "plane_task", "active_slice", "fill_missing_nodes", "assemble_plane", "planes"]
+__all__ = ["Correction", "brightness_fields", "cell_slopes", "correct_block", "element_slice", "plane_jobs", "plane_task", "active_slice", "fill_missing_nodes", "assemble_plane", "planes"]
 
 
 @dataclass(frozen=True)
@@ -87,6 +90,89 @@ def _per_voxel(per_element: np.ndarray, ell: int) -> np.ndarray:
     return np.repeat(np.repeat(np.repeat(per_element, ell, 0), ell, 1), ell, 2)
 
 
+def brightness_cell(result: Result) -> int:
+    """Elements per side of the cells that shared one affine brightness offset in ``result``
+    (:func:`chunkdic.engine.greylevel.offset_cell` of its settings; 1: one offset per element)."""
+    settings = result.info.get("settings") or {}
+    model = (result.info.get("grey_level") or {}).get("model", settings.get("grey", "none"))
+    return offset_cell(str(model), int(result.mesh.element_size), float(settings.get("grey_cell", 0) or 0))
+
+
+def cell_slopes(offset: np.ndarray, cell: int, element_size: int, drift) -> np.ndarray:
+    """Each element's brightness slope, read back from the offsets at the element centres.
+
+    With affine offsets per cell of ``cell³`` elements (the ``drift`` model with
+    ``grey_cell``, :func:`chunkdic.engine.greylevel._reduce_cells`) the offset at an element's
+    centre is ``a_c + b_c · (X_e - X_c)``: two neighbours of one cell along an axis differ by
+    exactly ``b_c`` times ``element_size`` there, so the cell's slope along that axis is that
+    difference (the mean of every such pair, equal to round-off). Cells start at multiples of
+    ``cell`` from the mesh's first element (blocks hold whole cells). A cell one element thick
+    along an axis (the mesh's last, when its element count leaves one; every cell when
+    ``cell`` is 1) has no pair there: its slope along that axis is ``drift``'s (the cells'
+    mean slope the result reports), the one figure left.
+
+    Parameters
+    ----------
+    offset : ndarray, shape (ez, ey, ex), float, grey levels
+        Offset at each element's centre (``Result.brightness[1]``); non-finite values are
+        left out.
+    cell : int
+        Elements per side of a cell (:func:`brightness_cell`).
+    element_size : int
+        Element edge, voxels of the result's level.
+    drift : sequence of 3 float
+        Mean slope (grey levels per voxel, z, y, x): where a cell has no pair.
+
+    Returns
+    -------
+    ndarray, shape (3, ez, ey, ex), float64, grey levels per voxel of the level
+    """
+    offset = np.asarray(offset, np.float64)
+    shape = offset.shape
+    k = max(1, int(cell))
+    n_cells = tuple(-(-n // k) for n in shape)
+    index = np.ix_(*(np.arange(n) // k for n in shape))  # each element's cell
+    out = np.empty((3,) + shape)
+    for axis, n in enumerate(shape):
+        first = [slice(None)] * 3
+        second = [slice(None)] * 3
+        first[axis], second[axis] = slice(0, n - 1), slice(1, n)
+        diff = (offset[tuple(second)] - offset[tuple(first)]) / float(element_size)
+        same = (np.arange(1, n) % k) != 0  # both elements of the pair in one cell
+        ok = np.isfinite(diff) & same.reshape([-1 if a == axis else 1 for a in range(3)])
+        pair_cell = [np.arange(m) // k for m in diff.shape]  # the pair's first element's cell
+        linear = np.ravel_multi_index(np.ix_(*pair_cell), n_cells)
+        linear = np.broadcast_to(linear, diff.shape)
+        total = np.bincount(linear[ok], weights=diff[ok], minlength=int(np.prod(n_cells)))
+        count = np.bincount(linear[ok], minlength=int(np.prod(n_cells)))
+        per_cell = np.where(count > 0, total / np.maximum(count, 1), float(drift[axis])).reshape(n_cells)
+        out[axis] = per_cell[index]
+    return out
+
+
+def brightness_fields(result: Result) -> np.ndarray | None:
+    """The per-element brightness that :func:`correct_block` rebuilds ``μ(X)`` from.
+
+    ``Result.brightness`` (gain, offset at the element centre) as it is for one offset per
+    element (the ramp inside an element is then the result's one drift); with affine offsets
+    per cell, those rows and each element's slope along z, y, x (:func:`cell_slopes`), so
+    that the corrected image is the engine's model exactly, not the offsets with the cells'
+    mean slope. Mesh-sized (5 float64 per element), made once on the client; tasks receive
+    their elements' slice (:func:`element_slice`).
+
+    Returns
+    -------
+    ndarray, shape (2, ez, ey, ex) or (5, ez, ey, ex), float64, or None (no brightness)
+    """
+    b = result.brightness
+    cell = brightness_cell(result)
+    if b is None or cell <= 1:
+        return b
+    drift = (result.info.get("grey_level") or {}).get("drift") or (0.0, 0.0, 0.0)
+    return np.concatenate([np.asarray(b, np.float64),
+                           cell_slopes(b[1], cell, result.mesh.element_size, drift)])
+
+
 def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: np.ndarray | None,
                   active: np.ndarray | None = None):
     """The prepared reference, the corrected deformed image and their validity over one block.
@@ -98,9 +184,10 @@ def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: 
         Whole elements of ``c.mesh``.
     u_block : ndarray, shape (3, ez+1, ey+1, ex+1), float64, voxels
         The result's field on the block's nodes.
-    brightness : ndarray, shape (2, ez, ey, ex), float64, or None
-        Gain and offset (at the element centre) per element (``Result.brightness``); None:
-        gain 1, offset 0.
+    brightness : ndarray, shape (2, ez, ey, ex) or (5, ez, ey, ex), float64, or None
+        Gain and offset (at the element centre) per element, then (5 rows) the offset's
+        slope per element along z, y, x (grey levels per voxel), else ``c.drift`` for every
+        element: :func:`brightness_fields`. None: gain 1, offset 0.
     active : ndarray, shape (ez, ey, ex), or None
         The elements that took part (``Result.active``, a specimen mask): the voxels of the
         others are invalid, as are those of elements with a node not measured (NaN).
@@ -133,12 +220,17 @@ def correct_block(c: Correction, block: Block, u_block: np.ndarray, brightness: 
     if not usable.all():
         valid = valid & _per_voxel(usable, ell)
     if brightness is not None:
-        # per voxel: the element's gain and centre offset, plus drift · (X - X_e)
-        gain, offset = (_per_voxel(np.where(np.isfinite(b), b, 0.0), ell) for b in brightness)
+        # per voxel: the element's gain and centre offset, plus slope · (X - X_e), the slope
+        # the element's own (affine offsets per cell) or the result's one drift
+        rows = [np.where(np.isfinite(b), b, 0.0) for b in brightness]
+        warped = _per_voxel(rows[0], ell) * warped + _per_voxel(rows[1], ell)
         local = (voxel_xi(ell) - 0.5) * ell  # X - X_e inside an element, voxels
-        ramp = sum(d * np.tile(local, n).reshape([-1 if a == axis else 1 for a in range(3)])
-                   for axis, (d, n) in enumerate(zip(c.drift, block.n_elements)) if d)
-        warped = gain * warped + offset + ramp
+        for axis, n in enumerate(block.n_elements):
+            along = np.tile(local, n).reshape([-1 if a == axis else 1 for a in range(3)])
+            if len(rows) > 2:
+                warped += _per_voxel(rows[2 + axis], ell) * along
+            elif c.drift[axis]:
+                warped += c.drift[axis] * along
     warped = np.where(valid, warped, np.nan)
     return np.asarray(f, np.float32), np.asarray(warped, np.float32), valid
 
@@ -236,7 +328,8 @@ def planes(result: Result, f_ref: ArrayRef, g_ref: ArrayRef, normal: int, index:
     c = Correction.of_result(result, f_ref, g_ref, interpolation)
     m = max(1, int(config.get("chunk-size")) // c.mesh.element_size)
     u = result.displacement
+    brightness = brightness_fields(result)
     args = [(c, blk, np.ascontiguousarray(u[(slice(None), *blk.node_slices)]),
-             element_slice(result.brightness, blk), normal, index, active_slice(result, blk))
+             element_slice(brightness, blk), normal, index, active_slice(result, blk))
             for blk in plane_jobs(c.mesh, normal, index, m)]
     return assemble_plane(c, normal, runner.map_unordered(plane_task, args))

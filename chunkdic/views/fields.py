@@ -66,7 +66,7 @@ from ..results.scans import (
 )
 from ..results.strain import DEFAULT_MEASURE, check_measure, element_strain
 from ..scheduler import open_runner
-from .correction import Correction, correct_block, element_slice
+from .correction import Correction, brightness_fields, correct_block, element_slice
 from .images import field_levels, image_bytes, scan_frame, write_image
 
 log = logging.getLogger(__name__)
@@ -177,6 +177,7 @@ def chunk_tasks(job: FieldsJob, result: Result, chunks: tuple[int, int, int]) ->
     """
 
     u = result.displacement
+    brightness = brightness_fields(result)  # per element, made once (mesh-sized)
     args = []
     grid = [range(0, n, c) for n, c in zip(job.shape0, chunks)]
     for z in grid[0]:
@@ -192,7 +193,7 @@ def chunk_tasks(job: FieldsJob, result: Result, chunks: tuple[int, int, int]) ->
                     result.active[tuple(slice(e0, e1) for e0, e1 in elements)])
                 args.append((job, tuple((r.start, r.stop) for r in region), block,
                              np.ascontiguousarray(u[(slice(None), *block.node_slices)]),
-                             element_slice(result.brightness, block), active))
+                             element_slice(brightness, block), active))
     return args
 
 
@@ -229,7 +230,8 @@ def fields_values(job: FieldsJob, region, block: Block, u_block: np.ndarray, bri
         The result's elements the region's in-ROI voxels fall in.
     u_block : ndarray, shape (3, ez+1, ey+1, ex+1), float64, voxels of the result's level
         The result's field on the block's nodes.
-    brightness : ndarray, shape (2, ez, ey, ex), or None
+    brightness : ndarray, shape (2 or 5, ez, ey, ex), or None
+        :func:`chunkdic.views.correction.brightness_fields`, the block's elements.
     active : ndarray, shape (ez, ey, ex), or None
         Elements inside the specimen mask (others give NaN).
 
