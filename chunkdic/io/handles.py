@@ -72,8 +72,9 @@ class ArrayRef:
         kept one mapping across the tasks of a level-0 correlation of 1024³ reached
         4.3 GiB RSS (every coefficient page it had read); mapping per read holds it
         to one window. A Zarr array whose chunk layout :mod:`chunkdic.io.chunkread`
-        knows is read from its chunk files (the same voxels, a third of zarr-python's
-        CPU for a region crossing 8 chunks), any other through zarr-python.
+        knows is read from its chunk files through the process's cache of decoded
+        chunks (the same voxels; neighbouring regions decode their shared chunks once),
+        any other through zarr-python.
         """
         try:
             layout = layout_of(self.path, self.key) if self.kind == "zarr" and _plain(region, self.shape) else None
