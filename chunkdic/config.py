@@ -28,6 +28,10 @@ DEFAULTS = {
         # compressed: 0.65 of the bytes, slower passes) or "auto": the plan chooses compact
         # only when the fast layout does not fit the free disk. docs/engine.md, "Scratch disk".
         "scratch-layout": "auto",
+        # Bytes of decoded scan chunks each process keeps for the next reads (an LRU shared by
+        # its threads; 0: none): a block's low-pass halo crosses 8 chunks of the scan, each
+        # shared with the neighbouring blocks (docs/distributed.md, "Reading the scans' chunks").
+        "chunk-cache": 100663296,
         # Halo (voxels) around a window prefiltered for cubic B-spline interpolation.
         "bspline-halo": 12,
         # Chunk edge of arrays chunkdic writes (scans, pyramid levels, scratch).

@@ -109,6 +109,10 @@ PREPARE_COPIES = 2.0
 #: 27 uint16 chunks of 128³, 4 MiB each, which blosc cannot compress); the scratch
 #: pyramid's uint32 sums, which compress (66 MiB for a 144³ region crossing 8 chunks of 8 MiB)
 READ_BUFFERS_PER_CHUNK = {"scan": 2.4, "scratch": 1.1}
+#: chunks' worth a read by :mod:`chunkdic.io.chunkread` holds beyond its region: one chunk's
+#: compressed bytes and one decoded chunk at a time (the decoded chunks it keeps are the
+#: process's cache, :func:`chunk_cache_bytes`)
+DIRECT_READ_CHUNKS = 2
 #: smallest edge of a prefilter task under a memory target (its halo grows its work)
 MIN_PREPARE_EDGE = 48
 #: per-voxel costs relative to the prefilter of ``g`` per filtered voxel (fitted on this
@@ -434,18 +438,22 @@ def read_buffer_bytes(g_scan, s: int, edges) -> int:
     """Bytes that reading a region of ``edges`` voxels (halo included) of level ``s`` of
     ``g_scan`` holds besides the region, at most.
 
-    Zarr decodes up to ``async.concurrency`` of the chunks the region crosses at once,
-    each held compressed and decoded (:data:`READ_BUFFERS_PER_CHUNK` chunks' worth); a
-    level not stored in the scan is read from the scratch pyramid, in
-    ``chunkdic.chunk-size`` chunks. A ``.npy`` file is read through a memory map, which
+    A Zarr array that :mod:`chunkdic.io.chunkread` reads from its chunk files (the
+    scratch pyramid, and scans in its layouts) holds one chunk compressed and one decoded
+    at a time (:data:`DIRECT_READ_CHUNKS`; the chunks it keeps are the process's cache,
+    :func:`chunk_cache_bytes`). Through zarr-python, zarr decodes up to
+    ``async.concurrency`` of the chunks the region crosses at once, each held compressed
+    and decoded (:data:`READ_BUFFERS_PER_CHUNK` chunks' worth); a level not stored in the
+    scan is read from the scratch pyramid, in ``chunkdic.chunk-size`` chunks. A ``.npy`` file is read through a memory map, which
     holds the pages of the rows the region crosses while it is copied.
 
     For level 0 of a 1024³ uint16 scan in chunks of 128³ and a 179³ region (a prefilter
-    task of 147³ with its halo): 27 chunks crossed, 10 at once, 2.4 × 4 MiB each, 96 MiB.
+    task of 147³ with its halo): 8 MiB from the chunk files; through zarr, 27 chunks
+    crossed, 10 at once, 2.4 × 4 MiB each, 96 MiB.
     """
     import zarr
 
-    from ..io.store import chunk_shape_for
+    from ..io.chunkread import layout_of
 
     shape, item = g_scan.shape(s), np.dtype(g_scan.dtype(s)).itemsize
     ref = g_scan.stored_refs().get(s)
@@ -453,11 +461,42 @@ def read_buffer_bytes(g_scan, s: int, edges) -> int:
     if ref is not None and ref.kind == "npy":
         return int(edges[0] * edges[1] * shape[2] * item)
     source = "scan" if ref is not None else "scratch"
-    chunks = tuple(ref.open().chunks) if ref is not None and ref.kind == "zarr" else chunk_shape_for(shape, None)
+    chunks = _chunks_of(g_scan, s)
+    if ref is None or layout_of(ref.path, ref.key) is not None:
+        # read from the chunk files (the scratch pyramid's always are: chunkdic writes it)
+        return int(DIRECT_READ_CHUNKS * math.prod(chunks) * item)
     # chunks an unaligned run of e voxels crosses along an axis, at most
     crossed = math.prod(min((e + c - 2) // c + 1, -(-n // c)) for e, c, n in zip(edges, chunks, shape))
     at_once = min(crossed, int(zarr.config.get("async.concurrency")))
     return int(READ_BUFFERS_PER_CHUNK[source] * at_once * math.prod(chunks) * item)
+
+
+def chunk_cache_bytes(scans, s: int) -> int:
+    """Bytes the process's cache of decoded chunks (:func:`chunkdic.io.chunkread.chunk_cache`,
+    ``chunkdic.chunk-cache``) holds while the tasks of level ``s`` read ``scans``, at most:
+    its capacity, or one whole level of the largest of them when that is smaller. Emptied
+    after the ``M`` pass and after the prefilter of ``g`` (the ``b`` passes read the scratch
+    copies)."""
+    capacity = int(config.get("chunk-cache") or 0)
+    if capacity <= 0:
+        return 0
+
+    def whole(sc) -> int:  # its chunks decoded: edge chunks too are whole chunks
+        chunks = _chunks_of(sc, s)
+        return math.prod(-(-n // c) * c for n, c in zip(sc.shape(s), chunks)) * np.dtype(sc.dtype(s)).itemsize
+
+    return min(capacity, max(whole(sc) for sc in scans))
+
+
+def _chunks_of(scan, s: int) -> tuple[int, ...]:
+    """Chunk shape of level ``s`` of ``scan`` as read: its own Zarr array's, else the
+    scratch pyramid's (``chunkdic.chunk-size``)."""
+    from ..io.store import chunk_shape_for
+
+    ref = scan.stored_refs().get(s)
+    if ref is not None and ref.kind == "zarr":
+        return tuple(ref.open().chunks)
+    return chunk_shape_for(scan.shape(s), None)
 
 
 def pyramid_bytes(scan, levels) -> int:
@@ -585,12 +624,14 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
             on_client = CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape)
             m = elements(edge, mesh)
             n_blocks = math.prod(-(-n // m) for n in mesh.shape)
-            held.append((task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks), on_client))
+            cache = chunk_cache_bytes((f_scan, g_scan), s)  # once per process, shared by its threads
+            held.append((task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks) + cache,
+                         on_client))
             if prepared:
                 box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)[2]
                 edges = [task_edge(b, 1, prep_edge) for b in box]
                 n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
-                held.append((prepare_task_bytes(s, edges) * min(threads, n_prep), on_client))
+                held.append((prepare_task_bytes(s, edges) * min(threads, n_prep) + cache, on_client))
         task = max(t for t, _ in held)
         if separate:
             return task, base + max(client, task)

@@ -19,6 +19,7 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.chunkread import forget_chunks, z_order_key
 from ..io.handles import ArrayRef, forget_open_arrays
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
@@ -165,7 +166,9 @@ class Level:
         cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
         self.block_elements = aligned_block_elements(
             settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size), cell)
-        self.jobs = BlockJob.for_mesh(mesh, self.block_elements)
+        # in Z-order: neighbouring blocks, whose low-pass halos share the scan's chunks, run
+        # close in time and find those chunks decoded (io.chunkread.chunk_cache)
+        self.jobs = sorted(BlockJob.for_mesh(mesh, self.block_elements), key=lambda job: z_order_key(job.index))
         margin = face_margin(settings.smoothing)
         if min(g_ref.shape) <= 2 * margin + 1:
             raise InputError(f"the deformed scan is too small at level {s} ({g_ref.shape}) for a low-pass of "
@@ -313,6 +316,7 @@ class Level:
                 fractions[tuple(slice(e0, e1) for e0, e1 in blk.elements)] = frac
         inputs.f_copy.mark_complete()
         self.f_copy_ready = True  # written whole by this pass
+        self.runner.run_everywhere(forget_chunks)  # the b passes read the haloed copy, not the scan
         active = None if fractions is None else active_elements(fractions)
         return Assembled(S, lags, active, float(fmin), float(fmax))
 
@@ -327,6 +331,7 @@ class Level:
             pass
         inputs.f_copy.mark_complete()
         self.f_copy_ready = True
+        self.runner.run_everywhere(forget_chunks)
         emit(self.progress, stage="f-copy", level=self.s, blocks=len(self.jobs), seconds=time.perf_counter() - t0)
 
     def _why_no_gradient(self, u: np.ndarray) -> str | None:
@@ -456,6 +461,7 @@ class Level:
             sigma=inp.sigma, interpolation=inp.interpolation,
         )
         self.inputs = dataclasses.replace(self.inputs, prepared=prepared)
+        self.runner.run_everywhere(forget_chunks)  # the b passes read the prepared store, not the scan
         emit(self.progress, stage="prepared", level=self.s, box=[list(b) for b in box], voxels=voxels,
              seconds=time.perf_counter() - t0)
 

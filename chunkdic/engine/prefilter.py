@@ -35,6 +35,7 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.chunkread import z_order_key
 from ..io.handles import ArrayRef
 from ..kernels.lowpass import TRUNCATE, lowpass_bspline
 from ..kernels.pwrite import write_rows
@@ -347,10 +348,11 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
         out = ArrayRef("zarr", str(path), "", shape, dtype)
     edges = [task_edge(b - a, 1 if out.kind == "npy" else CHUNK) for a, b in box]
     starts = [range(a, b, e) for (a, b), e in zip(box, edges)]
-    regions = [
-        tuple(slice(s, min(s + e, b)) for s, e, (_, b) in zip(corner, edges, box))
-        for corner in ((z, y, x) for z in starts[0] for y in starts[1] for x in starts[2])
-    ]
+    # in Z-order of the task grid: neighbouring tasks, whose halos share the scan's chunks,
+    # run close in time and find those chunks decoded (io.chunkread.chunk_cache)
+    corners = sorted(((z, y, x) for z in starts[0] for y in starts[1] for x in starts[2]),
+                     key=lambda c: z_order_key([(v - a) // e for v, (a, _), e in zip(c, box, edges)]))
+    regions = [tuple(slice(s, min(s + e, b)) for s, e, (_, b) in zip(corner, edges, box)) for corner in corners]
     args = [(g_ref, out, box, r, halo, float(sigma), interpolation, grid) for r in regions]
     for _ in map_tasks(prepare_task, args):
         pass

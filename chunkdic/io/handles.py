@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .chunkread import ChunkDamaged, forget_chunks, layout_of, read_region
 from .integrity import damaged_read_error
 from .store import chunk_shape_for
 
@@ -70,13 +71,22 @@ class ArrayRef:
         The result is a copy; a ``.npy`` mapping is dropped on return. A worker that
         kept one mapping across the tasks of a level-0 correlation of 1024³ reached
         4.3 GiB RSS (every coefficient page it had read); mapping per read holds it
-        to one window.
+        to one window. A Zarr array whose chunk layout :mod:`chunkdic.io.chunkread`
+        knows is read from its chunk files through the process's cache of decoded
+        chunks (the same voxels; neighbouring regions decode their shared chunks once),
+        any other through zarr-python.
         """
         try:
+            layout = layout_of(self.path, self.key) if self.kind == "zarr" and _plain(region, self.shape) else None
+            if layout is not None and layout.shape == tuple(self.shape):
+                return read_region(layout, region)
             a = self.open()[region]
             return np.array(a) if self.kind == "npy" else np.asarray(a)
         except InputError:
             raise
+        except ChunkDamaged as exc:
+            raise InputError(f"{Path(self.path, self.key) if self.key else Path(self.path)}: chunk {exc.index} "
+                             f"(file {exc.file}) cannot be read: {exc}; the store is damaged or truncated") from None
         except Exception as exc:  # noqa: BLE001 - a damaged store: name the chunk (no cost when reads succeed)
             if self.kind == "zarr":
                 raise damaged_read_error(self.path, self.key, region, exc) from None
@@ -89,9 +99,18 @@ class ArrayRef:
         return 3
 
 
+def _plain(region, shape) -> bool:
+    """``region`` is 3 slices of step 1 with integer bounds within ``shape``."""
+    return len(region) == len(shape) == 3 and all(
+        isinstance(s, slice) and s.step in (None, 1) and isinstance(s.start, (int, np.integer))
+        and isinstance(s.stop, (int, np.integer)) and 0 <= s.start <= s.stop <= n for s, n in zip(region, shape))
+
+
 def forget_open_arrays() -> None:
-    """Forget cached handles in this process (a store may have been rewritten)."""
+    """Forget cached handles and chunk layouts in this process (a store may have been rewritten)."""
     open_zarr_array.cache_clear()
+    layout_of.cache_clear()
+    forget_chunks()
 
 
 class _RefReader:

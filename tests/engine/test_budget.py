@@ -144,6 +144,7 @@ PREFILTER = textwrap.dedent("""
     grown = [min(edge + 2 * halo, n) for n in g.shape]
     model = 2 * budget.prepare_bytes(edge, sigma, interp, shape=g.shape, raw_itemsize=2, quantized=grid[1] > 0,
                                      read_bytes=budget.read_buffer_bytes(scan, 0, grown))
+    model += budget.chunk_cache_bytes((scan,), 0)  # the decoded chunks the process keeps, once
     print(json.dumps({"peak": peak, "model": model}))
 """)
 
