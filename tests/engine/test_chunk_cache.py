@@ -55,7 +55,8 @@ def _run(pair, *, cache: int, threads: int, block_elements: int):
         level_module.Level._m_pass, level_module.build_prepared, level_module.m_task = keep_m, keep_g, keep_part
         try:
             res = chunkdic.correlate(pair / "ref.zarr", pair / "def.zarr", element_size=8, coarsest=0,
-                                     block_elements=block_elements, max_iterations=2)
+                                     block_elements=block_elements, max_iterations=2,
+                                     grey_cell=0)  # one offset per element: blocks of any size (cells round them)
         finally:
             level_module.Level._m_pass, level_module.build_prepared, level_module.m_task = m_pass, build, m_task
             forget_open_arrays()
