@@ -408,7 +408,12 @@ def _write_marker(path: Path, run: str | None, resume=None) -> None:
 
 
 def _resolved(output) -> str:
-    return str(Path(output).resolve())
+    """``output``'s absolute path, links resolved where they can be: a path under a loop of
+    symbolic links stays as given (absolute), for the output checks to refuse in one line."""
+    try:
+        return str(Path(output).resolve())
+    except (OSError, RuntimeError):  # RuntimeError: Python 3.11's "Symlink loop"
+        return os.path.abspath(output)
 
 
 def interrupted_run_of(output, fingerprint: str) -> bool:
