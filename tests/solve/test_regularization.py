@@ -292,8 +292,11 @@ def test_equilibrium_gap_converges_on_the_band_at_small_elements(ct_cases, speci
             # converged by shrinking increments (by the tolerance, or by the stopping rule's
             # geometric extrapolation of what is left, below half the noise), not by the old
             # noise-level stop with increments stuck at 0.057 voxel: after the length choice
-            # the increments fall x0.06-0.4 per pass, the last one 0.0015-0.0056 voxel
-            assert steps[-1] < 0.01 and steps[-1] < 0.5 * steps[-2], steps
+            # the increments fall x0.06-0.4 per pass, the last one 0.0015-0.0056 voxel; since
+            # a level also ends once the passes still to come are predicted below the
+            # tolerance (stopping.still_to_come, session 29) it can end a pass earlier, on a
+            # larger increment: concrete l = 4 ended on 0.0113 after 0.323 (4e-4 predicted left)
+            assert steps[-1] < 0.02 and steps[-1] < 0.5 * steps[-2], steps
     measured_eq, _ = EQGAP_BAND[specimen, ell]
     assert rms["equilibrium-gap"] <= 1.4 * measured_eq
     # 1.17-1.32x measured before Tikhonov's penalty became the whole Hessian, which lowered
@@ -547,7 +550,10 @@ def test_cylinder_in_air_with_its_mask():
     # the prescribed strain, over the active elements
     eps = np.diag(strain_summary(res).mean)
     assert eps[0] == pytest.approx(-0.02, rel=0.02)
-    np.testing.assert_allclose(eps[1:], 0.006, rtol=0.05)
+    # lateral: 0.00597 / 0.00581 measured before session 29; 0.00589 / 0.00575 with a level
+    # ending on the predicted remainder, 0.00573 / 0.00567 with the brightness cells of the
+    # defaults (the cells' offsets take a little of the lateral motion at the air boundary)
+    np.testing.assert_allclose(eps[1:], 0.006, rtol=0.07)
     # weak-texture warnings name no node outside the specimen's elements, on any level
     meshes = plan_meshes(f.shape, element_size=ell, roi=None, level=0, coarsest=None,
                          min_margin=face_margin(1.0))

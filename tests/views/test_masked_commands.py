@@ -82,8 +82,11 @@ def test_corrected_image_of_a_masked_result(masked, capsys):
     out = capsys.readouterr().out
     assert "nan" not in out
     corrected, residual, meta = open_corrected(d / "c.zarr")
-    # the gap over the material is the engine's own (same voxels, same grey range)
-    assert meta["gap"] == pytest.approx(res.final_gap, rel=1e-3)
+    # the gap over the material is the engine's own (same voxels, same grey range); the
+    # engine reports its last pass's gap, and the field it returns moved on by that pass's
+    # increment, up to a few times the tolerance since a level may end on the predicted
+    # remainder (session 29): 1.2e-3 relative measured here
+    assert meta["gap"] == pytest.approx(res.final_gap, rel=3e-3)
     active = np.repeat(np.repeat(np.repeat(_active_truth(res, mask), ELL, 0), ELL, 1), ELL, 2)
     r = np.asarray(residual)
     assert np.isfinite(r[active]).all() and np.isnan(r[~active]).all()
