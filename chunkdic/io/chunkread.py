@@ -251,14 +251,13 @@ def _decompress(layout: ChunkLayout, data: bytes):
     if layout.compressor == "blosc":
         from numcodecs import blosc
 
+        from .store import blosc_header_fault
+
         # the frame's own lengths first: the decoder reads cbytes bytes whatever the buffer
-        # holds (numcodecs issue #228; chunkdic.io.store.blosc_frame_fault)
-        if len(data) < 16:
-            raise ValueError(f"a Blosc frame of {len(data)} bytes")
-        nbytes, cbytes = int.from_bytes(data[4:8], "little"), int.from_bytes(data[12:16], "little")
-        if cbytes != len(data) or nbytes != layout.chunk_bytes:
-            raise ValueError(f"holds {len(data)} bytes where its Blosc frame header announces {cbytes} "
-                             f"(of {nbytes} decoded, the chunk has {layout.chunk_bytes})")
+        # holds (numcodecs issue #228)
+        fault = blosc_header_fault(data, len(data), layout.chunk_bytes)
+        if fault is not None:
+            raise ValueError(fault)
         return blosc.decompress(data)
     if layout.compressor == "zstd":
         from numcodecs import Zstd

@@ -351,6 +351,13 @@ def blosc_frame_fault(path: str, size: int, nbytes: int) -> str | None:
         head = os.pread(fd, BLOSC_HEADER, 0)
     finally:
         os.close(fd)
+    return blosc_header_fault(head, size, nbytes)
+
+
+def blosc_header_fault(head: bytes, size: int, nbytes: int) -> str | None:
+    """:func:`blosc_frame_fault` on a frame's first bytes ``head`` (at least
+    :data:`BLOSC_HEADER` of them when the frame has them) already read, ``size`` the frame's length."""
+    head = head[:BLOSC_HEADER]
     if len(head) < BLOSC_HEADER:
         return f"holds {len(head)} bytes, less than a Blosc frame header ({BLOSC_HEADER})"
     frame_nbytes = int.from_bytes(head[4:8], "little")
