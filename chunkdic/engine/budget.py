@@ -59,7 +59,7 @@ from .prefilter import (
     task_edge,
 )
 from .scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
-from .stored_matrix import stored_bytes
+from .stored_matrix import cells_bytes, stored_bytes
 from .settings import Settings
 
 GiB, MiB = 2**30, 2**20
@@ -544,12 +544,12 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
     return int(f_copy), int(math.prod(box) * item), box
 
 
-def output_bytes(mesh: Mesh) -> int:
+def output_bytes(mesh: Mesh, cell: int = 1) -> int:
     """The output's peak size: a result's nodal fields, flags, uncertainty, history, the
     checkpoint (float64), and, while the run is incomplete, the finest level's ``M`` kept for
     a resumed run (:func:`chunkdic.engine.stored_matrix.stored_bytes`, 504 bytes per node:
     0.98 GiB at 2048³, ℓ = 16), which the complete result replaces with the rest of the checkpoint."""
-    return int(math.prod(mesh.nodes_shape) * 8 * 16 + stored_bytes(mesh.nodes_shape) + MiB)
+    return int(math.prod(mesh.nodes_shape) * 8 * 16 + stored_bytes(mesh.nodes_shape, cell) + MiB)
 
 
 def calibrate(g_ref, sigma: float, interpolation: str, threads: int) -> float:
@@ -594,7 +594,15 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     sigma, interp = settings.smoothing, settings.interpolation
     prepared = interp == "cubic" or sigma > 0
     finest = meshes[levels[-1]]
-    client = CLIENT_BYTES_PER_NODE * math.prod(finest.nodes_shape)
+
+    def cell_of(mesh: Mesh) -> int:
+        return offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
+
+    def client_bytes(mesh: Mesh) -> int:
+        # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
+        return CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, cell_of(mesh))
+
+    client = client_bytes(finest)
     pyr_task, pyr_tasks = max(_pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
 
     h = prepared_halo(sigma, interp, int(config.get("bspline-halo")))
@@ -608,8 +616,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
 
     def elements(edge: int, mesh: Mesh) -> int:
         # as the level makes its blocks (whole brightness cells, chunkdic.engine.level.Level)
-        cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
-        m = aligned_block_elements(settings.block_elements or max(1, edge // mesh.element_size), cell)
+        m = aligned_block_elements(settings.block_elements or max(1, edge // mesh.element_size), cell_of(mesh))
         return min(m, max(mesh.shape))
 
     def peak(edge: int, prep_edge: int) -> tuple[int, int]:
@@ -621,7 +628,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
         held = [(pyr_task * min(threads, pyr_tasks), 0)]  # (tasks at once, the client's data then)
         for s in levels:
             mesh = meshes[s]
-            on_client = CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape)
+            on_client = client_bytes(mesh)
             m = elements(edge, mesh)
             n_blocks = math.prod(-(-n // m) for n in mesh.shape)
             cache = chunk_cache_bytes((f_scan, g_scan), s)  # once per process, shared by its threads
@@ -679,7 +686,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     pyr_work = 2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0
     solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
     out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
-    return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest),
+    return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest, cell_of(finest)),
                 str(_existing_parent(root.absolute())), free, None if out_dir is None else str(out_dir),
                 None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
                 solve_seconds, smallest, chosen, fast, base).timed(None)

@@ -163,7 +163,7 @@ class Level:
         self._deferred = None  # a field whose g is prepared by the first pass (prepare_interpolation)
         self.matrix = matrix  # where M is kept for a resumed run (the output), None: not kept
         self.m_reused = False  # M read from the output, not built by a pass (the last _assemble_m)
-        cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
+        self.cell = cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
         self.block_elements = aligned_block_elements(
             settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size), cell)
         # in Z-order: neighbouring blocks, whose low-pass halos share the scan's chunks, run
@@ -253,6 +253,7 @@ class Level:
         mesh, f_copy = self.mesh, self.inputs.f_copy
         return {"level": self.s, "nodes": list(mesh.nodes_shape), "roi": [[r.start, r.stop] for r in mesh.roi],
                 "element_size": mesh.element_size, "blocks": self.block_elements,
+                "brightness_cell": self.cell if self.settings.grey == "drift" else 0,
                 "f_grid": [f_copy.offset, f_copy.step, f_copy.dtype], "field": field_hash(u)}
 
     def _assemble_m(self, u: np.ndarray) -> None:
@@ -282,11 +283,15 @@ class Level:
             # for a run that resumes this level after a kill; before the solver, which holds
             # the weak nodes' blocks in place (StencilSolver): M is kept as the pass summed it
             self.matrix.save(key, m)
-        S, m = m.stencil, None
-        # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij.
+        S, cells, m = m.stencil, m.cells, None
+        # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij (minus
+        # the brightness cells' share: a cell's W summed over its nodes)
         self.rigid_matrix = rigid_restriction(S)
+        if cells is not None:
+            rigid = cells.sum(axis=(3, 4, 5), dtype=np.float64).reshape(-1, 3, 4)
+            self.rigid_matrix = self.rigid_matrix - np.einsum("cip,cjp->ij", rigid, rigid)
         try:
-            self.solver = StencilSolver(S)
+            self.solver = StencilSolver(S, cells=cells, cell=self.cell)
         except InputError as exc:  # M is empty: name the cause when it is not the reference itself
             raise InputError(self._why_no_gradient(u) or str(exc)) from None
         if not self.start_to_choose:
@@ -307,9 +312,16 @@ class Level:
         args = ((inputs, job, self._nodes_of(u, job)) for job in self.jobs)
         lags = np.zeros((3, LAGS + 1))
         fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
+        k = self.cell
+        cells = (np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32)
+                 if self.settings.grey == "drift" and k > 1 else None)
         inputs.f_copy.unmark()  # rewritten (a start chosen later builds M again): complete once every block is
-        for blk, part, lo, hi, block_lags, frac in self._map(m_task, args, "M pass", total=len(self.jobs)):
+        for blk, part, lo, hi, block_lags, frac, block_cells in self._map(m_task, args, "M pass",
+                                                                          total=len(self.jobs)):
             S[blk.node_slices] += part[..., 13:, :, :]
+            if cells is not None:  # blocks hold whole cells from a cell's first element
+                first = [e0 // k for e0, _ in blk.elements]
+                cells[tuple(slice(c, c + n) for c, n in zip(first, block_cells.shape[:3]))] = block_cells
             fmin, fmax = min(fmin, lo), max(fmax, hi)
             lags += block_lags
             if fractions is not None:
@@ -318,7 +330,7 @@ class Level:
         self.f_copy_ready = True  # written whole by this pass
         self.runner.run_everywhere(forget_chunks)  # the b passes read the haloed copy, not the scan
         active = None if fractions is None else active_elements(fractions)
-        return Assembled(S, lags, active, float(fmin), float(fmax))
+        return Assembled(S, lags, active, float(fmin), float(fmax), cells)
 
     def _f_copy_pass(self) -> None:
         """Write the haloed ``f`` alone (``M`` read from the output, the interrupted run's copy

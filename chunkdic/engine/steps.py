@@ -25,7 +25,6 @@ from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_
 from ..solve.cg import StencilSolver
 from ..solve.regchoice import choose_length
 from ..solve.regularization import TERM_KINDS, robust_freed
-from ..solve.stencil import stencil_matvec
 from ..solve.transfer import nominal_l10
 from .affine import affine_step
 from .checkpoint import Checkpoint, resumed_pass
@@ -379,7 +378,7 @@ def linearised_field(lvl: Level, u: np.ndarray, b: np.ndarray) -> np.ndarray:
     (``largest_rhs``) is left as it was, so that the iterations that follow stop CG where
     they would have without this solve."""
     solver = lvl.solver
-    rhs = stencil_matvec(solver.matrix, u)
+    rhs = solver.data_matvec(u)
     rhs += b
     kept = solver.largest_rhs
     x, _ = solver.solve(rhs, overwrite_b=True)

@@ -30,16 +30,27 @@ from pathlib import Path
 import numpy as np
 
 #: array names in the checkpoint group (no trailing digit: never one of a checkpoint slot's ``<name><k>``)
-ARRAYS = ("matrix_stencil", "matrix_lags", "matrix_active")
+ARRAYS = ("matrix_stencil", "matrix_lags", "matrix_active", "matrix_cells")
 #: bytes of one chunk of the stored stencil (whole node planes along z)
 CHUNK_BYTES = 64 * 2**20
 #: bytes per node of the stored half stencil: 14 blocks of 3 x 3 float32
 BYTES_PER_NODE = 14 * 9 * 4
 
 
-def stored_bytes(nodes_shape) -> int:
-    """Bytes of ``M`` kept in the output for a level of ``nodes_shape`` nodes (the stencil)."""
-    return int(np.prod(nodes_shape)) * BYTES_PER_NODE
+def cells_bytes(elements_shape, cell: int) -> int:
+    """Bytes of the brightness cells' couplings (:attr:`Assembled.cells`) of a mesh of
+    ``elements_shape`` elements with cells of ``cell³`` elements (0 for ``cell`` 1: none):
+    ``(cell + 1)³ × 12`` float32 per cell, 162 B per node at ``cell`` 2, 94 at 4."""
+    k = int(cell)
+    if k <= 1:
+        return 0
+    return int(np.prod([-(-int(n) // k) for n in elements_shape])) * (k + 1) ** 3 * 12 * 4
+
+
+def stored_bytes(nodes_shape, cell: int = 1) -> int:
+    """Bytes of ``M`` kept in the output for a level of ``nodes_shape`` nodes: the stencil and,
+    with brightness cells of ``cell³`` elements, their couplings (:func:`cells_bytes`)."""
+    return int(np.prod(nodes_shape)) * BYTES_PER_NODE + cells_bytes([n - 1 for n in nodes_shape], cell)
 
 
 def field_hash(u: np.ndarray) -> str:
@@ -61,6 +72,9 @@ class Assembled:
         Element activity of a specimen mask (None: every element).
     fmin, fmax : float
         Range of the prepared reference over the ROI.
+    cells : ndarray, shape (cz, cy, cx, k+1, k+1, k+1, 3, 4), float32, optional
+        The brightness cells' Schur complement (:func:`chunkdic.kernels.m.cell_couplings` over
+        the mesh), None without cells.
     """
 
     stencil: np.ndarray
@@ -68,6 +82,7 @@ class Assembled:
     active: np.ndarray | None
     fmin: float
     fmax: float
+    cells: np.ndarray | None = None
 
 
 class StoredMatrix:
@@ -112,12 +127,13 @@ class StoredMatrix:
             stencil = group["matrix_stencil"][...]
             lags = group["matrix_lags"][...]
             active = group["matrix_active"][...].astype(bool) if rec.get("active") else None
+            cells = group["matrix_cells"][...] if rec.get("cells") else None
         except Exception:  # noqa: BLE001 - arrays gone or damaged: build M again
             return None
         nodes = tuple(key["nodes"])
         if stencil.shape != nodes + (14, 3, 3) or stencil.dtype != np.float32:
             return None
-        return Assembled(stencil, lags, active, float(rec["fmin"]), float(rec["fmax"]))
+        return Assembled(stencil, lags, active, float(rec["fmin"]), float(rec["fmax"]), cells)
 
     def save(self, key: dict, m: Assembled) -> None:
         """Keep ``m`` under ``key``: the old record removed, the arrays written, the record last."""
@@ -136,8 +152,15 @@ class StoredMatrix:
                                dimension_names=("z", "y", "x"))
         elif "matrix_active" in group:
             del group["matrix_active"]
+        if m.cells is not None:
+            group.create_array("matrix_cells", data=m.cells, compressors=None, overwrite=True,
+                               chunks=(max(1, min(m.cells.shape[0], CHUNK_BYTES // max(1, m.cells[0].nbytes))),)
+                               + m.cells.shape[1:],
+                               dimension_names=("z", "y", "x", "node_z", "node_y", "node_x", "axis", "offset"))
+        elif "matrix_cells" in group:
+            del group["matrix_cells"]
         self._set_record(root, {"key": key, "fmin": float(m.fmin), "fmax": float(m.fmax),
-                                "active": m.active is not None, "complete": True})
+                                "active": m.active is not None, "cells": m.cells is not None, "complete": True})
 
     def drop(self) -> None:
         """Remove the kept ``M`` (record first, then its arrays)."""

@@ -140,13 +140,6 @@ class LevelInputs:
                    g_grid=prepared_grid(g.dtype, smoothing, interpolation), grey_cell=int(grey_cell))
 
     @property
-    def m_grey(self) -> str:
-        """The brightness model whose per-element unknowns condense ``M``: offsets shared by
-        cells of several elements are left out of it, like the global unknowns (their Schur
-        complement would reach across the cell, beyond ``M``'s 27-node stencil)."""
-        return "global" if self.grey == "drift" and self.grey_cell > 1 else self.grey
-
-    @property
     def g_needs_preparing(self) -> bool:
         return self.interpolation == "cubic" or self.sigma > 0
 
@@ -182,7 +175,9 @@ def read_prepared_reference(inputs: LevelInputs, start, shape, halo: int = 1):
 
 
 def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
-    """Task: this block's share of ``M`` (a nodal stencil) and the min/max of the prepared ``f``.
+    """Task: this block's share of ``M`` (a nodal stencil), the min/max of the prepared ``f``
+    and, with brightness cells, their offsets' Schur complement (:func:`~chunkdic.kernels.m.cell_couplings`,
+    None without cells).
 
     Reads the block with the halo its low-pass needs, checks it, low-passes it and keeps
     the prepared block with its one-voxel halo as its chunk of ``inputs.f_copy`` for the
@@ -196,11 +191,11 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
         fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
     # the brightness condensation is invariant to the centring constant: the block's mean
     # keeps its sums small
-    stencil, fmin, fmax, lags = m_block(f, lo, hi, job.ell, grey=inputs.m_grey, center=float(f.mean()),
-                                        u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
-                                        margin=inputs.g_margin, with_lags=True,
-                                        active=None if fractions is None else active_elements(fractions))
-    return job.block, stencil, fmin, fmax, lags, fractions
+    stencil, fmin, fmax, lags, *cells = m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
+                                                u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
+                                                margin=inputs.g_margin, with_lags=True, cell=inputs.grey_cell,
+                                                active=None if fractions is None else active_elements(fractions))
+    return job.block, stencil, fmin, fmax, lags, fractions, (cells[0] if cells else None)
 
 
 def f_copy_task(inputs: LevelInputs, job: BlockJob) -> Block:

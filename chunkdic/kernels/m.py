@@ -24,7 +24,7 @@ from .interp import jit, lerp, segment_inside
 from .rows import row_field, taper
 from .window import IMPLEMENTATIONS, check_choice, element_activity
 
-__all__ = ["CONDENSED", "m_block"]
+__all__ = ["CONDENSED", "cell_couplings", "m_block"]
 
 #: brightness models whose element moments condense ``M`` (see :func:`m_block`)
 CONDENSED = {"none": 0, "global": 0, "drift": 1, "element": 2}
@@ -38,16 +38,18 @@ def m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
               scx, psi, xi, center, u, c0, c1, c2, n0, n1, n2, vm_lo, masked, active):
     """Element tensor moments T, element brightness couplings C and moments K; min / max.
 
-    ``C[e, q, a, i] = Σ N_a d_i f q`` for ``q = (f - center, 1)`` and
-    ``K[e] = (n, Σ(f - c), Σ(f - c)²)``: what the Schur complement of a brightness model
-    needs (:func:`_assemble_stencil`). With ``masked``, voxels whose ``X + u(X)`` leaves
+    ``C[e, q, a, i] = Σ N_a d_i f q`` for ``q = (f - center, 1, z~, y~, x~)`` and
+    ``K[e] = (n, Σ(f - c), Σ(f - c)², Σ z~, Σ y~, Σ x~, Σ z~z~, z~y~, z~x~, y~y~, y~x~, x~x~)``
+    (``z~ = ξ - 1/2``: the voxel's coordinate from its element's centre, elements): what the
+    Schur complement of a brightness model needs (:func:`_assemble_stencil` for per-element
+    unknowns, :func:`cell_couplings` for affine offsets per cell of elements). With ``masked``, voxels whose ``X + u(X)`` leaves
     ``[vm_lo, n - 1 - vm_lo]`` are left out of T, C and K, and so are the elements whose
     ``active`` is 0 (min / max keep every core voxel).
     """
     nx = nex * ell
     T = np.zeros((nez, ney, nex, 3, 3, 3, 6))
-    C = np.zeros((nez, ney, nex, 2, 8, 3))
-    K = np.zeros((nez, ney, nex, 3))
+    C = np.zeros((nez, ney, nex, 5, 8, 3))
+    K = np.zeros((nez, ney, nex, 12))
     lags = np.zeros((3, LAGS + 1))
     prod = np.empty((9, nx))
     vm = np.ones(nx)
@@ -141,29 +143,41 @@ def m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
                             T[ez, ey, ex, pz, py, 0, c] += w * s0
                             T[ez, ey, ex, pz, py, 1, c] += w * s1
                             T[ez, ey, ex, pz, py, 2, c] += w * s2
-                # brightness couplings: x-face sums of grad f and grad f (f - c)
+                # brightness couplings: x-face sums of grad f, grad f (f - c) and grad f x~
+                # (the row's z~, y~ are constants: they multiply its sums when spread)
+                cz = tz - 0.5
+                cy = ty - 0.5
                 k0 = 0.0
                 k1 = 0.0
                 k2 = 0.0
+                kx1 = 0.0
+                kx2 = 0.0
                 for i in range(3):
                     a0 = 0.0
                     a1 = 0.0
                     b0 = 0.0
                     b1 = 0.0
+                    m0 = 0.0
+                    m1 = 0.0
                     for lx in range(ell):
                         gi = prod[6 + i, x0 + lx]
                         fv = np.float64(fp[zz, yy, x0 + lx + lo2]) - center
                         w1 = xi[lx]
                         w0 = 1.0 - w1
+                        cx = w1 - 0.5
                         a0 += w0 * gi * fv
                         a1 += w1 * gi * fv
                         b0 += w0 * gi
                         b1 += w1 * gi
+                        m0 += w0 * gi * cx
+                        m1 += w1 * gi * cx
                         if i == 0:
                             w = vm[x0 + lx]
                             k0 += w
                             k1 += w * fv
                             k2 += w * fv * fv
+                            kx1 += w * cx
+                            kx2 += w * cx * cx
                     for dz in range(2):
                         wz = tz if dz else 1.0 - tz
                         for dy in range(2):
@@ -173,9 +187,24 @@ def m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
                             C[ez, ey, ex, 0, a + 1, i] += w * a1
                             C[ez, ey, ex, 1, a, i] += w * b0
                             C[ez, ey, ex, 1, a + 1, i] += w * b1
+                            C[ez, ey, ex, 2, a, i] += w * cz * b0
+                            C[ez, ey, ex, 2, a + 1, i] += w * cz * b1
+                            C[ez, ey, ex, 3, a, i] += w * cy * b0
+                            C[ez, ey, ex, 3, a + 1, i] += w * cy * b1
+                            C[ez, ey, ex, 4, a, i] += w * m0
+                            C[ez, ey, ex, 4, a + 1, i] += w * m1
                 K[ez, ey, ex, 0] += k0
                 K[ez, ey, ex, 1] += k1
                 K[ez, ey, ex, 2] += k2
+                K[ez, ey, ex, 3] += cz * k0
+                K[ez, ey, ex, 4] += cy * k0
+                K[ez, ey, ex, 5] += kx1
+                K[ez, ey, ex, 6] += cz * cz * k0
+                K[ez, ey, ex, 7] += cz * cy * k0
+                K[ez, ey, ex, 8] += cz * kx1
+                K[ez, ey, ex, 9] += cy * cy * k0
+                K[ez, ey, ex, 10] += cy * kx1
+                K[ez, ey, ex, 11] += kx2
     return T, C, K, lags, fmin, fmax
 
 
@@ -225,9 +254,90 @@ def _assemble_stencil(T, C, K, sym, condensed):
     return S
 
 
+#: eigenvalues of a cell's offset Gram matrix below this fraction of its largest are dropped
+#: (a thin cell at a mask's edge does not fix its slopes; the ``b`` pass's pseudo-inverse,
+#: :func:`chunkdic.engine.greylevel._reduce_cells`, uses the same cut)
+CELL_RCOND = 1e-12
+
+
+def _cell_gram(K: np.ndarray, o: tuple) -> np.ndarray:
+    """``Σ w q qᵀ`` for ``q = (1, z, y, x)`` centred on the cell, per element: (ez, ey, ex, 4, 4).
+
+    ``K``: the element moments of :func:`m_kernel` (centred on the element); ``o``: the
+    element centres' offsets from their cell's centre per axis (elements), broadcastable."""
+    n = K[..., 0]
+    m1 = [K[..., 3] + o[0] * n, K[..., 4] + o[1] * n, K[..., 5] + o[2] * n]
+    raw2 = {(0, 0): 6, (0, 1): 7, (0, 2): 8, (1, 1): 9, (1, 2): 10, (2, 2): 11}
+    D = np.empty(K.shape[:3] + (4, 4))
+    D[..., 0, 0] = n
+    for a in range(3):
+        D[..., 0, a + 1] = D[..., a + 1, 0] = m1[a]
+    for (a, b), j in raw2.items():
+        # Σ (q_a + o_a)(q_b + o_b) = Σ q_a q_b + o_b Σ q_a + o_a Σ q_b + o_a o_b n
+        v = K[..., j] + o[b] * K[..., 3 + a] + o[a] * K[..., 3 + b] + o[a] * o[b] * n
+        D[..., a + 1, b + 1] = D[..., b + 1, a + 1] = v
+    return D
+
+
+def cell_couplings(C: np.ndarray, K: np.ndarray, k: int) -> np.ndarray:
+    """The Schur complement of affine brightness offsets per cell of ``k³`` elements, factored.
+
+    The ``drift`` model with cells (:mod:`chunkdic.engine.greylevel`) eliminates, per cell,
+    an offset ``a + b·(X - X_c)`` at every pass (variable projection). The Gauss–Newton
+    matrix of the field is then ``M - Σ_c V_c D_c⁻¹ V_cᵀ``, ``V_c[(n, i), q] = Σ w N_n ∂_i f q``
+    and ``D_c = Σ w q qᵀ`` over the cell's voxels, ``q = (1, z, y, x)``. That term couples every
+    node of a cell with every other, beyond ``M``'s 27-node stencil, so it is kept as
+    ``W_c = V_c D_c^{-1/2}`` (``Σ_c W_c W_cᵀ`` is the complement) and applied next to the
+    stencil in the client's solve (:func:`chunkdic.solve.stencil.subtract_cells`). Without it the steps overshoot
+    nothing but fall short in the directions the offsets absorb: at 512³, ℓ = 16, cells of 2³
+    elements, Gauss–Newton contracted by ×0.11-0.2 per pass instead of the ×0.04-0.07 of one
+    offset per element (docs/engine.md, "Brightness").
+
+    Parameters
+    ----------
+    C : ndarray, shape (ez, ey, ex, 5, 8, 3), float64
+        :func:`m_kernel`'s element couplings (rows 1-4: ``q = 1, z~, y~, x~`` centred on the element).
+    K : ndarray, shape (ez, ey, ex, 12), float64
+        Its element moments.
+    k : int
+        Elements per side of a cell; the block's first element starts a cell (the last
+        cells may be partial).
+
+    Returns
+    -------
+    W : ndarray, shape (cz, cy, cx, k+1, k+1, k+1, 3, 4), float32, grey levels / voxel
+        Per cell, over its nodes (zero beyond the block's), ``W_c`` with ``W_c W_cᵀ = V_c D_c⁺ V_cᵀ``.
+    """
+    k = int(k)
+    elems = C.shape[:3]
+    cells = tuple(-(-n // k) for n in elems)
+    pad = [(0, c * k - n) for c, n in zip(cells, elems)]
+    Cp = np.pad(C[..., 1:, :, :], pad + [(0, 0)] * 3)
+    Kp = np.pad(K, pad + [(0, 0)])
+    # the offsets of the elements from their (whole) cell's centre: any centre spans the same
+    # affine functions, as the b pass's (which centres a partial cell on itself)
+    o = tuple(np.tile(np.arange(k) - (k - 1) / 2.0, c).reshape([-1 if a == ax else 1 for a in range(3)])
+              for ax, c in enumerate(cells))
+    V = Cp.copy()
+    for a in range(3):
+        V[..., a + 1, :, :] += o[a][..., None, None] * Cp[..., 0, :, :]
+    D = _cell_gram(Kp, o).reshape(cells[0], k, cells[1], k, cells[2], k, 4, 4).sum(axis=(1, 3, 5))
+    Vc = np.zeros(cells + (k + 1, k + 1, k + 1, 3, 4))
+    Vb = V.reshape(cells[0], k, cells[1], k, cells[2], k, 4, 8, 3)
+    for node in range(8):
+        dz, dy, dx = node >> 2, (node >> 1) & 1, node & 1
+        part = np.moveaxis(Vb[..., node, :], -2, -1)  # (cz, k, cy, k, cx, k, 3, 4)
+        Vc[:, :, :, dz:dz + k, dy:dy + k, dx:dx + k] += part.transpose(0, 2, 4, 1, 3, 5, 6, 7)
+    lam, U = np.linalg.eigh(D)
+    keep = lam > CELL_RCOND * np.maximum(lam[..., -1:], 0.0)
+    scale = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
+    root = U * scale[..., None, :]  # D⁺ = root rootᵀ
+    return np.einsum("zyxnmlip,zyxpq->zyxnmliq", Vc, root).astype(np.float32)
+
+
 def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str = "none",
             center: float = 0.0, u_nodes: np.ndarray | None = None, core_origin=None, g_shape=None,
-            margin: int = 0, with_lags: bool = False, active: np.ndarray | None = None):
+            margin: int = 0, with_lags: bool = False, active: np.ndarray | None = None, cell: int = 1):
     """Block contribution to the C8 matrix ``M`` as a nodal 27-point stencil.
 
     Parameters
@@ -263,6 +373,12 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
         Also return ``lags`` (3, LAGS + 1): ``Σ w ∂_i f(x) w ∂_i f(x + k)`` along x, the
         autocorrelation of the sensitivities that estimates the noise correlation
         (:func:`chunkdic.engine.noise.correlation_factor`). numba only.
+    cell : int, keyword-only
+        With ``grey="drift"``: elements per side of the cells sharing one affine offset
+        (:func:`chunkdic.engine.greylevel.offset_cell`, the block's first element starting a
+        cell). Above 1 the stencil is ``M`` itself and the offsets' Schur complement comes
+        apart, as :func:`cell_couplings` (it reaches across the cell, beyond the stencil).
+        numba only.
 
     Returns
     -------
@@ -273,6 +389,10 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
         block are 0. Symmetric: ``S[n, k, i, j] == S[n + off_k, 26 - k, j, i]``.
     fmin, fmax : float
         Extreme grey levels of the core voxels (for the matching gap normalisation).
+    lags : ndarray, shape (3, LAGS + 1), float64
+        With ``with_lags``.
+    cells : ndarray, shape (cz, cy, cx, cell+1, cell+1, cell+1, 3, 4), float32
+        With ``cell`` > 1 and ``grey="drift"``: :func:`cell_couplings`.
 
     References
     ----------
@@ -292,6 +412,8 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     shape = tuple(int(v) for v in g_shape) if masked else (1, 1, 1)
     active = element_activity(active, elems)
     if impl == "numpy":
+        if grey == "drift" and int(cell) > 1:
+            raise ValueError("the brightness cells' couplings have no NumPy twin (impl='numba')")
         return kernels_numpy.m_block_numpy(f32, lo, hi, int(ell), elems, CONDENSED[grey], float(center),
                                            u if masked else None, origin, shape, int(margin), active)
     ell = int(ell)
@@ -301,6 +423,10 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     T, C, K, lags, fmin, fmax = m_kernel(f32, lo[0], lo[1], lo[2], ell, *elems, *idx[0], *idx[1], *idx[2],
                                           psi, xi, float(center), u, *origin, *shape, float(margin), masked,
                                           active)
+    cells = grey == "drift" and int(cell) > 1
+    out = (_assemble_stencil(T, C, K, _SYM, 0 if cells else CONDENSED[grey]), float(fmin), float(fmax))
     if with_lags:
-        return _assemble_stencil(T, C, K, _SYM, CONDENSED[grey]), float(fmin), float(fmax), lags
-    return _assemble_stencil(T, C, K, _SYM, CONDENSED[grey]), float(fmin), float(fmax)
+        out += (lags,)
+    if cells:
+        out += (cell_couplings(C, K, int(cell)),)
+    return out

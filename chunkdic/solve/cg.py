@@ -22,7 +22,7 @@ from ..errors import InputError
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .regularization import NO_FREED, Regularizer, add_weighted
-from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi
+from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi, subtract_cells
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +65,13 @@ class StencilSolver:
         The increments then carry an error of at most ``rtol`` times the first step's size.
     maxiter : int
         CG iterations before giving up with a warning.
+    cells : ndarray, shape (cz, cy, cx, k+1, k+1, k+1, 3, 4), float32, optional
+        The Schur complement of the brightness cells' offsets, ``Σ_c W_c W_cᵀ``
+        (:func:`chunkdic.kernels.m.cell_couplings` for the whole mesh), subtracted from ``M``
+        in every product: the Gauss–Newton matrix of the ``drift`` model with cells of ``k³``
+        elements. The preconditioners stay ``M``'s (the term is low-rank per cell).
+    cell : int
+        ``k``, elements per side of a cell (with ``cells``).
     multigrid : bool or None
         Precondition with a multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) instead of
         block-Jacobi: ``None`` (default) when it pays, i.e. with a regularisation whose weight
@@ -78,8 +85,11 @@ class StencilSolver:
     """
 
     def __init__(self, half: np.ndarray, *, weak_threshold: float = 1e-3, rtol: float = 1e-7,
-                 maxiter: int = 2000, multigrid: bool | None = None):
+                 maxiter: int = 2000, multigrid: bool | None = None, cells: np.ndarray | None = None,
+                 cell: int = 1):
         self.rtol, self.maxiter = rtol, maxiter
+        self.cells = np.zeros((0, 0, 0, 2, 2, 2, 3, 4), np.float32) if cells is None else cells
+        self.cell = int(cell)
         #: norm of the largest right-hand side solved so far (kept by checkpoints: a
         #: resumed run stops CG where the uninterrupted one did)
         self.largest_rhs = 0.0
@@ -190,12 +200,20 @@ class StencilSolver:
         y *= self.weight
         return y
 
-    def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """``(M + λ R) x``, into ``out`` (float64, x's shape, contiguous) when given."""
+    def data_matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``M x`` (minus the brightness cells' complement), into ``out`` (float64, x's shape,
+        contiguous) when given: the data term of the Gauss–Newton matrix."""
         x = np.ascontiguousarray(x, dtype=np.float64)
         if out is None:
             out = np.empty(x.shape)
         half_matvec(self.matrix, x, out)
+        subtract_cells(self.cells, self.cell, x, out)
+        return out
+
+    def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``(M + λ R) x``, into ``out`` (float64, x's shape, contiguous) when given."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = self.data_matvec(x, out)
         if self.regularizer is not None:
             add_weighted(*self._reg_args, self.weight, x, out)
         return out
@@ -219,8 +237,7 @@ class StencilSolver:
         else:
             iterations = pcg_block_jacobi(self.matrix, *self._diag_args, b, x, rtol, self.maxiter,
                                           code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed,
-                                          self.weight,
-                                          overwrite_b)
+                                          self.weight, self.cells, self.cell, overwrite_b)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
                           stacklevel=2)
@@ -242,8 +259,9 @@ def warmup() -> None:
     """Compile the client's solver kernels (CG with and without regularisation, the V-cycle) on tiny systems."""
     half = np.zeros((3, 3, 3, 14, 3, 3), np.float32)
     half[..., 0, :, :] = np.eye(3)
-    solver = StencilSolver(half)
+    solver = StencilSolver(half, cells=np.zeros((1, 1, 1, 3, 3, 3, 3, 4), np.float32), cell=2)  # brightness cells
     solver.solve(np.ones((3, 3, 3, 3)))
+    solver.data_matvec(np.ones((3, 3, 3, 3)))
     solver.regularize(Regularizer("tikhonov", (3, 3, 3), 2.0), 1.0)
     solver.solve(np.ones((3, 3, 3, 3)))
     half = np.zeros((7, 7, 7, 14, 3, 3), np.float32)  # two multigrid levels

@@ -153,6 +153,38 @@ def block_solve_step(H, Rd, iz, iy, ix, lam, r, x, theta):
                 x[i, j, k, 2] += z2 / theta
 
 
+def subtract_cells(W: np.ndarray, k: int, x: np.ndarray, y: np.ndarray) -> None:
+    """``y -= Σ_c W_c W_cᵀ x`` over the mesh's cells (:func:`chunkdic.kernels.m.cell_couplings` gathered for the
+    whole mesh: ``W`` (cz, cy, cx, k+1, k+1, k+1, 3, 4)), ``x``, ``y`` (nz, ny, nx, 3) float64."""
+    if W.shape[0]:
+        _subtract_cells(W, int(k), x, y)
+
+
+@numba.njit(nogil=True, cache=True)
+def _subtract_cells(W, k, x, y):
+    nz, ny, nx = x.shape[0], x.shape[1], x.shape[2]
+    t = np.empty(4)
+    for c0 in range(W.shape[0]):
+        for c1 in range(W.shape[1]):
+            for c2 in range(W.shape[2]):
+                t[:] = 0.0
+                for a in range(min(k + 1, nz - c0 * k)):
+                    for b in range(min(k + 1, ny - c1 * k)):
+                        for c in range(min(k + 1, nx - c2 * k)):
+                            for i in range(3):
+                                v = x[c0 * k + a, c1 * k + b, c2 * k + c, i]
+                                for p in range(4):
+                                    t[p] += W[c0, c1, c2, a, b, c, i, p] * v
+                for a in range(min(k + 1, nz - c0 * k)):
+                    for b in range(min(k + 1, ny - c1 * k)):
+                        for c in range(min(k + 1, nx - c2 * k)):
+                            for i in range(3):
+                                s = 0.0
+                                for p in range(4):
+                                    s += W[c0, c1, c2, a, b, c, i, p] * t[p]
+                                y[c0 * k + a, c1 * k + b, c2 * k + c, i] -= s
+
+
 def no_diagonal(nodes_shape) -> tuple:
     """``(Rd, iz, iy, ix)`` of a zero ``R_ii`` on a mesh of ``nodes_shape`` nodes (:func:`block_solve`
     without regularisation: every node of class 0)."""
@@ -160,7 +192,7 @@ def no_diagonal(nodes_shape) -> tuple:
 
 
 @numba.njit(nogil=True, cache=True)
-def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, freed, lam,
+def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, ew, freed, lam, cells, cell,
                      overwrite_b=False):
     """Preconditioned conjugate gradients on ``M + λ R``, x updated in place; -1 if not converged.
 
@@ -175,7 +207,9 @@ def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, e
     only once this file changes too or the cache is cleared (docs/architecture.md,
     development notes). ``freed``: the Tikhonov terms the robust reweighting left out
     (:attr:`~chunkdic.solve.regularization.Regularizer.freed`; the block-Jacobi blocks ``Rd``
-    stay the plain penalty's). ``overwrite_b``: ``b`` becomes the residual (changed on return).
+    stay the plain penalty's). ``cells``, ``cell``: the brightness cells' Schur complement
+    (:func:`subtract_cells`; no cell: ``cells`` of length 0). ``overwrite_b``: ``b`` becomes
+    the residual (changed on return).
     """
     bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
     r = b if overwrite_b else b.copy()  # x starts at zero
@@ -190,6 +224,8 @@ def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, e
         return 0
     for it in range(1, maxiter + 1):
         half_matvec(H, p, q)
+        if cells.shape[0]:
+            _subtract_cells(cells, cell, p, q)
         if code != 0:
             add_weighted(code, Ke, Kf, sw, ew, freed, lam, p, q)
         alpha = rz / dot(pf, qf)

@@ -85,8 +85,10 @@ def test_corrected_image_of_a_masked_result(masked, capsys):
     # the gap over the material is the engine's own (same voxels, same grey range); the
     # engine reports its last pass's gap, and the field it returns moved on by that pass's
     # increment, up to a few times the tolerance since a level may end on the predicted
-    # remainder (session 29): 1.2e-3 relative measured here
-    assert meta["gap"] == pytest.approx(res.final_gap, rel=3e-3)
+    # remainder (session 29): 1.2e-3 relative measured here; with the brightness cells in the
+    # step (session 30) the increment carries the part the cells' offsets would follow, which
+    # the last pass's brightness does not: 4.7e-3 (0.0012404 against 0.0012346)
+    assert meta["gap"] == pytest.approx(res.final_gap, rel=8e-3)
     active = np.repeat(np.repeat(np.repeat(_active_truth(res, mask), ELL, 0), ELL, 1), ELL, 2)
     r = np.asarray(residual)
     assert np.isfinite(r[active]).all() and np.isnan(r[~active]).all()
