@@ -77,7 +77,8 @@ WARM_BASE_BYTES = 285 * MiB
 #: modules whose numba kernels a correlation runs: the block kernels, the pyramid's sums,
 #: the client's solver (a run compiles those missing from numba's cache)
 KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.interp", "chunkdic.kernels.rows",
-                  "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.kernels.pwrite", "chunkdic.io.coarsen",
+                  "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.kernels.pwrite", "chunkdic.kernels.quantize",
+                  "chunkdic.io.coarsen",
                   "chunkdic.solve.stencil", "chunkdic.solve.galerkin", "chunkdic.solve.multigrid",
                   "chunkdic.solve.regularization")
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
+from ..kernels.quantize import quantize_u16
 from . import scratchstore
 
 __all__ = ["HaloedBlocks", "COMPLETE"]
@@ -155,10 +156,8 @@ class HaloedBlocks:
         import zarr
 
         stored = region
-        if self.quantized:
-            q = np.rint((np.asarray(region, np.float64) - self.offset) / self.step)
-            stored = np.clip(q, 0, 65535).astype(np.uint16)
-            region = self._dequantize(stored)
+        if self.quantized:  # rounded in float64, as the grid was chosen (kernels.quantize)
+            stored, region = quantize_u16(region, self.offset, self.step, wide=True)
         padded = np.zeros(self.chunk, stored.dtype)
         padded[tuple(slice(0, n) for n in stored.shape)] = stored
         arr = zarr.open_array(store=self.path, mode="r+").with_config({"write_empty_chunks": True})

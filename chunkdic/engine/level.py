@@ -42,8 +42,25 @@ log = logging.getLogger(__name__)
 #: interval of block-count progress events during a long pass over the voxels (seconds)
 PROGRESS_SECONDS = 5.0
 #: a diagnostic gap (:meth:`Level.gap`) is measured on one element in 8 when the mesh has
-#: at least this many elements (the sample then holds 512 or more)
+#: at least this many elements (the sample then holds 512 or more), and on one in 64, 512, …
+#: while the sample keeps this many (large meshes: 1024³ at ℓ = 16 samples one in 64)
 GAP_SAMPLE_MIN = 4096
+
+
+def gap_stride(shape) -> int:
+    """Element stride of the regular sample a diagnostic gap is measured on (:data:`GAP_SAMPLE_MIN`).
+
+    >>> gap_stride((25, 25, 25)), gap_stride((32, 32, 32)), gap_stride((64, 64, 64)), gap_stride((128,) * 3)
+    (2, 2, 4, 8)
+    >>> gap_stride((15, 15, 15))
+    1
+    """
+    if int(np.prod(shape)) < GAP_SAMPLE_MIN:
+        return 1
+    stride = 2
+    while int(np.prod([-(-int(n) // (2 * stride)) for n in shape])) >= GAP_SAMPLE_MIN:
+        stride *= 2
+    return stride
 
 
 def prune_adopted(scratch: Path, level: int | None) -> None:
@@ -531,10 +548,11 @@ class Level:
     def gap_sample(self) -> np.ndarray | None:
         """The elements a diagnostic gap is measured on (uint8, the mesh's element shape), or
         None for every active element (:meth:`gap`)."""
-        if int(np.prod(self.mesh.shape)) < GAP_SAMPLE_MIN:
+        stride = gap_stride(self.mesh.shape)
+        if stride == 1:
             return None
         sample = np.zeros(self.mesh.shape, np.uint8)
-        sample[::2, ::2, ::2] = 1
+        sample[::stride, ::stride, ::stride] = 1
         if self.active is not None:
             sample &= self.active.astype(np.uint8)
         return sample if sample.any() else None
@@ -543,12 +561,13 @@ class Level:
         """The matching gap of the nodal field ``u`` (3, nz, ny, nx) alone: a diagnostic
         (the gaps that choose the start), not a step of the iterations.
 
-        On a mesh of at least :data:`GAP_SAMPLE_MIN` elements it is measured on the regular
-        sample of one element in 8 (even indices along every axis; rows of voxels with no
-        sampled element are skipped): a pass at an eighth of the cost. The gap is a root
-        mean square over elements fitted independently (per-element offsets), so the sample
-        estimates it closely (measured on the 300³ CT pair, ℓ = 12 and 8: within 0.9 % of the
-        full pass). :meth:`assemble_b` measures the same gaps with its ``probes`` inside a
+        On a mesh of at least :data:`GAP_SAMPLE_MIN` elements it is measured on a regular
+        sample of elements (:func:`gap_stride`: one in 8, even indices along every axis, or
+        one in 64, 512 on meshes large enough that the sample keeps that many; rows of voxels
+        with no sampled element are skipped): a pass at an eighth of the cost or less. The
+        gap is a root mean square over elements, so the sample estimates it closely
+        (measured on the 300³ CT pair, ℓ = 12 and 8: within 0.9 % of the full pass; on the
+        1024³ band pair, ℓ = 16, one in 64 against one in 8: see docs/engine.md, "The start"). :meth:`assemble_b` measures the same gaps with its ``probes`` inside a
         pass of the iterations (the finest level's reported gaps: no pass of their own).
         """
         return self.assemble_b(u, self.gap_sample()).gap

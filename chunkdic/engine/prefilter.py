@@ -39,6 +39,7 @@ from ..io.chunkread import z_order_key
 from ..io.handles import ArrayRef
 from ..kernels.lowpass import TRUNCATE, lowpass_bspline
 from ..kernels.pwrite import write_rows
+from ..kernels.quantize import quantize_u16
 from ..mesh import Mesh
 from . import scratchstore
 
@@ -142,12 +143,15 @@ def quantize(data: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
     offset, step = grid
     if step <= 0:
         return np.asarray(data, np.float32)
-    x = np.array(data, dtype=np.float32)  # float32, in place: no float64 copy of a task's region
-    x -= np.float32(offset)
-    x *= np.float32(1.0 / step)
-    np.rint(x, out=x)
-    np.clip(x, 0, 65535, out=x)
-    return x.astype(np.uint16)
+    return quantize_u16(data, offset, step, wide=False)[0]
+
+
+def on_grid(data: np.ndarray, grid: tuple[float, float]) -> np.ndarray:
+    """``dequantize(quantize(data, grid), grid)`` in one sweep: float32 values as stored."""
+    offset, step = grid
+    if step <= 0:
+        return np.asarray(data, np.float32)
+    return quantize_u16(data, offset, step, wide=False)[1]
 
 
 def dequantize(q: np.ndarray, grid: tuple[float, float]) -> np.ndarray:

@@ -334,8 +334,8 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
 
     def solve_with(half, reg, weight, rhs):
         # one solver per sub-mesh (its coarse M, block inverse and weak nodes reused by every
-        # candidate); rtol 1e-5, not the iterations' 1e-7: 30 % fewer CG iterations, and the
-        # same length chosen on every case measured (docs/engine.md, "Automatic length")
+        # candidate); rtol 1e-5, as the iterations' since session 30 (1e-7 before: 30 % more
+        # CG iterations for the same length on every case measured, docs/engine.md, "Automatic length")
         if last["half"] is not half:
             last["half"], last["solver"] = half, StencilSolver(half.copy(), rtol=1e-5)
         last["solver"].regularize(reg, weight)

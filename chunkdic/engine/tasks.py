@@ -25,14 +25,13 @@ from .masks import active_elements, element_fractions
 from .prefilter import (
     PreparedImage,
     check_finite,
-    dequantize,
     face_margin,
     gaussian_radius,
+    on_grid,
     prepare_deformed,
     prepare_reference,
     prepared_grid,
     prepared_halo,
-    quantize,
 )
 
 
@@ -275,5 +274,5 @@ def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray, *more
     # on the prepared store's grid (chosen on the client: the layout is the run's), so that a
     # result never depends on the store's box
     grid = inputs.g_grid
-    prepared = dequantize(quantize(prepare_deformed(raw, inputs.sigma, interp), grid), grid)
+    prepared = on_grid(prepare_deformed(raw, inputs.sigma, interp), grid)
     return prepared, tuple(s.start for s in window)

@@ -69,6 +69,7 @@ import numpy as np
 
 from .b import b_kernel, b_sums, element_to_nodes
 from .lowpass import lowpass_bspline
+from .quantize import quantize_u16
 from .m import m_block, m_kernel
 from .pwrite import write_rows
 from .warp import warp_block
@@ -92,6 +93,8 @@ def warmup() -> None:
     m_block(f, lo, hi, ell, with_lags=True, active=np.ones((1, 1, 1), np.uint8))
     m_block(f, lo, hi, ell, u_nodes=u, core_origin=(1, 1, 1), g_shape=f.shape)
     lowpass_bspline(f, 1.0, True)
+    for wide in (True, False):
+        quantize_u16(f, 0.0, 1.0, wide=wide)
     if hasattr(os, "pwrite"):  # POSIX: the prefilter's writes, uint16 regions and float32 crops
         fd = os.open(os.devnull, os.O_WRONLY)
         try:
