@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic.engine.stored_matrix import Assembled, StoredMatrix, field_hash, stored_bytes
+from chunkdic.engine.stored_matrix import Assembled, StoredMatrix, cells_bytes, field_hash, stored_bytes
 
 
 @pytest.fixture
@@ -80,6 +80,22 @@ def test_dropped_m_is_gone(output):
     assert not [p for p in output.rglob("*") if "matrix" in p.name]
 
 
+def test_brightness_cells_read_back_with_m(output):
+    # the cells' Schur complement (kernels.m.cell_couplings) is part of the step's matrix: a
+    # resumed run reads it with the stencil, and an M kept without it is not read for cells
+    m, kept = _m(), StoredMatrix(output)
+    m.cells = np.random.default_rng(2).normal(size=(2, 2, 3, 3, 3, 3, 3, 4)).astype(np.float32)
+    kept.save(_key(), m)
+    np.testing.assert_array_equal(kept.load(_key()).cells, m.cells)
+    kept.save(_key(), _m())
+    assert kept.load(_key()).cells is None
+    assert not [p for p in output.rglob("*") if p.name == "matrix_cells"]
+
+
 def test_size_per_node():
     # 14 blocks of 3 x 3 float32 per node; the 128³ nodes of a 2048³ level-0 run at ell = 16
     assert stored_bytes((128, 128, 128)) == 128**3 * 14 * 9 * 4 == 1_056_964_608
+    # with cells of 2³ elements: (2 + 1)³ nodes x 3 x 4 float32 per cell, 64³ cells
+    assert cells_bytes((127, 127, 127), 2) == 64**3 * 27 * 48 == 339_738_624
+    assert stored_bytes((128, 128, 128), 2) == 1_056_964_608 + 339_738_624
+    assert cells_bytes((127, 127, 127), 1) == 0
