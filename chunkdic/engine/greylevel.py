@@ -27,9 +27,11 @@ from one pass over the voxels (:class:`chunkdic.kernels.blocks.ElementSums`): ea
 reduces its element sums with :func:`reduce_block` (the per-element unknowns in full) and
 the client finishes the global ones with :func:`combine`. The Gauss–Newton matrix of the
 per-element models is ``M`` minus the Schur complement of their per-element unknowns,
-built in the ``M`` pass (:func:`chunkdic.kernels.m.m_block`; the few global unknowns and the
-offsets of cells of several elements are left out of it, as their coupling with the nodal
-field is weak: they change the converged field, not ``M``'s role as the step's model).
+built in the ``M`` pass (:func:`chunkdic.kernels.m.m_block`); the affine offsets of cells of
+several elements reach across the cell, beyond ``M``'s stencil: their Schur complement is
+kept apart, per cell, and subtracted in the client's solve
+(:func:`chunkdic.kernels.m.cell_couplings`; left out until session 30, it slowed Gauss–Newton
+×3-5 per pass). The one global gain stays out of the step's matrix (rank one over the ROI).
 A cell never straddles two blocks: blocks hold whole cells (:func:`aligned_block_elements`),
 so a task eliminates its cells' offsets exactly, as it did its elements'. With ``α = λ - 1`` and
 ``g' = g(X+u) - c``, ``r = d - α g' - μ'`` (``d = f - g(X+u)``); the returned gain and offset

@@ -270,7 +270,7 @@ class Level:
         mesh, f_copy = self.mesh, self.inputs.f_copy
         return {"level": self.s, "nodes": list(mesh.nodes_shape), "roi": [[r.start, r.stop] for r in mesh.roi],
                 "element_size": mesh.element_size, "blocks": self.block_elements,
-                "brightness_cell": self.cell if self.settings.grey == "drift" else 0,
+                "brightness_cell": self.cell,
                 "f_grid": [f_copy.offset, f_copy.step, f_copy.dtype], "field": field_hash(u)}
 
     def _assemble_m(self, u: np.ndarray) -> None:
@@ -330,8 +330,7 @@ class Level:
         lags = np.zeros((3, LAGS + 1))
         fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
         k = self.cell
-        cells = (np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32)
-                 if self.settings.grey == "drift" and k > 1 else None)
+        cells = np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32) if k > 1 else None
         inputs.f_copy.unmark()  # rewritten (a start chosen later builds M again): complete once every block is
         for blk, part, lo, hi, block_lags, frac, block_cells in self._map(m_task, args, "M pass",
                                                                           total=len(self.jobs)):

@@ -42,9 +42,9 @@ def m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
     ``K[e] = (n, Σ(f - c), Σ(f - c)², Σ z~, Σ y~, Σ x~, Σ z~z~, z~y~, z~x~, y~y~, y~x~, x~x~)``
     (``z~ = ξ - 1/2``: the voxel's coordinate from its element's centre, elements): what the
     Schur complement of a brightness model needs (:func:`_assemble_stencil` for per-element
-    unknowns, :func:`cell_couplings` for affine offsets per cell of elements). With ``masked``, voxels whose ``X + u(X)`` leaves
-    ``[vm_lo, n - 1 - vm_lo]`` are left out of T, C and K, and so are the elements whose
-    ``active`` is 0 (min / max keep every core voxel).
+    unknowns, :func:`cell_couplings` for affine offsets per cell of elements). With
+    ``masked``, voxels whose ``X + u(X)`` leaves ``[vm_lo, n - 1 - vm_lo]`` are left out of
+    T, C and K, and so are the elements whose ``active`` is 0 (min / max keep every core voxel).
     """
     nx = nex * ell
     T = np.zeros((nez, ney, nex, 3, 3, 3, 6))
@@ -288,8 +288,8 @@ def cell_couplings(C: np.ndarray, K: np.ndarray, k: int) -> np.ndarray:
     and ``D_c = Σ w q qᵀ`` over the cell's voxels, ``q = (1, z, y, x)``. That term couples every
     node of a cell with every other, beyond ``M``'s 27-node stencil, so it is kept as
     ``W_c = V_c D_c^{-1/2}`` (``Σ_c W_c W_cᵀ`` is the complement) and applied next to the
-    stencil in the client's solve (:func:`chunkdic.solve.stencil.subtract_cells`). Without it the steps overshoot
-    nothing but fall short in the directions the offsets absorb: at 512³, ℓ = 16, cells of 2³
+    stencil in the client's solve (:func:`chunkdic.solve.stencil.subtract_cells`). Left out,
+    the steps fell short in the directions the offsets absorb: at 512³, ℓ = 16, cells of 2³
     elements, Gauss–Newton contracted by ×0.11-0.2 per pass instead of the ×0.04-0.07 of one
     offset per element (docs/engine.md, "Brightness").
 
