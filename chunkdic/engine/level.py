@@ -330,7 +330,8 @@ class Level:
         lags = np.zeros((3, LAGS + 1))
         fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
         k = self.cell
-        cells = np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32) if k > 1 else None
+        cells = (np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32)
+                 if k > 1 else None)  # the mesh's cells' couplings (kernels.m.cell_couplings)
         inputs.f_copy.unmark()  # rewritten (a start chosen later builds M again): complete once every block is
         for blk, part, lo, hi, block_lags, frac, block_cells in self._map(m_task, args, "M pass",
                                                                           total=len(self.jobs)):
@@ -566,7 +567,8 @@ class Level:
         with no sampled element are skipped): a pass at an eighth of the cost or less. The
         gap is a root mean square over elements, so the sample estimates it closely
         (measured on the 300³ CT pair, ℓ = 12 and 8: within 0.9 % of the full pass; on the
-        1024³ band pair, ℓ = 16, one in 64 against one in 8: see docs/engine.md, "The start"). :meth:`assemble_b` measures the same gaps with its ``probes`` inside a
+        1024³ band pair, ℓ = 16, one in 64 against one in 8: docs/engine.md, "The start").
+        :meth:`assemble_b` measures the same gaps with its ``probes`` inside a
         pass of the iterations (the finest level's reported gaps: no pass of their own).
         """
         return self.assemble_b(u, self.gap_sample()).gap

@@ -326,8 +326,8 @@ def cell_couplings(C: np.ndarray, K: np.ndarray, k: int) -> np.ndarray:
     Vb = V.reshape(cells[0], k, cells[1], k, cells[2], k, 4, 8, 3)
     for node in range(8):
         dz, dy, dx = node >> 2, (node >> 1) & 1, node & 1
-        part = np.moveaxis(Vb[..., node, :], -2, -1)  # (cz, k, cy, k, cx, k, 3, 4)
-        Vc[:, :, :, dz:dz + k, dy:dy + k, dx:dx + k] += part.transpose(0, 2, 4, 1, 3, 5, 6, 7)
+        # (cz, k, cy, k, cx, k, 4, 3) -> (cz, cy, cx, k, k, k, 3, 4)
+        Vc[:, :, :, dz:dz + k, dy:dy + k, dx:dx + k] += Vb[..., node, :].transpose(0, 2, 4, 1, 3, 5, 7, 6)
     lam, U = np.linalg.eigh(D)
     keep = lam > CELL_RCOND * np.maximum(lam[..., -1:], 0.0)
     scale = np.where(keep, 1.0 / np.sqrt(np.where(keep, lam, 1.0)), 0.0)
