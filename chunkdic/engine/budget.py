@@ -85,7 +85,8 @@ KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.
 #: V-cycle's coarse ``M``, the fields of the Gauss–Newton state, a ``b`` pass's nodal and
 #: element rows and a solve's vectors at their peak (measured at 128³ nodes with 182 MiB of
 #: kernels, ``bench_client_memory.py --steps --iterations 2``: 2 157 MiB with a length that
-#: takes the V-cycle, 988 B per node; 1 967 MiB, 892 B, with block-Jacobi; 1 300 before the
+#: takes the V-cycle, 988 B per node; 1 967 MiB, 892 B, with block-Jacobi, to which the
+#: two-lane CG (solve.lanes) adds one vector, 24 B; 1 300 before the
 #: cuts of docs/distributed.md, "Where the client's memory goes"). The automatic length is
 #: not known before the run: the larger.
 CLIENT_BYTES_PER_NODE = 1000

@@ -24,7 +24,7 @@ from ..io.handles import ArrayRef, forget_open_arrays
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
 from ..solve.cg import PoorTextureWarning, StencilSolver
-from ..solve.regularization import Regularizer, plane_wave_weight
+from ..solve.regularization import Regularizer, plane_wave_unit
 from ..solve.stencil import rigid_restriction, stencil_matvec
 from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
@@ -198,6 +198,7 @@ class Level:
         self.g_adopted = adopt and self._adopt_prepared()
         self.regularization_length = math.nan
         self.regularization_weight = 0.0
+        self._unit_weight = (None, None, 0.0)  # (solver, kind, λ of a unit length): regularize
         # the operator is assembled here, so that no method can run before it exists
         # a start still to choose (steps.best_start): the weak-node warning waits for the M it is built with
         self.start_to_choose = start_to_choose
@@ -422,7 +423,12 @@ class Level:
                 return
             kind = "tikhonov"
         reg = Regularizer(kind, self.mesh.nodes_shape, self.mesh.element_size)
-        weight = plane_wave_weight(reg, lambda v: stencil_matvec(self.solver.matrix, v), length)
+        # λ per length^p, once per M and kind: the correlated level weighs up to three lengths
+        # (its start, the choice, the reweighting) against the same M
+        if self._unit_weight[:2] != (self.solver, kind):
+            unit = plane_wave_unit(reg, lambda v: stencil_matvec(self.solver.matrix, v))
+            self._unit_weight = (self.solver, kind, unit)
+        weight = self._unit_weight[2] * float(length) ** reg.order
         if freed is not None:
             reg = reg.with_freed(freed)
         self.solver.regularize(reg, weight)

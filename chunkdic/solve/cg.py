@@ -19,6 +19,7 @@ import warnings
 import numpy as np
 
 from ..errors import InputError
+from . import lanes
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .regularization import NO_FREED, Regularizer, add_weighted
@@ -237,6 +238,10 @@ class StencilSolver:
         if self._vcycle is not None:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
+        elif lanes.pays(self.nodes_shape, self.regularizer is not None or self.cells.shape[0] > 0):
+            reg_args = (code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed)
+            iterations = lanes.pcg_two_lanes(self.matrix, self._diag_args, b, x, rtol, self.maxiter, reg_args,
+                                             self.weight, self.cells, self.cell, overwrite_b)
         else:
             iterations = pcg_block_jacobi(self.matrix, *self._diag_args, b, x, rtol, self.maxiter,
                                           code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed,

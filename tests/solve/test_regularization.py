@@ -24,7 +24,7 @@ from chunkdic.engine.prefilter import face_margin
 from chunkdic.errors import InputError
 from chunkdic.results.result import FLAG_MASKED, FLAG_WEAK
 from chunkdic.results.strain import strain_summary
-from chunkdic.solve.regchoice import CANDIDATES, choose_length, dof_fraction, regions
+from chunkdic.solve.regchoice import CANDIDATES, _longest_within, choose_length, dof_fraction, regions
 from chunkdic.solve.regularization import (
     Regularizer,
     plane_wave_weight,
@@ -344,6 +344,28 @@ def test_choice_regions_do_not_repeat_the_same_box():
     boxes = regions((60, 60, 60), 24)
     assert len(boxes) == 8 and len(set((b[0].start, b[1].start, b[2].start) for b in boxes)) == 8
     assert sorted({b[0].start for b in boxes}) == [3, 33]  # centred on the quarters 15 and 45
+
+
+@pytest.mark.parametrize("walk", [False, True])
+def test_longest_admissible_candidate_found_from_any_first_probe(walk):
+    """Every threshold of a monotone test, every first probe: the search returns the last
+    admissible index; walking up from a guess just below the answer probes nothing beyond
+    the first refused candidate above it plus one doubling."""
+    stop = len(CANDIDATES)
+    for answer in range(stop):
+        for first in range(1, stop):
+            probed = []
+
+            def admissible(i):
+                probed.append(i)
+                return i <= answer
+
+            assert _longest_within(admissible, stop, first, walk=walk) == answer
+            if walk and first <= answer:
+                assert max(probed) <= answer + 1 + (answer - first)
+    probed = []
+    _longest_within(lambda i: probed.append(i) or i <= 3, stop, 1, walk=True)
+    assert probed == [1, 2, 4, 3]  # the reweighting's case on the 300³ band: never the far 6
 
 
 def _identity_stencil(shape, c=1.0):
