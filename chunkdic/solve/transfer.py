@@ -45,10 +45,25 @@ def c8_ratio(period, ell):
 
 def c8_l10(ell: float) -> float:
     """The period at which :func:`c8_ratio` equals 0.9: ``2.767 ℓ`` (θ = 2.2704)."""
-    from scipy.optimize import brentq
-
-    th = brentq(lambda t: 3.0 * np.sinc(t / (2 * np.pi)) ** 4 / (2.0 + np.cos(t)) - THRESHOLD, 0.1, 3.0)
+    th = _root(lambda t: 3.0 * np.sinc(t / (2 * np.pi)) ** 4 / (2.0 + np.cos(t)) - THRESHOLD, 0.1, 3.0)
     return float(2.0 * np.pi * ell / th)
+
+
+def _root(fn, lo: float, hi: float) -> float:
+    """The root of ``fn`` between ``lo`` and ``hi`` (of opposite signs there), by bisection
+    to the last bit: scipy's ``brentq`` did the same, but importing ``scipy.optimize`` for it
+    cost 0.1 s of every run's summary (``nominal_l10``)."""
+    f_lo = fn(lo)
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            break
+        f_mid = fn(mid)
+        if (f_mid < 0) == (f_lo < 0):
+            lo, f_lo = mid, f_mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
 
 
 def nominal_l10(ell: float, length: float | None) -> float:
@@ -64,8 +79,6 @@ def nominal_l10(ell: float, length: float | None) -> float:
     >>> round(nominal_l10(8, 800) / 800, 3)
     1.732
     """
-    from scipy.optimize import brentq
-
     if not length:
         return c8_l10(ell)
 
@@ -74,7 +87,7 @@ def nominal_l10(ell: float, length: float | None) -> float:
 
     lo = c8_l10(ell)  # neither transfer reaches 0.9 below the C8 one
     hi = max(lo, 9.0 ** 0.25 * length) * 4.0
-    return float(brentq(short, lo, hi)) if short(lo) < 0 else lo
+    return _root(short, lo, hi) if short(lo) < 0 else lo
 
 
 __all__ = ["THRESHOLD", "c8_ratio", "c8_l10", "nominal_l10"]
