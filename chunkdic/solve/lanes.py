@@ -28,19 +28,20 @@ from .stencil import _subtract_cells, axpy, block_solve, half_matvec, pcg
 LANES_FROM = 8192
 
 _lock = threading.Lock()
-_executor: concurrent.futures.ThreadPoolExecutor | None = None
+_executor: tuple[int, concurrent.futures.ThreadPoolExecutor] | None = None  # (pid, executor)
 
 
 def second_lane() -> concurrent.futures.ThreadPoolExecutor | None:
     """The one extra thread of the client's CG, or None when the run has a single core
-    (``num-threads`` of chunkdic's configuration, else the machine's cores)."""
+    (``num-threads`` of chunkdic's configuration, else the machine's cores). A forked
+    process gets its own: the parent's thread does not exist in it."""
     global _executor
     if int(config.get("num-threads") or os.cpu_count() or 1) < 2:
         return None
     with _lock:
-        if _executor is None:
-            _executor = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="chunkdic-cg")
-    return _executor
+        if _executor is None or _executor[0] != os.getpid():
+            _executor = (os.getpid(), concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="chunkdic-cg"))
+    return _executor[1]
 
 
 def pays(nodes_shape, has_second_term: bool) -> bool:
