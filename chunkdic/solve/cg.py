@@ -239,9 +239,7 @@ class StencilSolver:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
         elif lanes.pays(self.nodes_shape, self.regularizer is not None or self.cells.shape[0] > 0):
-            reg_args = (code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed)
-            iterations = lanes.pcg_two_lanes(self.matrix, self._diag_args, b, x, rtol, self.maxiter, reg_args,
-                                             self.weight, self.cells, self.cell, overwrite_b)
+            iterations = self._solve_two_lanes(b, x, rtol, overwrite_b)
         else:
             iterations = pcg_block_jacobi(self.matrix, *self._diag_args, b, x, rtol, self.maxiter,
                                           code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed,
@@ -251,6 +249,14 @@ class StencilSolver:
                           stacklevel=2)
             iterations = self.maxiter
         return x, iterations
+
+
+    def _solve_two_lanes(self, b: np.ndarray, x: np.ndarray, rtol: float, overwrite_b: bool) -> int:
+        """Block-Jacobi CG on two threads (:func:`chunkdic.solve.lanes.pcg_two_lanes`)."""
+        code, Ke, Kf, sw, ew, freed = self._reg_args
+        reg_args = (code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed)
+        return lanes.pcg_two_lanes(self.matrix, self._diag_args, b, x, rtol, self.maxiter, reg_args, self.weight,
+                                   self.cells, self.cell, overwrite_b)
 
 
 def z_slabs(nodes_shape, nodes: int = None):
@@ -272,6 +278,11 @@ def warmup() -> None:
     solver.data_matvec(np.ones((3, 3, 3, 3)))
     solver.regularize(Regularizer("tikhonov", (3, 3, 3), 2.0), 1.0)
     solver.solve(np.ones((3, 3, 3, 3)))
+    if lanes.second_lane() is not None:  # the two-lane CG of large meshes, its kernels called one by one
+        freed = np.zeros((3, 3, 3, 6), np.uint8)
+        freed[1, 1, 1] = 1
+        solver.regularize(Regularizer("tikhonov", (3, 3, 3), 2.0, freed), 1.0)
+        solver._solve_two_lanes(np.ones((3, 3, 3, 3)), np.zeros((3, 3, 3, 3)), 1e-5, False)
     half = np.zeros((7, 7, 7, 14, 3, 3), np.float32)  # two multigrid levels
     half[..., 0, :, :] = np.eye(3)
     solver = StencilSolver(half, multigrid=True)
