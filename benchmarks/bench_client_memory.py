@@ -90,13 +90,16 @@ class _StandInRunner:
             return
         from chunkdic.kernels.m import m_block
 
-        for _inputs, job, _u in args:
-            key = tuple(job.shape)
+        for inputs, job, _u in args:
+            # as engine.tasks.m_task: the level's brightness model and cells (their Schur
+            # complement, kept by the client since session 30)
+            key = tuple(job.shape) + (inputs.grey, inputs.grey_cell)
             if key not in self._cache:
                 f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in job.shape)).astype("float32")
-                self._cache[key] = m_block(f, (1, 1, 1), (1, 1, 1), job.ell, with_lags=True)
-            stencil, fmin, fmax, lags = self._cache[key]
-            yield job.block, stencil, fmin, fmax, lags, None
+                self._cache[key] = m_block(f, (1, 1, 1), (1, 1, 1), job.ell, grey=inputs.grey, center=100.0,
+                                           with_lags=True, cell=inputs.grey_cell)
+            stencil, fmin, fmax, lags, *cells = self._cache[key]
+            yield job.block, stencil, fmin, fmax, lags, None, (cells[0] if cells else None)
 
     def _b_pass(self, args):
         """A ``b`` pass: each block's partials reduced by the real ``reduce_block`` from random
