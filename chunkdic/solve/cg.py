@@ -250,7 +250,6 @@ class StencilSolver:
             iterations = self.maxiter
         return x, iterations
 
-
     def _solve_two_lanes(self, b: np.ndarray, x: np.ndarray, rtol: float, overwrite_b: bool) -> int:
         """Block-Jacobi CG on two threads (:func:`chunkdic.solve.lanes.pcg_two_lanes`)."""
         code, Ke, Kf, sw, ew, freed = self._reg_args
