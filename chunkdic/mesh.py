@@ -202,6 +202,15 @@ class Mesh:
         return out
 
 
+def node_colours(nodes_shape, period: int):
+    """Boolean masks (nodes_shape) of the nodes ``period`` apart on every axis, one per colour
+    (empty colours left out): unit vectors on one colour probe an operator that couples nodes
+    at most ``(period - 1) / 2`` apart without their columns overlapping."""
+    grid = np.indices(tuple(nodes_shape))
+    for colour in np.ndindex(*(min(period, int(n)) for n in nodes_shape)):
+        yield np.all([grid[d] % period == colour[d] for d in range(3)], axis=0)
+
+
 def level0_position(coords, scale: float):
     """Level-0 coordinates of positions ``coords`` on a level ``scale = 2^s`` times coarser.
 

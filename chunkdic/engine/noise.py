@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..mesh import node_colours
 from ..solve.cg import StencilSolver
 from ..solve.stencil import stencil_matvec
 
@@ -122,7 +123,8 @@ def exact_diagonal(small, region: tuple[slice, slice, slice] | None = None) -> n
 
     Dense: ``A = M + λ R`` and ``M`` are assembled from their products with unit vectors on a
     colouring of the nodes (:data:`PROBE_PERIOD`; ``M`` without brightness cells, whose
-    complement would reach across a cell) and ``A`` is factorised (Cholesky; ``A`` is symmetric positive definite). With
+    complement would reach across a cell) and ``A`` is factorised (Cholesky; ``A`` is
+    symmetric positive definite). With
     ``z = A⁻¹ e_i`` the entry is ``zᵀ M z``: one triangular solve per wanted unknown and a
     sparse product, not the whole ``A⁻¹ M A⁻¹`` (on 8³ nodes with the inner 6³ wanted:
     about a third of the floating-point work). Meant for a few thousand unknowns at most
@@ -141,9 +143,8 @@ def exact_diagonal(small, region: tuple[slice, slice, slice] | None = None) -> n
     # on every axis, whose columns (at most OPERATOR_REACH nodes from their own) cannot
     # overlap: 125 × 3 pairs of products on 8³ nodes instead of one pair per unknown (1 536)
     index = np.arange(size).reshape(shape + (3,))
-    grid = np.indices(shape)
-    for colour in np.ndindex(*(min(PROBE_PERIOD, n) for n in shape)):
-        nodes = np.argwhere(np.all([grid[d] % PROBE_PERIOD == colour[d] for d in range(3)], axis=0))
+    for colour in node_colours(shape, PROBE_PERIOD):
+        nodes = np.argwhere(colour)
         for j in range(3):
             e = np.zeros(shape + (3,))
             e[tuple(nodes.T) + (j,)] = 1.0

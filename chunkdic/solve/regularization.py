@@ -61,7 +61,7 @@ from dataclasses import dataclass, field
 import numba
 import numpy as np
 
-from ..mesh import LOCAL_NODES
+from ..mesh import LOCAL_NODES, node_colours
 
 KINDS = ("none", "tikhonov", "equilibrium-gap")
 #: the kinds of terms of the Tikhonov penalty, in the order of :attr:`Regularizer.freed`'s last axis:
@@ -592,17 +592,11 @@ class Regularizer:
         small = self.plain() if small_shape == self.nodes_shape else self.resized(small_shape)
         period = 2 * reach + 1
         blocks = np.zeros(small_shape + (3, 3))
-        grid = np.indices(small_shape)
-        for cz in range(period):
-            for cy in range(period):
-                for cx in range(period):
-                    sel = (grid[0] % period == cz) & (grid[1] % period == cy) & (grid[2] % period == cx)
-                    if not sel.any():
-                        continue
-                    for j in range(3):
-                        e = np.zeros(small_shape + (3,))
-                        e[sel, j] = 1.0
-                        blocks[sel, :, j] = small.apply(e)[sel]
+        for sel in node_colours(small_shape, period):
+            for j in range(3):
+                e = np.zeros(small_shape + (3,))
+                e[sel, j] = 1.0
+                blocks[sel, :, j] = small.apply(e)[sel]
         index = [np.where(np.arange(n) < core, np.arange(n),
                           np.where(np.arange(n) >= n - core, m - (n - np.arange(n)), core))
                  for n, m in zip(self.nodes_shape, small_shape)]
