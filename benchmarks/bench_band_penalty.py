@@ -6,6 +6,7 @@ Usage::
     python benchmarks/bench_band_penalty.py evaluate --workdir DIR [--cases band-grains ...] [--json PATH]
     python benchmarks/bench_band_penalty.py full --pairs PAIRDIR --cases band slip \
         --options '{"smoothing": 1.5, "roi": "2:98,2:98,2:98"}'
+    python benchmarks/bench_band_penalty.py noise-free --workdir DIR [--pairs PAIRDIR] [--json PATH]
 
 ``capture`` correlates the issue-20 pairs of ``bench_vs_aldvc.py`` (100³, seed 1, the
 ``--workdir`` of that script: ``PAIRDIR/<case>-100-<specimen>-uint16-n0.02-s1``, with
@@ -43,6 +44,11 @@ and scores ``x`` between the nodes on the voxels the issue-20 table scores at �
     region is the whole mesh) with the weighted penalty.
 ``irls-k-x2``
     The same reweighted once more from the ``irls-k`` field.
+
+``noise-free`` renders the band, the slip and the translation again without noise (same
+seed and texture; ``shift``: the reference Fourier-shifted) and runs the whole engine on them
+(and on the noisy pairs of ``--pairs`` beside them): the defaults, no penalty, the plain
+penalty at its best fixed length: how much of the error at ℓ = 8 the noise makes at all.
 
 ``full`` runs the whole engine at ℓ = 8 with other settings (``--options``, keywords of
 :func:`chunkdic.correlate`) on the same pairs and scores it the same way. A setting that
@@ -319,28 +325,97 @@ def evaluate(args) -> None:
             Path(args.json).write_text(json.dumps(rows, indent=1))
 
 
+def _score_result(res, case: str, fld) -> float:
+    """RMS vector error of ``res`` between its nodes on the scored voxels (σ pooled for a translation)."""
+    from chunkdic.analysis.scoring import _grid_interpolate
+    from chunkdic.synth.fields import true_displacement
+
+    p = np.arange(SCORED[0], SCORED[1] + 1, dtype=float)
+    scale = 2.0**res.level
+    axes = [np.unique(a) * scale + (scale - 1) / 2 for a in res.node_coords.reshape(3, -1)]
+    v = _grid_interpolate(axes, res.displacement * scale, [p] * 3)
+    e = (v - true_displacement(fld, p[:, None, None], p[None, :, None], p[None, None, :])).reshape(3, -1)
+    if case in ("noise", "shift"):
+        return float(np.sqrt(np.mean(np.var(e, axis=1))))
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=0))))
+
+
 def full(args) -> None:
     import chunkdic
-    from chunkdic.analysis.scoring import _grid_interpolate
-    from chunkdic.synth.fields import Field, true_displacement
+    from chunkdic.synth.fields import Field
 
     importlib.import_module("chunkdic.synth.shear")
     options = json.loads(args.options)
-    p = np.arange(SCORED[0], SCORED[1] + 1, dtype=float)
     for case in args.cases:
         for specimen in SPECIMENS:
             pair = Path(args.pairs) / f"{case}-100-{specimen}-uint16-n0.02-s1"
             fld = Field.from_json(json.loads((pair / "field.json").read_text())["field"])
             res = chunkdic.correlate(str(pair / "ref.zarr"), str(pair / "def.zarr"), element_size=ELL, **options)
-            scale = 2.0**res.level
-            axes = [np.unique(a) * scale + (scale - 1) / 2 for a in res.node_coords.reshape(3, -1)]
-            v = _grid_interpolate(axes, res.displacement * scale, [p] * 3)
-            e = (v - true_displacement(fld, p[:, None, None], p[None, :, None], p[None, None, :])).reshape(3, -1)
-            err = np.sqrt(np.mean(np.var(e, axis=1))) if case == "noise" else np.sqrt(np.mean(np.sum(e**2, axis=0)))
             length = (res.info.get("regularization") or {}).get("length")
-            print(json.dumps({"case": case, "specimen": specimen, "options": options, "error": round(float(err), 4),
-                              "status": res.info.get("status"), "length": length, "first_node": float(axes[0][0])}),
-                  flush=True)
+            print(json.dumps({"case": case, "specimen": specimen, "options": options,
+                              "error": round(_score_result(res, case, fld), 4), "status": res.info.get("status"),
+                              "length": length, "first_node": float(res.node_coords[0].min() * 2.0**res.level
+                                                                    + (2.0**res.level - 1) / 2)}), flush=True)
+
+
+#: the settings compared without noise: the defaults, the C8 fit alone, and the plain penalty at
+#: the best of these fixed lengths (voxels; band and slip only)
+NOISE_FREE_SETTINGS = {"defaults": {}, "unregularised": {"regularization": "none"}, "best plain length": None}
+FIXED_LENGTHS = (11.3, 16.0, 22.6, 32.0, 45.3, 64.0)
+#: the translations' fixed length (an automatic one runs to 32 ℓ on a translation): the star's at ℓ = 8
+TRANSLATION_LENGTH = 16.0
+
+
+def noise_free(args) -> None:
+    """The issue-20 pairs rendered again without noise (same seed, same texture), at ℓ = 8: what
+    the C8 fit and the penalty cost when no noise is left (band, slip: the defaults, no
+    penalty, the plain penalty at the best of :data:`FIXED_LENGTHS`), and what the rendering alone costs a
+    translation (``noise``: the deformed scan rendered from the moved geometry; ``shift``: the
+    reference Fourier-shifted, the engine's own interpolation error). With ``--pairs`` the
+    noisy pair of each case (``shift``: none) runs with the same settings beside it."""
+    import types
+
+    import chunkdic
+    from bench_vs_aldvc import build_case
+
+    work = Path(args.workdir)
+    opts = types.SimpleNamespace(seed=1, dtype="uint16", noise=0.0, band_lateral=None, feature_offset=0.0)
+    noisy = {r["case"]: r for r in json.loads(Path(args.noisy_record).read_text())["results"]
+             if r.get("ell") == ELL} if args.noisy_record else {}
+    rows = []
+    for case in args.cases:
+        for specimen in SPECIMENS:
+            c = build_case(case, 100, specimen, work, opts)
+            pairs = {"noise-free": (c.reference, c.deformed)}
+            noisy_pair = Path(args.pairs or "") / f"{case}-100-{specimen}-uint16-n0.02-s1"
+            if args.pairs and noisy_pair.is_dir():
+                pairs["noise 0.02"] = (str(noisy_pair / "ref.zarr"), str(noisy_pair / "def.zarr"))
+            ref = noisy.get(f"{case}/{specimen}") if case in ("band", "slip") else None
+            for name, setting in NOISE_FREE_SETTINGS.items():
+                if setting is None and case not in ("band", "slip"):
+                    continue
+                candidates = ([dict(setting)] if setting is not None
+                              else [{"regularization_length": L} for L in FIXED_LENGTHS])
+                if case in ("noise", "shift") and name == "defaults":
+                    candidates = [{"regularization_length": TRANSLATION_LENGTH}]
+                errors = {}
+                for label, (r, d) in pairs.items():
+                    scored = []
+                    for options in candidates:
+                        res = chunkdic.correlate(r, d, element_size=ELL, **options)
+                        scored.append((_score_result(res, case, c.field), options, res))
+                    err, options, res = min(scored, key=lambda t: t[0])
+                    errors[label] = err
+                    rows.append({"case": case, "specimen": specimen, "setting": name, "options": options,
+                                 "pair": label, "error": err, "status": res.info.get("status"),
+                                 "length": (res.info.get("regularization") or {}).get("length"),
+                                 "aldvc_noisy": ref["al-dvc"]["rms_common"] if ref else None})
+                peer = ref["al-dvc"]["rms_common"] if ref else None
+                print(f"{case:6s} {specimen:9s} {name:18s} "
+                      + "  ".join(f"{k} {v:.4f}" + (f" ({v / peer:.2f} of al-dvc's)" if peer else "")
+                                  for k, v in errors.items()), flush=True)
+    if args.json:
+        Path(args.json).write_text(json.dumps({"argv": sys.argv[1:], "rows": rows}, indent=1))
 
 
 def main() -> None:
@@ -362,8 +437,17 @@ def main() -> None:
     f.add_argument("--pairs", required=True)
     f.add_argument("--cases", nargs="+", default=["band", "slip"], choices=CASES)
     f.add_argument("--options", default="{}", help="JSON keywords of chunkdic.correlate")
+    n = sub.add_parser("noise-free")
+    n.add_argument("--workdir", required=True, help="where the noise-free pairs are rendered (kept)")
+    n.add_argument("--pairs", default=None, help="bench_vs_aldvc.py's workdir of the noisy pairs (optional)")
+    n.add_argument("--cases", nargs="+", default=["band", "slip", "noise", "shift"],
+                   choices=["band", "slip", "noise", "shift"])
+    n.add_argument("--noisy-record", default=str(Path(__file__).resolve().parent / "records"
+                                                  / "bench_vs_aldvc_100_session30.json"),
+                   help="bench_vs_aldvc.py record of the noisy pairs (al-dvc's errors for the ratios)")
+    n.add_argument("--json", default=None)
     args = ap.parse_args()
-    {"capture": capture, "evaluate": evaluate, "full": full}[args.command](args)
+    {"capture": capture, "evaluate": evaluate, "full": full, "noise-free": noise_free}[args.command](args)
 
 
 if __name__ == "__main__":
