@@ -346,9 +346,10 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
                              p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
                              rule=lvl.settings.regularization_rule, freed=freed, guess=guess)
 
-    # probed first: the length the level has iterated with so far (2ℓ: the choice at ℓ = 8-16
-    # is 1-3 candidates from it), not the middle candidate, whose long-length solve was the
-    # slowest of the plain choice (docs/engine.md, "Automatic length"); the same choice
+    # probed first: the length the level has iterated with so far (2ℓ; on heterogeneous fields
+    # the choice is 1-3 candidates from it), not the middle candidate, whose long-length solve
+    # was the slowest of the plain choice (docs/engine.md, "Robust reweighting", Cost); the
+    # same choice
     choice = choose(None, guess=lvl.regularization_length)
     scale = 2.0**lvl.s
     corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
