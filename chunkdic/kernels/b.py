@@ -12,7 +12,7 @@ import numpy as np
 
 from . import twins as kernels_numpy
 from .blocks import LAG_STRIDE, LAGS, ElementSums, core_shape, grad_index, voxel_xi
-from .interp import fast_bounds, jit, jit_inline
+from .interp import fast_bounds, jit, jit_inline, jit_sums
 from .rows import segment_samples, valid_bounds
 from .window import element_activity, kernel_setup
 
@@ -71,7 +71,7 @@ def _symmetrize(G):
                         G[ez, ey, ex, k, j] = G[ez, ey, ex, j, k]
 
 
-@jit
+@jit_sums
 def b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
               scx, xi, u, c0, c1, c2, g, o0, o1, o2, n0, n1, n2, vm_lo, cubic, center, active):
     """One fused sweep: ``g(X + u)``, ``d``, ``g'`` and the per-element sums (ElementSums).

@@ -21,7 +21,7 @@ import math
 
 import numpy as np
 
-from .interp import jit
+from .interp import jit, jit_sums
 
 #: the Gaussian is truncated at this many standard deviations (scipy's ``truncate``)
 TRUNCATE = 4.0
@@ -73,7 +73,7 @@ def _mirror(i, n):
     return period - i if i >= n else i
 
 
-@jit
+@jit_sums
 def _filter_axes(a, taps, lowpass, cubic, z):
     nz, ny, nx = a.shape
     r = (taps.size - 1) // 2

@@ -20,7 +20,7 @@ from .blocks import (
     grad_index,
     voxel_xi,
 )
-from .interp import jit, lerp, segment_inside
+from .interp import jit, lerp, segment_inside, jit_sums
 from .rows import row_field, taper
 from .window import IMPLEMENTATIONS, check_choice, element_activity
 
@@ -33,7 +33,7 @@ CONDENSED = {"none": 0, "global": 0, "drift": 1, "element": 2}
 _SYM = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]], dtype=np.int64)
 
 
-@jit
+@jit_sums
 def m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy, imx, ipx,
               scx, psi, xi, center, u, c0, c1, c2, n0, n1, n2, vm_lo, masked, active):
     """Element tensor moments T, element brightness couplings C and moments K; min / max.

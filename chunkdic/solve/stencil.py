@@ -25,7 +25,9 @@ def half_stencil(full: np.ndarray) -> np.ndarray:
     return full[..., CENTRE:, :, :]
 
 
-@numba.njit(nogil=True, cache=True)
+# reassociated sums (LLVM vectorises the 3x3 products): 11 % faster at 64³ nodes, the same
+# product to 1e-15 relative (docs/engine.md, "Reassociated sums in the kernels")
+@numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 def half_matvec(H, x, y):
     """y = M x from the half stencil H (nz, ny, nx, 14, 3, 3)."""
     nz, ny, nx = x.shape[:3]
