@@ -56,7 +56,7 @@ jit = numba.njit(nogil=True, cache=True)
 jit_inline = numba.njit(nogil=True, cache=True, inline="always")
 # the block sweeps that sum (the b and M passes, the low-pass): LLVM may reassociate their
 # sums and fuse a * b + c, which lets it vectorise them (no other fast-math flag: NaN tests
-# such as taper's must stay). 11-23 % faster per block, results to ~1e-12 relative
+# such as taper's must stay). 8-30 % faster per block, results to ~1e-12 relative
 # (docs/engine.md, "Reassociated sums in the kernels")
 jit_sums = numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 

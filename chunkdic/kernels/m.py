@@ -20,7 +20,7 @@ from .blocks import (
     grad_index,
     voxel_xi,
 )
-from .interp import jit, lerp, segment_inside, jit_sums
+from .interp import jit, jit_sums, lerp, segment_inside
 from .rows import row_field, taper
 from .window import IMPLEMENTATIONS, check_choice, element_activity
 
