@@ -328,11 +328,12 @@ def evaluate(args) -> None:
 def _score_result(res, case: str, fld) -> float:
     """RMS vector error of ``res`` between its nodes on the scored voxels (σ pooled for a translation)."""
     from chunkdic.analysis.scoring import _grid_interpolate
+    from chunkdic.mesh import level0_position
     from chunkdic.synth.fields import true_displacement
 
     p = np.arange(SCORED[0], SCORED[1] + 1, dtype=float)
     scale = 2.0**res.level
-    axes = [np.unique(a) * scale + (scale - 1) / 2 for a in res.node_coords.reshape(3, -1)]
+    axes = [level0_position(np.unique(a), scale) for a in res.node_coords.reshape(3, -1)]
     v = _grid_interpolate(axes, res.displacement * scale, [p] * 3)
     e = (v - true_displacement(fld, p[:, None, None], p[None, :, None], p[None, None, :])).reshape(3, -1)
     if case in ("noise", "shift"):
@@ -342,6 +343,7 @@ def _score_result(res, case: str, fld) -> float:
 
 def full(args) -> None:
     import chunkdic
+    from chunkdic.mesh import level0_position
     from chunkdic.synth.fields import Field
 
     importlib.import_module("chunkdic.synth.shear")
@@ -354,8 +356,9 @@ def full(args) -> None:
             length = (res.info.get("regularization") or {}).get("length")
             print(json.dumps({"case": case, "specimen": specimen, "options": options,
                               "error": round(_score_result(res, case, fld), 4), "status": res.info.get("status"),
-                              "length": length, "first_node": float(res.node_coords[0].min() * 2.0**res.level
-                                                                    + (2.0**res.level - 1) / 2)}), flush=True)
+                              "length": length,
+                              "first_node": float(level0_position(res.node_coords[0].min(), 2.0**res.level))}),
+                  flush=True)
 
 
 #: the settings compared without noise: the defaults, the C8 fit alone, and the plain penalty at
@@ -391,6 +394,7 @@ def noise_free(args) -> None:
             if args.pairs and noisy_pair.is_dir():
                 pairs["noise 0.02"] = (str(noisy_pair / "ref.zarr"), str(noisy_pair / "def.zarr"))
             ref = noisy.get(f"{case}/{specimen}") if case in ("band", "slip") else None
+            peer = ref["al-dvc"]["rms_common"] if ref else None  # al-dvc's error with noise
             for name, setting in NOISE_FREE_SETTINGS.items():
                 if setting is None and case not in ("band", "slip"):
                     continue
@@ -409,8 +413,7 @@ def noise_free(args) -> None:
                     rows.append({"case": case, "specimen": specimen, "setting": name, "options": options,
                                  "pair": label, "error": err, "status": res.info.get("status"),
                                  "length": (res.info.get("regularization") or {}).get("length"),
-                                 "aldvc_noisy": ref["al-dvc"]["rms_common"] if ref else None})
-                peer = ref["al-dvc"]["rms_common"] if ref else None
+                                 "aldvc_noisy": peer})
                 print(f"{case:6s} {specimen:9s} {name:18s} "
                       + "  ".join(f"{k} {v:.4f}" + (f" ({v / peer:.2f} of al-dvc's)" if peer else "")
                                   for k, v in errors.items()), flush=True)

@@ -25,8 +25,8 @@ def half_stencil(full: np.ndarray) -> np.ndarray:
     return full[..., CENTRE:, :, :]
 
 
-# reassociated sums (LLVM vectorises the 3x3 products): 11 % faster at 64³ nodes, the same
-# product to 1e-15 relative (docs/engine.md, "Reassociated sums in the kernels")
+# reassociated sums (LLVM vectorises the 3x3 products; the flags of kernels.interp.jit_sums,
+# which solve may not import): 12 % faster at 64³ nodes, the same product to 1e-15 relative (docs/engine.md, "Reassociated sums in the kernels")
 @numba.njit(nogil=True, cache=True, fastmath={"reassoc", "contract"})
 def half_matvec(H, x, y):
     """y = M x from the half stencil H (nz, ny, nx, 14, 3, 3)."""
