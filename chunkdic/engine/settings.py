@@ -63,7 +63,7 @@ class Settings:
         drift across the ROI. docs/engine.md, "Brightness".
     regularization : {"none", "tikhonov", "equilibrium-gap"}
         Penalty on the short wavelengths of the field (:mod:`chunkdic.solve.regularization`).
-    regularization_rule : {"discrepancy", "upre", "discrepancy-half", "gcv", "l-curve"}
+    regularization_rule : {"discrepancy", "upre", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve"}
         How the automatic length is chosen (:func:`chunkdic.solve.regchoice.choose_length`;
         docs/engine.md compares them).
     regularization_length : float or None
@@ -106,7 +106,9 @@ class Settings:
     regularization: str = _option("tikhonov", "penalty on the field's short wavelengths (default tikhonov, on "
                                   "its curvature)", choices=REGULARIZATIONS)
     regularization_rule: str = _option(DEFAULT_RULE, "how the automatic length is chosen (default discrepancy: "
-                                       "Morozov's principle; upre: least predicted error)", choices=RULES)
+                                       "Morozov's principle; upre: least predicted error; discrepancy-kinks: "
+                                       "longer after a reweighting frees a slip or a band, docs/engine.md)",
+                                       choices=RULES)
     regularization_length: float | None = _option(None, "its length, voxels of level 0 (default: chosen from the "
                                                   "data and printed)", kind=float, metavar="L")
     regularization_reweights: int | None = _option(

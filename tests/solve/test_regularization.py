@@ -24,7 +24,14 @@ from chunkdic.engine.prefilter import face_margin
 from chunkdic.errors import InputError
 from chunkdic.results.result import FLAG_MASKED, FLAG_WEAK
 from chunkdic.results.strain import strain_summary
-from chunkdic.solve.regchoice import CANDIDATES, _longest_within, choose_length, dof_fraction, regions
+from chunkdic.solve.regchoice import (
+    CANDIDATES,
+    KINK_WEIGHT,
+    _longest_within,
+    choose_length,
+    dof_fraction,
+    regions,
+)
 from chunkdic.solve.regularization import (
     Regularizer,
     plane_wave_weight,
@@ -430,6 +437,46 @@ def test_automatic_length_keeps_a_linear_field_and_shortens_for_a_bump():
         swept = choose_length("tikhonov", half, ell, bump, zero, budget / n_unknowns, _direct_solve, sweep=True,
                               rule="discrepancy")
         assert swept.length == pick.length and np.allclose(swept.misfit, misfit, rtol=1e-9)
+
+
+def test_kinks_rule_counts_the_nodes_near_freed_terms_twice_in_the_budget():
+    """``"discrepancy-kinks"`` on the bump above (``M = I``, ``b = 0``: known misfits by a
+    dense solve of the plain penalty; the solve below ignores ``freed``, so that only the
+    budget differs). Terms freed at the anchors of the plane z = 3 of a 7³ mesh: the nodes
+    within one node of them are the planes z = 2, 3, 4, 147 of 343 (by hand), so the budget
+    is ``s² · 3 · (343 + 147)``: for noise variances placed so that this budget falls
+    between consecutive candidates the rule picks the shorter one, where the plain
+    discrepancy (``s² · 3 · 343``) picks a shorter length or the same; without ``freed``
+    both pick alike."""
+    shape, ell = (7, 7, 7), 4.0
+    half = _identity_stencil(shape)
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij")
+    bump = np.exp(-((z - 3) ** 2 + (y - 3) ** 2 + (x - 3) ** 2) / (2 * 1.5**2))[..., None] * [0.3, 0.2, 0.1]
+    zero = np.zeros_like(bump)
+    reg = Regularizer("tikhonov", shape, ell)
+    increase = np.array([float(np.sum((_direct_solve(half, reg, plane_wave_weight(reg, lambda v: v.copy(), c * ell),
+                                                     bump) - bump) ** 2)) for c in CANDIDATES])
+    increase -= increase[0]
+    freed = np.zeros(shape + (6,), np.uint8)
+    freed[3, :, :, 0] = 1  # the zz terms of u_z anchored on the plane z = 3
+
+    def plain_solve(half, reg, weight, rhs):
+        return _direct_solve(half, reg.plain(), weight, rhs)
+
+    assert KINK_WEIGHT == 2.0
+    counted, shorter = 3 * (343 + 147), 0
+    for k in range(1, len(CANDIDATES) - 1):
+        s2 = 0.5 * (increase[k] + increase[k + 1]) / counted
+        kinks = choose_length("tikhonov", half, ell, bump, zero, s2, plain_solve, rule="discrepancy-kinks",
+                              freed=freed)
+        plain = choose_length("tikhonov", half, ell, bump, zero, s2, plain_solve, rule="discrepancy", freed=freed)
+        assert kinks.length == pytest.approx(CANDIDATES[k] * ell), k
+        assert kinks.budget == pytest.approx(s2 * counted)
+        assert plain.length <= kinks.length
+        shorter += plain.length < kinks.length
+        alone = choose_length("tikhonov", half, ell, bump, zero, s2, plain_solve, rule="discrepancy-kinks")
+        assert alone.length == choose_length("tikhonov", half, ell, bump, zero, s2, plain_solve).length
+    assert shorter > 0
 
 
 def test_degrees_of_freedom_estimate_against_the_exact_trace():
