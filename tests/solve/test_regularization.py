@@ -401,6 +401,18 @@ def _direct_solve(half, reg, weight, rhs):
     return (Q @ ((Q.T @ rhs.ravel()) / (c + weight * lam))).reshape(rhs.shape)
 
 
+def _bump_misfits(shape, ell):
+    """A Gaussian bump of width 1.5 ℓ (nz, ny, nx, 3) on ``M = I`` and the misfit ``|x - a|²``
+    of each candidate length by a dense solve of the plain Tikhonov penalty."""
+    half = _identity_stencil(shape)
+    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij")
+    bump = np.exp(-((z - 3) ** 2 + (y - 3) ** 2 + (x - 3) ** 2) / (2 * 1.5**2))[..., None] * [0.3, 0.2, 0.1]
+    reg = Regularizer("tikhonov", shape, ell)
+    misfit = [float(np.sum((_direct_solve(half, reg, plane_wave_weight(reg, lambda v: v.copy(), c * ell), bump)
+                            - bump) ** 2)) for c in CANDIDATES]
+    return half, bump, misfit
+
+
 def test_automatic_length_keeps_a_linear_field_and_shortens_for_a_bump():
     """With ``M = I`` and ``b = 0`` the misfit of a candidate is ``|x - a|²``, exactly.
 
@@ -420,12 +432,7 @@ def test_automatic_length_keeps_a_linear_field_and_shortens_for_a_bump():
     pick = choose_length("tikhonov", half, ell, linear, zero, 1e-12, _direct_solve)
     assert pick.length == pytest.approx(CANDIDATES[-1] * ell)
 
-    bump = np.exp(-((z - 3) ** 2 + (y - 3) ** 2 + (x - 3) ** 2) / (2 * 1.5**2))[..., None] * [0.3, 0.2, 0.1]
-    reg = Regularizer("tikhonov", shape, ell)
-    misfit = []
-    for c in CANDIDATES:
-        xs = _direct_solve(half, reg, plane_wave_weight(reg, lambda v: v.copy(), c * ell), bump)
-        misfit.append(float(np.sum((xs - bump) ** 2)))
+    _, bump, misfit = _bump_misfits(shape, ell)
     increase = np.array(misfit) - misfit[0]
     assert np.all(np.diff(increase) > 0)  # what the bisection relies on
     n_unknowns = 3 * int(np.prod(shape))
@@ -449,14 +456,9 @@ def test_kinks_rule_counts_the_nodes_near_freed_terms_twice_in_the_budget():
     discrepancy (``s² · 3 · 343``) picks a shorter length or the same; without ``freed``
     both pick alike."""
     shape, ell = (7, 7, 7), 4.0
-    half = _identity_stencil(shape)
-    z, y, x = np.meshgrid(*[np.arange(n, dtype=float) for n in shape], indexing="ij")
-    bump = np.exp(-((z - 3) ** 2 + (y - 3) ** 2 + (x - 3) ** 2) / (2 * 1.5**2))[..., None] * [0.3, 0.2, 0.1]
+    half, bump, misfit = _bump_misfits(shape, ell)
     zero = np.zeros_like(bump)
-    reg = Regularizer("tikhonov", shape, ell)
-    increase = np.array([float(np.sum((_direct_solve(half, reg, plane_wave_weight(reg, lambda v: v.copy(), c * ell),
-                                                     bump) - bump) ** 2)) for c in CANDIDATES])
-    increase -= increase[0]
+    increase = np.array(misfit) - misfit[0]
     freed = np.zeros(shape + (6,), np.uint8)
     freed[3, :, :, 0] = 1  # the zz terms of u_z anchored on the plane z = 3
 
