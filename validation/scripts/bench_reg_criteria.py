@@ -2,9 +2,9 @@
 
 Usage::
 
-    python benchmarks/bench_reg_criteria.py capture --specimen grains --size 96 \
+    python validation/scripts/bench_reg_criteria.py capture --specimen grains --size 96 \
         --spacings 16 12 8 --workdir DIR
-    python benchmarks/bench_reg_criteria.py evaluate --workdir DIR [--json PATH]
+    python validation/scripts/bench_reg_criteria.py evaluate --workdir DIR [--json PATH]
 
 ``capture`` correlates each case (waves of period 24/32/48/64 voxels, amplitude 0.5, a
 compression band, a shear slip, a translation; CT-like specimen, independent 2 % noise
@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_capture.py, next to this file
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # validation/scripts/_capture.py, next to this file
 
 CASES = ("wave24", "wave32", "wave48", "wave64", "band", "slip", "shift")
 

@@ -18,7 +18,7 @@ ell 16, is the mesh of a level-0 run of the scale benchmark (128³ nodes).
 
 Usage::
 
-    python benchmarks/bench_client_memory.py --sizes 1024 2048
+    python validation/scale/bench_client_memory.py --sizes 1024 2048
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/table_vs_aldvc.py RECORD [--variant NAME=RECORD] [--before RECORD]
+    python validation/scripts/table_vs_aldvc.py RECORD [--variant NAME=RECORD] [--before RECORD]
 
 ``RECORD`` is a ``bench_vs_aldvc.py`` record (both tools); each ``--variant`` another
 record of chunkdic on the same cases (e.g. run with ``--set grey_cell=32``; its al-dvc

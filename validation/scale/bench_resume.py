@@ -21,7 +21,7 @@ read, never written.
 
 Usage::
 
-    python benchmarks/bench_resume.py /big/grains512 --workdir /big/resume512 \\
+    python validation/scale/bench_resume.py /big/grains512 --workdir /big/resume512 \\
         --pythonpath /path/to/checkout --repeats 2 -- -l 16 --level 0
 """
 
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("pair", type=Path, help="folder of a synthetic pair (ref.zarr, def.zarr)")
     ap.add_argument("--workdir", type=Path, required=True, help="output and scratch go here (removed)")
-    ap.add_argument("--pythonpath", default=str(Path(__file__).resolve().parents[1]),
+    ap.add_argument("--pythonpath", default=str(Path(__file__).resolve().parents[2]),
                     help="the chunkdic checkout to run (default: this one)")
     ap.add_argument("--kill-at", default="level 0 iter  1")
     ap.add_argument("--repeats", type=int, default=2)

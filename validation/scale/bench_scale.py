@@ -31,10 +31,10 @@ and the same times 8 and 64 for 2x and 4x the edge.
 
 Usage (the commands of the table in docs/distributed.md)::
 
-    python benchmarks/bench_scale.py --size 512
-    python benchmarks/bench_scale.py --size 1024
-    python benchmarks/bench_scale.py --size 1024 --level 0 --element-size 16 --iterations-only
-    python benchmarks/bench_scale.py --size 2048 --workdir /big/disk   # 34 GB of uint16 scans
+    python validation/scale/bench_scale.py --size 512
+    python validation/scale/bench_scale.py --size 1024
+    python validation/scale/bench_scale.py --size 1024 --level 0 --element-size 16 --iterations-only
+    python validation/scale/bench_scale.py --size 2048 --workdir /big/disk   # 34 GB of uint16 scans
 
 Data go to ``--workdir/scale<size>`` and are deleted at the end unless ``--keep``.
 A JSON record of the run is written next to them (and kept).

@@ -19,8 +19,8 @@ Usage (issue 21's headline run, docs/distributed.md)::
 
     chunkdic synth /big/grains2048 --shape 2048 --specimen grains --imaging local \\
         --field band --strain -0.05 --noise 0.02 --dtype uint16
-    python benchmarks/bench_stages.py /big/grains2048 -l 16 --level 0 --workdir /big/run \\
-        --fields-level 2 --record benchmarks/records/bench_stages_2048.json
+    python validation/scale/bench_stages.py /big/grains2048 -l 16 --level 0 --workdir /big/run \\
+        --fields-level 2 --record validation/scale/records/bench_stages_2048.json
 
 The pair is read, never written; outputs go to ``--workdir`` (kept).
 """

@@ -33,13 +33,13 @@ Each run is a fresh process with ``--threads`` cores, as in ``bench_vs_aldvc.py`
 
 Usage::
 
-    nice python benchmarks/bench_star_vs_aldvc.py --specimen grains concrete \
+    nice python validation/scripts/bench_star_vs_aldvc.py --specimen grains concrete \
         --spacings 16 12 8 --solo-spacings 6 --threads 2 --workdir /tmp/star
-    nice python benchmarks/bench_star_vs_aldvc.py --seed 2 --spacings 8 --threads 2 \
-        --workdir /tmp/star --record benchmarks/records/bench_star_vs_aldvc_seed2.json
+    nice python validation/scripts/bench_star_vs_aldvc.py --seed 2 --spacings 8 --threads 2 \
+        --workdir /tmp/star --record validation/scripts/records/bench_star_vs_aldvc_seed2.json
 
 The run prints one line per tool and setting as it goes, then a Markdown table; the JSON
-record (``benchmarks/records/bench_star_vs_aldvc.json`` unless ``--record``) is rewritten
+record (``validation/scripts/records/bench_star_vs_aldvc.json`` unless ``--record``) is rewritten
 after every spacing.
 """
 

@@ -2,11 +2,11 @@
 
 Usage::
 
-    python benchmarks/bench_band_penalty.py capture --workdir DIR [--pairs PAIRDIR]
-    python benchmarks/bench_band_penalty.py evaluate --workdir DIR [--cases band-grains ...] [--json PATH]
-    python benchmarks/bench_band_penalty.py full --pairs PAIRDIR --cases band slip \
+    python validation/scripts/bench_band_penalty.py capture --workdir DIR [--pairs PAIRDIR]
+    python validation/scripts/bench_band_penalty.py evaluate --workdir DIR [--cases band-grains ...] [--json PATH]
+    python validation/scripts/bench_band_penalty.py full --pairs PAIRDIR --cases band slip \
         --options '{"smoothing": 1.5, "roi": "2:98,2:98,2:98"}'
-    python benchmarks/bench_band_penalty.py noise-free --workdir DIR [--pairs PAIRDIR] [--json PATH]
+    python validation/scripts/bench_band_penalty.py noise-free --workdir DIR [--pairs PAIRDIR] [--json PATH]
 
 ``capture`` correlates the issue-20 pairs of ``bench_vs_aldvc.py`` (100³, seed 1, the
 ``--workdir`` of that script: ``PAIRDIR/<case>-100-<specimen>-uint16-n0.02-s1``, with
@@ -68,7 +68,7 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/_capture.py, next to this file
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # validation/scripts/_capture.py, next to this file
 
 CASES = ("band", "slip", "wave32", "wave48", "noise")
 SPECIMENS = ("grains", "concrete")

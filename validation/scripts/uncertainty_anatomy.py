@@ -18,7 +18,7 @@ Whole volumes in memory: an analysis for small pairs (≤ 100³), not a pipeline
 
 Usage::
 
-    python benchmarks/uncertainty_anatomy.py --size 80 --element-sizes 16 12 8
+    python validation/scripts/uncertainty_anatomy.py --size 80 --element-sizes 16 12 8
 """
 
 from __future__ import annotations

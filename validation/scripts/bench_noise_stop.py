@@ -10,8 +10,8 @@ the finest level's passes, the chosen regularisation length and the nodes flagge
 Runs with whatever ``chunkdic`` is on ``PYTHONPATH``: point it at an older tree to compare
 the stopping rules on the very same pairs (the pairs are kept in ``--workdir``)::
 
-    python benchmarks/bench_noise_stop.py --sizes 64 72 80 96 --workdir /tmp/noise-stop
-    PYTHONPATH=/path/to/older python benchmarks/bench_noise_stop.py --sizes 64 --workdir /tmp/noise-stop
+    python validation/scripts/bench_noise_stop.py --sizes 64 72 80 96 --workdir /tmp/noise-stop
+    PYTHONPATH=/path/to/older python validation/scripts/bench_noise_stop.py --sizes 64 --workdir /tmp/noise-stop
 
 docs/engine.md, "A false "stalled" at ℓ = 6", records what it measured.
 """
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     ap.add_argument("--ell", type=int, default=6)
     ap.add_argument("--period", type=float, default=24.0)
     ap.add_argument("--workdir", help="pairs (kept between runs; default: a new temporary directory)")
-    ap.add_argument("--record", help="write benchmarks/records/bench_noise_stop_NAME.json")
+    ap.add_argument("--record", help="write validation/scripts/records/bench_noise_stop_NAME.json")
     args = ap.parse_args(argv)
     if min(args.sizes) < 32 or args.ell < 4 or args.period <= 0:
         ap.error("--sizes must be >= 32, --ell >= 4, --period > 0")

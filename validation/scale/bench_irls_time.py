@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_irls_time.py PAIRDIR [ELL] [REPEATS]
+    python validation/scale/bench_irls_time.py PAIRDIR [ELL] [REPEATS]
 
 ``PAIRDIR`` holds ``ref.zarr`` and ``def.zarr`` (e.g. a 300³ grains band written by
 ``chunkdic synth`` or :func:`chunkdic.synth.synthetic.synthesize` with

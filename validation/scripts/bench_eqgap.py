@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_eqgap.py [--size 64] [--spacings 6 4] [--specimens grains concrete]
+    python validation/scripts/bench_eqgap.py [--size 64] [--spacings 6 4] [--specimens grains concrete]
                                      [--kinds equilibrium-gap tikhonov] [--lengths 12 17 24]
                                      [--solver 24] [--workdir DIR]
 
@@ -72,7 +72,7 @@ def correlate(pair: dict, field, size: int, ell: int, kind: str, length: float |
 
 
 def solver_table(n: int) -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "solve"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests" / "solve"))
     from test_multigrid import _mass_stencil
 
     from chunkdic.solve.cg import StencilSolver

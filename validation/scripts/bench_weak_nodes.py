@@ -11,7 +11,7 @@ what it measured and what was decided from it.
 
 Usage::
 
-    python benchmarks/bench_weak_nodes.py --sizes 64 100 --spacings 6 8 --workdir /tmp/weak
+    python validation/scripts/bench_weak_nodes.py --sizes 64 100 --spacings 6 8 --workdir /tmp/weak
 """
 
 from __future__ import annotations

@@ -16,8 +16,8 @@ shows (issue 21: the 2048³ pair on this machine's disk).
 
 Usage::
 
-    python benchmarks/bench_plan.py --sizes 128 256 512 --repeats 2 --record benchmarks/records/bench_plan.json
-    python benchmarks/bench_plan.py --plan-only --sizes 2048 --free 39GB
+    python validation/scale/bench_plan.py --sizes 128 256 512 --repeats 2 --record validation/scale/records/bench_plan.json
+    python validation/scale/bench_plan.py --plan-only --sizes 2048 --free 39GB
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_regularization.py [--size 96] [--spacings 16 12 8 6 4]
+    python validation/scripts/bench_regularization.py [--size 96] [--spacings 16 12 8 6 4]
                                               [--lengths 1 2 4 8] [--specimen grains]
                                               [--workdir DIR] [--json PATH]
 

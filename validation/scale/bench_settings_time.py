@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_settings_time.py PAIRDIR [--ell 12] [--repeats 3] \\
+    python validation/scale/bench_settings_time.py PAIRDIR [--ell 12] [--repeats 3] \\
         [--variant NAME[:KEY=VALUE,...]] ... [--record PATH]
 
 ``PAIRDIR`` holds ``ref.zarr`` and ``def.zarr`` (e.g. the 300³ grains band that

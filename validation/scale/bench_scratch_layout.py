@@ -15,7 +15,7 @@ compressed, :mod:`chunkdic.engine.scratchstore`) and each repeat, a fresh proces
 
 Medians over ``--repeats`` (the layouts' runs interleaved); the load average is printed. Usage::
 
-    python benchmarks/bench_scratch_layout.py PAIR_DIR --repeats 3 --record out.json
+    python validation/scale/bench_scratch_layout.py PAIR_DIR --repeats 3 --record out.json
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/ct_images.py [--size 128] [--out docs/images]
+    python docs/tools/ct_images.py [--size 128] [--out docs/images]
 
 One figure per specimen: the noise-free phase map, the default CT scan (ramp filter,
 noise 0.02), a softer scan (ramp x Hann, detector blur 0.8 px, rings 0.02) and the

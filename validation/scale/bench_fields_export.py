@@ -10,7 +10,7 @@ the size on disk, the estimate and their ratio, with ``/proc/loadavg`` before an
 
 Usage::
 
-    python benchmarks/bench_fields_export.py RESULT.zarr --levels 0 2 --runs 2 --workdir /tmp/x
+    python validation/scale/bench_fields_export.py RESULT.zarr --levels 0 2 --runs 2 --workdir /tmp/x
 """
 
 from __future__ import annotations

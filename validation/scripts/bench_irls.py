@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_irls.py --pairs DIR [DIR ...] --cases band slip --spacings 8 \
+    python validation/scripts/bench_irls.py --pairs DIR [DIR ...] --cases band slip --spacings 8 \
         --offsets 0 2 4 6 --json out.json
 
 For each issue-20 pair (the 100³ seed-1 pairs of ``bench_vs_aldvc.py``, found by name in

@@ -26,8 +26,8 @@ scan (the run's largest), nearest the centre among them.
 
 Usage::
 
-    python benchmarks/bench_prefilter_memory.py /work/big/grains1024/def.zarr --tasks 1 2 --repeats 3
-    python benchmarks/bench_prefilter_memory.py /work/big/grains512/def.zarr --edge 128 --tasks 2
+    python validation/scale/bench_prefilter_memory.py /work/big/grains1024/def.zarr --tasks 1 2 --repeats 3
+    python validation/scale/bench_prefilter_memory.py /work/big/grains512/def.zarr --edge 128 --tasks 2
 
 The scan is read only; the store goes to a temporary directory (``--tmp``), deleted.
 """

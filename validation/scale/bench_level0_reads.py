@@ -11,7 +11,7 @@ the chunks decoded and found in the cache are printed. ``--repeats`` alternates 
 
 Usage (docs/distributed.md, "Reading the scans' chunks")::
 
-    python benchmarks/bench_level0_reads.py /big/grains512 -l 16 --repeats 2
+    python validation/scale/bench_level0_reads.py /big/grains512 -l 16 --repeats 2
 """
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--record", type=Path)
     args = p.parse_args(argv)
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[2]),
                                                        os.environ.get("PYTHONPATH", "")]))
     runs = []
     for r in range(args.repeats):

@@ -12,7 +12,7 @@ Prints (docs/synthetic.md, "Local imaging"):
 - ``speed``: CPU time of a local pair (``synthesize``, band, uint16) at ``--sizes``,
   Mvoxel per CPU s (both scans counted) and the 2048³ pair extrapolated on 2 cores.
 
-Usage: ``python benchmarks/bench_ct_local.py [spectra] [engine] [speed] [--n 128] [--sizes 128 256]``.
+Usage: ``python validation/scale/bench_ct_local.py [spectra] [engine] [speed] [--n 128] [--sizes 128 256]``.
 """
 
 from __future__ import annotations

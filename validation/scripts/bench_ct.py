@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_ct.py [--sizes 128 300] [--specimens grains concrete]
+    python validation/scripts/bench_ct.py [--sizes 128 300] [--specimens grains concrete]
                                   [--repeat 1] [--dir DIR] [--skimage]
 
 Prints, per slice size, the CPU time of one slice for the phase map (reference and

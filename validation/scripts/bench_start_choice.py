@@ -9,7 +9,7 @@ start chosen. Run it on two checkouts (``PYTHONPATH``) to compare; quote ``/proc
 
 Usage::
 
-    python benchmarks/bench_start_choice.py --size 64 --runs 5 --workdir /tmp/start
+    python validation/scripts/bench_start_choice.py --size 64 --runs 5 --workdir /tmp/start
 """
 
 from __future__ import annotations
