@@ -84,7 +84,7 @@ class Result:
         Node positions.
     history : dict of 1-D ndarrays
         Per level and iteration: ``level``, ``iteration``, matching gap ``gap``
-        (paper section 5.1), ``max_delta`` = max |δa| of the update that followed
+        (paper section 5.1), ``max_delta`` = ``max |δa|`` of the update that followed
         (NaN for the final evaluation), ``excluded`` voxels.
     info : dict
         Everything else: ``element_size``, ``roi`` (level voxels, ``[[z0, z1], …]``),
