@@ -9,7 +9,7 @@ more accurate one unless it costs more than twice the time (issue 2).
 
 Usage::
 
-    python benchmarks/bench_interpolation.py --size 128 --element-sizes 16 12 8
+    python validation/scripts/bench_interpolation.py --size 128 --element-sizes 16 12 8
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bench_open_check.py SCAN.zarr [MORE.zarr ...] [--repeats 5] [--threads 8]
+    python validation/scripts/bench_open_check.py SCAN.zarr [MORE.zarr ...] [--repeats 5] [--threads 8]
 
 For every stored level of each scan: the chunk files' listing (``os.walk`` + ``stat``, one
 per file: the missing- and empty-chunk checks), the Blosc frame-header check
