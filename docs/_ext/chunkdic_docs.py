@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 from collections import defaultdict
 from pathlib import Path
@@ -148,12 +149,12 @@ def _matches(row: dict, where: list[tuple[str, str]]) -> bool:
 
 
 class ValidationTable(Directive):
-    """``.. validation-table:: validation/records/STUDY.json`` with ``:columns:`` lines
-    ``key | header | format`` and an optional ``:where: key=v1|v2, key2=v``."""
+    """``.. validation-table:: validation/records/STUDY.json``, one content line per column,
+    ``key | header | format``, and an optional ``:where: key=v1|v2, key2=v``."""
 
     required_arguments = 1
-    option_spec = {"columns": directives.unchanged_required, "where": directives.unchanged,
-                   "caption": directives.unchanged}
+    has_content = True
+    option_spec = {"where": directives.unchanged, "caption": directives.unchanged}
 
     def run(self):
         path = ROOT / self.arguments[0]
@@ -161,7 +162,7 @@ class ValidationTable(Directive):
         env.note_dependency(str(path))
         rec = json.loads(path.read_text())
         columns = [[part.strip() for part in line.split("|")] + ["", ""]
-                   for line in self.options["columns"].strip().splitlines() if line.strip()]
+                   for line in self.content if line.strip()]
         where = [tuple(part.strip().split("=", 1)) for part in self.options.get("where", "").split(",") if part.strip()]
         rows = [[_format(r.get(key), spec) for key, _, spec, *_ in columns]
                 for r in rec["rows"] if _matches(r, where)]
@@ -180,9 +181,37 @@ class ValidationTable(Directive):
         return out
 
 
+class ValidationGeomean(Directive):
+    """``.. validation-geomean:: RECORD`` with ``:value: key``, ``:by: key1, key2`` and
+    ``:where:``: the geometric mean of ``value`` over the rows of each group."""
+
+    required_arguments = 1
+    option_spec = {"value": directives.unchanged_required, "by": directives.unchanged_required,
+                   "where": directives.unchanged, "header": directives.unchanged}
+
+    def run(self):
+        path = ROOT / self.arguments[0]
+        self.state.document.settings.env.note_dependency(str(path))
+        rec = json.loads(path.read_text())
+        where = [tuple(part.strip().split("=", 1)) for part in self.options.get("where", "").split(",") if part.strip()]
+        by = [k.strip() for k in self.options["by"].split(",")]
+        value = self.options["value"]
+        groups: dict[tuple, list[float]] = defaultdict(list)
+        for r in rec["rows"]:
+            if _matches(r, where) and r.get(value):
+                groups[tuple(r.get(k) for k in by)].append(float(r[value]))
+        if not groups:
+            raise self.error(f"{self.arguments[0]}: no row matches {where}")
+        rows = [[*map(str, key), f"{math.exp(sum(map(math.log, v)) / len(v)):.2f}", str(len(v))]
+                for key, v in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0])))]
+        header = self.options.get("header", f"geometric mean of {value}")
+        return [table([*by, header, "cases"], rows)]
+
+
 def setup(app):
     app.connect("config-inited", write_api_page)  # before Sphinx lists the sources and autosummary writes its stubs
     app.add_directive("chunkdic-settings", SettingsTable)
     app.add_directive("chunkdic-config", ConfigTable)
     app.add_directive("validation-table", ValidationTable)
+    app.add_directive("validation-geomean", ValidationGeomean)
     return {"parallel_read_safe": True, "parallel_write_safe": True}
