@@ -1,7 +1,7 @@
 """Sphinx extension of chunkdic's documentation: pages and tables made from the code and the records.
 
 - ``docs/api/index.rst`` is written at each build from ``chunkdic/__init__.pyi``
-  (:mod:`apinames`): every public name gets an autosummary entry and a page;
+  (:mod:`codefacts`): every public name gets an autosummary entry and a page;
 - ``chunkdic-settings`` / ``chunkdic-config``: the configuration tables, from
   :class:`chunkdic.Settings`'s fields and the defaults and comments of ``chunkdic/config.py``;
 - ``validation-table RECORD``: a table of a study's latest record (``validation/record.py``
@@ -13,14 +13,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import re
 from collections import defaultdict
 from pathlib import Path
 
 from docutils import nodes
 from docutils.parsers.rst import Directive, directives
 
-from apinames import public_names
+from codefacts import config_comments, public_names
 
 DOCS = Path(__file__).resolve().parents[1]
 ROOT = DOCS.parent
@@ -101,22 +100,6 @@ class SettingsTable(Directive):
                       [14, 14, 8, 14, 40])]
 
 
-def config_comments(path: Path) -> dict[str, str]:
-    """The comment lines right above each ``"key": value`` line of ``config.py``, by key."""
-    out, pending = {}, []
-    for line in path.read_text().splitlines():
-        text = line.strip()
-        key = re.match(r'"([a-z-]+)":', text)
-        if text.startswith("#"):
-            pending.append(text.lstrip("# "))
-        elif key:
-            out[key.group(1)] = " ".join(pending)
-            pending = []
-        else:
-            pending = []
-    return out
-
-
 class ConfigTable(Directive):
     """The runtime knobs of ``dask.config`` under ``chunkdic.``, with the comment above each."""
 
@@ -125,7 +108,7 @@ class ConfigTable(Directive):
 
         path = ROOT / "chunkdic" / "config.py"
         self.state.document.settings.env.note_dependency(str(path))
-        comments = config_comments(path)
+        comments = config_comments()
         rows = []
         for key, value in DEFAULTS["chunkdic"].items():
             env = "DASK_CHUNKDIC__" + key.upper().replace("-", "_")
