@@ -14,6 +14,7 @@ your own scans.
 # :func:`chunkdic.synth.synthetic.synthesize` writes a reference scan, a deformed scan
 # and the field between them (``field.json``) into a folder. The deformed scan has no
 # interpolation in it: it is rendered from the deformed texture directly.
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -61,3 +62,7 @@ ax.plot(z, res.displacement[0][:, 3, 3], "o", label="chunkdic, ℓ = 8")
 ax.set(xlabel="z (voxels)", ylabel="$U_z$ (voxels)", title="Axial displacement through the centre")
 ax.legend()
 plt.show()
+
+# %%
+# The scans and results were written to a temporary folder; remove it.
+shutil.rmtree(work)

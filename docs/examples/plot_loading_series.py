@@ -10,6 +10,7 @@ options for real scans.
 """
 
 # %%
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -62,3 +63,7 @@ for k, field in enumerate(fields, start=1):
 ax.set(xlabel="z (voxels)", ylabel="$U_z$ (voxels)", title="Cumulative axial displacement (lines: truth)")
 ax.legend()
 plt.show()
+
+# %%
+# The scans and results were written to a temporary folder; remove it.
+shutil.rmtree(work)

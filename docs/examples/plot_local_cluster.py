@@ -10,6 +10,7 @@ depend on the scheduler beyond round-off. ``workflows/local_cluster.py`` and
 """
 
 # %%
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -47,3 +48,7 @@ for ax, data, title in zip(axes, (clustered.displacement[2][:, 3, :], truth[2][:
 axes[0].set_ylabel("z node")
 fig.colorbar(im, ax=axes, label="voxels")
 plt.show()
+
+# %%
+# The scans and results were written to a temporary folder; remove it.
+shutil.rmtree(work)

@@ -9,6 +9,7 @@ is the same as a script for real files.
 """
 
 # %%
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -54,3 +55,7 @@ ax.plot(z, f * res.displacement[0][:, 2, 2], "o", label="level 2, ℓ = 6 (24 le
 ax.set(xlabel="z (level-0 voxels)", ylabel="$U_z$ (level-0 voxels)", title="Axial displacement, whole specimen")
 ax.legend()
 plt.show()
+
+# %%
+# The scans and results were written to a temporary folder; remove it.
+shutil.rmtree(work)
