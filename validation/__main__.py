@@ -23,8 +23,9 @@ def _chunkdic_cli() -> list[str]:
     return [exe] if exe else [sys.executable, "-m", "chunkdic"]
 
 
-def run(name: str, workdir: Path, extra: list[str]) -> Path:
-    """Run study ``name`` in ``workdir`` and write its record; return the record's path."""
+def run(name: str, workdir: Path, extra: list[str], output: Path | None = None) -> Path:
+    """Run study ``name`` in ``workdir`` and write its record (to ``output``, default the study's
+    record, replacing it); return the record's path."""
     study = STUDIES[name]
     workdir.mkdir(parents=True, exist_ok=True)
     raw = workdir / f"{name}-raw.json"
@@ -46,7 +47,7 @@ def run(name: str, workdir: Path, extra: list[str]) -> Path:
     rec = record.new(name, title=study.title, rows=study.rows(data), command=f"python -m validation run {name}",
                      settings={"script": study.script, "args": [*study.args, *extra]}, notes=study.about,
                      extra_versions=_peer_version(data))
-    return record.write(rec, record.path_of(name, study.folder))
+    return record.write(rec, output or record.path_of(name, study.folder))
 
 
 def _peer_version(data: dict) -> dict:
@@ -61,12 +62,15 @@ def main(argv=None) -> int:
     r = sub.add_parser("run", help="measure a study again and replace its record")
     r.add_argument("study", choices=sorted(STUDIES))
     r.add_argument("--workdir", type=Path, default=None, help="scans and runs (default: a temporary directory)")
-    r.add_argument("extra", nargs=argparse.REMAINDER, help="more arguments for the study's script, after --")
+    r.add_argument("--output", type=Path, default=None, help="write the record here (default: replace the study's)")
+    p.epilog = "Arguments after -- go to the study's script, after its own (argparse keeps the last of a repeated option)."
     c = sub.add_parser("convert", help="turn the study script's own JSON files into the study's record")
     c.add_argument("study", choices=sorted(STUDIES))
     c.add_argument("raw", nargs="+", type=Path)
     sub.add_parser("check", help="check every record against the schema")
-    a = p.parse_args(argv)
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []  # more arguments for the study's script
+    a = p.parse_args(argv[:len(argv) - len(extra) - (1 if "--" in argv else 0)])
     if a.command == "list":
         for s in STUDIES.values():
             path = record.path_of(s.name, s.folder)
@@ -74,12 +78,11 @@ def main(argv=None) -> int:
             when = f"{rec['date']} at {rec['commit']}" if rec else "no record"
             print(f"{s.name:15s} {s.folder:10s} {when:40s} {s.title}")
     elif a.command == "run":
-        extra = a.extra[1:] if a.extra[:1] == ["--"] else a.extra
         if a.workdir is None:
             with tempfile.TemporaryDirectory(prefix=f"validation-{a.study}-") as tmp:
-                print(run(a.study, Path(tmp), extra))
+                print(run(a.study, Path(tmp), extra, a.output))
         else:
-            print(run(a.study, a.workdir, extra))
+            print(run(a.study, a.workdir, extra, a.output))
     elif a.command == "convert":
         from .legacy import convert
 
