@@ -1,6 +1,6 @@
 """
-On a local cluster
-==================
+On a local cluster, and on SLURM
+================================
 
 A ``LocalCluster`` of two worker processes on the loopback interface, its ``Client``
 handed to :func:`chunkdic.correlate`. The tasks read their blocks from the Zarr stores
@@ -48,6 +48,18 @@ for ax, data, title in zip(axes, (clustered.displacement[2][:, 3, :], truth[2][:
 axes[0].set_ylabel("z node")
 fig.colorbar(im, ax=axes, label="voxels")
 plt.show()
+
+# %%
+# On a SLURM cluster
+# ------------------
+# There the workers come from dask-jobqueue and the ``Client`` is made the same way. This is
+# the batch script it submits for each job (nothing is submitted here: the cluster is only
+# created to render it). ``workflows/slurm.py`` runs the whole recipe.
+from dask_jobqueue import SLURMCluster
+
+with SLURMCluster(cores=8, processes=1, memory="32GiB", walltime="04:00:00", account="proj",
+                  scheduler_options={"host": "127.0.0.1", "dashboard_address": "127.0.0.1:0"}) as slurm:
+    print(slurm.job_script())
 
 # %%
 # The scans and results were written to a temporary folder; remove it.
