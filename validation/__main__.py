@@ -44,7 +44,7 @@ def run(name: str, workdir: Path, extra: list[str], output: Path | None = None) 
         named = study.script_path.parent / "records" / f"{study.script_path.stem}_{raw_name}.json"
         shutil.move(named, raw)
     data = json.loads(raw.read_text())
-    rec = record.new(name, title=study.title, rows=study.rows(data), command=f"python -m validation run {name}",
+    rec = record.new(name, title=study.title, rows=study.rows(data), command=" ".join(["python -m validation run", name, *(["--", *extra] if extra else [])]),
                      settings={"script": study.script, "args": [*study.args, *extra]}, notes=study.about,
                      extra_versions=_peer_version(data))
     return record.write(rec, output or record.path_of(name, study.folder))
