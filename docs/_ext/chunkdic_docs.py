@@ -4,8 +4,9 @@
   (:mod:`codefacts`): every public name gets an autosummary entry and a page;
 - ``chunkdic-settings`` / ``chunkdic-config``: the configuration tables, from
   :class:`chunkdic.Settings`'s fields and the defaults and comments of ``chunkdic/config.py``;
-- ``validation-table RECORD``: a table of a study's latest record (``validation/record.py``
-  schema); a changed record rebuilds the page.
+- ``validation-table RECORD`` and ``validation-geomean RECORD``: a table of a study's latest
+  record (``validation/record.py`` schema), or geometric means over its rows; a changed
+  record rebuilds the page.
 """
 
 from __future__ import annotations
@@ -127,8 +128,18 @@ def _format(value, spec: str) -> str:
     return str(value)
 
 
-def _matches(row: dict, where: list[tuple[str, str]]) -> bool:
-    return all(str(row.get(k)) in v.split("|") for k, v in where)
+def _record_rows(directive: Directive) -> tuple[dict, list[dict]]:
+    """The record named by the directive's argument (noted as a dependency of the page) and
+    its rows that match ``:where: key=v1|v2, key2=v``."""
+    path = ROOT / directive.arguments[0]
+    directive.state.document.settings.env.note_dependency(str(path))
+    rec = json.loads(path.read_text())
+    where = [tuple(part.strip().split("=", 1)) for part in directive.options.get("where", "").split(",")
+             if part.strip()]
+    rows = [r for r in rec["rows"] if all(str(r.get(k)) in v.split("|") for k, v in where)]
+    if not rows:
+        raise directive.error(f"{directive.arguments[0]}: no row matches {where}")
+    return rec, rows
 
 
 class ValidationTable(Directive):
@@ -140,17 +151,9 @@ class ValidationTable(Directive):
     option_spec = {"where": directives.unchanged, "caption": directives.unchanged}
 
     def run(self):
-        path = ROOT / self.arguments[0]
-        env = self.state.document.settings.env
-        env.note_dependency(str(path))
-        rec = json.loads(path.read_text())
-        columns = [[part.strip() for part in line.split("|")] + ["", ""]
-                   for line in self.content if line.strip()]
-        where = [tuple(part.strip().split("=", 1)) for part in self.options.get("where", "").split(",") if part.strip()]
-        rows = [[_format(r.get(key), spec) for key, _, spec, *_ in columns]
-                for r in rec["rows"] if _matches(r, where)]
-        if not rows:
-            raise self.error(f"{self.arguments[0]}: no row matches {where}")
+        rec, matching = _record_rows(self)
+        columns = [[part.strip() for part in line.split("|")] + ["", ""] for line in self.content if line.strip()]
+        rows = [[_format(r.get(key), spec) for key, _, spec, *_ in columns] for r in matching]
         machine = rec["machine"] or {}
         about = (f"Record {self.arguments[0]}: commit {rec['commit']}, {rec['date']}, "
                  f"{machine.get('cores') or '?'} cores"
@@ -173,18 +176,13 @@ class ValidationGeomean(Directive):
                    "where": directives.unchanged, "header": directives.unchanged}
 
     def run(self):
-        path = ROOT / self.arguments[0]
-        self.state.document.settings.env.note_dependency(str(path))
-        rec = json.loads(path.read_text())
-        where = [tuple(part.strip().split("=", 1)) for part in self.options.get("where", "").split(",") if part.strip()]
+        _, matching = _record_rows(self)
         by = [k.strip() for k in self.options["by"].split(",")]
         value = self.options["value"]
         groups: dict[tuple, list[float]] = defaultdict(list)
-        for r in rec["rows"]:
-            if _matches(r, where) and r.get(value):
+        for r in matching:
+            if r.get(value):
                 groups[tuple(r.get(k) for k in by)].append(float(r[value]))
-        if not groups:
-            raise self.error(f"{self.arguments[0]}: no row matches {where}")
         rows = [[*map(str, key), f"{math.exp(sum(map(math.log, v)) / len(v)):.2f}", str(len(v))]
                 for key, v in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0])))]
         header = self.options.get("header", f"geometric mean of {value}")
