@@ -86,7 +86,7 @@ def _summary(result, seconds: float) -> str:
     length = result.voxel_length()  # physical size of a level voxel, (z, y, x); None without a voxel size
     unit = info.get("unit") or "unit"
     physical = ""
-    if length is not None:  # the same means in the scan's unit (issue 13: physical units end to end)
+    if length is not None:  # the same means in the scan's unit (physical units end to end)
         physical = " (" + ", ".join(f"{np.nanmean(u[i]) * length[i]:+.4g}" for i in range(3)) + f" {unit})"
     line = (
         f"{info['status']}: final gap {100 * info['final_gap']:.3f}% (initial {100 * info['initial_gap']:.3f}%, "

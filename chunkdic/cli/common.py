@@ -160,7 +160,7 @@ def engine_options(args) -> dict:
             "scheduler": args.scheduler}
 
 
-#: what a voxel size without a unit is told (issue 23: a bare number was silently read as µm)
+#: what a voxel size without a unit is told (a bare number would be silently read as µm)
 NO_UNIT = ("{option} {value} has no unit: add it ({option} {value}um) or give --unit (micrometer/um, "
            "millimeter/mm, nanometer/nm); a voxel size's unit is never guessed")
 

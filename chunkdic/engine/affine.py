@@ -3,7 +3,7 @@
 A rigid translation cannot start a C8 mesh on a large homogeneous strain or rotation: at
 10–20 % compression or 10° of rotation the far elements are several voxels (beyond the
 texture's capture range) from where a translation puts them, and their Gauss–Newton steps
-go astray (issue 20). Gauss–Newton restricted to affine fields ``u(X) = t + A (X - c)``
+go astray. Gauss–Newton restricted to affine fields ``u(X) = t + A (X - c)``
 uses every voxel of the level for 12 unknowns, linearised where the field is right (near
 ``c``) and pulled outwards pass by pass; the C8 iterations then start within a fraction
 of a voxel of any field that is affine to first order.

@@ -72,7 +72,7 @@ BASE_BYTES = 372 * MiB
 #: the same runs peaked at 303-312 MiB: compiling holds LLVM's memory besides). Set from a
 #: fresh install (the CI's new virtual environment), whose warm 128³ run peaked at
 #: 359-366 MiB, a base of ~282 MiB; the same code and package versions in a long-lived
-#: development environment peaked 52 MiB lower (base ~246 MiB; cause not found, session 28)
+#: development environment peaked 52 MiB lower (base ~246 MiB; cause not found)
 WARM_BASE_BYTES = 285 * MiB
 #: modules whose numba kernels a correlation runs: the block kernels, the pyramid's sums,
 #: the client's solver (a run compiles those missing from numba's cache)
@@ -96,7 +96,7 @@ CLIENT_BYTES_PER_NODE = 1000
 TASK_COPIES = 12.0
 #: float32 copies of its haloed region a task of the prefilter of ``g`` holds besides its
 #: raw read: the copy the low-pass and B-spline sweeps work in and the z sweep's source
-#: (measured by ``benchmarks/bench_prefilter_memory.py``: +43.6 MiB for a 179³ region,
+#: (measured by ``validation/scale/bench_prefilter_memory.py``: +43.6 MiB for a 179³ region,
 #: +52.2 MiB for 190³: 2.0). The task's peak adds the raw region in its dtype, the cropped
 #: float32 copy and its uint16 quantisation (6 bytes per voxel of the task) and the read's
 #: buffers (:data:`READ_BUFFERS_PER_CHUNK`); two tasks at once hold twice one's (measured:
@@ -106,7 +106,7 @@ TASK_COPIES = 12.0
 PREPARE_COPIES = 2.0
 #: decoded chunks' worth of memory zarr holds per chunk it is reading, for up to
 #: ``async.concurrency`` (10) of the chunks a region crosses (their compressed bytes and the
-#: decoded chunks; ``benchmarks/bench_prefilter_memory.py``): a scan's own chunks, taken as
+#: decoded chunks; ``validation/scale/bench_prefilter_memory.py``): a scan's own chunks, taken as
 #: noisy CT (measured: 92-100 MiB beyond the region for reads of 179³-190³ regions crossing
 #: 27 uint16 chunks of 128³, 4 MiB each, which blosc cannot compress); the scratch
 #: pyramid's uint32 sums, which compress (66 MiB for a 144³ region crossing 8 chunks of 8 MiB)
@@ -118,7 +118,7 @@ DIRECT_READ_CHUNKS = 2
 #: smallest edge of a prefilter task under a memory target (its halo grows its work)
 MIN_PREPARE_EDGE = 48
 #: per-voxel costs relative to the prefilter of ``g`` per filtered voxel (fitted on this
-#: machine's 128³-512³ runs, benchmarks/bench_plan.py; the 2048³ passes of
+#: machine's 128³-512³ runs, validation/scale/bench_plan.py; the 2048³ passes of
 #: docs/distributed.md give 0.58 and 0.65): the ``M`` pass (with the low-pass of ``f``),
 #: one ``b`` pass, one level of the scratch pyramid (per level-0 voxel of one scan)
 COSTS = {"m": 0.9, "b": 0.5, "pyramid": 0.12}

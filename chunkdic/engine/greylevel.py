@@ -30,7 +30,7 @@ per-element models is ``M`` minus the Schur complement of their per-element unkn
 built in the ``M`` pass (:func:`chunkdic.kernels.m.m_block`); the affine offsets of cells of
 several elements reach across the cell, beyond ``M``'s stencil: their Schur complement is
 kept apart, per cell, and subtracted in the client's solve
-(:func:`chunkdic.kernels.m.cell_couplings`; left out until session 30, it slowed Gauss–Newton
+(:func:`chunkdic.kernels.m.cell_couplings`; left out, it slows Gauss–Newton
 ×3-5 per pass). The one global gain stays out of the step's matrix (rank one over the ROI).
 A cell never straddles two blocks: blocks hold whole cells (:func:`aligned_block_elements`),
 so a task eliminates its cells' offsets exactly, as it did its elements'. With ``α = λ - 1`` and

@@ -365,7 +365,7 @@ class Level:
         emit(self.progress, stage="f-copy", level=self.s, blocks=len(self.jobs), seconds=time.perf_counter() - t0)
 
     def _why_no_gradient(self, u: np.ndarray) -> str | None:
-        """The real cause of an empty ``M`` when it is not the reference's texture (issue 24).
+        """The real cause of an empty ``M`` when it is not the reference's texture.
 
         ``M`` sums only voxels that the start field maps inside ``g`` and that a mask keeps,
         so "the reference has no gradient" misled when the start field (``--init``, or the

@@ -229,7 +229,7 @@ def write_region(out: ArrayRef, local, data: np.ndarray) -> None:
     writing a task's region through a shared mapping of the file mapped whole large
     folios of the page cache (ext4 on Linux 6.16+), so the writing process's resident
     memory grew with the scan's plane, not the task (+270 MiB for a 147³ task of a 1024³
-    store, +97 MiB at 2048³, measured by ``benchmarks/bench_prefilter_memory.py``), the
+    store, +97 MiB at 2048³, measured by ``validation/scale/bench_prefilter_memory.py``), the
     page faults into the new file took 0.5-2.3 s per task against 0.04-0.08 s for the
     ``pwrite`` calls, and the store's windows read later by the passes came back in
     those large folios too (+250 MiB mapped per 136³ window read at 1024³, against

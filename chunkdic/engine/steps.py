@@ -334,7 +334,7 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
 
     def solve_with(half, reg, weight, rhs):
         # one solver per sub-mesh (its coarse M, block inverse and weak nodes reused by every
-        # candidate); rtol 1e-5, as the iterations' since session 30 (1e-7 before: 30 % more
+        # candidate); rtol 1e-5, as the iterations' (1e-7 costs 30 % more
         # CG iterations for the same length on every case measured, docs/engine.md, "Automatic length")
         if last["half"] is not half:
             last["half"], last["solver"] = half, StencilSolver(half.copy(), rtol=1e-5)
@@ -377,8 +377,8 @@ def choose_regularization(lvl: Level, state: State, progress) -> None:
 def linearised_field(lvl: Level, u: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The field the level's current regularisation gives in one modified Gauss–Newton step
     from ``u`` (nz, ny, nx, 3) with right-hand side ``b``: ``(M + λR) x = M u + b``, shape
-    (nz, ny, nx, 3), voxels of the level; within 1 % of the converged field on the issue-20
-    cases (docs/engine.md), and no pass over the voxels. The solver's CG reference
+    (nz, ny, nx, 3), voxels of the level; within 1 % of the converged field on the
+    heterogeneous 100³ cases (docs/engine.md), and no pass over the voxels. The solver's CG reference
     (``largest_rhs``) is left as it was, so that the iterations that follow stop CG where
     they would have without this solve."""
     solver = lvl.solver

@@ -32,7 +32,7 @@ GAP_GAIN = 1e-4
 #: out of that measure, which says how much the rest of the field still moves...
 STEP_CAP = 3.0
 #: ...and the field counts as moving within its noise only while at most this fraction of
-#: its measured nodes is unsettled (the ℓ = 6 waves of issue 20: 0.5-5 % of the nodes, at
+#: its measured nodes is unsettled (the ℓ = 6 waves at 100³: 0.5-5 % of the nodes, at
 #: the specimen's edge, ran away by 1-2.5 voxels while the median node moved by 0.01 σ_u);
 #: a converged level flags those nodes as unreliable (``FLAG_WEAK``)
 UNSETTLED_FRACTION = 0.1

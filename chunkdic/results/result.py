@@ -84,7 +84,7 @@ class Result:
         Node positions.
     history : dict of 1-D ndarrays
         Per level and iteration: ``level``, ``iteration``, matching gap ``gap``
-        (paper section 5.1), ``max_delta`` = max |δa| of the update that followed
+        (paper section 5.1), ``max_delta`` = ``max |δa|`` of the update that followed
         (NaN for the final evaluation), ``excluded`` voxels.
     info : dict
         Everything else: ``element_size``, ``roi`` (level voxels, ``[[z0, z1], …]``),
@@ -408,7 +408,7 @@ def _check_consistent(path, info, u, X, history) -> None:
         roi = [(int(a), int(b)) for a, b in info["roi"]]
         nodes = tuple((b - a) // ell + 1 for a, b in roi)
         ok_roi = len(roi) == 3 and ell >= 1 and all((b - a) % ell == 0 and b > a for a, b in roi)
-    except (TypeError, ValueError, KeyError, ZeroDivisionError):  # element_size 0: no mesh (issue 24)
+    except (TypeError, ValueError, KeyError, ZeroDivisionError):  # element_size 0: no mesh
         ok_roi, nodes = False, None
     if not ok_roi:
         raise InputError(f"result {path}: attributes element_size {info.get('element_size')!r} and roi "

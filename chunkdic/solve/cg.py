@@ -64,7 +64,7 @@ class StencilSolver:
         asked ever more CG iterations of an increment nobody uses (measured at 300³ with a
         long regularisation length: 1 281 iterations, 3.1 s, for a step of max 3e-6 voxel).
         The increments then carry an error of at most ``rtol`` times the first step's size:
-        with the default 1e-5 (1e-7 until session 30), 5e-6 voxel after a first step of half a
+        with the default 1e-5, 5e-6 voxel after a first step of half a
         voxel, two hundred times below the level-0 tolerance of 1e-3; at 1024³ (ℓ = 16) the
         level-0 solves took 30-40 % fewer iterations (docs/engine.md, "Solve").
     maxiter : int

@@ -16,7 +16,7 @@ long ones to the images (the usual regularised global DVC: pyxel, UFreckles, Cor
     nodes in the three grid planes (a discrete curvature, in voxel units scaled away by the
     normalisation). Its plane-wave symbol is ``(Σ_i s_i)²`` with ``s_i = 2 − 2 cos θ_i``,
     ``|θ|⁴`` to leading order: a wave is damped by its wavelength whatever its direction.
-    The second differences alone (``Σ s_i²``, the form until issue 20) damp a wave along a
+    The second differences alone (``Σ s_i²``) damp a wave along a
     grid diagonal 2–3× less than one along an axis, so at the same resolution along the
     axes the field kept 1.2× more noise (measured on the star, docs/engine.md). It reaches
     every node, the ROI's edges and corners included, and costs nothing for rigid and
@@ -37,7 +37,7 @@ long ones to the images (the usual regularised global DVC: pyxel, UFreckles, Cor
     corners, as many as Tikhonov's; without the edge term it held every field set by its
     edge values (3 (12 (n - 2) + 8) of them), left to the few voxels of the edge nodes, and
     Gauss–Newton on CT scans at ℓ = 6 and 4 moved those nodes by up to 88 voxels and ended
-    stalled or diverged (issue 20, docs/engine.md). It couples the components as an
+    stalled or diverged (docs/engine.md). It couples the components as an
     elastic solid does; a localised band (a local softening) is not in equilibrium for a
     homogeneous material, and the equilibrium gap damps it more than Tikhonov does.
 

@@ -205,7 +205,7 @@ def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, e
     to compile (the first run's largest single wait), as flat loops under a second.
 
     ``λ R`` comes from :func:`chunkdic.solve.regularization.add_weighted`, compiled into this
-    function's Numba cache: a change of ``R`` (the Tikhonov Hessian of issue 20) is seen here
+    function's Numba cache: a change of ``R`` (the Tikhonov Hessian, say) is seen here
     only once this file changes too or the cache is cleared (docs/architecture.md,
     development notes). ``freed``: the Tikhonov terms the robust reweighting left out
     (:attr:`~chunkdic.solve.regularization.Regularizer.freed`; the block-Jacobi blocks ``Rd``

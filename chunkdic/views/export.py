@@ -134,7 +134,7 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False, s
     if result.active is not None:
         cell_data["active"] = [result.active.ravel().astype(np.int32)]
     point_data = {"displacement": disp, "Ux": disp[:, 0], "Uy": disp[:, 1], "Uz": disp[:, 2]}
-    if units == "voxels" and result.voxel_length() is not None:  # the scan's unit too (issue 13)
+    if units == "voxels" and result.voxel_length() is not None:  # the scan's unit too
         point_data["displacement_physical"] = disp * result.voxel_length()[::-1]
     sigma = _nodal_uncertainty(result, units)
     if sigma is not None:  # per-node standard uncertainty, same units and component order

@@ -78,7 +78,7 @@ REGULARIZATION_NAMES = {"tikhonov": "Tikhonov", "equilibrium-gap": "equilibrium 
 
 
 def resolution_text(result: Result) -> str:
-    """ℓ and the resolution it buys, for every title that names ℓ (issue 20 item 5):
+    """ℓ and the resolution it buys, for every title that names ℓ:
     ``ℓ = 8 vox, Tikhonov 16 vox, l10 % ≥ 28 vox`` (level-0 voxels, as ``Result.info``
     records them: the element size, the regularisation's kind and length, and the nominal
     l10 % they imply, a lower bound of the spatial resolution that ``chunkdic resolution``

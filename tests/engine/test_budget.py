@@ -101,7 +101,7 @@ def test_memory_target_changes_blocks_and_is_honoured(pair, tmp_path):
     assert planned.process_bytes <= target
     measured = _measure(pair, tmp_path, str(target))
     assert measured["blocks"]["0"] == planned.levels[-1].blocks > 1
-    # issue 21's +10 % is the benchmark's median (benchmarks/bench_plan.py); one run in a test
+    # issue 21's +10 % is the benchmark's median (validation/scale/bench_plan.py); one run in a test
     # gets a margin for the shared machine: 303 MiB for a 299 MiB target alone, 331 (+10.9 %)
     # once in a whole CI run at load ~5 (the embedded pool's two tasks overlapping differently)
     assert measured["peak"] <= 1.15 * target, (measured["peak"] / MiB, target / MiB)

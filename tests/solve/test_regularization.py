@@ -539,7 +539,7 @@ def test_predicted_risk_picks_the_length_of_least_error_on_noisy_known_fields():
 
 
 def test_a_sweep_of_any_rule_carries_the_risk_so_upre_can_be_applied_to_its_curves():
-    """``benchmarks/bench_reg_criteria.py`` sweeps once (default rule, the discrepancy) and
+    """``validation/scripts/bench_reg_criteria.py`` sweeps once (default rule, the discrepancy) and
     applies every rule to the per-region curves. The sweep left the risk's trace term at
     zero unless the rule was ``upre``, so ``argmin(misfit + penalty)`` was the shortest
     candidate on every case, pure noise included (issue 20's records, after the default
