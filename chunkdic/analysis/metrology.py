@@ -39,7 +39,7 @@ from ..io.scan import open_scan
 from ..results.strain import strain_summary
 from ..scheduler import check_scheduler
 from ..synth.fourier_shift import fourier_shift_scan
-from ..views.report import plot_uncertainty
+from ..plot.report import plot_uncertainty
 
 log = logging.getLogger(__name__)
 

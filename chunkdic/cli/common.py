@@ -120,8 +120,8 @@ def length_options(args, ref) -> tuple[int, str | None]:
 
 def add_figure_options(p) -> None:
     """``--format png|pdf|svg`` and ``--dpi`` of the commands that write figures (``report``,
-    ``cutcheck``), declared once; both go to :func:`chunkdic.views.figures.save`."""
-    from ..views.figures import DEFAULT_DPI, FORMATS
+    ``cutcheck``), declared once; both go to :func:`chunkdic.plot.figures.save`."""
+    from ..plot.figures import DEFAULT_DPI, FORMATS
 
     p.add_argument("--format", dest="fmt", choices=FORMATS, default="png",
                    help="file format of every figure (default png)")

@@ -356,7 +356,7 @@ def run_table(args: argparse.Namespace) -> int:
 
 def run_report(args: argparse.Namespace) -> int:
     from ..scheduler import check_scheduler
-    from ..views.report import report
+    from ..plot.report import report
 
     check_scheduler(args.scheduler)
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
@@ -373,7 +373,7 @@ def run_export(args: argparse.Namespace) -> int:
     from ..results import scans as resultscans
     from ..results.result import open_result
     from ..scheduler import check_scheduler
-    from ..views import export
+    from ..export import meshfiles as export
 
     if not (args.vtk or args.csv or args.corrected or args.fields):
         raise InputError("nothing to export: give --vtk, --csv, --corrected and/or --fields")
@@ -410,8 +410,8 @@ def _plan_images(res, args: argparse.Namespace, shape0) -> list[str]:
     counted together when on one file system): refused in one line (exit 2) when they cannot
     fit, else one line per image to say before the export starts."""
     from ..io.diskspace import same_device
-    from ..views.corrected_image import plan_corrected
-    from ..views.fields import plan_fields
+    from ..export.corrected_image import plan_corrected
+    from ..export.fields_image import plan_fields
 
     lines, first = [], None
     if args.corrected:
@@ -426,8 +426,8 @@ def _plan_images(res, args: argparse.Namespace, shape0) -> list[str]:
 
 def _export(res, args: argparse.Namespace, work: dict) -> None:
     """The writes of ``chunkdic export`` into the staged paths ``work``."""
-    from ..views import export
-    from ..views.corrected_image import write_corrected
+    from ..export import meshfiles as export
+    from ..export.corrected_image import write_corrected
 
     if args.vtk:
         info = export.write_vtk(res, work["vtk"], units=args.units, strain=args.strain)
@@ -451,7 +451,8 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
 
 def _export_fields(res, args: argparse.Namespace, work) -> None:
     """``export --fields``: the fields image into the staged path ``work``, with progress lines."""
-    from ..views.fields import CHANNELS, write_fields
+    from ..export.voxel_values import CHANNELS
+    from ..export.fields_image import write_fields
 
     progress = Progress("fields")  # its stages: "fields" (level 0), then "level t" of the pyramid
     out = write_fields(res, work, ref=args.ref, deformed=args.deformed, units=args.units,

@@ -37,7 +37,7 @@ so a task eliminates its cells' offsets exactly, as it did its elements'. With `
 ``g' = g(X+u) - c``, ``r = d - α g' - μ'`` (``d = f - g(X+u)``); the returned gain and offset
 are in the usual form ``f ≈ gain · g(X + u) + offset`` (offset at the element centre, plus
 ``drift · (X - X_e)`` for the ``drift`` model; with cells, each cell has its own slope, which
-:func:`chunkdic.views.correction.cell_slopes` reads back from the offsets, and the drift
+:func:`chunkdic.export.correction.cell_slopes` reads back from the offsets, and the drift
 reported is the plane through the offsets, :func:`offset_plane_slope`).
 """
 

@@ -189,23 +189,6 @@ class Result:
         self.check_displacement()
         return strain_summary(self, exclude_outer=exclude_outer, measure=measure or DEFAULT_MEASURE)
 
-    def to_vtk(self, path, *, units: str = "voxels", strain: str | None = None, overwrite: bool = False) -> dict:
-        """Write the mesh, nodal displacement and element strains as VTK (ParaView): :func:`chunkdic.write_vtk`.
-
-        ``strain``: ``"green-lagrange"`` (default) or ``"small"``; ``units``: ``"voxels"`` or ``"physical"``.
-        """
-        # lazy, and the one import of views by results (a contract exception in pyproject.toml): the writer
-        # belongs with the other exports in views, the method is the form users expect (xarray's to_netcdf)
-        from ..views.export import write_vtk
-
-        return write_vtk(self, path, units=units, overwrite=overwrite, **({"strain": strain} if strain else {}))
-
-    def to_csv(self, path, *, units: str = "voxels", overwrite: bool = False) -> int:
-        """Write the node table (one line per node, JSON sidecar ``PATH.json``): :func:`chunkdic.write_nodes_csv`."""
-        from ..views.export import write_nodes_csv  # lazy: as in to_vtk
-
-        return write_nodes_csv(self, path, units=units, overwrite=overwrite)
-
     def check_displacement(self) -> None:
         """Refuse a result whose nodal field has NaN/inf values the result does not explain.
 

@@ -55,8 +55,9 @@ from ..io.scan import open_scan
 from ..mesh import level0_position
 from ..results.result import FLAG_WEAK
 from ..results.scans import as_result, input_scan
-from ..views.fields import CHANNELS, open_levels
-from ..views.images import scan_frame
+from ..export.voxel_values import CHANNELS
+from ..export.fields_reader import open_levels
+from ..export.images import scan_frame
 
 __all__ = ["layers_of", "result_layers", "series_layers", "fields_layers", "find_fields", "weak_layer", "MAX_VECTORS"]
 

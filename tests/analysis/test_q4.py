@@ -148,8 +148,8 @@ def test_cutcheck_flags_a_wrong_field(synthetic_result):
     from chunkdic.analysis.crosscheck import check_cut
     from chunkdic.results.scans import level_refs
     from chunkdic.scheduler import open_runner
-    from chunkdic.views import correction
-    from chunkdic.views.figures import mid_planes
+    from chunkdic.export import correction
+    from chunkdic.plot.figures import mid_planes
 
     with level_refs(res) as (f, g), open_runner(None) as runner:
         for normal, axis in enumerate("zyx"):

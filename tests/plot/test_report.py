@@ -12,9 +12,9 @@ import chunkdic
 from chunkdic.cli import report as _cli_report
 from chunkdic.errors import InputError
 from chunkdic.synth import synthetic
-from chunkdic.views.corrected_image import open_corrected, write_corrected
-from chunkdic.views.export import VTK_HEX_ORDER, hexahedra
-from chunkdic.views.report import plot_epszz_maps, plot_uz_maps, report
+from chunkdic.export.corrected_image import open_corrected, write_corrected
+from chunkdic.export.meshfiles import VTK_HEX_ORDER, hexahedra
+from chunkdic.plot.report import plot_epszz_maps, plot_uz_maps, report
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 T = (1.3, -0.7, 0.4)
@@ -214,7 +214,7 @@ def test_vtu_field_data_and_csv_for_pandas(translation, tmp_path):
 
     import meshio
 
-    from chunkdic.views.export import CSV_COLUMNS, read_vtk_metadata
+    from chunkdic.export.meshfiles import CSV_COLUMNS, read_vtk_metadata
 
     pd = pytest.importorskip("pandas")
     _, res, d = translation
@@ -247,7 +247,7 @@ def test_vtu_field_data_and_csv_for_pandas(translation, tmp_path):
 
 
 def test_vtu_field_data_with_a_voxel_size(translation, tmp_path):
-    from chunkdic.views.export import read_vtk_metadata, write_vtk
+    from chunkdic.export.meshfiles import read_vtk_metadata, write_vtk
 
     _, res, _ = translation
     phys = chunkdic.Result(res.displacement, res.node_coords, res.history,
@@ -278,7 +278,7 @@ def affine(tmp_path_factory):
 def _profile_rows(path):
     import csv
 
-    from chunkdic.views.profile import PROFILE_COLUMNS
+    from chunkdic.plot.profile import PROFILE_COLUMNS
 
     with open(path, newline="") as fh:
         rows = list(csv.DictReader(fh))
@@ -346,7 +346,7 @@ def test_true_layer_strain_of_a_band_against_quadrature(affine):
     analytic strain profile over each element layer, at level 0 and at level 1."""
     from scipy.integrate import quad
 
-    from chunkdic.views.profile import true_layer_strain
+    from chunkdic.plot.profile import true_layer_strain
 
     _, res, _ = affine
     band = synthetic.Band(center_z=22.0, width=10.0, strain=-0.05, lateral=0.3, center_y=20.0, center_x=25.0)
@@ -366,7 +366,7 @@ def test_true_layer_strain_of_a_band_against_quadrature(affine):
 
 
 def test_gap_figure_labels_levels_and_plain_percent(translation):
-    from chunkdic.views.report import gap_figure
+    from chunkdic.plot.report import gap_figure
 
     _, res, _ = translation
     fig = gap_figure([res])
@@ -429,7 +429,7 @@ def test_maps_share_extent_colour_bar_and_centre(translation, tmp_path):
     symmetric about 0; with a voxel size the axes are in the scan's unit."""
     import matplotlib.figure
 
-    from chunkdic.views import maps
+    from chunkdic.plot import maps
 
     _, res, _ = translation
     small = chunkdic.Result(res.displacement[:, :3, :3, :3], res.node_coords[:, :3, :3, :3], res.history,
@@ -467,8 +467,8 @@ def test_maps_share_extent_colour_bar_and_centre(translation, tmp_path):
 
 def test_labels_name_every_curve_and_twelve_curves_differ(translation, affine, tmp_path):
     """Issue 23 item 3: --label / labels= in every legend and panel title; 12 curves, 12 (colour, style) pairs."""
-    from chunkdic.views.figures import with_labels
-    from chunkdic.views.report import gap_figure
+    from chunkdic.plot.figures import with_labels
+    from chunkdic.plot.report import gap_figure
 
     a, b = _in_memory(translation[1]), _in_memory(affine[1])
     out = tmp_path / "fig"
@@ -518,8 +518,8 @@ def test_a_rigid_rotation_exports_no_strain_by_default(tmp_path):
     (Green-Lagrange), the small strain's cos(10°) - 1 = -0.0152 with --strain small."""
     import meshio
 
-    from chunkdic.views.export import read_vtk_metadata, write_vtk
-    from chunkdic.views.fields import write_fields
+    from chunkdic.export.meshfiles import read_vtk_metadata, write_vtk
+    from chunkdic.export.fields_image import write_fields
 
     res = _rotated()
     res.save(tmp_path / "rot.zarr")
@@ -547,7 +547,7 @@ def test_a_rigid_rotation_exports_no_strain_by_default(tmp_path):
 
 
 def test_result_methods_and_faces_level_with_the_cli(tmp_path):
-    """Issue 23 item 6: Result.strain_summary / to_vtk / to_csv, chunkdic.report, as the commands."""
+    """Issue 23 item 6: Result.strain_summary, chunkdic.write_vtk / write_nodes_csv, chunkdic.report, as the commands."""
     import meshio
     import pandas as pd
 
@@ -555,9 +555,9 @@ def test_result_methods_and_faces_level_with_the_cli(tmp_path):
     s = res.strain_summary()
     assert s.measure == "green-lagrange" and np.abs(s.mean).max() < 1e-12 and s.max_rotation == pytest.approx(10)
     assert res.strain_summary(measure="small").eps_zz == pytest.approx(np.cos(np.radians(10)) - 1, abs=1e-12)
-    info = res.to_vtk(tmp_path / "r.vtu")
+    info = chunkdic.write_vtk(res, tmp_path / "r.vtu")
     assert info["strain"] == "green-lagrange" and np.abs(meshio.read(tmp_path / "r.vtu").cell_data["strain"][0]).max() < 1e-12
-    assert res.to_csv(tmp_path / "r.csv") == 125
+    assert chunkdic.write_nodes_csv(res, tmp_path / "r.csv") == 125
     table = pd.read_csv(tmp_path / "r.csv")
     assert np.allclose(table["Uz"].to_numpy(), res.displacement[0].ravel())
     assert chunkdic.report is report and chunkdic.write_nodes_csv is not None

@@ -13,8 +13,10 @@ from chunkdic.cli.app import main
 from chunkdic.io import diskspace
 from chunkdic.mesh import Block, Mesh
 from chunkdic.synth import synthetic
-from chunkdic.views import fields as fields_module
-from chunkdic.views.fields import CHANNELS, open_levels, write_fields
+from chunkdic.export import voxel_values as fields_module
+from chunkdic.export.voxel_values import CHANNELS
+from chunkdic.export.fields_reader import open_levels
+from chunkdic.export.fields_image import write_fields
 
 A = ((-0.02, 0.0, 0.0), (0.0, 0.01, 0.0), (0.005, 0.0, 0.01))  # dU_i / dX_j, axes (z, y, x)
 CENTER, T = (24.0, 24.0, 24.0), (1.3, -0.7, 0.4)
@@ -125,7 +127,7 @@ def _roi_residual(res):
     """Oracle of the residual: the whole ROI corrected as one block, on the level-0 grid (NaN
     outside the ROI), with no fields code involved."""
     from chunkdic.results.scans import level_refs
-    from chunkdic.views.correction import Correction, correct_block
+    from chunkdic.export.correction import Correction, correct_block
 
     with level_refs(res) as (f_ref, g_ref):
         corr = Correction.of_result(res, f_ref, g_ref)
@@ -159,7 +161,7 @@ def test_level_s_residual_on_the_results_own_grid_is_the_corrected_images(affine
     """A level-1 result exported on the level-1 grid (S = s): the residual channel is the
     corrected image's residual, voxel for voxel (both on the scan's level-1 grid); on the
     level-0 grid (S < s) each level-1 value is repeated over its 2³ level-0 voxels."""
-    from chunkdic.views.corrected_image import write_corrected
+    from chunkdic.export.corrected_image import write_corrected
 
     _, res, _ = affine
     mesh = Mesh((3, 3, 3), 6, (3, 3, 3))  # level-1 ROI [3, 21)
@@ -233,7 +235,7 @@ def test_export_refused_for_lack_of_disk_writes_nothing(affine, tmp_path, monkey
 
 
 def test_image_bytes_is_the_hand_count():
-    from chunkdic.views.images import field_levels, image_bytes
+    from chunkdic.export.images import field_levels, image_bytes
 
     assert image_bytes(field_levels((48, 48, 48)), len(CHANNELS), 128) == LEVEL0
     # 2048³ on the level-2 grid: 512³ x 7 x 4 B, pyramid to 8³ (7 levels: 8/7 of level 0 at most)

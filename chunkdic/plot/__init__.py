@@ -1,4 +1,4 @@
-"""What users look at: figures, reports, VTK/CSV exports, voxel-wise fields and corrected images for viewers.
+"""Figures and reports of results: cuts with f − g, gap per level, maps, ε_zz profiles.
 
 Public names are imported on first use (lazy_loader, as scikit-image does); ``__init__.pyi``
 lists them with the module each comes from.

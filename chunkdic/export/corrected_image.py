@@ -13,7 +13,7 @@ grey levels the engine compared (level-``s`` sums), at ``8^-s`` of the storage.
 Chunk by chunk: one task per chunk of the level-``s`` grid that meets the ROI; it corrects
 the elements its chunk touches and writes that chunk of both channels (it owns it). The
 pyramid levels ``1..k`` are NaN-aware 2×2×2 means by tasks, the contrast windows come
-from a bounded sample read by tasks (:func:`chunkdic.views.images.write_image`, the writer
+from a bounded sample read by tasks (:func:`chunkdic.export.images.write_image`, the writer
 shared with the fields image); arrays created first, marked complete last (shared/DESIGN.md, "Out-of-core shape"; paper section 5.3, Figs. 6-8).
 :func:`open_corrected` reads the ROI back.
 """
@@ -254,7 +254,7 @@ def _write_corrected(result: Result, work: Path, out: Path, scans, interpolation
             "smoothing": corr.inputs.sigma, "grey_level": corr.inputs.grey,
             "description": "corrected = gain * g~(X + u(X)) + offset(X), residual = f~(X) - corrected over the "
                            "ROI, with f~, g~ the scans low-passed as the engine did and the brightness it found "
-                           "(chunkdic.views.correction); image level 0 is the reference scan's level `level` (same "
+                           "(chunkdic.export.correction); image level 0 is the reference scan's level `level` (same "
                            "shape and frame), NaN outside the ROI; `roi` in voxels of that level",
         }
         brightness = brightness_fields(result)  # per element, made once (mesh-sized)

@@ -1,4 +1,4 @@
-"""Plotting helpers: what the figures of :mod:`chunkdic.views.report` and :mod:`chunkdic.analysis.crosscheck` share.
+"""Plotting helpers: what the figures of :mod:`chunkdic.plot.report` and :mod:`chunkdic.analysis.crosscheck` share.
 
 One idea: the pieces every figure is made of, without drawing any figure itself: an Agg
 canvas created per figure with matplotlib's object-oriented API (no ``pyplot``, no global

@@ -13,8 +13,10 @@ import chunkdic
 from chunkdic.cli.app import main
 from chunkdic.mesh import Mesh
 from chunkdic.synth import synthetic
-from chunkdic.views.corrected_image import open_corrected, write_corrected
-from chunkdic.views.fields import CHANNELS, equivalent_strain, open_levels, write_fields
+from chunkdic.export.corrected_image import open_corrected, write_corrected
+from chunkdic.export.voxel_values import CHANNELS, equivalent_strain
+from chunkdic.export.fields_reader import open_levels
+from chunkdic.export.fields_image import write_fields
 
 A = ((-0.02, 0.0, 0.0), (0.0, 0.01, 0.0), (0.005, 0.0, 0.01))  # dU_i / dX_j, axes (z, y, x)
 CENTER, T = (24.0, 24.0, 24.0), (1.3, -0.7, 0.4)
@@ -208,7 +210,7 @@ def test_corrected_is_an_image_on_the_scan_grid(affine, tmp_path):
     and whose residual is the fields image's."""
     from chunkdic.mesh import Block
     from chunkdic.results.scans import level_refs
-    from chunkdic.views.correction import Correction, correct_block
+    from chunkdic.export.correction import Correction, correct_block
 
     pair, res, d, _ = affine
     with dask.config.set({"chunkdic.chunk-size": 16}):  # 27 tasks; the ROI [6, 42) cuts chunks

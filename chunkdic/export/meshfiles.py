@@ -6,7 +6,7 @@
 - :func:`write_nodes_csv` writes one line per node under a single header line (so that a
   plain ``pandas.read_csv`` reads it), and its metadata to a JSON sidecar ``NAME.csv.json``.
 
-The corrected image and residual volumes are written by :mod:`chunkdic.views.corrected_image`.
+The corrected image and residual volumes are written by :mod:`chunkdic.export.corrected_image`.
 """
 
 from __future__ import annotations

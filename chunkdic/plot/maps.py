@@ -10,7 +10,7 @@ glance. Every figure therefore has
 - a diverging colour map centred on 0 (``RdBu_r``, limits ``±max |v|``) for the signed
   quantities ``Uz``, ``Uy``, ``Ux`` and ``eps_zz``; ``magma`` from 0 for ``σ_U``,
 - axes and displacements in the scan's physical unit when every result carries a voxel
-  size of the same unit (:func:`chunkdic.views.figures.frame`), else in voxels of the level.
+  size of the same unit (:func:`chunkdic.plot.figures.frame`), else in voxels of the level.
 
 Only mesh-sized arrays are read (the nodal field, the element strains); the C8 field is
 evaluated on the plane on the client (an ROI plane, not a volume).
@@ -104,7 +104,7 @@ def plot_u_maps(results, path, component: str = "z", *, x: int | None = None, dp
     x : int, optional
         Plane index, voxels of the first result's level (default: its ROI mid-plane).
     dpi : int, optional
-        Resolution (default :data:`chunkdic.views.figures.DEFAULT_DPI`).
+        Resolution (default :data:`chunkdic.plot.figures.DEFAULT_DPI`).
 
     Returns
     -------

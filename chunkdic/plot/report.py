@@ -1,12 +1,12 @@
 """Figures of a correlation (paper section 5, Figs. 5-10), with colour bars and units.
 
 Every figure reads only what it shows: the cut planes are computed by worker tasks
-(:func:`chunkdic.views.correction.planes`, one element layer per task) and only 2-D planes and
+(:func:`chunkdic.export.correction.planes`, one element layer per task) and only 2-D planes and
 mesh-sized arrays reach the client. Figures are drawn with matplotlib's
 object-oriented API on an Agg canvas created inside each function (no ``pyplot``, no
 global backend switch, nothing at import). Every figure is written as PNG, PDF or SVG
 (``fmt``) at a chosen resolution (``dpi``); axes are in the scan's physical unit when the
-result carries a voxel size (:func:`chunkdic.views.figures.frame`), else in voxels of its level.
+result carries a voxel size (:func:`chunkdic.plot.figures.frame`), else in voxels of its level.
 
 - ``cut_x``, ``cut_y``, ``cut_z``: mid-plane cuts of the ROI normal to x, y, z of one result
   (``cuts_from``); top row reference, deformed and corrected (Figs. 6-8, one grey scale),
@@ -15,11 +15,11 @@ result carries a voxel size (:func:`chunkdic.views.figures.frame`), else in voxe
   scans low-passed as correlated, the brightness found);
 - ``uz_map``, ``uy_map``, ``ux_map``: displacement components on the mid-plane normal to x,
   one panel per result, common extent and colour bar, diverging map centred on 0 (Fig. 9;
-  :mod:`chunkdic.views.maps`);
+  :mod:`chunkdic.plot.maps`);
 - ``epszz_map``: ``eps_zz`` on that plane, linearly interpolated between element
   centres (Fig. 10);
 - ``epszz_profile`` (and ``epszz_profile.csv``): mean ``eps_zz`` per element layer along z,
-  one curve per result, with the truth for a synthetic pair (:mod:`chunkdic.views.profile`);
+  one curve per result, with the truth for a synthetic pair (:mod:`chunkdic.plot.profile`);
 - ``gap``: matching gap per iteration, one curve per result and level (section 5.1);
 - ``uncertainty_map``: the per-node displacement uncertainty on the mid-plane normal
   to x, one panel per result;
@@ -42,7 +42,7 @@ from ..results.result import Result
 from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
 from ..results.strain import DEFAULT_MEASURE, MEASURE_SYMBOLS, check_measure
 from ..scheduler import open_runner
-from . import correction
+from ..export import correction
 from .figures import (
     AXES,
     as_results,
@@ -92,7 +92,7 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
         Default: the result's.
     scheduler
         Where the plane tasks run, as in :func:`chunkdic.correlate`. The client only
-        receives the three planes (:func:`chunkdic.views.correction.planes`).
+        receives the three planes (:func:`chunkdic.export.correction.planes`).
     progress : callable(str), optional
         Called with a message per figure.
     fmt : {"png", "pdf", "svg"}
@@ -181,8 +181,8 @@ def gap_figure(results):
     """The matching-gap figure (section 5.1): one curve per result and pyramid level.
 
     Each level's iterations form one labelled curve ("NAME: level s (ℓ = …)", NAME the
-    result's :func:`~chunkdic.views.figures.result_label`), from the coarsest, each curve in its
-    own colour and line style (:func:`~chunkdic.views.figures.curve_style`); the rigid-translation steps that open a level are drawn as black open squares
+    result's :func:`~chunkdic.plot.figures.result_label`), from the coarsest, each curve in its
+    own colour and line style (:func:`~chunkdic.plot.figures.curve_style`); the rigid-translation steps that open a level are drawn as black open squares
     (one legend entry), the Gauss-Newton iterations as filled dots. The y axis is
     logarithmic with plain percent ticks.
 
@@ -238,8 +238,8 @@ def plot_gap(results, path, *, dpi: int | None = None) -> str:
 def plot_epszz_profile(results, path, *, ref=None, deformed=None, dpi: int | None = None,
                        strain: str = DEFAULT_MEASURE) -> dict[str, str]:
     """ε_zz(z): mean zz strain per element layer along z, one curve per result, and the truth
-    when the pair is synthetic (:mod:`chunkdic.views.profile`); the numbers go to a CSV next to
-    the figure (same name, ``.csv``; columns :data:`chunkdic.views.profile.PROFILE_COLUMNS`).
+    when the pair is synthetic (:mod:`chunkdic.plot.profile`); the numbers go to a CSV next to
+    the figure (same name, ``.csv``; columns :data:`chunkdic.plot.profile.PROFILE_COLUMNS`).
 
     Parameters
     ----------
@@ -375,7 +375,7 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         File format of every figure.
     dpi : int, optional
         Resolution of every figure, dots per inch (default
-        :data:`chunkdic.views.figures.DEFAULT_DPI`; a PNG's pixel size scales with it).
+        :data:`chunkdic.plot.figures.DEFAULT_DPI`; a PNG's pixel size scales with it).
     labels : sequence of str, optional
         The name of each result in every legend and panel title (default: its file stem;
         ``--label`` on the command line).

@@ -1,7 +1,7 @@
 """The float images chunkdic writes for viewers: one writer, their pyramid and frame.
 
-Used by the fields image (:mod:`chunkdic.views.fields`) and the corrected image
-(:mod:`chunkdic.views.corrected_image`). :func:`write_image` writes one OME-NGFF 0.5 multi-channel
+Used by the fields image (:mod:`chunkdic.export.fields_image`) and the corrected image
+(:mod:`chunkdic.export.corrected_image`). :func:`write_image` writes one OME-NGFF 0.5 multi-channel
 image chunk by chunk in tasks: level 0 by the caller's task (one per chunk, writing that
 chunk of every channel), coarser levels as NaN-aware 2×2×2 means written one chunk of one
 channel per task (:func:`build_mean_levels`), a contrast window per channel from a bounded

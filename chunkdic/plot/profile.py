@@ -174,7 +174,7 @@ def write_profile_csv(rows: list[tuple[Result, LayerProfile, object]], path) -> 
     :data:`PROFILE_COLUMNS` (``z`` in voxels of the result's level, ``z_physical`` in
     ``unit`` or empty, ``eps_zz_true`` empty without a synthetic truth).
 
-    ``rows``: ``(result, profile, frame)`` with the result's :class:`chunkdic.views.figures.Frame`.
+    ``rows``: ``(result, profile, frame)`` with the result's :class:`chunkdic.plot.figures.Frame`.
     """
     def num(v):
         return "" if v is None or not np.isfinite(v) else repr(float(v))

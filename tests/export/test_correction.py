@@ -1,4 +1,4 @@
-"""The corrected image rebuilds the engine's brightness model exactly (chunkdic.views.correction).
+"""The corrected image rebuilds the engine's brightness model exactly (chunkdic.export.correction).
 
 With affine offsets per cell (``grey_cell``) the result stores each element's gain and the
 offset at its centre; the slopes inside the elements are read back from those offsets
@@ -16,7 +16,7 @@ from textures import fourier_shift, smooth_noise
 import chunkdic
 from chunkdic.mesh import Block
 from chunkdic.results.scans import level_refs
-from chunkdic.views.correction import (
+from chunkdic.export.correction import (
     Correction,
     brightness_fields,
     cell_slopes,

@@ -75,7 +75,7 @@ def test_vtk_and_csv_of_a_masked_result(masked, capsys):
 
 
 def test_corrected_image_of_a_masked_result(masked, capsys):
-    from chunkdic.views.corrected_image import open_corrected
+    from chunkdic.export.corrected_image import open_corrected
 
     d, res, mask = masked
     assert main(["export", str(d / "m.zarr"), "--corrected", str(d / "c.zarr")]) == 0
@@ -98,7 +98,7 @@ def test_corrected_image_of_a_masked_result(masked, capsys):
 def test_fields_of_a_masked_result(masked, capsys):
     import zarr
 
-    from chunkdic.views.fields import CHANNELS
+    from chunkdic.export.voxel_values import CHANNELS
 
     d, res, mask = masked
     assert main(["export", str(d / "m.zarr"), "--fields", str(d / "fields.zarr")]) == 0

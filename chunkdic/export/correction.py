@@ -9,7 +9,7 @@ element, plus a linear drift, or with ``grey_cell`` an affine offset per cell of
 whose slopes :func:`brightness_fields` reads back from the offsets at the element centres).
 This module computes it for one block of whole elements, in a task, and is the one place
 that knows how: the corrected volume of
-:func:`chunkdic.views.corrected_image.write_corrected`, the cuts of :mod:`chunkdic.views.report` and anything
+:func:`chunkdic.export.corrected_image.write_corrected`, the cuts of :mod:`chunkdic.plot.report` and anything
 else that shows ``g(X + u(X))`` go through :func:`correct_block`. The client never reads
 voxels: a plane of the corrected image is assembled from the planes the tasks return.
 """
