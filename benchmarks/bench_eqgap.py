@@ -76,7 +76,7 @@ def solver_table(n: int) -> None:
     from test_multigrid import _mass_stencil
 
     from chunkdic.solve.cg import StencilSolver
-    from chunkdic.solve.regularization import Regularizer, plane_wave_weight
+    from chunkdic.solve.regularizer import Regularizer, plane_wave_weight
     from chunkdic.solve.stencil import stencil_matvec
 
     shape, ell = (n, n, n), 8.0

@@ -81,8 +81,9 @@ def dump(workdir: Path, out: Path) -> None:
 
     ref, dfm = scans["band-grains"]
     shape = chunkdic.open_scan(ref).shape(0)
-    z, y, x = np.ogrid[: shape[0], : shape[1], : shape[2]]
-    mask = ((y - shape[1] / 2) ** 2 + (x - shape[2] / 2) ** 2 < (0.42 * shape[1]) ** 2).astype(np.uint8)
+    _, y, x = np.ogrid[: shape[0], : shape[1], : shape[2]]
+    disc = (y - shape[1] / 2) ** 2 + (x - shape[2] / 2) ** 2 < (0.42 * shape[1]) ** 2
+    mask = np.broadcast_to(disc, shape).astype(np.uint8)
     res = chunkdic.correlate(ref, dfm, element_size=8, mask=mask)
     saved.update({f"masked/{k}": v for k, v in _fields(res).items()})
     facts["masked"] = {"status": res.info["status"], "masked_nodes": res.info["masked_nodes"]}

@@ -80,7 +80,7 @@ KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.
                   "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.kernels.pwrite", "chunkdic.kernels.quantize",
                   "chunkdic.io.coarsen",
                   "chunkdic.solve.stencil", "chunkdic.solve.galerkin", "chunkdic.solve.multigrid",
-                  "chunkdic.solve.regularization")
+                  "chunkdic.solve.penalty")
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
 #: V-cycle's coarse ``M``, the fields of the Gauss–Newton state, a ``b`` pass's nodal and
 #: element rows and a solve's vectors at their peak (measured at 128³ nodes with 182 MiB of

@@ -24,7 +24,7 @@ from ..io.handles import ArrayRef, forget_open_arrays
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
 from ..solve.cg import PoorTextureWarning, StencilSolver
-from ..solve.regularization import Regularizer, plane_wave_unit
+from ..solve.regularizer import Regularizer, plane_wave_unit
 from ..solve.stencil import rigid_restriction, stencil_matvec
 from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
@@ -407,7 +407,7 @@ class Level:
             self._warn_weak_nodes()
 
     def regularize(self, length: float, freed: np.ndarray | None = None) -> None:
-        """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularization`); ``length``: ``ℓ_reg``, voxels of the level;
+        """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularizer`); ``length``: ``ℓ_reg``, voxels of the level;
         ``freed``: the Tikhonov terms the robust reweighting left out (:attr:`Regularizer.freed`,
         the correlated level only; the weight is the plain penalty's for ``length``).
 

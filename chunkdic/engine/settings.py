@@ -62,7 +62,7 @@ class Settings:
         default :data:`DEFAULT_GREY_CELL_VOXELS`); 0 or at most ``ℓ``: one offset per element and one
         drift across the ROI. docs/engine.md, "Brightness".
     regularization : {"none", "tikhonov", "equilibrium-gap"}
-        Penalty on the short wavelengths of the field (:mod:`chunkdic.solve.regularization`).
+        Penalty on the short wavelengths of the field (:mod:`chunkdic.solve.regularizer`).
     regularization_rule : {"discrepancy", "upre", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve"}
         How the automatic length is chosen (:func:`chunkdic.solve.regchoice.choose_length`;
         docs/engine.md compares them).

@@ -24,7 +24,8 @@ from ..mesh import Mesh, transfer
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.cg import StencilSolver
 from ..solve.regchoice import choose_length
-from ..solve.regularization import TERM_KINDS, robust_freed
+from ..solve.penalty import TERM_KINDS
+from ..solve.reweighting import robust_freed
 from ..solve.transfer import nominal_l10
 from .affine import affine_step
 from .checkpoint import Checkpoint, resumed_pass
@@ -323,8 +324,8 @@ def length_to_choose(settings: Settings, state: State) -> bool:
 def choose_regularization(lvl: Level, state: State, progress) -> None:
     """Choose ``ℓ_reg`` at the converged field (:func:`chunkdic.solve.regchoice.choose_length`),
     then ``settings.reweights`` times: free the curvature terms of the field this length
-    gives (:func:`linearised_field`) beyond :data:`~chunkdic.solve.regularization.ROBUST_THRESHOLD`
-    robust σ (:func:`~chunkdic.solve.regularization.robust_freed`) and choose the length again
+    gives (:func:`linearised_field`) beyond :data:`~chunkdic.solve.reweighting.ROBUST_THRESHOLD`
+    robust σ (:func:`~chunkdic.solve.reweighting.robust_freed`) and choose the length again
     for the reweighted penalty (docs/engine.md, "Robust reweighting"); restart ``state``
     under the outcome, which the checkpoint keeps (``state.reg_length``, ``state.freed``)."""
     t0 = time.perf_counter()

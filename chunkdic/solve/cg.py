@@ -5,7 +5,7 @@ preconditioner converge in about a hundred iterations whatever the mesh size, wh
 direct factorisation costs seconds to minutes (shared/DESIGN.md). The stencil is used
 as is for the matrix-vector product, never converted to CSR, and only its symmetric half
 is kept (:data:`~chunkdic.solve.stencil.HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
-of 2. The regularisation ``R`` (:mod:`chunkdic.solve.regularization`) is applied matrix-free
+of 2. The regularisation ``R`` (:mod:`chunkdic.solve.regularizer`) is applied matrix-free
 in the same CG. A long Tikhonov length makes ``M + λ R`` a fourth-order operator whose
 smooth modes block-Jacobi cannot reach (hundreds to thousands of iterations): there a
 multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) preconditions the same CG instead.
@@ -22,7 +22,8 @@ from ..errors import InputError
 from . import lanes
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
-from .regularization import NO_FREED, Regularizer, add_weighted
+from .penalty import NO_FREED, add_weighted
+from .regularizer import Regularizer
 from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi, subtract_cells
 
 log = logging.getLogger(__name__)

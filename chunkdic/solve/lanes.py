@@ -20,7 +20,7 @@ import threading
 import numpy as np
 
 from .. import config
-from .regularization import add_weighted
+from .penalty import add_weighted
 from .stencil import _subtract_cells, axpy, block_solve, half_matvec, pcg
 
 #: the two lanes pay from this many nodes (below, the threads' hand-over, ~50 µs per

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..mesh import STENCIL_OFFSETS
-from .regularization import Regularizer, plane_wave_weight
+from .regularizer import Regularizer, plane_wave_weight
 from .stencil import stencil_matvec
 
 #: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)
@@ -46,7 +46,7 @@ class Choice:
     ----------
     length : float
         The chosen ``ℓ_reg``, voxels of the level (its ``λ`` on the whole mesh:
-        :func:`~chunkdic.solve.regularization.plane_wave_weight`).
+        :func:`~chunkdic.solve.regularizer.plane_wave_weight`).
     lengths, misfit, roughness : ndarray
         The candidates (voxels), the linearised data misfit increase ``Φ(λ) - Φ_0``
         (grey levels²) and ``aᵀ R a`` of each (the L-curve).
@@ -164,7 +164,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         instead of searching; for benchmarks. Same choice.
     freed : ndarray, shape (nz, ny, nx, 6), uint8, optional
         Tikhonov terms left out by the robust reweighting
-        (:attr:`~chunkdic.solve.regularization.Regularizer.freed`): the length is chosen for
+        (:attr:`~chunkdic.solve.regularizer.Regularizer.freed`): the length is chosen for
         the reweighted penalty, ``λ`` normalised on the plain one as always.
     guess : float, optional
         A length (voxels of the level) the choice is expected near: the length the level
@@ -255,7 +255,7 @@ def near_freed(freed: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     freed : ndarray, shape (nz, ny, nx, 6), uint8
-        :attr:`~chunkdic.solve.regularization.Regularizer.freed`.
+        :attr:`~chunkdic.solve.regularizer.Regularizer.freed`.
 
     Returns
     -------

@@ -2,7 +2,7 @@
 
 Truths: analytic fields the operators must leave alone (rigid, linear, in equilibrium) or
 map to known values (``x⁴``), the plane-wave normalisation written in
-:mod:`chunkdic.solve.regularization`, the known fields of the CT-like pairs (``tests/ctcases.py``;
+:mod:`chunkdic.solve.regularizer`, the known fields of the CT-like pairs (``tests/ctcases.py``;
 scores by :func:`chunkdic.score_displacement`), a prescribed homogeneous strain, block-size
 invariance. Measured values are in the comments.
 """
@@ -32,7 +32,7 @@ from chunkdic.solve.regchoice import (
     dof_fraction,
     regions,
 )
-from chunkdic.solve.regularization import (
+from chunkdic.solve.regularizer import (
     Regularizer,
     plane_wave_weight,
     plane_waves,
