@@ -130,7 +130,7 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
     import numpy as np
 
     from chunkdic.engine.level import Level
-    from chunkdic.engine.planning import plan_meshes
+    from chunkdic.engine.meshes import plan_meshes
     from chunkdic.engine.settings import Settings
     from chunkdic.io.handles import ArrayRef
     from chunkdic.solve.cg import warmup

@@ -1,6 +1,6 @@
 """Peak memory of the prefilter of ``g`` per task, measured alone and two at once.
 
-The plan (``chunkdic/engine/budget.py``) counts a prefilter task as a number of float32
+The plan (``chunkdic/engine/costs.py``) counts a prefilter task as a number of float32
 copies of its haloed region. This script measures what one task really adds to a
 process's resident memory, on a real scan, in a fresh process per case:
 
@@ -53,7 +53,7 @@ CASE = textwrap.dedent(r"""
     import numpy as np
     from chunkdic.io.scan import open_scan
     from chunkdic.engine import prefilter as P
-    from chunkdic.engine.budget import release_freed_memory
+    from chunkdic.scheduler import release_freed_memory
 
     scan, tmp, edge_max, tasks, sigma, interp, halo, per_thread, level = sys.argv[1], sys.argv[2], int(sys.argv[3]), \
         int(sys.argv[4]), float(sys.argv[5]), sys.argv[6], int(sys.argv[7]), int(sys.argv[8]), int(sys.argv[9])
@@ -167,14 +167,14 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
 
     from chunkdic import config
-    from chunkdic.engine.budget import prepare_bytes, read_buffer_bytes
+    from chunkdic.engine.costs import prepare_bytes, read_buffer_bytes
     from chunkdic.engine.prefilter import prepare_voxels, prepared_grid, prepared_halo
     from chunkdic.io.scan import open_scan
 
     scan = open_scan(a.scan)
 
     def model(edges) -> int:
-        """The plan's estimate of one task (budget.prepare_bytes, the read's buffers included)."""
+        """The plan's estimate of one task (costs.prepare_bytes, the read's buffers included)."""
         shape, dtype = scan.shape(a.level), scan.dtype(a.level)
         grown = [min(e + 2 * halo, n) for e, n in zip(edges, shape)]
         return prepare_bytes(edges, a.sigma, a.interpolation, shape=shape, raw_itemsize=np.dtype(dtype).itemsize,

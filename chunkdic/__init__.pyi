@@ -6,7 +6,7 @@ from .analysis.q4 import correlate2d
 from .analysis.resolution import resolution
 from .analysis.scoring import score_displacement
 from .analysis.zoisweep import sweep, zoi_table
-from .engine.budget import Plan, plan
+from .engine.runplan import Plan, plan
 from .engine.driver import correlate
 from .engine.settings import Settings
 from .errors import InputError

@@ -51,7 +51,7 @@ import numpy as np
 from ..engine.checkpoint import fingerprint, identify_input
 from ..engine.driver import correlate, settings_from, voxel_lengths
 from ..engine.initial import filled
-from ..engine.planning import parse_roi, plan_meshes
+from ..engine.meshes import parse_roi, plan_meshes
 from ..engine.prefilter import face_margin
 from ..engine.settings import Settings
 from ..errors import DiskSpaceError, InputError

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.driver import correlate
-from ..engine.planning import box_at_level, parse_roi, plan_meshes
+from ..engine.meshes import box_at_level, parse_roi, plan_meshes
 from ..engine.prefilter import face_margin
 from ..engine.settings import Settings
 from ..errors import InputError

@@ -139,7 +139,7 @@ def cmd_correlate(args) -> int:
 
 def _print_plan(args, element_size, roi) -> int:
     """``correlate --plan``: the plan on stdout, nothing written; exit 2 if the run would be refused."""
-    from ..engine.budget import plan
+    from ..engine.runplan import plan
 
     p = plan(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init, output=args.output,
              memory_target=args.memory_target, **engine_options(args))

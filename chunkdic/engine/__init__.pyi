@@ -1,3 +1,3 @@
 from .driver import correlate
-from .planning import plan_meshes
+from .meshes import plan_meshes
 from .settings import Settings

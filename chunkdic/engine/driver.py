@@ -34,7 +34,8 @@ from ..kernels import jit as kernels
 from ..results.result import Result
 from ..scheduler import check_scheduler, open_runner
 from ..solve import cg as solve
-from .budget import calibrated, make_plan, memory_target_of
+from .runplan import calibrated, make_plan
+from ..inputs import memory_target_of
 from .checkpoint import (
     Checkpoint,
     completed_already,
@@ -47,7 +48,7 @@ from .haloed import COMPLETE
 from .initial import init_identity, open_init
 from .level import prune_adopted
 from .masks import check_mask_shape, prepare_mask
-from .planning import parse_roi, plan_meshes
+from .meshes import parse_roi, plan_meshes
 from .prefilter import face_margin
 from .runstate import LevelOutcome, RunState
 from .settings import Settings
@@ -131,7 +132,7 @@ def correlate(
     memory_target : str or int, optional
         Peak resident memory per process to plan for (``"2GiB"`` or bytes; default
         ``chunkdic.memory-target``): blocks and prefilter tasks are sized to fit it
-        (:mod:`chunkdic.engine.budget`). A run it cannot hold, or whose scratch or output
+        (:mod:`chunkdic.engine.costs`). A run it cannot hold, or whose scratch or output
         the free disk cannot hold, is refused (:class:`InputError`) before anything is
         written; :func:`chunkdic.plan` shows the plan without running.
 

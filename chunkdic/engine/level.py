@@ -23,10 +23,10 @@ from ..io.chunkread import forget_chunks, z_order_key
 from ..io.handles import ArrayRef, forget_open_arrays
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
+from ..scheduler import release_freed_memory
 from ..solve.cg import PoorTextureWarning, StencilSolver
 from ..solve.regularizer import Regularizer, plane_wave_unit
 from ..solve.stencil import rigid_restriction, stencil_matvec
-from .budget import TRIM_SECONDS, release_freed_memory
 from .events import emit
 from .greylevel import Fit, aligned_block_elements, element_fit, misfit, nodal_rhs, offset_cell
 from .haloed import HaloedBlocks
@@ -45,6 +45,10 @@ PROGRESS_SECONDS = 5.0
 #: at least this many elements (the sample then holds 512 or more), and on one in 64, 512, …
 #: while the sample keeps this many (large meshes: 1024³ at ℓ = 16 samples one in 64)
 GAP_SAMPLE_MIN = 4096
+
+
+#: least interval between two :func:`release_freed_memory` calls of a pass (seconds)
+TRIM_SECONDS = 0.1
 
 
 def gap_stride(shape) -> int:
@@ -224,7 +228,7 @@ class Level:
         for done, result in enumerate(self.runner.map_unordered(fn, args), start=1):
             yield result
             now = time.perf_counter()
-            if now - trimmed >= TRIM_SECONDS:  # freed task buffers back to the system (budget.py)
+            if now - trimmed >= TRIM_SECONDS:  # freed task buffers back to the system (scheduler.release_freed_memory)
                 release_freed_memory()
                 trimmed = now
             if now - last >= PROGRESS_SECONDS and done < total:

@@ -307,7 +307,7 @@ def prepare_voxels() -> int:
 def task_edge(extent: int, unit: int, largest: int | None = None) -> int:
     """Edge of the preparation tasks along an axis of ``extent`` voxels: equal parts of at
     most ``largest`` (default ``chunkdic.prepare-voxels``, :data:`TASK_EDGE`; a memory
-    target lowers it, :mod:`chunkdic.engine.budget`), rounded up to a multiple of ``unit``.
+    target lowers it, :mod:`chunkdic.engine.costs`), rounded up to a multiple of ``unit``.
 
     Each task reads ``prepared_halo`` (16 voxels at σ = 1, cubic) more per side, so small
     remainder tasks are costly: a 316-voxel axis cut 128 + 128 + 60 filtered 1.30× its

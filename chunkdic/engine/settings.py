@@ -46,7 +46,7 @@ class Settings:
         Pyramid level correlated last (0 = full resolution, 2 = the paper's 4³ compression).
     coarsest : int or None
         Coarsest pyramid level; ``None`` picks it automatically
-        (:func:`chunkdic.engine.planning.plan_meshes`).
+        (:func:`chunkdic.engine.meshes.plan_meshes`).
     interpolation : {"cubic", "linear"}
         Interpolation of the deformed image (cubic B-spline, or the paper's trilinear).
     smoothing : float

@@ -131,3 +131,41 @@ def compiled_on_disk() -> bool:
         return all(os.path.exists(d._cache._cache_file._index_path) for d in (b_kernel, m_kernel))
     except Exception:  # noqa: BLE001 - numba internals changed: assume cached
         return True
+
+
+
+
+#: modules whose numba kernels a correlation runs: the block kernels, the pyramid's sums,
+#: the client's solver (a run compiles those missing from numba's cache)
+KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.interp", "chunkdic.kernels.rows",
+                  "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.kernels.pwrite", "chunkdic.kernels.quantize",
+                  "chunkdic.io.coarsen",
+                  "chunkdic.solve.stencil", "chunkdic.solve.galerkin", "chunkdic.solve.multigrid",
+                  "chunkdic.solve.penalty")
+
+
+def kernels_cached() -> bool:
+    """Whether numba's on-disk cache holds every kernel of :data:`KERNEL_MODULES`, so a run
+    loads them rather than compiling (its base memory is then :data:`WARM_BASE_BYTES`).
+
+    Probing only the ``b`` and ``M`` kernels (:func:`chunkdic.kernels.compiled_on_disk`) is
+    not enough: on a fresh clone whose first test ran those, the next run still compiled
+    the solver's and the low-pass's kernels, and peaked 21 % above a plan that assumed
+    the warm base. Reads numba's cache locator (not a public API): any surprise answers
+    False, the higher estimate.
+    """
+    import importlib
+
+    try:
+        from numba.core.dispatcher import Dispatcher
+
+        for name in KERNEL_MODULES:
+            module = importlib.import_module(name)
+            for obj in vars(module).values():
+                if (isinstance(obj, Dispatcher) and obj.py_func.__module__ == name
+                        and obj.targetoptions.get("inline") != "always"):  # inlined helpers have no cache
+                    if not os.path.exists(obj._cache._cache_file._index_path):
+                        return False
+    except Exception:  # noqa: BLE001 - numba internals changed: assume a compiling run
+        return False
+    return True

@@ -290,6 +290,6 @@ def warmup() -> None:
     solver.solve(np.ones((7, 7, 7, 3)))
     # the V-cycle's coarse penalty product (reached only on larger meshes): compiled here
     # too, so that every kernel of a run is in numba's cache after a first run
-    # (chunkdic.engine.budget.kernels_cached)
+    # (chunkdic.kernels.jit.kernels_cached)
     regularizer_stencil(Regularizer("tikhonov", (3, 3, 3), 2.0)).matvec_add(1.0, np.ones((3, 3, 3, 3)),
                                                                            np.zeros((3, 3, 3, 3)))

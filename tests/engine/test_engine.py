@@ -7,7 +7,7 @@ import pytest
 from textures import fourier_shift, smooth_noise
 
 import chunkdic
-from chunkdic.engine.planning import plan_meshes
+from chunkdic.engine.meshes import plan_meshes
 from chunkdic.synth import foam, synthetic
 
 
@@ -210,9 +210,9 @@ def test_coarse_levels_weak_nodes_are_logged_not_warned(tmp_path, caplog, monkey
     import logging
     import warnings
 
-    from chunkdic.engine import planning
+    from chunkdic.engine import meshes
 
-    monkeypatch.setattr(planning, "COARSE_MIN_ELEMENT", 6)
+    monkeypatch.setattr(meshes, "COARSE_MIN_ELEMENT", 6)
 
     pair = synthetic.synthesize(tmp_path / "p", 128, seed=1)
     with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.INFO, logger="chunkdic"):

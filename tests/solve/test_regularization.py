@@ -19,7 +19,7 @@ from textures import cylinder_pair, smooth_noise
 import chunkdic
 from chunkdic.analysis.scoring import scored_region
 from chunkdic.cli.app import main
-from chunkdic.engine.planning import plan_meshes
+from chunkdic.engine.meshes import plan_meshes
 from chunkdic.engine.prefilter import face_margin
 from chunkdic.errors import InputError
 from chunkdic.results.result import FLAG_MASKED, FLAG_WEAK

@@ -18,7 +18,8 @@ from textures import smooth_noise
 
 import chunkdic
 from chunkdic.cli.app import main
-from chunkdic.engine import budget
+from chunkdic import inputs
+from chunkdic.engine import costs, runplan
 from chunkdic.errors import InputError
 
 N = 128
@@ -37,7 +38,7 @@ RUN = textwrap.dedent("""
     # did the run compile a kernel (numba cache miss)? its base memory is then the cold one
     import importlib
     from numba.core.dispatcher import Dispatcher
-    from chunkdic.engine.budget import KERNEL_MODULES
+    from chunkdic.kernels.jit import KERNEL_MODULES
     compiled = sum(sum(o.stats.cache_misses.values()) for m in KERNEL_MODULES
                    for o in vars(importlib.import_module(m)).values() if isinstance(o, Dispatcher))
     print(json.dumps({"peak": peak, "blocks": blocks, "status": res.info["status"], "compiled": compiled}))
@@ -78,14 +79,14 @@ def test_plan_writes_nothing_and_its_memory_estimate_holds(pair, tmp_path, capsy
     assert "level 0: 8x8x8 nodes" in printed and "peak per process" in printed and "scratch" in printed
     assert "time: ~" in printed and "calibrated now" in printed
     assert not out.exists() and os.listdir(scratch) == [] and sorted(os.listdir(tmp_path)) == ["scratch"]
-    plan, plan_base = _plan(pair, scratch), budget.base_bytes()
+    plan, plan_base = _plan(pair, scratch), costs.base_bytes()
     measured = _measure(pair, scratch)
     assert measured["status"] == "converged"
     # the plan assumes a compiling run unless every kernel of KERNEL_MODULES is cached (a
     # safe side: kernels some runs never call keep it cold, e.g. part-way through the test
     # suite); its model is checked for the state the measured run was in: the measured base
-    # constants (budget.BASE_BYTES, compiling; WARM_BASE_BYTES, loading) plus tasks and mesh
-    base = budget.BASE_BYTES if measured["compiled"] else budget.WARM_BASE_BYTES
+    # constants (costs.BASE_BYTES, compiling; WARM_BASE_BYTES, loading) plus tasks and mesh
+    base = costs.BASE_BYTES if measured["compiled"] else costs.WARM_BASE_BYTES
     estimate = plan.process_bytes - plan_base + base
     assert plan_base >= base  # the plan never assumed the warm base for a run that compiled
     assert abs(estimate - measured["peak"]) <= 0.25 * measured["peak"], (estimate / MiB, measured["peak"] / MiB,
@@ -110,12 +111,12 @@ def test_memory_target_changes_blocks_and_is_honoured(pair, tmp_path):
 # Two prefilter tasks at once in a fresh process, as a level-0 run's embedded pool runs them,
 # on a zarr scan whose chunks their reads cross (the run's largest tasks): the peak resident
 # memory above the process's before (the kernel's high-water mark, reset first), and the
-# plan's model of it (budget.prepare_bytes with the read's buffers, times 2).
+# plan's model of it (costs.prepare_bytes with the read's buffers, times 2).
 PREFILTER = textwrap.dedent("""
     import concurrent.futures, json, sys
     import numpy as np
-    from chunkdic import config
-    from chunkdic.engine import budget, prefilter as P
+    from chunkdic import config, scheduler
+    from chunkdic.engine import costs, prefilter as P
     from chunkdic.io.handles import ArrayRef
     from chunkdic.io.scan import open_scan
 
@@ -134,17 +135,17 @@ PREFILTER = textwrap.dedent("""
     P.prepare_deformed(np.zeros((8, 8, 8), np.float32), sigma, interp)
     P.write_region(out, (slice(0, 1), slice(0, 1), slice(0, 2)), np.zeros((1, 1, 2), np.uint16))
     g.read((slice(0, 1),) * 3)
-    budget.release_freed_memory()
+    scheduler.release_freed_memory()
     open("/proc/self/clear_refs", "w").write("5")  # the high-water mark starts from here
     before = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmRSS")][0]
     with concurrent.futures.ThreadPoolExecutor(2) as pool:
         for _ in pool.map(lambda r: P.prepare_task(g, out, box, r, halo, sigma, interp, grid), regions):
-            budget.release_freed_memory()  # as the passes do between results
+            scheduler.release_freed_memory()  # as the passes do between results
     peak = [int(l.split()[1]) * 1024 for l in open("/proc/self/status") if l.startswith("VmHWM")][0] - before
     grown = [min(edge + 2 * halo, n) for n in g.shape]
-    model = 2 * budget.prepare_bytes(edge, sigma, interp, shape=g.shape, raw_itemsize=2, quantized=grid[1] > 0,
-                                     read_bytes=budget.read_buffer_bytes(scan, 0, grown))
-    model += budget.chunk_cache_bytes((scan,), 0)  # the decoded chunks the process keeps, once
+    model = 2 * costs.prepare_bytes(edge, sigma, interp, shape=g.shape, raw_itemsize=2, quantized=grid[1] > 0,
+                                     read_bytes=costs.read_buffer_bytes(scan, 0, grown))
+    model += costs.chunk_cache_bytes((scan,), 0)  # the decoded chunks the process keeps, once
     print(json.dumps({"peak": peak, "model": model}))
 """)
 
@@ -189,8 +190,8 @@ def small_disk(tmp_path, monkeypatch):
     mounted = os.geteuid() == 0 and subprocess.run(["mount", "-t", "tmpfs", "-o", "size=2m", "tmpfs", str(d)],
                                                    capture_output=True).returncode == 0
     if not mounted:
-        real = budget._free
-        monkeypatch.setattr(budget, "_free", lambda p: 2 * MiB if str(Path(p).absolute()).startswith(str(d))
+        real = runplan._free
+        monkeypatch.setattr(runplan, "_free", lambda p: 2 * MiB if str(Path(p).absolute()).startswith(str(d))
                             else real(p))
     yield d
     if mounted:
@@ -209,11 +210,11 @@ def test_run_refused_for_lack_of_disk_leaves_nothing(pair, small_disk, capsys):
 
 
 def test_parse_memory():
-    assert budget.parse_memory("2GiB") == 2**31 and budget.parse_memory(None) is None
-    assert budget.parse_memory(1000) == 1000
+    assert inputs.parse_memory("2GiB") == 2**31 and inputs.parse_memory(None) is None
+    assert inputs.parse_memory(1000) == 1000
     for bad in ("lots", "-1GB", 0):
         with pytest.raises(InputError):
-            budget.parse_memory(bad)
+            inputs.parse_memory(bad)
 
 
 def test_quantised_reference_copy_is_block_independent_and_close_to_float32():
@@ -265,7 +266,7 @@ def test_plan_chooses_the_compact_layout_only_when_the_fast_one_does_not_fit(pai
     assert fast.layout == "fast" and fast.scratch_bytes == fast.fast_scratch_bytes
     assert "fast layout" in fast.summary() and "scratch" in fast.line()
     free = int(fast.scratch_bytes * 0.8)
-    monkeypatch.setattr(budget, "_free", lambda path: free)
+    monkeypatch.setattr(runplan, "_free", lambda path: free)
     compact = _plan(pair, tmp_path)
     assert compact.layout == "compact" and compact.fast_scratch_bytes == fast.scratch_bytes
     assert " compact;" in compact.line() and "compact layout" in compact.summary() and "do not fit" in compact.summary()
@@ -284,7 +285,7 @@ def test_plan_chooses_the_compact_layout_only_when_the_fast_one_does_not_fit(pai
         res = chunkdic.correlate(pair / "ref.npy", pair / "def.npy", element_size=16, progress=progress)
     assert res.info["status"] == "converged"
     assert any(c.get("name") == "blosc" for c in codecs["f"]), codecs
-    monkeypatch.setattr(budget, "_free", lambda path: int(compact.scratch_bytes * 0.5))
+    monkeypatch.setattr(runplan, "_free", lambda path: int(compact.scratch_bytes * 0.5))
     with pytest.raises(InputError, match="not enough disk: .* in the compact layout"):
         _plan(pair, tmp_path).check()
 
@@ -301,7 +302,7 @@ def test_a_dead_runs_scratch_counts_as_free_disk(pair, tmp_path, monkeypatch):
     scratch.mkdir()
     fast = _plan(pair, scratch)
     free = int(fast.scratch_bytes * 0.8)
-    monkeypatch.setattr(budget, "_free", lambda path: free)
+    monkeypatch.setattr(runplan, "_free", lambda path: free)
     assert _plan(pair, scratch).layout == "compact"
 
     proc = subprocess.Popen([sys.executable, "-c", "pass"])
@@ -325,7 +326,7 @@ def test_a_dead_runs_scratch_counts_as_free_disk(pair, tmp_path, monkeypatch):
     (left / SCRATCH_MARKER).write_text(json.dumps(record))
     plan = _plan(pair, scratch)
     assert plan.layout == "compact" and plan.scratch_free == free
-    monkeypatch.setattr(budget, "_free", lambda path: 0)  # refused: the line says what holds the disk
+    monkeypatch.setattr(runplan, "_free", lambda path: 0)  # refused: the line says what holds the disk
     with pytest.raises(InputError, match=rf"not enough disk: .* \(\d+ MiB there is kept for the resume of "
                                          rf"{out.resolve()}: resume, or remove the output to free it\)$"):
         _plan(pair, scratch).check()
