@@ -5,7 +5,7 @@ regularisation length on the client, away from the engine: both run
 :func:`chunkdic.correlate` up to the point where the engine chooses the length (the finest
 level converged to the coarse tolerance, unregularised on that level), keep what the
 choice sees, and stop the run there. :func:`capture_choice` does that once for both: it
-replaces :func:`chunkdic.engine.steps.choose_regularization` for the length of one call
+replaces :func:`chunkdic.method.length.choose_regularization` for the length of one call
 (restored whatever happens), hands :func:`linearised_problem` to the caller's ``save``
 and ends the correlation with :class:`ChoiceCaptured`.
 
@@ -31,8 +31,8 @@ def linearised_problem(lvl, state) -> dict[str, object]:
 
     Parameters
     ----------
-    lvl : chunkdic.engine.level.Level
-    state : chunkdic.engine.gauss_newton.State
+    lvl : chunkdic.passes.level.Level
+    state : chunkdic.method.gauss_newton.State
 
     Returns
     -------
@@ -74,7 +74,7 @@ def capture_choice(run: Callable[[], object], save: Callable[[dict, object], Non
         Seconds until the capture; None when the run ended without a choice (not
         converged before it, or no regularisation).
     """
-    from chunkdic.engine import steps
+    from chunkdic.method import length as steps
 
     original = steps.choose_regularization
 

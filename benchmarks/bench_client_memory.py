@@ -106,7 +106,7 @@ class _StandInRunner:
         element sums of the block's shape (the same for every block: one draw per shape)."""
         import numpy as np
 
-        from chunkdic.engine.greylevel import reduce_block
+        from chunkdic.method.brightness import reduce_block
         from chunkdic.kernels.blocks import LAGS, ElementSums
 
         for inputs, job, _u, _active, probes, _probe_active in args:
@@ -129,9 +129,9 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
            show_steps: bool = False, iterations: int = 0) -> None:
     import numpy as np
 
-    from chunkdic.engine.level import Level
+    from chunkdic.passes.level import Level
     from chunkdic.engine.meshes import plan_meshes
-    from chunkdic.engine.settings import Settings
+    from chunkdic.method.settings import Settings
     from chunkdic.io.handles import ArrayRef
     from chunkdic.solve.cg import warmup
 
@@ -175,9 +175,9 @@ def _gauss_newton(lvl, iterations: int, steps: "_Steps") -> None:
     the ``b`` pass's sums on the client, the brightness fit, the penalty, the solve, the
     noise step, the state and its best field) on stand-in ``b`` partials, then the nodal
     uncertainty a result reports: what a level-0 run holds on top of ``M`` and its solver."""
-    from chunkdic.engine.gauss_newton import iterate
-    from chunkdic.engine.noise import nodal_uncertainty
-    from chunkdic.engine.stopping import History, State
+    from chunkdic.method.gauss_newton import iterate
+    from chunkdic.method.noise import nodal_uncertainty
+    from chunkdic.method.stopping import History, State
 
     state = State(lvl.m_start)  # the level's start, as the engine's start_state
     state = steps.run(f"Gauss-Newton, {iterations} passes",

@@ -39,7 +39,7 @@ import numpy as np
 def correlate(pair: dict, field, size: int, ell: int, kind: str, length: float | None) -> str:
     import chunkdic
     from chunkdic.analysis.scoring import score_between_nodes
-    from chunkdic.engine import stopping
+    from chunkdic.method import stopping
 
     worst = {"delta": 0.0, "dist": None}
     original = stopping.State.step

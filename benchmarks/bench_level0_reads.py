@@ -4,7 +4,7 @@ with no cache (``direct``) or through the process's cache of decoded chunks (``c
 the default, ``chunkdic.chunk-cache``).
 
 Each mode runs in its own process on the embedded thread pool: a level-0
-:class:`chunkdic.engine.level.Level` of the pair's scans is built (its ``M`` pass), then its
+:class:`chunkdic.passes.level.Level` of the pair's scans is built (its ``M`` pass), then its
 prefilter of ``g`` over the box a zero field reaches; the process's CPU seconds
 (``ru_utime + ru_stime``, its threads included) and wall time of each, its peak RSS, and
 the chunks decoded and found in the cache are printed. ``--repeats`` alternates the modes.
@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 import dask
 pair, ell, mode, threads = Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
-from chunkdic.engine.level import Level
-from chunkdic.engine.settings import Settings
+from chunkdic.passes.level import Level
+from chunkdic.method.settings import Settings
 from chunkdic.io import chunkread, handles
 from chunkdic.io.handles import ArrayRef
 from chunkdic.kernels.jit import warmup

@@ -5,7 +5,7 @@ copies of its haloed region. This script measures what one task really adds to a
 process's resident memory, on a real scan, in a fresh process per case:
 
 - ``phases`` (one task, alone): the peak over the process's resident memory just before,
-  of each step of :func:`chunkdic.engine.prefilter.prepare_task` — the raw read (zarr's
+  of each step of :func:`chunkdic.passes.prefilter.prepare_task` — the raw read (zarr's
   decoded chunks included), the low-pass/B-spline sweeps, the quantisation and the
   write into the memory-mapped ``.npy`` store (its touched pages count in RSS) — each
   measured by resetting the kernel's high-water mark (``/proc/self/clear_refs``, ``5``)
@@ -21,7 +21,7 @@ as a run builds its scratch pyramid (uint32 sums in ``chunkdic.chunk-size`` chun
 The store is a sparse ``.npy`` file of the box of ``g`` a level-0 run prepares (the whole
 scan for these pairs: ROI plus margins reach the faces), so the row stride of its mapping
 is the run's: the pages a task touches when writing depend on it. The tasks are those of
-:func:`chunkdic.engine.prefilter.build_prepared` whose reads decode the most chunks of the
+:func:`chunkdic.passes.prefilter.build_prepared` whose reads decode the most chunks of the
 scan (the run's largest), nearest the centre among them.
 
 Usage::
@@ -52,7 +52,7 @@ CASE = textwrap.dedent(r"""
     import concurrent.futures, json, sys, time
     import numpy as np
     from chunkdic.io.scan import open_scan
-    from chunkdic.engine import prefilter as P
+    from chunkdic.passes import prefilter as P
     from chunkdic.scheduler import release_freed_memory
 
     scan, tmp, edge_max, tasks, sigma, interp, halo, per_thread, level = sys.argv[1], sys.argv[2], int(sys.argv[3]), \
@@ -168,7 +168,7 @@ def main(argv=None) -> dict:
 
     from chunkdic import config
     from chunkdic.engine.costs import prepare_bytes, read_buffer_bytes
-    from chunkdic.engine.prefilter import prepare_voxels, prepared_grid, prepared_halo
+    from chunkdic.passes.prefilter import prepare_voxels, prepared_grid, prepared_halo
     from chunkdic.io.scan import open_scan
 
     scan = open_scan(a.scan)

@@ -8,7 +8,7 @@ from .analysis.scoring import score_displacement
 from .analysis.zoisweep import sweep, zoi_table
 from .engine.runplan import Plan, plan
 from .engine.driver import correlate
-from .engine.settings import Settings
+from .method.settings import Settings
 from .errors import InputError
 from .io.display import write_display
 from .io.formats.ingest import ingest

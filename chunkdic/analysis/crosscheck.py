@@ -207,11 +207,11 @@ def noise_floor(prepared: np.ndarray, corrected: np.ndarray, element_size: int, 
     """The 2-D correlation's predicted standard uncertainty on a cut, pixels.
 
     The a-priori estimate of global DIC, ``Cov(u) = κ σ_r² M⁻¹`` (paper 4.2; the 3-D engine's
-    per-node uncertainty, :func:`chunkdic.engine.noise.nodal_uncertainty`), applied to the
+    per-node uncertainty, :func:`chunkdic.method.noise.nodal_uncertainty`), applied to the
     2-D correlation of the cut: ``M`` is its level-0 Q4 matrix on this pair (as
     :mod:`chunkdic.analysis.q4` builds it, pixels outside a mask left out), ``σ_r`` the
     residual noise the 3-D run measured, and the noise correlation factor ``κ`` of the 3-D
-    run (a cube of the per-axis factor, :mod:`chunkdic.engine.noise`) taken to the power 2/3
+    run (a cube of the per-axis factor, :mod:`chunkdic.method.noise`) taken to the power 2/3
     for two axes.
 
     Parameters

@@ -52,8 +52,8 @@ from ..engine.checkpoint import fingerprint, identify_input
 from ..engine.driver import correlate, settings_from, voxel_lengths
 from ..engine.initial import filled
 from ..engine.meshes import parse_roi, plan_meshes
-from ..engine.prefilter import face_margin
-from ..engine.settings import Settings
+from ..passes.prefilter import face_margin
+from ..method.settings import Settings
 from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of

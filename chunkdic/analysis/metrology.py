@@ -29,8 +29,8 @@ import numpy as np
 
 from ..engine.driver import correlate
 from ..engine.meshes import box_at_level, parse_roi, plan_meshes
-from ..engine.prefilter import face_margin
-from ..engine.settings import Settings
+from ..passes.prefilter import face_margin
+from ..method.settings import Settings
 from ..errors import InputError
 from ..inputs import number
 from ..io.handles import ArrayRef

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from ..engine.driver import correlate
-from ..engine.settings import Settings
+from ..method.settings import Settings
 from ..errors import InputError
 from ..inputs import number
 from ..io.outputs import Outputs

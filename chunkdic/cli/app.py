@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.events import EXPLAIN
+from ..method.events import EXPLAIN
 from ..errors import InputError, WorkerLostError
 from ..scheduler import SCHEDULER_HELP
 from .common import (
@@ -114,7 +114,7 @@ def _summary(result, seconds: float) -> str:
                  "measured (their values come from the regularisation); the rest converged, but so large a share "
                  "is not called converged (mask the untextured region, or a larger --element-size)")
     elif info["status"] in ("stalled", "diverged", "max-iterations"):
-        from ..engine.stopping import STALL_PATIENCE
+        from ..method.stopping import STALL_PATIENCE
 
         line += "\n  " + EXPLAIN[info["status"]].format(patience=STALL_PATIENCE)
     if info["excluded_voxels"] and info["status"] != "excluded":

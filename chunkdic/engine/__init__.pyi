@@ -1,3 +1,2 @@
 from .driver import correlate
 from .meshes import plan_meshes
-from .settings import Settings

@@ -150,7 +150,7 @@ def resumed_pass(lvl, state):
     """The latest pass at ``state.u`` on ``lvl``: the one this process ran, else (a level resumed
     after its iterations ended) one evaluated again. Exactly the pass the interrupted run
     held when its field stayed the pass's own (an increment left unapplied for the
-    regularisation choice, :func:`chunkdic.engine.gauss_newton.iterate` ``resolve``)."""
+    regularisation choice, :func:`chunkdic.method.gauss_newton.iterate` ``resolve``)."""
     p = getattr(lvl, "last_pass", None)
     return p if p is not None else lvl.assemble_b(state.u)
 

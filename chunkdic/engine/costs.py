@@ -24,9 +24,9 @@ import numpy as np
 from .. import config
 from ..kernels.jit import kernels_cached
 from ..mesh import Mesh
-from .haloed import quantization
-from .prefilter import gaussian_radius, prepare_deformed, prepared_grid, prepared_halo
-from .stored_matrix import stored_bytes
+from ..passes.haloed import quantization
+from ..passes.prefilter import gaussian_radius, prepare_deformed, prepared_grid, prepared_halo
+from ..passes.stored_matrix import stored_bytes
 
 GiB, MiB = 2**30, 2**20
 #: resident memory of a running correlation's process besides its tasks and mesh data
@@ -121,13 +121,13 @@ def prepare_bytes(edges, sigma: float, interpolation: str, *, shape=None, raw_it
     edges : int or tuple of 3 int
         The task's region (voxels per axis, before the halo).
     sigma, interpolation
-        The preparation (its halo, :func:`~chunkdic.engine.prefilter.prepared_halo`).
+        The preparation (its halo, :func:`~chunkdic.passes.prefilter.prepared_halo`).
     shape : tuple of 3 int, optional
         The level's shape: the region grown by the halo is clipped to it.
     raw_itemsize : int
         Bytes per voxel of ``g`` as read (its dtype at the level).
     quantized : bool
-        The store is uint16 (:func:`~chunkdic.engine.prefilter.prepared_grid`): the task
+        The store is uint16 (:func:`~chunkdic.passes.prefilter.prepared_grid`): the task
         holds the cropped float32 copy and the uint16 one too.
     read_bytes : int
         The read's buffers beyond the region (:func:`read_buffer_bytes`).
@@ -226,7 +226,7 @@ def peak_scratch(pyramids: dict[int, int], stores: dict[int, int]) -> int:
     """Peak scratch bytes of a run: every missing pyramid level is built at the start, and
     a level's (``stores``: its haloed ``f`` and prepared ``g``) is held with the pyramid levels
     at or below it (coarser ones are deleted when their level ends,
-    :func:`chunkdic.engine.steps.release_scan_levels`)."""
+    :func:`chunkdic.method.length.release_scan_levels`)."""
     held = [sum(pyramids.values())]
     held += [stores[s] + sum(b for t, b in pyramids.items() if t <= s) for s in stores]
     return int(max(held))
@@ -236,7 +236,7 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
                interpolation: str = "cubic") -> tuple[int, int, list]:
     """``(haloed f copy, prepared g)`` scratch bytes of a level with blocks of ``m`` elements,
     and the edges of the box of ``g`` prepared (the current field's reach plus its margin,
-    :meth:`chunkdic.engine.level.Level.prepare_interpolation`, taken for a small field)."""
+    :meth:`chunkdic.passes.level.Level.prepare_interpolation`, taken for a small field)."""
     grid = [-(-n // m) for n in mesh.shape]
     chunk = [min(m, n) * mesh.element_size + 2 for n in mesh.shape]
     item = np.dtype(f_dtype).itemsize
@@ -254,7 +254,7 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
 def output_bytes(mesh: Mesh, cell: int = 1) -> int:
     """The output's peak size: a result's nodal fields, flags, uncertainty, history, the
     checkpoint (float64), and, while the run is incomplete, the finest level's ``M`` kept for
-    a resumed run (:func:`chunkdic.engine.stored_matrix.stored_bytes`, 504 bytes per node:
+    a resumed run (:func:`chunkdic.passes.stored_matrix.stored_bytes`, 504 bytes per node:
     0.98 GiB at 2048³, ℓ = 16), which the complete result replaces with the rest of the checkpoint."""
     return int(math.prod(mesh.nodes_shape) * 8 * 16 + stored_bytes(mesh.nodes_shape, cell) + MiB)
 

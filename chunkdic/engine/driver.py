@@ -2,9 +2,9 @@
 
 Paper sections 3–4 (Roux, Hild, Viot, Bernard): the displacement is sought on 8-node
 cubic elements; each level of the ``2^s`` sum pyramid is solved by modified Gauss–Newton
-(:mod:`chunkdic.engine.gauss_newton`) with ``M`` built once from the reference and ``b``
-re-assembled from the corrected deformed image at every iteration (:mod:`chunkdic.engine.level`,
-:mod:`chunkdic.engine.tasks`). Out of core: every task reads its own block of ``f`` and the exact
+(:mod:`chunkdic.method.gauss_newton`) with ``M`` built once from the reference and ``b``
+re-assembled from the corrected deformed image at every iteration (:mod:`chunkdic.passes.level`,
+:mod:`chunkdic.passes.tasks`). Out of core: every task reads its own block of ``f`` and the exact
 window of ``g`` it needs from the store and returns mesh-sized partials that the client
 adds up (shared/DESIGN.md, "Out-of-core shape").
 """
@@ -43,17 +43,17 @@ from .checkpoint import (
     identify_input,
     kept_checkpoint_error,
 )
-from .events import emit
-from .haloed import COMPLETE
+from ..method.events import emit
+from ..passes.haloed import COMPLETE
 from .initial import init_identity, open_init
-from .level import prune_adopted
-from .masks import check_mask_shape, prepare_mask
+from ..passes.level import prune_adopted
+from ..passes.masks import check_mask_shape, prepare_mask
 from .meshes import parse_roi, plan_meshes
-from .prefilter import face_margin
+from ..passes.prefilter import face_margin
 from .runstate import LevelOutcome, RunState
-from .settings import Settings
-from .stored_matrix import StoredMatrix
-from .steps import (
+from ..method.settings import Settings
+from ..passes.stored_matrix import StoredMatrix
+from ..method.length import (
     RunContext,
     assemble_result,
     finish_level,
@@ -118,7 +118,7 @@ def correlate(
     mask : str, Path, array, optional
         Specimen mask of the reference's shape (any input :func:`chunkdic.open_scan`
         reads; non-zero = material): only elements with enough material take part, nodes
-        outside are NaN (:mod:`chunkdic.engine.masks`).
+        outside are NaN (:mod:`chunkdic.passes.masks`).
     init : str, Path or Result, optional
         An earlier result to start from (a previous step of a loading series, another
         element size, ROI or level), when its gap is lower than no motion's and the rigid
@@ -294,7 +294,7 @@ def _open_scratch(identity: str | None, resuming: bool, level: int | None,
     Resuming (the output held this run's checkpoint), the scratch directory the interrupted
     run of the same ``identity`` left (its process dead, or it ended interrupted) is adopted
     (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to the stores of the ``level``
-    it was solving (:func:`chunkdic.engine.level.prune_adopted`); each store is reused only
+    it was solving (:func:`chunkdic.passes.level.prune_adopted`); each store is reused only
     when complete (checked where it is opened). Otherwise a new one. ``resume``: ``(output,
     fingerprint)``, recorded so that the directory is kept for the resume of that output
     should this run be interrupted; other dead runs' scratch, and any other kept for this

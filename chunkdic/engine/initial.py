@@ -2,7 +2,7 @@
 
 Besides no motion and the rigid translation found on the coarsest level, a correlation may
 start from the displacement field of an earlier result, when that field's gap is the lowest
-of the three (:func:`chunkdic.engine.steps.best_start`): the previous step of a loading series,
+of the three (:func:`chunkdic.method.length.best_start`): the previous step of a loading series,
 a coarser or finer element size, another ROI or another pyramid level. The earlier C8
 field is evaluated with its own shape functions at the new mesh's nodes, positions and
 values converted between levels with the half-voxel offset of shared/DESIGN.md, by

@@ -55,14 +55,14 @@ from .costs import (
     read_buffer_bytes,
     task_bytes,
 )
-from .greylevel import aligned_block_elements, offset_cell
-from .haloed import quantization
+from ..method.brightness import aligned_block_elements, offset_cell
+from ..passes.haloed import quantization
 from .initial import open_init
 from .meshes import plan_meshes
-from .prefilter import face_margin, prepare_voxels, prepared_grid, prepared_halo, task_edge
-from .scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
-from .settings import Settings
-from .stored_matrix import cells_bytes
+from ..passes.prefilter import face_margin, prepare_voxels, prepared_grid, prepared_halo, task_edge
+from ..passes.scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
+from ..method.settings import Settings
+from ..passes.stored_matrix import cells_bytes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,7 +104,7 @@ class Plan:
         ends); peak scratch (the largest, over levels, of a level's haloed ``f`` and
         prepared ``g`` plus the pyramid levels still held); the result.
     layout : {"fast", "compact"}
-        How the levels' scratch stores are kept (:mod:`chunkdic.engine.scratchstore`):
+        How the levels' scratch stores are kept (:mod:`chunkdic.passes.scratchstore`):
         compact when the fast layout's ``fast_scratch_bytes`` do not fit the free disk
         (``chunkdic.scratch-layout: auto``), or when forced.
     scratch_dir, output_dir : str
@@ -230,7 +230,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
               scratch_dir=None) -> Plan:
     """The :class:`Plan` of a run; ``target`` (bytes per process) chooses the block edge and
     the prefilter's task edge: the largest (up to ``chunkdic.block-voxels`` and
-    :data:`~chunkdic.engine.prefilter.TASK_EDGE`) whose estimated peak fits."""
+    :data:`~chunkdic.passes.prefilter.TASK_EDGE`) whose estimated peak fits."""
     threads, concurrency, separate = threads_of(scheduler)
     base = base_bytes()
     levels = sorted(meshes, reverse=True)
@@ -258,7 +258,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
                              read_bytes=read_buffer_bytes(g_scan, s, [e + 2 * h for e in edges]))
 
     def elements(edge: int, mesh: Mesh) -> int:
-        # as the level makes its blocks (whole brightness cells, chunkdic.engine.level.Level)
+        # as the level makes its blocks (whole brightness cells, chunkdic.passes.level.Level)
         m = aligned_block_elements(settings.block_elements or max(1, edge // mesh.element_size), cell_of(mesh))
         return min(m, max(mesh.shape))
 

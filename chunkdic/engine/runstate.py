@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from .stopping import History, State
+from ..method.stopping import History, State
 
 
 @dataclasses.dataclass

@@ -2,9 +2,9 @@
 
 A result's residual is ``r = f̃(X) - (λ g̃(X + u(X)) + μ(X))`` (paper section 3, with the
 image preparation and brightness model of docs/engine.md): ``f̃``, ``g̃`` are the scans
-low-passed as the engine did (:mod:`chunkdic.engine.prefilter`), ``g̃`` interpolated as the engine
+low-passed as the engine did (:mod:`chunkdic.passes.prefilter`), ``g̃`` interpolated as the engine
 did (same window reads, same kernel: :func:`chunkdic.kernels.warp.warp_block`), and ``λ``, ``μ``
-the brightness the engine found (:mod:`chunkdic.engine.greylevel`: a gain and an offset per
+the brightness the engine found (:mod:`chunkdic.method.brightness`: a gain and an offset per
 element, plus a linear drift, or with ``grey_cell`` an affine offset per cell of elements,
 whose slopes :func:`brightness_fields` reads back from the offsets at the element centres).
 This module computes it for one block of whole elements, in a task, and is the one place
@@ -21,8 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import config
-from ..engine.greylevel import offset_cell
-from ..engine.tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
+from ..method.brightness import offset_cell
+from ..passes.tasks import BlockJob, LevelInputs, read_g_window, read_prepared_reference
 from ..io.handles import ArrayRef
 from ..kernels.blocks import voxel_xi
 from ..kernels.warp import warp_block
@@ -92,7 +92,7 @@ def _per_voxel(per_element: np.ndarray, ell: int) -> np.ndarray:
 
 def brightness_cell(result: Result) -> int:
     """Elements per side of the cells that shared one affine brightness offset in ``result``
-    (:func:`chunkdic.engine.greylevel.offset_cell` of its settings; 1: one offset per element)."""
+    (:func:`chunkdic.method.brightness.offset_cell` of its settings; 1: one offset per element)."""
     settings = result.info.get("settings") or {}
     model = (result.info.get("grey_level") or {}).get("model", settings.get("grey", "none"))
     return offset_cell(str(model), int(result.mesh.element_size), float(settings.get("grey_cell", 0) or 0))
@@ -102,7 +102,7 @@ def cell_slopes(offset: np.ndarray, cell: int, element_size: int, drift) -> np.n
     """Each element's brightness slope, read back from the offsets at the element centres.
 
     With affine offsets per cell of ``cell³`` elements (the ``drift`` model with
-    ``grey_cell``, :func:`chunkdic.engine.greylevel._reduce_cells`) the offset at an element's
+    ``grey_cell``, :func:`chunkdic.method.brightness._reduce_cells`) the offset at an element's
     centre is ``a_c + b_c · (X_e - X_c)``: two neighbours of one cell along an axis differ by
     exactly ``b_c`` times ``element_size`` there, so the cell's slope along that axis is that
     difference (the mean of every such pair, equal to round-off). Cells start at multiples of

@@ -15,7 +15,7 @@ face nodes add up in the engine.
 Method: paper section 3, modified Gauss–Newton (section 3.1): ``M`` is built once from
 ``grad f``; each iteration needs ``b_(a,i) = sum_X N_a(X) d_i f(X) r(X)`` with the residual
 ``r = f(X) - (λ g(X + u(X)) + μ)``, where the brightness correction ``(λ, μ)`` is chosen by
-:mod:`chunkdic.engine.greylevel` (``λ = 1, μ = 0`` is the paper). The kernels therefore return,
+:mod:`chunkdic.method.brightness` (``λ = 1, μ = 0`` is the paper). The kernels therefore return,
 per element, the sums from which ``b`` and ``Σ r²`` follow for any ``(λ, μ)``
 (:class:`chunkdic.kernels.blocks.ElementSums`): with ``d = f - g(X+u)`` and ``g' = g(X+u) - c`` (``c`` a centring
 constant), ``r = d - α g' - μ'`` with ``α = λ - 1``, so
@@ -53,7 +53,7 @@ Notes for callers (the engine)
 - ``g`` window: read ``g[kernels_window.g_window(...)]`` and pass its start as ``g_origin``; the kernels
   refuse (ValueError) a window that misses samples a valid voxel needs. For cubic, pass a
   window of float32 B-spline coefficients with ``prefiltered=True`` (what the engine does,
-  :mod:`chunkdic.engine.prefilter`), or raw samples read with ``halo=chunkdic.bspline-halo`` (12)
+  :mod:`chunkdic.passes.prefilter`), or raw samples read with ``halo=chunkdic.bspline-halo`` (12)
   and let the kernels prefilter it (``scipy.ndimage.spline_filter``, mirror).
 - Validity: a voxel counts when ``0 <= X_i + u_i <= g_shape_i - 1`` on every axis (a NaN
   displacement makes it invalid); invalid voxels are left out of every ``b`` sum and

@@ -100,13 +100,13 @@ class Result:
         :data:`FLAG_WEAK` (poorly textured, regularised, or not settled at the noise level) and :data:`FLAG_MASKED` (outside
         the specimen mask, NaN).
     active : ndarray, shape (ez, ey, ex), uint8, optional
-        Elements that took part (a specimen mask's material elements, :mod:`chunkdic.engine.masks`);
+        Elements that took part (a specimen mask's material elements, :mod:`chunkdic.passes.masks`);
         ``None`` without a mask.
     uncertainty : ndarray, shape (3, nz, ny, nx), float64, optional
         Standard deviation of each nodal displacement from the final residual's noise,
-        voxels of ``level`` (:func:`chunkdic.engine.noise.nodal_uncertainty`); NaN where not measured.
+        voxels of ``level`` (:func:`chunkdic.method.noise.nodal_uncertainty`); NaN where not measured.
     brightness : ndarray, shape (2, ez, ey, ex), float64, optional
-        Per-element gain and offset of the grey-level model (:mod:`chunkdic.engine.greylevel`):
+        Per-element gain and offset of the grey-level model (:mod:`chunkdic.method.brightness`):
         ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
     """
 

@@ -156,7 +156,7 @@ class StencilSolver:
     def local_variances(self) -> np.ndarray:
         """``diag(A_ii⁻¹ M_ii A_ii⁻¹)`` of every node (nz, ny, nx, 3), float64, ``A = M + λ R``:
         each node's variance per unit noise when its neighbours are held
-        (:func:`chunkdic.engine.noise.nodal_uncertainty`), computed in float64 a slab of
+        (:func:`chunkdic.method.noise.nodal_uncertainty`), computed in float64 a slab of
         planes at a time (the former whole-mesh arrays: 3 × 72 B per node)."""
         out = np.empty(self.nodes_shape + (3,))
         for planes in z_slabs(self.nodes_shape):

@@ -24,7 +24,7 @@ from .stencil import stencil_matvec
 CANDIDATES = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
 #: the criteria :func:`choose_length` knows (docs/engine.md, the comparison); :data:`DEFAULT_RULE` is the default
 RULES = ("upre", "discrepancy", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve")
-#: the engine's default (:class:`chunkdic.engine.settings.Settings` ``regularization_rule``):
+#: the engine's default (:class:`chunkdic.method.settings.Settings` ``regularization_rule``):
 #: the predicted risk measured better on translations at ℓ = 8 (2×) and level on
 #: heterogeneous fields, but chose too short at ℓ = 4 on pure noise (docs/engine.md)
 DEFAULT_RULE = "discrepancy"
@@ -105,7 +105,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     candidate length the field minimising that misfit plus ``λ aᵀ R a`` is one solve of
     ``(M + λ R) a' = M a + b``; its misfit increase ``D(λ)`` over the data fit is what the
     rules weigh. A fitted unknown absorbs ``s² = κ σ_r²`` of the misfit from the noise
-    (:mod:`chunkdic.engine.noise`), ``N`` unknowns in all:
+    (:mod:`chunkdic.method.noise`), ``N`` unknowns in all:
 
     ``"upre"``
         The least predicted mean-square error of the field in the data norm:
@@ -148,7 +148,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         Converged field and its right-hand side.
     noise_variance : float
         What one fitted unknown absorbs from the noise: ``κ σ_r²``, grey levels²
-        (:mod:`chunkdic.engine.noise`).
+        (:mod:`chunkdic.method.noise`).
     solve_with : callable
         ``solve_with(half, regularizer, weight, rhs) -> x``: the solver of ``(M + λ R) x = rhs``.
         Every call of one region passes the same ``half`` and ``regularizer`` objects, so

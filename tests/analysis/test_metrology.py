@@ -158,7 +158,7 @@ def test_studies_take_settings_like_correlate():
     """``sweep``/``uncertainty(settings=...)``: the template's fields reach every correlation
     (its element size replaced per size), ``options`` still override them."""
     from chunkdic.analysis.metrology import with_settings
-    from chunkdic.engine.settings import Settings
+    from chunkdic.method.settings import Settings
 
     template = Settings(element_size=99, level=1, interpolation="linear", smoothing=0.0, regularization="tikhonov")
     level, interp, options = with_settings(template, 0, "cubic", {"tolerance": 1e-4, "smoothing": 0.5})

@@ -8,7 +8,7 @@ import dask
 import numpy as np
 
 import chunkdic
-from chunkdic.engine import level as level_module
+from chunkdic.passes import level as level_module
 from chunkdic.io import chunkread
 from chunkdic.io.handles import forget_open_arrays
 

@@ -1,4 +1,4 @@
-"""Known answers of the four brightness models (chunkdic.engine.greylevel).
+"""Known answers of the four brightness models (chunkdic.method.brightness).
 
 The deformed scan is the reference with a known brightness change and no motion:
 ``g = a·f + b + c·z``, so ``f = g / a - b / a - (c / a)·z`` exactly, i.e. in the models'
@@ -109,7 +109,7 @@ def test_cell_offsets_are_the_least_squares_fit_over_the_voxels(k):
     ``b`` at every node, same offset at each element's centre, same gain; the drift is the
     global one (``k = 1``) or the weighted least-squares plane through the element-centre
     offsets (float64 round-off)."""
-    from chunkdic.engine.greylevel import combine, reduce_block
+    from chunkdic.method.brightness import combine, reduce_block
     from chunkdic.kernels.b import element_to_nodes
 
     ell, shape_e = 3, (4, 5, 3)

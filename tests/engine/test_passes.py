@@ -16,7 +16,7 @@ from scipy import ndimage
 from textures import fourier_shift, smooth_noise
 
 import chunkdic
-from chunkdic.engine.stopping import still_to_come
+from chunkdic.method.stopping import still_to_come
 
 
 def _gap_by_hand(f, g, roi, t, ell, every_other: bool) -> float:
@@ -73,7 +73,7 @@ def test_the_finest_level_spends_three_passes_on_a_band_where_it_spent_six(tmp_p
     and a level converged so flags no node as unsettled (its last increment, 0.003 voxel, is
     above the tolerance at a few nodes, but what is still to come is not)."""
     from chunkdic.analysis.scoring import score_between_nodes
-    from chunkdic.engine import level
+    from chunkdic.passes import level
     from chunkdic.synth import synthetic
     from chunkdic.synth.ctpair import standard_field
 

@@ -116,7 +116,8 @@ PREFILTER = textwrap.dedent("""
     import concurrent.futures, json, sys
     import numpy as np
     from chunkdic import config, scheduler
-    from chunkdic.engine import costs, prefilter as P
+    from chunkdic.engine import costs
+    from chunkdic.passes import prefilter as P
     from chunkdic.io.handles import ArrayRef
     from chunkdic.io.scan import open_scan
 
@@ -231,14 +232,14 @@ def test_quantised_reference_copy_is_block_independent_and_close_to_float32():
                                                grey_cell=0.0).displacement
     np.testing.assert_allclose(runs["uint16", 1], runs["uint16", 4], rtol=0, atol=1e-6)
     np.testing.assert_allclose(runs["uint16", 4], runs["float32", 4], rtol=0, atol=1e-4)
-    from chunkdic.engine.haloed import quantization
+    from chunkdic.passes.haloed import quantization
     assert quantization("uint16") == (0.0, 1.0) and quantization("uint8") == (0.0, 2.0**-8)
     assert quantization("float32") == (0.0, 0.0) and quantization("uint32") == (0.0, 0.0)
 
 
 def test_prepared_grid_holds_the_coefficients_without_clipping():
     """The 16-bit grid of the prepared g covers the coefficients' overshoot (σ = 1: 1.9 % of the range)."""
-    from chunkdic.engine.prefilter import (
+    from chunkdic.passes.prefilter import (
         dequantize,
         prepare_deformed,
         prepared_grid,
@@ -260,7 +261,7 @@ def test_plan_chooses_the_compact_layout_only_when_the_fast_one_does_not_fit(pai
     """Issue 21: the fast (uncompressed) scratch layout while the disk holds it; the compact one,
     said in the plan's line and summary and used by the run, when it does not; refused when
     neither fits."""
-    from chunkdic.engine.scratchstore import COMPACT_RATIO
+    from chunkdic.passes.scratchstore import COMPACT_RATIO
 
     fast = _plan(pair, tmp_path)
     assert fast.layout == "fast" and fast.scratch_bytes == fast.fast_scratch_bytes

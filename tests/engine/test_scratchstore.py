@@ -15,9 +15,9 @@ import zarr
 from textures import smooth_noise
 
 import chunkdic
-from chunkdic.engine import scratchstore
-from chunkdic.engine.haloed import HaloedBlocks, quantization
-from chunkdic.engine.prefilter import prepared_grid
+from chunkdic.passes import scratchstore
+from chunkdic.passes.haloed import HaloedBlocks, quantization
+from chunkdic.passes.prefilter import prepared_grid
 
 
 @pytest.mark.parametrize("layout", ["fast", "compact"])
@@ -159,7 +159,7 @@ def test_haloed_store_is_adopted_only_complete_and_whole(tmp_path, layout):
 
 @pytest.mark.parametrize("local", [True, False])
 def test_prepared_g_is_adopted_only_complete_whole_and_on_this_runs_grid(tmp_path, local):
-    from chunkdic.engine.prefilter import adopt_prepared, build_prepared, record_path
+    from chunkdic.passes.prefilter import adopt_prepared, build_prepared, record_path
     from chunkdic.io.handles import ArrayRef
 
     rng = np.random.default_rng(4)

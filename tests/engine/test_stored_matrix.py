@@ -1,4 +1,4 @@
-"""M kept in the output for a resumed run (chunkdic.engine.stored_matrix; issue 21, item 5):
+"""M kept in the output for a resumed run (chunkdic.passes.stored_matrix; issue 21, item 5):
 read back only complete and for the same key, never after a kill while it was written."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic.engine.stored_matrix import Assembled, StoredMatrix, cells_bytes, field_hash, stored_bytes
+from chunkdic.passes.stored_matrix import Assembled, StoredMatrix, cells_bytes, field_hash, stored_bytes
 
 
 @pytest.fixture

@@ -7,7 +7,7 @@ uncertainty, and a Gaussian low-pass of both scans (σ ≈ 1 voxel) cut it sever
 
 - the reference ``f`` is low-passed block by block in the ``M`` pass
   (:func:`prepare_reference`), which reads each block with a halo of the filter's radius
-  and keeps the result as the block's haloed copy (:mod:`chunkdic.engine.haloed`);
+  and keeps the result as the block's haloed copy (:mod:`chunkdic.passes.haloed`);
 - the deformed ``g`` is low-passed and, for cubic interpolation, turned into B-spline
   coefficients (:func:`prepare_deformed`) once per level over the box of ``g`` that the
   current field can reach (plus a margin), chunk by chunk on the workers, into a float32
@@ -123,7 +123,7 @@ def prepared_grid(dtype, sigma: float, interpolation: str) -> tuple[float, float
     range, or ``chunkdic.scratch-precision`` ``"float32"``). The grid covers the dtype's
     range widened by :func:`overshoot` on each side, so nothing is clipped: 1.04 grey
     levels per step for a 16-bit scan at σ = 1, 16.6 in the compact layout
-    (:mod:`chunkdic.engine.scratchstore`; docs/engine.md, "Scratch disk")."""
+    (:mod:`chunkdic.passes.scratchstore`; docs/engine.md, "Scratch disk")."""
     if dtype is None or sigma <= 0 or config.get("scratch-precision") != "uint16":
         return 0.0, 0.0
     dtype = np.dtype(dtype)
@@ -170,7 +170,7 @@ class PreparedImage:
     """The prepared ``g`` (samples or B-spline coefficients) over ``box`` (absolute level indices),
     stored as float32 or on the 16-bit ``grid`` (:func:`prepared_grid`); ``compressed``: a
     compact layout's Zarr array of :data:`CHUNK`³ chunks, read from its chunk files
-    (:func:`chunkdic.engine.scratchstore.read_window`)."""
+    (:func:`chunkdic.passes.scratchstore.read_window`)."""
 
     ref: ArrayRef
     box: tuple[tuple[int, int], tuple[int, int], tuple[int, int]]
@@ -333,7 +333,7 @@ def build_prepared(g_ref: ArrayRef, box, path: Path, map_tasks, *, halo: int, lo
     is on the hot path of every iteration). (Hence tasks that write into it rather than
     ``dask.array.map_overlap``, whose result would still have to be stored, as Zarr.) Otherwise an uncompressed Zarr array, safe
     for workers on other hosts sharing the file system; in the compact layout
-    (:mod:`chunkdic.engine.scratchstore`) a compressed Zarr array in either case.
+    (:mod:`chunkdic.passes.scratchstore`) a compressed Zarr array in either case.
     """
     shape = tuple(b - a for a, b in box)
     grid = prepared_grid(g_ref.dtype, sigma, interpolation)

@@ -61,7 +61,7 @@ _D, _G, _ONE, _Z, _Y, _X = range(6)
 _THETA = (_G, _Z, _Y, _X)  # global unknowns of the drift model: gain, then the drift per axis
 _COORDS = (_Z, _Y, _X)
 #: edge (voxels of the level) of the cells sharing one offset in the ``drift`` model (the default
-#: setting, :data:`chunkdic.engine.settings.DEFAULT_GREY_CELL_VOXELS`)
+#: setting, :data:`chunkdic.method.settings.DEFAULT_GREY_CELL_VOXELS`)
 OFFSET_CELL_VOXELS = DEFAULT_GREY_CELL_VOXELS
 
 
@@ -152,7 +152,7 @@ class Fit:
 
     def share(self, fields: np.ndarray) -> None:
         """Point gain, offset and valid counts at rows 0-2 of ``fields`` (the same values, as
-        :func:`chunkdic.engine.gauss_newton.element_fields` copies them): the pass and the
+        :func:`chunkdic.method.gauss_newton.element_fields` copies them): the pass and the
         state then hold them once (48 MB at 128³ elements)."""
         self.gain, self.offset, self.valid_per_element = fields[0], fields[1], fields[2]
 
@@ -336,7 +336,7 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
     ``center`` is the centring constant ``c`` the tasks used (grey levels), ``element_size``
     the element edge (voxels; the drift's unit in the sums is one element). The two halves,
     :func:`nodal_rhs` and :func:`element_fit`, let a caller drop ``nodal`` in between
-    (:meth:`chunkdic.engine.level.Level.assemble_b`).
+    (:meth:`chunkdic.passes.level.Level.assemble_b`).
     """
     return element_fit(model, nodal_rhs(model, nodal, scalars), scalars, elements, center, element_size)
 

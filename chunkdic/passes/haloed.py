@@ -23,9 +23,9 @@ scratch store of a level-0 run (17 GB of 35 at 2048³); its effect on the measur
 is in docs/engine.md ("Scratch disk"). Other levels and float scans stay float32.
 
 When the disk cannot hold the run, the plan picks the compact layout
-(:mod:`chunkdic.engine.scratchstore`): a 16× coarser grid, chunks compressed with
+(:mod:`chunkdic.passes.scratchstore`): a 16× coarser grid, chunks compressed with
 blosc zstd (0.55 of the bytes). Either way a task reads its chunk's file itself
-(:func:`chunkdic.engine.scratchstore.read_chunk`: 2 ms for a 130³ chunk, 18 ms through zarr).
+(:func:`chunkdic.passes.scratchstore.read_chunk`: 2 ms for a 130³ chunk, 18 ms through zarr).
 
 Retried tasks are safe: a task writes exactly one whole chunk, always the same values.
 
@@ -72,7 +72,7 @@ class HaloedBlocks:
     offset, step : float
         The 16-bit grid of a quantised store (``step`` 0: stored as ``dtype``).
     compressed : bool
-        Chunks compressed (the compact layout, :mod:`chunkdic.engine.scratchstore`).
+        Chunks compressed (the compact layout, :mod:`chunkdic.passes.scratchstore`).
     """
 
     path: str
@@ -184,7 +184,7 @@ class HaloedBlocks:
 def quantization(dtype) -> tuple[float, float]:
     """``(offset, step)`` of the 16-bit grid for low-passed values of an integer ``dtype`` of
     1 or 2 bytes (``step`` a power of two, 65535 steps cover the dtype's range; the compact
-    layout's steps are :data:`~chunkdic.engine.scratchstore.COMPACT_STEP` times larger);
+    layout's steps are :data:`~chunkdic.passes.scratchstore.COMPACT_STEP` times larger);
     ``(0, 0)``: not quantised (other dtypes, or ``chunkdic.scratch-precision`` is ``"float32"``)."""
 
     if dtype is None or config.get("scratch-precision") != "uint16":

@@ -27,13 +27,13 @@ from ..scheduler import release_freed_memory
 from ..solve.cg import PoorTextureWarning, StencilSolver
 from ..solve.regularizer import Regularizer, plane_wave_unit
 from ..solve.stencil import rigid_restriction, stencil_matvec
-from .events import emit
-from .greylevel import Fit, aligned_block_elements, element_fit, misfit, nodal_rhs, offset_cell
+from ..method.events import emit
+from ..method.brightness import Fit, aligned_block_elements, element_fit, misfit, nodal_rhs, offset_cell
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
-from .noise import correlation_factor
+from ..method.noise import correlation_factor
 from .prefilter import adopt_prepared, build_prepared, face_margin, reachable_box, record_path
-from .settings import Settings
+from ..method.settings import Settings
 from .stored_matrix import Assembled, StoredMatrix, field_hash
 from .tasks import BlockJob, LevelInputs, b_task, f_copy_task, m_task
 
@@ -72,7 +72,7 @@ def prune_adopted(scratch: Path, level: int | None) -> None:
     level stores no level of this run will adopt: those of levels coarser than ``level`` (the
     level of the interrupted run's checkpoint, done or under way; None: keep every level's),
     a prepared ``g`` left without its completion record or superseded by a later build, and
-    the mask's levels (prepared again: :func:`chunkdic.engine.masks.prepare_mask` writes a new
+    the mask's levels (prepared again: :func:`chunkdic.passes.masks.prepare_mask` writes a new
     group)."""
     scratch = Path(scratch)
     latest: dict[int, int] = {}
@@ -109,14 +109,14 @@ class Pass:
     Attributes
     ----------
     fit : Fit
-        ``b``, ``Σ r²`` and the brightness found (:mod:`chunkdic.engine.greylevel`).
+        ``b``, ``Σ r²`` and the brightness found (:mod:`chunkdic.method.brightness`).
     gap : float
         Matching gap ``rms(r) / (max f - min f)`` over the valid voxels (paper section 5.1).
     n_valid, n_excluded : int
         Voxels used, and voxels whose ``X + u(X)`` left ``g``.
     kappa : float
         How much more misfit a fitted unknown absorbs than with white noise
-        (:func:`chunkdic.engine.noise.correlation_factor`).
+        (:func:`chunkdic.method.noise.correlation_factor`).
     probe_gaps : dict
         The gaps of the further fields the pass measured (:meth:`Level.assemble_b`'s ``probes``).
     seconds : float
@@ -166,7 +166,7 @@ class Level:
     scratch : Path
         The run's scratch directory (shared with the workers).
     progress : callable, optional
-        Receives events (dicts), see :func:`chunkdic.engine.events.emit`.
+        Receives events (dicts), see :func:`chunkdic.method.events.emit`.
     mask : ArrayRef, optional
         The specimen mask at this level.
     start : ndarray, shape (3, nz, ny, nx), float64, keyword-only
@@ -238,7 +238,7 @@ class Level:
                      rate=rate, eta=(total - done) * voxels_per_block / rate)
 
     def _f_copy(self, f_ref: ArrayRef, sigma: float, adopt: bool) -> tuple[HaloedBlocks, bool]:
-        """The store of the blocks' haloed ``f`` (see :mod:`chunkdic.engine.haloed`): with
+        """The store of the blocks' haloed ``f`` (see :mod:`chunkdic.passes.haloed`): with
         ``adopt``, the complete copy an interrupted run of the same run left in the adopted
         scratch (then ``True``), else an empty store.
 
@@ -258,7 +258,7 @@ class Level:
 
     def _adopt_prepared(self) -> bool:
         """Take the prepared ``g`` an interrupted run completed in the adopted scratch
-        (:func:`chunkdic.engine.prefilter.adopt_prepared`): whether there was one."""
+        (:func:`chunkdic.passes.prefilter.adopt_prepared`): whether there was one."""
         if not self.inputs.g_needs_preparing:
             return False
         found = adopt_prepared(self.scratch, self.s, self.inputs.g_grid, local=self.runner.local)
@@ -283,7 +283,7 @@ class Level:
         solver, the element activity of a mask and the reference's dynamic range.
 
         Built by a pass over the voxels (:meth:`_m_pass`), or read from the output where an
-        interrupted run of the same run kept it (:mod:`chunkdic.engine.stored_matrix`); a pass
+        interrupted run of the same run kept it (:mod:`chunkdic.passes.stored_matrix`); a pass
         that built it keeps it there."""
         key = None if self.matrix is None else self.matrix_key(u)
         m = None if key is None else self.matrix.load(key)
@@ -357,7 +357,7 @@ class Level:
     def _f_copy_pass(self) -> None:
         """Write the haloed ``f`` alone (``M`` read from the output, the interrupted run's copy
         not adopted): the ``M`` pass's reads and low-pass without its sums
-        (:func:`chunkdic.engine.tasks.f_copy_task`); before the first ``b`` pass."""
+        (:func:`chunkdic.passes.tasks.f_copy_task`); before the first ``b`` pass."""
         t0 = time.perf_counter()
         inputs = self.inputs
         inputs.f_copy.unmark()
@@ -394,7 +394,7 @@ class Level:
         return None
 
     def settle_start(self, start: np.ndarray, *, rebuild: bool) -> None:
-        """The start chosen after the level was opened (:func:`chunkdic.engine.steps.best_start`).
+        """The start chosen after the level was opened (:func:`chunkdic.method.length.best_start`).
 
         ``rebuild``: assemble ``M`` again around ``start`` (3, nz, ny, nx), voxels of the
         level, and record it as the field ``M`` is built at. ``M`` sums only the voxels its
@@ -545,7 +545,7 @@ class Level:
 
     def keep_first_pass(self, u: np.ndarray, p: Pass) -> None:
         """Hold the pass ``p`` measured at ``u`` for the iterations that start from ``u``
-        (:func:`chunkdic.engine.steps.measure_start_gaps` sums it with the reported gaps)."""
+        (:func:`chunkdic.method.length.measure_start_gaps` sums it with the reported gaps)."""
         self._first_pass = (u, p)
 
     def take_first_pass(self, u: np.ndarray) -> Pass | None:
@@ -648,6 +648,6 @@ class Level:
         return self.last_pass
 
     def _gap_of_scalars(self, scalars: np.ndarray) -> float:
-        """The gap of a pass from its summed scalars alone (:func:`chunkdic.engine.greylevel.misfit`)."""
+        """The gap of a pass from its summed scalars alone (:func:`chunkdic.method.brightness.misfit`)."""
         ssr, weight = misfit(self.settings.grey, scalars)
         return math.sqrt(ssr / weight) / self.dynamic_range if weight > 0 else math.inf

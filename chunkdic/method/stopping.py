@@ -1,6 +1,6 @@
 """The stopping rule of a Gauss–Newton level and what a level remembers: state and history.
 
-Kept apart from :mod:`chunkdic.engine.gauss_newton` (which drives the 3-D block engine) so
+Kept apart from :mod:`chunkdic.method.gauss_newton` (which drives the 3-D block engine) so
 that the 2-D check of :mod:`chunkdic.analysis.q4` shares the very same rule without loading
 the block kernels or the solvers. The state (:class:`State`) holds everything needed to
 resume exactly after an interruption and has a JSON form for the checkpoint.

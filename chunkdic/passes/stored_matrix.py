@@ -1,6 +1,6 @@
 """``M`` kept in the output while a run is incomplete: a resumed level reads it instead of a pass.
 
-``M`` is built once per level by a pass over every voxel of the level (:meth:`chunkdic.engine.level.Level._assemble_m`):
+``M`` is built once per level by a pass over every voxel of the level (:meth:`chunkdic.passes.level.Level._assemble_m`):
 563 s at 2048³ level 0, about two Gauss–Newton passes. A run killed during that level used to
 build it again on resume. Now the level's ``M`` (the client's half stencil, shape
 ``(nz, ny, nx, 14, 3, 3)`` float32, 504 bytes per node: 1 056 964 608 bytes = 0.98 GiB for
@@ -16,7 +16,7 @@ Layout in ``OUT.zarr``: arrays ``checkpoint/matrix_stencil``, ``checkpoint/matri
 "fmin": …, "fmax": …, "complete": true}``. Writing removes the record first, writes the
 arrays, then the record: a kill while ``M`` is written leaves no record, and the resumed run
 builds ``M`` again. The record of a level is removed once the level's end is recorded
-(:func:`chunkdic.engine.steps.finish_level`), and the whole checkpoint group goes when the
+(:func:`chunkdic.method.length.finish_level`), and the whole checkpoint group goes when the
 result replaces it: a complete result holds no ``M``.
 """
 
@@ -60,14 +60,14 @@ def field_hash(u: np.ndarray) -> str:
 
 @dataclasses.dataclass
 class Assembled:
-    """What the ``M`` pass of a level gives (:meth:`chunkdic.engine.level.Level._assemble_m`).
+    """What the ``M`` pass of a level gives (:meth:`chunkdic.passes.level.Level._assemble_m`).
 
     Attributes
     ----------
     stencil : ndarray, shape (nz, ny, nx, 14, 3, 3), float32
         The half stencil of ``M`` (:data:`chunkdic.solve.HALF_OFFSETS`).
     lags : ndarray, shape (3, LAGS + 1), float64
-        The pass's sensitivity lag sums (:mod:`chunkdic.engine.noise`).
+        The pass's sensitivity lag sums (:mod:`chunkdic.method.noise`).
     active : ndarray, shape (ez, ey, ex), bool, optional
         Element activity of a specimen mask (None: every element).
     fmin, fmax : float

@@ -1,7 +1,7 @@
 """How a level's scratch stores are kept: the fast layout, or the compact one when the disk is short.
 
 A level-0 run keeps two scratch stores of the size of the scan (the haloed low-passed
-``f`` and the prepared ``g``, :mod:`chunkdic.engine.haloed`, :mod:`chunkdic.engine.prefilter`).
+``f`` and the prepared ``g``, :mod:`chunkdic.passes.haloed`, :mod:`chunkdic.passes.prefilter`).
 Both are on a 16-bit grid of the scan's range: one grey level per step for 16-bit scans,
 about 1/200 of the noise left after the low-pass of a CT scan. On such a grid the
 low-passed noise fills every bit, and no lossless codec of numcodecs gains more than 6-11 %

@@ -15,7 +15,7 @@ import time
 import numpy as np
 
 from .events import emit
-from .level import Level
+from ..passes.level import Level
 from .stopping import History, State, decide, noise_step_of, still_to_come
 
 
@@ -30,12 +30,12 @@ def element_fields(p) -> np.ndarray:
 
 def noise_step(lvl: Level, p, delta: np.ndarray, tolerance: float) -> tuple[float, np.ndarray, float]:
     """The increment ``delta`` (nz, ny, nx, 3) in units of the field's own uncertainty
-    (:func:`~chunkdic.engine.stopping.noise_step_of`: RMS of ``δa / σ_u`` over the settled
+    (:func:`~chunkdic.method.stopping.noise_step_of`: RMS of ``δa / σ_u`` over the settled
     nodes), the unsettled nodes (bool, shape (nz, ny, nx): beyond ``STEP_CAP`` σ_u and
     ``tolerance``, voxels of the level) and their fraction of the measured nodes.
 
     ``σ_u² = κ σ_r² [A_ii⁻¹ M_ii A_ii⁻¹]`` from each node's diagonal block (``A = M + λR``;
-    the coupling to the neighbours, which :func:`~chunkdic.engine.noise.nodal_uncertainty`
+    the coupling to the neighbours, which :func:`~chunkdic.method.noise.nodal_uncertainty`
     adds, only raises ``σ_u``: this is the stricter measure). Weak nodes are left out.
     """
     solver = lvl.solver
@@ -59,7 +59,7 @@ def iterate(lvl: Level, state: State, tolerance: float, max_iterations: int, his
 
     Each pass evaluates ``b`` and the gap of the current field and solves for an increment;
     an increment below ``tolerance``, or one after which the increments still to come add
-    up to less than it (:func:`~chunkdic.engine.stopping.still_to_come`: shrinking by ×0.25
+    up to less than it (:func:`~chunkdic.method.stopping.still_to_come`: shrinking by ×0.25
     or faster, a geometric series), is applied and ends the level as converged, without a
     pass to confirm it: the reported gap is that of the last pass, whose field differs from
     the returned one by about ``tolerance`` (the gap by the square of that, relative).

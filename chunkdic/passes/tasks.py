@@ -19,7 +19,7 @@ from ..kernels.blocks import ElementSums
 from ..kernels.m import m_block
 from ..kernels.window import g_window
 from ..mesh import Block, Mesh
-from .greylevel import Partials, reduce_block
+from ..method.brightness import Partials, reduce_block
 from .haloed import HaloedBlocks
 from .masks import active_elements, element_fractions
 from .prefilter import (
@@ -87,13 +87,13 @@ class LevelInputs:
     sigma : float
         Gaussian low-pass of both scans, voxels of the level (0: none).
     grey : str
-        Brightness model (:mod:`chunkdic.engine.greylevel`).
+        Brightness model (:mod:`chunkdic.method.brightness`).
     bspline_halo : int
         Extra voxels around a ``g`` window prefiltered by the task itself (cubic).
     g_margin : int
         Voxels ``X + u(X)`` falling within this distance of a face of ``g`` are excluded:
         there the low-pass of ``g`` sees the mirror extension instead of the specimen's
-        continuation (:func:`chunkdic.engine.prefilter.face_margin`).
+        continuation (:func:`chunkdic.passes.prefilter.face_margin`).
     center : float
         Centring constant of the brightness sums (the level's mid grey level, set by the
         ``M`` pass).
@@ -102,14 +102,14 @@ class LevelInputs:
     level : int
         The pyramid level.
     mask : ArrayRef or None
-        The binary specimen mask's sums at this level (:mod:`chunkdic.engine.masks`).
+        The binary specimen mask's sums at this level (:mod:`chunkdic.passes.masks`).
     g_grid : (float, float)
         ``(offset, step)`` of the grid the prepared ``g`` is kept on
-        (:func:`chunkdic.engine.prefilter.prepared_grid`, chosen on the client for the run's
+        (:func:`chunkdic.passes.prefilter.prepared_grid`, chosen on the client for the run's
         scratch layout); a task that prepares its own window rounds it to the same grid.
     grey_cell : int
         Elements per side of the cells sharing one brightness offset
-        (:func:`chunkdic.engine.greylevel.offset_cell`; blocks hold whole cells).
+        (:func:`chunkdic.method.brightness.offset_cell`; blocks hold whole cells).
     """
 
     f: ArrayRef
@@ -133,7 +133,7 @@ class LevelInputs:
                      grey_cell: int = 1) -> "LevelInputs":
         """The one way to make a level's inputs from a run's settings: the B-spline halo from
         ``chunkdic.bspline-halo`` and the margin near the faces of ``g`` from the low-pass
-        (:func:`chunkdic.engine.prefilter.face_margin`) are derived here, once."""
+        (:func:`chunkdic.passes.prefilter.face_margin`) are derived here, once."""
         return cls(f, g, f_copy, interpolation, float(smoothing), grey, int(config.get("bspline-halo")),
                    face_margin(smoothing), level=int(level), mask=mask,
                    g_grid=prepared_grid(g.dtype, smoothing, interpolation), grey_cell=int(grey_cell))
@@ -200,7 +200,7 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
 def f_copy_task(inputs: LevelInputs, job: BlockJob) -> Block:
     """Task: this block's haloed, low-passed ``f`` into ``inputs.f_copy``, as :func:`m_task`
     writes it, without the sums of ``M`` (a resumed level that read ``M`` from the output,
-    :mod:`chunkdic.engine.stored_matrix`)."""
+    :mod:`chunkdic.passes.stored_matrix`)."""
     f, _, _ = read_prepared_reference(inputs, job.start, job.shape, halo=1)
     inputs.f_copy.write(job.index, f)
     return job.block
@@ -209,7 +209,7 @@ def f_copy_task(inputs: LevelInputs, job: BlockJob) -> Block:
 def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
            active: np.ndarray | None = None, probes: tuple = (),
            probe_active: np.ndarray | None = None) -> tuple[Block, Partials, list]:
-    """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.engine.greylevel.Partials`).
+    """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.method.brightness.Partials`).
 
     ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass;
     the window of ``g`` from the level's prepared store when it covers it, else it is read

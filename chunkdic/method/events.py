@@ -1,7 +1,7 @@
 """Engine events: one progress record per stage, logged as a line of text and handed to the caller's callback.
 
 An event is a flat dict (``stage`` plus its figures). :class:`EventText` words it: the
-engine's ``logging`` records (INFO, logger ``chunkdic.engine.events``) and the CLI's
+engine's ``logging`` records (INFO, logger ``chunkdic.method.events``) and the CLI's
 progress lines (:func:`chunkdic.cli.common.print_progress`, which also explains each term
 once per run) say the same thing; a script passes its own ``progress`` for the dicts.
 """

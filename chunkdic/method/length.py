@@ -27,18 +27,18 @@ from ..solve.regchoice import choose_length
 from ..solve.penalty import TERM_KINDS
 from ..solve.reweighting import robust_freed
 from ..solve.transfer import nominal_l10
-from .affine import affine_step
-from .checkpoint import Checkpoint, resumed_pass
+from .start import affine_step
+from ..engine.checkpoint import Checkpoint, resumed_pass
 from .events import emit
 from .gauss_newton import iterate, rigid_step
-from .initial import start_field as init_start_field
-from .level import Level
+from ..engine.initial import start_field as init_start_field
+from ..passes.level import Level
 from .noise import nodal_uncertainty
-from .rigid import translation_task
-from .runstate import LevelOutcome, RunState
+from ..passes.translation import translation_task
+from ..engine.runstate import LevelOutcome, RunState
 from .settings import Settings
 from .stopping import State
-from .stored_matrix import StoredMatrix
+from ..passes.stored_matrix import StoredMatrix
 
 #: the regularisation length before (coarse levels: instead of) the automatic choice, in element sizes
 START_LENGTH = 2.0
@@ -56,7 +56,7 @@ class RunContext:
     :class:`~chunkdic.io.handles.ArrayRef` tasks read (a resumed run: the levels still to
     solve); ``init`` an earlier result to start from (:mod:`chunkdic.engine.initial`);
     ``matrix`` where each level's ``M`` is kept for a resumed run (the output,
-    :mod:`chunkdic.engine.stored_matrix`); ``adopted``: the scratch is an interrupted run's,
+    :mod:`chunkdic.passes.stored_matrix`); ``adopted``: the scratch is an interrupted run's,
     whose complete level stores are reused.
     """
 
@@ -97,7 +97,7 @@ def start_field(ctx: RunContext, run: RunState, s: int, coarser_u: np.ndarray | 
     the integer translation the rigid step refines (coarsest level only, else ``None``).
 
     Resumed: the saved field. Coarsest level: an ``init`` result evaluated at the nodes,
-    or the phase-correlation translation (:mod:`chunkdic.engine.rigid`). Finer levels: the
+    or the phase-correlation translation (:mod:`chunkdic.passes.translation`). Finer levels: the
     coarser level's field carried to the finer nodes (DESIGN.md, half-voxel offset, × 2).
     """
     mesh = ctx.meshes[s]
@@ -228,7 +228,7 @@ def solve_level(ctx: RunContext, run: RunState, lvl: Level) -> None:
 
     With the length still to choose, the level first iterates to the coarse levels'
     tolerance only and stops at the pass whose increment (or, shrinking fast, the increments
-    still to come: :func:`~chunkdic.engine.stopping.still_to_come`) is below it without applying it:
+    still to come: :func:`~chunkdic.method.stopping.still_to_come`) is below it without applying it:
     the choice linearises around that pass's field and ``b`` anyway, and the regularised
     iterations that follow converge it to the tolerance (each a ``b`` pass fewer).
     """

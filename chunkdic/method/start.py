@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..solve.stencil import stencil_matvec
-from .level import Level, emit
+from ..passes.level import Level, emit
 
 #: passes of the affine step at most
 MAX_PASSES = 20
@@ -75,7 +75,7 @@ def affine_step(lvl: Level, t: np.ndarray, tolerance: float, history, progress, 
     lvl : Level
         The coarsest level, its ``M`` assembled.
     t : ndarray, shape (3,), float64, voxels of the level
-        The rigid translation (:func:`chunkdic.engine.gauss_newton.rigid_step`).
+        The rigid translation (:func:`chunkdic.method.gauss_newton.rigid_step`).
     tolerance : float
         Stop when the step moves no node by more than this (voxels of the level).
     history : History

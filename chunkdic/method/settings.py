@@ -54,11 +54,11 @@ class Settings:
         both scans before correlating; 0 turns it off (the paper). docs/engine.md, "Image
         preparation".
     grey : {"none", "global", "drift", "element"}
-        Brightness model between the scans (:mod:`chunkdic.engine.greylevel`); ``none`` is the
+        Brightness model between the scans (:mod:`chunkdic.method.brightness`); ``none`` is the
         paper's plain residual.
     grey_cell : float
         Edge (voxels of each level, >= 0) of the cells sharing one affine offset in the
-        ``drift`` model, rounded to whole elements (:func:`chunkdic.engine.greylevel.offset_cell`;
+        ``drift`` model, rounded to whole elements (:func:`chunkdic.method.brightness.offset_cell`;
         default :data:`DEFAULT_GREY_CELL_VOXELS`); 0 or at most ``ℓ``: one offset per element and one
         drift across the ROI. docs/engine.md, "Brightness".
     regularization : {"none", "tikhonov", "equilibrium-gap"}
@@ -86,7 +86,7 @@ class Settings:
     block_elements : int or None
         Elements per block side; ``None`` uses ``chunkdic.block-voxels`` (config). Rounded
         down to whole brightness cells, one cell at least
-        (:func:`chunkdic.engine.greylevel.aligned_block_elements`).
+        (:func:`chunkdic.method.brightness.aligned_block_elements`).
     """
 
     element_size: int

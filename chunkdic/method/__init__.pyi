@@ -1,0 +1,2 @@
+from .settings import Settings
+from .stopping import History, State, decide

@@ -1,0 +1,1 @@
+from .level import Level
