@@ -91,8 +91,8 @@ def capture(args) -> None:
             if out.exists():
                 continue
 
-            def save(problem, lvl, pair=pair, out=out):
-                np.savez(out, **problem, length=lvl.regularization_length, weight=lvl.regularization_weight,
+            def save(problem, penalty, pair=pair, out=out):
+                np.savez(out, **problem, length=penalty.length, weight=penalty.weight,
                          field=(pair / "field.json").read_text())
 
             seconds = capture_choice(lambda pair=pair: chunkdic.correlate(str(pair / "ref.zarr"), str(pair / "def.zarr"),

@@ -67,7 +67,7 @@ def capture(args) -> None:
             if out.exists():
                 continue
 
-            def save(problem, lvl, out=out):
+            def save(problem, penalty, out=out):
                 np.savez(out, **problem, n=n, field=json.dumps(fld.to_json()))
 
             seconds = capture_choice(lambda ell=ell: chunkdic.correlate(str(pair_dir / "ref.zarr"),

@@ -50,7 +50,7 @@ import numpy as np
 
 from ..engine.checkpoint import fingerprint, identify_input
 from ..engine.driver import correlate, settings_from, voxel_lengths
-from ..engine.initial import filled
+from ..method.start import filled
 from ..engine.meshes import parse_roi, plan_meshes
 from ..passes.prefilter import face_margin
 from ..method.settings import Settings

@@ -146,15 +146,6 @@ def completed_already(path, print_: str):
     return open_result(p)
 
 
-def resumed_pass(lvl, state):
-    """The latest pass at ``state.u`` on ``lvl``: the one this process ran, else (a level resumed
-    after its iterations ended) one evaluated again. Exactly the pass the interrupted run
-    held when its field stayed the pass's own (an increment left unapplied for the
-    regularisation choice, :func:`chunkdic.method.gauss_newton.iterate` ``resolve``)."""
-    p = getattr(lvl, "last_pass", None)
-    return p if p is not None else lvl.assemble_b(state.u)
-
-
 def kept_checkpoint_error(exc: OSError, output) -> InputError:
     """The one line for a disk error (full, read-only, I/O) met after a checkpoint was saved:
     the checkpoint stays (marked incomplete) and the same command resumes from it."""

@@ -236,7 +236,7 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
                interpolation: str = "cubic") -> tuple[int, int, list]:
     """``(haloed f copy, prepared g)`` scratch bytes of a level with blocks of ``m`` elements,
     and the edges of the box of ``g`` prepared (the current field's reach plus its margin,
-    :meth:`chunkdic.passes.level.Level.prepare_interpolation`, taken for a small field)."""
+    :meth:`chunkdic.passes.level.LevelPasses.prepare`, taken for a small field)."""
     grid = [-(-n // m) for n in mesh.shape]
     chunk = [min(m, n) * mesh.element_size + 2 for n in mesh.shape]
     item = np.dtype(f_dtype).itemsize

@@ -44,27 +44,15 @@ from .checkpoint import (
     kept_checkpoint_error,
 )
 from ..method.events import emit
-from ..passes.haloed import COMPLETE
-from .initial import init_identity, open_init
-from ..passes.level import prune_adopted
-from ..passes.masks import check_mask_shape, prepare_mask
-from .meshes import parse_roi, plan_meshes
-from ..passes.prefilter import face_margin
-from .runstate import LevelOutcome, RunState
 from ..method.settings import Settings
+from ..passes.masks import check_mask_shape, prepare_mask
+from ..passes.prefilter import face_margin
+from ..passes.scratchstore import prune_adopted
 from ..passes.stored_matrix import StoredMatrix
-from ..method.length import (
-    RunContext,
-    assemble_result,
-    finish_level,
-    measure_start_gaps,
-    open_level,
-    regularization_length,
-    release_scan_levels,
-    solve_level,
-    start_field,
-    start_state,
-)
+from .coarse_to_fine import RunContext, run_levels
+from .initial import init_identity, open_init
+from .meshes import parse_roi, plan_meshes
+from ..method.runstate import RunState
 
 __all__ = ["correlate", "Settings"]
 
@@ -242,7 +230,7 @@ def correlate(
             ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
                              mask_refs, init_result, matrix=None if ckpt is None else StoredMatrix(ckpt.path),
                              adopted=adopted)
-            result = _run(ctx, None if resume is None else RunState.from_checkpoint(resume))
+            result = run_levels(ctx, None if resume is None else RunState.from_checkpoint(resume))
         except (InputError, OSError) as exc:
             # bad input found by a pass (a constant or non-finite image), or a full or read-only
             # disk before the first checkpoint: nothing to resume, so what this run created goes.
@@ -294,7 +282,7 @@ def _open_scratch(identity: str | None, resuming: bool, level: int | None,
     Resuming (the output held this run's checkpoint), the scratch directory the interrupted
     run of the same ``identity`` left (its process dead, or it ended interrupted) is adopted
     (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to the stores of the ``level``
-    it was solving (:func:`chunkdic.passes.level.prune_adopted`); each store is reused only
+    it was solving (:func:`chunkdic.passes.scratchstore.prune_adopted`); each store is reused only
     when complete (checked where it is opened). Otherwise a new one. ``resume``: ``(output,
     fingerprint)``, recorded so that the directory is kept for the resume of that output
     should this run be interrupted; other dead runs' scratch, and any other kept for this
@@ -373,55 +361,6 @@ def voxel_lengths(settings: Settings | None, options: dict, roi, roi_unit, ref) 
 def _init_path(init_result: Result | None):
     """The earlier result's path as an input of the output rules (it may not be the output)."""
     return None if init_result is None else init_result.path
-
-
-def _run(ctx: RunContext, run: RunState | None = None) -> Result:
-    """All levels, coarsest first (paper section 3), from a fresh or a resumed ``run``."""
-    if run is None:
-        run = RunState()
-    else:
-        emit(ctx.progress, stage="resume", level=run.resumed_level, iteration=run.gn.iteration,
-             reused=_reused(ctx, run))
-    u, outcome = None, LevelOutcome()
-    for s in ctx.levels:
-        if run.done_before_resume(s):
-            release_scan_levels(ctx, s)
-            continue
-        if run.level_to_solve(s, ctx.finest):
-            t0 = time.perf_counter()
-            start, t_int = start_field(ctx, run, s, u)
-            lvl = open_level(ctx, run, s, start)
-            if run.gn is None:
-                start_state(ctx, run, lvl, start, t_int)
-            lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh), run.gn.freed)
-            # a level resumed after its iterations ended (killed at "converged") may run no pass
-            lvl.prepare_interpolation(run.gn.u, when_needed=run.gn.status is not None)
-            if s == ctx.finest and run.initial_gap is None:
-                measure_start_gaps(ctx, run, lvl)
-            solve_level(ctx, run, lvl)
-            outcome = finish_level(ctx, run, lvl, t0)
-            # the level's M, solver and last pass go now: not held through the next level's
-            # M pass (an eighth of its own) or the result's assembly (docs/distributed.md)
-            lvl = None
-        release_scan_levels(ctx, s)
-        final, u, run.gn = run.gn, run.gn.u, None
-    return assemble_result(ctx, run, final, outcome)
-
-
-def _reused(ctx: RunContext, run: RunState) -> list[str]:
-    """What a resumed run finds of the interrupted one for the first level it solves (the
-    checkpoint's, or the next finer one when that level was done): ``"M"`` (kept in the
-    output) and ``"scans"`` (its prepared scans: the haloed ``f`` of the level marked
-    complete in the adopted scratch). Each is checked again, chunk by chunk, when used."""
-    level = run.resumed_level
-    if not run.level_to_solve(level, ctx.finest):
-        level -= 1
-    reused = []
-    if ctx.matrix is not None and ctx.matrix.level() == level:
-        reused.append("M")
-    if ctx.adopted and (Path(ctx.scratch) / f"f-level{level}.zarr" / COMPLETE).is_file():
-        reused.append("scans")
-    return reused
 
 
 def _compile_kernels(runner, progress) -> None:

@@ -39,10 +39,9 @@ import numpy as np
 from ..errors import InputError
 from ..inputs import check_shape_for_result
 from ..io.kinds import kind_of
-from ..mesh import Mesh, carry_field
 from ..results.result import Result, open_result
 
-__all__ = ["open_init", "init_identity", "start_field"]
+__all__ = ["open_init", "init_identity"]
 
 
 def open_init(init, ref_shape) -> Result:
@@ -93,34 +92,3 @@ def init_identity(res: Result) -> dict:
             "fingerprint": res.info.get("fingerprint"), "created": res.info.get("created"),
             "displacement_sha256": hashlib.sha256(u.tobytes()).hexdigest()[:32],
             "element_size": res.info.get("element_size"), "level": res.level}
-
-
-def filled(u: np.ndarray) -> np.ndarray:
-    """``u`` (3, nz, ny, nx) with NaN nodes replaced by the mean of the measured ones."""
-    bad = ~np.isfinite(u).all(axis=0)
-    if not bad.any():
-        return u
-    out = np.array(u, dtype=np.float64)
-    for c in range(3):
-        out[c][bad] = np.mean(u[c][~bad])
-    return out
-
-
-def start_field(res: Result, mesh: Mesh, level: int) -> np.ndarray:
-    """The earlier field at the nodes of ``mesh`` (level ``level``), voxels of that level.
-
-    Parameters
-    ----------
-    res : Result
-        The earlier result (:func:`open_init`): displacement in voxels of its level.
-    mesh : Mesh
-        The new mesh on the level the run starts on.
-    level : int
-        That level.
-
-    Returns
-    -------
-    ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
-    """
-    return carry_field(filled(res.displacement), res.mesh, res.level, mesh.node_coords(), level,
-                       clamp=True)

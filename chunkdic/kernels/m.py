@@ -372,7 +372,7 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     with_lags : bool, keyword-only
         Also return ``lags`` (3, LAGS + 1): ``Σ w ∂_i f(x) w ∂_i f(x + k)`` along x, the
         autocorrelation of the sensitivities that estimates the noise correlation
-        (:func:`chunkdic.method.noise.correlation_factor`). numba only.
+        (:func:`chunkdic.method.noise.correlation_factor`).
     cell : int, keyword-only
         With ``grey="drift"``: elements per side of the cells sharing one affine offset
         (:func:`chunkdic.method.brightness.offset_cell`, the block's first element starting a
@@ -415,7 +415,7 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
         if grey == "drift" and int(cell) > 1:
             raise ValueError("the brightness cells' couplings have no NumPy twin (impl='numba')")
         return kernels_numpy.m_block_numpy(f32, lo, hi, int(ell), elems, CONDENSED[grey], float(center),
-                                           u if masked else None, origin, shape, int(margin), active)
+                                           u if masked else None, origin, shape, int(margin), active, with_lags)
     ell = int(ell)
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
     xi = voxel_xi(ell)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..results.result import HISTORY_FIELDS
+from ..results.layout import HISTORY_FIELDS
 
 #: stalled: this many passes with neither a lower gap nor a smaller increment
 STALL_PATIENCE = 4

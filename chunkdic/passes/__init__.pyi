@@ -1,1 +1,2 @@
-from .level import Level
+from .dense import DensePasses
+from .level import LevelPasses

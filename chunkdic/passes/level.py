@@ -1,18 +1,20 @@
-"""One pyramid level of a correlation: its blocks, ``M``, prepared ``g`` and ``b`` passes.
+"""The passes over one pyramid level out of core: the method's protocol on block tasks over Zarr stores.
 
-A :class:`Level` lives from the ``M`` pass to the end of the level's Gauss–Newton
-iterations. It owns the level's scratch data (the haloed copy of ``f``, the B-spline
-coefficients of ``g``) and deletes them in :meth:`Level.release`.
+A :class:`LevelPasses` implements :class:`chunkdic.method.protocol.Passes` for one level:
+each pass maps one task per block of whole elements (:mod:`chunkdic.passes.tasks`; in
+Z-order), each task reads its own block of ``f`` and the window of ``g`` it needs and
+returns mesh-sized partials, which the client adds up into the value the pass returns
+(shared/DESIGN.md, "Out-of-core shape"). It owns the level's scratch stores, the haloed
+copy of ``f`` that the ``M`` pass writes for the ``b`` passes and the prepared ``g`` of
+:meth:`LevelPasses.prepare`, and deletes them in :meth:`LevelPasses.release`.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import math
 import shutil
 import time
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -23,32 +25,31 @@ from ..io.chunkread import forget_chunks, z_order_key
 from ..io.handles import ArrayRef, forget_open_arrays
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
-from ..scheduler import release_freed_memory
-from ..solve.cg import PoorTextureWarning, StencilSolver
-from ..solve.regularizer import Regularizer, plane_wave_unit
-from ..solve.stencil import rigid_restriction, stencil_matvec
+from ..method.brightness import aligned_block_elements, offset_cell
 from ..method.events import emit
-from ..method.brightness import Fit, aligned_block_elements, element_fit, misfit, nodal_rhs, offset_cell
+from ..method.operator import Assembled, Operator, build_operator
+from ..method.protocol import Pass
+from ..method.settings import Settings
+from ..scheduler import release_freed_memory
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
-from ..method.noise import correlation_factor
 from .prefilter import adopt_prepared, build_prepared, face_margin, reachable_box, record_path
-from ..method.settings import Settings
-from .stored_matrix import Assembled, StoredMatrix, field_hash
+from .reduction import PassSums
+from .scratchstore import f_store, g_store
+from .stored_matrix import StoredMatrix, field_hash
 from .tasks import BlockJob, LevelInputs, b_task, f_copy_task, m_task
+from .translation import translation_task
 
 log = logging.getLogger(__name__)
 
 #: interval of block-count progress events during a long pass over the voxels (seconds)
 PROGRESS_SECONDS = 5.0
-#: a diagnostic gap (:meth:`Level.gap`) is measured on one element in 8 when the mesh has
+#: least interval between two :func:`release_freed_memory` calls of a pass (seconds)
+TRIM_SECONDS = 0.1
+#: a diagnostic gap (:meth:`LevelPasses.gap`) is measured on one element in 8 when the mesh has
 #: at least this many elements (the sample then holds 512 or more), and on one in 64, 512, …
 #: while the sample keeps this many (large meshes: 1024³ at ℓ = 16 samples one in 64)
 GAP_SAMPLE_MIN = 4096
-
-
-#: least interval between two :func:`release_freed_memory` calls of a pass (seconds)
-TRIM_SECONDS = 0.1
 
 
 def gap_stride(shape) -> int:
@@ -67,90 +68,21 @@ def gap_stride(shape) -> int:
     return stride
 
 
-def prune_adopted(scratch: Path, level: int | None) -> None:
-    """Remove from an adopted scratch directory (:func:`chunkdic.io.ownership.adopt_scratch`) the
-    level stores no level of this run will adopt: those of levels coarser than ``level`` (the
-    level of the interrupted run's checkpoint, done or under way; None: keep every level's),
-    a prepared ``g`` left without its completion record or superseded by a later build, and
-    the mask's levels (prepared again: :func:`chunkdic.passes.masks.prepare_mask` writes a new
-    group)."""
-    scratch = Path(scratch)
-    latest: dict[int, int] = {}
-    for rec in scratch.glob("g-level*-*.prepared.json"):
-        name = rec.name[len("g-level"):].split(".")[0]
-        try:
-            s, k = (int(v) for v in name.split("-"))
-        except ValueError:
-            continue
-        latest[s] = max(latest.get(s, -1), k)
-    doomed = [scratch / "mask"]
-    for entry in scratch.iterdir():
-        name = entry.name
-        if not (name.startswith("f-level") or name.startswith("g-level")):
-            continue
-        try:
-            if name.startswith("f-level"):
-                s, k = int(name[len("f-level"):].split(".")[0]), None
-            else:
-                s, k = (int(v) for v in name[len("g-level"):].split(".")[0].split("-"))
-        except ValueError:
-            doomed.append(entry)
-            continue
-        if (level is not None and s > level) or (k is not None and k != latest.get(s)):
-            doomed.append(entry)
-    for path in doomed:
-        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+def gap_sample(shape, active: np.ndarray | None) -> np.ndarray | None:
+    """The elements a diagnostic gap is measured on (uint8, the element ``shape``), or None
+    for every ``active`` element: every element in :func:`gap_stride` along each axis."""
+    stride = gap_stride(shape)
+    if stride == 1:
+        return None
+    sample = np.zeros(shape, np.uint8)
+    sample[::stride, ::stride, ::stride] = 1
+    if active is not None:
+        sample &= active.astype(np.uint8)
+    return sample if sample.any() else None
 
 
-@dataclasses.dataclass
-class Pass:
-    """One ``b`` pass over a level for a nodal field.
-
-    Attributes
-    ----------
-    fit : Fit
-        ``b``, ``Σ r²`` and the brightness found (:mod:`chunkdic.method.brightness`).
-    gap : float
-        Matching gap ``rms(r) / (max f - min f)`` over the valid voxels (paper section 5.1).
-    n_valid, n_excluded : int
-        Voxels used, and voxels whose ``X + u(X)`` left ``g``.
-    kappa : float
-        How much more misfit a fitted unknown absorbs than with white noise
-        (:func:`chunkdic.method.noise.correlation_factor`).
-    probe_gaps : dict
-        The gaps of the further fields the pass measured (:meth:`Level.assemble_b`'s ``probes``).
-    seconds : float
-        Wall time of the pass.
-    reported : bool
-        An iteration's progress event has shown it (its time is not counted twice).
-    """
-
-    fit: Fit
-    gap: float
-    n_valid: int
-    n_excluded: int
-    kappa: float = 1.0
-    probe_gaps: dict = dataclasses.field(default_factory=dict)
-    seconds: float = 0.0
-    reported: bool = False
-
-    @property
-    def noise_variance(self) -> float:
-        """``σ_r²``: the mean squared residual (grey levels²)."""
-        return self.fit.ssr / self.fit.weight if self.fit.weight > 0 else float("nan")
-
-    @property
-    def b(self) -> np.ndarray:
-        return self.fit.b
-
-    @property
-    def excluded_fraction(self) -> float:
-        total = self.n_valid + self.n_excluded
-        return self.n_excluded / total if total else 1.0
-
-
-class Level:
-    """State of one pyramid level: its mesh, data, assembled ``M`` and solver.
+class LevelPasses:
+    """The passes over one pyramid level, block by block (:class:`chunkdic.method.protocol.Passes`).
 
     Parameters
     ----------
@@ -166,24 +98,20 @@ class Level:
     scratch : Path
         The run's scratch directory (shared with the workers).
     progress : callable, optional
-        Receives events (dicts), see :func:`chunkdic.method.events.emit`.
+        Receives the passes' events (:func:`chunkdic.method.events.emit`).
     mask : ArrayRef, optional
         The specimen mask at this level.
-    start : ndarray, shape (3, nz, ny, nx), float64, keyword-only
-        The level's starting field, voxels of the level: the ``M`` pass (run on
-        construction) reads the window of ``g`` it reaches.
+    matrix : StoredMatrix, optional
+        Where ``M`` is kept for a resumed run (the output); None: not kept.
+    adopt : bool
+        The scratch is an interrupted run's: its complete stores of this level are reused.
     """
 
     def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
-                 scratch: Path, progress=None, mask: ArrayRef | None = None, *, start: np.ndarray,
-                 start_to_choose: bool = False, matrix: StoredMatrix | None = None, adopt: bool = False):
-        self.s, self.mesh, self.runner, self.settings = s, mesh, runner, settings
-        self.scratch = scratch
-        self.progress = progress
-        self._builds = 0
-        self._deferred = None  # a field whose g is prepared by the first pass (prepare_interpolation)
-        self.matrix = matrix  # where M is kept for a resumed run (the output), None: not kept
-        self.m_reused = False  # M read from the output, not built by a pass (the last _assemble_m)
+                 scratch: Path, progress=None, mask: ArrayRef | None = None, *, matrix: StoredMatrix | None = None,
+                 adopt: bool = False):
+        self.level, self.mesh, self.runner, self.settings = s, mesh, runner, settings
+        self.scratch, self.progress, self.matrix = Path(scratch), progress, matrix
         self.cell = cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
         self.block_elements = aligned_block_elements(
             settings.block_elements or max(1, config.get("block-voxels") // mesh.element_size), cell)
@@ -195,24 +123,22 @@ class Level:
             raise InputError(f"the deformed scan is too small at level {s} ({g_ref.shape}) for a low-pass of "
                              f"{settings.smoothing} voxels: choose a finer coarsest level or less smoothing")
         # the haloed f store, and whether it holds every block (adopted complete, or once a pass wrote it)
-        f_copy, self.f_copy_ready = self._f_copy(f_ref, settings.smoothing, adopt)
+        f_copy, self.f_ready = self._f_copy(f_ref, settings.smoothing, adopt)
+        self.f_adopted = self.f_ready
+        #: what every task reads, but the centring of an operator and the prepared g (task_inputs)
         self.inputs = LevelInputs.for_settings(f_ref, g_ref, f_copy, level=s,
                                                interpolation=settings.interpolation, smoothing=settings.smoothing,
                                                grey=settings.grey, mask=mask, grey_cell=cell)
-        self.g_adopted = adopt and self._adopt_prepared()
-        self.regularization_length = math.nan
-        self.regularization_weight = 0.0
-        self._unit_weight = (None, None, 0.0)  # (solver, kind, λ of a unit length): regularize
-        # the operator is assembled here, so that no method can run before it exists
-        # a start still to choose (steps.best_start): the weak-node warning waits for the M it is built with
-        self.start_to_choose = start_to_choose
-        self.m_start = start  # the field M is built at (a checkpoint keeps it: a resumed level rebuilds this M)
-        self._first_pass = None  # (field, pass) summed ahead of the iterations (keep_first_pass)
-        self._assemble_m(start)
+        #: the prepared g and how many were built (each a store of its own): prepare(), release()
+        self.prepared, self.builds = None, 0
+        if adopt and self.inputs.g_needs_preparing:
+            self._adopt_prepared()
 
-    @property
-    def blocks(self) -> list:
-        return [job.block for job in self.jobs]
+    def task_inputs(self, op: Operator | None = None) -> LevelInputs:
+        """What the tasks of a pass read: the level's inputs with the prepared ``g`` and the
+        centring of ``op``'s brightness sums."""
+        return dataclasses.replace(self.inputs, prepared=self.prepared,
+                                   center=self.inputs.center if op is None else op.center)
 
     def _map(self, fn, args, label: str, voxels: int | None = None, total: int | None = None):
         """Run one task per argument tuple, yield results as they come, report long passes.
@@ -228,13 +154,13 @@ class Level:
         for done, result in enumerate(self.runner.map_unordered(fn, args), start=1):
             yield result
             now = time.perf_counter()
-            if now - trimmed >= TRIM_SECONDS:  # freed task buffers back to the system (scheduler.release_freed_memory)
+            if now - trimmed >= TRIM_SECONDS:  # freed task buffers back to the system
                 release_freed_memory()
                 trimmed = now
             if now - last >= PROGRESS_SECONDS and done < total:
                 last = now
                 rate = done * voxels_per_block / (now - t0)
-                emit(self.progress, stage="blocks", level=self.s, label=label, done=done, total=total,
+                emit(self.progress, stage="blocks", level=self.level, label=label, done=done, total=total,
                      rate=rate, eta=(total - done) * voxels_per_block / rate)
 
     def _f_copy(self, f_ref: ArrayRef, sigma: float, adopt: bool) -> tuple[HaloedBlocks, bool]:
@@ -249,75 +175,64 @@ class Level:
         regions = [job.haloed_region(f_ref.shape)[0] for job in self.jobs]
         chunk = tuple(max(r[a].stop - r[a].start for r in regions) for a in range(3))
         dtype = "float32" if sigma > 0 else f_ref.dtype
-        path = self.scratch / f"f-level{self.s}.zarr"
+        path = f_store(self.scratch, self.level)
         if adopt:
             found = HaloedBlocks.adopt(path, grid, chunk, dtype, quantize_from=f_ref.dtype)
             if found is not None:
                 return found, True
         return HaloedBlocks.create(path, grid, chunk, dtype, quantize_from=f_ref.dtype), False
 
-    def _adopt_prepared(self) -> bool:
+    def _adopt_prepared(self) -> None:
         """Take the prepared ``g`` an interrupted run completed in the adopted scratch
-        (:func:`chunkdic.passes.prefilter.adopt_prepared`): whether there was one."""
-        if not self.inputs.g_needs_preparing:
-            return False
-        found = adopt_prepared(self.scratch, self.s, self.inputs.g_grid, local=self.runner.local)
-        if found is None:
-            return False
-        prepared, self._builds = found
-        self.inputs = dataclasses.replace(self.inputs, prepared=prepared)
-        log.info("level %d: g prepared by the interrupted run over %s reused", self.s, prepared.box)
-        return True
+        (:func:`chunkdic.passes.prefilter.adopt_prepared`), when there is one."""
+        found = adopt_prepared(self.scratch, self.level, self.inputs.g_grid, local=self.runner.local)
+        if found is not None:
+            self.prepared, self.builds = found
+            log.info("level %d: g prepared by the interrupted run over %s reused", self.level, self.prepared.box)
 
     def matrix_key(self, u: np.ndarray) -> dict:
         """What ``M`` depends on beyond the run's fingerprint: the level, its mesh and blocks,
         the 16-bit grid of the haloed ``f`` and the field ``u`` it is built at."""
         mesh, f_copy = self.mesh, self.inputs.f_copy
-        return {"level": self.s, "nodes": list(mesh.nodes_shape), "roi": [[r.start, r.stop] for r in mesh.roi],
+        return {"level": self.level, "nodes": list(mesh.nodes_shape), "roi": [[r.start, r.stop] for r in mesh.roi],
                 "element_size": mesh.element_size, "blocks": self.block_elements,
                 "brightness_cell": self.cell,
                 "f_grid": [f_copy.offset, f_copy.step, f_copy.dtype], "field": field_hash(u)}
 
-    def _assemble_m(self, u: np.ndarray) -> None:
-        """``M`` for the level's starting field ``u``: the stencil, its rigid restriction, the
-        solver, the element activity of a mask and the reference's dynamic range.
-
-        Built by a pass over the voxels (:meth:`_m_pass`), or read from the output where an
-        interrupted run of the same run kept it (:mod:`chunkdic.passes.stored_matrix`); a pass
-        that built it keeps it there."""
+    def assemble_m(self, u: np.ndarray) -> Operator:
+        """``M`` for the field ``u`` (3, nz, ny, nx), voxels of the level, as an
+        :class:`~chunkdic.method.operator.Operator`: summed by a pass over the voxels
+        (:meth:`_m_pass`), or read from the output where an interrupted run of the same run
+        kept it (:mod:`chunkdic.passes.stored_matrix`); a pass that built it keeps it there."""
+        t0, c0 = time.perf_counter(), time.process_time()
         key = None if self.matrix is None else self.matrix_key(u)
         m = None if key is None else self.matrix.load(key)
-        self.m_reused = m is not None
+        reused = m is not None
         if m is None:
             m = self._m_pass(u)
         # M read and the haloed f not adopted: the first b pass writes it (_f_copy_pass), not
         # here (a finished level resumed for its uncertainty runs none)
-        self.sensitivity_lags = m.lags
-        self.active = m.active  # element activity of a specimen mask (None: every element)
-        if self.active is not None and not self.active.any():
-            raise InputError(f"the mask has no element with material in the ROI at level {self.s} "
-                             f"(at least {MIN_MATERIAL:.0%} of an element must be material)")
-        self.dynamic_range = float(m.fmax - m.fmin)
-        if not self.dynamic_range > 0:
-            raise InputError(f"the reference is constant over the ROI at level {self.s}: nothing to correlate")
-        self.inputs = dataclasses.replace(self.inputs, center=0.5 * float(m.fmin + m.fmax))
-        if key is not None and not self.m_reused:
+        self._check(m)
+        if key is not None and not reused:
             # for a run that resumes this level after a kill; before the solver, which holds
             # the weak nodes' blocks in place (StencilSolver): M is kept as the pass summed it
             self.matrix.save(key, m)
-        S, cells, m = m.stencil, m.cells, None
-        # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij (minus
-        # the brightness cells' share: a cell's W summed over its nodes)
-        self.rigid_matrix = rigid_restriction(S)
-        if cells is not None:
-            rigid = cells.sum(axis=(3, 4, 5), dtype=np.float64).reshape(-1, 3, 4)
-            self.rigid_matrix = self.rigid_matrix - np.einsum("cip,cjp->ij", rigid, rigid)
         try:
-            self.solver = StencilSolver(S, cells=cells, cell=self.cell)
+            op = build_operator(m, u, cell=self.cell, reused=reused)
         except InputError as exc:  # M is empty: name the cause when it is not the reference itself
-            raise InputError(self._why_no_gradient(u) or str(exc)) from None
-        if not self.start_to_choose:
-            self._warn_weak_nodes()
+            raise InputError(self._why_no_gradient(u, m.active) or str(exc)) from None
+        emit(self.progress, stage="matrix", level=self.level, nodes=list(self.mesh.nodes_shape), blocks=len(self.jobs),
+             voxels=self.mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
+             reused=reused, f_adopted=self.f_adopted)
+        return op
+
+    def _check(self, m: Assembled) -> None:
+        """Refuse an ``M`` with nothing to correlate: a mask without material, a constant reference."""
+        if m.active is not None and not m.active.any():
+            raise InputError(f"the mask has no element with material in the ROI at level {self.level} "
+                             f"(at least {MIN_MATERIAL:.0%} of an element must be material)")
+        if not float(m.fmax - m.fmin) > 0:
+            raise InputError(f"the reference is constant over the ROI at level {self.level}: nothing to correlate")
 
     def _m_pass(self, u: np.ndarray) -> Assembled:
         """The ``M`` pass for the field ``u``: every block's stencil summed, the haloed ``f`` written."""
@@ -330,10 +245,10 @@ class Level:
         fmin, fmax = np.inf, -np.inf
         # a generator: each block's slice of u is made as its task is submitted (the embedded
         # runner holds a window of them, not a pass's worth)
-        inputs = self.inputs
-        args = ((inputs, job, self._nodes_of(u, job)) for job in self.jobs)
+        inputs = self.task_inputs()
+        args = ((inputs, job, _nodes_of(u, job)) for job in self.jobs)
         lags = np.zeros((3, LAGS + 1))
-        fractions = np.zeros(mesh.shape) if self.inputs.mask is not None else None
+        fractions = np.zeros(mesh.shape) if inputs.mask is not None else None
         k = self.cell
         cells = (np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32)
                  if k > 1 else None)  # the mesh's cells' couplings (kernels.m.cell_couplings)
@@ -349,7 +264,7 @@ class Level:
             if fractions is not None:
                 fractions[tuple(slice(e0, e1) for e0, e1 in blk.elements)] = frac
         inputs.f_copy.mark_complete()
-        self.f_copy_ready = True  # written whole by this pass
+        self.f_ready = True  # written whole by this pass
         self.runner.run_everywhere(forget_chunks)  # the b passes read the haloed copy, not the scan
         active = None if fractions is None else active_elements(fractions)
         return Assembled(S, lags, active, float(fmin), float(fmax), cells)
@@ -359,17 +274,17 @@ class Level:
         not adopted): the ``M`` pass's reads and low-pass without its sums
         (:func:`chunkdic.passes.tasks.f_copy_task`); before the first ``b`` pass."""
         t0 = time.perf_counter()
-        inputs = self.inputs
+        inputs = self.task_inputs()
         inputs.f_copy.unmark()
         for _ in self._map(f_copy_task, [(inputs, job) for job in self.jobs], "low-pass of f"):
             pass
         inputs.f_copy.mark_complete()
-        self.f_copy_ready = True
+        self.f_ready = True
         self.runner.run_everywhere(forget_chunks)
-        emit(self.progress, stage="f-copy", level=self.s, blocks=len(self.jobs), seconds=time.perf_counter() - t0)
+        emit(self.progress, stage="f-copy", level=self.level, blocks=len(self.jobs), seconds=time.perf_counter() - t0)
 
-    def _why_no_gradient(self, u: np.ndarray) -> str | None:
-        """The real cause of an empty ``M`` when it is not the reference's texture (issue 24).
+    def _why_no_gradient(self, u: np.ndarray, active: np.ndarray | None) -> str | None:
+        """The real cause of an empty ``M`` when it is not the reference's texture.
 
         ``M`` sums only voxels that the start field maps inside ``g`` and that a mask keeps,
         so "the reference has no gradient" misled when the start field (``--init``, or the
@@ -384,137 +299,55 @@ class Level:
         outside = np.any((moved < 0) | (moved > upper), axis=0)
         if outside.mean() >= 0.5:
             shift = ", ".join(f"{float(c.mean()):+.1f}" for c in u)
-            return (f"the start field of level {self.s} maps {outside.mean():.0%} of the ROI's elements outside the "
-                    f"deformed scan (mean displacement {shift} voxels of the level): nothing left to correlate; "
+            return (f"the start field of level {self.level} maps {outside.mean():.0%} of the ROI's elements outside "
+                    f"the deformed scan (mean displacement {shift} voxels of the level): nothing left to correlate; "
                     "check --init (a result of another pair or level?) or the ROI")
-        if self.active is not None:
-            return (f"the mask keeps no textured voxel of the ROI at level {self.s} ({int(self.active.sum())} of "
-                    f"{self.active.size} elements kept, most without a gradient): the textured material lies outside "
+        if active is not None:
+            return (f"the mask keeps no textured voxel of the ROI at level {self.level} ({int(active.sum())} of "
+                    f"{active.size} elements kept, most without a gradient): the textured material lies outside "
                     "the mask; check the mask (inverted? of another scan?)")
         return None
 
-    def settle_start(self, start: np.ndarray, *, rebuild: bool) -> None:
-        """The start chosen after the level was opened (:func:`chunkdic.method.length.best_start`).
-
-        ``rebuild``: assemble ``M`` again around ``start`` (3, nz, ny, nx), voxels of the
-        level, and record it as the field ``M`` is built at. ``M`` sums only the voxels its
-        field maps inside ``g``: built around a discarded start 5 voxels off, three corner
-        nodes lost their texture and the iterations from the chosen start diverged after
-        the regularisation length was chosen (docs/engine.md, "The start"). Then the
-        weak-node warning, held back until the ``M`` the level iterates with is known.
-        """
-        self.start_to_choose = False
-        if rebuild:
-            self.m_start = start
-            self._assemble_m(start)
-        else:
-            self._warn_weak_nodes()
-
-    def regularize(self, length: float, freed: np.ndarray | None = None) -> None:
-        """Solve with ``λ R`` from now on (:mod:`chunkdic.solve.regularizer`); ``length``: ``ℓ_reg``, voxels of the level;
-        ``freed``: the Tikhonov terms the robust reweighting left out (:attr:`Regularizer.freed`,
-        the correlated level only; the weight is the plain penalty's for ``length``).
-
-        Coarser levels only give the finest one its starting field, and their low-passed
-        sums may leave elements with too little texture: they are always regularised
-        (Tikhonov when the run asks for none). Unregularised, a 128³ foam correlated at
-        ℓ = 6 moved by 33-82 voxels on level 1 and ended stalled at σ 0.098 voxel; with the
-        coarse levels regularised it converged at σ 0.0048.
-        """
-        kind = self.settings.regularization
-        if kind == "none":
-            if self.s == self.settings.level:
-                return
-            kind = "tikhonov"
-        reg = Regularizer(kind, self.mesh.nodes_shape, self.mesh.element_size)
-        # λ per length^p, once per M and kind: the correlated level weighs up to three lengths
-        # (its start, the choice, the reweighting) against the same M
-        if self._unit_weight[:2] != (self.solver, kind):
-            unit = plane_wave_unit(reg, lambda v: stencil_matvec(self.solver.matrix, v))
-            self._unit_weight = (self.solver, kind, unit)
-        weight = self._unit_weight[2] * float(length) ** reg.order
-        if freed is not None:
-            reg = reg.with_freed(freed)
-        self.solver.regularize(reg, weight)
-        self.regularization_length, self.regularization_weight = float(length), weight
-        log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", self.s, kind, length, weight)
-
-    def weak_nodes(self) -> np.ndarray:
-        """Poorly textured nodes (index triples), those outside a specimen mask left out."""
-        weak = self.solver.weak_nodes
-        if self.active is not None and len(weak):
-            weak = weak[~self.masked_nodes()[tuple(weak.T)]]
-        return weak
-
-    def _warn_weak_nodes(self) -> None:
-        """Warn of the correlated level's poorly textured nodes (coarser levels: logged only).
-
-        A coarser level only gives the next one its start, and its nodes are regularised
-        anyway (:meth:`regularize`): a warning about them, printed by every run on scans
-        whose corners lose texture to the sums, told users nothing they could act on.
-        """
-        weak = self.weak_nodes()
-        if len(weak) == 0:
-            return
-        if self.s != self.settings.level:
-            log.info("level %d: %d of %d nodes see little texture (regularised; only a start for level %d)",
-                     self.s, len(weak), int(np.prod(self.mesh.nodes_shape)), self.s - 1)
-            return
-        coords = self.mesh.node_coords()
-        where = ", ".join(
-            "node (%d, %d, %d) at voxel (%.1f, %.1f, %.1f)" % (*n, *coords[(slice(None), *n)]) for n in weak[:5]
-        )
-        more = f" and {len(weak) - 5} more" if len(weak) > 5 else ""
-        warnings.warn(
-            f"level {self.s}: {len(weak)} of {np.prod(self.mesh.nodes_shape)} nodes see too little texture "
-            f"to be measured ({where}{more}); they are regularised and their values are unreliable",
-            PoorTextureWarning,
-            stacklevel=4,
-        )
-
-    def prepared_for(self, u: np.ndarray) -> bool:
+    def covers(self, u: np.ndarray) -> bool:
         """Whether ``u`` (3, nz, ny, nx) reads only the part of ``g`` already prepared (no prefilter pass)."""
         if not self.inputs.g_needs_preparing:
             return True
         needed = reachable_box(self.mesh, u, self.inputs.g.shape, margin=0)
-        current = self.inputs.prepared
-        return needed is None or (current is not None and current.covers(tuple(slice(a, b) for a, b in needed)))
+        return needed is None or (self.prepared is not None
+                                  and self.prepared.covers(tuple(slice(a, b) for a, b in needed)))
 
-    def prepare_interpolation(self, u: np.ndarray, *, when_needed: bool = False) -> None:
-        """Prepare once the part of ``g`` that ``u`` (± a margin) can reach (low-pass, B-spline);
-        ``when_needed``: at the first pass only (a level resumed after its iterations ended may need none)."""
-        self._deferred = u if when_needed else None
-        if when_needed or self.prepared_for(u):
+    def prepare(self, u: np.ndarray) -> None:
+        """Prepare once the part of ``g`` that ``u`` (± a margin) can reach (low-pass, B-spline)
+        into a scratch store the ``b`` passes read, unless :meth:`covers` says it is done."""
+        if self.covers(u):
             return
         g_ref = self.inputs.g
         box = reachable_box(self.mesh, u, g_ref.shape, margin=max(8, self.mesh.element_size))
         self._release_prepared()
-        self._builds += 1
-        path = self.scratch / f"g-level{self.s}-{self._builds}.zarr"
+        self.builds += 1
         t0 = time.perf_counter()
         voxels = int(np.prod([b - a for a, b in box]))
         inp = self.inputs
-        prepared = build_prepared(
-            g_ref, box, path, lambda fn, args: self._map(fn, args, "prefilter of g", voxels),
-            halo=inp.g_halo, local=self.runner.local,
-            sigma=inp.sigma, interpolation=inp.interpolation,
+        self.prepared = build_prepared(
+            g_ref, box, g_store(self.scratch, self.level, self.builds),
+            lambda fn, args: self._map(fn, args, "prefilter of g", voxels),
+            halo=inp.g_halo, local=self.runner.local, sigma=inp.sigma, interpolation=inp.interpolation,
         )
-        self.inputs = dataclasses.replace(self.inputs, prepared=prepared)
         self.runner.run_everywhere(forget_chunks)  # the b passes read the prepared store, not the scan
-        emit(self.progress, stage="prepared", level=self.s, box=[list(b) for b in box], voxels=voxels,
+        emit(self.progress, stage="prepared", level=self.level, box=[list(b) for b in box], voxels=voxels,
              seconds=time.perf_counter() - t0)
 
     def _release_prepared(self) -> None:
-        if self.inputs.prepared is not None:
-            path = Path(self.inputs.prepared.ref.path)
-            self.inputs = dataclasses.replace(self.inputs, prepared=None)
+        if self.prepared is not None:
+            path = Path(self.prepared.ref.path)
+            self.prepared = None
             self._delete([record_path(path), path])
 
     def release(self) -> None:
         """Delete this level's scratch data (prepared ``g``, haloed ``f``) and open handles on them."""
         paths = [Path(self.inputs.f_copy.path)]
-        if self.inputs.prepared is not None:
-            paths += [record_path(self.inputs.prepared.ref.path), Path(self.inputs.prepared.ref.path)]
+        if self.prepared is not None:
+            paths += [record_path(self.prepared.ref.path), Path(self.prepared.ref.path)]
         self._delete(paths)
 
     def _delete(self, paths: list[Path]) -> None:
@@ -522,52 +355,12 @@ class Level:
         for path in paths:
             shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
 
-    @staticmethod
-    def _active_of(active: np.ndarray | None, job: BlockJob) -> np.ndarray | None:
-        """A block's slice of an element activity (None: every element)."""
-        if active is None:
-            return None
-        return np.ascontiguousarray(active[tuple(slice(e0, e1) for e0, e1 in job.block.elements)])
+    def translation(self) -> np.ndarray:
+        """The phase-correlation translation over the ROI, as one task (:mod:`chunkdic.passes.translation`)."""
+        return next(iter(self.runner.map_unordered(translation_task, [(self.inputs.f, self.inputs.g,
+                                                                       self.mesh.roi)])))
 
-    def masked_nodes(self) -> np.ndarray:
-        """Nodes with no active element around them (bool, nodes shape); all False without a mask."""
-        if self.active is None:
-            return np.zeros(self.mesh.nodes_shape, bool)
-        a = np.pad(self.active, 1)
-        n = self.mesh.nodes_shape
-        around = sum(a[dz:dz + n[0], dy:dy + n[1], dx:dx + n[2]] for dz in (0, 1) for dy in (0, 1) for dx in (0, 1))
-        return around == 0
-
-    @staticmethod
-    def _nodes_of(u: np.ndarray, job: BlockJob) -> np.ndarray:
-        """A block's own slice of the nodal field: what its task receives (kilobytes)."""
-        return np.ascontiguousarray(u[(slice(None), *job.block.node_slices)])
-
-    def keep_first_pass(self, u: np.ndarray, p: Pass) -> None:
-        """Hold the pass ``p`` measured at ``u`` for the iterations that start from ``u``
-        (:func:`chunkdic.method.length.measure_start_gaps` sums it with the reported gaps)."""
-        self._first_pass = (u, p)
-
-    def take_first_pass(self, u: np.ndarray) -> Pass | None:
-        """The pass :meth:`keep_first_pass` holds if it was measured at ``u`` (then released), else None."""
-        held, self._first_pass = self._first_pass, None
-        if held is None or held[0].shape != u.shape or not np.array_equal(held[0], u):
-            return None
-        return held[1]
-
-    def gap_sample(self) -> np.ndarray | None:
-        """The elements a diagnostic gap is measured on (uint8, the mesh's element shape), or
-        None for every active element (:meth:`gap`)."""
-        stride = gap_stride(self.mesh.shape)
-        if stride == 1:
-            return None
-        sample = np.zeros(self.mesh.shape, np.uint8)
-        sample[::stride, ::stride, ::stride] = 1
-        if self.active is not None:
-            sample &= self.active.astype(np.uint8)
-        return sample if sample.any() else None
-
-    def gap(self, u: np.ndarray) -> float:
+    def gap(self, u: np.ndarray, op: Operator) -> float:
         """The matching gap of the nodal field ``u`` (3, nz, ny, nx) alone: a diagnostic
         (the gaps that choose the start), not a step of the iterations.
 
@@ -581,9 +374,9 @@ class Level:
         :meth:`assemble_b` measures the same gaps with its ``probes`` inside a
         pass of the iterations (the finest level's reported gaps: no pass of their own).
         """
-        return self.assemble_b(u, self.gap_sample()).gap
+        return self.assemble_b(u, op, sample=gap_sample(self.mesh.shape, op.active)).gap
 
-    def assemble_b(self, u: np.ndarray, sample: np.ndarray | None = None,
+    def assemble_b(self, u: np.ndarray, op: Operator, *, sample: np.ndarray | None = None,
                    probes: dict[str, np.ndarray] | None = None) -> Pass:
         """One pass for the nodal field ``u``: ``b``, brightness, gap and voxel counts.
 
@@ -595,59 +388,35 @@ class Level:
         every probe as to ``u``). Their cost is the sums alone: one element in 8 on large
         meshes, an eighth of a pass's arithmetic each and no reads.
         """
-        mesh = self.mesh
         t0 = time.perf_counter()
-        self.last_pass = None  # not held while the next one is summed (mesh-sized)
-        if not self.f_copy_ready:
+        if not self.f_ready:
             self._f_copy_pass()
-        if self._deferred is not None:
-            self.prepare_interpolation(self._deferred)
-        nodal = scalars = None
-        elements = None
-        n_excluded = 0
-        lags = np.zeros((6, LAGS + 1))
-        active = self.active if sample is None else sample
+        active = op.active if sample is None else sample
         names = list(probes or {})
-        probe_active = self.gap_sample() if names else None
+        probe_active = gap_sample(self.mesh.shape, op.active) if names else None
         if probe_active is None:
-            probe_active = self.active
-        probe_scalars = [None] * len(names)
-        inputs = self.inputs
+            probe_active = op.active
+        inputs = self.task_inputs(op)
 
         def args_of(job):
-            fields = tuple(self._nodes_of(probes[name], job) for name in names)
-            return (inputs, job, self._nodes_of(u, job), self._active_of(active, job), fields,
-                    self._active_of(probe_active, job))
+            fields = tuple(_nodes_of(probes[name], job) for name in names)
+            return (inputs, job, _nodes_of(u, job), _active_of(active, job), fields, _active_of(probe_active, job))
 
-        args = (args_of(job) for job in self.jobs)
-        for blk, part, probe_parts in self._map(b_task, args, "b pass", total=len(self.jobs)):
-            if nodal is None:
-                nodal = np.zeros((part.nodal.shape[0],) + mesh.nodes_shape + (3,))
-                scalars = np.zeros_like(part.scalars)
-                elements = np.zeros((part.elements.shape[0],) + tuple(mesh.shape))
-            nodal[(slice(None), *blk.node_slices)] += part.nodal
-            scalars += part.scalars
-            elements[(slice(None), *(slice(e0, e1) for e0, e1 in blk.elements))] = part.elements
-            n_excluded += part.n_excluded
-            lags += part.lags
-            for k, (sc, _) in enumerate(probe_parts):
-                probe_scalars[k] = sc.copy() if probe_scalars[k] is None else probe_scalars[k] + sc
+        sums = PassSums(self.mesh, len(names))
+        for blk, part, probe_parts in self._map(b_task, (args_of(job) for job in self.jobs), "b pass",
+                                                total=len(self.jobs)):
+            sums.add(blk, part, probe_parts)
         part = None
-        # b first, then the nodal rows go (5 per node with the drift model, 240 MB at 128³ nodes)
-        # before the element rows are fitted: they never coexist with the fit's arrays
-        b = nodal_rhs(self.settings.grey, nodal, scalars)
-        nodal = None
-        fit = element_fit(self.settings.grey, b, scalars, elements, self.inputs.center, mesh.element_size)
-        elements = b = None
-        gap = math.sqrt(fit.ssr / fit.weight) / self.dynamic_range if fit.weight > 0 else math.inf
-        kappa = correlation_factor(lags, self.sensitivity_lags, float(np.median(fit.gain)),
-                                   fit.ssr / fit.weight if fit.weight > 0 else None)
-        self.last_pass = Pass(fit, gap, mesh.n_voxels - n_excluded, n_excluded, kappa,
-                              {name: self._gap_of_scalars(sc) for name, sc in zip(names, probe_scalars)},
-                              time.perf_counter() - t0)
-        return self.last_pass
+        return sums.result(self.settings.grey, op, names, t0)
 
-    def _gap_of_scalars(self, scalars: np.ndarray) -> float:
-        """The gap of a pass from its summed scalars alone (:func:`chunkdic.method.brightness.misfit`)."""
-        ssr, weight = misfit(self.settings.grey, scalars)
-        return math.sqrt(ssr / weight) / self.dynamic_range if weight > 0 else math.inf
+
+def _active_of(active: np.ndarray | None, job: BlockJob) -> np.ndarray | None:
+    """A block's slice of an element activity (None: every element)."""
+    if active is None:
+        return None
+    return np.ascontiguousarray(active[tuple(slice(e0, e1) for e0, e1 in job.block.elements)])
+
+
+def _nodes_of(u: np.ndarray, job: BlockJob) -> np.ndarray:
+    """A block's own slice of the nodal field: what its task receives (kilobytes)."""
+    return np.ascontiguousarray(u[(slice(None), *job.block.node_slices)])

@@ -22,6 +22,7 @@ level ≥ 1 a 16-bit scan's sums are 1/8 of level 0 or less).
 
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -116,3 +117,48 @@ def read_window(path: str, window, chunk: int, dtype, compressed: bool) -> np.nd
                 dst = tuple(slice(a - w.start, b - w.start) for a, b, w in zip(lo, hi, window))
                 out[dst] = c[src]
     return out
+
+
+def f_store(scratch, level: int) -> Path:
+    """The haloed ``f`` of a level in the run's scratch directory (:mod:`chunkdic.passes.haloed`)."""
+    return Path(scratch) / f"f-level{int(level)}.zarr"
+
+
+def g_store(scratch, level: int, build: int) -> Path:
+    """The ``build``-th prepared ``g`` of a level in the run's scratch directory (:mod:`chunkdic.passes.prefilter`)."""
+    return Path(scratch) / f"g-level{int(level)}-{int(build)}.zarr"
+
+
+def prune_adopted(scratch: Path, level: int | None) -> None:
+    """Remove from an adopted scratch directory (:func:`chunkdic.io.ownership.adopt_scratch`) the
+    level stores no level of this run will adopt: those of levels coarser than ``level`` (the
+    level of the interrupted run's checkpoint, done or under way; None: keep every level's),
+    a prepared ``g`` left without its completion record or superseded by a later build, and
+    the mask's levels (prepared again: :func:`chunkdic.passes.masks.prepare_mask` writes a new
+    group)."""
+    scratch = Path(scratch)
+    latest: dict[int, int] = {}
+    for rec in scratch.glob("g-level*-*.prepared.json"):
+        name = rec.name[len("g-level"):].split(".")[0]
+        try:
+            s, k = (int(v) for v in name.split("-"))
+        except ValueError:
+            continue
+        latest[s] = max(latest.get(s, -1), k)
+    doomed = [scratch / "mask"]
+    for entry in scratch.iterdir():
+        name = entry.name
+        if not (name.startswith("f-level") or name.startswith("g-level")):
+            continue
+        try:
+            if name.startswith("f-level"):
+                s, k = int(name[len("f-level"):].split(".")[0]), None
+            else:
+                s, k = (int(v) for v in name[len("g-level"):].split(".")[0].split("-"))
+        except ValueError:
+            doomed.append(entry)
+            continue
+        if (level is not None and s > level) or (k is not None and k != latest.get(s)):
+            doomed.append(entry)
+    for path in doomed:
+        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)

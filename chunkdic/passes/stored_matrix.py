@@ -1,6 +1,6 @@
 """``M`` kept in the output while a run is incomplete: a resumed level reads it instead of a pass.
 
-``M`` is built once per level by a pass over every voxel of the level (:meth:`chunkdic.passes.level.Level._assemble_m`):
+``M`` is built once per level by a pass over every voxel of the level (:meth:`chunkdic.passes.level.LevelPasses.assemble_m`):
 563 s at 2048³ level 0, about two Gauss–Newton passes. A run killed during that level used to
 build it again on resume. Now the level's ``M`` (the client's half stencil, shape
 ``(nz, ny, nx, 14, 3, 3)`` float32, 504 bytes per node: 1 056 964 608 bytes = 0.98 GiB for
@@ -16,18 +16,19 @@ Layout in ``OUT.zarr``: arrays ``checkpoint/matrix_stencil``, ``checkpoint/matri
 "fmin": …, "fmax": …, "complete": true}``. Writing removes the record first, writes the
 arrays, then the record: a kill while ``M`` is written leaves no record, and the resumed run
 builds ``M`` again. The record of a level is removed once the level's end is recorded
-(:func:`chunkdic.method.length.finish_level`), and the whole checkpoint group goes when the
+(:func:`chunkdic.engine.coarse_to_fine.solve_one_level`), and the whole checkpoint group goes when the
 result replaces it: a complete result holds no ``M``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 from pathlib import Path
 
 import numpy as np
+
+from ..method.operator import Assembled
 
 #: array names in the checkpoint group (no trailing digit: never one of a checkpoint slot's ``<name><k>``)
 ARRAYS = ("matrix_stencil", "matrix_lags", "matrix_active", "matrix_cells")
@@ -56,33 +57,6 @@ def stored_bytes(nodes_shape, cell: int = 1) -> int:
 def field_hash(u: np.ndarray) -> str:
     """A hash of the field ``M`` is built at (float64 bytes): a resumed level's key."""
     return hashlib.sha256(np.ascontiguousarray(u, dtype=np.float64).tobytes()).hexdigest()[:32]
-
-
-@dataclasses.dataclass
-class Assembled:
-    """What the ``M`` pass of a level gives (:meth:`chunkdic.passes.level.Level._assemble_m`).
-
-    Attributes
-    ----------
-    stencil : ndarray, shape (nz, ny, nx, 14, 3, 3), float32
-        The half stencil of ``M`` (:data:`chunkdic.solve.HALF_OFFSETS`).
-    lags : ndarray, shape (3, LAGS + 1), float64
-        The pass's sensitivity lag sums (:mod:`chunkdic.method.noise`).
-    active : ndarray, shape (ez, ey, ex), bool, optional
-        Element activity of a specimen mask (None: every element).
-    fmin, fmax : float
-        Range of the prepared reference over the ROI.
-    cells : ndarray, shape (cz, cy, cx, k+1, k+1, k+1, 3, 4), float32, optional
-        The brightness cells' Schur complement (:func:`chunkdic.kernels.m.cell_couplings` over
-        the mesh), None without cells.
-    """
-
-    stencil: np.ndarray
-    lags: np.ndarray
-    active: np.ndarray | None
-    fmin: float
-    fmax: float
-    cells: np.ndarray | None = None
 
 
 class StoredMatrix:

@@ -95,8 +95,8 @@ class StencilSolver:
         self.rtol, self.maxiter = rtol, maxiter
         self.cells = np.zeros((0, 0, 0, 2, 2, 2, 3, 4), np.float32) if cells is None else cells
         self.cell = int(cell)
-        #: norm of the largest right-hand side solved so far (kept by checkpoints: a
-        #: resumed run stops CG where the uninterrupted one did)
+        #: norm of the largest right-hand side solved so far without a caller's ``reference``
+        #: (:meth:`solve`)
         self.largest_rhs = 0.0
         self.nodes_shape = half.shape[:3]
         # the eigenvalues of the diagonal blocks, a slab of planes at a time: the client
@@ -223,19 +223,28 @@ class StencilSolver:
             add_weighted(*self._reg_args, self.weight, x, out)
         return out
 
-    def solve(self, b: np.ndarray, *, overwrite_b: bool = False) -> tuple[np.ndarray, int]:
+    def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
+              reference: float | None = None) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
 
         ``overwrite_b``: CG may use ``b`` (float64, contiguous) as its residual vector,
         leaving it changed: one mesh-sized vector fewer at the client's peak.
+        ``reference``: the caller's CG reference, the largest right-hand-side norm of its
+        earlier solves (:func:`rhs_norm`; ``rtol`` is relative to the larger of it and
+        ``b``'s): the Gauss–Newton state keeps it, so that a resumed run stops CG where the
+        uninterrupted one did. ``None``: the solver's own, :attr:`largest_rhs`, which this
+        solve raises.
         Returns the solution and the number of CG iterations.
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
         code, Ke, Kf, sw, ew, freed = self._reg_args
-        norm = float(np.sqrt(np.sum(b * b)))
-        self.largest_rhs = max(self.largest_rhs, norm)
-        rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
+        norm = rhs_norm(b)
+        if reference is None:
+            self.largest_rhs = largest = max(self.largest_rhs, norm)
+        else:
+            largest = max(float(reference), norm)
+        rtol = self.rtol * largest / norm if norm > 0 else self.rtol
         if self._vcycle is not None:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
@@ -257,6 +266,11 @@ class StencilSolver:
         reg_args = (code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed)
         return lanes.pcg_two_lanes(self.matrix, self._diag_args, b, x, rtol, self.maxiter, reg_args, self.weight,
                                    self.cells, self.cell, overwrite_b)
+
+
+def rhs_norm(b: np.ndarray) -> float:
+    """The Euclidean norm of a right-hand side ``b`` (nz, ny, nx, 3): what CG's tolerance is relative to."""
+    return float(np.sqrt(np.sum(b * b)))
 
 
 def z_slabs(nodes_shape, nodes: int = None):

@@ -17,7 +17,7 @@ def _run(pair, *, cache: int, threads: int, block_elements: int):
     """One correlation of level 0 alone, capturing its ``M`` stencil, the prepared ``g``
     and how many chunks were decoded and found in the cache."""
     got = {"decoded": 0, "hits": 0, "parts": {}}
-    m_pass, build, m_task = level_module.Level._m_pass, level_module.build_prepared, level_module.m_task
+    m_pass, build, m_task = level_module.LevelPasses._m_pass, level_module.build_prepared, level_module.m_task
 
     def keep_part(inputs, job, u_block):
         out = m_task(inputs, job, u_block)
@@ -52,13 +52,13 @@ def _run(pair, *, cache: int, threads: int, block_elements: int):
 
     with dask.config.set({"chunkdic.chunk-cache": cache, "chunkdic.num-threads": threads}):
         forget_open_arrays()
-        level_module.Level._m_pass, level_module.build_prepared, level_module.m_task = keep_m, keep_g, keep_part
+        level_module.LevelPasses._m_pass, level_module.build_prepared, level_module.m_task = keep_m, keep_g, keep_part
         try:
             res = chunkdic.correlate(pair / "ref.zarr", pair / "def.zarr", element_size=8, coarsest=0,
                                      block_elements=block_elements, max_iterations=2,
                                      grey_cell=0)  # one offset per element: blocks of any size (cells round them)
         finally:
-            level_module.Level._m_pass, level_module.build_prepared, level_module.m_task = m_pass, build, m_task
+            level_module.LevelPasses._m_pass, level_module.build_prepared, level_module.m_task = m_pass, build, m_task
             forget_open_arrays()
     got["u"] = res.displacement
     return got

@@ -41,7 +41,7 @@ def _gap_by_hand(f, g, roi, t, ell, every_other: bool) -> float:
 @pytest.mark.parametrize("size, ell, sampled", [(40, 8, False), (72, 4, True)])
 def test_the_reported_gaps_are_those_of_no_motion_and_of_the_rigid_translation(size, ell, sampled):
     """``initial_gap`` and ``rigid_gap``, now summed inside the finest level's first pass
-    (``probes`` of ``Level.assemble_b``), equal the gaps of the zero field and of the rigid
+    (``probes`` of ``LevelPasses.assemble_b``), equal the gaps of the zero field and of the rigid
     translation computed by hand: on every element (5³ elements) and on the one-in-8 sample
     of a mesh of 4096 elements or more (18³). The first pass is not summed twice: the level
     spends as many passes as it reports iterations with a new gap."""
@@ -82,13 +82,13 @@ def test_the_finest_level_spends_three_passes_on_a_band_where_it_spent_six(tmp_p
     pair = synthetic.synthesize(tmp_path / "band", (size,) * 3, field=field, specimen="grains", noise=0.02, seed=1,
                                 dtype="uint16")
     passes: dict[int, int] = {}
-    summed = level.Level.assemble_b
+    summed = level.LevelPasses.assemble_b
 
-    def counted(self, u, sample=None, **kwargs):
-        passes[self.s] = passes.get(self.s, 0) + 1
-        return summed(self, u, sample, **kwargs)
+    def counted(self, u, op, **kwargs):
+        passes[self.level] = passes.get(self.level, 0) + 1
+        return summed(self, u, op, **kwargs)
 
-    monkeypatch.setattr(level.Level, "assemble_b", counted)
+    monkeypatch.setattr(level.LevelPasses, "assemble_b", counted)
     events = []
     # one brightness offset per element (grey_cell 0), the form both counts were measured
     # with, and the default cells of 32 voxels (4³ elements here), whose offsets the step

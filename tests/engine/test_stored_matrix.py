@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 import zarr
 
-from chunkdic.passes.stored_matrix import Assembled, StoredMatrix, cells_bytes, field_hash, stored_bytes
+from chunkdic.method.operator import Assembled
+from chunkdic.passes.stored_matrix import StoredMatrix, cells_bytes, field_hash, stored_bytes
 
 
 @pytest.fixture

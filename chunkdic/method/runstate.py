@@ -5,17 +5,16 @@ level, the rigid translation and the two diagnostic gaps, and the Gauss–Newton
 the level being solved. Its JSON form and arrays are exactly what a checkpoint stores
 (:mod:`chunkdic.engine.checkpoint`), so a resumed run rebuilds it with
 :meth:`RunState.from_checkpoint`. What the finest level leaves for the result (weak and
-masked nodes, uncertainty, noise) is a :class:`LevelOutcome`.
+masked nodes, uncertainty, noise) is a :class:`~chunkdic.method.level_solve.LevelOutcome`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 
-from ..method.stopping import History, State
+from .stopping import History, State
 
 
 @dataclasses.dataclass
@@ -77,31 +76,3 @@ class RunState:
     def arrays(self) -> dict[str, np.ndarray]:
         """The checkpoint's arrays (the Gauss–Newton fields)."""
         return self.gn.arrays()
-
-
-@dataclasses.dataclass
-class LevelOutcome:
-    """What a solved level leaves for the result (used for the finest level).
-
-    Attributes
-    ----------
-    weak : ndarray, shape (n, 3), int
-        Poorly textured nodes (index triples).
-    masked : ndarray, shape (nz, ny, nx), bool
-        Nodes outside the specimen mask.
-    active : ndarray, shape (ez, ey, ex), bool, optional
-        Elements with enough material (``None`` without a mask).
-    reg_length : float
-        The regularisation length used, level-0 voxels (NaN: none).
-    sigma_u : ndarray, shape (3, nz, ny, nx), optional
-        Per-node uncertainty, voxels of the level.
-    noise : dict
-        ``sigma_r`` and ``kappa`` the uncertainty comes from.
-    """
-
-    weak: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3), int))
-    masked: np.ndarray | None = None
-    active: np.ndarray | None = None
-    reg_length: float = math.nan
-    sigma_u: np.ndarray | None = None
-    noise: dict = dataclasses.field(default_factory=dict)
