@@ -85,7 +85,7 @@ def run_resolution(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     rep = resolution(args.scan, args.element_sizes, args.output, noise=args.noise, shift=shift,
                      amplitude=args.amplitude, periods=periods, seed=args.seed, scheduler=scheduler,
-                     overwrite=args.overwrite, progress=_progress, options=opts)
+                     overwrite=args.overwrite, progress=_progress, **opts)
     print(rep.markdown())
     say(f"wrote {rep.files['csv']}, {rep.files['json']}, {rep.files['markdown']} ({time.perf_counter() - t0:.1f} s)")
     ok = all(r["status_translated"] == "converged" and r["status_star"] == "converged" for r in rep.rows)

@@ -28,8 +28,13 @@ from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
 from ..io.ownership import kept_scratch, reclaimable_scratch_bytes
-from ..io.scan import open_scan
 from ..mesh import Mesh
+from ..method.brightness import aligned_block_elements, offset_cell
+from ..method.settings import Settings
+from ..passes.haloed import quantization
+from ..passes.prefilter import prepare_voxels, prepared_grid, prepared_halo, task_edge
+from ..passes.scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
+from ..passes.stored_matrix import cells_bytes
 from ..scheduler import threads_of
 from .costs import (
     BASE_BYTES,
@@ -43,7 +48,6 @@ from .costs import (
     UNCALIBRATED,
     GiB,
     MiB,
-    pyramid_tasks,
     base_bytes,
     calibrate,
     chunk_cache_bytes,
@@ -52,17 +56,11 @@ from .costs import (
     peak_scratch,
     prepare_bytes,
     pyramid_levels,
+    pyramid_tasks,
     read_buffer_bytes,
     task_bytes,
 )
-from ..method.brightness import aligned_block_elements, offset_cell
-from ..passes.haloed import quantization
-from .initial import open_init
-from .meshes import plan_meshes
-from ..passes.prefilter import face_margin, prepare_voxels, prepared_grid, prepared_halo, task_edge
-from ..passes.scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
-from ..method.settings import Settings
-from ..passes.stored_matrix import cells_bytes
+from .front import prepare_run
 
 
 @dataclasses.dataclass(frozen=True)
@@ -348,8 +346,8 @@ def compact_level(lv: LevelPlan, f_dtype, g_dtype, sigma: float, interpolation: 
     return dataclasses.replace(lv, f_copy_bytes=f_copy, prepared_bytes=prep, work=lv.work * slower)
 
 
-def plan(ref, deformed, settings=None, *, roi=None, scheduler=None, output=None, init=None, mask=None,
-         memory_target=None, calibrate: bool = True, **options) -> Plan:
+def plan(ref, deformed, settings: Settings | None = None, *, roi=None, scheduler=None, output=None, init=None,
+         mask=None, roi_unit: str | None = None, memory_target=None, calibrate: bool = True, **options) -> Plan:
     """The plan of ``correlate(ref, deformed, ...)`` with the same arguments, without running it.
 
     Reads only the scans' metadata (and, with ``calibrate``, one region of ``g`` per task,
@@ -359,8 +357,9 @@ def plan(ref, deformed, settings=None, *, roi=None, scheduler=None, output=None,
 
     Parameters
     ----------
-    ref, deformed, settings, roi, scheduler, output, init, mask, **options
-        As for :func:`chunkdic.correlate` (the mask's scratch levels, uint8 sums, are not counted).
+    ref, deformed, settings, roi, scheduler, output, init, mask, roi_unit, **options
+        As for :func:`chunkdic.correlate` (lengths in a physical unit too, ``element_size="80um"``;
+        the mask's scratch levels, uint8 sums, are not counted).
     memory_target : str or int, optional
         Peak resident memory per process, ``"2GiB"`` or bytes; default
         ``chunkdic.memory-target`` (dask.config), else none.
@@ -380,19 +379,11 @@ def plan(ref, deformed, settings=None, *, roi=None, scheduler=None, output=None,
     ([1, 0], True)
     """
 
-    unknown = set(options) - set(Settings.names())
-    if unknown:
-        raise TypeError(f"plan() got unexpected keyword arguments {sorted(unknown)}")
-    settings = dataclasses.replace(settings, **options) if settings is not None else Settings(**options)
-    f_scan, g_scan = open_scan(ref), open_scan(deformed)
-    if init is not None:
-        open_init(init, f_scan.shape(0))
-    coarsest = settings.level if init is not None and settings.coarsest is None else settings.coarsest
-    meshes = plan_meshes(f_scan.shape(0), element_size=settings.element_size, roi=roi, level=settings.level,
-                         coarsest=coarsest, min_margin=face_margin(settings.smoothing))
-    out = make_plan(f_scan, g_scan, meshes, settings, scheduler=scheduler, output=output,
+    spec = prepare_run(ref, deformed, settings, roi=roi, roi_unit=roi_unit, init=init, mask=mask, caller="plan",
+                       **options)
+    out = make_plan(spec.f_scan, spec.g_scan, spec.meshes, spec.settings, scheduler=scheduler, output=output,
                     target=memory_target_of(memory_target))
-    return calibrated(out, g_scan, settings) if calibrate else out
+    return calibrated(out, spec.g_scan, spec.settings) if calibrate else out
 
 
 def calibrated(p: Plan, g_scan, settings) -> Plan:
