@@ -51,6 +51,7 @@ import numpy as np
 from ..engine.checkpoint import fingerprint, identify_input
 from ..engine.driver import correlate
 from ..engine.front import prepare_run
+from ..method.events import SeriesStep, emit
 from ..method.start import filled
 from ..engine.meshes import parse_roi
 from ..method.settings import Settings
@@ -372,14 +373,15 @@ def _step(out: Path, name: str, ref, deformed, start: Result | None, settings: S
     _remove_debris(path)
     if path.exists() and _complete(path):
         res, run = open_result(path), "done before"
-        _emit(progress, stage="series-step", group=name, pair=pair, run=run)
+        emit(progress, SeriesStep(group=name, pair=pair, run=run))
     else:
         if path.exists():
             run = "resumed"
-        _emit(progress, stage="series-step", group=name, pair=pair, run=run)
+        emit(progress, SeriesStep(group=name, pair=pair, run=run))
 
-        def tagged(event, name=name):
-            _emit(progress, **event, group=name)
+        def tagged(event, name=name):  # the correlation's events, named by the step they belong to
+            if progress is not None:
+                progress(dataclasses.replace(event, group=name))
 
         res = correlate(ref, deformed, settings, roi=roi, scheduler=scheduler, output=path,
                         progress=tagged, mask=mask, init=start)
@@ -441,6 +443,3 @@ def _row(res: Result, k: int, pair: str, kind: str, group: str, run: str, second
             "level": res.level}
 
 
-def _emit(progress, **event) -> None:
-    if progress is not None:
-        progress(event)

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..io.handles import forget_open_arrays
 from ..mesh import Mesh
-from ..method.events import emit
+from ..method.events import LevelDone, Resume, emit
 from ..method.level_solve import LevelOutcome, run_level
 from ..method.runstate import RunState
 from ..method.settings import Settings
@@ -79,8 +79,7 @@ def run_levels(ctx: RunContext, run: RunState | None = None) -> Result:
     if run is None:
         run = RunState()
     else:
-        emit(ctx.progress, stage="resume", level=run.resumed_level, iteration=run.gn.iteration,
-             reused=reused_stores(ctx, run))
+        emit(ctx.progress, Resume(level=run.resumed_level, iteration=run.gn.iteration, reused=reused_stores(ctx, run)))
     u, outcome = None, LevelOutcome()
     for s in ctx.levels:
         if run.done_before_resume(s):
@@ -110,7 +109,7 @@ def solve_one_level(ctx: RunContext, run: RunState, s: int, coarser_u: np.ndarra
     ctx.save(run, s)
     if ctx.matrix is not None and s != ctx.finest:  # no resumed run reads it now (the finest's goes with the checkpoint)
         ctx.matrix.drop()
-    emit(ctx.progress, stage="level", level=s, status=run.gn.status, gap=run.gn.gap, seconds=time.perf_counter() - t0)
+    emit(ctx.progress, LevelDone(level=s, status=run.gn.status, gap=run.gn.gap, seconds=time.perf_counter() - t0))
     return run, outcome
 
 

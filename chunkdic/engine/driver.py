@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 from ..inputs import memory_target_of
 from ..io.outputs import Outputs
-from ..method.events import emit
+from ..method.events import Complete, Event, emit
 from ..method.settings import Settings
 from ..results.result import Result
 from ..scheduler import check_scheduler
@@ -40,7 +40,7 @@ def correlate(
     scheduler=None,
     output=None,
     overwrite: bool = False,
-    progress: Callable[[dict], None] | None = None,
+    progress: Callable[[Event], None] | None = None,
     mask=None,
     init=None,
     roi_unit: str | None = None,
@@ -74,7 +74,8 @@ def correlate(
         ``overwrite``, which replaces only a result chunkdic wrote, never an input
         (:mod:`chunkdic.io.outputs`).
     progress : callable, optional
-        Called with a dict per event (``stage`` = "rigid", "iteration", "level", ...).
+        Called with the record of each stage (:mod:`chunkdic.method.events`: a frozen
+        dataclass that reads as a mapping, ``event["stage"]`` = "rigid", "iteration", "level", ...).
     mask : str, Path, array, optional
         Specimen mask of the reference's shape (any input :func:`chunkdic.open_scan`
         reads; non-zero = material): only elements with enough material take part, nodes
@@ -121,7 +122,7 @@ def correlate(
     if output is not None and not overwrite:
         done = completed_already(output, identity.fingerprint)  # the same command re-run on its own complete result
         if done is not None:
-            emit(progress, stage="complete", path=str(output))
+            emit(progress, Complete(path=str(output)))
             return done
     budget = make_plan(spec.f_scan, spec.g_scan, spec.meshes, spec.settings, scheduler=scheduler, output=output,
                        target=memory_target_of(memory_target))

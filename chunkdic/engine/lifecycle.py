@@ -27,7 +27,7 @@ from ..io.outputs import Outputs
 from ..io.ownership import (OutputLock, adopt_scratch, directory_bytes, interrupted_run_of, leave_scratch,
                             make_scratch, reclaim_stale_scratch)
 from ..kernels import jit as kernels
-from ..method.events import emit
+from ..method.events import Compile, PlanMade, ScratchKept, Start, emit
 from ..method.runstate import RunState
 from ..passes.masks import prepare_mask
 from ..passes.scratchstore import prune_adopted
@@ -128,10 +128,7 @@ def open_levels(held: Holding, budget: Plan, progress=None) -> tuple[RunContext,
     held.scratch, held.adopted = _open_scratch(_scratch_identity(held, runner), resuming,
                                                None if resume is None else int(resume["level"]), held.kept_for)
     finest = spec.meshes[spec.settings.level]
-    emit(progress, stage="start", scheduler=repr(runner), dashboard=runner.dashboard_link, levels=spec.levels,
-         roi=[[r.start, r.stop] for r in finest.roi],
-         requested_roi=None if spec.roi is None else [list(p) for p in parse_roi(spec.roi)],
-         nodes=list(finest.nodes_shape))
+    emit(progress, Start(scheduler=repr(runner), dashboard=runner.dashboard_link, levels=spec.levels, roi=[[r.start, r.stop] for r in finest.roi], requested_roi=None if spec.roi is None else [list(p) for p in parse_roi(spec.roi)], nodes=list(finest.nodes_shape)))
     # a resumed run needs no level coarser than the one it was solving (done)
     needed = spec.levels if resume is None else [s for s in spec.levels if s <= int(resume["level"])]
     # inside the runner: with a cluster, missing levels are built by its workers
@@ -141,7 +138,7 @@ def open_levels(held: Holding, budget: Plan, progress=None) -> tuple[RunContext,
     mask_refs = None if spec.mask_scan is None else prepare_mask(spec.mask_scan, spec.f_scan.shape(0), needed,
                                                                  scratch / "mask", runner)
     _compile_kernels(runner, progress)
-    emit(progress, stage="plan", plan=calibrated(budget, spec.g_scan, spec.settings))
+    emit(progress, PlanMade(plan=calibrated(budget, spec.g_scan, spec.settings)))
     ckpt = held.checkpoint
     ctx = RunContext(spec.settings, spec.meshes, spec.levels, f_refs, g_refs, runner, scratch, progress, ckpt,
                      mask_refs, spec.init, matrix=None if ckpt is None else StoredMatrix(ckpt.path), adopted=adopted)
@@ -221,8 +218,7 @@ def _close_scratch(scratch: Path, kept_for: tuple[str, str] | None, progress) ->
         output = kept_for[0]
         try:
             leave_scratch(scratch)
-            emit(progress, stage="scratch-kept", path=str(scratch), bytes=directory_bytes(scratch),
-                 output=str(output))
+            emit(progress, ScratchKept(path=str(scratch), bytes=directory_bytes(scratch), output=str(output)))
             return
         except OSError:  # its owner record cannot be rewritten (a full disk): it goes
             pass
@@ -248,12 +244,12 @@ def _compile_kernels(runner, progress) -> None:
     """
     cold = not kernels.compiled_on_disk()
     if cold:
-        emit(progress, stage="compile", done=False)
+        emit(progress, Compile(done=False))
     t0 = time.perf_counter()
     runner.run_everywhere(kernels.warmup)
     solve.warmup()
     if cold:
-        emit(progress, stage="compile", done=True, seconds=time.perf_counter() - t0)
+        emit(progress, Compile(done=True, seconds=time.perf_counter() - t0))
 
 
 def _describe(src) -> str:

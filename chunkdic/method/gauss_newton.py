@@ -20,7 +20,7 @@ import numpy as np
 import copy
 
 from ..solve.cg import rhs_norm
-from .events import emit
+from .events import Iteration, Rigid, emit
 from .operator import Operator
 from .protocol import Pass, Passes
 from .stopping import History, State, decide, noise_step_of, still_to_come
@@ -124,8 +124,8 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
             t0 -= p.seconds
         state.noise_variance, state.kappa = float(p.noise_variance), float(p.kappa)
         cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
-        event = dict(stage="iteration", level=passes.level, iteration=it, gap=p.gap, max_delta=None,
-                     excluded=p.n_excluded, gain=float(np.median(p.fit.gain)))
+        event = dict(level=passes.level, iteration=it, gap=p.gap, excluded=p.n_excluded,
+                     gain=float(np.median(p.fit.gain)))
         if math.isfinite(p.gap):
             fields = element_fields(p)
             state.record(p, fields)
@@ -134,7 +134,7 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
         decide(state, p.gap, tolerance, max_iterations)
         if state.status is not None:
             history.add(passes.level, it, p.gap, math.nan, p.n_excluded)
-            emit(progress, **event, status=state.status, seconds=time.perf_counter() - t0)
+            emit(progress, Iteration(**event, status=state.status, seconds=time.perf_counter() - t0))
         else:
             t1 = time.perf_counter()
             # (M + λR) δa = b − λ R a: the penalty acts on the whole field, not the increment
@@ -168,7 +168,7 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
                          unsettled=0 if state.unsettled is None else int(unsettled.sum()), seconds=t2 - t0,
                          assemble_seconds=t1 - t0, solve_seconds=t2 - t1, cg_iterations=cg_iterations,
                          voxels=passes.mesh.n_voxels, assemble_cpu_seconds=cpu)
-            emit(progress, **event)
+            emit(progress, Iteration(**event))
         if on_iteration is not None:
             on_iteration(state)
         if state.status is None:
@@ -189,8 +189,7 @@ def rigid_step(passes: Passes, op: Operator, t0: np.ndarray, tolerance: float, m
         p = passes.assemble_b(t[:, None, None, None] * ones, op)
         delta = np.linalg.solve(op.rigid_matrix, p.b.sum(axis=(0, 1, 2)))
         history.add(passes.level, -1 - it, p.gap, float(np.abs(delta).max()), p.n_excluded)
-        emit(progress, stage="rigid", level=passes.level, iteration=it, gap=p.gap,
-             max_delta=float(np.abs(delta).max()), translation=t.tolist())
+        emit(progress, Rigid(level=passes.level, iteration=it, gap=p.gap, max_delta=float(np.abs(delta).max()), translation=t.tolist()))
         t += delta
         if np.abs(delta).max() < tolerance:
             break

@@ -25,7 +25,7 @@ from ..solve.penalty import TERM_KINDS
 from ..solve.regchoice import choose_length
 from ..solve.regularizer import Regularizer
 from ..solve.reweighting import robust_freed
-from .events import emit
+from .events import Regularization, Reweighting, emit
 from .operator import Operator
 from .protocol import Pass
 from .settings import Settings
@@ -125,8 +125,7 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     choice = choose(None, guess=penalty.length)
     scale = 2.0**level
     corner = choice.l_curve_length * scale if math.isfinite(choice.l_curve_length) else None  # sweep only
-    emit(progress, stage="regularization", level=level, length=choice.length * scale, l_curve_length=corner,
-         kind=settings.regularization, kappa=p.kappa, rule=choice.rule, seconds=time.perf_counter() - t0)
+    emit(progress, Regularization(level=level, length=choice.length * scale, l_curve_length=corner, kind=settings.regularization, kappa=p.kappa, rule=choice.rule, seconds=time.perf_counter() - t0))
     penalty = regularize(op, settings, level, mesh.element_size, choice.length)
     length, freed = choice.length, None
     for k in range(settings.reweights):
@@ -134,14 +133,11 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
         terms = freed_terms(freed)
         if terms == 0:  # nothing beyond the threshold: the plain penalty, as chosen
             freed = None
-            emit(progress, stage="reweighting", level=level, round=k + 1, freed=0, length=length * scale,
-                 seconds=time.perf_counter() - t0)
+            emit(progress, Reweighting(level=level, round=k + 1, freed=0, length=length * scale, seconds=time.perf_counter() - t0))
             break
         length = choose(freed, guess=length).length  # the plain choice probed first
         penalty = regularize(op, settings, level, mesh.element_size, length, freed)
-        emit(progress, stage="reweighting", level=level, round=k + 1, freed=terms,
-             fraction=terms / (3 * len(TERM_KINDS) * int(np.prod(mesh.nodes_shape))), length=length * scale,
-             seconds=time.perf_counter() - t0)
+        emit(progress, Reweighting(level=level, round=k + 1, freed=terms, fraction=terms / (3 * len(TERM_KINDS) * int(np.prod(mesh.nodes_shape))), length=length * scale, seconds=time.perf_counter() - t0))
     state = dataclasses.replace(state, reg_length=length, freed=freed)
     state.restart()
     return state, penalty

@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from .events import emit
+from .events import Gaps, Unsettled, emit
 from .gauss_newton import iterate
 from .length import Penalty, choose_regularization, length_to_choose, regularization_length, regularize
 from .noise import nodal_uncertainty
@@ -147,9 +147,7 @@ def measure_start_gaps(passes: Passes, op: Operator, state: State, rigid_t: np.n
     p = passes.assemble_b(state.u, op, probes={"initial": np.zeros((3,) + passes.mesh.nodes_shape),
                                                "rigid": uniform(rigid_t, passes.mesh)})
     initial, rigid = p.probe_gaps["initial"], p.probe_gaps["rigid"]
-    emit(progress, stage="gaps", level=passes.level, initial_gap=initial, rigid_gap=rigid,
-         translation=np.asarray(rigid_t).tolist(), seconds=time.perf_counter() - t0,
-         cpu_seconds=time.process_time() - c0)
+    emit(progress, Gaps(level=passes.level, initial_gap=initial, rigid_gap=rigid, translation=np.asarray(rigid_t).tolist(), seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0))
     return p, initial, rigid
 
 
@@ -220,5 +218,5 @@ def unreliable_nodes(op: Operator, state: State, level: int, progress=None) -> n
     if state.status != "converged" or state.unsettled is None or not state.unsettled.any():
         return weak
     moving = state.unsettled & ~op.masked_nodes()
-    emit(progress, stage="unsettled", level=level, nodes=int(moving.sum()))
+    emit(progress, Unsettled(level=level, nodes=int(moving.sum())))
     return np.unique(np.concatenate([weak.reshape(-1, 3), np.argwhere(moving)]), axis=0)

@@ -43,7 +43,7 @@ import numpy as np
 
 from ..mesh import Mesh, carry_field, transfer
 from ..solve.stencil import stencil_matvec
-from .events import emit
+from .events import Affine, Init, StartChoice, emit
 from .gauss_newton import rigid_step
 from .operator import Operator
 from .protocol import Passes
@@ -143,8 +143,7 @@ def affine_step(passes: Passes, op: Operator, t: np.ndarray, tolerance: float, h
             break
         move = float(np.abs(affine_field(P, dp)).max())
         history.add(level, first - it, ps.gap, move, ps.n_excluded)
-        emit(progress, stage="affine", level=level, iteration=it, gap=ps.gap, max_delta=move,
-             gradient=gradient(p, mesh).tolist())
+        emit(progress, Affine(level=level, iteration=it, gap=ps.gap, max_delta=move, gradient=gradient(p, mesh).tolist()))
         p = p + dp
         if move < tolerance:
             best_p = p  # converged: the last step is below the tolerance
@@ -200,7 +199,7 @@ def level_start(passes: Passes, meshes: dict, coarsest: int, coarser_u: np.ndarr
     s, mesh = passes.level, passes.mesh
     if s == coarsest and earlier is not None:
         start = init_field(earlier, mesh, s)
-        emit(progress, stage="init", level=s, path=earlier.path, mean=[float(v) for v in start.mean(axis=(1, 2, 3))])
+        emit(progress, Init(level=s, path=earlier.path, mean=[float(v) for v in start.mean(axis=(1, 2, 3))]))
         return start, None
     if s == coarsest:
         t_int = passes.translation()
@@ -272,7 +271,7 @@ def best_start(passes: Passes, op: Operator, start: np.ndarray, t_int, tolerance
             rigid_t, affine = rigid_and_affine(passes, op, t_int, tolerance, history, progress)
             measure("rigid", affine)
     chosen = min(gaps, key=gaps.get)  # ties: the first measured (the rigid step, or the earlier field)
-    emit(progress, stage="start-choice", level=passes.level, chosen=chosen, gaps=dict(gaps))
+    emit(progress, StartChoice(level=passes.level, chosen=chosen, gaps=dict(gaps)))
     if chosen != "rigid":
         rigid_t = fields[chosen].mean(axis=(1, 2, 3))
     # M was built around the earlier field (init) or the translation: again around another

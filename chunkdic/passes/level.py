@@ -26,7 +26,7 @@ from ..io.handles import ArrayRef, forget_open_arrays
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
 from ..method.brightness import aligned_block_elements, offset_cell
-from ..method.events import emit
+from ..method.events import Blocks, FCopy, Matrix, Prepared, emit
 from ..method.operator import Assembled, Operator, build_operator
 from ..method.protocol import Pass
 from ..method.settings import Settings
@@ -160,8 +160,7 @@ class LevelPasses:
             if now - last >= PROGRESS_SECONDS and done < total:
                 last = now
                 rate = done * voxels_per_block / (now - t0)
-                emit(self.progress, stage="blocks", level=self.level, label=label, done=done, total=total,
-                     rate=rate, eta=(total - done) * voxels_per_block / rate)
+                emit(self.progress, Blocks(level=self.level, label=label, done=done, total=total, rate=rate, eta=(total - done) * voxels_per_block / rate))
 
     def _f_copy(self, f_ref: ArrayRef, sigma: float, adopt: bool) -> tuple[HaloedBlocks, bool]:
         """The store of the blocks' haloed ``f`` (see :mod:`chunkdic.passes.haloed`): with
@@ -221,9 +220,7 @@ class LevelPasses:
             op = build_operator(m, u, cell=self.cell, reused=reused)
         except InputError as exc:  # M is empty: name the cause when it is not the reference itself
             raise InputError(self._why_no_gradient(u, m.active) or str(exc)) from None
-        emit(self.progress, stage="matrix", level=self.level, nodes=list(self.mesh.nodes_shape), blocks=len(self.jobs),
-             voxels=self.mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
-             reused=reused, f_adopted=self.f_adopted)
+        emit(self.progress, Matrix(level=self.level, nodes=list(self.mesh.nodes_shape), blocks=len(self.jobs), voxels=self.mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0, reused=reused, f_adopted=self.f_adopted))
         return op
 
     def _check(self, m: Assembled) -> None:
@@ -281,7 +278,7 @@ class LevelPasses:
         inputs.f_copy.mark_complete()
         self.f_ready = True
         self.runner.run_everywhere(forget_chunks)
-        emit(self.progress, stage="f-copy", level=self.level, blocks=len(self.jobs), seconds=time.perf_counter() - t0)
+        emit(self.progress, FCopy(level=self.level, blocks=len(self.jobs), seconds=time.perf_counter() - t0))
 
     def _why_no_gradient(self, u: np.ndarray, active: np.ndarray | None) -> str | None:
         """The real cause of an empty ``M`` when it is not the reference's texture.
@@ -334,8 +331,7 @@ class LevelPasses:
             halo=inp.g_halo, local=self.runner.local, sigma=inp.sigma, interpolation=inp.interpolation,
         )
         self.runner.run_everywhere(forget_chunks)  # the b passes read the prepared store, not the scan
-        emit(self.progress, stage="prepared", level=self.level, box=[list(b) for b in box], voxels=voxels,
-             seconds=time.perf_counter() - t0)
+        emit(self.progress, Prepared(level=self.level, box=[list(b) for b in box], voxels=voxels, seconds=time.perf_counter() - t0))
 
     def _release_prepared(self) -> None:
         if self.prepared is not None:
