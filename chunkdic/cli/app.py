@@ -278,13 +278,13 @@ def _add_demo(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    from . import q4 as _cli_q4
-    from . import report as _cli_report
-    from . import resolution as _cli_resolution
-    from . import scan as _cli_scan
-    from . import series as _cli_series
-    from . import synth as _cli_synth
-    from . import view as _cli_view
+    from . import q4_commands as _cli_q4
+    from . import report_commands as _cli_report
+    from . import resolution_command as _cli_resolution
+    from . import scan_commands as _cli_scan
+    from . import series_command as _cli_series
+    from . import synth_commands as _cli_synth
+    from . import view_command as _cli_view
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
                      formatter_class=_HelpFormatter)

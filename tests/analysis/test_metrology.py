@@ -11,7 +11,7 @@ import zarr
 
 from chunkdic.analysis import metrology, zoisweep
 from chunkdic.analysis.metrology import PowerLaw, fit_power_law
-from chunkdic.cli import report as _cli_report
+from chunkdic.cli import report_commands as _cli_report
 from chunkdic.errors import InputError
 from chunkdic.io.handles import ArrayRef
 from chunkdic.synth import foam, fourier_shift, synthetic

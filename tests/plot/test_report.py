@@ -9,7 +9,7 @@ import pytest
 import scipy.ndimage as ndi
 
 import chunkdic
-from chunkdic.cli import report as _cli_report
+from chunkdic.cli import report_commands as _cli_report
 from chunkdic.errors import InputError
 from chunkdic.synth import synthetic
 from chunkdic.export.corrected_image import open_corrected, write_corrected
