@@ -16,6 +16,8 @@ prints the largest ``|Δu|`` of each (voxels of the result's level; NaN where bo
 ``--time`` adds the wall time of a 300³ correlation (grains band, ℓ = 12) for each
 version, alternated, ``--repeats`` times (medians printed; the machine's load moves them).
 
+The other version's dump (``WORKDIR/base``) is reused when it is there.
+
 Usage::
 
     git archive main | tar -x -C /tmp/method-main
@@ -27,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -183,6 +186,10 @@ def main(argv=None) -> int:
     runs = {"base": args.base.resolve(), "this": None}
     for name, tree in runs.items():
         t0 = time.perf_counter()
+        if name == "base" and (args.workdir / name / "fields.npz").exists():  # the other version's, kept
+            print(f"# base: the dump in {args.workdir / name} reused", flush=True)
+            continue
+        shutil.rmtree(args.workdir / name, ignore_errors=True)
         _child(tree, "--workdir", str(args.workdir), "--dump", str(args.workdir / name))
         facts = json.loads((args.workdir / name / "facts.json").read_text())
         print(f"# {name}: chunkdic from {facts['chunkdic']}, {time.perf_counter() - t0:.0f} s", flush=True)
