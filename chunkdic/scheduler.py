@@ -383,7 +383,7 @@ def release_freed_memory() -> None:
     a task's NumPy arrays come from heaps whose freed pages stay resident: in the embedded
     pool, where the tasks' threads are the client's process, a 512³ run's peak grew to
     0.73 GiB over the level-0 passes, against 0.40 GiB with ``MALLOC_MMAP_THRESHOLD_=65536``
-    in the environment. Called by the passes (:meth:`chunkdic.passes.level.Level._map`) at
+    in the environment. Called by the passes (:meth:`chunkdic.passes.level.LevelPasses._map`) at
     most every :data:`TRIM_SECONDS`, it brought the peak to 0.61-0.62 GiB (0.62 GiB every
     0.25 s); a no-op without glibc. (Dask's nanny sets ``MALLOC_TRIM_THRESHOLD_`` for its
     workers itself.)

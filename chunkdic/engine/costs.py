@@ -226,7 +226,7 @@ def peak_scratch(pyramids: dict[int, int], stores: dict[int, int]) -> int:
     """Peak scratch bytes of a run: every missing pyramid level is built at the start, and
     a level's (``stores``: its haloed ``f`` and prepared ``g``) is held with the pyramid levels
     at or below it (coarser ones are deleted when their level ends,
-    :func:`chunkdic.method.length.release_scan_levels`)."""
+    :func:`chunkdic.engine.coarse_to_fine.release_scan_levels`)."""
     held = [sum(pyramids.values())]
     held += [stores[s] + sum(b for t, b in pyramids.items() if t <= s) for s in stores]
     return int(max(held))

@@ -1,13 +1,12 @@
-"""A start field from an earlier result (``correlate(..., init=RESULT)``, ``--init``).
+"""An earlier result to start from (``correlate(..., init=RESULT)``, ``--init``): opened, checked, identified.
 
 Besides no motion and the rigid translation found on the coarsest level, a correlation may
 start from the displacement field of an earlier result, when that field's gap is the lowest
-of the three (:func:`chunkdic.method.length.best_start`): the previous step of a loading series,
-a coarser or finer element size, another ROI or another pyramid level. The earlier C8
-field is evaluated with its own shape functions at the new mesh's nodes, positions and
-values converted between levels with the half-voxel offset of shared/DESIGN.md, by
-:func:`chunkdic.mesh.carry_field`, the function that carries a field between levels in
-the engine and composes the increments of a loading series.
+of the three (:func:`chunkdic.method.start.best_start`): the previous step of a loading series,
+a coarser or finer element size, another ROI or another pyramid level. The earlier C8 field
+is evaluated at the new mesh's nodes by :func:`chunkdic.method.start.init_field` (its own
+shape functions, positions and values converted between levels with the half-voxel offset
+of shared/DESIGN.md, :func:`chunkdic.mesh.carry_field`).
 
 Choices (docs/analysis.md, "Starting from an earlier result"):
 

@@ -256,7 +256,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
                              read_bytes=read_buffer_bytes(g_scan, s, [e + 2 * h for e in edges]))
 
     def elements(edge: int, mesh: Mesh) -> int:
-        # as the level makes its blocks (whole brightness cells, chunkdic.passes.level.Level)
+        # as the level makes its blocks (whole brightness cells, chunkdic.passes.level.LevelPasses)
         m = aligned_block_elements(settings.block_elements or max(1, edge // mesh.element_size), cell_of(mesh))
         return min(m, max(mesh.shape))
 

@@ -336,7 +336,7 @@ def combine(model: str, nodal: np.ndarray, scalars: np.ndarray, elements: np.nda
     ``center`` is the centring constant ``c`` the tasks used (grey levels), ``element_size``
     the element edge (voxels; the drift's unit in the sums is one element). The two halves,
     :func:`nodal_rhs` and :func:`element_fit`, let a caller drop ``nodal`` in between
-    (:meth:`chunkdic.passes.level.Level.assemble_b`).
+    (:meth:`chunkdic.passes.level.LevelPasses.assemble_b`).
     """
     return element_fit(model, nodal_rhs(model, nodal, scalars), scalars, elements, center, element_size)
 

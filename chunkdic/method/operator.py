@@ -34,7 +34,7 @@ class Assembled:
     Attributes
     ----------
     stencil : ndarray, shape (nz, ny, nx, 14, 3, 3), float32
-        The half stencil of ``M`` (:data:`chunkdic.solve.HALF_OFFSETS`).
+        The half stencil of ``M`` (:data:`chunkdic.solve.stencil.HALF_OFFSETS`).
     lags : ndarray, shape (3, LAGS + 1), float64
         The pass's sensitivity lag sums (:mod:`chunkdic.method.noise`).
     active : ndarray, shape (ez, ey, ex), bool, optional

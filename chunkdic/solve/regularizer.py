@@ -301,7 +301,7 @@ def plane_wave_unit(reg: Regularizer, matvec) -> float:
 
     Nine products of ``M`` and of ``R`` over the whole mesh (0.6 s at 65³ nodes, 1024³ at
     ℓ = 16): a caller that weighs several lengths against the same ``M`` keeps it
-    (:meth:`chunkdic.passes.level.Level.regularize`).
+    (:func:`chunkdic.method.length.regularize`).
     """
     T = reference_wavelength(reg.nodes_shape, reg.ell)
     reg = reg.plain()  # one length means one weight, whatever the robust reweighting freed

@@ -56,7 +56,7 @@ def test_cell_slopes_read_back_from_element_offsets():
 
 @pytest.fixture(scope="module")
 def bent(tmp_path_factory):
-    """The pair of ``test_cell_offsets_follow_a_drift_that_bends_…`` (tests/engine/test_greylevel.py):
+    """The pair of ``test_cell_offsets_follow_a_drift_that_bends_…`` (tests/method/test_brightness.py):
     a smooth texture Fourier-shifted by a sub-voxel translation, the deformed scan ×1.25, +40
     and a drift along z of 0.2 grey level per voxel below the two cells' boundary and 0.8
     above, correlated with cells of 32 voxels (4 elements at ℓ = 8; the mesh's 7 elements
