@@ -158,8 +158,8 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, settings: Settin
     if uncertainty_from is not None:
         d_eps = read_delta_eps(uncertainty_from)  # read first: a bad table must not cost a sweep
     check_scheduler(scheduler)
-    given = [] if uncertainty_from is None or isinstance(uncertainty_from, UncertaintyReport) else [uncertainty_from]
-    plan = Outputs(inputs=[ref, deformed, *given], overwrite=overwrite)
+    earlier = [] if uncertainty_from is None or isinstance(uncertainty_from, UncertaintyReport) else [uncertainty_from]
+    plan = Outputs(inputs=[ref, deformed, *earlier], overwrite=overwrite)
     out = plan.add(out_dir, "sweep").final
     with plan:  # a failure removes what this run wrote, never older files
         return _sweep(ref, deformed, sizes, out, roi, given, d_eps, a_priori, shift, scheduler, progress)
