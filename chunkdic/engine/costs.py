@@ -37,7 +37,7 @@ BASE_BYTES = 372 * MiB
 #: the same runs peaked at 303-312 MiB: compiling holds LLVM's memory besides). Set from a
 #: fresh install (the CI's new virtual environment), whose warm 128³ run peaked at
 #: 359-366 MiB, a base of ~282 MiB; the same code and package versions in a long-lived
-#: development environment peaked 52 MiB lower (base ~246 MiB; cause not found, session 28)
+#: development environment peaked 52 MiB lower (base ~246 MiB; cause not found)
 WARM_BASE_BYTES = 285 * MiB
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
 #: V-cycle's coarse ``M``, the fields of the Gauss–Newton state, a ``b`` pass's nodal and
