@@ -6,9 +6,9 @@ from .analysis.q4 import correlate2d
 from .analysis.resolution import resolution
 from .analysis.scoring import score_displacement
 from .analysis.zoisweep import sweep, zoi_table
-from .engine.budget import Plan, plan
+from .engine.runplan import Plan, plan
 from .engine.driver import correlate
-from .engine.settings import Settings
+from .method.settings import Settings
 from .errors import InputError
 from .io.display import write_display
 from .io.formats.ingest import ingest
@@ -21,10 +21,11 @@ from .mesh import Mesh
 from .results.result import Result, open_result
 from .results.strain import element_strain, mean_strain
 from .solve.cg import PoorTextureWarning
-from .views.corrected_image import write_corrected
-from .views.export import write_nodes_csv, write_vtk
-from .views.fields import open_fields, write_fields
-from .views.report import report
+from .export.corrected_image import write_corrected
+from .export.meshfiles import write_nodes_csv, write_vtk
+from .export.fields_reader import open_fields
+from .export.fields_image import write_fields
+from .plot.report import report
 
 __version__: str
 

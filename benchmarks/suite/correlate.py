@@ -61,7 +61,7 @@ class Solver:
     def setup(self, regularized):
         from chunkdic.kernels.m import m_block
         from chunkdic.solve.cg import StencilSolver, warmup
-        from chunkdic.solve.regularization import Regularizer
+        from chunkdic.solve.regularizer import Regularizer
         from chunkdic.solve.stencil import half_stencil
 
         from .common import textured_volume

@@ -58,12 +58,13 @@ from ..io.handles import ArrayRef
 from ..io.outputs import Outputs
 from ..io.scan import open_scan
 from ..mesh import Mesh
+from ..method.settings import Settings
 from ..scheduler import check_scheduler, open_runner
 from ..synth.boolean import stream_key
 from ..synth.fields import Star
 from ..synth.fourier_shift import fourier_shift_scan
 from ..synth.scanpairs import NOISE_KEYS, grey_moments, moved_copy
-from .metrology import check_element_sizes, check_plan, check_shift, write_table
+from .metrology import check_element_sizes, check_plan, check_shift, study_settings, write_table
 from .scoring import score_displacement
 
 log = logging.getLogger(__name__)
@@ -232,10 +233,10 @@ def _level0_path(ref: ArrayRef) -> str:
     return str(Path(ref.path) / ref.key) if ref.kind == "zarr" and ref.key else ref.path
 
 
-def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, amplitude: float = 0.5,
-               periods: tuple[float, float] | None = None, seed: int = 0, scheduler=None,
+def resolution(scan, element_sizes, out_dir, settings: Settings | None = None, *, noise: float = 0.02, shift=0.5,
+               amplitude: float = 0.5, periods: tuple[float, float] | None = None, seed: int = 0, scheduler=None,
                overwrite: bool = False, progress: Callable[[dict], None] | None = None,
-               options: dict | None = None) -> ResolutionReport:
+               **options) -> ResolutionReport:
     """Noise, spatial resolution l10 % and MEI of a correlation setting, on a scan's texture.
 
     Parameters
@@ -264,9 +265,12 @@ def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, 
     scheduler, overwrite, progress
         As in :func:`chunkdic.analysis.metrology.uncertainty`; progress also receives
         ``{"stage": "resolution", ...row}``.
-    options : dict, optional
-        :class:`chunkdic.Settings` fields of every correlation (default: the engine's,
-        i.e. Tikhonov with an automatic length).
+    settings : Settings, optional
+        Every correlation's settings, as :func:`chunkdic.correlate` takes them (level 0; its
+        ``element_size`` replaced by each of ``element_sizes``).
+    **options
+        :class:`chunkdic.Settings` fields of every correlation, as :func:`chunkdic.correlate`
+        takes them (default: the engine's, i.e. Tikhonov with an automatic length).
 
     Returns
     -------
@@ -289,14 +293,15 @@ def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, 
         if len(periods) != 2 or not all(math.isfinite(v) and v > 0 for v in periods):
             raise InputError(f"periods must be two positive numbers, got {periods!r}")
     src_scan = open_scan(scan)
-    given = {"regularization": "tikhonov", **(options or {})}
-    check_plan(src_scan, sizes, None, 0, given.pop("interpolation", "cubic"), given)
+    given = study_settings(settings, options, {"regularization": "tikhonov"})
+    if given.get("level", 0) != 0:
+        raise InputError("the resolution is measured on level 0 only")
+    check_plan(src_scan, src_scan, sizes, given, caller="resolution")
     check_scheduler(scheduler)
     plan = Outputs(inputs=[scan], overwrite=overwrite)
     out = plan.add(out_dir, "resolution").final
     with plan:  # a failure removes what this run wrote, never older files
-        return _resolution(src_scan, sizes, out, noise, t, amplitude, periods, seed, scheduler, progress,
-                           options or {})
+        return _resolution(src_scan, sizes, out, noise, t, amplitude, periods, seed, scheduler, progress, given)
 
 
 def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, scheduler, progress,
@@ -325,7 +330,7 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
     import shutil
 
     shutil.rmtree(out / "shifted.zarr", ignore_errors=True)
-    settings = {"element_size": None, **options}
+    settings = {"element_size": None, **options}  # options: every correlation's settings (study_settings)
     rows, profiles = [], {}
     for ell in sizes:
         lo, hi = periods if periods is not None else (2.0 * ell, 20.0 * ell)

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.events import EXPLAIN
+from ..method.events import EXPLAIN
 from ..errors import InputError, WorkerLostError
 from ..scheduler import SCHEDULER_HELP
 from .common import (
@@ -114,7 +114,7 @@ def _summary(result, seconds: float) -> str:
                  "measured (their values come from the regularisation); the rest converged, but so large a share "
                  "is not called converged (mask the untextured region, or a larger --element-size)")
     elif info["status"] in ("stalled", "diverged", "max-iterations"):
-        from ..engine.stopping import STALL_PATIENCE
+        from ..method.stopping import STALL_PATIENCE
 
         line += "\n  " + EXPLAIN[info["status"]].format(patience=STALL_PATIENCE)
     if info["excluded_voxels"] and info["status"] != "excluded":
@@ -139,7 +139,7 @@ def cmd_correlate(args) -> int:
 
 def _print_plan(args, element_size, roi) -> int:
     """``correlate --plan``: the plan on stdout, nothing written; exit 2 if the run would be refused."""
-    from ..engine.budget import plan
+    from ..engine.runplan import plan
 
     p = plan(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init, output=args.output,
              memory_target=args.memory_target, **engine_options(args))
@@ -278,13 +278,13 @@ def _add_demo(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    from . import q4 as _cli_q4
-    from . import report as _cli_report
-    from . import resolution as _cli_resolution
-    from . import scan as _cli_scan
-    from . import series as _cli_series
-    from . import synth as _cli_synth
-    from . import view as _cli_view
+    from . import q4_commands as _cli_q4
+    from . import report_commands as _cli_report
+    from . import resolution_command as _cli_resolution
+    from . import scan_commands as _cli_scan
+    from . import series_command as _cli_series
+    from . import synth_commands as _cli_synth
+    from . import view_command as _cli_view
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
                      formatter_class=_HelpFormatter)

@@ -38,7 +38,8 @@ from .galerkin import (
     regularizer_hierarchy,
     transfer,
 )
-from .regularization import Regularizer, add_weighted
+from .regularizer import Regularizer
+from .penalty import add_weighted
 from .stencil import axpy, block_jacobi, block_jacobi_step, block_solve, block_solve_step, dot, half_matvec
 
 DEGREE = 1

@@ -82,7 +82,7 @@ class SettingsTable(Directive):
     """The algorithm settings: field, command-line flag, default, choices, what it does."""
 
     def run(self):
-        from chunkdic.engine.settings import Settings
+        from chunkdic.method.settings import Settings
 
         self.state.document.settings.env.note_dependency(str(ROOT / "chunkdic" / "engine" / "settings.py"))
         rows = []

@@ -144,7 +144,7 @@ def test_stagnating_gap_is_reported_stalled_with_exit_1(tmp_path, capsys):
     improvement; never ``converged`` either way.)
     """
     import chunkdic
-    from chunkdic.engine.stopping import STALL_PATIENCE
+    from chunkdic.method.stopping import STALL_PATIENCE
 
     f = smooth_noise((48, 48, 48), sigma=1.2, seed=1).astype(np.float32)
     g = smooth_noise((48, 48, 48), sigma=1.2, seed=2).astype(np.float32)

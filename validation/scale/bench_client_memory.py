@@ -3,7 +3,7 @@
 The client of a correlation never touches voxels: it receives mesh-sized partial sums
 from the block tasks, adds them into the nodal stencil of ``M`` (float32), builds the
 block-Jacobi preconditioner and solves. Its memory is therefore set by the mesh, and it
-can be measured on the real client code (the ``M`` pass of ``Level`` and the solver)
+can be measured on the real client code (the ``M`` pass of ``LevelPasses`` and the solver)
 with the tasks replaced by a stand-in runner that returns, for every block, the stencil
 of a random texture block of the right shape (computed once per shape by the real
 ``kernels_m.m_block``; ``f`` is never read and no scan is needed).
@@ -106,7 +106,7 @@ class _StandInRunner:
         element sums of the block's shape (the same for every block: one draw per shape)."""
         import numpy as np
 
-        from chunkdic.engine.greylevel import reduce_block
+        from chunkdic.method.brightness import reduce_block
         from chunkdic.kernels.blocks import LAGS, ElementSums
 
         for inputs, job, _u, _active, probes, _probe_active in args:
@@ -129,9 +129,10 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
            show_steps: bool = False, iterations: int = 0) -> None:
     import numpy as np
 
-    from chunkdic.engine.level import Level
-    from chunkdic.engine.planning import plan_meshes
-    from chunkdic.engine.settings import Settings
+    from chunkdic.method.length import regularize as penalize
+    from chunkdic.passes.level import LevelPasses
+    from chunkdic.engine.meshes import plan_meshes
+    from chunkdic.method.settings import Settings
     from chunkdic.io.handles import ArrayRef
     from chunkdic.solve.cg import warmup
 
@@ -145,44 +146,45 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
         # the start field, as a run's: a resident array (the carried field) that the level
         # (its M's field) and the Gauss-Newton state share
         start = np.full((3,) + mesh.nodes_shape, 0.5)
-        lvl = steps.run("M pass", lambda: Level(0, mesh, f_ref, f_ref, runner, Settings(element_size=ell),
-                                                Path(scratch), start=start))
+        settings = Settings(element_size=ell)
+        lvl = LevelPasses(0, mesh, f_ref, f_ref, runner, settings, Path(scratch))
+        op = steps.run("M pass", lambda: lvl.assemble_m(start))
         t_m = time.perf_counter() - t0
         runner._cache.clear()  # the stand-in's blocks: not the client's
         rng = np.random.default_rng(1)
         times, its = [], []
         if not multigrid:
-            lvl.solver.multigrid = False
+            op.solver.multigrid = False
         for k in range(solves):
             b = rng.normal(size=mesh.nodes_shape + (3,))
             t0 = time.perf_counter()
             if regularize:
-                steps.run(f"regularisation {k + 1}", lambda: lvl.regularize(regularize * ell))
-            _, it = steps.run(f"solve {k + 1}", lambda: lvl.solver.solve(b))
+                steps.run(f"regularisation {k + 1}", lambda: penalize(op, settings, 0, ell, regularize * ell))
+            _, it = steps.run(f"solve {k + 1}", lambda: op.solver.solve(b))
             times.append(time.perf_counter() - t0)
             its.append(it)
         b = None  # not the client's: the engine holds its own right-hand sides
         if iterations:
-            _gauss_newton(lvl, iterations, steps)
+            _gauss_newton(lvl, op, iterations, steps)
     nodes = int(np.prod(mesh.nodes_shape))
-    print(f"{size:>6} {ell:>4} {nodes:>10} {len(lvl.blocks):>7} {t_m:>12.1f} {statistics.median(times):>9.2f} "
+    print(f"{size:>6} {ell:>4} {nodes:>10} {len(lvl.jobs):>7} {t_m:>12.1f} {statistics.median(times):>9.2f} "
           f"{statistics.median(its):>6.0f} {steps.peak:>14.0f}", flush=True)
     steps.print()
 
 
-def _gauss_newton(lvl, iterations: int, steps: "_Steps") -> None:
+def _gauss_newton(lvl, op, iterations: int, steps: "_Steps") -> None:
     """``iterations`` passes of the engine's own Gauss–Newton loop (``gauss_newton.iterate``:
     the ``b`` pass's sums on the client, the brightness fit, the penalty, the solve, the
     noise step, the state and its best field) on stand-in ``b`` partials, then the nodal
     uncertainty a result reports: what a level-0 run holds on top of ``M`` and its solver."""
-    from chunkdic.engine.gauss_newton import iterate
-    from chunkdic.engine.noise import nodal_uncertainty
-    from chunkdic.engine.stopping import History, State
+    from chunkdic.method.gauss_newton import iterate
+    from chunkdic.method.noise import nodal_uncertainty
+    from chunkdic.method.stopping import History, State
 
-    state = State(lvl.m_start)  # the level's start, as the engine's start_state
+    state = State(op.built_at)  # the level's start, as a new level's (method.start.fresh_state)
     state = steps.run(f"Gauss-Newton, {iterations} passes",
-                      lambda: iterate(lvl, state, 0.0, iterations, History(), None))
-    steps.run("nodal uncertainty", lambda: nodal_uncertainty(lvl.solver, 1.0, 1.0))
+                      lambda: iterate(lvl, op, state, 0.0, iterations, History(), None)[0])
+    steps.run("nodal uncertainty", lambda: nodal_uncertainty(op.solver, 1.0, 1.0))
 
 
 def main(argv=None) -> None:

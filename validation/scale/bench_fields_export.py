@@ -65,11 +65,11 @@ def main() -> None:
             seconds, err = export_once(args.result, out, level)
             times.append(seconds)
             estimate = next((line for line in err.splitlines() if "channels on the scan's" in line), "")
-        from chunkdic.views.fields import open_levels
+        from chunkdic.export.fields_reader import open_levels
 
         levels, attrs = open_levels(out)
         meta = attrs["chunkdic"]
-        from chunkdic.views.images import image_bytes
+        from chunkdic.export.images import image_bytes
 
         bound = image_bytes([tuple(a.shape[1:]) for a in levels], len(meta["channels"]),
                             int(levels[0].chunks[-1]))

@@ -4,7 +4,7 @@ with no cache (``direct``) or through the process's cache of decoded chunks (``c
 the default, ``chunkdic.chunk-cache``).
 
 Each mode runs in its own process on the embedded thread pool: a level-0
-:class:`chunkdic.engine.level.Level` of the pair's scans is built (its ``M`` pass), then its
+:class:`chunkdic.passes.level.LevelPasses` of the pair's scans is built (its ``M`` pass), then its
 prefilter of ``g`` over the box a zero field reaches; the process's CPU seconds
 (``ru_utime + ru_stime``, its threads included) and wall time of each, its peak RSS, and
 the chunks decoded and found in the cache are printed. ``--repeats`` alternates the modes.
@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 import dask
 pair, ell, mode, threads = Path(sys.argv[1]), int(sys.argv[2]), sys.argv[3], int(sys.argv[4])
-from chunkdic.engine.level import Level
-from chunkdic.engine.settings import Settings
+from chunkdic.passes.level import LevelPasses
+from chunkdic.method.settings import Settings
 from chunkdic.io import chunkread, handles
 from chunkdic.io.handles import ArrayRef
 from chunkdic.kernels.jit import warmup
@@ -64,12 +64,13 @@ with dask.config.set({} if cache is None else {"chunkdic.chunk-cache": cache}), 
     runner = ThreadRunner(threads)
     u = np.zeros((3,) + mesh.nodes_shape)
     c0, w0 = cpu(), time.perf_counter()
-    lvl = Level(0, mesh, refs[0], refs[1], runner, Settings(element_size=ell), Path(scratch), start=u)
+    lvl = LevelPasses(0, mesh, refs[0], refs[1], runner, Settings(element_size=ell), Path(scratch))
+    lvl.assemble_m(u)
     out["m_cpu"], out["m_wall"] = cpu() - c0, time.perf_counter() - w0
     c = chunkread.chunk_cache()
     counts = (0, 0) if c is None else (c.decoded, c.hits)
     c1, w1 = cpu(), time.perf_counter()
-    lvl.prepare_interpolation(u)
+    lvl.prepare(u)
     out["g_cpu"], out["g_wall"] = cpu() - c1, time.perf_counter() - w1
     c = chunkread.chunk_cache()
     out["decoded"], out["hits"] = (None, None) if c is None else (c.decoded - counts[0], c.hits - counts[1])

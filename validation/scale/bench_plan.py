@@ -98,11 +98,11 @@ def plan_only(args, workdir: Path) -> None:
     import dask.utils
 
     import chunkdic
-    from chunkdic.engine import budget
+    from chunkdic.engine import runplan
 
     if args.free:
         free = int(dask.utils.parse_bytes(args.free))
-        budget._free = lambda path: free
+        runplan._free = lambda path: free
     for n in args.sizes:
         d = empty_pair(workdir, n)
         p = chunkdic.plan(d / "ref.zarr", d / "def.zarr", element_size=args.element_size,

@@ -1,11 +1,11 @@
 """Peak memory of the prefilter of ``g`` per task, measured alone and two at once.
 
-The plan (``chunkdic/engine/budget.py``) counts a prefilter task as a number of float32
+The plan (``chunkdic/engine/costs.py``) counts a prefilter task as a number of float32
 copies of its haloed region. This script measures what one task really adds to a
 process's resident memory, on a real scan, in a fresh process per case:
 
 - ``phases`` (one task, alone): the peak over the process's resident memory just before,
-  of each step of :func:`chunkdic.engine.prefilter.prepare_task` — the raw read (zarr's
+  of each step of :func:`chunkdic.passes.prefilter.prepare_task` — the raw read (zarr's
   decoded chunks included), the low-pass/B-spline sweeps, the quantisation and the
   write into the memory-mapped ``.npy`` store (its touched pages count in RSS) — each
   measured by resetting the kernel's high-water mark (``/proc/self/clear_refs``, ``5``)
@@ -21,7 +21,7 @@ as a run builds its scratch pyramid (uint32 sums in ``chunkdic.chunk-size`` chun
 The store is a sparse ``.npy`` file of the box of ``g`` a level-0 run prepares (the whole
 scan for these pairs: ROI plus margins reach the faces), so the row stride of its mapping
 is the run's: the pages a task touches when writing depend on it. The tasks are those of
-:func:`chunkdic.engine.prefilter.build_prepared` whose reads decode the most chunks of the
+:func:`chunkdic.passes.prefilter.build_prepared` whose reads decode the most chunks of the
 scan (the run's largest), nearest the centre among them.
 
 Usage::
@@ -52,8 +52,8 @@ CASE = textwrap.dedent(r"""
     import concurrent.futures, json, sys, time
     import numpy as np
     from chunkdic.io.scan import open_scan
-    from chunkdic.engine import prefilter as P
-    from chunkdic.engine.budget import release_freed_memory
+    from chunkdic.passes import prefilter as P
+    from chunkdic.scheduler import release_freed_memory
 
     scan, tmp, edge_max, tasks, sigma, interp, halo, per_thread, level = sys.argv[1], sys.argv[2], int(sys.argv[3]), \
         int(sys.argv[4]), float(sys.argv[5]), sys.argv[6], int(sys.argv[7]), int(sys.argv[8]), int(sys.argv[9])
@@ -167,14 +167,14 @@ def main(argv=None) -> dict:
     a = p.parse_args(argv)
 
     from chunkdic import config
-    from chunkdic.engine.budget import prepare_bytes, read_buffer_bytes
-    from chunkdic.engine.prefilter import prepare_voxels, prepared_grid, prepared_halo
+    from chunkdic.engine.costs import prepare_bytes, read_buffer_bytes
+    from chunkdic.passes.prefilter import prepare_voxels, prepared_grid, prepared_halo
     from chunkdic.io.scan import open_scan
 
     scan = open_scan(a.scan)
 
     def model(edges) -> int:
-        """The plan's estimate of one task (budget.prepare_bytes, the read's buffers included)."""
+        """The plan's estimate of one task (costs.prepare_bytes, the read's buffers included)."""
         shape, dtype = scan.shape(a.level), scan.dtype(a.level)
         grown = [min(e + 2 * halo, n) for e, n in zip(edges, shape)]
         return prepare_bytes(edges, a.sigma, a.interpolation, shape=shape, raw_itemsize=np.dtype(dtype).itemsize,

@@ -453,7 +453,7 @@ def main(argv=None) -> dict:
                       f"corrected {s.eps_zz_corrected:+.5f}, tr {s.volume_change:+.5f} (true {t.volume_change:+.5f})",
                       flush=True)
             with mon.stage("report") as row:
-                from chunkdic.views.report import report
+                from chunkdic.plot.report import report
 
                 figures = report(result, report_dir, progress=lambda msg: print("   " + msg, flush=True))
                 row["figures"] = sorted(figures)

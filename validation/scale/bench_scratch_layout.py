@@ -1,7 +1,7 @@
 """The scratch layouts of a level-0 run side by side: disk, pass times, field (issue 21 item 1).
 
 For each ``--layout`` (``fast``: uncompressed 16-bit stores; ``compact``: a 16× coarser grid,
-compressed, :mod:`chunkdic.engine.scratchstore`) and each repeat, a fresh process runs
+compressed, :mod:`chunkdic.passes.scratchstore`) and each repeat, a fresh process runs
 ``chunkdic.correlate`` on a CT-like pair (``chunkdic synth --specimen grains --case band
 --noise 0.02``, uint16) with ``chunkdic.scratch-layout`` forced, and reports
 

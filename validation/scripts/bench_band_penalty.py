@@ -19,7 +19,7 @@ weight, the node axes (level 0) and the true field.
 ``(M + λ R_w) x = M a + b`` (the first regularised Gauss–Newton step: within 1 % of the
 engine's converged field, docs/engine.md) for variants of the curvature penalty
 ``R_w = Σ_terms w_t d_tᵀ d_t`` (``d_t`` the second and mixed differences of the
-Tikhonov Hessian penalty of :mod:`chunkdic.solve.regularization`, each component apart)
+Tikhonov Hessian penalty of :mod:`chunkdic.solve.regularizer`, each component apart)
 and scores ``x`` between the nodes on the voxels the issue-20 table scores at ℓ = 8
 (13 … 85 along each axis: ≥ ℓ from the faces and inside al-dvc's node hull):
 
@@ -91,8 +91,8 @@ def capture(args) -> None:
             if out.exists():
                 continue
 
-            def save(problem, lvl, pair=pair, out=out):
-                np.savez(out, **problem, length=lvl.regularization_length, weight=lvl.regularization_weight,
+            def save(problem, penalty, pair=pair, out=out):
+                np.savez(out, **problem, length=penalty.length, weight=penalty.weight,
                          field=(pair / "field.json").read_text())
 
             seconds = capture_choice(lambda pair=pair: chunkdic.correlate(str(pair / "ref.zarr"), str(pair / "def.zarr"),
@@ -173,7 +173,7 @@ class Captured:
     """One captured case: the linearised problem, the weighted penalty and the scoring."""
 
     def __init__(self, path: Path):
-        from chunkdic.solve.regularization import Regularizer, plane_wave_weight
+        from chunkdic.solve.regularizer import Regularizer, plane_wave_weight
         from chunkdic.solve.stencil import stencil_matvec
         from chunkdic.synth.fields import Field, true_displacement
 

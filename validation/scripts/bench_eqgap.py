@@ -39,7 +39,7 @@ import numpy as np
 def correlate(pair: dict, field, size: int, ell: int, kind: str, length: float | None) -> str:
     import chunkdic
     from chunkdic.analysis.scoring import score_between_nodes
-    from chunkdic.engine import stopping
+    from chunkdic.method import stopping
 
     worst = {"delta": 0.0, "dist": None}
     original = stopping.State.step
@@ -76,7 +76,7 @@ def solver_table(n: int) -> None:
     from test_multigrid import _mass_stencil
 
     from chunkdic.solve.cg import StencilSolver
-    from chunkdic.solve.regularization import Regularizer, plane_wave_weight
+    from chunkdic.solve.regularizer import Regularizer, plane_wave_weight
     from chunkdic.solve.stencil import stencil_matvec
 
     shape, ell = (n, n, n), 8.0

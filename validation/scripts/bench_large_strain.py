@@ -112,7 +112,7 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a chunkdic setting (value parsed as JSON when it can be)")
     ap.add_argument("--coarse-min-element", type=int,
-                    help="override chunkdic.engine.planning.COARSE_MIN_ELEMENT (measuring the schedule)")
+                    help="override chunkdic.engine.meshes.COARSE_MIN_ELEMENT (measuring the schedule)")
     ap.add_argument("--aldvc", action="store_true", help="also run al-dvc on each pair (benchmarks/aldvc.py)")
     ap.add_argument("--threads", type=int, default=2, help="al-dvc's threads")
     ap.add_argument("--record", help="write benchmarks/records/bench_large_strain_NAME.json")
@@ -125,7 +125,7 @@ def main(argv=None) -> int:
         except json.JSONDecodeError:
             settings[k] = v
     if args.coarse_min_element is not None:
-        from chunkdic.engine import planning
+        from chunkdic.engine import meshes as planning
 
         planning.COARSE_MIN_ELEMENT = args.coarse_min_element
     rows = []

@@ -67,7 +67,7 @@ def capture(args) -> None:
             if out.exists():
                 continue
 
-            def save(problem, lvl, out=out):
+            def save(problem, penalty, out=out):
                 np.savez(out, **problem, n=n, field=json.dumps(fld.to_json()))
 
             seconds = capture_choice(lambda ell=ell: chunkdic.correlate(str(pair_dir / "ref.zarr"),
@@ -81,7 +81,7 @@ def evaluate_one(path: Path) -> dict:
     from chunkdic.analysis.scoring import score_between_nodes
     from chunkdic.solve import regchoice
     from chunkdic.solve.cg import StencilSolver
-    from chunkdic.solve.regularization import Regularizer, plane_wave_weight
+    from chunkdic.solve.regularizer import Regularizer, plane_wave_weight
     from chunkdic.solve.stencil import stencil_matvec
     importlib.import_module("chunkdic.synth.shear")  # registers the wave and slip fields
     from chunkdic.synth.fields import Field

@@ -41,7 +41,7 @@ def _sweeping_choice() -> None:
     """
     import functools
 
-    from chunkdic.engine import steps
+    from chunkdic.method import length as steps
     from chunkdic.solve import regchoice
 
     steps.choose_length = functools.partial(regchoice.choose_length, sweep=True)
