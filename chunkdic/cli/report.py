@@ -43,6 +43,7 @@ def register(subparsers) -> None:
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--all-elements", action="store_true", help="keep the outermost layer in the mean")
     add_strain_option(p)
+    add_remove_rigid(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=run_strain)
 
@@ -105,6 +106,10 @@ def register(subparsers) -> None:
                    help="name of a result in every legend and panel title, once per result in their order "
                         "(default: each result's file stem)")
     add_strain_option(p)
+    add_remove_rigid(p)
+    p.add_argument("--profile", metavar="Z,Y,X:Z,Y,X", default=None,
+                   help="also plot U and the normal strains along this line with their uncertainty bands "
+                        "(profile.png; level-0 voxels; `chunkdic stats --line` prints the numbers)")
     add_figure_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
     p.set_defaults(func=run_report)
@@ -137,6 +142,7 @@ def register(subparsers) -> None:
     p.add_argument("--scheduler", default=None,
                    help="where --corrected/--fields are computed: threads (default), local[:N], or tcp://host:port")
     add_strain_option(p)
+    add_remove_rigid(p)
     p.add_argument("--overwrite", action="store_true", help="replace outputs that an earlier export wrote")
     p.set_defaults(func=run_export)
 
@@ -208,6 +214,13 @@ def _fmt_tensor(t) -> str:
 
 
 _MEASURE_NAMES = {"small": "small", "green-lagrange": "Green-Lagrange"}
+
+
+def add_remove_rigid(p) -> None:
+    """``--remove-rigid``: shown without the least-squares rigid motion of the nodes (reported)."""
+    p.add_argument("--remove-rigid", action="store_true",
+                   help="remove the least-squares rigid motion of the measured nodes first (Kabsch; printed with its "
+                        "uncertainty): the field and small strains shown without it")
 
 
 def add_strain_option(p) -> None:
@@ -291,6 +304,7 @@ def run_strain(args: argparse.Namespace) -> int:
 
     res = open_result(args.result)
     res.check_displacement()
+    res, rigid = without_rigid(res, args.remove_rigid)
     s = strain_summary(res, exclude_outer=not args.all_elements, measure=args.strain)  # a mask's active elements only
     warning = rotation_warning(s)
     if warning:
@@ -301,10 +315,25 @@ def run_strain(args: argparse.Namespace) -> int:
         if length is not None:  # strains are dimensionless; the element's size in the scan's unit
             out.update(element_size_physical=(res.info["element_size"] * length).tolist(),
                        voxel_size=list(res.info["voxel_size"]), unit=res.info.get("unit"))
+        if rigid is not None:
+            out["rigid_removed"] = rigid.as_dict()
         print(json.dumps(out, indent=2))
     else:
+        if rigid is not None:
+            say(rigid.text())
         print(format_strain(s, res))
     return 0
+
+
+def without_rigid(res, remove: bool):
+    """``(result shown, rigid motion or None)``: the result without its least-squares rigid
+    motion when ``remove`` (``--remove-rigid``)."""
+    if not remove:
+        return res, None
+    from ..analysis.rigid import fit_rigid, remove_rigid
+
+    motion = fit_rigid(res)
+    return remove_rigid(res, motion), motion
 
 
 def run_uncertainty(args: argparse.Namespace) -> int:
@@ -359,13 +388,36 @@ def run_report(args: argparse.Namespace) -> int:
     from ..views.report import report
 
     check_scheduler(args.scheduler)
+    extra = {} if args.profile is None else {"profile": _profile_figure(args)}
+    shown = (lambda res: without_rigid(res, True)[0]) if args.remove_rigid else None
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
                    interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
                    progress=say, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi, labels=args.labels,
-                   strain=args.strain)
+                   strain=args.strain, shown=shown, extra=extra)
     for p in paths.values():
         print(p)
     return 0
+
+
+def _profile_figure(args: argparse.Namespace):
+    """The maker of ``report --profile``'s figure: every result's profile along the line, checked
+    now (a line outside a result's ROI is refused before any figure is written)."""
+    from ..analysis.regions import line_region, parse_line
+    from ..analysis.stats import profile
+    from ..results.result import open_result
+    from ..views.mechplots import plot_profile
+
+    ends = parse_line(args.profile)
+    results = [open_result(r) for r in args.results]
+    regions = [line_region(r, *ends) for r in results]
+    labels = args.labels or [str(r) for r in args.results]
+
+    def make(path, dpi):
+        profiles = [profile(r, g, measure=args.strain, remove_rigid=args.remove_rigid).as_dict()
+                    for r, g in zip(results, regions)]
+        return plot_profile(profiles, path, labels=labels if len(results) > 1 else None, dpi=dpi)
+
+    return make
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -383,6 +435,12 @@ def run_export(args: argparse.Namespace) -> int:
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
     if args.fields_level and not args.fields:
         raise InputError("--fields-level applies to --fields: give --fields OUT.zarr")
+    if args.remove_rigid and (args.corrected or args.fields):
+        raise InputError("--remove-rigid applies to --vtk, --csv and --displacements: the corrected image and the "
+                         "fields' residual need the measured field (export them in a command of their own)")
+    res, rigid = without_rigid(res, args.remove_rigid)
+    if rigid is not None:
+        say(rigid.text())
     if args.corrected or args.fields:
         scans = resultscans.input_scans(res, args.ref, args.deformed)
         check_scheduler(args.scheduler)

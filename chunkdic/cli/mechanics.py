@@ -1,0 +1,116 @@
+"""``chunkdic stats | gauge | crack``: what a mechanics paper reads off a result, thin over the API.
+
+Tables go to stdout (text, ``--json`` or ``--csv``); progress and notes to stderr; bad input
+is one line, exit 2 (``chunkdic.cli.app``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from .common import add_figure_options, say
+
+
+def _output_format(p) -> None:
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--json", action="store_true", help="print JSON instead of text")
+    g.add_argument("--csv", action="store_true", help="print CSV (one header line) instead of text")
+
+
+def register(subparsers) -> None:
+    """Add ``stats``, ``gauge`` and ``crack`` to ``subparsers``."""
+    from .report import add_remove_rigid, add_strain_option
+
+    p = subparsers.add_parser(
+        "stats", help="mean, std and 95 %% interval of the mean of U and the strain over a region, or a profile",
+        description="For each component of U (nodes) and of the strain (element centres) over the ROI, a box, a "
+                    "slab, a mask or label image, or along a line (a profile): the mean, the population standard "
+                    "deviation and the confidence interval of the mean from the solve's nodal covariance "
+                    "(docs/statistics.md), with std/sqrt(n) beside it. Regions in level-0 voxels.")
+    p.add_argument("result", metavar="RESULT.zarr")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--box", metavar="Z0:Z1,Y0:Y1,X0:X1", help="a box (level-0 voxels)")
+    g.add_argument("--slab", metavar="AXIS=A:B", help="a slab across the ROI, e.g. z=20:40 (level-0 voxels)")
+    g.add_argument("--mask", metavar="MASK", help="a mask or label image of the reference's shape (any scan format)")
+    g.add_argument("--line", metavar="Z,Y,X:Z,Y,X", help="a profile along a line (level-0 voxels)")
+    p.add_argument("--label", type=int, default=None, help="the label of --mask to use (default: every non-zero voxel)")
+    p.add_argument("--step", type=float, default=None,
+                   help="spacing of a profile's points, level-0 voxels (default: a quarter of an element)")
+    p.add_argument("--truth", metavar="FIELD.json",
+                   help="a known field (a synthetic pair's field.json or its folder): adds the DVC Challenge 2.0 bias, "
+                        "noise floor and u_rms of the error")
+    p.add_argument("--confidence", type=float, default=0.95, help="of the intervals")
+    p.add_argument("--scheduler", default=None, help="where a --mask is read: threads (default), local[:N], tcp://…")
+    add_strain_option(p)
+    add_remove_rigid(p)
+    _output_format(p)
+    p.set_defaults(func=run_stats)
+
+    p = subparsers.add_parser(
+        "gauge", help="virtual extensometer: elongation and strain between two points or planes, per step of a series",
+        description="Elongation and strain (with their interval) between two points (--points) or two mean planes "
+                    "(--planes) of a result, or of every step of a loading series (chunkdic series). -o DIR writes "
+                    "gauge.csv, gauge.json and the curve gauge.png. Points and planes in level-0 voxels.")
+    p.add_argument("source", metavar="RESULT.zarr|SERIES.zarr")
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--points", nargs=2, metavar="Z,Y,X", help="the gauge's two ends")
+    g.add_argument("--planes", nargs=2, metavar="AXIS=POS", help="two planes normal to one axis, e.g. z=10 z=40")
+    p.add_argument("--confidence", type=float, default=0.95, help="of the strain's interval")
+    p.add_argument("-o", "--output", metavar="DIR", help="also write gauge.csv, gauge.json and the curve there")
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier gauge -o DIR")
+    add_figure_options(p)
+    _output_format(p)
+    p.set_defaults(func=run_gauge)
+
+
+def _print(obj, args) -> None:
+    if args.json:
+        print(json.dumps(obj.as_dict(), indent=2))
+    elif args.csv:
+        print(obj.csv(), end="")
+    else:
+        print(obj.text())
+
+
+def run_stats(args: argparse.Namespace) -> int:
+    from ..analysis.stats import stats
+    from ..results.result import open_result
+
+    res = open_result(args.result)
+    out = stats(res, box=args.box, slab=args.slab, mask=args.mask, label=args.label, line=args.line,
+                step=args.step, measure=args.strain, remove_rigid=args.remove_rigid, truth=args.truth,
+                confidence=args.confidence, scheduler=args.scheduler)
+    if out.rigid and not args.json:
+        say(_rigid_text(out.rigid))
+    _print(out, args)
+    return 0
+
+
+def _rigid_text(d: dict) -> str:
+    from ..analysis.rigid import RigidMotion
+
+    import numpy as np
+
+    fields = {k: (np.asarray(v, float) if isinstance(v, list) else v) for k, v in d.items()}
+    return RigidMotion(**fields).text()
+
+
+def run_gauge(args: argparse.Namespace) -> int:
+    from ..analysis.gauge import gauge
+    from ..io.outputs import Outputs
+
+    curve = gauge(args.source, points=args.points, planes=args.planes, confidence=args.confidence)
+    if args.output:
+        from ..views.mechplots import plot_gauge
+
+        plan = Outputs(inputs=[args.source], overwrite=args.overwrite)
+        out = plan.add(args.output, "gauge").final
+        with plan:
+            (out / "gauge.csv").write_text(curve.csv())
+            (out / "gauge.json").write_text(json.dumps(curve.as_dict(), indent=2) + "\n")
+            path = plot_gauge(curve.as_dict(), out / f"gauge.{args.fmt}", dpi=args.dpi)
+        say(f"wrote {out / 'gauge.csv'}, {out / 'gauge.json'}, {path}")
+    _print(curve, args)
+    return 0
+
