@@ -15,10 +15,13 @@ Repeated scans of an unloaded specimen (the iDICs Good Practices Guide): each la
 ``k`` correlated against the first gives a field ``u_k`` whose truth is a rigid translation.
 The **spatial** noise floor is the standard deviation over the points of one field about its
 own mean (its translation), averaged over the fields (RMS); the **temporal** noise floor is,
-at each point, the standard deviation over the fields of ``u_k − mean_points(u_k)``, then the
-RMS over the points: it needs at least two fields (three scans). With a single pair the
-temporal floor is that one field's deviation at each point from its own translation, i.e.
-the spatial floor itself, and is reported as such.
+at each point, the standard deviation over the fields of ``u_k − mean_points(u_k)`` (sample
+standard deviation, ``k − 1`` in the denominator: a few fields), then the RMS over the
+points: it needs at least two fields (three scans). Every field shares the first scan's
+noise, which the temporal floor does not see: with independent noise of equal size in each
+scan it is the spatial floor divided by √2. With a single pair the temporal floor is that one
+field's deviation at each point from its own translation, i.e. the spatial floor itself, and
+is reported as such.
 """
 
 from __future__ import annotations
@@ -91,7 +94,7 @@ def noise_floors(fields) -> dict:
     dev = arr - arr.mean(axis=2, keepdims=True)  # each field about its own translation
     spatial = np.sqrt((dev.std(axis=2) ** 2).mean(axis=0))
     if arr.shape[0] >= 2:
-        temporal = np.sqrt((dev.std(axis=0) ** 2).mean(axis=1))
+        temporal = np.sqrt((dev.std(axis=0, ddof=1) ** 2).mean(axis=1))
         how = "fields"
     else:
         temporal = np.sqrt((dev[0] ** 2).mean(axis=1))

@@ -57,6 +57,10 @@ def register(subparsers) -> None:
     _sizes_arg(p)
     p.add_argument("--shift", default="0.5", metavar="T|TZ,TY,TX",
                    help="prescribed translation, voxels of --level (default 0.5 on each axis)")
+    p.add_argument("--repeat", nargs="+", metavar="SCAN2", default=None,
+                   help="repeated scans of the unloaded specimen: each is correlated against SCAN instead of a "
+                        "shifted copy; the table gives the spatial and temporal noise floors (iDICs guide) and the "
+                        "DVC Challenge bias and u_rms against zero motion (--shift is not used)")
     _common_corr(p)
     p.set_defaults(func=run_uncertainty)
 
@@ -197,6 +201,10 @@ def _progress(event: dict) -> None:
         return
     if stage == "a-priori":
         say("== a-priori uncertainty (Fourier-shifted reference) ==")
+        return
+    if stage == "repeat":
+        say(f"ell {event['element_size']}: spatial noise floor {event['spatial']:.4f}, temporal {event['temporal']:.4f} "
+            f"voxel ({event['fields']} field(s)), bias {event['bias']:.4f}, u_rms {event['u_rms']:.4f}")
         return
     if stage == "uncertainty":
         say(f"ell {event['element_size']}: bias ({event['bias_z']:+.4f}, {event['bias_y']:+.4f}, "
@@ -339,6 +347,8 @@ def without_rigid(res, remove: bool):
 def run_uncertainty(args: argparse.Namespace) -> int:
     from ..analysis.metrology import uncertainty
 
+    if args.repeat:
+        return _run_repeat(args)
     t0 = time.perf_counter()
     rep = uncertainty(args.scan, args.element_sizes, args.output, shift=_shift(args.shift), roi=args.roi,
                       level=args.level, interpolation=args.interpolation, scheduler=args.scheduler,
@@ -347,6 +357,19 @@ def run_uncertainty(args: argparse.Namespace) -> int:
     say(f"wrote {rep.files['csv']}, {rep.files['markdown']}, {rep.files['plot']} "
          f"({time.perf_counter() - t0:.1f} s)")
     return 0 if all(r["status"] == "converged" for r in rep.rows) else 1
+
+
+def _run_repeat(args: argparse.Namespace) -> int:
+    """``uncertainty SCAN --repeat SCAN2 …``: the noise floors of repeated scans."""
+    from ..analysis.repeats import repeat_noise
+
+    t0 = time.perf_counter()
+    rep = repeat_noise([args.scan, *args.repeat], args.element_sizes, args.output, roi=args.roi, level=args.level,
+                       interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
+                       progress=_progress)
+    print(rep.markdown())
+    say(f"wrote {rep.files['csv']}, {rep.files['markdown']} ({time.perf_counter() - t0:.1f} s)")
+    return 0 if all(set(r["status"].split(",")) == {"converged"} for r in rep.rows) else 1
 
 
 def run_sweep(args: argparse.Namespace) -> int:
