@@ -1,10 +1,14 @@
 # The public API: every name here is importable as ``chunkdic.NAME`` and loaded on first use.
 from .analysis.crosscheck import cutcheck
+from .analysis.gauge import gauge
 from .analysis.loadseries import SeriesResult, open_series, series
 from .analysis.metrology import fit_power_law, uncertainty
 from .analysis.q4 import correlate2d
+from .analysis.repeats import repeat_noise
 from .analysis.resolution import resolution
+from .analysis.rigid import fit_rigid, remove_rigid
 from .analysis.scoring import score_displacement
+from .analysis.stats import stats
 from .analysis.zoisweep import sweep, zoi_table
 from .engine.budget import Plan, plan
 from .engine.driver import correlate
@@ -24,6 +28,8 @@ from .solve.cg import PoorTextureWarning
 from .views.corrected_image import write_corrected
 from .views.export import write_nodes_csv, write_vtk
 from .views.fields import open_fields, write_fields
+from .views.ngff_displacements import write_displacements
+from .views.pvd import write_pvd
 from .views.report import report
 
 __version__: str

@@ -128,19 +128,27 @@ def register(subparsers) -> None:
                     "OME-NGFF multiscale image on the scan's level-0 grid (--fields-level S: its level-S grid) "
                     "(napari, neuroglancer). The size of --corrected and --fields is said first and refused when "
                     "the free disk cannot hold it. Strains of --vtk and --fields: --strain (default Green-Lagrange).")
-    p.add_argument("result", metavar="RESULT.zarr")
+    p.add_argument("result", metavar="RESULT.zarr|SERIES.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
     p.add_argument("--corrected", metavar="OUT.zarr", help="OME-NGFF image (channels corrected, residual) on the scan's grid at the result's level")
     p.add_argument("--fields", metavar="OUT.zarr",
                    help="OME-NGFF image (channels Uz, Uy, Ux, |U|, eps_zz, eps_eq, residual) on the scan's grid")
+    p.add_argument("--displacements", metavar="OUT.zarr",
+                   help="the displacement as an OME-NGFF 0.6 displacements transformation from the reference's frame "
+                        "to the deformed scan's (a scene; the field on the C8 nodes, linear interpolation between "
+                        "them is the measured field; physical units when the scan has a voxel size)")
+    p.add_argument("--pvd", metavar="DIR",
+                   help="a loading series (chunkdic series) as a ParaView time series: DIR/series.pvd and one .vtu "
+                        "per step, every step's field from the reference")
     p.add_argument("--fields-level", metavar="S", type=_level, default=0,
                    help="write --fields on the scan's level-S grid (2^S voxels per axis; 8^-S of the size): "
                         "0 (default) the full grid; 2 puts a 2048^3 scan's fields on 512^3. The residual channel "
                         "is the mean |r| over each voxel when S is coarser than the result's level")
-    p.add_argument("--units", choices=("voxels", "physical"), default="voxels",
-                   help="coordinates of --vtk/--csv (voxels of the result's level) and displacement of --fields "
-                        "(level-0 voxels): voxels (default) or physical")
+    p.add_argument("--units", choices=("voxels", "physical"), default=None,
+                   help="coordinates of --vtk/--csv/--pvd (voxels of the result's level) and displacement of --fields "
+                        "(level-0 voxels): voxels (default) or physical; --displacements: physical when the scan has "
+                        "a voxel size, else level-0 voxels")
     p.add_argument("--ref", help="reference scan for --corrected/--fields (default: recorded path)")
     p.add_argument("--deformed", help="deformed scan for --corrected/--fields (default: recorded path)")
     p.add_argument("--scheduler", default=None,
@@ -450,8 +458,15 @@ def run_export(args: argparse.Namespace) -> int:
     from ..scheduler import check_scheduler
     from ..views import export
 
-    if not (args.vtk or args.csv or args.corrected or args.fields):
-        raise InputError("nothing to export: give --vtk, --csv, --corrected and/or --fields")
+    from ..io.kinds import kind_of
+
+    units, args.units = args.units, args.units or "voxels"  # --displacements: physical when it can
+    if kind_of(Path(args.result))[0] == "series":
+        return _export_series(args)
+    if args.pvd:
+        raise InputError("--pvd writes a loading series (chunkdic series): give the series store")
+    if not (args.vtk or args.csv or args.corrected or args.fields or args.displacements):
+        raise InputError("nothing to export: give --vtk, --csv, --corrected, --fields and/or --displacements")
     res = open_result(args.result)
     res.check_displacement()
     if args.units == "physical" and not res.info.get("voxel_size"):
@@ -472,7 +487,8 @@ def run_export(args: argparse.Namespace) -> int:
     entries = {name: plan.add(path, kind) for name, path, kind in
                (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
                 ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
-                ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"))
+                ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"),
+                ("displacements", args.displacements, "displacements"))
                if path}
     # the free disk, once the paths are checked; the sizes are said once the outputs are ours (locked)
     sizes = _plan_images(res, args, scans[0].shape(0)) if args.corrected or args.fields else []
@@ -480,9 +496,35 @@ def run_export(args: argparse.Namespace) -> int:
         for line in sizes:
             say(line)
         _export(res, args, {k: e.work for k, e in entries.items()})
-    for name in ("vtk", "csv", "corrected", "fields"):
+        if args.displacements:
+            from ..views.ngff_displacements import write_displacements_store
+
+            out = write_displacements_store(res, entries["displacements"].work, units=units)
+            say(f"{args.displacements}: OME-NGFF {out['levels'][0][1:]} nodes, {len(out['levels'])} levels, in "
+                f"{out['unit'] or 'level-0 voxels'}")
+    for name in ("vtk", "csv", "corrected", "fields", "displacements"):
         if name in entries:
             print(getattr(args, name))
+    return 0
+
+
+def _export_series(args: argparse.Namespace) -> int:
+    """``export SERIES --pvd DIR``: the ParaView time series of a loading series."""
+    from ..analysis.loadseries import open_series
+    from ..views.pvd import write_pvd
+
+    others = [f"--{n}" for n in ("vtk", "csv", "corrected", "fields", "displacements") if getattr(args, n)]
+    if others or not args.pvd:
+        raise InputError(f"a loading series exports as a ParaView time series: give --pvd DIR"
+                         + (f", not {', '.join(others)} (export one step's result for those)" if others else ""))
+    series = open_series(args.result)
+    if not series.cumulative:
+        raise InputError(f"series {args.result} has no step: nothing to export")
+    transform = (lambda res: without_rigid(res, True)[0]) if args.remove_rigid else None
+    out = write_pvd(series, args.pvd, units=args.units, strain=args.strain, overwrite=args.overwrite,
+                    transform=transform)
+    say(f"{out['path']}: {out['steps']} steps (the reference and {out['steps'] - 1} fields)")
+    print(out["path"])
     return 0
 
 
@@ -511,7 +553,7 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
     from ..views.corrected_image import write_corrected
 
     if args.vtk:
-        info = export.write_vtk(res, work["vtk"], units=args.units, strain=args.strain)
+        info = export.write_vtk_file(res, work["vtk"], units=args.units, strain=args.strain)
         say(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra ({info['strain']} strain), "
             f"coordinates in {info['unit']}"
              + ("; run facts in its field data" if str(args.vtk).lower().endswith(".vtu") else ""))

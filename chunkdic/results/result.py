@@ -189,6 +189,21 @@ class Result:
         self.check_displacement()
         return strain_summary(self, exclude_outer=exclude_outer, measure=measure or DEFAULT_MEASURE)
 
+    def stats(self, **region):
+        """Mean, std and confidence interval of the mean of U and the strain over a region, or a
+        profile along a line: :func:`chunkdic.analysis.stats.stats` of this result (``box=``,
+        ``slab=``, ``mask=``/``label=``, ``line=``/``step=``, ``measure=``, ``remove_rigid=``,
+        ``truth=``, ``confidence=``; regions in level-0 voxels).
+
+        Examples
+        --------
+        >>> s = chunkdic.open_result("result.zarr").stats(box="8:40,8:40,8:40")  # doctest: +SKIP
+        >>> s.row("E_zz").low, s.row("E_zz").high  # doctest: +SKIP
+        """
+        from ..analysis.stats import stats  # lazy: the one import of analysis by results (as to_vtk's)
+
+        return stats(self, **region)
+
     def to_vtk(self, path, *, units: str = "voxels", strain: str | None = None, overwrite: bool = False) -> dict:
         """Write the mesh, nodal displacement and element strains as VTK (ParaView): :func:`chunkdic.write_vtk`.
 
