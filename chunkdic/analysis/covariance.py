@@ -158,7 +158,7 @@ class NodalCovariance:
     solver: StencilSolver
     sigma: np.ndarray
     model: np.ndarray
-    _local: np.ndarray | None = None
+    _local: tuple | None = None
 
     @property
     def scale(self) -> np.ndarray:
@@ -213,50 +213,58 @@ class NodalCovariance:
         """``wᵀ C w`` of one weight field (3, nz, ny, nx), voxels²."""
         return float(self.covariance([w])[0, 0])
 
-    def local_correlation(self) -> np.ndarray:
-        """Correlation of the node nearest the mesh's centre with its 26 neighbours.
+    def local_correlation(self, radius: int = 1) -> np.ndarray:
+        """Correlation of the node nearest the mesh's centre with the nodes around it.
+
+        Parameters
+        ----------
+        radius : int
+            Node offsets ``-radius … radius`` per axis.
 
         Returns
         -------
-        ndarray, shape (3, 3, 3, 3, 3), float64
-            ``ρ[oz+1, oy+1, ox+1, i, j]`` between component ``i`` of node ``c + o`` and
-            component ``j`` of node ``c`` (six CG solves, once).
+        ndarray, shape (2r+1, 2r+1, 2r+1, 3, 3), float64
+            ``ρ[oz+r, oy+r, ox+r, i, j]`` between component ``i`` of node ``c + o`` and
+            component ``j`` of node ``c`` (six CG solves, once: a column of ``Ĉ`` per component).
         """
-        if self._local is not None:
-            return self._local
-        shape = self.solver.nodes_shape
-        c = tuple(n // 2 for n in shape)
-        rho = np.zeros((3, 3, 3, 3, 3))
-        for j in range(3):
-            e = np.zeros(tuple(shape) + (3,))
-            e[c + (j,)] = 1.0
-            y, _ = self.solver.solve(e)
-            col, _ = self.solver.solve(np.ascontiguousarray(stencil_matvec(self.solver.matrix, y)))
-            for o in np.ndindex(3, 3, 3):
-                node = tuple(ci + oi - 1 for ci, oi in zip(c, o))
-                if not all(0 <= a < n for a, n in zip(node, shape)):
-                    continue
-                for i in range(3):
-                    denom = self.model[(i,) + node] * self.model[(j,) + c]
-                    rho[o + (i, j)] = col[node + (i,)] / denom if denom > 0 else 0.0
-        self._local = rho
+        if self._local is None:
+            shape = self.solver.nodes_shape
+            c = tuple(n // 2 for n in shape)
+            columns = []
+            for j in range(3):
+                e = np.zeros(tuple(shape) + (3,))
+                e[c + (j,)] = 1.0
+                y, _ = self.solver.solve(e)
+                col, _ = self.solver.solve(np.ascontiguousarray(stencil_matvec(self.solver.matrix, y)))
+                columns.append(col)
+            self._local = (c, np.stack(columns, axis=-1), {})  # (nz, ny, nx, 3 i, 3 j), tables by radius
+        c, column = self._local[:2]
+        r = int(radius)
+        cached = self._local[2].get(r)
+        if cached is not None:
+            return cached
+        rho = np.zeros((2 * r + 1,) * 3 + (3, 3))
+        for o in np.ndindex(*(2 * r + 1,) * 3):
+            node = tuple(ci + oi - r for ci, oi in zip(c, o))
+            if not all(0 <= a < n for a, n in zip(node, column.shape[:3])):
+                continue
+            denom = self.model[(slice(None),) + node][:, None] * self.model[(slice(None),) + c][None, :]
+            rho[o] = np.where(denom > 0, column[node] / np.maximum(denom, 1e-300), 0.0)
+        self._local[2][r] = rho
         return rho
 
-    def local_variance(self, w: np.ndarray) -> float:
-        """``wᵀ C w`` for weights ``w`` (3, nz, ny, nx) whose nodes lie at most one node apart,
-        with the central node's correlations (:meth:`local_correlation`) and the per-node σ."""
-        rho = self.local_correlation()
+    def local_variance(self, w: np.ndarray, radius: int = 1) -> float:
+        """``wᵀ C w`` for weights ``w`` (3, nz, ny, nx) whose nodes lie at most ``radius`` nodes
+        apart per axis, with the central node's correlations (:meth:`local_correlation`) and the
+        per-node σ; farther pairs are left out."""
+        rho = self.local_correlation(radius)
         at = np.argwhere(np.any(w != 0, axis=0))
-        total = 0.0
-        for a in at:
-            for b in at:
-                o = b - a
-                if np.any(np.abs(o) > 1):
-                    continue
-                wa = w[(slice(None),) + tuple(a)] * self.sigma[(slice(None),) + tuple(a)]
-                wb = w[(slice(None),) + tuple(b)] * self.sigma[(slice(None),) + tuple(b)]
-                total += float(wb @ rho[tuple(o + 1)] @ wa)
-        return total
+        v = (w * self.sigma)[(slice(None),) + tuple(at.T)].T  # (k, 3): weight times σ per node
+        offset = at[None, :, :] - at[:, None, :]  # b - a, (k, k, 3)
+        near = np.all(np.abs(offset) <= radius, axis=-1)
+        ia, ib = np.nonzero(near)
+        table = rho[tuple((offset[ia, ib] + radius).T)]  # (pairs, 3 i, 3 j)
+        return float(np.einsum("pi,pij,pj->", v[ib], table, v[ia]))
 
 
 def _regularizer(result) -> Regularizer | None:

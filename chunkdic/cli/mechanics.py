@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 
+from ..errors import InputError
 from .common import add_figure_options, say
 
 
@@ -63,6 +64,25 @@ def register(subparsers) -> None:
     _output_format(p)
     p.set_defaults(func=run_gauge)
 
+    p = subparsers.add_parser(
+        "crack", help="find displacement discontinuities: each crack's surface, opening and sliding",
+        description="Elements whose displacement gradient holds a significant, localised jump (the solve's "
+                    "covariance gives its noise), one element across, grouped into cracks; the residual per element "
+                    "(from the scans) says whether the jump leaves a misfit a smooth strain would not. Prints each "
+                    "crack's mean opening and sliding with their uncertainty; -o DIR writes cracks.vtu (the surface, "
+                    "ParaView), cracks-labels.zarr (napari labels), cracks.csv and cracks.json (docs/cracks.md).")
+    p.add_argument("result", metavar="RESULT.zarr")
+    p.add_argument("-o", "--output", metavar="DIR", help="write the surfaces, labels and tables there")
+    p.add_argument("--ref", help="reference scan for the residual (default: the path recorded in the result)")
+    p.add_argument("--deformed", help="deformed scan for the residual (default: the path recorded in the result)")
+    p.add_argument("--no-residual", action="store_true", help="leave out the residual (the scans are not read)")
+    p.add_argument("--units", choices=("voxels", "physical"), default="voxels",
+                   help="coordinates of cracks.vtu: voxels of the result's level or the scan's unit")
+    p.add_argument("--scheduler", default=None, help="where the residual is computed: threads (default), local[:N], …")
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier crack -o DIR")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(func=run_crack)
+
 
 def _print(obj, args) -> None:
     if args.json:
@@ -114,3 +134,43 @@ def run_gauge(args: argparse.Namespace) -> int:
     _print(curve, args)
     return 0
 
+
+
+def run_crack(args: argparse.Namespace) -> int:
+    from ..analysis.cracks import find_cracks
+    from ..io.outputs import Outputs
+    from ..results import scans as resultscans
+    from ..results.result import open_result
+    from ..scheduler import check_scheduler
+
+    res = open_result(args.result)
+    res.check_displacement()
+    if args.units == "physical" and res.voxel_size is None:
+        raise InputError("this result has no voxel size: write the surfaces in voxels, or give the scans a voxel size")
+    residual = None
+    if not args.no_residual:
+        check_scheduler(args.scheduler)
+        try:
+            resultscans.input_scans(res, args.ref, args.deformed)
+        except InputError as exc:
+            if args.ref or args.deformed:
+                raise
+            say(f"the residual is left out: {exc}")
+            args.no_residual = True
+    plan = None
+    if args.output:
+        plan = Outputs(inputs=resultscans.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
+        out = plan.add(args.output, "cracks").final
+    if not args.no_residual:
+        from ..analysis.residuals import element_residuals
+
+        residual = element_residuals(res, ref=args.ref, deformed=args.deformed, scheduler=args.scheduler)
+    cmap = find_cracks(res, residual=residual)
+    if plan is not None:
+        from ..views.crack_export import write_crack_files
+
+        with plan:
+            written = write_crack_files(res, cmap, out, units=args.units)
+        say(f"wrote {', '.join(written['files'].values())} ({written['polygons']} surface pieces)")
+    print(json.dumps(cmap.as_dict(), indent=2) if args.json else cmap.text(args.result))
+    return 0
