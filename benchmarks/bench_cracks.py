@@ -139,7 +139,8 @@ def main() -> None:
         commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
         Path(args.record).write_text(json.dumps({"commit": commit, "machine": platform.node(),
                                                  "command": "python benchmarks/bench_cracks.py " + " ".join(
-                                                     f"--{k} {v}" for k, v in vars(args).items() if k != "record"),
+                                                     f"--{k} {' '.join(map(str, v)) if isinstance(v, list) else v}"
+                                                     for k, v in vars(args).items() if k != "record"),
                                                  "rows": rows}, indent=2) + "\n")
 
 

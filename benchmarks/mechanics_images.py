@@ -78,21 +78,21 @@ def cracks_figure(work: Path, out: Path) -> None:
     cmap = find_cracks(res, residual=element_residuals(res))
     print(cmap.text("crack"))
     ez, ey, ex = (a for a in res.mesh.element_axes())
-    fig = figure(9.0, 3.6)
+    fig = figure(11.5, 3.8)
     ax1, ax2, ax3 = (fig.add_subplot(1, 3, k) for k in (1, 2, 3))
     mid = cmap.jump.shape[2] // 2
     im = ax1.imshow(cmap.jump[:, :, mid], origin="lower", extent=(ey[0] - 4, ey[-1] + 4, ez[0] - 4, ez[-1] + 4))
-    fig.colorbar(im, ax=ax1, shrink=0.8, label="element jump ℓ·σ₁(ΔH) (voxel)")
+    fig.colorbar(im, ax=ax1, shrink=0.8, label="jump ℓ σ₁(ΔH) (voxel)")
     ax1.axhline(30.3, color="w", ls="--", lw=0.8)
-    ax1.set_title("jump per element, x mid-plane\n(dashed: the true crack plane)", fontsize=9)
+    ax1.set_title("jump per element (x mid-plane;\ndashed: the true plane)", fontsize=9)
     ax1.set_xlabel("y (voxel)")
     ax1.set_ylabel("z (voxel)")
     ratio = np.where(np.isfinite(cmap.residual_ratio), cmap.residual_ratio, np.nan)
     im = ax2.imshow(ratio[:, :, mid], origin="lower", extent=(ey[0] - 4, ey[-1] + 4, ez[0] - 4, ez[-1] + 4),
                     cmap="magma")
-    fig.colorbar(im, ax=ax2, shrink=0.8, label="RMS residual / median element's")
+    fig.colorbar(im, ax=ax2, shrink=0.8, label="RMS residual / median")
     ax2.axhline(30.3, color="w", ls="--", lw=0.8)
-    ax2.set_title("residual per element", fontsize=9)
+    ax2.set_title("residual per element (x mid-plane)", fontsize=9)
     ax2.set_xlabel("y (voxel)")
     layer = np.where(cmap.labels > 0, cmap.opening, np.nan)
     top = np.nanmax(layer, axis=0)
@@ -109,11 +109,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workdir", default="/tmp/chunkdic-mech-images")
     ap.add_argument("--out", default="docs/images")
+    ap.add_argument("--only", nargs="+", choices=("profile", "gauge", "cracks"), help="these figures only")
     args = ap.parse_args()
     work, out = Path(args.workdir), Path(args.out)
     work.mkdir(parents=True, exist_ok=True)
-    for make in (profile_figure, gauge_figure, cracks_figure):
-        make(work, out)
+    chosen = {"profile": profile_figure, "gauge": gauge_figure, "cracks": cracks_figure}
+    for name in args.only or chosen:
+        chosen[name](work, out)
 
 
 if __name__ == "__main__":
