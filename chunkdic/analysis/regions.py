@@ -163,7 +163,7 @@ def _mask_task(ref: ArrayRef, region, ell0: int, label) -> np.ndarray:
     return hit.reshape(n[0], ell0, n[1], ell0, n[2], ell0).sum(axis=(1, 3, 5), dtype=np.int64)
 
 
-def mask_region(result, mask, *, label: int | None = None, scheduler=None, scratch=None) -> Region:
+def mask_region(result, mask, *, label: int | None = None, scheduler=None) -> Region:
     """The elements of which at least :data:`MASK_FRACTION` of the voxels carry ``label`` in ``mask``.
 
     Parameters
@@ -175,19 +175,19 @@ def mask_region(result, mask, *, label: int | None = None, scheduler=None, scrat
     label : int, optional
         The label to select (default: every non-zero voxel).
     scheduler
-        Where the tasks run (:func:`chunkdic.scheduler.open_runner`).
-    scratch : path, optional
-        Where a mask not stored as Zarr is copied for the tasks (default: the system's
-        temporary directory; removed afterwards).
+        Where the tasks run (:func:`chunkdic.scheduler.open_runner`). A mask not stored as Zarr
+        is copied for them into a scratch directory (``chunkdic.scratch-directory``), removed
+        afterwards.
 
     Raises
     ------
     InputError
         The mask's shape is not the reference's, or no element carries the label.
     """
-    import tempfile
+    import shutil
 
     from ..io.formats.anyscan import open_any
+    from ..io.ownership import make_scratch
 
     scan = open_any(mask)
     expected = (result.info.get("input_shapes") or {}).get("reference")
@@ -199,13 +199,16 @@ def mask_region(result, mask, *, label: int | None = None, scheduler=None, scrat
     if any(b > n for (_, b), n in zip(roi0, shape)):
         raise InputError(f"mask {mask}: shape {shape} does not hold the result's ROI {_roi_text(result)}")
     text = f"mask {mask}" + (f" label {label}" if label is not None else "")
-    with tempfile.TemporaryDirectory(dir=scratch) as tmp:
+    tmp = make_scratch("chunkdic-region-")
+    try:
         ref = scan.refs([0], tmp)[0]
         rows = [((z, z + ell0), roi0[1], roi0[2]) for z in range(roi0[0][0], roi0[0][1], ell0)]
         counts = np.zeros(tuple((b - a) // ell0 for a, b in roi0), np.int64)
         with open_runner(scheduler) as runner:
             for z, c in runner.map_unordered(_mask_row, [(ref, r, ell0, label) for r in rows]):
                 counts[(z - roi0[0][0]) // ell0] = c[0]
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     elements = counts >= MASK_FRACTION * ell0**3
     if not elements.any():
         raise InputError(f"{text}: no element of the mesh has at least half its voxels "

@@ -8,9 +8,28 @@ from __future__ import annotations
 
 import argparse
 import json
+import time
 
 from ..errors import InputError
-from .common import add_figure_options, say
+from .common import add_figure_options, add_strain_option, say
+
+
+def add_remove_rigid(p) -> None:
+    """``--remove-rigid``: shown without the least-squares rigid motion of the nodes (reported)."""
+    p.add_argument("--remove-rigid", action="store_true",
+                   help="remove the least-squares rigid motion of the measured nodes first (Kabsch; printed with its "
+                        "uncertainty): the field and small strains shown without it")
+
+
+def add_export_options(p) -> None:
+    """``export --displacements`` (OME-NGFF 0.6) and ``--pvd`` (a series for ParaView)."""
+    p.add_argument("--displacements", metavar="OUT.zarr",
+                   help="the displacement as an OME-NGFF 0.6 displacements transformation from the reference's frame "
+                        "to the deformed scan's (a scene; the field on the C8 nodes, linear interpolation between "
+                        "them is the measured field; physical units when the scan has a voxel size)")
+    p.add_argument("--pvd", metavar="DIR",
+                   help="a loading series (chunkdic series) as a ParaView time series: DIR/series.pvd and one .vtu "
+                        "per step, every step's field from the reference")
 
 
 def _output_format(p) -> None:
@@ -21,7 +40,6 @@ def _output_format(p) -> None:
 
 def register(subparsers) -> None:
     """Add ``stats``, ``gauge`` and ``crack`` to ``subparsers``."""
-    from .report import add_remove_rigid, add_strain_option
 
     p = subparsers.add_parser(
         "stats", help="mean, std and 95 %% interval of the mean of U and the strain over a region, or a profile",
@@ -174,3 +192,85 @@ def run_crack(args: argparse.Namespace) -> int:
         say(f"wrote {', '.join(written['files'].values())} ({written['polygons']} surface pieces)")
     print(json.dumps(cmap.as_dict(), indent=2) if args.json else cmap.text(args.result))
     return 0
+
+
+def without_rigid(res, remove: bool):
+    """``(result shown, rigid motion or None)``: the result without its least-squares rigid
+    motion when ``remove`` (``--remove-rigid``)."""
+    if not remove:
+        return res, None
+    from ..analysis.rigid import fit_rigid, remove_rigid
+
+    motion = fit_rigid(res)
+    return remove_rigid(res, motion), motion
+
+
+def run_repeat(args: argparse.Namespace, progress) -> int:
+    """``uncertainty SCAN --repeat SCAN2 …``: the noise floors of repeated scans (``progress``: the
+    correlations' events, as ``uncertainty`` prints them)."""
+    from ..analysis.repeats import repeat_noise
+
+    def events(event: dict) -> None:
+        if event.get("stage") != "repeat":
+            progress(event)
+            return
+        say(f"ell {event['element_size']}: spatial noise floor {event['spatial']:.4f}, temporal {event['temporal']:.4f} "
+            f"voxel ({event['fields']} field(s)), bias {event['bias']:.4f}, u_rms {event['u_rms']:.4f}")
+
+    t0 = time.perf_counter()
+    rep = repeat_noise([args.scan, *args.repeat], args.element_sizes, args.output, roi=args.roi, level=args.level,
+                       interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
+                       progress=events)
+    print(rep.markdown())
+    say(f"wrote {rep.files['csv']}, {rep.files['markdown']} ({time.perf_counter() - t0:.1f} s)")
+    return 0 if all(set(r["status"].split(",")) == {"converged"} for r in rep.rows) else 1
+
+
+def profile_figure(args: argparse.Namespace):
+    """The maker of ``report --profile``'s figure: every result's profile along the line, checked
+    now (a line outside a result's ROI is refused before any figure is written)."""
+    from ..analysis.regions import line_region, parse_line
+    from ..analysis.stats import profile
+    from ..results.result import open_result
+    from ..views.mechplots import plot_profile
+
+    ends = parse_line(args.profile)
+    results = [open_result(r) for r in args.results]
+    regions = [line_region(r, *ends) for r in results]
+    labels = args.labels or [str(r) for r in args.results]
+
+    def make(path, dpi):
+        profiles = [profile(r, g, measure=args.strain, remove_rigid=args.remove_rigid).as_dict()
+                    for r, g in zip(results, regions)]
+        return plot_profile(profiles, path, labels=labels if len(results) > 1 else None, dpi=dpi)
+
+    return make
+
+
+def export_series(args: argparse.Namespace) -> int:
+    """``export SERIES --pvd DIR``: the ParaView time series of a loading series."""
+    from ..analysis.loadseries import open_series
+    from ..views.pvd import write_pvd
+
+    others = [f"--{n}" for n in ("vtk", "csv", "corrected", "fields", "displacements") if getattr(args, n)]
+    if others or not args.pvd:
+        raise InputError("a loading series exports as a ParaView time series: give --pvd DIR"
+                         + (f", not {', '.join(others)} (export one step's result for those)" if others else ""))
+    series = open_series(args.result)
+    if not series.cumulative:
+        raise InputError(f"series {args.result} has no step: nothing to export")
+    transform = (lambda res: without_rigid(res, True)[0]) if args.remove_rigid else None
+    out = write_pvd(series, args.pvd, units=args.units, strain=args.strain, overwrite=args.overwrite,
+                    transform=transform)
+    say(f"{out['path']}: {out['steps']} steps (the reference and {out['steps'] - 1} fields)")
+    print(out["path"])
+    return 0
+
+
+def export_displacements(res, path, work, units) -> None:
+    """``export --displacements``: the OME-NGFF 0.6 field into the staged path ``work``."""
+    from ..views.ngff_displacements import write_displacements_store
+
+    out = write_displacements_store(res, work, units=units)
+    say(f"{path}: OME-NGFF {out['levels'][0][1:]} nodes, {len(out['levels'])} levels, in "
+        f"{out['unit'] or 'level-0 voxels'}")

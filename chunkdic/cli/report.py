@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .common import Progress, add_figure_options, say
+from .common import Progress, add_figure_options, add_strain_option, say
+from .mechanics import (add_export_options, add_remove_rigid, export_displacements, export_series, profile_figure,
+                        run_repeat, without_rigid)
 
 
 def _sizes_arg(p) -> None:
@@ -134,13 +136,7 @@ def register(subparsers) -> None:
     p.add_argument("--corrected", metavar="OUT.zarr", help="OME-NGFF image (channels corrected, residual) on the scan's grid at the result's level")
     p.add_argument("--fields", metavar="OUT.zarr",
                    help="OME-NGFF image (channels Uz, Uy, Ux, |U|, eps_zz, eps_eq, residual) on the scan's grid")
-    p.add_argument("--displacements", metavar="OUT.zarr",
-                   help="the displacement as an OME-NGFF 0.6 displacements transformation from the reference's frame "
-                        "to the deformed scan's (a scene; the field on the C8 nodes, linear interpolation between "
-                        "them is the measured field; physical units when the scan has a voxel size)")
-    p.add_argument("--pvd", metavar="DIR",
-                   help="a loading series (chunkdic series) as a ParaView time series: DIR/series.pvd and one .vtu "
-                        "per step, every step's field from the reference")
+    add_export_options(p)
     p.add_argument("--fields-level", metavar="S", type=_level, default=0,
                    help="write --fields on the scan's level-S grid (2^S voxels per axis; 8^-S of the size): "
                         "0 (default) the full grid; 2 puts a 2048^3 scan's fields on 512^3. The residual channel "
@@ -210,10 +206,6 @@ def _progress(event: dict) -> None:
     if stage == "a-priori":
         say("== a-priori uncertainty (Fourier-shifted reference) ==")
         return
-    if stage == "repeat":
-        say(f"ell {event['element_size']}: spatial noise floor {event['spatial']:.4f}, temporal {event['temporal']:.4f} "
-            f"voxel ({event['fields']} field(s)), bias {event['bias']:.4f}, u_rms {event['u_rms']:.4f}")
-        return
     if stage == "uncertainty":
         say(f"ell {event['element_size']}: bias ({event['bias_z']:+.4f}, {event['bias_y']:+.4f}, "
              f"{event['bias_x']:+.4f}) std ({event['std_z']:.4f}, {event['std_y']:.4f}, {event['std_x']:.4f}) voxel, "
@@ -230,22 +222,6 @@ def _fmt_tensor(t) -> str:
 
 
 _MEASURE_NAMES = {"small": "small", "green-lagrange": "Green-Lagrange"}
-
-
-def add_remove_rigid(p) -> None:
-    """``--remove-rigid``: shown without the least-squares rigid motion of the nodes (reported)."""
-    p.add_argument("--remove-rigid", action="store_true",
-                   help="remove the least-squares rigid motion of the measured nodes first (Kabsch; printed with its "
-                        "uncertainty): the field and small strains shown without it")
-
-
-def add_strain_option(p) -> None:
-    """``--strain {small,green-lagrange}`` (default Green-Lagrange: a rigid rotation gives no strain)."""
-    from ..results.strain import DEFAULT_MEASURE, MEASURES
-
-    p.add_argument("--strain", dest="strain", choices=MEASURES, default=DEFAULT_MEASURE,
-                   help="strain measure: green-lagrange (default; zero for a rigid rotation) or small "
-                        "(the paper's; a rotation of t degrees shows as a strain of about -t^2/2 rad)")
 
 
 def rotation_warning(summary) -> str | None:
@@ -341,22 +317,11 @@ def run_strain(args: argparse.Namespace) -> int:
     return 0
 
 
-def without_rigid(res, remove: bool):
-    """``(result shown, rigid motion or None)``: the result without its least-squares rigid
-    motion when ``remove`` (``--remove-rigid``)."""
-    if not remove:
-        return res, None
-    from ..analysis.rigid import fit_rigid, remove_rigid
-
-    motion = fit_rigid(res)
-    return remove_rigid(res, motion), motion
-
-
 def run_uncertainty(args: argparse.Namespace) -> int:
     from ..analysis.metrology import uncertainty
 
     if args.repeat:
-        return _run_repeat(args)
+        return run_repeat(args, _progress)
     t0 = time.perf_counter()
     rep = uncertainty(args.scan, args.element_sizes, args.output, shift=_shift(args.shift), roi=args.roi,
                       level=args.level, interpolation=args.interpolation, scheduler=args.scheduler,
@@ -365,19 +330,6 @@ def run_uncertainty(args: argparse.Namespace) -> int:
     say(f"wrote {rep.files['csv']}, {rep.files['markdown']}, {rep.files['plot']} "
          f"({time.perf_counter() - t0:.1f} s)")
     return 0 if all(r["status"] == "converged" for r in rep.rows) else 1
-
-
-def _run_repeat(args: argparse.Namespace) -> int:
-    """``uncertainty SCAN --repeat SCAN2 …``: the noise floors of repeated scans."""
-    from ..analysis.repeats import repeat_noise
-
-    t0 = time.perf_counter()
-    rep = repeat_noise([args.scan, *args.repeat], args.element_sizes, args.output, roi=args.roi, level=args.level,
-                       interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
-                       progress=_progress)
-    print(rep.markdown())
-    say(f"wrote {rep.files['csv']}, {rep.files['markdown']} ({time.perf_counter() - t0:.1f} s)")
-    return 0 if all(set(r["status"].split(",")) == {"converged"} for r in rep.rows) else 1
 
 
 def run_sweep(args: argparse.Namespace) -> int:
@@ -419,7 +371,7 @@ def run_report(args: argparse.Namespace) -> int:
     from ..views.report import report
 
     check_scheduler(args.scheduler)
-    extra = {} if args.profile is None else {"profile": _profile_figure(args)}
+    extra = {} if args.profile is None else {"profile": profile_figure(args)}
     shown = (lambda res: without_rigid(res, True)[0]) if args.remove_rigid else None
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
                    interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
@@ -428,27 +380,6 @@ def run_report(args: argparse.Namespace) -> int:
     for p in paths.values():
         print(p)
     return 0
-
-
-def _profile_figure(args: argparse.Namespace):
-    """The maker of ``report --profile``'s figure: every result's profile along the line, checked
-    now (a line outside a result's ROI is refused before any figure is written)."""
-    from ..analysis.regions import line_region, parse_line
-    from ..analysis.stats import profile
-    from ..results.result import open_result
-    from ..views.mechplots import plot_profile
-
-    ends = parse_line(args.profile)
-    results = [open_result(r) for r in args.results]
-    regions = [line_region(r, *ends) for r in results]
-    labels = args.labels or [str(r) for r in args.results]
-
-    def make(path, dpi):
-        profiles = [profile(r, g, measure=args.strain, remove_rigid=args.remove_rigid).as_dict()
-                    for r, g in zip(results, regions)]
-        return plot_profile(profiles, path, labels=labels if len(results) > 1 else None, dpi=dpi)
-
-    return make
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -462,7 +393,7 @@ def run_export(args: argparse.Namespace) -> int:
 
     units, args.units = args.units, args.units or "voxels"  # --displacements: physical when it can
     if kind_of(Path(args.result))[0] == "series":
-        return _export_series(args)
+        return export_series(args)
     if args.pvd:
         raise InputError("--pvd writes a loading series (chunkdic series): give the series store")
     if not (args.vtk or args.csv or args.corrected or args.fields or args.displacements):
@@ -497,34 +428,10 @@ def run_export(args: argparse.Namespace) -> int:
             say(line)
         _export(res, args, {k: e.work for k, e in entries.items()})
         if args.displacements:
-            from ..views.ngff_displacements import write_displacements_store
-
-            out = write_displacements_store(res, entries["displacements"].work, units=units)
-            say(f"{args.displacements}: OME-NGFF {out['levels'][0][1:]} nodes, {len(out['levels'])} levels, in "
-                f"{out['unit'] or 'level-0 voxels'}")
+            export_displacements(res, args.displacements, entries["displacements"].work, units)
     for name in ("vtk", "csv", "corrected", "fields", "displacements"):
         if name in entries:
             print(getattr(args, name))
-    return 0
-
-
-def _export_series(args: argparse.Namespace) -> int:
-    """``export SERIES --pvd DIR``: the ParaView time series of a loading series."""
-    from ..analysis.loadseries import open_series
-    from ..views.pvd import write_pvd
-
-    others = [f"--{n}" for n in ("vtk", "csv", "corrected", "fields", "displacements") if getattr(args, n)]
-    if others or not args.pvd:
-        raise InputError(f"a loading series exports as a ParaView time series: give --pvd DIR"
-                         + (f", not {', '.join(others)} (export one step's result for those)" if others else ""))
-    series = open_series(args.result)
-    if not series.cumulative:
-        raise InputError(f"series {args.result} has no step: nothing to export")
-    transform = (lambda res: without_rigid(res, True)[0]) if args.remove_rigid else None
-    out = write_pvd(series, args.pvd, units=args.units, strain=args.strain, overwrite=args.overwrite,
-                    transform=transform)
-    say(f"{out['path']}: {out['steps']} steps (the reference and {out['steps'] - 1} fields)")
-    print(out["path"])
     return 0
 
 
