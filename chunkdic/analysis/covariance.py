@@ -41,7 +41,8 @@ from ..solve.cg import PoorTextureWarning, StencilSolver
 from ..solve.regularization import Regularizer, plane_wave_weight, robust_freed
 from ..solve.stencil import stencil_matvec
 
-__all__ = ["NodalCovariance", "mass_stencil", "measured_elements", "gradient_adjoint", "point_weights"]
+__all__ = ["NodalCovariance", "mass_stencil", "measured_elements", "gradient_adjoint", "element_gradient_weights",
+           "point_stencil", "point_weights"]
 
 #: relative residual of the CG solves (the variances need a few digits)
 RTOL = 1e-8
@@ -122,18 +123,43 @@ def gradient_adjoint(G: np.ndarray, ell: float) -> np.ndarray:
     return w
 
 
-def point_weights(mesh, point) -> np.ndarray:
-    """Nodal weights of the C8 field at one point (trilinear), shape (nz, ny, nx), float64.
+def point_stencil(mesh, point) -> tuple[np.ndarray, np.ndarray]:
+    """The 8 nodes of the C8 field at one point and their trilinear weights.
 
     ``point``: position ``(z, y, x)`` in voxels of the mesh's level (outside the mesh: the
     linear extension of the nearest element, as :meth:`chunkdic.mesh.Mesh.evaluate`).
+
+    Returns
+    -------
+    nodes : ndarray, shape (8, 3), int64
+        Node indices.
+    weights : ndarray, shape (8,), float64
+        Summing to 1.
     """
-    w = np.zeros(mesh.nodes_shape)
     idx, frac = zip(*(mesh.element_index(a, np.asarray(float(point[a]))) for a in range(3)))
-    for dz, dy, dx in LOCAL_NODES:
-        f = [(fr if d else 1.0 - fr) for fr, d in zip(frac, (dz, dy, dx))]
-        w[int(idx[0]) + dz, int(idx[1]) + dy, int(idx[2]) + dx] += float(f[0] * f[1] * f[2])
+    first = np.array([int(i) for i in idx])
+    f = np.array([float(v) for v in frac])
+    weights = np.prod(np.where(LOCAL_NODES == 1, f, 1.0 - f), axis=1)
+    return first + LOCAL_NODES, weights
+
+
+def point_weights(mesh, point) -> np.ndarray:
+    """Nodal weights of the C8 field at one point (:func:`point_stencil`) on the whole mesh,
+    shape (nz, ny, nx), float64."""
+    w = np.zeros(mesh.nodes_shape)
+    nodes, weights = point_stencil(mesh, point)
+    np.add.at(w, tuple(nodes.T), weights)
     return w
+
+
+def element_gradient_weights(G: np.ndarray, ell: float) -> np.ndarray:
+    """Weights (8, 3) on one element's nodes (``LOCAL_NODES`` order) of ``G : H`` of that element.
+
+    The one-element case of :func:`gradient_adjoint`: node ``d`` weighs
+    ``Σ_j G[i, j] (±1)_j / (4 ell)`` on component ``i``, ``+`` where ``d_j = 1``.
+    """
+    sign = np.where(LOCAL_NODES == 1, 1.0, -1.0) / (4.0 * float(ell))  # (8, j)
+    return sign @ np.asarray(G, np.float64).T
 
 
 @dataclass
@@ -255,12 +281,19 @@ class NodalCovariance:
 
     def local_variance(self, w: np.ndarray, radius: int = 1) -> float:
         """``wᵀ C w`` for weights ``w`` (3, nz, ny, nx) whose nodes lie at most ``radius`` nodes
-        apart per axis, with the central node's correlations (:meth:`local_correlation`) and the
-        per-node σ; farther pairs are left out."""
-        rho = self.local_correlation(radius)
+        apart per axis (:meth:`local_variance_at` of its non-zero nodes)."""
         at = np.argwhere(np.any(w != 0, axis=0))
-        v = (w * self.sigma)[(slice(None),) + tuple(at.T)].T  # (k, 3): weight times σ per node
-        offset = at[None, :, :] - at[:, None, :]  # b - a, (k, k, 3)
+        return self.local_variance_at(at, w[(slice(None),) + tuple(at.T)].T, radius)
+
+    def local_variance_at(self, nodes: np.ndarray, w: np.ndarray, radius: int = 1) -> float:
+        """``wᵀ C w`` of weights ``w`` (k, 3) on the nodes ``nodes`` (k, 3; repeats add up) lying
+        at most ``radius`` nodes apart per axis, with the central node's correlations
+        (:meth:`local_correlation`) and the per-node σ; farther pairs are left out. No work of
+        the mesh's size: what a profile point, an element strain or a crack's jump needs."""
+        rho = self.local_correlation(radius)
+        nodes = np.asarray(nodes, np.int64).reshape(-1, 3)
+        v = np.asarray(w, np.float64).reshape(-1, 3) * self.sigma[(slice(None),) + tuple(nodes.T)].T
+        offset = nodes[None, :, :] - nodes[:, None, :]  # b - a, (k, k, 3)
         near = np.all(np.abs(offset) <= radius, axis=-1)
         ia, ib = np.nonzero(near)
         table = rho[tuple((offset[ia, ib] + radius).T)]  # (pairs, 3 i, 3 j)

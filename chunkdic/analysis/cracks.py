@@ -39,8 +39,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
+from ..mesh import LOCAL_NODES
 from ..results.strain import displacement_gradient
-from .covariance import NodalCovariance, gradient_adjoint, point_weights
+from .covariance import NodalCovariance, element_gradient_weights, point_stencil
 
 __all__ = ["Crack", "CrackMap", "find_cracks", "MIN_Z", "LOCALISED", "MIN_ELEMENTS", "BACKGROUND"]
 
@@ -138,13 +139,12 @@ def _element_centres(result) -> np.ndarray:
     return np.stack(np.meshgrid(*result.mesh.element_axes(), indexing="ij"))
 
 
-def _jump_sigma(cov: NodalCovariance | None, shape, ell: float, e, a, n) -> float:
+def _jump_sigma(cov: NodalCovariance | None, ell: float, e, a, n) -> float:
     """σ of ``ℓ aᵀ H_e n`` (the jump of element ``e`` along its singular directions)."""
     if cov is None:
         return math.nan
-    G = np.zeros((3, 3) + tuple(shape))
-    G[(slice(None), slice(None)) + e] = ell * np.outer(a, n)
-    return math.sqrt(max(cov.local_variance(gradient_adjoint(G, ell)), 0.0))
+    w = element_gradient_weights(ell * np.outer(a, n), ell)
+    return math.sqrt(max(cov.local_variance_at(np.asarray(e) + LOCAL_NODES, w), 0.0))
 
 
 def _candidates(result, cov, ell: float):
@@ -160,7 +160,7 @@ def _candidates(result, cov, ell: float):
     z = np.zeros_like(jump)
     for e in np.argwhere(jump >= LOCALISED * local):  # σ only where it can matter
         e = tuple(int(v) for v in e)
-        sigma = _jump_sigma(cov, jump.shape, ell, e, a[(slice(None),) + e], n[(slice(None),) + e])
+        sigma = _jump_sigma(cov, ell, e, a[(slice(None),) + e], n[(slice(None),) + e])
         z[e] = jump[e] / sigma if sigma > 0 else (math.inf if cov is None else 0.0)
     keep = (z >= MIN_Z) & (jump >= LOCALISED * local)
     return jump, z, keep, a, n, Hbg
@@ -228,17 +228,13 @@ def _renumber(labels: np.ndarray) -> np.ndarray:
     return out
 
 
-def _jump_weights(result, c, n, L, Hbg_e) -> tuple[np.ndarray, np.ndarray]:
-    """``δ`` across one element and its nodal weights per component (3, 3, nz, ny, nx)."""
+def _jump(result, c, n, L, Hbg_e) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``δ`` across one element, and the nodes (16, 3) and signs (16,) of its two points' weights."""
     mesh = result.mesh
     pa, pb = c - L * n, c + L * n
     ua, ub = (mesh.evaluate(result.displacement, p.reshape(3, 1))[:, 0] for p in (pa, pb))
-    delta = ub - ua - Hbg_e @ (2 * L * n)
-    wp = point_weights(mesh, pb) - point_weights(mesh, pa)
-    W = np.zeros((3, 3) + mesh.nodes_shape)
-    for k in range(3):
-        W[k, k] = wp
-    return delta, W
+    (na, wa), (nb, wb) = point_stencil(mesh, pa), point_stencil(mesh, pb)
+    return ub - ua - Hbg_e @ (2 * L * n), np.concatenate([nb, na]), np.concatenate([wb, -wa])
 
 
 def _measure(result, cmap: CrackMap, Hbg: np.ndarray, cov) -> None:
@@ -248,36 +244,30 @@ def _measure(result, cmap: CrackMap, Hbg: np.ndarray, cov) -> None:
     for label in range(1, int(cmap.labels.max()) + 1):
         at = [tuple(int(v) for v in e) for e in np.argwhere(cmap.labels == label)]
         normals = np.stack([cmap.normal[(slice(None),) + e] for e in at])
-        mean_n = normals[0] * 0
-        for v in normals:  # orient the normals alike before averaging them
-            mean_n += v if v @ normals[0] >= 0 else -v
+        mean_n = np.sum([v if v @ normals[0] >= 0 else -v for v in normals], axis=0)  # normals oriented alike
         mean_n /= np.linalg.norm(mean_n)
         w_open = np.zeros((3,) + result.mesh.nodes_shape)
         w_slide = np.zeros_like(w_open)
-        deltas = []
         for e in at:
             nv = cmap.normal[(slice(None),) + e]
             nv = nv if nv @ mean_n >= 0 else -nv
+            cmap.normal[(slice(None),) + e] = nv
             L = ell * (1 + np.abs(nv).sum()) / 2
             # δ · n does not depend on the normal's sense (both flip): > 0 opens, < 0 interpenetrates
-            delta, W = _jump_weights(result, centres[(slice(None),) + e], nv, L, Hbg[(slice(None), slice(None)) + e])
-            cmap.normal[(slice(None),) + e] = nv
+            delta, nodes, signs = _jump(result, centres[(slice(None),) + e], nv, L, Hbg[(slice(None), slice(None)) + e])
             t = delta - (delta @ nv) * nv
             t_hat = t / np.linalg.norm(t) if np.linalg.norm(t) > 0 else np.zeros(3)
-            wo = np.einsum("k,kc...->c...", nv, W)
-            ws = np.einsum("k,kc...->c...", t_hat, W)
             cmap.opening[e], cmap.sliding[e] = float(delta @ nv), float(np.linalg.norm(t))
-            if cov is not None:
-                cmap.sigma_opening[e] = math.sqrt(max(cov.local_variance(wo, JUMP_RADIUS), 0.0))
-                cmap.sigma_sliding[e] = math.sqrt(max(cov.local_variance(ws, JUMP_RADIUS), 0.0))
-            w_open += wo / len(at)
-            w_slide += ws / len(at)
-            deltas.append(delta)
+            for target, direction, sig in ((w_open, nv, cmap.sigma_opening), (w_slide, t_hat, cmap.sigma_sliding)):
+                w = signs[:, None] * direction[None, :]
+                np.add.at(target, (slice(None),) + tuple(nodes.T), w.T / len(at))
+                if cov is not None:
+                    sig[e] = math.sqrt(max(cov.local_variance_at(nodes, w, JUMP_RADIUS), 0.0))
         sig = [math.nan, math.nan] if cov is None else [math.sqrt(max(v, 0.0)) for v in
                                                          np.diag(cov.covariance([w_open, w_slide]))]
         sel = cmap.labels == label
+        ratio = cmap.residual_ratio[sel]
         cmap.cracks.append(Crack(
             label, len(at), centres[:, sel].mean(axis=1).tolist(), mean_n.tolist(),
-            float(np.nanmean(cmap.opening[sel])), sig[0], float(np.nanmean(cmap.sliding[sel])), sig[1],
-            float(cmap.jump[sel].mean()), float(np.nanmean(cmap.residual_ratio[sel])) if np.isfinite(
-                cmap.residual_ratio[sel]).any() else math.nan))
+            float(np.mean(cmap.opening[sel])), sig[0], float(np.mean(cmap.sliding[sel])), sig[1],
+            float(cmap.jump[sel].mean()), float(np.nanmean(ratio)) if np.isfinite(ratio).any() else math.nan))

@@ -33,9 +33,10 @@ from statistics import NormalDist
 import numpy as np
 
 from ..errors import InputError
-from ..mesh import Mesh, level0_position
+from ..mesh import LOCAL_NODES, Mesh, level0_position
+from ..results.result import FLAG_MASKED, FLAG_NO_DATA
 from ..results.strain import DEFAULT_MEASURE, check_measure, displacement_gradient, element_strain
-from .covariance import NodalCovariance, gradient_adjoint, point_weights
+from .covariance import NodalCovariance, element_gradient_weights, gradient_adjoint, point_stencil
 from .regions import Region, region_of
 
 __all__ = ["Row", "RegionStats", "Profile", "region_stats", "profile", "stats", "strain_names", "read_truth"]
@@ -219,17 +220,25 @@ def _true_nodes(result, field_) -> np.ndarray:
     return field_.displacement(*X0) / result.scale
 
 
+def strain_coefficients(H: np.ndarray, i: int, j: int, measure: str) -> np.ndarray:
+    """``∂E_ij / ∂H`` (3, 3, ...) at the gradients ``H`` (3, 3, ...): the strain linearised.
+
+    Small strain: ``(e_i e_jᵀ + e_j e_iᵀ) / 2``; Green–Lagrange adds
+    ``δ(HᵀH)_ij / 2 = (H_ki δH_kj + H_kj δH_ki) / 2``.
+    """
+    Hn = np.nan_to_num(np.asarray(H, np.float64))
+    G = np.zeros_like(Hn)
+    G[i, j] += 0.5
+    G[j, i] += 0.5
+    if measure == "green-lagrange":
+        G[:, j] += 0.5 * Hn[:, i]
+        G[:, i] += 0.5 * Hn[:, j]
+    return G
+
+
 def _strain_weights(H: np.ndarray, use: np.ndarray, i: int, j: int, measure: str, ell: float) -> np.ndarray:
     """Nodal weights of the mean of strain ``(i, j)`` over the elements ``use`` (linearised about ``H``)."""
-    G = np.zeros((3, 3) + use.shape)
-    c = use / max(int(use.sum()), 1)
-    G[i, j] += 0.5 * c
-    G[j, i] += 0.5 * c
-    if measure == "green-lagrange":  # δ(HᵀH)_ij / 2 = (H_ki δH_kj + H_kj δH_ki) / 2
-        Hn = np.nan_to_num(H)
-        for k in range(3):
-            G[k, j] += 0.5 * c * Hn[k, i]
-            G[k, i] += 0.5 * c * Hn[k, j]
+    G = strain_coefficients(H, i, j, measure) * (use / max(int(use.sum()), 1))
     return gradient_adjoint(G, ell)
 
 
@@ -296,8 +305,6 @@ def region_stats(result, region: Region | None = None, *, measure: str = DEFAULT
     unit = f"voxel (level {level})" if level else "voxel"
     nodes = region.nodes & np.isfinite(u).all(axis=0)
     if shown.flags is not None:
-        from ..results.result import FLAG_MASKED, FLAG_NO_DATA
-
         nodes &= (shown.flags & (FLAG_NO_DATA | FLAG_MASKED)) == 0
     ell = float(result.info["element_size"])
     H = displacement_gradient(u, ell)
@@ -384,15 +391,15 @@ def profile(result, region: Region, *, measure: str = DEFAULT_MEASURE, remove_ri
             values[3 + q, k] = E[(i, j) + e]
         if cov is None:
             continue
-        pw = point_weights(mesh, p)
+        nodes, pw = point_stencil(mesh, p)
         for c in range(3):
-            w = np.zeros_like(u)
-            w[c] = pw
-            sigma[c, k] = math.sqrt(max(cov.local_variance(w), 0.0))
-        one = np.zeros(E.shape[2:], bool)
-        one[e] = True
+            w = np.zeros((8, 3))
+            w[:, c] = pw
+            sigma[c, k] = math.sqrt(max(cov.local_variance_at(nodes, w), 0.0))
+        corners = np.asarray(e) + LOCAL_NODES
         for q, (i, j) in enumerate(STRAIN_PAIRS):
-            sigma[3 + q, k] = math.sqrt(max(cov.local_variance(_strain_weights(H, one, i, j, measure, ell)), 0.0))
+            G = strain_coefficients(H[(slice(None), slice(None)) + e], i, j, measure)
+            sigma[3 + q, k] = math.sqrt(max(cov.local_variance_at(corners, element_gradient_weights(G, ell)), 0.0))
     level = result.level
     return Profile(result.path, region.text, measure, region.distance,
                    level0_position(pts, result.scale), names, values, sigma,
