@@ -9,7 +9,8 @@ length), whose gradient becomes nearly rank one, ``H ≈ δ nᵀ / w``. :func:`f
    across does not move); its largest singular value times ``ℓ`` is the element's jump
    ``J`` (voxels), its right singular vector the normal ``n``, its left the jump's direction.
 2. **Significance.** ``z = J / σ_J``, ``σ_J`` the standard uncertainty of ``ℓ aᵀ ΔH n`` from
-   the solve's covariance (:mod:`chunkdic.analysis.covariance`); kept when ``z ≥`` :data:`MIN_Z`.
+   the solve's covariance (:mod:`chunkdic.analysis.covariance`; without a per-node uncertainty,
+   the robust spread of ``J`` over the mesh, at least :data:`FLOOR`); kept when ``z ≥`` :data:`MIN_Z`.
 3. **Localisation.** ``J ≥`` :data:`LOCALISED` times the median jump of the :data:`BACKGROUND` ³
    elements around: a surface, not a smoothly varying strain.
 4. **Thin surface.** ``J`` at least that of the two neighbours along ``n`` (non-maximum
@@ -53,6 +54,8 @@ LOCALISED = 2.0
 BACKGROUND = 5
 #: the fewest elements of a crack
 MIN_ELEMENTS = 3
+#: the noise of a jump (voxels) at least, when the result holds no per-node uncertainty
+FLOOR = 1e-3
 #: nodes apart (per axis) of the two points of a jump: ``2 L ≤ (1 + √3) ℓ`` plus their elements
 JUMP_RADIUS = 4
 
@@ -158,10 +161,13 @@ def _candidates(result, cov, ell: float):
     a, n = np.moveaxis(U[..., :, 0], -1, 0), np.moveaxis(Vt[..., 0, :], -1, 0)
     local = _median_filter(jump, BACKGROUND)
     z = np.zeros_like(jump)
+    # without a per-node uncertainty: the robust spread of the jumps over the mesh (at least
+    # FLOOR voxel, so that round-off on a noise-free field is no crack)
+    spread = max(1.4826 * float(np.median(np.abs(jump - np.median(jump)))), FLOOR)
     for e in np.argwhere(jump >= LOCALISED * local):  # σ only where it can matter
         e = tuple(int(v) for v in e)
-        sigma = _jump_sigma(cov, ell, e, a[(slice(None),) + e], n[(slice(None),) + e])
-        z[e] = jump[e] / sigma if sigma > 0 else (math.inf if cov is None else 0.0)
+        sigma = spread if cov is None else _jump_sigma(cov, ell, e, a[(slice(None),) + e], n[(slice(None),) + e])
+        z[e] = jump[e] / sigma if sigma > 0 else 0.0
     keep = (z >= MIN_Z) & (jump >= LOCALISED * local)
     return jump, z, keep, a, n, Hbg
 
@@ -188,8 +194,8 @@ def find_cracks(result, *, residual: np.ndarray | None = None, covariance: Nodal
     residual : ndarray, shape (ez, ey, ex), optional
         RMS residual per element (:func:`chunkdic.analysis.residuals.element_residuals`).
     covariance : NodalCovariance, optional
-        The field's covariance (default: built here; without a per-node uncertainty the
-        significance test is skipped and the uncertainties are NaN).
+        The field's covariance (default: built here; without a per-node uncertainty the noise of
+        a jump is the robust spread of the jumps, and the openings' uncertainties are NaN).
 
     Returns
     -------

@@ -231,31 +231,30 @@ def gauge(source, *, points=None, planes=None, confidence: float = 0.95) -> Gaug
     --------
     >>> chunkdic.gauge("result.zarr", points=["10,24,24", "38,24,24"]).readings[0].strain  # doctest: +SKIP
     """
-    from pathlib import Path
-
-    from ..io.kinds import kind_of
-    from ..results.scans import as_result
-
     if not 0 < confidence < 1:
         raise InputError(f"confidence must lie between 0 and 1, got {confidence!r}")
     z = NormalDist().inv_cdf(0.5 + confidence / 2)
-    steps = _steps(source, kind_of, as_result)
+    steps, series = _steps(source)
     first = steps[0][1]
     spec, text = _spec(first, points, planes)
-    _, unit = _metric(first)
-    name = str(source.path if hasattr(source, "path") else source)
-    curve = GaugeCurve(name, text, unit, confidence)
-    if len(steps) > 1 or (isinstance(source, (str, Path)) and kind_of(Path(source))[0] == "series"):
-        curve.readings.append(GaugeReading(0, _reading(first, 0, spec, z).length, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0,
-                                           "reference"))
+    metric, unit = _metric(first)
+    curve = GaugeCurve(str(source.path if hasattr(source, "path") else source), text, unit, confidence)
+    if series:  # the reference: the gauge's own length, no motion
+        kind, args = spec
+        length = (float(np.linalg.norm((np.asarray(args[1]) - np.asarray(args[0])) * metric)) if kind == "points"
+                  else abs(args[2] - args[1]) * metric[args[0]])
+        curve.readings.append(GaugeReading(0, length, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, "reference"))
     for k, res in steps:
         curve.readings.append(_reading(res, k, spec, z))
     return curve
 
 
-def _steps(source, kind_of, as_result) -> list:
-    """``[(step, Result)]``: one result (step 0 … its own), or a series' fields from the reference."""
+def _steps(source) -> tuple[list, bool]:
+    """``([(step, Result)], is a series)``: one result (step 1), or a series' fields from the reference."""
     from pathlib import Path
+
+    from ..io.kinds import kind_of
+    from ..results.scans import as_result
 
     if isinstance(source, (str, Path)) and kind_of(Path(source))[0] == "series":
         from .loadseries import open_series
@@ -263,5 +262,5 @@ def _steps(source, kind_of, as_result) -> list:
         series = open_series(source)
         if not series.cumulative:
             raise InputError(f"series {source} has no step: nothing to read")
-        return sorted(series.cumulative.items())
-    return [(1, as_result(source))]
+        return sorted(series.cumulative.items()), True
+    return [(1, as_result(source))], False

@@ -87,3 +87,24 @@ def test_no_crack_is_found_in_a_crack_free_pair(pairs, capsys):
     assert find_cracks(res).cracks == []
     assert main(["crack", str(d / "free.zarr"), "--no-residual"]) == 0
     assert "0 crack(s)" in capsys.readouterr().out
+
+
+def test_an_exact_nodal_jump_is_one_crack_with_its_opening_and_sliding():
+    """Nodes above z = 27.5 moved by (0.4, 0, 0.2) on top of a 1 % affine field (no per-node
+    uncertainty: the jumps' own spread is the noise): one crack, the element layer the jump ramps
+    across, opening 0.4 and sliding 0.2 to 1e-9; the affine field alone gives none."""
+    from chunkdic.mesh import Mesh
+    from chunkdic.results.result import Result
+
+    mesh = Mesh((4, 4, 4), 8, (6, 6, 6))
+    X = mesh.node_coords()
+    affine = np.einsum("ij,j...->i...", np.diag([-0.01, 0.003, 0.003]), X - 28.0)
+    jump = np.array([0.4, 0.0, 0.2])[:, None, None, None] * (X[0] > 28.0)
+    info = {"element_size": 8, "roi": [[4, 52]] * 3, "final_gap": 0.0, "level": 0, "scale": 1}
+    hist = {k: np.zeros(0) for k in ("level", "iteration", "gap", "max_delta", "excluded")}
+    cmap = find_cracks(Result(affine + jump, X, hist, info))
+    (crack,) = cmap.cracks
+    assert np.array_equal(np.argwhere(cmap.labels > 0)[:, 0], np.full(36, 3))  # the layer z 27.5 … 35.5
+    assert crack.opening == pytest.approx(0.4, abs=1e-9) and crack.sliding == pytest.approx(0.2, abs=1e-9)
+    assert abs(crack.normal[0]) == pytest.approx(1.0)
+    assert find_cracks(Result(affine, X, hist, info)).cracks == []
