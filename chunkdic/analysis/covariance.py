@@ -23,7 +23,7 @@ that ``C_ii = σ_i²`` holds for every node. The correlation structure comes fro
 the regularisation; the variance of each node (texture, noise, κ) from the solve.
 ``wᵀ C w`` is one conjugate-gradient solve, ``z = Â⁻¹ S w``, then ``zᵀ M̂ z``: mesh-sized work.
 Measured against 20 independent noise draws (docs/statistics.md): region means within
-0.85–1.3× of the observed spread, with and without regularisation.
+0.89–1.33× of the observed spread, with and without regularisation.
 """
 
 from __future__ import annotations

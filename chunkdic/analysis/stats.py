@@ -8,9 +8,9 @@ interval of the mean, ``mean ± z σ_mean`` (``z = 1.96`` at 95 %), with ``σ_me
 gradient, linearised about the measured field for Green–Lagrange) and ``C`` the solve's
 nodal covariance (:mod:`chunkdic.analysis.covariance`; docs/statistics.md says why this and
 not the field's spatial autocorrelation). ``std/√n``, the interval of independent samples,
-is given beside it: nodes are correlated, so it is not the uncertainty of the mean (8× too
-small on a regularised field, 1.6× too large without regularisation, where neighbouring
-nodes are anticorrelated).
+is given beside it: nodes are correlated, so it is not the uncertainty of the mean (5–12× too
+small on a regularised field, 1.4–2× too large without regularisation, where neighbouring
+nodes are anticorrelated; docs/statistics.md).
 
 A line gives a **profile**: at each sample point the C8 displacement (trilinear, exact for
 the field) and the strain of the element holding it, with their standard uncertainties from
