@@ -55,7 +55,7 @@ def challenge_numbers(error: np.ndarray) -> dict:
     >>> e = np.array([[0.1, 0.3], [0.0, 0.0], [-0.2, -0.2]])
     >>> d = challenge_numbers(e)
     >>> round(d["bias_z"], 12), round(d["noise_floor_z"], 12), round(d["u_rms_z"], 12)
-    (0.2, 0.1, 0.223606797750)
+    (0.2, 0.1, 0.22360679775)
     """
     e = np.asarray(error, np.float64).reshape(3, -1)
     e = e[:, np.isfinite(e).all(axis=0)]
