@@ -1,10 +1,15 @@
 # The public API: every name here is importable as ``chunkdic.NAME`` and loaded on first use.
+from .analysis.cracks import find_cracks
 from .analysis.crosscheck import cutcheck
+from .analysis.gauge import gauge
 from .analysis.loadseries import SeriesResult, open_series, series
 from .analysis.metrology import fit_power_law, uncertainty
 from .analysis.q4 import correlate2d
+from .analysis.repeats import repeat_noise
 from .analysis.resolution import resolution
+from .analysis.rigid import fit_rigid, remove_rigid
 from .analysis.scoring import score_displacement
+from .analysis.stats import stats
 from .analysis.zoisweep import sweep, zoi_table
 from .engine.runplan import Plan, plan
 from .engine.driver import correlate
@@ -25,6 +30,8 @@ from .export.corrected_image import write_corrected
 from .export.meshfiles import write_nodes_csv, write_vtk
 from .export.fields_reader import open_fields
 from .export.fields_image import write_fields
+from .export.ngff_displacements import write_displacements
+from .export.pvd import write_pvd
 from .plot.report import report
 
 __version__: str

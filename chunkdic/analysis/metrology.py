@@ -40,6 +40,7 @@ from ..results.strain import strain_summary
 from ..scheduler import check_scheduler
 from ..synth.fourier_shift import fourier_shift_scan
 from ..plot.report import plot_uncertainty
+from .challenge import challenge_numbers
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +135,8 @@ UNCERTAINTY_COLUMNS = [
     ("element_size", "ZOI size (vox.)", "d"),
     ("bias_z", "bias Uz (vox.)", "+.4f"), ("bias_y", "bias Uy (vox.)", "+.4f"), ("bias_x", "bias Ux (vox.)", "+.4f"),
     ("std_z", "σ(Uz) (vox.)", ".4f"), ("std_y", "σ(Uy) (vox.)", ".4f"), ("std_x", "σ(Ux) (vox.)", ".4f"),
-    ("sigma_u", "σ(U) (vox.)", ".4f"), ("delta_eps", "δε (–)", ".2e"),
+    ("sigma_u", "σ(U) (vox.)", ".4f"), ("bias", "|μ| (vox.)", ".4f"), ("u_rms", "u_rms (vox.)", ".4f"),
+    ("delta_eps", "δε (–)", ".2e"),
     ("final_gap_percent", "gap (%)", ".3f"), ("nodes", "nodes", "d"), ("status", "status", "s"),
 ]
 
@@ -153,7 +155,9 @@ class UncertaintyReport:
     rows : list of dict
         Per element size: ``element_size``, ``bias_z/y/x`` and ``std_z/y/x`` (voxels of the
         correlated level), ``sigma_u`` (RMS of the three std), ``delta_eps``,
-        ``final_gap_percent``, ``nodes``, ``status``, ``result`` (path).
+        ``final_gap_percent``, ``nodes``, ``status``, ``result`` (path); the DVC Challenge 2.0
+        ``noise_floor_z/y/x`` (= ``std``), ``u_rms_z/y/x`` and pooled ``bias``, ``noise_floor``,
+        ``u_rms`` (:mod:`chunkdic.analysis.challenge`).
     fit : PowerLaw or None
         Fit of ``sigma_u`` against the element size (None with fewer than two sizes).
     shift : tuple of 3 float
@@ -193,7 +197,9 @@ def _displacement_stats(result, t) -> dict:
     err = u - np.asarray(t, float)[:, None]
     bias, std = err.mean(axis=1), u.std(axis=1)
     s = strain_summary(result, measure="small")  # the paper's small strain (rigid translations: the same)
-    return {
+    # the DVC Challenge 2.0 numbers: std is its noise floor (about the mean: the translation removed)
+    challenge = {k: v for k, v in challenge_numbers(err).items() if k != "points"}
+    return {**challenge,
         "element_size": int(result.info["element_size"]),
         "bias_z": float(bias[0]), "bias_y": float(bias[1]), "bias_x": float(bias[2]),
         "std_z": float(std[0]), "std_y": float(std[1]), "std_x": float(std[2]),

@@ -19,6 +19,10 @@ along a code's own curve (a longer regularisation length lowers ``n`` and raises
   ``λ`` rising linearly from ``periods[0]`` to ``periods[1]`` over the rows read (at least
   ``ell`` from the faces) (:class:`chunkdic.synth.fields.Star`; default ``2 ℓ … 20 ℓ``).
 
+``n`` is the DVC Challenge 2.0 noise floor (the standard deviation about the mean: the
+translation only removed); the table adds the Challenge's bias ``|μ|`` and ``u_rms =
+√(μ² + n²)`` over the same nodes (:mod:`chunkdic.analysis.challenge`).
+
 Both are correlated with the same settings (element size, regularisation, any
 :class:`chunkdic.Settings`) against the *same* noisy reference, the star first: with an
 automatic regularisation length, the translated pair is correlated at the length chosen
@@ -64,8 +68,9 @@ from ..synth.boolean import stream_key
 from ..synth.fields import Star
 from ..synth.fourier_shift import fourier_shift_scan
 from ..synth.scanpairs import NOISE_KEYS, grey_moments, moved_copy
+from .challenge import challenge_numbers
 from .metrology import check_element_sizes, check_plan, check_shift, study_settings, write_table
-from .scoring import score_displacement
+from .scoring import score_displacement, scored_region
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +83,8 @@ RESOLUTION_COLUMNS = [
     ("regularization", "regularisation", "s"),
     ("regularization_length", "ℓ_reg (vox.)", ".1f"),
     ("noise", "n (vox.)", ".4f"),
+    ("bias", "|μ| (vox.)", ".4f"),
+    ("u_rms", "u_rms (vox.)", ".4f"),
     ("l10", "l10 % (vox.)", ".1f"),
     ("l10_bound", "l10 % is", "s"),
     ("mei", "MEI = n·l10 % (vox.²)", ".3f"),
@@ -368,6 +375,8 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
             "regularization_length": _length(reg),
             "regularization_automatic": bool(reg.get("automatic", False)),
             "noise": sc.sigma, "noise_rms": sc.rms, "nodes_scored": sc.n_points,
+            # the DVC Challenge 2.0 bias and u_rms of the same nodes (noise = its noise floor)
+            **_challenge(rt, t, shape, ell),
             "l10": length, "l10_bound": bound,
             "mei": sc.sigma * length, "mei3d": sc.sigma * length ** 1.5,
             "l10_c8": c8_l10(ell),
@@ -391,6 +400,14 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
     Path(files["markdown"]).write_text(report.markdown())
     report.files = files
     return report
+
+
+def _challenge(result, t, shape, ell) -> dict:
+    """Pooled bias and ``u_rms`` of the translated pair over the scored nodes (:mod:`.challenge`)."""
+    inside = scored_region(result.node_coords, shape, ell)
+    err = result.displacement.reshape(3, -1)[:, inside] - np.asarray(t, float)[:, None]
+    d = challenge_numbers(err)
+    return {"bias": d["bias"], "u_rms": d["u_rms"], **{f"bias_{c}": d[f"bias_{c}"] for c in "zyx"}}
 
 
 def _length(reg: dict):

@@ -278,6 +278,7 @@ def _add_demo(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
+    from . import mechanics as _cli_mechanics
     from . import q4_commands as _cli_q4
     from . import report_commands as _cli_report
     from . import resolution_command as _cli_resolution
@@ -295,6 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_scan.register(sub)
     _cli_synth.register(sub)
     _cli_report.register(sub)
+    _cli_mechanics.register(sub)
     _cli_resolution.register(sub)
     _cli_q4.register(sub)
     _cli_series.register(sub)

@@ -186,3 +186,12 @@ def voxel_size_option(text, unit, option: str = "--voxel-size") -> tuple[str | N
     if not units:
         raise InputError(NO_UNIT.format(option=option, value=text))
     return ",".join(repr(v) for v, _ in parsed), units.pop()
+
+
+def add_strain_option(p) -> None:
+    """``--strain {small,green-lagrange}`` (default Green-Lagrange: a rigid rotation gives no strain)."""
+    from ..results.strain import DEFAULT_MEASURE, MEASURES
+
+    p.add_argument("--strain", dest="strain", choices=MEASURES, default=DEFAULT_MEASURE,
+                   help="strain measure: green-lagrange (default; zero for a rigid rotation) or small "
+                        "(the paper's; a rotation of t degrees shows as a strain of about -t^2/2 rad)")

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .common import Progress, add_figure_options, say
+from .common import Progress, add_figure_options, add_strain_option, say
+from .mechanics import (add_export_options, add_remove_rigid, export_displacements, export_series, profile_figure,
+                        run_repeat, without_rigid)
 
 
 def _sizes_arg(p) -> None:
@@ -43,6 +45,7 @@ def register(subparsers) -> None:
     p.add_argument("result", metavar="RESULT.zarr")
     p.add_argument("--all-elements", action="store_true", help="keep the outermost layer in the mean")
     add_strain_option(p)
+    add_remove_rigid(p)
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=run_strain)
 
@@ -56,6 +59,10 @@ def register(subparsers) -> None:
     _sizes_arg(p)
     p.add_argument("--shift", default="0.5", metavar="T|TZ,TY,TX",
                    help="prescribed translation, voxels of --level (default 0.5 on each axis)")
+    p.add_argument("--repeat", nargs="+", metavar="SCAN2", default=None,
+                   help="repeated scans of the unloaded specimen: each is correlated against SCAN instead of a "
+                        "shifted copy; the table gives the spatial and temporal noise floors (iDICs guide) and the "
+                        "DVC Challenge bias and u_rms against zero motion (--shift is not used)")
     _common_corr(p)
     p.set_defaults(func=run_uncertainty)
 
@@ -105,6 +112,10 @@ def register(subparsers) -> None:
                    help="name of a result in every legend and panel title, once per result in their order "
                         "(default: each result's file stem)")
     add_strain_option(p)
+    add_remove_rigid(p)
+    p.add_argument("--profile", metavar="Z,Y,X:Z,Y,X", default=None,
+                   help="also plot U and the normal strains along this line with their uncertainty bands "
+                        "(profile.png; level-0 voxels; `chunkdic stats --line` prints the numbers)")
     add_figure_options(p)
     p.add_argument("--overwrite", action="store_true", help="replace the figures of an earlier report in DIR")
     p.set_defaults(func=run_report)
@@ -119,24 +130,27 @@ def register(subparsers) -> None:
                     "OME-NGFF multiscale image on the scan's level-0 grid (--fields-level S: its level-S grid) "
                     "(napari, neuroglancer). The size of --corrected and --fields is said first and refused when "
                     "the free disk cannot hold it. Strains of --vtk and --fields: --strain (default Green-Lagrange).")
-    p.add_argument("result", metavar="RESULT.zarr")
+    p.add_argument("result", metavar="RESULT.zarr|SERIES.zarr")
     p.add_argument("--vtk", metavar="OUT.vtu", help="VTK file (.vtu or .vtk)")
     p.add_argument("--csv", metavar="NODES.csv", help="node table")
     p.add_argument("--corrected", metavar="OUT.zarr", help="OME-NGFF image (channels corrected, residual) on the scan's grid at the result's level")
     p.add_argument("--fields", metavar="OUT.zarr",
                    help="OME-NGFF image (channels Uz, Uy, Ux, |U|, eps_zz, eps_eq, residual) on the scan's grid")
+    add_export_options(p)
     p.add_argument("--fields-level", metavar="S", type=_level, default=0,
                    help="write --fields on the scan's level-S grid (2^S voxels per axis; 8^-S of the size): "
                         "0 (default) the full grid; 2 puts a 2048^3 scan's fields on 512^3. The residual channel "
                         "is the mean |r| over each voxel when S is coarser than the result's level")
-    p.add_argument("--units", choices=("voxels", "physical"), default="voxels",
-                   help="coordinates of --vtk/--csv (voxels of the result's level) and displacement of --fields "
-                        "(level-0 voxels): voxels (default) or physical")
+    p.add_argument("--units", choices=("voxels", "physical"), default=None,
+                   help="coordinates of --vtk/--csv/--pvd (voxels of the result's level) and displacement of --fields "
+                        "(level-0 voxels): voxels (default) or physical; --displacements: physical when the scan has "
+                        "a voxel size, else level-0 voxels")
     p.add_argument("--ref", help="reference scan for --corrected/--fields (default: recorded path)")
     p.add_argument("--deformed", help="deformed scan for --corrected/--fields (default: recorded path)")
     p.add_argument("--scheduler", default=None,
                    help="where --corrected/--fields are computed: threads (default), local[:N], or tcp://host:port")
     add_strain_option(p)
+    add_remove_rigid(p)
     p.add_argument("--overwrite", action="store_true", help="replace outputs that an earlier export wrote")
     p.set_defaults(func=run_export)
 
@@ -208,15 +222,6 @@ def _fmt_tensor(t) -> str:
 
 
 _MEASURE_NAMES = {"small": "small", "green-lagrange": "Green-Lagrange"}
-
-
-def add_strain_option(p) -> None:
-    """``--strain {small,green-lagrange}`` (default Green-Lagrange: a rigid rotation gives no strain)."""
-    from ..results.strain import DEFAULT_MEASURE, MEASURES
-
-    p.add_argument("--strain", dest="strain", choices=MEASURES, default=DEFAULT_MEASURE,
-                   help="strain measure: green-lagrange (default; zero for a rigid rotation) or small "
-                        "(the paper's; a rotation of t degrees shows as a strain of about -t^2/2 rad)")
 
 
 def rotation_warning(summary) -> str | None:
@@ -291,6 +296,7 @@ def run_strain(args: argparse.Namespace) -> int:
 
     res = open_result(args.result)
     res.check_displacement()
+    res, rigid = without_rigid(res, args.remove_rigid)
     s = strain_summary(res, exclude_outer=not args.all_elements, measure=args.strain)  # a mask's active elements only
     warning = rotation_warning(s)
     if warning:
@@ -301,8 +307,12 @@ def run_strain(args: argparse.Namespace) -> int:
         if length is not None:  # strains are dimensionless; the element's size in the scan's unit
             out.update(element_size_physical=(res.info["element_size"] * length).tolist(),
                        voxel_size=list(res.info["voxel_size"]), unit=res.info.get("unit"))
+        if rigid is not None:
+            out["rigid_removed"] = rigid.as_dict()
         print(json.dumps(out, indent=2))
     else:
+        if rigid is not None:
+            say(rigid.text())
         print(format_strain(s, res))
     return 0
 
@@ -310,6 +320,8 @@ def run_strain(args: argparse.Namespace) -> int:
 def run_uncertainty(args: argparse.Namespace) -> int:
     from ..analysis.metrology import uncertainty
 
+    if args.repeat:
+        return run_repeat(args, _progress)
     t0 = time.perf_counter()
     rep = uncertainty(args.scan, args.element_sizes, args.output, shift=_shift(args.shift), roi=args.roi,
                       level=args.level, interpolation=args.interpolation, scheduler=args.scheduler,
@@ -359,10 +371,12 @@ def run_report(args: argparse.Namespace) -> int:
     from ..plot.report import report
 
     check_scheduler(args.scheduler)
+    extra = {} if args.profile is None else {"profile": profile_figure(args)}
+    shown = (lambda res: without_rigid(res, True)[0]) if args.remove_rigid else None
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
                    interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
                    progress=say, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi, labels=args.labels,
-                   strain=args.strain)
+                   strain=args.strain, shown=shown, extra=extra)
     for p in paths.values():
         print(p)
     return 0
@@ -375,14 +389,27 @@ def run_export(args: argparse.Namespace) -> int:
     from ..scheduler import check_scheduler
     from ..export import meshfiles as export
 
-    if not (args.vtk or args.csv or args.corrected or args.fields):
-        raise InputError("nothing to export: give --vtk, --csv, --corrected and/or --fields")
+    from ..io.kinds import kind_of
+
+    units, args.units = args.units, args.units or "voxels"  # --displacements: physical when it can
+    if kind_of(Path(args.result))[0] == "series":
+        return export_series(args)
+    if args.pvd:
+        raise InputError("--pvd writes a loading series (chunkdic series): give the series store")
+    if not (args.vtk or args.csv or args.corrected or args.fields or args.displacements):
+        raise InputError("nothing to export: give --vtk, --csv, --corrected, --fields and/or --displacements")
     res = open_result(args.result)
     res.check_displacement()
     if args.units == "physical" and not res.info.get("voxel_size"):
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
     if args.fields_level and not args.fields:
         raise InputError("--fields-level applies to --fields: give --fields OUT.zarr")
+    if args.remove_rigid and (args.corrected or args.fields):
+        raise InputError("--remove-rigid applies to --vtk, --csv and --displacements: the corrected image and the "
+                         "fields' residual need the measured field (export them in a command of their own)")
+    res, rigid = without_rigid(res, args.remove_rigid)
+    if rigid is not None:
+        say(rigid.text())
     if args.corrected or args.fields:
         scans = resultscans.input_scans(res, args.ref, args.deformed)
         check_scheduler(args.scheduler)
@@ -391,7 +418,8 @@ def run_export(args: argparse.Namespace) -> int:
     entries = {name: plan.add(path, kind) for name, path, kind in
                (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
                 ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
-                ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"))
+                ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"),
+                ("displacements", args.displacements, "displacements"))
                if path}
     # the free disk, once the paths are checked; the sizes are said once the outputs are ours (locked)
     sizes = _plan_images(res, args, scans[0].shape(0)) if args.corrected or args.fields else []
@@ -399,7 +427,9 @@ def run_export(args: argparse.Namespace) -> int:
         for line in sizes:
             say(line)
         _export(res, args, {k: e.work for k, e in entries.items()})
-    for name in ("vtk", "csv", "corrected", "fields"):
+        if args.displacements:
+            export_displacements(res, args.displacements, entries["displacements"].work, units)
+    for name in ("vtk", "csv", "corrected", "fields", "displacements"):
         if name in entries:
             print(getattr(args, name))
     return 0
@@ -430,7 +460,7 @@ def _export(res, args: argparse.Namespace, work: dict) -> None:
     from ..export.corrected_image import write_corrected
 
     if args.vtk:
-        info = export.write_vtk(res, work["vtk"], units=args.units, strain=args.strain)
+        info = export.write_vtk_file(res, work["vtk"], units=args.units, strain=args.strain)
         say(f"{args.vtk}: {info['points']} points, {info['cells']} hexahedra ({info['strain']} strain), "
             f"coordinates in {info['unit']}"
              + ("; run facts in its field data" if str(args.vtk).lower().endswith(".vtu") else ""))

@@ -25,7 +25,7 @@ from ..results.result import Result, jsonable
 from ..results.scans import as_result
 from ..results.strain import DEFAULT_MEASURE, check_measure, principal_strains
 
-__all__ = ["write_vtk", "write_nodes_csv", "write_nodes_csv_files", "read_vtk_metadata", "csv_sidecar",
+__all__ = ["write_vtk", "write_vtk_file", "write_nodes_csv", "write_nodes_csv_files", "read_vtk_metadata", "csv_sidecar",
            "CSV_COLUMNS", "CSV_PHYSICAL_COLUMNS", "VTK_HEX_ORDER"]
 
 #: local nodes ``(dz, dy, dx)`` in VTK_HEXAHEDRON order: bottom face (z0) counter-clockwise
@@ -110,12 +110,20 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False, s
     is the 9-component tensor in ``(x, y, z)`` order, plus scalars ``eps_xx`` … ``eps_xy``,
     ``volume_change`` = tr(eps) and ``max_abs_principal``.
     """
-    import meshio
-
     result = as_result(result)
     check_measure(strain)
     plan = Outputs(inputs=[result.path] if result.path else [], overwrite=overwrite)
     entry = plan.add(path, "vtk")
+    _positions(result, units)  # a bad unit refused before anything is written
+    with plan:
+        return write_vtk_file(result, entry.work, units=units, strain=strain)
+
+
+def write_vtk_file(result: Result, work: Path, *, units: str, strain: str) -> dict:
+    """:func:`write_vtk` into ``work`` (outputs checked by the caller, e.g. a ParaView series
+    that stages its folder in one :class:`~chunkdic.io.outputs.Outputs`)."""
+    import meshio
+
     X, u, unit = _positions(result, units)
     n = X.shape[1:]
     points = np.stack([X[2].ravel(), X[1].ravel(), X[0].ravel()], axis=1)
@@ -142,12 +150,11 @@ def write_vtk(result, path, *, units: str = "voxels", overwrite: bool = False, s
     if result.flags is not None:  # chunkdic.results.result.FLAG_*: no data, weak texture, masked
         point_data["flags"] = result.flags.ravel().astype(np.int32)
     mesh = meshio.Mesh(points, [("hexahedron", cells)], point_data=point_data, cell_data=cell_data)
-    with plan:
-        mesh.write(str(entry.work))
-        if entry.work.suffix.lower() == ".vtu":
-            _insert_field_data(entry.work, {**vtk_field_data(result, unit),
-                                            f"strain_measure={strain}": np.array([1], np.int32)})
-        _mark_vtk(entry.work)
+    work = Path(work)
+    mesh.write(str(work))
+    if work.suffix.lower() == ".vtu":
+        _insert_field_data(work, {**vtk_field_data(result, unit), f"strain_measure={strain}": np.array([1], np.int32)})
+    _mark_vtk(work)
     return {"points": len(points), "cells": len(cells), "unit": unit, "strain": strain}
 
 

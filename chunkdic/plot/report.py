@@ -347,7 +347,9 @@ def _cuts_result(results: list[Result], cuts_from) -> Result:
 
 def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
            overwrite: bool = False, progress: Callable[[str], None] | None = None, cuts_from=None,
-           fmt: str = "png", dpi: int | None = None, labels=None, strain: str = DEFAULT_MEASURE) -> dict[str, str]:
+           fmt: str = "png", dpi: int | None = None, labels=None, strain: str = DEFAULT_MEASURE,
+           shown: Callable[[Result], Result] | None = None,
+           extra: dict[str, Callable] | None = None) -> dict[str, str]:
     """All figures of one or several results into ``out_dir``.
 
     Cuts and residual come from one result (``cuts_from``, default the first; they need the
@@ -382,6 +384,13 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     strain : {"green-lagrange", "small"}
         Strain measure of the ε_zz map and profile (default Green–Lagrange: a rigid rotation
         shows no strain; ``"small"``: the paper's).
+    shown : callable(Result) -> Result, optional
+        The field the maps and profiles show (e.g. without its rigid motion,
+        :func:`chunkdic.analysis.rigid.remove_rigid`); the cuts keep the measured field, which
+        the corrected image needs.
+    extra : dict of str to callable(path, dpi) -> str, optional
+        More figures, by name (the file is ``NAME.{fmt}``), written with the others (a
+        profile along a line: ``chunkdic report --profile``).
 
     Returns
     -------
@@ -419,15 +428,18 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         paths[name] = path
         say(f"wrote {path}")
 
+    fields = results if shown is None else [shown(r) for r in results]
     with plan:  # a failure removes the figures this run wrote, never older files
         for comp in "zyx":
-            done(f"u{comp}_map", plot_u_maps(results, out_dir / f"u{comp}_map.{fmt}", comp, dpi=dpi))
-        done("epszz_map", plot_epszz_maps(results, out_dir / f"epszz_map.{fmt}", dpi=dpi, strain=strain))
+            done(f"u{comp}_map", plot_u_maps(fields, out_dir / f"u{comp}_map.{fmt}", comp, dpi=dpi))
+        done("epszz_map", plot_epszz_maps(fields, out_dir / f"epszz_map.{fmt}", dpi=dpi, strain=strain))
         for name, fn in (("gap", plot_gap), ("uncertainty_map", plot_uncertainty_map)):
-            done(name, fn(results, out_dir / f"{name}.{fmt}", dpi=dpi))
-        for name, path in plot_epszz_profile(results, out_dir / f"epszz_profile.{fmt}", ref=ref,
+            done(name, fn(fields, out_dir / f"{name}.{fmt}", dpi=dpi))
+        for name, path in plot_epszz_profile(fields, out_dir / f"epszz_profile.{fmt}", ref=ref,
                                              deformed=deformed, dpi=dpi, strain=strain).items():
             done(name, path)
+        for name, make in (extra or {}).items():
+            done(name, make(out_dir / f"{name}.{fmt}", dpi))
         if skip is None:
             paths.update(plot_cuts(cut_res, out_dir, ref=ref, deformed=deformed,
                                    interpolation=interpolation or interpolation_of(cut_res), scheduler=scheduler,

@@ -14,6 +14,7 @@ from chunkdic.analysis.metrology import PowerLaw, fit_power_law
 from chunkdic.cli import report_commands as _cli_report
 from chunkdic.errors import InputError
 from chunkdic.io.handles import ArrayRef
+from chunkdic.results.result import open_result
 from chunkdic.synth import foam, fourier_shift, synthetic
 
 
@@ -116,6 +117,10 @@ def test_uncertainty_command_on_synthetic_texture(uncertainty_dir):
     png = (uncertainty_dir / "uncertainty.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert (uncertainty_dir / "result-ell16.zarr").is_dir()
+    # the DVC Challenge 2.0 u_rms: the RMS error over the nodes and components, from the result itself
+    err = open_result(uncertainty_dir / "result-ell16.zarr").displacement - 0.5
+    assert float(rows[16]["u_rms"]) == pytest.approx(float(np.sqrt(np.mean(err**2))), rel=1e-9)
+    assert float(rows[16]["bias"]) == pytest.approx(float(np.sqrt(np.mean(err.mean(axis=(1, 2, 3)) ** 2))), rel=1e-9)
 
 
 def test_uncertainty_refuses_bad_input(affine_pair, tmp_path):
