@@ -27,7 +27,7 @@ def profile_figure(work: Path, out: Path) -> None:
     from chunkdic.analysis.regions import line_region
     from chunkdic.analysis.stats import profile
     from chunkdic.synth import synthetic
-    from chunkdic.views.mechplots import plot_profile
+    from chunkdic.plot.mechplots import plot_profile
 
     pair = work / "band"
     if not (pair / "field.json").exists():
@@ -43,7 +43,7 @@ def gauge_figure(work: Path, out: Path) -> None:
     import chunkdic
     from chunkdic.analysis.gauge import gauge
     from chunkdic.synth import synthetic
-    from chunkdic.views.mechplots import plot_gauge
+    from chunkdic.plot.mechplots import plot_gauge
 
     scans = []
     for k in range(4):
@@ -67,7 +67,7 @@ def cracks_figure(work: Path, out: Path) -> None:
     from chunkdic.analysis.residuals import element_residuals
     from chunkdic.synth import synthetic
     from chunkdic.synth.fields import Crack
-    from chunkdic.views.figures import figure, save
+    from chunkdic.plot.figures import figure, save
 
     pair = work / "crack"
     if not (pair / "field.json").exists():

@@ -1,7 +1,7 @@
 """The solve's covariance of a result's nodal field, for the uncertainty of anything linear in it.
 
 A global-DIC field's noise covariance is ``C = κ σ_r² A⁻¹ M A⁻¹`` (``A = M + λ R``; the
-per-node uncertainty of :func:`chunkdic.engine.noise.nodal_uncertainty` is its diagonal). The
+per-node uncertainty of :func:`chunkdic.method.noise.nodal_uncertainty` is its diagonal). The
 uncertainty of a region mean, a rigid motion, a gauge or a strain is ``wᵀ C w`` for the
 weights ``w`` that make the quantity from the nodes: its off-diagonal terms decide it.
 Neighbouring C8 nodes are anticorrelated by ``M`` (the inverse of a mass matrix alternates
@@ -13,7 +13,7 @@ A result keeps ``σ_r``, ``κ``, the regularisation (kind, length) and the per-n
 the solve's, *homogenised*: ``M`` is replaced by the voxel-sum mass matrix of the C8 shape
 functions over the elements that were measured (a uniform texture), ``A`` by that ``M``
 plus the result's regularisation weighted as the engine weighs it
-(:func:`chunkdic.solve.regularization.plane_wave_weight`), and the result is scaled node by
+(:func:`chunkdic.solve.regularizer.plane_wave_weight`), and the result is scaled node by
 node to the stored σ::
 
     C ≈ S Ĉ S,   Ĉ = Â⁻¹ M̂ Â⁻¹,   S = diag(σ_i / σ̂_i)
@@ -33,12 +33,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..engine.noise import nodal_uncertainty
+from ..method.noise import nodal_uncertainty
 from ..errors import InputError
 from ..mesh import LOCAL_NODES, STENCIL_OFFSETS
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA
 from ..solve.cg import PoorTextureWarning, StencilSolver
-from ..solve.regularization import Regularizer, plane_wave_weight, robust_freed
+from ..solve.regularizer import Regularizer, plane_wave_weight
+from ..solve.reweighting import robust_freed
 from ..solve.stencil import stencil_matvec
 
 __all__ = ["NodalCovariance", "mass_stencil", "measured_elements", "gradient_adjoint", "element_gradient_weights",
@@ -178,7 +179,7 @@ class NodalCovariance:
     sigma : ndarray, shape (3, nz, ny, nx), float64
         The result's per-node σ, voxels of its level (0 where not measured).
     model : ndarray, shape (3, nz, ny, nx), float64
-        ``σ̂``, the per-node σ of ``Ĉ`` (:func:`chunkdic.engine.noise.nodal_uncertainty` of ``Â``).
+        ``σ̂``, the per-node σ of ``Ĉ`` (:func:`chunkdic.method.noise.nodal_uncertainty` of ``Â``).
     """
 
     solver: StencilSolver

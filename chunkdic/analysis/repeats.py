@@ -28,7 +28,8 @@ from ..io.outputs import Outputs
 from ..io.scan import open_scan
 from ..scheduler import check_scheduler
 from .challenge import challenge_numbers, noise_floors
-from .metrology import PAPER_SETTINGS, check_element_sizes, check_plan, write_table
+from ..method.settings import Settings
+from .metrology import PAPER_SETTINGS, check_element_sizes, check_plan, study_settings, write_table
 from .scoring import scored_region
 
 log = logging.getLogger(__name__)
@@ -57,9 +58,9 @@ class RepeatReport:
                 "u_rms against zero motion)\n\n" + write_table(self.rows, REPEAT_COLUMNS))
 
 
-def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, *, roi=None, level: int = 0,
-                 interpolation: str = "cubic", scheduler=None, overwrite: bool = False,
-                 progress: Callable[[dict], None] | None = None, options: dict | None = None) -> RepeatReport:
+def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, settings: Settings | None = None, *,
+                 roi=None, roi_unit: str | None = None, scheduler=None, overwrite: bool = False,
+                 progress: Callable[[dict], None] | None = None, **options) -> RepeatReport:
     """Spatial and temporal noise floors of repeated scans (module docstring).
 
     Parameters
@@ -71,8 +72,9 @@ def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, *, roi=
     out_dir : path
         Folder for the results (``result-ell{ell}-repeat{k}.zarr``), ``uncertainty.csv`` and
         ``uncertainty.md`` (an ``uncertainty`` folder, as the a-priori test's).
-    roi, level, interpolation, scheduler, overwrite, progress, options
-        As in :func:`chunkdic.analysis.metrology.uncertainty`.
+    settings, roi, roi_unit, scheduler, overwrite, progress, **options
+        As in :func:`chunkdic.analysis.metrology.uncertainty` (without ``settings``, no
+        regularisation unless ``options`` asks for one).
 
     Returns
     -------
@@ -87,7 +89,9 @@ def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, *, roi=
     for path, sc in zip(scans[1:], opened[1:]):
         if tuple(sc.shape(0)) != shape:
             raise InputError(f"repeat {path}: shape {tuple(sc.shape(0))} is not the first scan's {shape}")
-    check_plan(opened[0], sizes, roi, level, interpolation, options)
+    given = study_settings(settings, options, PAPER_SETTINGS)
+    check_plan(scans[0], scans[1], sizes, given, roi=roi, roi_unit=roi_unit, caller="uncertainty --repeat")
+    level = int(given.get("level", 0))
     check_scheduler(scheduler)
     plan = Outputs(inputs=scans, overwrite=overwrite)
     out = plan.add(out_dir, "uncertainty").final
@@ -98,8 +102,7 @@ def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, *, roi=
             emit({"stage": "element-size", "element_size": ell})
             fields, statuses = [], []
             for k, other in enumerate(scans[1:], 1):
-                res = correlate(scans[0], other, element_size=ell, roi=roi, level=level, interpolation=interpolation,
-                                **{**PAPER_SETTINGS, **(options or {})}, scheduler=scheduler,
+                res = correlate(scans[0], other, element_size=ell, roi=roi, roi_unit=roi_unit, **given, scheduler=scheduler,
                                 output=out / f"result-ell{ell}-repeat{k}.zarr", overwrite=True, progress=progress)
                 level_shape = tuple(int(n) >> int(level) for n in shape)
                 inside = scored_region(res.node_coords, level_shape, ell)

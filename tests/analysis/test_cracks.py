@@ -13,7 +13,7 @@ from chunkdic.analysis.cracks import find_cracks
 from chunkdic.cli.app import main
 from chunkdic.synth import synthetic
 from chunkdic.synth.fields import Affine, Crack, Field
-from chunkdic.views.crack_export import cube_section
+from chunkdic.export.crack_export import cube_section
 
 
 def test_crack_field_jumps_across_its_plane_and_inverts():

@@ -16,13 +16,13 @@ from chunkdic.analysis.regions import box_region, line_region, mask_region, slab
 from chunkdic.analysis.rigid import _XYZ, fit_rigid, remove_rigid, rotation_matrix
 from chunkdic.analysis.stats import profile, region_stats
 from chunkdic.cli.app import main
-from chunkdic.engine.noise import nodal_uncertainty
+from chunkdic.method.noise import nodal_uncertainty
 from chunkdic.errors import InputError
 from chunkdic.mesh import LOCAL_NODES, Mesh, shape_table
 from chunkdic.results.result import Result
 from chunkdic.results.strain import displacement_gradient, strain_summary
 from chunkdic.solve.cg import StencilSolver
-from chunkdic.solve.regularization import Regularizer, plane_wave_weight
+from chunkdic.solve.regularizer import Regularizer, plane_wave_weight
 from chunkdic.solve.stencil import stencil_matvec
 from chunkdic.synth.fields import Affine
 from chunkdic.synth.foam import render
@@ -115,7 +115,7 @@ def test_homogenised_covariance_against_the_dense_solve(texture):
                     at = tuple(slice(int(d), int(d) + 5) for d in da)
                     M_half[at + (k - 13,)] += m1[da[0], db[0]] * m1[da[1], db[1]] * m1[da[2], db[2]] * T
     C = _dense_solve_covariance(mesh, M_half, 12.0)
-    # what the engine stores: its per-node σ of this M (chunkdic.engine.noise.nodal_uncertainty)
+    # what the engine stores: its per-node σ of this M (chunkdic.method.noise.nodal_uncertainty)
     solver = StencilSolver(M_half.astype(np.float32), multigrid=False)
     reg = Regularizer("tikhonov", nodes, 4.0)
     solver.regularize(reg, plane_wave_weight(reg, lambda v: stencil_matvec(solver.matrix, v), 12.0))
