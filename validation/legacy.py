@@ -41,8 +41,10 @@ def _commit_date(commit: str | None) -> str | None:
 
 def _meta(data: dict) -> dict:
     meta = data.get("meta")
-    if meta is None:  # bench_large_strain.py: the arguments only
-        meta = {"argv": data.get("argv", [])}
+    if meta is None:  # bench_large_strain.py: the arguments only; bench_cracks.py: its commit and host beside
+        meta = {"argv": data.get("argv", []), "commit": data.get("commit"), "host": data.get("machine")}
+        if "command" in data:
+            meta["command"] = data["command"]
     return meta
 
 
@@ -73,7 +75,7 @@ def convert(study_name: str, raws: list[Path]) -> Path:
                          "ram_gib": round(meta["ram_gib"], 2) if meta.get("ram_gib") else None,
                          "platform": None, "load": [round(v, 2) for v in meta["load_start"]] if meta.get("load_start")
                          else None})
-        commands.append(f"python validation/{study.script} " + " ".join(map(str, meta.get("argv", []))))
+        commands.append(meta.get("command") or f"python validation/{study.script} " + " ".join(map(str, meta.get("argv", []))))
         if "aldvc_version" in meta:
             peer["al-dvc"] = meta["aldvc_version"]
     versions = {"python": None, **{name: None for name in record.PACKAGES}, "chunkdic": "0.1.0", **peer}

@@ -64,6 +64,13 @@ def _large_strain_rows(raw: dict) -> list[dict]:
     return rows
 
 
+def _cracks_rows(raw: dict) -> list[dict]:
+    """One row per pair, texture and setting, as the script scores it (the truth beside)."""
+    keep = ("pair", "texture", "regularization", "length", "status", "cracks", "detected", "tp", "fp", "recall",
+            "opening", "true_opening", "sliding", "true_sliding", "sigma", "residual_ratio", "seconds")
+    return [{k: r.get(k) for k in keep} for r in raw["rows"]]
+
+
 def _scale_rows(raw: dict) -> list[dict]:
     meta, corr, err = raw["meta"], raw["correlate"], raw["error"]
     stage = {s["stage"]: s for s in raw["stages"]}
@@ -133,6 +140,12 @@ STUDIES = {s.name: s for s in (
            "--record", "{raw_name}"), _large_strain_rows,
           legacy=("bench_large_strain_vs_aldvc_l8.json",),
           about="100³ grains and concrete, noise 0.02 per scan; errors between the nodes"),
+    Study("cracks", "Crack detection and opening on synthetic cracks: true and false positives", "validation",
+          "scripts/bench_cracks.py",
+          ("--workdir", "{workdir}", "--size", "64", "--textures", "foam", "grains", "--record", "{raw}"),
+          _cracks_rows, legacy=("bench_cracks.json",),
+          about="64³ pairs, planar cracks of 0.1, 0.3 and 1 voxel and crack-free fields, foam and grains, "
+                "ℓ = 8 with the defaults and without regularisation"),
     Study("speed_vs_aldvc", "Time against al-dvc at 300³, 512³ and 1024³ (grains, compression band)", "scale",
           "scripts/bench_vs_aldvc.py",
           ("--sizes", "--pair", "{workdir}/grains1024", "--spacings", "16", "--points", "4000000", "--repeats", "1",

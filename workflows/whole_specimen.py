@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 import chunkdic
+from chunkdic.method.events import describe
 from chunkdic.synth import foam, synthetic
 
 
@@ -192,7 +193,7 @@ def main(argv=None) -> dict:
 
         # redrawn on every run: overwrite replaces only the figures and mesh an earlier run wrote
         figures = report(result, workdir / "report", overwrite=True,
-                         progress=lambda msg: print("  " + msg, flush=True))
+                         progress=lambda event: print("  " + describe(event), flush=True))
         write_vtk(result, workdir / "result.vtu", overwrite=True)
         times["report"] = time.perf_counter() - t0
     else:

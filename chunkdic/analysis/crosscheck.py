@@ -69,6 +69,7 @@ from ..plot.figures import (
 )
 from .q4 import Q4Result, _Level, correlate2d
 from .q4mesh import plan2d
+from ..method.study_events import CutChecked, Event, Written, emit
 
 __all__ = ["Cut", "cutcheck", "correlation_length", "plot_cutcheck", "noise_floor", "measured_nodes"]
 
@@ -307,7 +308,7 @@ def check_cut(prepared: np.ndarray, corrected: np.ndarray, element_size: int, no
 
 
 def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, overwrite: bool = False,
-             progress: Callable[[str], None] | None = None, fmt: str = "png",
+             progress: Callable[[Event], None] | None = None, fmt: str = "png",
              dpi: int | None = None) -> list[Cut]:
     """Run the paper's cut check (section 5.3) on a correlation result.
 
@@ -325,8 +326,9 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
         Where the cut planes are computed, as in :func:`chunkdic.correlate`.
     overwrite : bool
         Replace the files of an earlier cut check in ``output``.
-    progress : callable(str), optional
-        One message per cut.
+    progress : callable(Event), optional
+        Called with a :class:`~chunkdic.analysis.study_events.CutChecked` per cut and a
+        :class:`~chunkdic.analysis.study_events.Written` for the files.
     fmt : {"png", "pdf", "svg"}, keyword-only
         File format of the figure.
     dpi : int, keyword-only, optional
@@ -349,7 +351,6 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     check_figure_options(fmt, dpi)
     plan = Outputs(inputs=input_paths(res, ref, deformed), overwrite=overwrite)
     out = plan.add(output, "cutcheck").final if output is not None else None
-    say = progress or (lambda msg: None)
     ell = int(res.info["element_size"])
     est = res.info.get("noise") or {}
     noise = (float(est.get("sigma_r") or math.nan), float(est.get("kappa") or math.nan))
@@ -364,13 +365,11 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
                 c, q = check_cut(cut["prepared"], cut["corrected"], ell, normal, idx, noise)
                 cuts.append(c)
                 fields.append(q)
-                say(f"cut normal to {c.axis} at {c.axis} = {idx}: mean {c.mean:.4f}, std {c.std:.4f}, "
-                    f"max {c.max:.4f} pixel, correlation length {c.correlation_length:.1f} pixel, noise floor "
-                    f"{c.floor:.4f} pixel (of the mean {c.floor_mean:.4f}) ({c.status})")
+                emit(progress, CutChecked(cut=c))
         if out is not None:
             figure_path = plot_cutcheck(res, cuts, fields, out / f"cutcheck.{fmt}", dpi=dpi)
             (out / "cutcheck.json").write_text(json.dumps([c.as_dict() for c in cuts], indent=2) + "\n")
-            say(f"wrote {figure_path}, {out / 'cutcheck.json'}")
+            emit(progress, Written(paths=[str(figure_path), str(out / "cutcheck.json")]))
     return cuts
 
 

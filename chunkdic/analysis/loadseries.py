@@ -51,7 +51,7 @@ import numpy as np
 from ..engine.checkpoint import fingerprint, identify_input
 from ..engine.driver import correlate
 from ..engine.front import prepare_run
-from ..method.events import SeriesStep, emit
+from ..method.study_events import Event, SeriesStep, emit
 from ..method.start import filled
 from ..engine.meshes import parse_roi
 from ..method.settings import Settings
@@ -136,7 +136,7 @@ def series(
     roi=None,
     scheduler=None,
     overwrite: bool = False,
-    progress: Callable[[dict], None] | None = None,
+    progress: Callable[[Event], None] | None = None,
     mask=None,
     roi_unit: str | None = None,
     **options,
@@ -161,7 +161,8 @@ def series(
         converted with the first scan's voxel size).
     progress : callable, optional
         The events of :func:`chunkdic.correlate`, each with ``group`` (the step being
-        computed), and ``stage="series-step"`` when a step starts or is skipped.
+        computed), and a :class:`~chunkdic.method.study_events.SeriesStep` when a step starts
+        or is skipped.
 
     Returns
     -------

@@ -18,7 +18,6 @@ Table 1) that uses this test is in :mod:`chunkdic.analysis.zoisweep`.
 from __future__ import annotations
 
 import csv
-import logging
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -41,8 +40,8 @@ from ..scheduler import check_scheduler
 from ..synth.fourier_shift import fourier_shift_scan
 from ..plot.report import plot_uncertainty
 from .challenge import challenge_numbers
+from ..method.study_events import ElementSize, Event, StepShare, UncertaintyRow, emit
 
-log = logging.getLogger(__name__)
 
 __all__ = [
     "fit_power_law",
@@ -258,7 +257,7 @@ PAPER_SETTINGS = {"regularization": "none"}
 
 def uncertainty(scan, element_sizes: Sequence[int], out_dir, settings: Settings | None = None, *, shift=0.5,
                 roi=None, roi_unit: str | None = None, scheduler=None, overwrite: bool = False,
-                progress: Callable[[dict], None] | None = None, **options) -> UncertaintyReport:
+                progress: Callable[[Event], None] | None = None, **options) -> UncertaintyReport:
     """A-priori displacement and strain uncertainty versus element size (paper section 4.2).
 
     Parameters
@@ -280,9 +279,10 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, settings: Settings 
         As in :func:`chunkdic.correlate`.
     overwrite : bool
         Reuse a non-empty ``out_dir`` (its files are replaced).
-    progress : callable(dict), optional
-        Correlation events (see :func:`chunkdic.correlate`) plus ``{"stage": "shift",
-        "fraction": f}`` and ``{"stage": "uncertainty", "element_size": ell, ...row}``.
+    progress : callable(Event), optional
+        The correlations' events (see :func:`chunkdic.correlate`) and the study's
+        (:mod:`chunkdic.method.study_events`): ``StepShare`` of the Fourier shift,
+        ``ElementSize`` before each size's correlation, ``UncertaintyRow`` after it.
     **options
         :class:`chunkdic.Settings` fields for every correlation, as :func:`chunkdic.correlate`
         takes them (over ``settings``'s). ``level``: the pyramid level correlated (the level
@@ -320,25 +320,23 @@ def _uncertainty(src_scan, sizes, out: Path, t, roi, scheduler, progress, given:
     given = dict(given)
     level = int(given.pop("level", 0))
 
-    emit = progress or (lambda event: None)
     # a stored level is used in place; a missing one is written once into out_dir
     src = src_scan.refs([level], out)[level]
     t0 = time.perf_counter()
     shifted = fourier_shift_scan(src, out / "shifted.zarr", t, scheduler=scheduler, overwrite=True,
-                                 progress=lambda f: emit({"stage": "shift", "fraction": f,
-                                                          "seconds": time.perf_counter() - t0}))
+                                 progress=lambda f: emit(progress, StepShare(step="Fourier shift", fraction=f,
+                                                                             seconds=time.perf_counter() - t0)))
     roi_l = _roi_at_level(roi, level)
     roi_arg = None if roi_l is None else ",".join(f"{a}:{b}" for a, b in roi_l)
     rows = []
     for ell in sizes:
-        emit({"stage": "element-size", "element_size": ell})
+        emit(progress, ElementSize(element_size=ell))
         res = correlate(_ref_path(src), _ref_path(shifted), element_size=ell, roi=roi_arg, **given,
                         scheduler=scheduler, output=out / f"result-ell{ell}.zarr", overwrite=True,
                         progress=progress)
         row = _displacement_stats(res, t)
-        log.info("a-priori test, ell %d: %s", ell, row)
         rows.append(row)
-        emit({"stage": "uncertainty", **row})
+        emit(progress, UncertaintyRow(row=row))
     positive = [r for r in rows if r["sigma_u"] > 0]
     fit = fit_power_law([r["element_size"] for r in positive], [r["sigma_u"] for r in positive]) \
         if len({r["element_size"] for r in positive}) >= 2 else None

@@ -15,7 +15,6 @@ nodes at least ``ℓ`` from the faces (:func:`chunkdic.analysis.scoring.scored_r
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,8 +30,8 @@ from .challenge import challenge_numbers, noise_floors
 from ..method.settings import Settings
 from .metrology import PAPER_SETTINGS, check_element_sizes, check_plan, study_settings, write_table
 from .scoring import scored_region
+from ..method.study_events import ElementSize, Event, RepeatRow, emit
 
-log = logging.getLogger(__name__)
 
 __all__ = ["RepeatReport", "repeat_noise", "REPEAT_COLUMNS"]
 
@@ -60,7 +59,7 @@ class RepeatReport:
 
 def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, settings: Settings | None = None, *,
                  roi=None, roi_unit: str | None = None, scheduler=None, overwrite: bool = False,
-                 progress: Callable[[dict], None] | None = None, **options) -> RepeatReport:
+                 progress: Callable[[Event], None] | None = None, **options) -> RepeatReport:
     """Spatial and temporal noise floors of repeated scans (module docstring).
 
     Parameters
@@ -74,7 +73,8 @@ def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, setting
         ``uncertainty.md`` (an ``uncertainty`` folder, as the a-priori test's).
     settings, roi, roi_unit, scheduler, overwrite, progress, **options
         As in :func:`chunkdic.analysis.metrology.uncertainty` (without ``settings``, no
-        regularisation unless ``options`` asks for one).
+        regularisation unless ``options`` asks for one); ``progress`` receives an
+        ``ElementSize`` before each size's correlations and a ``RepeatRow`` after them.
 
     Returns
     -------
@@ -95,11 +95,10 @@ def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, setting
     check_scheduler(scheduler)
     plan = Outputs(inputs=scans, overwrite=overwrite)
     out = plan.add(out_dir, "uncertainty").final
-    emit = progress or (lambda event: None)
     rows = []
     with plan:
         for ell in sizes:
-            emit({"stage": "element-size", "element_size": ell})
+            emit(progress, ElementSize(element_size=ell))
             fields, statuses = [], []
             for k, other in enumerate(scans[1:], 1):
                 res = correlate(scans[0], other, element_size=ell, roi=roi, roi_unit=roi_unit, **given, scheduler=scheduler,
@@ -113,9 +112,8 @@ def repeat_noise(scans: Sequence, element_sizes: Sequence[int], out_dir, setting
             row = {"element_size": ell, **floors, "bias": challenge["bias"], "u_rms": challenge["u_rms"],
                    **{f"bias_{c}": challenge[f"bias_{c}"] for c in "zyx"},
                    "status": ",".join(sorted(set(statuses)))}
-            log.info("repeat noise floor, ell %d: %s", ell, row)
             rows.append(row)
-            emit({"stage": "repeat", **row})
+            emit(progress, RepeatRow(row=row))
         report = RepeatReport(rows)
         files = {"csv": str(out / "uncertainty.csv"), "markdown": str(out / "uncertainty.md")}
         keys = [k for k, _, _ in REPEAT_COLUMNS] + [k for k in rows[0] if k not in {c for c, _, _ in REPEAT_COLUMNS}]

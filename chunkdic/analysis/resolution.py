@@ -45,7 +45,6 @@ between-node field at a time, never a scan.
 from __future__ import annotations
 
 import json
-import logging
 import math
 import time
 from collections.abc import Callable
@@ -71,8 +70,8 @@ from ..synth.scanpairs import NOISE_KEYS, grey_moments, moved_copy
 from .challenge import challenge_numbers
 from .metrology import check_element_sizes, check_plan, check_shift, study_settings, write_table
 from .scoring import score_displacement, scored_region
+from ..method.study_events import ElementSize, Event, ResolutionRow, StepShare, emit
 
-log = logging.getLogger(__name__)
 
 __all__ = ["ResolutionReport", "c8_ratio", "c8_l10", "l10", "resolution", "star_ratios", "star_ratios_nodes"]
 
@@ -242,7 +241,7 @@ def _level0_path(ref: ArrayRef) -> str:
 
 def resolution(scan, element_sizes, out_dir, settings: Settings | None = None, *, noise: float = 0.02, shift=0.5,
                amplitude: float = 0.5, periods: tuple[float, float] | None = None, seed: int = 0, scheduler=None,
-               overwrite: bool = False, progress: Callable[[dict], None] | None = None,
+               overwrite: bool = False, progress: Callable[[Event], None] | None = None,
                **options) -> ResolutionReport:
     """Noise, spatial resolution l10 % and MEI of a correlation setting, on a scan's texture.
 
@@ -270,8 +269,9 @@ def resolution(scan, element_sizes, out_dir, settings: Settings | None = None, *
     seed : int
         Seed of the noises.
     scheduler, overwrite, progress
-        As in :func:`chunkdic.analysis.metrology.uncertainty`; progress also receives
-        ``{"stage": "resolution", ...row}``.
+        As in :func:`chunkdic.analysis.metrology.uncertainty`; ``progress`` receives a
+        ``StepShare`` per scan written, an ``ElementSize`` before each correlation (its ``pair``:
+        star or translated) and a ``ResolutionRow`` per size (:mod:`chunkdic.method.study_events`).
     settings : Settings, optional
         Every correlation's settings, as :func:`chunkdic.correlate` takes them (level 0; its
         ``element_size`` replaced by each of ``element_sizes``).
@@ -314,13 +314,13 @@ def resolution(scan, element_sizes, out_dir, settings: Settings | None = None, *
 def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, scheduler, progress,
                 options) -> ResolutionReport:
 
-    emit = progress or (lambda event: None)
     src = src_scan.refs([0], out)[0]
     shape = tuple(int(n) for n in src.shape)
-    t0 = time.perf_counter()
 
-    def stage(name):
-        return lambda f: emit({"stage": "write", "scan": name, "fraction": f, "seconds": time.perf_counter() - t0})
+    def stage(name):  # called as the scan's writing starts
+        t0 = time.perf_counter()
+        return lambda f: emit(progress, StepShare(step=f"writing {name}.zarr", fraction=f,
+                                                  seconds=time.perf_counter() - t0))
 
     with open_runner(scheduler) as runner:
         _, sd = grey_moments(src, runner)
@@ -352,7 +352,7 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
                             star=star, attrs={"resolution": {"role": "star", "field": star.to_json(), "noise": std}},
                             progress=stage(f"star-ell{ell}"))
         settings["element_size"] = ell
-        emit({"stage": "element-size", "element_size": ell, "pair": "star"})
+        emit(progress, ElementSize(element_size=ell, pair="star"))
         rs = correlate(_level0_path(ref), _level0_path(sp), **settings, scheduler=scheduler,
                        output=out / f"result-star-ell{ell}.zarr", overwrite=True, progress=progress)
         # the noise of the *same* setting: an automatic length is the one chosen on the star
@@ -361,7 +361,7 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
         same = dict(settings)
         if reg.get("kind", "none") != "none" and reg.get("length") is not None:
             same["regularization_length"] = float(reg["length"])
-        emit({"stage": "element-size", "element_size": ell, "pair": "translated"})
+        emit(progress, ElementSize(element_size=ell, pair="translated"))
         rt = correlate(_level0_path(ref), _level0_path(trans), **same, scheduler=scheduler,
                        output=out / f"result-translated-ell{ell}.zarr", overwrite=True, progress=progress)
         sc = score_displacement(rt.node_coords, rt.displacement, t, shape, ell)
@@ -384,8 +384,7 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
             "period_min": lo, "period_max": hi, "amplitude": amplitude,
         }
         rows.append(row)
-        log.info("resolution, ell %d: %s", ell, row)
-        emit({"stage": "resolution", **row})
+        emit(progress, ResolutionRow(row=row))
         with open(out / f"star-ell{ell}.csv", "w") as fh:
             fh.write("period,ratio,fit\n")
             for a, b, c in zip(per, rat, fit):

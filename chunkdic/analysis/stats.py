@@ -121,14 +121,15 @@ class RegionStats:
         if self.rigid:
             lines.append("(rigid motion removed first)")
         head = f"{'quantity':<8} {'unit':<12} {'n':>6} {'mean':>12} {'std':>11} {pct + ' interval of the mean':>30}"
-        head += f"  {'±1.96 std/√n':>12}"
+        z = _z(self.confidence)  # the naive interval at the same confidence as the solve's
+        head += f"  {f'±{z:.3g} std/√n':>12}"
         if self.truth:
             head += f"  {'bias':>10} {'noise floor':>11} {'u_rms':>10}"
         lines.append(head)
         for r in self.rows:
             line = (f"{r.quantity:<8} {r.unit:<12} {r.n:>6} {r.mean:>+12.5g} {r.std:>11.4g} "
                     f"{'[' + format(r.low, '+.5g') + ', ' + format(r.high, '+.5g') + ']':>30}  "
-                    f"{1.959963984540054 * r.naive_sigma_mean:>12.3g}")
+                    f"{z * r.naive_sigma_mean:>12.3g}")
             if self.truth and r.bias is not None:
                 line += f"  {r.bias:>+10.3g} {r.noise_floor:>11.3g} {r.u_rms:>10.3g}"
             lines.append(line)

@@ -20,6 +20,7 @@ from ..io.outputs import Outputs
 from ..results.result import Result, open_result
 from ..results.strain import strain_summary
 from ..scheduler import check_scheduler
+from ..method.study_events import APriori, ElementSize, Event, emit
 from .metrology import (
     PAPER_SETTINGS,
     UncertaintyReport,
@@ -113,7 +114,7 @@ def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dic
 
 def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, settings: Settings | None = None, *, roi=None,
           roi_unit: str | None = None, uncertainty_from=None, a_priori: bool = True, shift=0.5, scheduler=None,
-          overwrite: bool = False, progress: Callable[[dict], None] | None = None, **options) -> dict:
+          overwrite: bool = False, progress: Callable[[Event], None] | None = None, **options) -> dict:
     """The ZOI-size sweep of paper Table 1: correlate for each element size, tabulate.
 
     Parameters
@@ -137,7 +138,10 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, settings: Settin
         Without ``uncertainty_from``, run :func:`uncertainty` on ``ref`` (shift ``shift``)
         for the same sizes to fill ``delta eps``; ``False`` leaves the column empty.
     overwrite : bool
-    progress : callable(dict), optional
+    progress : callable(Event), optional
+        The correlations' events (see :func:`chunkdic.correlate`), an ``ElementSize`` before
+        each size's correlation, ``APriori`` before the a-priori test and that test's events
+        (:mod:`chunkdic.method.study_events`).
     **options
         :class:`chunkdic.Settings` fields (``level``, ``interpolation``, …), as
         :func:`chunkdic.correlate` takes them; as for :func:`uncertainty`, without ``settings``
@@ -170,15 +174,14 @@ def _sweep(ref, deformed, sizes, out: Path, roi, given: dict, d_eps, a_priori: b
     """:func:`sweep` once every input is checked and ``out`` is prepared; ``given``: the
     correlations' settings (:func:`~chunkdic.analysis.metrology.study_settings`)."""
 
-    emit = progress or (lambda event: None)
     results = []
     for ell in sizes:
-        emit({"stage": "element-size", "element_size": ell})
+        emit(progress, ElementSize(element_size=ell))
         results.append(correlate(ref, deformed, element_size=ell, roi=roi, **given, scheduler=scheduler,
                                  output=out / f"result-ell{ell}.zarr", overwrite=True, progress=progress))
     report = None
     if d_eps is None and a_priori:
-        emit({"stage": "a-priori"})
+        emit(progress, APriori())
         report = uncertainty(ref, sizes, out / "uncertainty", shift=shift, roi=roi, scheduler=scheduler,
                              progress=progress, **given)
         d_eps = read_delta_eps(report)

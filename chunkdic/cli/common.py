@@ -10,6 +10,7 @@ import sys
 import time
 
 from ..method.events import EventText
+from ..method.study_events import StepShare, StudyEvent
 
 
 def say(msg: str) -> None:
@@ -42,6 +43,30 @@ def print_progress(event: dict) -> None:
         say(line)
 
 
+class StudyProgress:
+    """The progress of a study on stderr (``uncertainty``, ``sweep``, ``resolution``): its own
+    records at the margin, its correlations' indented below them, and each long step
+    (:class:`~chunkdic.method.study_events.StepShare`) through a :class:`Progress` of its own."""
+
+    def __init__(self):
+        self.steps: dict[str, Progress] = {}
+
+    def __call__(self, event) -> None:
+        if isinstance(event, StepShare):
+            self.share(event)
+            return
+        line = format_event(event)
+        if line:
+            say(line if isinstance(event, StudyEvent) else "  " + line)
+
+    def share(self, event: StepShare) -> None:
+        if event.fraction <= 0 or event.step not in self.steps:  # the step starts (again)
+            self.steps[event.step] = Progress(event.step, elapsed=event.seconds)
+        self.steps[event.step](event.fraction)
+        if event.fraction >= 1:
+            self.steps.pop(event.step).done()
+
+
 #: the shortest time between two progress lines of a step (the engine's block passes use the
 #: same, :data:`chunkdic.passes.level.PROGRESS_SECONDS`)
 PROGRESS_SECONDS = 5.0
@@ -57,14 +82,16 @@ class Progress:
     ``every`` seconds before (the summary that follows says it is done). So a step shorter
     than ``every`` prints its 100 % line only, and no two progress lines of a step are less
     than ``every`` apart. ``header`` is said with the first call, once the inputs and
-    outputs have been checked (a refused run prints its error line only).
+    outputs have been checked (a refused run prints its error line only). ``elapsed``: the
+    seconds the step ran before this object followed it.
 
     """
 
     def __init__(self, step: str, *, header: str | None = None, every: float = PROGRESS_SECONDS,
-                 clock=time.monotonic, indent: str = "  "):
+                 clock=time.monotonic, indent: str = "  ", elapsed: float = 0.0):
         self.step, self.header, self.every, self.clock, self.indent = step, header, every, clock, indent
-        self.t0 = self.last = clock()
+        self.last = clock()
+        self.t0 = self.last - elapsed
         self.lines = 0
 
     def _header(self) -> None:

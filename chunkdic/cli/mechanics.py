@@ -207,20 +207,13 @@ def without_rigid(res, remove: bool):
 
 def run_repeat(args: argparse.Namespace, progress) -> int:
     """``uncertainty SCAN --repeat SCAN2 …``: the noise floors of repeated scans (``progress``: the
-    correlations' events, as ``uncertainty`` prints them)."""
+    study's events, as ``uncertainty`` prints them)."""
     from ..analysis.repeats import repeat_noise
-
-    def events(event: dict) -> None:
-        if event.get("stage") != "repeat":
-            progress(event)
-            return
-        say(f"ell {event['element_size']}: spatial noise floor {event['spatial']:.4f}, temporal {event['temporal']:.4f} "
-            f"voxel ({event['fields']} field(s)), bias {event['bias']:.4f}, u_rms {event['u_rms']:.4f}")
 
     t0 = time.perf_counter()
     rep = repeat_noise([args.scan, *args.repeat], args.element_sizes, args.output, roi=args.roi, level=args.level,
                        interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
-                       progress=events)
+                       progress=progress)
     print(rep.markdown())
     say(f"wrote {rep.files['csv']}, {rep.files['markdown']} ({time.perf_counter() - t0:.1f} s)")
     return 0 if all(set(r["status"].split(",")) == {"converged"} for r in rep.rows) else 1

@@ -12,7 +12,7 @@ import json
 import math
 import time
 
-from .common import add_figure_options, say
+from .common import add_figure_options, print_progress, say
 
 
 def register(subparsers) -> None:
@@ -104,7 +104,7 @@ def run_cutcheck(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     cuts = cutcheck(args.result, args.output, ref=args.ref, deformed=args.deformed, scheduler=args.scheduler,
-                    overwrite=args.overwrite, progress=say, fmt=args.fmt, dpi=args.dpi)
+                    overwrite=args.overwrite, progress=print_progress, fmt=args.fmt, dpi=args.dpi)
     if args.json:
         print(json.dumps([c.as_dict() for c in cuts], indent=2))
     else:

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .common import Progress, add_figure_options, add_strain_option, say
+from .common import Progress, StudyProgress, add_figure_options, add_strain_option, print_progress, say
 from .mechanics import (add_export_options, add_remove_rigid, export_displacements, export_series, profile_figure,
                         run_repeat, without_rigid)
 
@@ -178,42 +178,10 @@ def _shift(text: str):
     return tuple(vals * 3) if len(vals) == 1 else tuple(vals)
 
 
-#: the progress of the Fourier shift under way (its events carry fractions)
-_SHIFT: dict = {}
-
-
 def _whole(stage: str, f: float) -> float:
     """The fraction of a whole fields export from its stage's (level 0 ~ 90 % of the work:
     its tasks evaluate the field and the residual; the pyramid levels are means)."""
     return 0.9 * f if stage == "fields" else 0.9 + 0.1 * f
-
-
-def _progress(event: dict) -> None:
-    from .common import format_event
-
-    stage = event.get("stage")
-    if stage == "shift":
-        f = event["fraction"]
-        if f <= 0 or "shift" not in _SHIFT:  # a new shift (one per uncertainty run)
-            _SHIFT["shift"] = Progress("Fourier shift")
-        _SHIFT["shift"](f)
-        if f >= 1:
-            _SHIFT.pop("shift").done()
-        return
-    if stage == "element-size":
-        say(f"== element size {event['element_size']} ==")
-        return
-    if stage == "a-priori":
-        say("== a-priori uncertainty (Fourier-shifted reference) ==")
-        return
-    if stage == "uncertainty":
-        say(f"ell {event['element_size']}: bias ({event['bias_z']:+.4f}, {event['bias_y']:+.4f}, "
-             f"{event['bias_x']:+.4f}) std ({event['std_z']:.4f}, {event['std_y']:.4f}, {event['std_x']:.4f}) voxel, "
-             f"delta eps {event['delta_eps']:.2e}, gap {event['final_gap_percent']:.3f}%")
-        return
-    line = format_event(event)
-    if line:
-        say("  " + line)
 
 
 def _fmt_tensor(t) -> str:
@@ -321,11 +289,11 @@ def run_uncertainty(args: argparse.Namespace) -> int:
     from ..analysis.metrology import uncertainty
 
     if args.repeat:
-        return run_repeat(args, _progress)
+        return run_repeat(args, StudyProgress())
     t0 = time.perf_counter()
     rep = uncertainty(args.scan, args.element_sizes, args.output, shift=_shift(args.shift), roi=args.roi,
                       level=args.level, interpolation=args.interpolation, scheduler=args.scheduler,
-                      overwrite=args.overwrite, progress=_progress)
+                      overwrite=args.overwrite, progress=StudyProgress())
     print(rep.markdown())
     say(f"wrote {rep.files['csv']}, {rep.files['markdown']}, {rep.files['plot']} "
          f"({time.perf_counter() - t0:.1f} s)")
@@ -339,7 +307,7 @@ def run_sweep(args: argparse.Namespace) -> int:
     out = sweep(args.ref, args.deformed, args.element_sizes, args.output, roi=args.roi, level=args.level,
                 interpolation=args.interpolation, uncertainty_from=args.uncertainty,
                 a_priori=not args.no_a_priori, shift=_shift(args.shift), scheduler=args.scheduler,
-                overwrite=args.overwrite, progress=_progress)
+                overwrite=args.overwrite, progress=StudyProgress())
     print(out["markdown"])
     say(f"wrote {out['md']}, {out['csv']} ({time.perf_counter() - t0:.1f} s)")
     return 0 if all(r["status"] == "converged" for r in out["rows"]) else 1
@@ -375,7 +343,7 @@ def run_report(args: argparse.Namespace) -> int:
     shown = (lambda res: without_rigid(res, True)[0]) if args.remove_rigid else None
     paths = report(args.results, args.output, ref=args.ref, deformed=args.deformed,
                    interpolation=args.interpolation, scheduler=args.scheduler, overwrite=args.overwrite,
-                   progress=say, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi, labels=args.labels,
+                   progress=print_progress, cuts_from=args.cuts_from, fmt=args.fmt, dpi=args.dpi, labels=args.labels,
                    strain=args.strain, shown=shown, extra=extra)
     for p in paths.values():
         print(p)

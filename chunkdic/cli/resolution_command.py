@@ -6,7 +6,7 @@ import argparse
 import time
 
 from ..errors import InputError
-from .common import add_engine_options, engine_options, format_event, say
+from .common import StudyProgress, add_engine_options, engine_options, say
 
 
 def register(subparsers) -> None:
@@ -53,26 +53,6 @@ def _numbers(text: str, name: str, n: int) -> tuple[float, ...]:
     return v
 
 
-def _progress(event: dict) -> None:
-    stage = event.get("stage")
-    if stage == "write":
-        f = event["fraction"]
-        if f >= 1:
-            say(f"  wrote {event['scan']} ({event['seconds']:.1f} s)")
-        return
-    if stage == "element-size":
-        say(f"== element size {event['element_size']}, {event['pair']} pair ==")
-        return
-    if stage == "resolution":
-        b = {"=": "", "<": "< ", ">": "> "}[event["l10_bound"]]
-        say(f"ell {event['element_size']}: n = {event['noise']:.4f} voxel, l10 % = {b}{event['l10']:.1f} voxels, "
-            f"MEI = {event['mei']:.3f}")
-        return
-    line = format_event(event)
-    if line:
-        say("  " + line)
-
-
 def run_resolution(args: argparse.Namespace) -> int:
     from ..analysis.resolution import resolution
 
@@ -85,7 +65,7 @@ def run_resolution(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     rep = resolution(args.scan, args.element_sizes, args.output, noise=args.noise, shift=shift,
                      amplitude=args.amplitude, periods=periods, seed=args.seed, scheduler=scheduler,
-                     overwrite=args.overwrite, progress=_progress, **opts)
+                     overwrite=args.overwrite, progress=StudyProgress(), **opts)
     print(rep.markdown())
     say(f"wrote {rep.files['csv']}, {rep.files['json']}, {rep.files['markdown']} ({time.perf_counter() - t0:.1f} s)")
     ok = all(r["status_translated"] == "converged" and r["status_star"] == "converged" for r in rep.rows)

@@ -31,22 +31,21 @@ from ..passes.stored_matrix import stored_bytes
 GiB, MiB = 2**30, 2**20
 #: resident memory of a running correlation's process besides its tasks and mesh data
 #: when it compiles its numba kernels (bytes; measured: a 128³ run whose tasks and mesh
-#: planned 84 MiB peaked at 450-456 MiB with an empty numba cache, NUMBA_CACHE_DIR=$(mktemp -d))
+#: are planned at 84 MiB peaks at 450-456 MiB with an empty numba cache, NUMBA_CACHE_DIR=$(mktemp -d))
 BASE_BYTES = 372 * MiB
 #: the same when every kernel the run uses loads from numba's cache (:func:`kernels_cached`;
-#: the same runs peaked at 303-312 MiB: compiling holds LLVM's memory besides). Set from a
-#: fresh install (the CI's new virtual environment), whose warm 128³ run peaked at
-#: 359-366 MiB, a base of ~282 MiB; the same code and package versions in a long-lived
-#: development environment peaked 52 MiB lower (base ~246 MiB; cause not found)
+#: compiling holds LLVM's memory besides). That of a fresh install (a new virtual
+#: environment, as the CI's), whose warm 128³ run peaks at 359-366 MiB, a base of ~282 MiB:
+#: a long-lived development environment with the same code and package versions peaks
+#: 52 MiB lower (base ~246 MiB; cause unknown), where the estimate errs on the safe side
 WARM_BASE_BYTES = 285 * MiB
 #: client bytes per node of the finest mesh: the float32 half stencil of ``M`` (504 B), the
 #: V-cycle's coarse ``M``, the fields of the Gauss–Newton state, a ``b`` pass's nodal and
 #: element rows and a solve's vectors at their peak (measured at 128³ nodes with 182 MiB of
 #: kernels, ``bench_client_memory.py --steps --iterations 2``: 2 157 MiB with a length that
 #: takes the V-cycle, 988 B per node; 1 967 MiB, 892 B, with block-Jacobi, to which the
-#: two-lane CG (solve.lanes) adds one vector, 24 B; 1 300 before the
-#: cuts of docs/distributed.md, "Where the client's memory goes"). The automatic length is
-#: not known before the run: the larger.
+#: two-lane CG (solve.lanes) adds one vector, 24 B; docs/distributed.md, "Where the client's
+#: memory goes"). The automatic length is not known before the run: the larger.
 CLIENT_BYTES_PER_NODE = 1000
 #: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
 #: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
@@ -58,7 +57,7 @@ TASK_COPIES = 12.0
 #: +52.2 MiB for 190³: 2.0). The task's peak adds the raw region in its dtype, the cropped
 #: float32 copy and its uint16 quantisation (6 bytes per voxel of the task) and the read's
 #: buffers (:data:`READ_BUFFERS_PER_CHUNK`); two tasks at once hold twice one's (measured:
-#: 20 tasks of 147³ on 2 threads peaked at 194-242 MiB, one alone at 117-128 MiB); the
+#: 20 tasks of 147³ on 2 threads peak at 194-242 MiB, one alone at 117-128 MiB); the
 #: store is written by ``pwrite`` and adds nothing (docs/distributed.md, "The plan's memory
 #: at 512³-2048³")
 PREPARE_COPIES = 2.0
@@ -82,8 +81,8 @@ MIN_PREPARE_EDGE = 48
 COSTS = {"m": 0.9, "b": 0.5, "pyramid": 0.12}
 #: Gauss–Newton passes counted per level: coarse levels (rigid step included on the
 #: coarsest), the finest level (its passes around the length choice: 3-4 on the 300³-1024³
-#: band pairs since the start gaps are summed inside the first one and the stopping rule
-#: predicts the passes still to come, 5 before; 7 counted then, with the 2 gap passes)
+#: band pairs, whose start gaps are summed inside the first pass and whose stopping rule
+#: predicts the passes still to come: 5 counted, an upper bound)
 PASSES = {"coarse": 4, "coarsest-extra": 3, "finest": 5}
 #: client seconds per finest node and solve, and solves counted (iterations, length choice)
 SOLVE_SECONDS_PER_NODE, SOLVES = 1.0e-5, 14
@@ -206,9 +205,14 @@ def _chunks_of(scan, s: int) -> tuple[int, ...]:
     return chunk_shape_for(scan.shape(s), None)
 
 
-def pyramid_bytes(scan, levels) -> int:
-    """Scratch bytes of the pyramid levels a scan lacks (uncompressed: an upper bound)."""
-    return sum(pyramid_levels(scan, levels).values())
+def pyramid_scratch(scans, levels) -> dict[int, int]:
+    """Scratch bytes of the pyramid levels the scans lack, per level, the scans together
+    (uncompressed: an upper bound)."""
+    pyramids: dict[int, int] = {}
+    for scan in scans:
+        for s, b in pyramid_levels(scan, levels).items():
+            pyramids[s] = pyramids.get(s, 0) + b
+    return pyramids
 
 
 def pyramid_levels(scan, levels) -> dict[int, int]:

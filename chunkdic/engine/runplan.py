@@ -18,6 +18,7 @@ import math
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -55,7 +56,7 @@ from .costs import (
     output_bytes,
     peak_scratch,
     prepare_bytes,
-    pyramid_levels,
+    pyramid_scratch,
     pyramid_tasks,
     read_buffer_bytes,
     task_bytes,
@@ -229,108 +230,185 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     """The :class:`Plan` of a run; ``target`` (bytes per process) chooses the block edge and
     the prefilter's task edge: the largest (up to ``chunkdic.block-voxels`` and
     :data:`~chunkdic.passes.prefilter.TASK_EDGE`) whose estimated peak fits."""
-    threads, concurrency, separate = threads_of(scheduler)
-    base = base_bytes()
-    levels = sorted(meshes, reverse=True)
-    sigma, interp = settings.smoothing, settings.interpolation
-    prepared = interp == "cubic" or sigma > 0
-    finest = meshes[levels[-1]]
+    model = MemoryModel.of(f_scan, g_scan, meshes, settings, scheduler)
+    edge, prep_edge = fitting_edges(model, target)
+    task, process = model.peak(edge, prep_edge)
+    plans = [level_plan(model, s, edge, prep_edge, coarsest=i == 0, finest=i == len(model.levels) - 1)
+             for i, s in enumerate(model.levels)]
+    pyramids = pyramid_scratch((f_scan, g_scan), model.levels)
+    root, free = scratch_room(scratch_dir, output)
+    fast = peak_scratch(pyramids, _stores_bytes(plans))
+    chosen = scratch_layout(fast, free)
+    if chosen == "compact":
+        plans = [compact_level(lv, f_scan.dtype(lv.level), g_scan.dtype(lv.level), settings.smoothing,
+                               settings.interpolation) for lv in plans]
+    pyr = sum(pyramids.values())
+    finest = model.meshes[model.levels[-1]]
+    out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
+    return Plan(
+        levels=tuple(plans), threads=model.concurrency, separate_client=model.separate, client_bytes=model.client,
+        task_bytes=task, process_bytes=process, pyramid_bytes=pyr,
+        scratch_bytes=peak_scratch(pyramids, _stores_bytes(plans)),
+        output_bytes=output_bytes(finest, model.cell_of(finest)), scratch_dir=str(_existing_parent(root.absolute())),
+        scratch_free=free, output_dir=None if out_dir is None else str(out_dir),
+        output_free=None if out_dir is None else _free(out_dir), seconds=math.nan, calibration="",
+        block_voxels=edge, prepare_edge=prep_edge, memory_target=target,
+        fixed_work=2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0,
+        solve_seconds=SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape),
+        smallest_bytes=model.peak(1, MIN_PREPARE_EDGE)[1], layout=chosen, fast_scratch_bytes=fast,
+        base_bytes=model.base).timed(None)
 
-    def cell_of(mesh: Mesh) -> int:
-        return offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
 
-    def client_bytes(mesh: Mesh) -> int:
+def scratch_room(scratch_dir, output) -> tuple[Path, int]:
+    """The scratch directory (``scratch_dir``, else ``chunkdic.scratch-directory``, else the
+    system's temporary directory) and its free bytes for this run: what dead runs left there
+    counts as free, as this run reclaims it or (a resume of ``output``) reuses it; else a
+    resume would find its own interrupted run's scratch filling the disk it needs."""
+    root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
+    return root, _free(root) + reclaimable_scratch_bytes(root, release=output)
+
+
+@dataclasses.dataclass(frozen=True)
+class MemoryModel:
+    """The memory a run's processes hold, as a function of the block and prefilter task edges:
+    the scans, meshes and settings of the run, and how many tasks run at once where."""
+
+    f_scan: Any
+    g_scan: Any
+    meshes: dict
+    settings: Settings
+    levels: list  # coarsest first
+    threads: int  # tasks at once per process
+    concurrency: int  # tasks at once in all
+    separate: bool  # tasks in other processes than the client's
+    base: int  # bytes of a process before any data
+    halo: int  # the prefilter's halo, voxels
+    pyramid_task: int  # bytes of the largest pyramid task
+    pyramid_tasks: int  # and how many there are
+
+    @classmethod
+    def of(cls, f_scan, g_scan, meshes: dict, settings, scheduler) -> "MemoryModel":
+        threads, concurrency, separate = threads_of(scheduler)
+        levels = sorted(meshes, reverse=True)
+        halo = prepared_halo(settings.smoothing, settings.interpolation, int(config.get("bspline-halo")))
+        pyr_task, pyr_tasks = max(pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
+        return cls(f_scan, g_scan, meshes, settings, levels, threads, concurrency, separate, base_bytes(), halo,
+                   pyr_task, pyr_tasks)
+
+    @property
+    def prepared(self) -> bool:
+        """Whether ``g`` is prefiltered into scratch (cubic interpolation or a low-pass)."""
+        return self.settings.interpolation == "cubic" or self.settings.smoothing > 0
+
+    @property
+    def client(self) -> int:
+        """The client's data: that of the finest level."""
+        return self.client_bytes(self.meshes[self.levels[-1]])
+
+    def cell_of(self, mesh: Mesh) -> int:
+        return offset_cell(self.settings.grey, mesh.element_size, self.settings.grey_cell)
+
+    def client_bytes(self, mesh: Mesh) -> int:
         # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
-        return CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, cell_of(mesh))
+        return CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, self.cell_of(mesh))
 
-    client = client_bytes(finest)
-    pyr_task, pyr_tasks = max(pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
-
-    h = prepared_halo(sigma, interp, int(config.get("bspline-halo")))
-
-    def prepare_task_bytes(s: int, edges) -> int:
-        """The largest prefilter task of level ``s`` with tasks of ``edges`` voxels."""
-        shape = g_scan.shape(s)
-        return prepare_bytes(edges, sigma, interp, shape=shape, raw_itemsize=np.dtype(g_scan.dtype(s)).itemsize,
-                             quantized=prepared_grid(g_scan.dtype(s), sigma, interp)[1] > 0,
-                             read_bytes=read_buffer_bytes(g_scan, s, [e + 2 * h for e in edges]))
-
-    def elements(edge: int, mesh: Mesh) -> int:
+    def elements(self, edge: int, mesh: Mesh) -> int:
         # as the level makes its blocks (whole brightness cells, chunkdic.passes.level.LevelPasses)
-        m = aligned_block_elements(settings.block_elements or max(1, edge // mesh.element_size), cell_of(mesh))
+        wanted = self.settings.block_elements or max(1, edge // mesh.element_size)
+        m = aligned_block_elements(wanted, self.cell_of(mesh))
         return min(m, max(mesh.shape))
 
-    def peak(edge: int, prep_edge: int) -> tuple[int, int]:
-        """(largest task, peak of the largest process) with blocks of ``edge`` voxels: a kind
-        of task runs at most ``threads`` at once, and never more than there are of it; in
-        this process, with the client's data of the level the tasks belong to (a coarse
+    def level_disk(self, s: int, m: int) -> tuple[int, int, list]:
+        """:func:`~chunkdic.engine.costs.level_disk` of level ``s`` with blocks of ``m`` elements."""
+        st = self.settings
+        return level_disk(self.meshes[s], self.g_scan.shape(s), m, st.smoothing, self.f_scan.dtype(s), self.prepared,
+                          self.g_scan.dtype(s), st.interpolation)
+
+    def prepare_task_bytes(self, s: int, edges) -> int:
+        """The largest prefilter task of level ``s`` with tasks of ``edges`` voxels."""
+        g, sigma, interp = self.g_scan, self.settings.smoothing, self.settings.interpolation
+        return prepare_bytes(edges, sigma, interp, shape=g.shape(s), raw_itemsize=np.dtype(g.dtype(s)).itemsize,
+                             quantized=prepared_grid(g.dtype(s), sigma, interp)[1] > 0,
+                             read_bytes=read_buffer_bytes(g, s, [e + 2 * self.halo for e in edges]))
+
+    def held(self, edge: int, prep_edge: int) -> list[tuple[int, int]]:
+        """``(bytes of the tasks at once, the client's data then)`` of each kind of task with
+        blocks of ``edge`` voxels: a kind runs at most ``threads`` at once, and never more
+        than there are of it, beside the client's data of the level it belongs to (a coarse
         level's prefilter, whose reads decode the scratch pyramid's uint32 chunks, may hold
         more than the finest level's tasks, but beside a small mesh)."""
-        held = [(pyr_task * min(threads, pyr_tasks), 0)]  # (tasks at once, the client's data then)
-        for s in levels:
-            mesh = meshes[s]
-            on_client = client_bytes(mesh)
-            m = elements(edge, mesh)
+        sigma, interp = self.settings.smoothing, self.settings.interpolation
+        held = [(self.pyramid_task * min(self.threads, self.pyramid_tasks), 0)]
+        for s in self.levels:
+            mesh = self.meshes[s]
+            on_client = self.client_bytes(mesh)
+            m = self.elements(edge, mesh)
             n_blocks = math.prod(-(-n // m) for n in mesh.shape)
-            cache = chunk_cache_bytes((f_scan, g_scan), s)  # once per process, shared by its threads
-            held.append((task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks) + cache,
+            cache = chunk_cache_bytes((self.f_scan, self.g_scan), s)  # once per process, shared by its threads
+            held.append((task_bytes(m * mesh.element_size, sigma, interp) * min(self.threads, n_blocks) + cache,
                          on_client))
-            if prepared:
-                box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)[2]
+            if self.prepared:
+                box = self.level_disk(s, m)[2]
                 edges = [task_edge(b, 1, prep_edge) for b in box]
                 n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
-                held.append((prepare_task_bytes(s, edges) * min(threads, n_prep) + cache, on_client))
+                held.append((self.prepare_task_bytes(s, edges) * min(self.threads, n_prep) + cache, on_client))
+        return held
+
+    def peak(self, edge: int, prep_edge: int) -> tuple[int, int]:
+        """(largest task, peak of the largest process) with blocks of ``edge`` voxels and
+        prefilter tasks of ``prep_edge``: with the tasks in other processes, the client and
+        a worker each hold their own; in this process, the tasks beside the client's data."""
+        held = self.held(edge, prep_edge)
         task = max(t for t, _ in held)
-        if separate:
-            return task, base + max(client, task)
-        return task, base + max(client, max(t + c for t, c in held))
+        if self.separate:
+            return task, self.base + max(self.client, task)
+        return task, self.base + max(self.client, max(t + c for t, c in held))
 
+
+def fitting_edges(model: MemoryModel, target: int | None) -> tuple[int, int]:
+    """The block edge and prefilter task edge: the defaults, shrunk (blocks first, by a fifth
+    at a time, then the prefilter's tasks) until the peak fits ``target``. A target that even
+    the smallest blocks exceed keeps the defaults: :meth:`Plan.check` refuses the run, the
+    plan showing the blocks it would have used."""
     edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
-    smallest = peak(1, MIN_PREPARE_EDGE)[1]
-    if target is not None and smallest <= target:  # else refused, the plan showing the default blocks
-        ell_min = min(m.element_size for m in meshes.values())
-        while peak(edge, prep_edge)[1] > target and edge > ell_min and settings.block_elements is None:
-            edge = max(ell_min, int(edge * 0.8))
-            prep_edge = max(MIN_PREPARE_EDGE, min(prep_edge, edge + 32))
-        while peak(edge, prep_edge)[1] > target and prep_edge > MIN_PREPARE_EDGE:
-            prep_edge = max(MIN_PREPARE_EDGE, prep_edge - 16)
-    task, process = peak(edge, prep_edge)
+    if target is None or model.peak(1, MIN_PREPARE_EDGE)[1] > target:
+        return edge, prep_edge
+    ell_min = min(m.element_size for m in model.meshes.values())
+    while model.peak(edge, prep_edge)[1] > target and edge > ell_min and model.settings.block_elements is None:
+        edge = max(ell_min, int(edge * 0.8))
+        prep_edge = max(MIN_PREPARE_EDGE, min(prep_edge, edge + 32))
+    while model.peak(edge, prep_edge)[1] > target and prep_edge > MIN_PREPARE_EDGE:
+        prep_edge = max(MIN_PREPARE_EDGE, prep_edge - 16)
+    return edge, prep_edge
 
-    plans = []
-    for i, s in enumerate(levels):
-        mesh = meshes[s]
-        m = elements(edge, mesh)
-        n_blocks = math.prod(-(-n // m) for n in mesh.shape)
-        f_copy, prep, box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)
-        passes = PASSES["finest"] if i == len(levels) - 1 else PASSES["coarse"]
-        passes += PASSES["coarsest-extra"] if i == 0 else 0
-        filtered = math.prod(b + 2 * h * -(-b // task_edge(b, 1, prep_edge)) for b in box) if prep else 0
-        work = mesh.n_voxels * (COSTS["m"] + passes * COSTS["b"]) + filtered
-        plans.append(LevelPlan(s, tuple(mesh.nodes_shape), int(mesh.n_voxels), int(m), int(m * mesh.element_size),
-                               int(n_blocks), f_copy, prep, task_bytes(m * mesh.element_size, sigma, interp), work))
-    pyramids = {}
-    for scan in (f_scan, g_scan):
-        for s, b in pyramid_levels(scan, levels).items():
-            pyramids[s] = pyramids.get(s, 0) + b
-    pyr = sum(pyramids.values())
-    root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
-    # what dead runs left there is this run's to reclaim or (a resume) to reuse: free for the plan,
-    # or a resume would find its own interrupted run's scratch filling the disk it needs
-    free = _free(root) + reclaimable_scratch_bytes(root, release=output)
-    fast = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
+
+def level_plan(model: MemoryModel, s: int, edge: int, prep_edge: int, *, coarsest: bool, finest: bool) -> LevelPlan:
+    """Level ``s``'s blocks, scratch stores and work (voxel operations of its passes, weighted
+    by :data:`~chunkdic.engine.costs.COSTS`) with blocks of ``edge`` voxels."""
+    mesh, sigma, interp = model.meshes[s], model.settings.smoothing, model.settings.interpolation
+    m = model.elements(edge, mesh)
+    n_blocks = math.prod(-(-n // m) for n in mesh.shape)
+    f_copy, prep, box = model.level_disk(s, m)
+    passes = PASSES["finest"] if finest else PASSES["coarse"]
+    passes += PASSES["coarsest-extra"] if coarsest else 0
+    filtered = math.prod(b + 2 * model.halo * -(-b // task_edge(b, 1, prep_edge)) for b in box) if prep else 0
+    work = mesh.n_voxels * (COSTS["m"] + passes * COSTS["b"]) + filtered
+    return LevelPlan(s, tuple(mesh.nodes_shape), int(mesh.n_voxels), int(m), int(m * mesh.element_size),
+                     int(n_blocks), f_copy, prep, task_bytes(m * mesh.element_size, sigma, interp), work)
+
+
+def _stores_bytes(plans) -> dict[int, int]:
+    """Each level's scratch stores (its low-passed ``f`` and prepared ``g``), bytes."""
+    return {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans}
+
+
+def scratch_layout(fast_bytes: int, free: int) -> str:
+    """``chunkdic.scratch-layout``; ``auto``: compact when the fast layout's peak scratch does
+    not fit the free disk (with the margin of :data:`~chunkdic.io.diskspace.DISK_MARGIN`)."""
     chosen = layout()
     if chosen == "auto":
-        chosen = "compact" if fast * DISK_MARGIN > free else "fast"
-    if chosen == "compact":
-        plans = [compact_level(lv, f_scan.dtype(lv.level), g_scan.dtype(lv.level), sigma, interp) for lv in plans]
-    scratch = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
-    pyr_work = 2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0
-    solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
-    out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
-    return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest, cell_of(finest)),
-                str(_existing_parent(root.absolute())), free, None if out_dir is None else str(out_dir),
-                None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
-                solve_seconds, smallest, chosen, fast, base).timed(None)
+        chosen = "compact" if fast_bytes * DISK_MARGIN > free else "fast"
+    return chosen
 
 
 def compact_level(lv: LevelPlan, f_dtype, g_dtype, sigma: float, interpolation: str) -> LevelPlan:

@@ -7,7 +7,10 @@ Each record is also a read-only mapping (``event["stage"]``, ``event.get("level"
 ``dict(event)``), so a script's callback reads it as a dict. Each class words itself
 (:meth:`Event.words`); :class:`EventText` adds the explanations a person at a terminal
 needs once per run (the CLI's progress lines, :func:`chunkdic.cli.common.print_progress`).
-The method emits the Gauss–Newton and start stages, the passes theirs, the run the rest.
+The method emits the Gauss–Newton and start stages, the passes theirs, the run the rest;
+the studies (series, uncertainty, sweep, resolution, repeats, cut check) emit the records of
+:mod:`chunkdic.analysis.study_events`, subclasses of :class:`Event` worded the same way.
+Every subclass with a ``stage`` registers itself in :data:`STAGES` when its module is imported.
 """
 
 from __future__ import annotations
@@ -37,12 +40,23 @@ EXPLAIN = {
 }
 
 
+#: the record class of every stage, filled as the classes are defined (:meth:`Event.__init_subclass__`)
+STAGES: dict[str, type["Event"]] = {}
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Event(Mapping):
     """A stage's record; ``group``: the step of a loading series it belongs to (None: a lone run)."""
 
     stage: ClassVar[str] = ""
+    #: the level at which :func:`emit` logs it (a frequent record, such as a share of a long step, logs lower)
+    log_level: ClassVar[int] = logging.INFO
     group: str | None = None
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if cls.__dict__.get("stage"):
+            STAGES[cls.stage] = cls
 
     def __getitem__(self, key: str) -> Any:
         if key == "stage":
@@ -373,28 +387,9 @@ class Complete(Event):
         return f"{self.path} is already complete (the same inputs and settings): nothing to do"
 
 
-@dataclasses.dataclass(frozen=True, kw_only=True)
-class SeriesStep(Event):
-    """A step of a loading series starts (``run``: computed, resumed) or is skipped (done before)."""
-
-    stage: ClassVar[str] = "series-step"
-    pair: str
-    run: str
-
-    def words(self, text):
-        what = {"computed": "correlating", "resumed": "resuming", "done before": "done before, skipped:"}[self.run]
-        return f"series: {what} {self.group} (scans {self.pair})"
-
-
-#: the record class of every stage
-STAGES: dict[str, type[Event]] = {cls.stage: cls for cls in (
-    Start, PlanMade, Compile, Matrix, FCopy, Prepared, Blocks, Rigid, Affine, StartChoice, Gaps, Iteration,
-    Regularization, Reweighting, Init, Unsettled, LevelDone, Resume, ScratchKept, Complete, SeriesStep)}
-
-
 def as_event(event: Mapping) -> Event | None:
     """``event`` as its stage's record (a plain mapping with a known ``stage`` converted,
-    its unknown keys left out), or None for a stage this module does not know."""
+    its unknown keys left out), or None for a stage no imported module declares."""
     if isinstance(event, Event):
         return event
     cls = STAGES.get(event.get("stage"))
@@ -458,7 +453,7 @@ def describe(event: Mapping) -> str:
 
 def emit(progress: Callable[[Event], None] | None, event: Event) -> None:
     """Log an event (its line, INFO) and hand the record to the caller's ``progress`` callback."""
-    if log.isEnabledFor(logging.INFO):
-        log.info("%s", describe(event))
+    if log.isEnabledFor(event.log_level):
+        log.log(event.log_level, "%s", describe(event))
     if progress is not None:
         progress(event)

@@ -38,6 +38,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..io.outputs import Outputs
+from ..method.study_events import Event, Skipped, Written, emit
 from ..results.result import Result
 from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
 from ..results.strain import DEFAULT_MEASURE, MEASURE_SYMBOLS, check_measure
@@ -74,7 +75,7 @@ __all__ = ["report", "plot_cuts", "plot_u_maps", "plot_uz_maps", "plot_epszz_map
 
 
 def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
-              progress: Callable[[str], None] | None = None, fmt: str = "png",
+              progress: Callable[[Event], None] | None = None, fmt: str = "png",
               dpi: int | None = None) -> dict[str, str]:
     """Mid-plane cuts of reference, deformed and corrected images, and the residual.
 
@@ -93,8 +94,8 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
     scheduler
         Where the plane tasks run, as in :func:`chunkdic.correlate`. The client only
         receives the three planes (:func:`chunkdic.export.correction.planes`).
-    progress : callable(str), optional
-        Called with a message per figure.
+    progress : callable(Event), optional
+        Called with a :class:`~chunkdic.method.study_events.Written` per figure.
     fmt : {"png", "pdf", "svg"}
     dpi : int, optional
 
@@ -119,8 +120,7 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
             cut = correction.planes(result, f_ref, g_ref, normal, idx, runner, interpolation=interpolation)
             residuals[name] = (cut["prepared"] - cut["corrected"], cut["prepared"])
             paths[f"cut_{name}"] = _cut_figure(result, normal, idx, cut, fr, out_dir / f"cut_{name}.{fmt}", dpi)
-            if progress:
-                progress(f"wrote {paths[f'cut_{name}']}")
+            emit(progress, Written(paths=[paths[f"cut_{name}"]]))
     fig = figure(13, 4.4)
     axs = fig.subplots(1, 3)
     lim = max([np.nanpercentile(np.abs(r), 99.5) for r, _ in residuals.values() if np.isfinite(r).any()] or [1.0])
@@ -136,8 +136,7 @@ def plot_cuts(result, out_dir, *, ref=None, deformed=None, interpolation: str | 
     fig.suptitle(f"{result_label(result)}: residual f − (λ g(X + u(X)) + μ), scans low-passed as correlated, on the "
                  f"ROI mid-planes; final gap {100 * result.final_gap:.2f} %")
     paths["residual"] = save(fig, out_dir / f"residual.{fmt}", dpi)
-    if progress:
-        progress(f"wrote {paths['residual']}")
+    emit(progress, Written(paths=[paths["residual"]]))
     return paths
 
 
@@ -346,7 +345,7 @@ def _cuts_result(results: list[Result], cuts_from) -> Result:
 
 
 def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | None = None, scheduler=None,
-           overwrite: bool = False, progress: Callable[[str], None] | None = None, cuts_from=None,
+           overwrite: bool = False, progress: Callable[[Event], None] | None = None, cuts_from=None,
            fmt: str = "png", dpi: int | None = None, labels=None, strain: str = DEFAULT_MEASURE,
            shown: Callable[[Result], Result] | None = None,
            extra: dict[str, Callable] | None = None) -> dict[str, str]:
@@ -369,8 +368,10 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         Where the cut planes are computed (:func:`plot_cuts`).
     overwrite : bool
         Replace the figures of an earlier report in ``out_dir``.
-    progress : callable(str), optional
-        One message per figure written (or skipped, with the reason).
+    progress : callable(Event), optional
+        Called with a :class:`~chunkdic.method.study_events.Written` per figure written (a
+        :class:`~chunkdic.method.study_events.Skipped` for the cuts, with the reason, when the
+        scans are not on disk).
     cuts_from : Result or path, optional
         The result whose field the cuts use; must be one of ``results``.
     fmt : {"png", "pdf", "svg"}
@@ -409,7 +410,6 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
     at = next(i for i, r in enumerate(results) if r is cut_res)
     results = with_labels(results, labels)
     cut_res = results[at]
-    say = progress or (lambda msg: None)
     skip = None
     try:
         input_scans(cut_res, ref, deformed)  # checked before anything is written
@@ -426,7 +426,7 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
 
     def done(name, path):
         paths[name] = path
-        say(f"wrote {path}")
+        emit(progress, Written(paths=[path]))
 
     fields = results if shown is None else [shown(r) for r in results]
     with plan:  # a failure removes the figures this run wrote, never older files
@@ -443,7 +443,7 @@ def report(results, out_dir, *, ref=None, deformed=None, interpolation: str | No
         if skip is None:
             paths.update(plot_cuts(cut_res, out_dir, ref=ref, deformed=deformed,
                                    interpolation=interpolation or interpolation_of(cut_res), scheduler=scheduler,
-                                   progress=say, fmt=fmt, dpi=dpi))
+                                   progress=progress, fmt=fmt, dpi=dpi))
         else:
-            say(f"skipped the cuts and residual: {skip}")
+            emit(progress, Skipped(what="the cuts and residual", reason=str(skip)))
     return paths

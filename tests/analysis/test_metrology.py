@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
+import io
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from chunkdic.analysis.metrology import PowerLaw, fit_power_law
 from chunkdic.cli import report_commands as _cli_report
 from chunkdic.errors import InputError
 from chunkdic.io.handles import ArrayRef
+from chunkdic.method.study_events import APriori, ElementSize
 from chunkdic.results.result import open_result
 from chunkdic.synth import foam, fourier_shift, synthetic
 
@@ -100,7 +103,10 @@ def uncertainty_dir(affine_pair, tmp_path_factory):
     out = tmp_path_factory.mktemp("unc") / "u"
     args = _parser().parse_args(["uncertainty", affine_pair["reference"], "--element-sizes", "16", "8",
                                  "-o", str(out)])
-    assert args.func(args) == 0
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert args.func(args) == 0
+    (out.parent / "stderr.txt").write_text(err.getvalue())  # the progress lines, read by a test below
     return out
 
 
@@ -123,6 +129,21 @@ def test_uncertainty_command_on_synthetic_texture(uncertainty_dir):
     assert float(rows[16]["bias"]) == pytest.approx(float(np.sqrt(np.mean(err.mean(axis=(1, 2, 3)) ** 2))), rel=1e-9)
 
 
+def test_uncertainty_progress_lines_follow_the_study(uncertainty_dir):
+    """The study's records at the margin, in the order of the sizes asked for; its correlations'
+    indented below; each size's line gives the bias against the known 0.5-voxel shift."""
+    lines = (uncertainty_dir.parent / "stderr.txt").read_text().splitlines()
+    assert any(line.startswith("  Fourier shift: 100%") for line in lines)
+    heads = [line for line in lines if line.startswith("==")]
+    assert heads == ["== element size 16 ==", "== element size 8 =="]
+    first, second = (lines.index(h) for h in heads)
+    assert any(line.startswith("  level 0 iter") for line in lines[first:second])  # the correlation, indented
+    rows = [line for line in lines if line.startswith("ell ")]
+    assert [r.split(":")[0] for r in rows] == ["ell 16", "ell 8"]
+    bias = [float(v) for v in rows[0].split("bias (")[1].split(")")[0].split(",")]
+    assert max(abs(b) for b in bias) < 0.02  # the field's mean minus the exact 0.5-voxel shift
+
+
 def test_uncertainty_refuses_bad_input(affine_pair, tmp_path):
     with pytest.raises(InputError):
         metrology.uncertainty(affine_pair["reference"], [1], tmp_path / "x")
@@ -131,10 +152,19 @@ def test_uncertainty_refuses_bad_input(affine_pair, tmp_path):
 
 
 def test_sweep_table(affine_pair, uncertainty_dir, tmp_path):
+    events = []
     out = zoisweep.sweep(affine_pair["reference"], affine_pair["deformed"], [16, 8], tmp_path / "sweep",
-                         uncertainty_from=uncertainty_dir)
+                         uncertainty_from=uncertainty_dir, progress=events.append)
     rows = out["rows"]
     assert [r["element_size"] for r in rows] == [16, 8]
+    # an ElementSize record before each size's correlation, whose Start names the nodes of the
+    # result written for that size; no a-priori test (its numbers come from uncertainty_dir)
+    marks = [i for i, e in enumerate(events) if isinstance(e, ElementSize)]
+    assert [events[i].element_size for i in marks] == [16, 8]
+    assert not any(isinstance(e, APriori) for e in events)
+    for i, r in zip(marks, rows):
+        start = next(e for e in events[i:] if e["stage"] == "start")
+        assert tuple(start.nodes) == open_result(r["result"]).displacement.shape[1:]
     with open(uncertainty_dir / "uncertainty.csv", newline="") as fh:  # what `uncertainty` measured per ell
         measured = {int(r["element_size"]): float(r["delta_eps"]) for r in csv.DictReader(fh)}
     for r in rows:

@@ -11,6 +11,7 @@ import pytest
 
 from chunkdic.analysis.resolution import c8_l10, c8_ratio, l10, resolution
 from chunkdic.errors import InputError
+from chunkdic.method.study_events import ElementSize, StepShare
 from chunkdic.synth.fields import Field, Star
 from chunkdic.synth.fourier_shift import fourier_shift_rows
 
@@ -81,9 +82,20 @@ def test_unregularised_c8_l10_on_the_star(tmp_path, ell, shape):
     from chunkdic.synth.synthetic import synthesize
 
     synthesize(tmp_path / "g", shape, specimen="grains", field=None, noise=0.0, seed=3)
+    events = []
     rep = resolution(str(tmp_path / "g" / "ref.zarr"), [ell], tmp_path / "r", noise=0.01,
-                     periods=(1.5 * ell, 5.0 * ell), regularization="none", smoothing=0.0, max_iterations=60)
+                     periods=(1.5 * ell, 5.0 * ell), regularization="none", smoothing=0.0, max_iterations=60,
+                     progress=events.append)
     row = rep.rows[0]
+    # every scan the study writes is followed to its end; the star pair is correlated before the translated
+    shares = {}
+    for e in events:
+        if isinstance(e, StepShare):
+            shares[e.step] = max(shares.get(e.step, 0.0), e.fraction)
+    names = ("reference", "shifted", "translated", f"star-ell{ell}")
+    assert shares == {f"writing {n}.zarr": 1.0 for n in names}
+    assert [(e.element_size, e.pair) for e in events if isinstance(e, ElementSize)] == [(ell, "star"),
+                                                                                       (ell, "translated")]
     assert row["l10_bound"] == "="
     assert abs(row["l10"] / c8_l10(ell) - 1) < 0.2, row
     assert 0 < row["noise"] < 0.1

@@ -17,6 +17,7 @@ import pytest
 
 import chunkdic
 from chunkdic.cli.app import main
+from chunkdic.method.study_events import SeriesStep
 from chunkdic.synth import synthetic
 
 # end-to-end runs (whole commands, clusters, kills): `pytest -m 'not slow'` leaves them out
@@ -140,6 +141,10 @@ def test_resume_after_a_kill_skips_finished_steps(run, tmp_path):
     s = chunkdic.series(run["scans"], out, progress=events.append, **OPTIONS)
     assert [r["run"] for r in s.rows] == ["done before", "resumed", "computed", "computed"]
     assert any(e["stage"] == "resume" and e["group"] == "002-incremental" for e in events)
+    # one SeriesStep per step, saying what the kill left; no correlation event from the skipped step
+    assert [(e.group, e.run) for e in events if isinstance(e, SeriesStep)] == [
+        ("001-incremental", "done before"), ("002-incremental", "resumed"), ("002-cumulative", "computed")]
+    assert {e.group for e in events if not isinstance(e, SeriesStep)} == {"002-incremental", "002-cumulative"}
     for k, ref in run["series"].cumulative.items():  # identical to the uninterrupted series
         np.testing.assert_allclose(s.cumulative[k].displacement, ref.displacement, rtol=0, atol=1e-9)
     with pytest.raises(chunkdic.InputError, match="complete loading series"):

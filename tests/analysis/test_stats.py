@@ -302,3 +302,14 @@ def test_interval_of_a_region_mean_covers_the_truth_19_of_20(capsys):
             print(f"  {key[0]:<28} {key[1]:<7} {covered[key]:>2} / {naive[key]:>2}")
     assert all(16 <= c <= 20 for c in covered.values()), covered
     assert all(naive[k] <= 10 for k in naive if k[1] != "Uz")  # Uz varies over the region: its std is the signal
+
+
+def test_the_naive_column_uses_the_asked_confidence():
+    """``std/√n`` beside the interval at the same confidence: z = 1.6449 at 90 %, 2.5758 at 99 %."""
+    from chunkdic.analysis.stats import RegionStats, Row
+
+    row = Row("Uz", "voxel", 100, 0.0, 1.0, 0.05, -0.1, 0.1, naive_sigma_mean=0.1)
+    for confidence, z in ((0.9, 1.6448536), (0.99, 2.5758293)):
+        text = RegionStats("r.zarr", "ROI", "small", confidence, [row]).text().splitlines()
+        assert f"±{z:.3g} std/√n" in text[-2]
+        assert float(text[-1].split()[-1]) == pytest.approx(z * 0.1, abs=5e-4)  # printed to 3 digits

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,6 +13,7 @@ import scipy.ndimage as ndi
 import chunkdic
 from chunkdic.cli import report_commands as _cli_report
 from chunkdic.errors import InputError
+from chunkdic.method.study_events import Skipped, Written
 from chunkdic.synth import synthetic
 from chunkdic.export.corrected_image import open_corrected, write_corrected
 from chunkdic.export.meshfiles import VTK_HEX_ORDER, hexahedra
@@ -103,11 +106,15 @@ def test_report_without_scans_skips_cuts(translation, tmp_path):
     _, res, _ = translation
     mem = chunkdic.Result(res.displacement, res.node_coords, res.history,
                           {**res.info, "inputs": {"reference": "<in-memory ndarray>"}})
-    msgs = []
-    paths = report(mem, tmp_path / "fig", progress=msgs.append)
+    events = []
+    paths = report(mem, tmp_path / "fig", progress=events.append)
     assert set(paths) == {"uz_map", "uy_map", "ux_map", "epszz_map", "epszz_profile", "epszz_profile_csv", "gap",
                           "uncertainty_map"}
-    assert any("skipped" in m for m in msgs)
+    # one Written record per file on the disk (beside the folder's hidden marker), and the cuts' Skipped with the reason
+    written = [p for e in events if isinstance(e, Written) for p in e.paths]
+    assert sorted(Path(p).name for p in written) == sorted(f for f in os.listdir(tmp_path / "fig") if f[0] != ".")
+    (skipped,) = [e for e in events if isinstance(e, Skipped)]
+    assert skipped.what == "the cuts and residual" and "in-memory" in skipped.reason
 
 
 def test_vtk_and_csv_export(translation, tmp_path):

@@ -11,7 +11,7 @@
 
 Usage::
 
-    nice -n 10 python benchmarks/mechanics_images.py --workdir /tmp/mech-images --out docs/images
+    nice -n 10 python docs/tools/mechanics_images.py --workdir /tmp/mech-images --out docs/images
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Crack detection and opening on synthetic cracks: the true/false-positive table of docs/cracks.md.
+"""Crack detection and opening on synthetic cracks: the true/false-positive table of docs/validation/cracks.md.
 
 Pairs (64³ by default, written once under ``--workdir``): a planar crack through the volume
 (:class:`chunkdic.synth.fields.Crack`) of opening 0.1, 0.3 and 1.0 voxel, normal to z with a
@@ -21,17 +21,18 @@ Scored per pair:
 - **opening / sliding**: the mean over the crack elements within one element of the plane,
   against the truth, with the mean of their standard uncertainties.
 
-Usage::
+Usage (``python -m validation run cracks`` runs it and writes ``validation/records/cracks.json``)::
 
-    nice -n 10 python benchmarks/bench_cracks.py --workdir /tmp/cracks --record benchmarks/records/bench_cracks.json
+    nice -n 10 python validation/scripts/bench_cracks.py --workdir /tmp/cracks --record /tmp/cracks/raw.json
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
-import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -135,13 +136,10 @@ def main() -> None:
         print(f"| {r['pair']} | {r['texture']} | {reg} | {r['cracks']} | {r['tp']} | {r['fp']} | {f(r['recall'], '.2f')} "
               f"| {f(r['opening'], '.3f')} {truth_o} | {f(r['sliding'], '.3f')} {truth_s} | {f(r['sigma'], '.3f')} "
               f"| {f(r['residual_ratio'], '.2f')} |")
-    if args.record:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-        Path(args.record).write_text(json.dumps({"commit": commit, "machine": platform.node(),
-                                                 "command": "python benchmarks/bench_cracks.py " + " ".join(
-                                                     f"--{k} {' '.join(map(str, v)) if isinstance(v, list) else v}"
-                                                     for k, v in vars(args).items() if k != "record"),
-                                                 "rows": rows}, indent=2) + "\n")
+    if args.record:  # the shape of the other studies' scripts: validation/studies.py reads its rows
+        meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "host": platform.node(), "cores": os.cpu_count(),
+                "argv": sys.argv[1:]}
+        Path(args.record).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")
 
 
 if __name__ == "__main__":
