@@ -24,7 +24,15 @@ from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .penalty import NO_FREED, add_weighted
 from .regularizer import Regularizer
-from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi, subtract_cells
+from .stencil import (
+    half_matvec,
+    no_diagonal,
+    pcg,
+    pcg_block_jacobi,
+    rigid_restriction,
+    stencil_matvec,
+    subtract_cells,
+)
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +107,12 @@ class StencilSolver:
         #: (:meth:`solve`)
         self.largest_rhs = 0.0
         self.nodes_shape = half.shape[:3]
+        #: ``M`` restricted to uniform translations, less the brightness cells' share (3, 3),
+        #: taken before the weak nodes are held
+        self.rigid_matrix = rigid_restriction(half)
+        if self.cells.shape[0]:  # a cell's W summed over its nodes
+            shares = self.cells.sum(axis=(3, 4, 5), dtype=np.float64).reshape(-1, 3, 4)
+            self.rigid_matrix = self.rigid_matrix - np.einsum("cip,cjp->ij", shares, shares)
         # the eigenvalues of the diagonal blocks, a slab of planes at a time: the client
         # never holds the float64 blocks of the whole mesh (docs/distributed.md)
         smallest, mean = np.empty(self.nodes_shape), np.empty(self.nodes_shape)
@@ -214,6 +228,10 @@ class StencilSolver:
         half_matvec(self.matrix, x, out)
         subtract_cells(self.cells, self.cell, x, out)
         return out
+
+    def stencil_product(self, x: np.ndarray) -> np.ndarray:
+        """``M x`` alone (no brightness cells, no penalty), (nz, ny, nx, 3) float64."""
+        return stencil_matvec(self.matrix, x)
 
     def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(M + λ R) x``, into ``out`` (float64, x's shape, contiguous) when given."""
