@@ -38,6 +38,7 @@ from ..passes.stored_matrix import cells_bytes
 from ..scheduler import threads_of
 from .costs import (
     BASE_BYTES,
+    BLOCKED_CLIENT_BYTES_PER_NODE,
     CLIENT_BYTES_PER_NODE,
     COSTS,
     FIXED_SECONDS,
@@ -49,6 +50,7 @@ from .costs import (
     GiB,
     MiB,
     base_bytes,
+    blocks_bytes,
     calibrate,
     chunk_cache_bytes,
     level_disk,
@@ -101,6 +103,12 @@ class Plan:
         Scratch pyramid levels (all of them at the start; each deleted when its level
         ends); peak scratch (the largest, over levels, of a level's haloed ``f`` and
         prepared ``g`` plus the pyramid levels still held); the result.
+    mesh_data : {"client", "workers", "disk"}
+        Where the finest level's mesh data live: the client, or node blocks on the workers
+        (a cluster) or on the scratch disk (the embedded scheduler);
+        ``mesh_why`` says why. ``mesh_blocks_from``: levels of at least this many nodes go
+        to blocks (None: none); ``blocks_bytes``: their blocks together (spread over the
+        workers, or on disk).
     layout : {"fast", "compact"}
         How the levels' scratch stores are kept (:mod:`chunkdic.passes.scratchstore`):
         compact when the fast layout's ``fast_scratch_bytes`` do not fit the free disk
@@ -139,6 +147,11 @@ class Plan:
     layout: str = "fast"
     fast_scratch_bytes: int = 0
     base_bytes: int = BASE_BYTES
+    mesh_data: str = "client"
+    mesh_why: str = ""
+    mesh_blocks_from: int | None = None
+    blocks_bytes: int = 0
+    workers: int = 1
 
     def timed(self, seconds_per_voxel: float | None, label: str | None = None) -> "Plan":
         """The plan with its times from ``seconds_per_voxel`` of one task's prefilter of ``g``
@@ -165,6 +178,7 @@ class Plan:
         target = "" if self.memory_target is None else f" (target {_b(self.memory_target)})"
         out.append(f"  memory: client {_b(self.client_bytes)} of mesh data, tasks {_b(self.task_bytes)} at once; "
                    f"peak per process ~{_b(self.process_bytes)}{target}")
+        out.append(f"  mesh data: {self._mesh_words()}")
         disk = f"  disk: scratch {_b(self.scratch_bytes)} (pyramids {_b(self.pyramid_bytes)}) in {self.scratch_dir} " \
                f"({_b(self.scratch_free)} free), {self._layout_words()}"
         if self.output_dir is not None:
@@ -179,7 +193,15 @@ class Plan:
         return (f"plan: levels {[lv.level for lv in self.levels]}, level {finest.level} "
                 f"{'x'.join(map(str, finest.nodes))} nodes in {finest.blocks} blocks of {finest.block_edge}³; "
                 f"memory ~{_b(self.process_bytes)} per process (client {_b(self.client_bytes)}, tasks "
-                f"{_b(self.task_bytes)}); scratch {_b(self.scratch_bytes)} {self.layout}; ~{_duration(self.seconds)}")
+                f"{_b(self.task_bytes)}); mesh data {self.mesh_data}; scratch {_b(self.scratch_bytes)} {self.layout}; "
+                f"~{_duration(self.seconds)}")
+
+    def _mesh_words(self) -> str:
+        if self.mesh_data == "client":
+            return f"in the client ({self.mesh_why})"
+        where = (f"on the {self.workers} workers ({_b(self.blocks_bytes / self.workers)} each)"
+                 if self.mesh_data == "workers" else f"in a Zarr store under the scratch ({_b(self.blocks_bytes)})")
+        return f"in node blocks {where}, levels of {self.mesh_blocks_from}+ nodes ({self.mesh_why})"
 
     def _layout_words(self) -> str:
         if self.layout == "fast":
@@ -239,11 +261,14 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     def cell_of(mesh: Mesh) -> int:
         return offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
 
-    def client_bytes(mesh: Mesh) -> int:
-        # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
-        return CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, cell_of(mesh))
+    blocks_from = None  # the mesh data's placement (mesh_placement), once the client's is known
 
-    client = client_bytes(finest)
+    def client_bytes(mesh: Mesh) -> int:
+        nodes = math.prod(mesh.nodes_shape)
+        if blocks_from is not None and nodes >= blocks_from:
+            return BLOCKED_CLIENT_BYTES_PER_NODE * nodes
+        # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
+        return CLIENT_BYTES_PER_NODE * nodes + cells_bytes(mesh.shape, cell_of(mesh))
     pyr_task, pyr_tasks = max(pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
 
     h = prepared_halo(sigma, interp, int(config.get("bspline-halo")))
@@ -281,12 +306,20 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
                 n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
                 held.append((prepare_task_bytes(s, edges) * min(threads, n_prep) + cache, on_client))
         task = max(t for t, _ in held)
-        if separate:
-            return task, base + max(client, task)
+        client = client_bytes(finest)
+        held_blocks = blocks_bytes(finest, cell_of(finest)) if blocks_from is not None else 0
+        if separate:  # a worker holds its tasks and its share of the node blocks
+            return task, base + max(client, task + held_blocks // max(concurrency, 1))
         return task, base + max(client, max(t + c for t, c in held))
 
     edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
     smallest = peak(1, MIN_PREPARE_EDGE)[1]
+    # the mesh data go to node blocks when the client's cannot fit the target even with the
+    # smallest blocks
+    mesh_data, why, blocks_from = mesh_placement(meshes, target, smallest - client_bytes(finest), separate,
+                                                 cell_of)
+    if blocks_from is not None:
+        smallest = peak(1, MIN_PREPARE_EDGE)[1]
     if target is not None and smallest <= target:  # else refused, the plan showing the default blocks
         ell_min = min(m.element_size for m in meshes.values())
         while peak(edge, prep_edge)[1] > target and edge > ell_min and settings.block_elements is None:
@@ -327,10 +360,34 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     pyr_work = 2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0
     solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
     out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
-    return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest, cell_of(finest)),
+    return Plan(tuple(plans), concurrency, separate, client_bytes(finest), task, process, pyr, scratch, output_bytes(finest, cell_of(finest)),
                 str(_existing_parent(root.absolute())), free, None if out_dir is None else str(out_dir),
                 None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
-                solve_seconds, smallest, chosen, fast, base).timed(None)
+                solve_seconds, smallest, chosen, fast, base, mesh_data, why, blocks_from,
+                blocks_bytes(finest, cell_of(finest)) if blocks_from is not None else 0, concurrency).timed(None)
+
+
+def mesh_placement(meshes: dict, target: int | None, rest: int, separate: bool, cell_of
+                   ) -> tuple[str, str, int | None]:
+    """Where the mesh data go (``chunkdic.mesh-data``): ``(place, why, nodes from which a level
+    goes to blocks)``. Under ``auto``, the levels whose client data (:data:`CLIENT_BYTES_PER_NODE`)
+    with ``rest`` (the process's base and smallest tasks) exceed the memory target; ``blocks``
+    puts every level there."""
+    mode = config.get("mesh-data")
+    where = "workers" if separate else "disk"
+    if mode == "blocks":
+        return where, "chunkdic.mesh-data: blocks", min(math.prod(m.nodes_shape) for m in meshes.values())
+    if mode == "client":
+        return "client", "chunkdic.mesh-data: client", None
+    if target is None:
+        return "client", "no memory target", None
+    need = {math.prod(m.nodes_shape): rest + CLIENT_BYTES_PER_NODE * math.prod(m.nodes_shape)
+            + cells_bytes(m.shape, cell_of(m)) for m in meshes.values()}
+    over = [n for n, b in need.items() if b > target]
+    if not over:
+        return "client", f"they fit the memory target {_b(target)}", None
+    first = min(over)
+    return where, f"{_b(need[first])} with them in the client would exceed the memory target {_b(target)}", first
 
 
 def compact_level(lv: LevelPlan, f_dtype, g_dtype, sigma: float, interpolation: str) -> LevelPlan:

@@ -86,6 +86,9 @@ class PartitionedSolver:
         self.chunks = stencil.chunks[:3]
         self.largest_rhs = 0.0
         self.multigrid = False
+        #: ``M`` restricted to uniform translations, less the brightness cells' share (3, 3),
+        #: taken before the weak nodes are held (as the in-memory solver's)
+        self.rigid_matrix = self._rigid(stencil)
         # two sweeps over the blocks: the float64 mean eigenvalue of every node (8 B per node
         # in the client, for the median), then the weak nodes against it
         (mean,) = holder.values(stencil.map_blocks(_mean_eigenvalue, chunks=self.chunks, drop_axis=[3, 4, 5],
@@ -182,9 +185,8 @@ class PartitionedSolver:
         y *= self.weight
         return y
 
-    def rigid_matrix(self) -> np.ndarray:
+    def _rigid(self, H: da.Array) -> np.ndarray:
         """``Σ_ij M_ij`` (3, 3) less the brightness cells' share (the operator's rigid restriction)."""
-        H = self.matrix_blocks
         centre, off = self.holder.values(H[..., 0, :, :].sum(axis=(0, 1, 2), dtype=np.float64),
                                          H[..., 1:, :, :].sum(axis=(0, 1, 2, 3), dtype=np.float64))
         rigid = centre + off + off.T
