@@ -18,7 +18,6 @@ blocks per thread whatever the mesh (docs/distributed.md, "Mesh data beyond one 
 
 from __future__ import annotations
 
-import itertools
 import shutil
 from pathlib import Path
 
@@ -132,9 +131,9 @@ class WorkerHolder:
 class DiskHolder:
     """Node blocks in Zarr stores under ``directory``, computed by Dask's threaded scheduler.
 
-    Each :meth:`hold` writes a new generation of the named store (a store is never read
-    while it is written) and removes the generation before the last (a caller's expressions
-    built from the previous one stay readable until its next :meth:`hold`).
+    Each name has two stores, written in turn (double buffering): a :meth:`step` writes the
+    one its expressions do not read (they read the name's last one), with no store created
+    or removed per step.
 
     Parameters
     ----------
@@ -149,39 +148,38 @@ class DiskHolder:
     def __init__(self, directory, threads: int = 1):
         self.directory, self.threads = Path(directory), max(1, int(threads))
         self.directory.mkdir(parents=True, exist_ok=True)
-        self._generations: dict[str, list[Path]] = {}
-        self._count = itertools.count()
+        self._stores: dict[str, list] = {}
+        self._turn: dict[str, int] = {}
 
     def hold(self, x: da.Array, name: str) -> da.Array:
-        """``x`` computed into a new generation of the store ``name``, read back lazily."""
+        """``x`` computed into the store ``name`` not read now, read back lazily."""
         return self.step({name: x})[0][name]
+
+    def _target(self, name: str, x: da.Array):
+        """The store of ``name`` to write now (made on first use; again if ``x``'s shape changed)."""
+        import zarr
+
+        stores = self._stores.get(name)
+        if stores is None or stores[0].shape != x.shape or stores[0].dtype != x.dtype:
+            # zarr chunks of the regular blocks; the last block, up to one node longer, owns the
+            # chunks its nodes start: every zarr chunk written by one task
+            chunks = tuple(axis[0] for axis in x.chunks)
+            stores = [zarr.create_array(str(self.directory / f"{name}-{k}.zarr"), shape=x.shape, chunks=chunks,
+                                        dtype=x.dtype, fill_value=0, compressors=None, zarr_format=3,
+                                        overwrite=True) for k in (0, 1)]
+            self._stores[name], self._turn[name] = stores, 1
+        self._turn[name] = 1 - self._turn[name]
+        return stores[self._turn[name]]
 
     def step(self, arrays: dict, values=None) -> tuple[dict, list]:
         """Write ``arrays`` (name → lazy array) and compute ``values(arrays)`` in the same
         pass (each block computed once, stored and used by the values), then read them back."""
-        import zarr
-
-        stores, targets = [], []
-        for name, x in arrays.items():
-            path = self.directory / f"{name}-{next(self._count)}.zarr"
-            # zarr chunks of the regular blocks; the last block, up to one node longer, owns the
-            # chunks its nodes start: every zarr chunk written by one task
-            chunks = tuple(axis[0] for axis in x.chunks)
-            z = zarr.create_array(str(path), shape=x.shape, chunks=chunks, dtype=x.dtype, fill_value=0,
-                                  compressors=None, zarr_format=3)
-            stores.append(x)
-            targets.append((name, path, z))
+        targets = [self._target(name, x) for name, x in arrays.items()]
         lazy = [] if values is None else list(values(arrays))
         with dask.config.set(scheduler="threads", num_workers=self.threads):
-            stored = [da.store(stores, [z for _, _, z in targets], lock=False, compute=False)] if stores else []
+            stored = [da.store(list(arrays.values()), targets, lock=False, compute=False)] if arrays else []
             out = dask.compute(*stored, *lazy)[len(stored):]
-        held = {}
-        for (name, path, z), x in zip(targets, stores):
-            kept = self._generations.setdefault(name, [])
-            kept.append(path)
-            while len(kept) > 2:
-                shutil.rmtree(kept.pop(0), ignore_errors=True)
-            held[name] = da.from_zarr(z, chunks=x.chunks)
+        held = {name: da.from_zarr(z, chunks=x.chunks) for (name, x), z in zip(arrays.items(), targets)}
         return held, list(out)
 
     def values(self, *xs):
@@ -190,7 +188,7 @@ class DiskHolder:
 
     def close(self) -> None:
         shutil.rmtree(self.directory, ignore_errors=True)
-        self._generations.clear()
+        self._stores.clear()
 
 
 def from_client(a: np.ndarray, chunks, holder, name: str) -> da.Array:

@@ -159,15 +159,15 @@ class PartitionedSolver:
 
     def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(M + λ R) x`` (nz, ny, nx, 3), float64, in the client."""
-        return self._gather(self._product(self._vector(x, "x")), out)
+        return self._gather(self._product(self._vector(x, "in")), out)
 
     def data_matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``M x`` minus the brightness cells' complement."""
-        return self._gather(self._product(self._vector(x, "x"), penalty=False), out)
+        return self._gather(self._product(self._vector(x, "in"), penalty=False), out)
 
     def stencil_product(self, x: np.ndarray) -> np.ndarray:
         """``M x`` alone (no cells, no penalty)."""
-        return self._gather(self._product(self._vector(x, "x"), penalty=False, cells=False))
+        return self._gather(self._product(self._vector(x, "in"), penalty=False, cells=False))
 
     def _gather(self, y: da.Array, out: np.ndarray | None = None) -> np.ndarray:
         (v,) = self.holder.values(y)
