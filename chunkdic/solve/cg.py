@@ -257,12 +257,7 @@ class StencilSolver:
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
         code, Ke, Kf, sw, ew, freed = self._reg_args
-        norm = rhs_norm(b)
-        if reference is None:
-            self.largest_rhs = largest = max(self.largest_rhs, norm)
-        else:
-            largest = max(float(reference), norm)
-        rtol = self.rtol * largest / norm if norm > 0 else self.rtol
+        rtol = relative_tolerance(self, b, reference)
         if self._vcycle is not None:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
@@ -284,6 +279,17 @@ class StencilSolver:
         reg_args = (code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed)
         return lanes.pcg_two_lanes(self.matrix, self._diag_args, b, x, rtol, self.maxiter, reg_args, self.weight,
                                    self.cells, self.cell, overwrite_b)
+
+
+def relative_tolerance(solver, b: np.ndarray, reference: float | None) -> float:
+    """CG's tolerance relative to ``b``'s norm for ``solver.rtol`` relative to the larger of
+    ``b``'s norm and ``reference`` (None: ``solver.largest_rhs``, which this raises)."""
+    norm = rhs_norm(b)
+    if reference is None:
+        solver.largest_rhs = largest = max(solver.largest_rhs, norm)
+    else:
+        largest = max(float(reference), norm)
+    return solver.rtol * largest / norm if norm > 0 else solver.rtol
 
 
 def rhs_norm(b: np.ndarray) -> float:

@@ -28,7 +28,7 @@ import dask.array as da
 import numpy as np
 
 from ..errors import InputError
-from .cg import rhs_norm
+from .cg import relative_tolerance
 from .nodeblocks import core_slices, extended_chunks, fold_faces, from_client, haloed
 from .penalty import NO_FREED, add_weighted, freed_diagonal
 from .regularizer import Regularizer
@@ -235,17 +235,10 @@ class PartitionedSolver:
     def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
               reference: float | None = None) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b`` (nz, ny, nx, 3): :meth:`~chunkdic.solve.cg.StencilSolver.solve`'s
-        CG (block-Jacobi), its vectors in node blocks. Returns the solution (in the client) and
-        the number of CG iterations."""
-        norm = rhs_norm(b)
-        if reference is None:
-            self.largest_rhs = largest = max(self.largest_rhs, norm)
-        else:
-            largest = max(float(reference), norm)
-        rtol = self.rtol * largest / norm if norm > 0 else self.rtol
+        CG (block-Jacobi), its vectors in node blocks (``b`` is copied into them: ``overwrite_b``
+        changes nothing). Returns the solution (in the client) and the number of CG iterations."""
+        rtol = relative_tolerance(self, b, reference)
         r = self._vector(b, "r")
-        if overwrite_b:
-            del b  # the caller's copy is all that remains of it
         x, iterations = self._pcg(r, rtol)
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
