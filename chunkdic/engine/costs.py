@@ -50,10 +50,13 @@ WARM_BASE_BYTES = 285 * MiB
 CLIENT_BYTES_PER_NODE = 1000
 #: client bytes per node when the level's mesh data are in node blocks
 #: (docs/distributed.md, "Mesh data beyond one process"): the Gauss–Newton state's fields,
-#: a ``b`` pass's nodal and element rows, a solve's right-hand side and solution, the nodal
-#: uncertainty; the stencil, the cells' couplings and the CG vectors are in the blocks
-#: (measured by ``bench_client_memory.py --mesh-data blocks``)
-BLOCKED_CLIENT_BYTES_PER_NODE = 400
+#: a ``b`` pass's nodal and element rows, a solve's right-hand side and solution, the
+#: penalty's setup (plane waves), the threaded scheduler's blocks in flight; the stencil,
+#: the cells' couplings and the CG vectors are in the blocks (measured at 885 k nodes,
+#: ``bench_client_memory.py --sizes 768 --element-size 8 --regularize 2 --solves 1
+#: --mesh-data blocks``: 861 MiB, 683 B per node above the warm base, without the
+#: Gauss–Newton passes; 920 MiB in memory)
+BLOCKED_CLIENT_BYTES_PER_NODE = 700
 #: bytes per node the node blocks hold together (spread over the workers, or on the scratch
 #: disk with the embedded scheduler): the float32 half stencil (504 B), the CG's vectors held
 #: at once (``x``, ``r``, ``p``, ``q`` and the generation being written: 6 × 24 B)
