@@ -17,14 +17,15 @@ import functools
 import shutil
 from pathlib import Path
 
-import dask.array as da
 import numpy as np
 
 from .. import config
 from ..mesh import Mesh
 from ..scheduler import threads_of
-from ..solve.nodeblocks import DiskHolder, WorkerHolder, extended_chunks, fold_faces, node_chunks
-from ..solve.partitioned import PartitionedSolver
+
+# dask.array (and the node blocks, built on it) are imported by the levels that use them:
+# a correlation whose mesh data stay in the client never loads it (about 1 s;
+# tests/io/test_scan.py)
 
 
 def in_blocks(mesh: Mesh) -> bool:
@@ -40,6 +41,8 @@ def in_blocks(mesh: Mesh) -> bool:
 
 def holder_for(runner, directory: Path):
     """Where node blocks live: the workers of a ``distributed`` runner, else a Zarr store in ``directory``."""
+    from ..solve.nodeblocks import DiskHolder, WorkerHolder
+
     client = getattr(runner, "client", None)
     if client is not None:
         return WorkerHolder(client)
@@ -64,6 +67,8 @@ class BlockedMatrix:
 
     def __init__(self, mesh: Mesh, block_elements: int, cell: int, holder, directory: Path):
         import zarr
+
+        from ..solve.nodeblocks import extended_chunks, node_chunks
 
         self.holder, self.directory, self.cell = holder, Path(directory), int(cell)
         self.chunks = node_chunks(mesh.nodes_shape, block_elements)
@@ -93,20 +98,29 @@ class BlockedMatrix:
             first = [e0 // self.cell for e0, _ in blk.elements]
             self._cells[tuple(slice(c, c + n) for c, n in zip(first, block_cells.shape[:3]))] = block_cells
 
-    def stencil(self) -> da.Array:
-        """The half stencil in node blocks, held (shape (nz, ny, nx, 14, 3, 3), float32)."""
+    def stencil(self):
+        """The half stencil in node blocks, held (dask array, shape (nz, ny, nx, 14, 3, 3), float32)."""
+        import dask.array as da
+
+        from ..solve.nodeblocks import fold_faces
+
         partials = da.from_zarr(self._partials, chunks=self.ext + ((14,), (3,), (3,)))
         return self.holder.hold(fold_faces(partials), "stencil")
 
-    def cells(self) -> da.Array | None:
-        """The brightness cells' couplings, chunked by the cells of each node block, held."""
+    def cells(self):
+        """The brightness cells' couplings, chunked by the cells of each node block, held (dask array)."""
+        import dask.array as da
+
         if self._cells is None:
             return None
         chunks = self.cell_chunks + tuple((n,) for n in self._cells.shape[3:])
         return self.holder.hold(da.from_zarr(self._cells, chunks=chunks), "cells")
 
-    def solver(self, stencil, *, cells=None, cell: int = 1) -> PartitionedSolver:
-        """The solver of the blocks (:func:`~chunkdic.method.operator.build_operator`'s ``make_solver``)."""
+    def solver(self, stencil, *, cells=None, cell: int = 1):
+        """The :class:`~chunkdic.solve.partitioned.PartitionedSolver` of the blocks
+        (:func:`~chunkdic.method.operator.build_operator`'s ``make_solver``)."""
+        from ..solve.partitioned import PartitionedSolver
+
         return PartitionedSolver(stencil, self.holder, cells=cells, cell=cell)
 
     def close(self) -> None:
