@@ -20,6 +20,15 @@ DEFAULTS = {
         # Peak resident memory per process to plan for ("2GiB"; None: no target): block and
         # prefilter task sizes are chosen to fit it, a run that cannot is refused (docs/engine.md).
         "memory-target": None,
+        # Where a level's mesh-sized data (M's stencil, the brightness cells' couplings, the
+        # solver's vectors) live: "client" (in the client process), "blocks" (in node blocks on
+        # the workers of a cluster, or in a Zarr store under the scratch with the embedded
+        # scheduler) or "auto": in blocks on the levels whose mesh data do not fit the memory
+        # target (the plan says which). docs/distributed.md, "Mesh data beyond one process".
+        "mesh-data": "auto",
+        # Nodes from which a level's mesh data go to blocks: set by the plan under "auto"
+        # (None: no level).
+        "mesh-blocks-from": None,
         # Storage in scratch of the low-passed f blocks and the prepared g of a 1- or 2-byte
         # integer scan level: "uint16" (on a 16-bit grid of the dtype's range: half the disk)
         # or "float32" (exact). docs/engine.md, "Scratch disk".

@@ -26,7 +26,7 @@ from ..kernels.jit import kernels_cached
 from ..mesh import Mesh
 from ..passes.haloed import quantization
 from ..passes.prefilter import gaussian_radius, prepare_deformed, prepared_grid, prepared_halo
-from ..passes.stored_matrix import stored_bytes
+from ..passes.stored_matrix import cells_bytes, stored_bytes
 
 GiB, MiB = 2**30, 2**20
 #: resident memory of a running correlation's process besides its tasks and mesh data
@@ -47,6 +47,19 @@ WARM_BASE_BYTES = 285 * MiB
 #: two-lane CG (solve.lanes) adds one vector, 24 B; docs/distributed.md, "Where the client's
 #: memory goes"). The automatic length is not known before the run: the larger.
 CLIENT_BYTES_PER_NODE = 1000
+#: client bytes per node when the level's mesh data are in node blocks
+#: (docs/distributed.md, "Mesh data beyond one process"): the Gauss–Newton state's fields,
+#: a ``b`` pass's nodal and element rows, a solve's right-hand side and solution, the
+#: penalty's setup (plane waves), the threaded scheduler's blocks in flight; the stencil,
+#: the cells' couplings and the CG vectors are in the blocks (measured at 885 k nodes,
+#: ``bench_client_memory.py --sizes 768 --element-size 8 --regularize 2 --solves 1
+#: --mesh-data blocks``: 861 MiB, 683 B per node above the warm base, without the
+#: Gauss–Newton passes; 920 MiB in memory)
+BLOCKED_CLIENT_BYTES_PER_NODE = 700
+#: bytes per node the node blocks hold together (spread over the workers, or on the scratch
+#: disk with the embedded scheduler): the float32 half stencil (504 B), the CG's vectors held
+#: at once (``x``, ``r``, ``p``, ``q`` and the generation being written: 6 × 24 B)
+BLOCKS_BYTES_PER_NODE = 650
 #: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
 #: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
 #: blocks of 32-128 voxels)
@@ -100,6 +113,11 @@ def base_bytes() -> int:
     """A process's memory besides its tasks and mesh data: :data:`WARM_BASE_BYTES` when
     every kernel loads from numba's cache, else :data:`BASE_BYTES`."""
     return WARM_BASE_BYTES if kernels_cached() else BASE_BYTES
+
+
+def blocks_bytes(mesh: Mesh, cell: int = 1) -> int:
+    """Bytes of a level's node blocks (stencil, cells' couplings, CG vectors) together."""
+    return BLOCKS_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, cell)
 
 
 def task_bytes(block_edge: int, sigma: float, interpolation: str, span: float = 0.0) -> int:

@@ -82,8 +82,10 @@ def holding(spec: RunSpec, identity: RunIdentity, budget: Plan, output, outputs:
         if budget.memory_target is not None:  # the block and prefilter task sizes the target chose
             stack.enter_context(dask.config.set({"chunkdic.block-voxels": budget.block_voxels,
                                                  "chunkdic.prepare-voxels": budget.prepare_edge}))
-        # the scratch layout the plan chose (compact only when the fast one does not fit)
-        stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout}))
+        # the scratch layout the plan chose (compact only when the fast one does not fit), and
+        # the levels whose mesh data go to node blocks
+        stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout,
+                                             "chunkdic.mesh-blocks-from": budget.mesh_blocks_from}))
         if output is not None:
             stack.enter_context(OutputLock(output))  # one writer per output
         held = None

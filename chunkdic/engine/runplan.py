@@ -18,9 +18,6 @@ import math
 import os
 import tempfile
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from .. import config
 from ..errors import DiskSpaceError, InputError
@@ -29,17 +26,12 @@ from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
 from ..io.ownership import kept_scratch, reclaimable_scratch_bytes
-from ..mesh import Mesh
-from ..method.brightness import aligned_block_elements, offset_cell
 from ..method.settings import Settings
 from ..passes.haloed import quantization
-from ..passes.prefilter import prepare_voxels, prepared_grid, prepared_halo, task_edge
+from ..passes.prefilter import prepared_grid, task_edge
 from ..passes.scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
-from ..passes.stored_matrix import cells_bytes
-from ..scheduler import threads_of
 from .costs import (
     BASE_BYTES,
-    CLIENT_BYTES_PER_NODE,
     COSTS,
     FIXED_SECONDS,
     MIN_PREPARE_EDGE,
@@ -50,18 +42,15 @@ from .costs import (
     GiB,
     MiB,
     base_bytes,
+    blocks_bytes,
     calibrate,
-    chunk_cache_bytes,
-    level_disk,
     output_bytes,
     peak_scratch,
-    prepare_bytes,
     pyramid_scratch,
-    pyramid_tasks,
-    read_buffer_bytes,
     task_bytes,
 )
 from .front import prepare_run
+from .processmemory import MemoryModel, fitting_edges, mesh_placement
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,6 +91,12 @@ class Plan:
         Scratch pyramid levels (all of them at the start; each deleted when its level
         ends); peak scratch (the largest, over levels, of a level's haloed ``f`` and
         prepared ``g`` plus the pyramid levels still held); the result.
+    mesh_data : {"client", "workers", "disk"}
+        Where the finest level's mesh data live: the client, or node blocks on the workers
+        (a cluster) or on the scratch disk (the embedded scheduler);
+        ``mesh_why`` says why. ``mesh_blocks_from``: levels of at least this many nodes go
+        to blocks (None: none); ``blocks_bytes``: their blocks together (spread over the
+        workers, or on disk).
     layout : {"fast", "compact"}
         How the levels' scratch stores are kept (:mod:`chunkdic.passes.scratchstore`):
         compact when the fast layout's ``fast_scratch_bytes`` do not fit the free disk
@@ -140,6 +135,11 @@ class Plan:
     layout: str = "fast"
     fast_scratch_bytes: int = 0
     base_bytes: int = BASE_BYTES
+    mesh_data: str = "client"
+    mesh_why: str = ""
+    mesh_blocks_from: int | None = None
+    blocks_bytes: int = 0
+    workers: int = 1
 
     def timed(self, seconds_per_voxel: float | None, label: str | None = None) -> "Plan":
         """The plan with its times from ``seconds_per_voxel`` of one task's prefilter of ``g``
@@ -166,6 +166,7 @@ class Plan:
         target = "" if self.memory_target is None else f" (target {_b(self.memory_target)})"
         out.append(f"  memory: client {_b(self.client_bytes)} of mesh data, tasks {_b(self.task_bytes)} at once; "
                    f"peak per process ~{_b(self.process_bytes)}{target}")
+        out.append(f"  mesh data: {self._mesh_words()}")
         disk = f"  disk: scratch {_b(self.scratch_bytes)} (pyramids {_b(self.pyramid_bytes)}) in {self.scratch_dir} " \
                f"({_b(self.scratch_free)} free), {self._layout_words()}"
         if self.output_dir is not None:
@@ -180,7 +181,15 @@ class Plan:
         return (f"plan: levels {[lv.level for lv in self.levels]}, level {finest.level} "
                 f"{'x'.join(map(str, finest.nodes))} nodes in {finest.blocks} blocks of {finest.block_edge}³; "
                 f"memory ~{_b(self.process_bytes)} per process (client {_b(self.client_bytes)}, tasks "
-                f"{_b(self.task_bytes)}); scratch {_b(self.scratch_bytes)} {self.layout}; ~{_duration(self.seconds)}")
+                f"{_b(self.task_bytes)}); mesh data {self.mesh_data}; scratch {_b(self.scratch_bytes)} {self.layout}; "
+                f"~{_duration(self.seconds)}")
+
+    def _mesh_words(self) -> str:
+        if self.mesh_data == "client":
+            return f"in the client ({self.mesh_why})"
+        where = (f"on the {self.workers} workers ({_b(self.blocks_bytes / self.workers)} each)"
+                 if self.mesh_data == "workers" else f"in a Zarr store under the scratch ({_b(self.blocks_bytes)})")
+        return f"in node blocks {where}, levels of {self.mesh_blocks_from}+ nodes ({self.mesh_why})"
 
     def _layout_words(self) -> str:
         if self.layout == "fast":
@@ -231,6 +240,10 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     the prefilter's task edge: the largest (up to ``chunkdic.block-voxels`` and
     :data:`~chunkdic.passes.prefilter.TASK_EDGE`) whose estimated peak fits."""
     model = MemoryModel.of(f_scan, g_scan, meshes, settings, scheduler)
+    # the mesh data go to node blocks when the client's cannot fit the target even with the
+    # smallest blocks
+    mesh_data, why, blocks_from = mesh_placement(model, target)
+    model = dataclasses.replace(model, blocks_from=blocks_from)
     edge, prep_edge = fitting_edges(model, target)
     task, process = model.peak(edge, prep_edge)
     plans = [level_plan(model, s, edge, prep_edge, coarsest=i == 0, finest=i == len(model.levels) - 1)
@@ -256,7 +269,8 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
         fixed_work=2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0,
         solve_seconds=SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape),
         smallest_bytes=model.peak(1, MIN_PREPARE_EDGE)[1], layout=chosen, fast_scratch_bytes=fast,
-        base_bytes=model.base).timed(None)
+        base_bytes=model.base, mesh_data=mesh_data, mesh_why=why, mesh_blocks_from=blocks_from,
+        blocks_bytes=model.blocks, workers=model.concurrency).timed(None)
 
 
 def scratch_room(scratch_dir, output) -> tuple[Path, int]:
@@ -266,120 +280,6 @@ def scratch_room(scratch_dir, output) -> tuple[Path, int]:
     resume would find its own interrupted run's scratch filling the disk it needs."""
     root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
     return root, _free(root) + reclaimable_scratch_bytes(root, release=output)
-
-
-@dataclasses.dataclass(frozen=True)
-class MemoryModel:
-    """The memory a run's processes hold, as a function of the block and prefilter task edges:
-    the scans, meshes and settings of the run, and how many tasks run at once where."""
-
-    f_scan: Any
-    g_scan: Any
-    meshes: dict
-    settings: Settings
-    levels: list  # coarsest first
-    threads: int  # tasks at once per process
-    concurrency: int  # tasks at once in all
-    separate: bool  # tasks in other processes than the client's
-    base: int  # bytes of a process before any data
-    halo: int  # the prefilter's halo, voxels
-    pyramid_task: int  # bytes of the largest pyramid task
-    pyramid_tasks: int  # and how many there are
-
-    @classmethod
-    def of(cls, f_scan, g_scan, meshes: dict, settings, scheduler) -> "MemoryModel":
-        threads, concurrency, separate = threads_of(scheduler)
-        levels = sorted(meshes, reverse=True)
-        halo = prepared_halo(settings.smoothing, settings.interpolation, int(config.get("bspline-halo")))
-        pyr_task, pyr_tasks = max(pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
-        return cls(f_scan, g_scan, meshes, settings, levels, threads, concurrency, separate, base_bytes(), halo,
-                   pyr_task, pyr_tasks)
-
-    @property
-    def prepared(self) -> bool:
-        """Whether ``g`` is prefiltered into scratch (cubic interpolation or a low-pass)."""
-        return self.settings.interpolation == "cubic" or self.settings.smoothing > 0
-
-    @property
-    def client(self) -> int:
-        """The client's data: that of the finest level."""
-        return self.client_bytes(self.meshes[self.levels[-1]])
-
-    def cell_of(self, mesh: Mesh) -> int:
-        return offset_cell(self.settings.grey, mesh.element_size, self.settings.grey_cell)
-
-    def client_bytes(self, mesh: Mesh) -> int:
-        # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
-        return CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, self.cell_of(mesh))
-
-    def elements(self, edge: int, mesh: Mesh) -> int:
-        # as the level makes its blocks (whole brightness cells, chunkdic.passes.level.LevelPasses)
-        wanted = self.settings.block_elements or max(1, edge // mesh.element_size)
-        m = aligned_block_elements(wanted, self.cell_of(mesh))
-        return min(m, max(mesh.shape))
-
-    def level_disk(self, s: int, m: int) -> tuple[int, int, list]:
-        """:func:`~chunkdic.engine.costs.level_disk` of level ``s`` with blocks of ``m`` elements."""
-        st = self.settings
-        return level_disk(self.meshes[s], self.g_scan.shape(s), m, st.smoothing, self.f_scan.dtype(s), self.prepared,
-                          self.g_scan.dtype(s), st.interpolation)
-
-    def prepare_task_bytes(self, s: int, edges) -> int:
-        """The largest prefilter task of level ``s`` with tasks of ``edges`` voxels."""
-        g, sigma, interp = self.g_scan, self.settings.smoothing, self.settings.interpolation
-        return prepare_bytes(edges, sigma, interp, shape=g.shape(s), raw_itemsize=np.dtype(g.dtype(s)).itemsize,
-                             quantized=prepared_grid(g.dtype(s), sigma, interp)[1] > 0,
-                             read_bytes=read_buffer_bytes(g, s, [e + 2 * self.halo for e in edges]))
-
-    def held(self, edge: int, prep_edge: int) -> list[tuple[int, int]]:
-        """``(bytes of the tasks at once, the client's data then)`` of each kind of task with
-        blocks of ``edge`` voxels: a kind runs at most ``threads`` at once, and never more
-        than there are of it, beside the client's data of the level it belongs to (a coarse
-        level's prefilter, whose reads decode the scratch pyramid's uint32 chunks, may hold
-        more than the finest level's tasks, but beside a small mesh)."""
-        sigma, interp = self.settings.smoothing, self.settings.interpolation
-        held = [(self.pyramid_task * min(self.threads, self.pyramid_tasks), 0)]
-        for s in self.levels:
-            mesh = self.meshes[s]
-            on_client = self.client_bytes(mesh)
-            m = self.elements(edge, mesh)
-            n_blocks = math.prod(-(-n // m) for n in mesh.shape)
-            cache = chunk_cache_bytes((self.f_scan, self.g_scan), s)  # once per process, shared by its threads
-            held.append((task_bytes(m * mesh.element_size, sigma, interp) * min(self.threads, n_blocks) + cache,
-                         on_client))
-            if self.prepared:
-                box = self.level_disk(s, m)[2]
-                edges = [task_edge(b, 1, prep_edge) for b in box]
-                n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
-                held.append((self.prepare_task_bytes(s, edges) * min(self.threads, n_prep) + cache, on_client))
-        return held
-
-    def peak(self, edge: int, prep_edge: int) -> tuple[int, int]:
-        """(largest task, peak of the largest process) with blocks of ``edge`` voxels and
-        prefilter tasks of ``prep_edge``: with the tasks in other processes, the client and
-        a worker each hold their own; in this process, the tasks beside the client's data."""
-        held = self.held(edge, prep_edge)
-        task = max(t for t, _ in held)
-        if self.separate:
-            return task, self.base + max(self.client, task)
-        return task, self.base + max(self.client, max(t + c for t, c in held))
-
-
-def fitting_edges(model: MemoryModel, target: int | None) -> tuple[int, int]:
-    """The block edge and prefilter task edge: the defaults, shrunk (blocks first, by a fifth
-    at a time, then the prefilter's tasks) until the peak fits ``target``. A target that even
-    the smallest blocks exceed keeps the defaults: :meth:`Plan.check` refuses the run, the
-    plan showing the blocks it would have used."""
-    edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
-    if target is None or model.peak(1, MIN_PREPARE_EDGE)[1] > target:
-        return edge, prep_edge
-    ell_min = min(m.element_size for m in model.meshes.values())
-    while model.peak(edge, prep_edge)[1] > target and edge > ell_min and model.settings.block_elements is None:
-        edge = max(ell_min, int(edge * 0.8))
-        prep_edge = max(MIN_PREPARE_EDGE, min(prep_edge, edge + 32))
-    while model.peak(edge, prep_edge)[1] > target and prep_edge > MIN_PREPARE_EDGE:
-        prep_edge = max(MIN_PREPARE_EDGE, prep_edge - 16)
-    return edge, prep_edge
 
 
 def level_plan(model: MemoryModel, s: int, edge: int, prep_edge: int, *, coarsest: bool, finest: bool) -> LevelPlan:

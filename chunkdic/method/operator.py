@@ -20,7 +20,6 @@ import numpy as np
 
 from ..solve.cg import PoorTextureWarning, StencilSolver
 from ..solve.regularizer import Regularizer, plane_wave_unit
-from ..solve.stencil import rigid_restriction, stencil_matvec
 
 log = logging.getLogger(__name__)
 
@@ -118,12 +117,18 @@ class Operator:
         (:func:`chunkdic.solve.regularizer.plane_wave_unit`), computed once per operator and kind."""
         if kind not in self._unit_weights:
             reg = Regularizer(kind, self.nodes_shape, element_size)
-            self._unit_weights[kind] = plane_wave_unit(reg, lambda v: stencil_matvec(self.solver.matrix, v))
+            self._unit_weights[kind] = plane_wave_unit(reg, self.solver.stencil_product)
         return self._unit_weights[kind]
 
 
-def build_operator(m: Assembled, built_at: np.ndarray, *, cell: int = 1, reused: bool = False) -> Operator:
+def build_operator(m: Assembled, built_at: np.ndarray, *, cell: int = 1, reused: bool = False,
+                   make_solver=StencilSolver) -> Operator:
     """The :class:`Operator` of an assembled ``M`` (its stencil is the solver's from now on).
+
+    ``make_solver(stencil, cells=, cell=)`` makes the solver: the in-memory
+    :class:`~chunkdic.solve.cg.StencilSolver`, or one of the same operations whose stencil
+    lives in node blocks (:class:`~chunkdic.solve.partitioned.PartitionedSolver`, which the
+    passes give for a mesh that does not fit the client).
 
     Raises
     ------
@@ -132,14 +137,9 @@ def build_operator(m: Assembled, built_at: np.ndarray, *, cell: int = 1, reused:
     """
     lags, active, fmin, fmax = m.lags, m.active, float(m.fmin), float(m.fmax)
     S, cells, m = m.stencil, m.cells, None
-    # Rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij (minus
-    # the brightness cells' share: a cell's W summed over its nodes)
-    rigid = rigid_restriction(S)
-    if cells is not None:
-        shares = cells.sum(axis=(3, 4, 5), dtype=np.float64).reshape(-1, 3, 4)
-        rigid = rigid - np.einsum("cip,cjp->ij", shares, shares)
-    solver = StencilSolver(S, cells=cells, cell=cell)
-    return Operator(solver, rigid, active, fmax - fmin, 0.5 * (fmin + fmax), lags, built_at, reused)
+    # the rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij (the solver's)
+    solver = make_solver(S, cells=cells, cell=cell)
+    return Operator(solver, solver.rigid_matrix, active, fmax - fmin, 0.5 * (fmin + fmax), lags, built_at, reused)
 
 
 def warn_weak_nodes(op: Operator, mesh, level: int, correlated: int) -> None:

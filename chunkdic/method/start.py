@@ -42,7 +42,6 @@ import dataclasses
 import numpy as np
 
 from ..mesh import Mesh, carry_field, transfer
-from ..solve.stencil import stencil_matvec
 from .events import Affine, Init, StartChoice, emit
 from .gauss_newton import rigid_step
 from .operator import Operator
@@ -120,7 +119,7 @@ def affine_step(passes: Passes, op: Operator, t: np.ndarray, tolerance: float, h
     mesh, level = passes.mesh, passes.level
     P, _ = affine_table(mesh)
     flat = P.reshape(12, -1)
-    K = np.stack([stencil_matvec(op.solver.matrix, P[k]).reshape(-1) for k in range(12)]) @ flat.T
+    K = np.stack([op.solver.stencil_product(P[k]).reshape(-1) for k in range(12)]) @ flat.T
     K = 0.5 * (K + K.T)
     p = np.zeros(12)
     p[:3] = t

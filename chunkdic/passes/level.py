@@ -31,8 +31,10 @@ from ..method.operator import Assembled, Operator, build_operator
 from ..method.protocol import Pass
 from ..method.settings import Settings
 from ..scheduler import release_freed_memory
+from ..solve.cg import StencilSolver
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
+from .mesh_blocks import BlockedMatrix, holder_for, in_blocks
 from .prefilter import adopt_prepared, build_prepared, face_margin, reachable_box, record_path
 from .reduction import PassSums
 from .scratchstore import f_store, g_store
@@ -131,6 +133,8 @@ class LevelPasses:
                                                grey=settings.grey, mask=mask, grey_cell=cell)
         #: the prepared g and how many were built (each a store of its own): prepare(), release()
         self.prepared, self.builds = None, 0
+        #: where the level's mesh data live when they go to node blocks (mesh_blocks.in_blocks), else None
+        self.holder = holder_for(runner, self.scratch / f"mesh{s}") if in_blocks(mesh) else None
         if adopt and self.inputs.g_needs_preparing:
             self._adopt_prepared()
 
@@ -204,7 +208,8 @@ class LevelPasses:
         (:meth:`_m_pass`), or read from the output where an interrupted run of the same run
         kept it (:mod:`chunkdic.passes.stored_matrix`); a pass that built it keeps it there."""
         t0, c0 = time.perf_counter(), time.process_time()
-        key = None if self.matrix is None else self.matrix_key(u)
+        # M in node blocks is not kept in the output: a resumed run sums it again
+        key = None if self.matrix is None or self.holder is not None else self.matrix_key(u)
         m = None if key is None else self.matrix.load(key)
         reused = m is not None
         if m is None:
@@ -217,7 +222,8 @@ class LevelPasses:
             # the weak nodes' blocks in place (StencilSolver): M is kept as the pass summed it
             self.matrix.save(key, m)
         try:
-            op = build_operator(m, u, cell=self.cell, reused=reused)
+            op = build_operator(m, u, cell=self.cell, reused=reused,
+                                make_solver=StencilSolver if self.holder is None else self._blocked.solver)
         except InputError as exc:  # M is empty: name the cause when it is not the reference itself
             raise InputError(self._why_no_gradient(u, m.active) or str(exc)) from None
         emit(self.progress, Matrix(level=self.level, nodes=list(self.mesh.nodes_shape), blocks=len(self.jobs), voxels=self.mesh.n_voxels, seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0, reused=reused, f_adopted=self.f_adopted))
@@ -238,7 +244,10 @@ class LevelPasses:
         # modified Gauss-Newton steps (the converged field solves b = λ R a whatever M),
         # and at 128³ nodes a full float64 stencil alone would be 4 GB. Each block's
         # partial is summed in float64 by its task.
-        S = np.zeros(mesh.nodes_shape + (14, 3, 3), dtype=np.float32)
+        blocked = self._blocked = (None if self.holder is None else
+                                   BlockedMatrix(mesh, self.block_elements, self.cell, self.holder,
+                                                 self.scratch / f"mesh{self.level}" / "partials"))
+        S = np.zeros(mesh.nodes_shape + (14, 3, 3), dtype=np.float32) if blocked is None else None
         fmin, fmax = np.inf, -np.inf
         # a generator: each block's slice of u is made as its task is submitted (the embedded
         # runner holds a window of them, not a pass's worth)
@@ -248,11 +257,14 @@ class LevelPasses:
         fractions = np.zeros(mesh.shape) if inputs.mask is not None else None
         k = self.cell
         cells = (np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32)
-                 if k > 1 else None)  # the mesh's cells' couplings (kernels.m.cell_couplings)
+                 if k > 1 and blocked is None else None)  # the mesh's cells' couplings (kernels.m.cell_couplings)
         inputs.f_copy.unmark()  # rewritten (a start chosen later builds M again): complete once every block is
         for blk, part, lo, hi, block_lags, frac, block_cells in self._map(m_task, args, "M pass",
                                                                           total=len(self.jobs)):
-            S[blk.node_slices] += part[..., 13:, :, :]
+            if blocked is not None:
+                blocked.add(blk, part, block_cells)
+            else:
+                S[blk.node_slices] += part[..., 13:, :, :]
             if cells is not None:  # blocks hold whole cells from a cell's first element
                 first = [e0 // k for e0, _ in blk.elements]
                 cells[tuple(slice(c, c + n) for c, n in zip(first, block_cells.shape[:3]))] = block_cells
@@ -264,6 +276,9 @@ class LevelPasses:
         self.f_ready = True  # written whole by this pass
         self.runner.run_everywhere(forget_chunks)  # the b passes read the haloed copy, not the scan
         active = None if fractions is None else active_elements(fractions)
+        if blocked is not None:
+            S, cells = blocked.stencil(), blocked.cells()
+            blocked.close()
         return Assembled(S, lags, active, float(fmin), float(fmax), cells)
 
     def _f_copy_pass(self) -> None:
@@ -342,6 +357,8 @@ class LevelPasses:
     def release(self) -> None:
         """Delete this level's scratch data (prepared ``g``, haloed ``f``) and open handles on them."""
         paths = [Path(self.inputs.f_copy.path)]
+        if self.holder is not None:
+            self.holder.close()
         if self.prepared is not None:
             paths += [record_path(self.prepared.ref.path), Path(self.prepared.ref.path)]
         self._delete(paths)

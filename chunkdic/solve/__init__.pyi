@@ -1,5 +1,7 @@
 from .cg import PoorTextureWarning, StencilSolver, warmup
 from .multigrid import VCycle
+from .nodeblocks import DiskHolder, WorkerHolder, node_chunks
+from .partitioned import PartitionedSolver
 from .regchoice import choose_length
 from .regularizer import Regularizer
 from .stencil import stencil_matvec

@@ -24,7 +24,15 @@ from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
 from .penalty import NO_FREED, add_weighted
 from .regularizer import Regularizer
-from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi, subtract_cells
+from .stencil import (
+    half_matvec,
+    no_diagonal,
+    pcg,
+    pcg_block_jacobi,
+    rigid_restriction,
+    stencil_matvec,
+    subtract_cells,
+)
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +107,12 @@ class StencilSolver:
         #: (:meth:`solve`)
         self.largest_rhs = 0.0
         self.nodes_shape = half.shape[:3]
+        #: ``M`` restricted to uniform translations, less the brightness cells' share (3, 3),
+        #: taken before the weak nodes are held
+        self.rigid_matrix = rigid_restriction(half)
+        if self.cells.shape[0]:  # a cell's W summed over its nodes
+            shares = self.cells.sum(axis=(3, 4, 5), dtype=np.float64).reshape(-1, 3, 4)
+            self.rigid_matrix = self.rigid_matrix - np.einsum("cip,cjp->ij", shares, shares)
         # the eigenvalues of the diagonal blocks, a slab of planes at a time: the client
         # never holds the float64 blocks of the whole mesh (docs/distributed.md)
         smallest, mean = np.empty(self.nodes_shape), np.empty(self.nodes_shape)
@@ -215,6 +229,10 @@ class StencilSolver:
         subtract_cells(self.cells, self.cell, x, out)
         return out
 
+    def stencil_product(self, x: np.ndarray) -> np.ndarray:
+        """``M x`` alone (no brightness cells, no penalty), (nz, ny, nx, 3) float64."""
+        return stencil_matvec(self.matrix, x)
+
     def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(M + λ R) x``, into ``out`` (float64, x's shape, contiguous) when given."""
         x = np.ascontiguousarray(x, dtype=np.float64)
@@ -239,12 +257,7 @@ class StencilSolver:
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
         code, Ke, Kf, sw, ew, freed = self._reg_args
-        norm = rhs_norm(b)
-        if reference is None:
-            self.largest_rhs = largest = max(self.largest_rhs, norm)
-        else:
-            largest = max(float(reference), norm)
-        rtol = self.rtol * largest / norm if norm > 0 else self.rtol
+        rtol = relative_tolerance(self, b, reference)
         if self._vcycle is not None:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
@@ -266,6 +279,17 @@ class StencilSolver:
         reg_args = (code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed)
         return lanes.pcg_two_lanes(self.matrix, self._diag_args, b, x, rtol, self.maxiter, reg_args, self.weight,
                                    self.cells, self.cell, overwrite_b)
+
+
+def relative_tolerance(solver, b: np.ndarray, reference: float | None) -> float:
+    """CG's tolerance relative to ``b``'s norm for ``solver.rtol`` relative to the larger of
+    ``b``'s norm and ``reference`` (None: ``solver.largest_rhs``, which this raises)."""
+    norm = rhs_norm(b)
+    if reference is None:
+        solver.largest_rhs = largest = max(solver.largest_rhs, norm)
+    else:
+        largest = max(float(reference), norm)
+    return solver.rtol * largest / norm if norm > 0 else solver.rtol
 
 
 def rhs_norm(b: np.ndarray) -> float:

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..mesh import STENCIL_OFFSETS
 from .regularizer import Regularizer, plane_wave_weight
+from .cg import z_slabs
 from .stencil import stencil_matvec
 
 #: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)
@@ -282,7 +283,17 @@ def dof_fraction(half: np.ndarray, reg: Regularizer, weights) -> np.ndarray:
     """
     shape = half.shape[:3]
     inner = tuple(slice(1, n - 1) if n > 2 else slice(None) for n in shape)
-    S = half[inner].reshape(-1, 14, 3, 3).mean(axis=0)
+    # the stencil read a slab of z planes at a time: no whole-mesh copy (504 B per node), and
+    # a stencil in node blocks (solve.partitioned.BlockStencil) is read slab by slab too
+    S = np.zeros((14, 3, 3))
+    diag = np.empty(shape, np.float32)
+    for planes in z_slabs(shape):
+        slab = half[planes]
+        diag[planes] = np.trace(slab[..., 0, :, :], axis1=-2, axis2=-1)
+        z = np.arange(shape[0])[planes]
+        keep = (z >= inner[0].indices(shape[0])[0]) & (z < inner[0].indices(shape[0])[1])
+        S += slab[keep][:, inner[1], inner[2]].sum(axis=(0, 1, 2), dtype=np.float64)
+    S /= max(int(np.prod([len(range(*r.indices(n))) for r, n in zip(inner, shape)])), 1)
     theta = np.meshgrid(*[np.pi * np.arange(k) / k for k in (min(n, DOF_FREQUENCIES) for n in shape)],
                         indexing="ij")
     fshape = theta[0].shape
@@ -307,7 +318,6 @@ def dof_fraction(half: np.ndarray, reg: Regularizer, weights) -> np.ndarray:
     Rh = Rh.reshape(-1, 3, 3)
     Rh = 0.5 * (Rh + np.conj(np.swapaxes(Rh, 1, 2)))
     weights = np.atleast_1d(np.asarray(weights, np.float64))
-    diag = np.trace(half[..., 0, :, :], axis1=-2, axis2=-1)
     ratio = np.maximum(diag / max(float(diag[inner].mean()), 1e-300), 1e-3).ravel()
     grid = np.geomspace(weights.min() / ratio.max() / 2, weights.max() / ratio.min() * 2, 48)
     g = np.array([float(np.real(np.trace(np.linalg.solve(Mh + w * Rh, Mh), axis1=1, axis2=2)).mean() / 3.0)

@@ -16,6 +16,15 @@ multigrid V-cycle's included, counted in the solve time); ``--no-multigrid`` kee
 block-Jacobi there. The default, 2048 with
 ell 16, is the mesh of a level-0 run of the scale benchmark (128³ nodes).
 
+``--mesh-data blocks`` puts the stencil and the solver's vectors in node blocks
+(docs/distributed.md, "Mesh data beyond one process"): in a Zarr store under the scratch
+read by the embedded scheduler, or with ``--workers N`` persisted on a ``LocalCluster`` of
+N single-threaded worker processes; ``--memory-target`` lets the plan's rule choose
+(``auto``). The peak of every process is printed: the client's, and each worker's
+(``VmHWM`` read on the worker), with the bytes the workers sent each other. ``--compare``
+also solves the same systems in memory in a second process and prints the relative
+difference of the solutions.
+
 Usage::
 
     python validation/scale/bench_client_memory.py --sizes 1024 2048
@@ -78,11 +87,12 @@ class _StandInRunner:
 
     local = True
 
-    def __init__(self, seed: int = 0):
+    def __init__(self, seed: int = 0, client=None):
         import numpy as np
 
         self._rng = np.random.default_rng(seed)
         self._cache: dict = {}
+        self.client = client  # a LocalCluster's: the node blocks go to its workers
 
     def map_unordered(self, fn, args):
         if fn.__name__ == "b_task":
@@ -125,8 +135,20 @@ class _StandInRunner:
         fn()
 
 
+def _worker_peaks(client) -> list[float]:
+    """Each worker's peak resident memory (MiB)."""
+    return sorted(client.run(_hwm_mib).values())
+
+
+def _worker_sent(client) -> int:
+    """Bytes the workers have sent each other so far."""
+    return sum(client.run(lambda dask_worker: dask_worker.transfer_outgoing_bytes_total).values())
+
+
 def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid: bool = True,
-           show_steps: bool = False, iterations: int = 0) -> None:
+           show_steps: bool = False, iterations: int = 0, mesh_data: str = "client", workers: int = 0,
+           save: str | None = None) -> None:
+    import dask.config
     import numpy as np
 
     from chunkdic.method.length import regularize as penalize
@@ -139,9 +161,18 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
     steps = _Steps(show_steps)
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened
-    runner = _StandInRunner()
+    client = cluster = None
+    if workers:
+        from distributed import Client, LocalCluster
+
+        cluster = LocalCluster(n_workers=workers, threads_per_worker=1, host="127.0.0.1", dashboard_address=None,
+                               memory_limit=0)
+        client = Client(cluster)
+        client.run(warmup)
+    runner = _StandInRunner(client=client)
     steps.run("kernels loaded", warmup)
-    with tempfile.TemporaryDirectory() as scratch:
+    sent0 = _worker_sent(client) if client else 0
+    with tempfile.TemporaryDirectory() as scratch, dask.config.set({"chunkdic.mesh-data": mesh_data}):
         t0 = time.perf_counter()
         # the start field, as a run's: a resident array (the carried field) that the level
         # (its M's field) and the Gauss-Newton state share
@@ -152,7 +183,7 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
         t_m = time.perf_counter() - t0
         runner._cache.clear()  # the stand-in's blocks: not the client's
         rng = np.random.default_rng(1)
-        times, its = [], []
+        times, its, solutions = [], [], []
         if not multigrid:
             op.solver.multigrid = False
         for k in range(solves):
@@ -160,15 +191,29 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
             t0 = time.perf_counter()
             if regularize:
                 steps.run(f"regularisation {k + 1}", lambda: penalize(op, settings, 0, ell, regularize * ell))
-            _, it = steps.run(f"solve {k + 1}", lambda: op.solver.solve(b))
+            x, it = steps.run(f"solve {k + 1}", lambda: op.solver.solve(b))
             times.append(time.perf_counter() - t0)
             its.append(it)
+            if save:
+                solutions.append(x)
+            x = None
         b = None  # not the client's: the engine holds its own right-hand sides
         if iterations:
             _gauss_newton(lvl, op, iterations, steps)
+        lvl.release()
     nodes = int(np.prod(mesh.nodes_shape))
     print(f"{size:>6} {ell:>4} {nodes:>10} {len(lvl.jobs):>7} {t_m:>12.1f} {statistics.median(times):>9.2f} "
-          f"{statistics.median(its):>6.0f} {steps.peak:>14.0f}", flush=True)
+          f"{statistics.median(its):>6.0f} {steps.peak:>14.0f}  {op.solver.__class__.__name__}", flush=True)
+    if client is not None:
+        sent = _worker_sent(client) - sent0
+        print(f"  workers' peaks MiB: {', '.join(f'{p:.0f}' for p in _worker_peaks(client))}; "
+              f"sent between workers {sent / 2**20:.1f} MiB, {sent / max(sum(its), 1) / 2**20:.2f} MiB per CG "
+              f"iteration; {statistics.median(times) / max(statistics.median(its), 1) * 1e3:.0f} ms per CG iteration",
+              flush=True)
+        client.close()
+        cluster.close()
+    if save:
+        np.save(save, np.stack(solutions))
     steps.print()
 
 
@@ -197,19 +242,56 @@ def main(argv=None) -> None:
     p.add_argument("--steps", action="store_true", help="print each step's peak and resident memory")
     p.add_argument("--iterations", type=int, default=0,
                    help="then this many Gauss-Newton passes of the engine's loop on stand-in b partials")
+    p.add_argument("--mesh-data", choices=("client", "blocks"), default="client",
+                   help="where the stencil and the solver's vectors live (chunkdic.mesh-data)")
+    p.add_argument("--memory-target", help="plan's rule: blocks when the client's mesh data exceed it (e.g. 2GiB)")
+    p.add_argument("--workers", type=int, default=0, help="node blocks on a LocalCluster of this many workers")
+    p.add_argument("--compare", action="store_true",
+                   help="also solve in memory and print the relative difference of the solutions")
+    p.add_argument("--save", help=argparse.SUPPRESS)
     p.add_argument("--child", type=int, help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.child:
         _child(args.child, args.element_size, args.solves, args.regularize, not args.no_multigrid, args.steps,
-               args.iterations)
+               args.iterations, args.mesh_data, args.workers, args.save)
         return
-    print("  size  ell      nodes  blocks  M assembly s   solve s  CG it  client peak MiB")
+    print("  size  ell      nodes  blocks  M assembly s   solve s  CG it  client peak MiB  solver")
     for size in args.sizes:  # one process per size: each peak is its own
-        subprocess.run([sys.executable, __file__, "--child", str(size), "--element-size", str(args.element_size),
-                        "--solves", str(args.solves), "--regularize", str(args.regularize)]
-                       + (["--no-multigrid"] if args.no_multigrid else []) + (["--steps"] if args.steps else [])
-                       + ["--iterations", str(args.iterations)],
-                       check=True)
+        mesh_data = args.mesh_data
+        if args.memory_target:
+            mesh_data = _placement(size, args.element_size, args.memory_target)
+            print(f"  memory target {args.memory_target}: mesh data in the {mesh_data}")
+        runs = [(mesh_data, args.workers)] + ([("client", 0)] if args.compare else [])
+        saved = []
+        for mode, workers in runs:
+            out = tempfile.NamedTemporaryFile(suffix=".npy", delete=False).name if args.compare else None
+            subprocess.run([sys.executable, __file__, "--child", str(size), "--element-size", str(args.element_size),
+                            "--solves", str(args.solves), "--regularize", str(args.regularize),
+                            "--mesh-data", "blocks" if mode == "blocks" else "client", "--workers", str(workers)]
+                           + (["--no-multigrid"] if args.no_multigrid else []) + (["--steps"] if args.steps else [])
+                           + ["--iterations", str(args.iterations)] + (["--save", out] if out else []),
+                           check=True)
+            saved.append(out)
+        if args.compare:
+            import numpy as np
+
+            a, b = np.load(saved[0]), np.load(saved[1])
+            print(f"  relative difference of the solutions: {np.linalg.norm(a - b) / np.linalg.norm(b):.2e}")
+            for path in saved:
+                Path(path).unlink()
+
+
+def _placement(size: int, ell: int, target: str) -> str:
+    """``blocks`` or ``client``: the plan's rule (:func:`chunkdic.engine.processmemory.mesh_placement`) for this mesh."""
+    import math
+
+    from chunkdic.engine.costs import CLIENT_BYTES_PER_NODE, base_bytes
+    from chunkdic.engine.meshes import plan_meshes
+    from chunkdic.inputs import parse_memory
+
+    mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
+    need = base_bytes() + CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape)
+    return "blocks" if need > parse_memory(target) else "client"
 
 
 if __name__ == "__main__":

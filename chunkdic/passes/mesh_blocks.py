@@ -1,0 +1,128 @@
+"""``M`` of a level summed into node blocks: the ``M`` pass of a mesh whose data do not fit the client.
+
+A level whose mesh data go to blocks (``chunkdic.mesh-data``, the plan's
+``mesh_blocks_from``; docs/distributed.md, "Mesh data beyond one process") never holds the
+whole stencil of ``M`` in the client: each block's partial stencil (its nodes ``e0 … e1``,
+float32 half, as the client's stencil holds it) and its brightness cells' couplings are
+written as they arrive, one whole chunk per block, into Zarr stores under the level's
+scratch; the node blocks are then the partials with the next blocks' first planes added
+(:func:`~chunkdic.solve.nodeblocks.fold_faces`), held by the level's holder (persisted on
+the workers of a cluster, or a Zarr store read block by block with the embedded scheduler)
+for the :class:`~chunkdic.solve.partitioned.PartitionedSolver`.
+"""
+
+from __future__ import annotations
+
+import functools
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..mesh import Mesh
+from ..scheduler import threads_of
+
+# dask.array (and the node blocks, built on it) are imported by the levels that use them:
+# a correlation whose mesh data stay in the client never loads it (about 1 s;
+# tests/io/test_scan.py)
+
+
+def in_blocks(mesh: Mesh) -> bool:
+    """Whether this level's mesh data go to node blocks (``chunkdic.mesh-data`` and the plan)."""
+    mode = config.get("mesh-data")
+    if mode == "blocks":
+        return True
+    if mode == "client":
+        return False
+    start = config.get("mesh-blocks-from")
+    return start is not None and int(np.prod(mesh.nodes_shape)) >= int(start)
+
+
+def holder_for(runner, directory: Path):
+    """Where node blocks live: the workers of a ``distributed`` runner, else a Zarr store in ``directory``."""
+    from ..solve.nodeblocks import DiskHolder, WorkerHolder
+
+    client = getattr(runner, "client", None)
+    if client is not None:
+        return WorkerHolder(client)
+    return DiskHolder(directory, threads_of(None)[0])
+
+
+class BlockedMatrix:
+    """The ``M`` pass's sums into node blocks (module docstring).
+
+    Parameters
+    ----------
+    mesh : Mesh
+    block_elements : int
+        Elements per block side (the passes' blocks).
+    cell : int
+        Elements per side of a brightness cell (1: no cells).
+    holder
+        Where the node blocks go (:func:`holder_for`).
+    directory : Path
+        Where the partials are written (removed by :meth:`close`).
+    """
+
+    def __init__(self, mesh: Mesh, block_elements: int, cell: int, holder, directory: Path):
+        import zarr
+
+        from ..solve.nodeblocks import extended_chunks, node_chunks
+
+        self.holder, self.directory, self.cell = holder, Path(directory), int(cell)
+        self.chunks = node_chunks(mesh.nodes_shape, block_elements)
+        self.ext = extended_chunks(self.chunks)
+        m = int(block_elements)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        create = functools.partial(zarr.create_array, dtype=np.float32, fill_value=0, compressors=None,
+                                   zarr_format=3)
+        self._partials = create(str(self.directory / "m_partials.zarr"),
+                                shape=tuple(sum(e) for e in self.ext) + (14, 3, 3), chunks=(m + 1,) * 3 + (14, 3, 3))
+        self._cells = None
+        if self.cell > 1:
+            k = self.cell
+            n_cells = tuple(-(-n // k) for n in mesh.shape)
+            self.cell_chunks = tuple(tuple(-(-c // k) for c in axis[:-1]) + (n - sum(-(-c // k) for c in axis[:-1]),)
+                                     for axis, n in zip(self.chunks, n_cells))
+            self._cells = create(str(self.directory / "m_cells.zarr"), shape=n_cells + (k + 1,) * 3 + (3, 4),
+                                 chunks=tuple(max(c) for c in self.cell_chunks) + (k + 1,) * 3 + (3, 4))
+        self._m = m
+
+    def add(self, blk, part: np.ndarray, block_cells: np.ndarray | None) -> None:
+        """One block's partial stencil ``part`` (its nodes ``e0 … e1``, 27 offsets, float64) and cells."""
+        start = [(e0 // self._m) * (self._m + 1) for e0, _ in blk.elements]
+        region = tuple(slice(s, s + n) for s, n in zip(start, part.shape[:3]))
+        self._partials[region] = part[..., 13:, :, :].astype(np.float32)
+        if self._cells is not None:
+            first = [e0 // self.cell for e0, _ in blk.elements]
+            self._cells[tuple(slice(c, c + n) for c, n in zip(first, block_cells.shape[:3]))] = block_cells
+
+    def stencil(self):
+        """The half stencil in node blocks, held (dask array, shape (nz, ny, nx, 14, 3, 3), float32)."""
+        import dask.array as da
+
+        from ..solve.nodeblocks import fold_faces
+
+        partials = da.from_zarr(self._partials, chunks=self.ext + ((14,), (3,), (3,)))
+        return self.holder.hold(fold_faces(partials), "stencil")
+
+    def cells(self):
+        """The brightness cells' couplings, chunked by the cells of each node block, held (dask array)."""
+        import dask.array as da
+
+        if self._cells is None:
+            return None
+        chunks = self.cell_chunks + tuple((n,) for n in self._cells.shape[3:])
+        return self.holder.hold(da.from_zarr(self._cells, chunks=chunks), "cells")
+
+    def solver(self, stencil, *, cells=None, cell: int = 1):
+        """The :class:`~chunkdic.solve.partitioned.PartitionedSolver` of the blocks
+        (:func:`~chunkdic.method.operator.build_operator`'s ``make_solver``)."""
+        from ..solve.partitioned import PartitionedSolver
+
+        return PartitionedSolver(stencil, self.holder, cells=cells, cell=cell)
+
+    def close(self) -> None:
+        """Remove the partials (the held node blocks stay with the holder)."""
+        shutil.rmtree(self.directory, ignore_errors=True)
