@@ -1174,7 +1174,9 @@ def _expected(case, stderr: str) -> str:
     return "" if re.search(case.expect, last[0]) else f"error line does not name the cause: {last[0][:160]!r}"
 
 
-_HOLD = ("import sys, time; from chunkdic.io.ownership import OutputLock; "
+_HOLD = ("import sys, time\ntry:\n    from chunkdic.io.locks import OutputLock\n"
+         "except ImportError:  # a tree from before the split of io.ownership\n"
+         "    from chunkdic.io.ownership import OutputLock\n"
          "OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(600)")
 
 

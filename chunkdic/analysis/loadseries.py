@@ -41,7 +41,6 @@ import contextlib
 import dataclasses
 import errno
 import json
-import shutil
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -57,9 +56,12 @@ from ..engine.settings import Settings
 from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
+from ..io.locks import OutputLock, reclaim_stale_locks
 from ..io.outputs import Outputs, inside
-from ..io.ownership import OutputLock, reclaim_stale_locks, reclaim_stale_partials, reclaim_stale_scratch
+from ..io.owntree import remove
 from ..io.scan import open_scan
+from ..io.scratch import reclaim_stale_scratch
+from ..io.siblings import reclaim_stale_partials
 from ..mesh import carry_field
 from ..results.result import HISTORY_FIELDS, Result, open_result
 from ..results.strain import strain_summary
@@ -422,7 +424,7 @@ def _remove_debris(path: Path) -> None:
     series' lock (its fingerprint checked): a folder there that is not a result is its own
     debris. A recognisable result (complete, or with its checkpoint) is kept."""
     if path.is_dir() and not path.is_symlink() and kind_of(path)[0] is None:
-        shutil.rmtree(path)
+        remove(path)
 
 
 def _complete(path: Path) -> bool:

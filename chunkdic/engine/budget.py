@@ -41,7 +41,7 @@ from ..errors import DiskSpaceError, InputError
 from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
-from ..io.ownership import kept_scratch, reclaimable_scratch_bytes
+from ..io.scratch import kept_scratch, reclaimable_scratch_bytes
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..scheduler import local_workers

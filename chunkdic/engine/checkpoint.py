@@ -63,7 +63,7 @@ class Checkpoint:
         """Open the output for a run: fresh, or resumed from a matching checkpoint.
 
         The caller has checked the output (:mod:`chunkdic.io.outputs`: not an input, ours,
-        ``--overwrite`` rules) and holds its lock (:class:`chunkdic.io.ownership.OutputLock`);
+        ``--overwrite`` rules) and holds its lock (:class:`chunkdic.io.locks.OutputLock`);
         here, under the lock, an existing group is read again. Returns the checkpoint and
         the saved state (``None`` for a fresh run). Refuses (InputError) a result completed
         meanwhile and a run made with other inputs or settings, naming the input whose

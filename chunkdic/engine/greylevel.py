@@ -107,7 +107,8 @@ class Partials:
     scalars : ndarray, shape (m,), float64
         Sums over the block's valid voxels (first: ``Σ w``).
     elements : ndarray, shape (p, ez, ey, ex), float64
-        Per-element fields (first: ``Σ w`` per element).
+        Per-element fields (first: ``Σ w`` per element; last: the :data:`RESIDUAL_ROWS`
+        rows of :func:`residual_rows`).
     n_excluded : int
         Voxels whose ``X + u(X)`` leaves ``g``.
     lags : ndarray, shape (6, LAGS + 1)
@@ -140,6 +141,10 @@ class Fit:
         Offset gradient (grey levels per voxel, z, y, x) of the ``drift`` model, else 0.
     valid_per_element : ndarray, shape (ez, ey, ex), float64
         ``Σ w`` per element.
+    residual : ndarray, shape (2, ez, ey, ex), float64, optional
+        Per element, the residual left by the element's own best gain and offset and the
+        reference's own variation (:func:`residual_rows`), grey levels²: what tells a residual
+        that is noise from one that is not (:mod:`chunkdic.engine.mismatch`).
     """
 
     b: np.ndarray
@@ -149,6 +154,7 @@ class Fit:
     offset: np.ndarray
     drift: np.ndarray
     valid_per_element: np.ndarray
+    residual: np.ndarray | None = None
 
     def share(self, fields: np.ndarray) -> None:
         """Point gain, offset and valid counts at rows 0-2 of ``fields`` (the same values, as
@@ -205,12 +211,44 @@ def _cell_centred(sums: ElementSums, k: int):
     return Bc, Gc, o
 
 
+#: rows at the end of every model's element fields (:func:`residual_rows`)
+RESIDUAL_ROWS = 2
+
+
+def residual_rows(gram: np.ndarray) -> np.ndarray:
+    """Per element, ``Σ w r²`` with the element's own least-squares gain and offset
+    (``r = f - λ g(X+u) - μ``, whatever the brightness model: the least residual the element
+    allows) and ``Σ w (f - f̄)²``, the reference's own variation: shape (2, ez, ey, ex),
+    grey levels². From the element sums alone (``f - c = d + g'``, within-element covariances).
+
+    A matched element leaves noise (the first row well below the second where it is
+    textured); an element whose ``g`` is unrelated to ``f`` leaves its whole variation.
+    """
+    n = gram[..., _ONE, _ONE]
+    safe = np.where(n > 0, n, 1.0)
+    mean = gram[..., _ONE, :] / safe[..., None]
+    cov = lambda a, b: gram[..., a, b] - n * mean[..., a] * mean[..., b]  # noqa: E731
+    cdd, cdg, cgg = cov(_D, _D), cov(_D, _G), cov(_G, _G)
+    ok = cgg > FLAT * np.maximum(gram[..., _G, _G], 1e-300)
+    local = cdd - np.where(ok, cdg * cdg / np.where(ok, cgg, 1.0), 0.0)
+    own = cdd + 2 * cdg + cgg
+    return np.stack([np.maximum(local, 0.0), np.maximum(own, 0.0)])
+
+
 def reduce_block(sums: ElementSums, model: str, cell: int = 1) -> Partials:
     """Reduce a block's element sums for ``model`` (task side).
 
     ``cell``: elements per side of the cells sharing one offset (``drift``; the block holds
     whole cells from its first element, :func:`aligned_block_elements`; 1: per element).
+    Every model's element rows end with the :func:`residual_rows`.
     """
+    part = _reduce_model(sums, model, cell)
+    part.elements = np.concatenate([part.elements, residual_rows(sums.gram)])
+    return part
+
+
+def _reduce_model(sums: ElementSums, model: str, cell: int) -> Partials:
+    """:func:`reduce_block` without the residual rows."""
     B, G = sums.B, sums.gram
     lags = sums.lags if sums.lags is not None else np.zeros((6, LAGS + 1))
     n_e = G[..., _ONE, _ONE]
@@ -395,15 +433,17 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
     # a copy: a view would keep every row of ``elements`` (7 float64 per element with the
     # drift model) alive in the pass the level holds (docs/distributed.md)
     n_e = elements[0].copy()
+    residual = elements[-RESIDUAL_ROWS:].copy()
+    elements = elements[:-RESIDUAL_ROWS]
     n = scalars[0]
     ones = np.ones_like(n_e) if model in ("none", "global") else None  # not held by the other models
     zero3 = np.zeros(3)
     if model == "none":
-        return Fit(b, float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e)
+        return Fit(b, float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e, residual)
     if model == "global":
         alpha, mu = _global_coefficients(model, scalars)
         ssr, _ = misfit(model, scalars)
-        return Fit(b, ssr, float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e)
+        return Fit(b, ssr, float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e, residual)
     if model == "drift":
         theta = _global_coefficients(model, scalars)
         ssr, _ = misfit(model, scalars)
@@ -414,8 +454,8 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
             beta = offset_plane_slope(mu, n_e)
         # offset at the element centre (q~ = 0): μ_e - α c
         return Fit(b, ssr, float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
-                   beta / float(element_size), n_e)
+                   beta / float(element_size), n_e, residual)
     if model == "element":
         alpha, mu = elements[1], elements[2]
-        return Fit(b, float(scalars[1]), float(n), 1 + alpha, mu - alpha * center, zero3, n_e)
+        return Fit(b, float(scalars[1]), float(n), 1 + alpha, mu - alpha * center, zero3, n_e, residual)
     raise ValueError(f"unknown brightness model {model!r}")

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import shutil
 import time
 import warnings
 from pathlib import Path
@@ -21,6 +20,7 @@ from .. import config
 from ..errors import InputError
 from ..io.chunkread import forget_chunks, z_order_key
 from ..io.handles import ArrayRef, forget_open_arrays
+from ..io.owntree import remove
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
 from ..solve.cg import PoorTextureWarning, StencilSolver
@@ -64,7 +64,7 @@ def gap_stride(shape) -> int:
 
 
 def prune_adopted(scratch: Path, level: int | None) -> None:
-    """Remove from an adopted scratch directory (:func:`chunkdic.io.ownership.adopt_scratch`) the
+    """Remove from an adopted scratch directory (:func:`chunkdic.io.scratch.adopt_scratch`) the
     level stores no level of this run will adopt: those of levels coarser than ``level`` (the
     level of the interrupted run's checkpoint, done or under way; None: keep every level's),
     a prepared ``g`` left without its completion record or superseded by a later build, and
@@ -95,7 +95,7 @@ def prune_adopted(scratch: Path, level: int | None) -> None:
         if (level is not None and s > level) or (k is not None and k != latest.get(s)):
             doomed.append(entry)
     for path in doomed:
-        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+        remove(path)
 
 
 @dataclasses.dataclass
@@ -516,7 +516,7 @@ class Level:
     def _delete(self, paths: list[Path]) -> None:
         self.runner.run_everywhere(forget_open_arrays)
         for path in paths:
-            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+            remove(path)
 
     @staticmethod
     def _active_of(active: np.ndarray | None, job: BlockJob) -> np.ndarray | None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +19,7 @@ import numpy as np
 
 from .. import config
 from ..io.handles import forget_open_arrays
+from ..io.owntree import remove
 from ..mesh import Mesh, transfer
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.cg import StencilSolver
@@ -32,6 +32,7 @@ from .events import emit
 from .gauss_newton import iterate, rigid_step
 from .initial import start_field as init_start_field
 from .level import Level
+from .mismatch import residual_status
 from .noise import nodal_uncertainty
 from .rigid import translation_task
 from .runstate import LevelOutcome, RunState
@@ -302,7 +303,7 @@ def release_scan_levels(ctx: RunContext, s: int) -> None:
     if doomed:
         ctx.runner.run_everywhere(forget_open_arrays)
         for path in doomed:
-            shutil.rmtree(path, ignore_errors=True)
+            remove(path)
 
 
 def regularization_length(settings: Settings, state: State, s: int, mesh: Mesh) -> float:
@@ -408,6 +409,7 @@ def assemble_result(ctx: RunContext, run: RunState, final: State, outcome: Level
         # a half-untextured scan "converged" with 2-3.5 voxel errors on its flat half: the
         # iterations converged, but so many nodes are the regularisation's guesses
         status = run.statuses[finest] = "weak-texture"
+    status = run.statuses[finest] = residual_status(status, flags, final.elements)
     reg_length = outcome.reg_length
     info = {
         "element_size": settings.element_size,
@@ -466,7 +468,7 @@ def brightness_summary(model: str, elements: np.ndarray | None) -> dict:
         if gain.size:
             out.update(gain=float(np.median(gain)), offset=float(np.median(offset)),
                        offset_range=[float(offset.min()), float(offset.max())],
-                       drift=[float(v) for v in elements[3:, 0, 0, 0]])
+                       drift=[float(v) for v in elements[3:6, 0, 0, 0]])
     return out
 
 

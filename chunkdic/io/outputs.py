@@ -22,7 +22,7 @@ never removing what was there before:
   ``.NAME.chunkdic-partial-HOST-PID-XXXX`` and renamed into place when the whole command
   succeeded, so an old output stays intact until the new one is complete. A staged copy
   left by a killed run is reclaimed by the next run on the same output once its owner is
-  known dead (:mod:`chunkdic.io.ownership`).
+  known dead (:mod:`chunkdic.io.siblings`).
 - *in place* (folders whose files refer to each other, and the correlation result, which
   holds the checkpoint that a re-run resumes from): written where they belong; the folder
   marker says ``complete: false`` until the end; on failure what this run created is
@@ -37,14 +37,15 @@ import contextvars
 import errno
 import logging
 import os
-import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import InputError
 from .kinds import KINDS, Kind, kind_of, mark_folder, ours_in_folder
-from .ownership import OutputLock, name_limits, partial_name, reclaim_stale_partials
+from .locks import OutputLock
+from .owntree import check_own_tree, remove
+from .siblings import name_limits, partial_name, reclaim_stale_partials
 from .store import drain_zarr_io
 
 log = logging.getLogger(__name__)
@@ -158,7 +159,7 @@ def _check_name_lengths(p: Path, real: Path) -> None:
     """Refuse a path the file system cannot hold before anything is written: a component
     longer than ``NAME_MAX`` bytes (255 on most file systems) or a whole path longer than
     ``PATH_MAX``. The sibling names derived from the output (``.NAME.chunkdic-lock``, the
-    staged ``.NAME.chunkdic-partial-…``) are shortened by :mod:`chunkdic.io.ownership`
+    staged ``.NAME.chunkdic-partial-…``) are shortened by :mod:`chunkdic.io.siblings`
     when they would not fit, so any name that fits by itself is usable."""
     name_max, path_max = name_limits(_existing_ancestor(p))
     for part in real.parts:
@@ -252,6 +253,7 @@ def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable:
                          "to finish or choose another path")
     found, complete = kind_of(real)
     if found == kind.name and not complete and resumable and not overwrite:
+        check_own_tree(real, what=kind.label)  # written into again: never through a link out of it
         return "resume"
     if not overwrite:
         if found == kind.name and complete:
@@ -403,7 +405,7 @@ class Outputs:
             if e.state == "replace":
                 ours, others = ours_in_folder(e.final, e.kind)
                 for entry in ours:
-                    _remove(entry)
+                    remove(entry)
                 e.keep = {x.name for x in others}
             elif e.state == "absent":
                 e.final.mkdir()
@@ -412,7 +414,7 @@ class Outputs:
                 e.keep = {x.name for x in e.final.iterdir()}
             mark_folder(e.final, e.kind.name, complete=False)
         elif e.state == "replace":
-            _remove(e.final)
+            remove(e.final)
 
     def __enter__(self) -> "Outputs":
         try:
@@ -464,7 +466,7 @@ class Outputs:
                         grave = partial_name(e.final)
                         os.rename(e.final, grave)
                         os.rename(e.work, e.final)
-                        _remove(grave)
+                        remove(grave)
                         continue
                 os.replace(e.work, e.final)
             elif e.kind.form == "folder":
@@ -490,25 +492,13 @@ class Outputs:
     @staticmethod
     def _undo(e: Entry) -> None:
         if e.staged:
-            _remove(e.work)
+            remove(e.work)
         elif e.kind.form == "folder":
             if e.created:
-                _remove(e.final)
+                remove(e.final)
             elif e.final.is_dir():
                 for entry in e.final.iterdir():
                     if entry.name not in e.keep:
-                        _remove(entry)
+                        remove(entry)
         elif e.state in ("absent", "replace"):
-            _remove(e.final)
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-        if path.exists():  # tasks on remote workers may still be finishing a write
-            import time
-
-            time.sleep(0.5)
-            shutil.rmtree(path, ignore_errors=True)
-    elif path.exists() or path.is_symlink():
-        path.unlink(missing_ok=True)
+            remove(e.final)

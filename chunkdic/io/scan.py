@@ -40,6 +40,7 @@ from .ngff import (
     normalize_voxel_size,
     voxel_from_group_attrs,
 )
+from .owntree import remove
 from .scratch_levels import build_level
 from .store import chunk_is_complete, chunk_shape_for
 
@@ -160,7 +161,7 @@ class Scan:
             else an embedded thread pool for this call.
         adopt : bool, keyword-only
             ``scratch_dir`` is an interrupted run's, written for this very scan (the caller
-            checked: :func:`chunkdic.io.ownership.adopt_scratch`): its levels marked complete,
+            checked: :func:`chunkdic.io.scratch.adopt_scratch`): its levels marked complete,
             of the expected shape and dtype and whose every chunk is complete
             (:func:`chunkdic.io.store.chunk_is_complete`), are used instead of built again.
 
@@ -189,7 +190,6 @@ class Scan:
         and levels coarser than every wanted one (done before the interruption) are removed."""
         import concurrent.futures
         import itertools
-        import shutil
 
         import zarr
 
@@ -205,7 +205,7 @@ class Scan:
         self._scratch_group = str(groups[0])
         for name in list(root.array_keys()):  # levels coarser than any wanted: done before the kill
             if name.isdigit() and int(name) > max(wanted):
-                shutil.rmtree(groups[0] / name, ignore_errors=True)
+                remove(groups[0] / name)
         for s in sorted(wanted - set(self._stored) - set(self._scratch)):
             try:
                 arr = zarr.open_array(store=str(groups[0]), path=str(s), mode="r")

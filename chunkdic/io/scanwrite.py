@@ -21,6 +21,7 @@ from .handles import forget_open_arrays
 from .levels import check_levels, write_level
 from .ngff import normalize_unit, normalize_voxel_size, update_group_metadata
 from .outputs import Outputs
+from .owntree import remove
 from .pyramid import build_levels
 from .scan import Scan, open_scan
 
@@ -173,7 +174,7 @@ def _remove_partial_chunk_files(level_dir: str) -> None:
     for root, _, names in os.walk(level_dir):
         for name in names:
             if _ZARR_PARTIAL.fullmatch(name):
-                os.remove(os.path.join(root, name))
+                remove(os.path.join(root, name))
 
 
 _ZARR_PARTIAL = re.compile(r".+\.[0-9a-f]{32}\.partial")
@@ -184,8 +185,6 @@ def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
 
     A group killed before its level 0 array was created is just started again.
     """
-    import shutil
-
     if not os.path.exists(path):
         return False
     try:
@@ -194,7 +193,7 @@ def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
     except (OSError, ValueError):
         ck = None
     if ck is None:  # killed between mkdir and the group's metadata: nothing of value yet
-        shutil.rmtree(path)
+        remove(path)
         return False
     if any(ck.get(k) != v for k, v in own.items()):  # later stages add keys (levels, display window)
         raise InputError(f"{path} holds an interrupted write of another scan (other settings): "
@@ -203,7 +202,7 @@ def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
         with open(os.path.join(path, "0", "zarr.json")) as fh:
             meta = json.load(fh)
     except (OSError, ValueError):
-        shutil.rmtree(path)  # killed before level 0 existed: start again
+        remove(path)  # killed before level 0 existed: start again
         return False
     same = (tuple(meta.get("shape", ())) == tuple(data.shape)
             and np.dtype(meta.get("data_type")) == np.dtype(data.dtype)

@@ -41,6 +41,10 @@ FLAG_NO_DATA = 1
 FLAG_WEAK = 2
 #: node flag: outside the specimen mask (no active element around it); NaN, not measured
 FLAG_MASKED = 4
+#: node flag: half or more of the node's elements leave a residual that is not noise (the
+#: deformed scan does not match the reference there: :mod:`chunkdic.engine.mismatch`); its
+#: value is not measured, whatever the iterations did
+FLAG_MISMATCH = 8
 
 #: dimension names, unit and description of every array of a result group (the ``units``
 #: follow CF usage: ``"1"`` is dimensionless; ``"voxel"`` is a voxel of the correlated level)

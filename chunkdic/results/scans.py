@@ -12,13 +12,13 @@ exit). Used by :mod:`chunkdic.views.corrected_image`, :mod:`chunkdic.views.expor
 from __future__ import annotations
 
 import contextlib
-import shutil
 from pathlib import Path
 
 from ..errors import InputError
 from ..inputs import check_scan_for_result
-from ..io.ownership import make_scratch
+from ..io.owntree import remove
 from ..io.scan import open_scan
+from ..io.scratch import make_scratch
 from .result import Result, open_result
 
 __all__ = ["as_result", "input_scan", "input_scans", "input_paths", "level_refs", "interpolation_of"]
@@ -86,7 +86,7 @@ def level_refs(result: Result, ref=None, deformed=None, *, scans=None):
         g_ref = g_scan.refs([s], scratch / "def")[s]
         yield f_ref, g_ref
     finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        remove(scratch)
 
 
 def interpolation_of(result: Result) -> str:
