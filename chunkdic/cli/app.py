@@ -19,6 +19,7 @@ import numpy as np
 
 from ..engine.events import EXPLAIN
 from ..errors import InputError, WorkerLostError
+from ..results.result import FLAG_MISMATCH
 from ..scheduler import SCHEDULER_HELP
 from .common import (
     add_engine_options,
@@ -113,6 +114,11 @@ def _summary(result, seconds: float) -> str:
         line += (f"\n  weak-texture: {info.get('weak_nodes', 0)} of the measured nodes see too little texture to be "
                  "measured (their values come from the regularisation); the rest converged, but so large a share "
                  "is not called converged (mask the untextured region, or a larger --element-size)")
+    elif info["status"] == "mismatch":
+        bad = int(np.count_nonzero(result.flags & FLAG_MISMATCH)) if result.flags is not None else 0
+        line += (f"\n  mismatch: {bad} of the measured nodes leave a residual that is not noise (the deformed scan "
+                 "does not match the reference there, whatever the field; flagged in the result); the iterations "
+                 "converged, but so large a share is not called converged (check the scans, or mask that region)")
     elif info["status"] in ("stalled", "diverged", "max-iterations"):
         from ..engine.stopping import STALL_PATIENCE
 

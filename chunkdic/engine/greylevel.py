@@ -49,6 +49,7 @@ import numpy as np
 
 from ..kernels.b import element_to_nodes
 from ..kernels.blocks import LAGS, ElementSums
+from .mismatch import local_residual
 from .settings import DEFAULT_GREY_CELL_VOXELS
 
 MODELS = ("none", "global", "drift", "element")
@@ -216,23 +217,10 @@ RESIDUAL_ROWS = 2
 
 
 def residual_rows(gram: np.ndarray) -> np.ndarray:
-    """Per element, ``Σ w r²`` with the element's own least-squares gain and offset
-    (``r = f - λ g(X+u) - μ``, whatever the brightness model: the least residual the element
-    allows) and ``Σ w (f - f̄)²``, the reference's own variation: shape (2, ez, ey, ex),
-    grey levels². From the element sums alone (``f - c = d + g'``, within-element covariances).
-
-    A matched element leaves noise (the first row well below the second where it is
-    textured); an element whose ``g`` is unrelated to ``f`` leaves its whole variation.
-    """
-    n = gram[..., _ONE, _ONE]
-    safe = np.where(n > 0, n, 1.0)
-    mean = gram[..., _ONE, :] / safe[..., None]
-    cov = lambda a, b: gram[..., a, b] - n * mean[..., a] * mean[..., b]  # noqa: E731
-    cdd, cdg, cgg = cov(_D, _D), cov(_D, _G), cov(_G, _G)
-    ok = cgg > FLAT * np.maximum(gram[..., _G, _G], 1e-300)
-    local = cdd - np.where(ok, cdg * cdg / np.where(ok, cgg, 1.0), 0.0)
-    own = cdd + 2 * cdg + cgg
-    return np.stack([np.maximum(local, 0.0), np.maximum(own, 0.0)])
+    """:func:`chunkdic.engine.mismatch.local_residual` of each element from its element sums
+    (``f - c = d + g'``): shape (2, ez, ey, ex), grey levels²."""
+    return local_residual(gram[..., _ONE, _ONE], gram[..., _D, _ONE], gram[..., _G, _ONE], gram[..., _D, _D],
+                          gram[..., _D, _G], gram[..., _G, _G])
 
 
 def reduce_block(sums: ElementSums, model: str, cell: int = 1) -> Partials:

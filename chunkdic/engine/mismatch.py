@@ -10,19 +10,19 @@ deformed scan is unrelated to the reference leaves its whole variation, whatever
 
 Per element the ``b`` pass sums (:func:`chunkdic.engine.greylevel.residual_rows`):
 ``Σ w r²`` with the element's own best gain and offset (so that no brightness change and
-no brightness model counts as a mismatch) and ``Σ w (f - f̄)²``. Their ratio, the share of
-the reference's variation the deformed scan leaves unexplained, is compared with the noise
-model of the pass (``σ_r²``): an element is *mismatched* when
+no brightness model counts as a mismatch) and ``Σ w (f - f̄)²``, the reference's own
+variation. An element is *mismatched* (:func:`mismatched`) when
 
-- it is textured, ``Σ (f - f̄)² / n > TEXTURE · σ_r²`` (an element of pure noise, air around
-  a specimen, cannot be judged: its residual is its noise whatever the field), and
-- its residual explains less than ``1 - UNEXPLAINED`` of that variation.
+- its residual leaves more than :data:`UNEXPLAINED` of that variation unexplained, and
+- it is textured: its own variation per voxel exceeds :data:`TEXTURE` times the noise. An
+  element of pure noise (air around a specimen) cannot be judged: its residual is its noise
+  whatever the field.
 
-``σ_r²`` here is a robust one, the median over elements of their own ``Σ w r² / n``: the
-pass's mean (:attr:`chunkdic.engine.level.Pass.noise_variance`) is raised by the very
-elements under test. Two unrelated scans leave every element's residual at its own
-variation: no element is textured above that residual, so the rule counts every element
-as mismatched when none is textured above the residual of the others (:func:`mismatched`).
+The noise is the residual per voxel of the best matched elements (:data:`NOISE_QUANTILE`
+of it over the elements): the pass's ``σ_r²`` (:attr:`chunkdic.engine.level.Pass.noise_variance`)
+is the mean over every element, raised by the very elements under test (half of them, in a
+half-noise scan), and so is a median. When no element is matched at all (two unrelated
+scans), every element that leaves its variation unexplained is mismatched.
 
 A node is flagged :data:`~chunkdic.results.result.FLAG_MISMATCH` when half or more of its
 elements with data are mismatched, and a converged run whose flagged nodes exceed
@@ -42,13 +42,38 @@ from ..results.result import FLAG_MASKED, FLAG_MISMATCH, FLAG_NO_DATA
 
 log = logging.getLogger(__name__)
 
-__all__ = ["UNEXPLAINED", "TEXTURE", "mismatched", "node_share", "residual_status"]
+__all__ = ["UNEXPLAINED", "TEXTURE", "local_residual", "mismatched", "node_share", "mismatched_nodes", "judged",
+           "residual_status"]
 
 #: an element leaving more than this share of the reference's own variation unexplained
 #: is not matched (honest pairs: at most 0.3 on textured elements; unrelated: 0.9-1)
-UNEXPLAINED = 0.6
+UNEXPLAINED = 0.4
 #: an element is textured when its own variation exceeds this many times the noise
 TEXTURE = 4.0
+#: the noise is the residual per voxel of the best matched elements: this quantile of it over
+#: the elements (a median is raised by the mismatched ones once they are half or more)
+NOISE_QUANTILE = 0.1
+#: an element whose ``Σ (g - ḡ)²`` is below this fraction of ``Σ g²`` fixes no gain
+FLAT = 1e-12
+
+
+def local_residual(n, sd, sg, sdd, sdg, sgg) -> np.ndarray:
+    """Per element, ``Σ w r²`` with the element's own least-squares gain and offset
+    (``r = f - λ g(X+u) - μ``, whatever the brightness model: the least residual the element
+    allows) and ``Σ w (f - f̄)²``, the reference's own variation: shape (2, *elements), grey levels².
+
+    Parameters
+    ----------
+    n, sd, sg, sdd, sdg, sgg : ndarray, shape elements, float64
+        Per element ``Σ w``, ``Σ w d``, ``Σ w g``, ``Σ w d²``, ``Σ w d g``, ``Σ w g²`` with
+        ``d = f - g(X+u)`` and ``g = g(X+u)`` (minus any constant).
+    """
+    safe = np.where(n > 0, n, 1.0)
+    cdd, cdg, cgg = sdd - sd * sd / safe, sdg - sd * sg / safe, sgg - sg * sg / safe  # within-element
+    ok = cgg > FLAT * np.maximum(sgg, 1e-300)
+    local = cdd - np.where(ok, cdg * cdg / np.where(ok, cgg, 1.0), 0.0)
+    own = cdd + 2 * cdg + cgg
+    return np.stack([np.maximum(local, 0.0), np.maximum(own, 0.0)])
 
 
 def mismatched(residual: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -58,24 +83,19 @@ def mismatched(residual: np.ndarray, valid: np.ndarray) -> np.ndarray:
     ----------
     residual : ndarray, shape (2, *elements), float64, grey levels²
         Per element ``Σ w r²`` with the element's own gain and offset, and ``Σ w (f - f̄)²``
-        (:func:`chunkdic.engine.greylevel.residual_rows`).
+        (:func:`local_residual`).
     valid : ndarray, shape elements, float64
         ``Σ w`` per element (voxels used).
     """
     ssr, own = residual
     used = valid > 0
-    out = np.zeros(valid.shape, bool)
-    if not used.any():
-        return out
+    unexplained = used & (ssr > UNEXPLAINED * own)
+    explained = used & ~unexplained
+    if not explained.any():  # nothing matched anywhere (two unrelated scans)
+        return unexplained
     n = np.where(used, valid, 1.0)
-    noise = float(np.median(ssr[used] / n[used]))
-    unexplained = ssr > UNEXPLAINED * own
-    textured = own / n > TEXTURE * noise
-    if noise > 0 and not textured[used].any():
-        # nothing stands out of the residual: every element leaves its own variation
-        # (two unrelated scans), or the scans hold no texture at all (weak nodes say so)
-        return used & unexplained
-    return used & textured & unexplained
+    noise = float(np.quantile(ssr[used] / n[used], NOISE_QUANTILE))
+    return unexplained & (own / n > TEXTURE * noise)
 
 
 def node_share(bad: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -90,8 +110,25 @@ def node_share(bad: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return (nv > 0) & (2 * nb >= nv)
 
 
-def residual_status(status: str, flags: np.ndarray, elements: np.ndarray | None, progress=None) -> str:
-    """The run's status once its residual is judged; sets ``FLAG_MISMATCH`` in ``flags``.
+def mismatched_nodes(residual: np.ndarray, valid: np.ndarray, measured: np.ndarray | None = None) -> np.ndarray:
+    """Nodes (bool, shape: elements + 1 per axis) whose residual is not noise: half or more of
+    their elements with data are :func:`mismatched`; only ``measured`` nodes (bool) when given."""
+    bad = node_share(mismatched(residual, valid), valid)
+    return bad if measured is None else bad & measured
+
+
+def judged(status: str, bad_nodes: int, measured_nodes: int) -> str:
+    """``mismatch`` for a ``converged`` run whose nodes with a residual that is not noise exceed
+    ``chunkdic.max-mismatch-fraction`` of its measured nodes; ``status`` otherwise."""
+    share = bad_nodes / max(measured_nodes, 1)
+    if bad_nodes:
+        log.info("%d of %d measured nodes leave a residual that is not noise (%.0f %%)", bad_nodes, measured_nodes,
+                 100 * share)
+    return "mismatch" if status == "converged" and share > config.get("max-mismatch-fraction") else status
+
+
+def residual_status(status: str, flags: np.ndarray, elements: np.ndarray | None) -> str:
+    """The run's status once its residual is judged (:func:`judged`); sets ``FLAG_MISMATCH`` in ``flags``.
 
     Parameters
     ----------
@@ -103,21 +140,10 @@ def residual_status(status: str, flags: np.ndarray, elements: np.ndarray | None,
         The last pass's element fields (:func:`chunkdic.engine.gauss_newton.element_fields`:
         row 2 the voxels used, rows 6-7 the residual rows); a checkpoint of an older layout
         (6 rows) or None leaves everything as it is.
-    progress : callable, optional
-        Receives a ``mismatch`` event when nodes are flagged.
     """
-    if elements is None or elements.shape[0] < 8 or not np.isfinite(elements[6:]).all():
+    if elements is None or elements.shape[0] < 8 or not np.isfinite(elements[6:8]).all():
         return status
-    bad = node_share(mismatched(elements[6:8], elements[2]), elements[2])
     measured = (flags & (FLAG_NO_DATA | FLAG_MASKED)) == 0
-    bad &= measured
+    bad = mismatched_nodes(elements[6:8], elements[2], measured)
     flags[bad] |= FLAG_MISMATCH
-    share = int(bad.sum()) / max(int(measured.sum()), 1)
-    if bad.any():
-        log.info("%d of %d measured nodes leave a residual that is not noise (%.0f %%)", int(bad.sum()),
-                 int(measured.sum()), 100 * share)
-        if progress is not None:
-            progress(dict(stage="mismatch", nodes=int(bad.sum()), measured=int(measured.sum())))
-    if status == "converged" and share > config.get("max-mismatch-fraction"):
-        return "mismatch"
-    return status
+    return judged(status, int(bad.sum()), int(measured.sum()))
