@@ -62,6 +62,7 @@ from ..io.owntree import remove
 from ..io.scan import open_scan
 from ..io.scratch import reclaim_stale_scratch
 from ..io.siblings import reclaim_stale_partials
+from ..io.units import check_voxel_sizes
 from ..mesh import carry_field
 from ..results.result import HISTORY_FIELDS, Result, open_result
 from ..results.strain import strain_summary
@@ -189,6 +190,7 @@ def series(
         if not Path(s).exists():
             raise InputError(f"series scan {i} {s} does not exist")
         opened.append(open_scan(s))
+    check_voxel_sizes({f"series scan {i} ({s})": sc for i, (s, sc) in enumerate(zip(scans, opened))})
     shape0 = opened[0].shape(0)
     for i, sc in enumerate(opened[1:], 1):
         if sc.shape(0) != shape0:

@@ -46,6 +46,9 @@ def register(subparsers) -> None:
     p.add_argument("--unit", "--voxel-unit", dest="unit",
                    help="length unit of --voxel-size, e.g. micrometer (um), millimeter (mm); required with a bare "
                         "--voxel-size (a unit is never guessed)")
+    p.add_argument("--resample", metavar="SIZE",
+                   help="resample onto this voxel size (trilinear): 20um, 20,20,25um, or numbers in the scan's unit; "
+                        "for a scan to correlate with one of another voxel size (correlate refuses such a pair)")
     p.add_argument("--chunks", type=int, metavar="N", help="Zarr chunk edge in voxels (default 128)")
     p.add_argument("--shape", metavar="Z,Y,X", help="raw input: array shape")
     p.add_argument("--dtype", help="raw input: uint8, uint16, float32 (also int16, uint32, int32, float64)")
@@ -117,7 +120,8 @@ def _ingest(args: argparse.Namespace) -> int:
     progress = Progress("ingest" + (" + pyramid" if args.levels else ""), header=f"ingest {args.src} -> {args.out}{levels}")
     scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
                   shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
-                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels, progress=progress)
+                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels, progress=progress,
+                  resample=args.resample)
     progress.done()
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
     return 0

@@ -30,7 +30,7 @@ from ..io.owntree import remove
 from ..io.scan import open_scan
 from ..io.scratch import (adopt_scratch, directory_bytes, interrupted_run_of, leave_scratch, make_scratch,
                           reclaim_stale_scratch)
-from ..io.units import lengths_in_voxels
+from ..io.units import check_voxel_sizes, lengths_in_voxels
 from ..kernels import jit as kernels
 from ..results.result import Result
 from ..scheduler import check_scheduler, open_runner
@@ -159,6 +159,7 @@ def correlate(
     options, roi = voxel_lengths(settings, options, roi, roi_unit, ref)
     settings = settings_from(settings, options)
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
+    check_voxel_sizes({"the reference": f_scan, "the deformed scan": g_scan})
     for role, scan in (("reference", f_scan), ("deformed scan", g_scan)):
         if scan.dtype(0) == bool:  # a mask is bool; a scan to correlate must have grey levels
             raise InputError(f"the {role} is a two-level (bool) image: it has no sub-voxel information; correlate "
