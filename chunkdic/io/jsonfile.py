@@ -40,7 +40,7 @@ def read_json(path, *, max_bytes: int = MAX_JSON_BYTES):
             raise ValueError(f"{os.fspath(path)} is not a regular file")
         if st.st_size > max_bytes:
             raise ValueError(f"{os.fspath(path)} holds {st.st_size} bytes, more than any metadata file")
-        data = fh.read(max_bytes + 1)
+        data = fh.read(st.st_size + 1)  # its size, not the bound: read(n) allocates n bytes first
     return loads(data)
 
 

@@ -28,6 +28,7 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.chunkread import read_whole
 from ..mesh import Mesh, level0_position
 
 HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
@@ -392,10 +393,10 @@ def open_result(path: str | os.PathLike) -> Result:
         raise InputError(f"result {path} lacks the attribute(s) {', '.join(missing)}: not a chunkdic result, "
                          "or a damaged one")
     try:
-        u = root["displacement"][...]
-        X = root["node_coords"][...]
-        history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
-        optional = {name: root[name][...] if name in root else None
+        u = _array(root, path, "displacement")
+        X = _array(root, path, "node_coords")
+        history = {name: _array(root, path, f"history/{name}") for name in HISTORY_FIELDS}
+        optional = {name: _array(root, path, name) if name in root else None
                     for name in ("strain", "flags", "brightness", "active", "uncertainty")}
     except KeyError as exc:
         raise InputError(f"result {path} lacks the array {exc.args[0]!r}: a damaged result") from None
@@ -428,6 +429,15 @@ def _check_facts(path, info: dict) -> None:
     if not ok:
         raise InputError(f"result {path}: attribute voxel_size {vs!r} is not three positive finite numbers: a "
                          "damaged result")
+
+
+def _array(root, path: Path, name: str) -> np.ndarray:
+    """Array ``name`` of the result group ``root`` (at ``path``), read from its chunk files so that
+    no chunk decodes into more than its own size (:func:`chunkdic.io.chunkread.read_whole`);
+    through zarr for a layout that reader does not know. KeyError when absent."""
+    node = root[name]  # KeyError: absent
+    whole = read_whole(str(path), name)
+    return node[...] if whole is None else whole
 
 
 def _check_consistent(path, info, u, X, history) -> None:
