@@ -55,6 +55,7 @@ from ..engine.prefilter import face_margin
 from ..engine.settings import Settings
 from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
+from ..io.jsonfile import json_dict, read_json_object
 from ..io.kinds import kind_of
 from ..io.locks import OutputLock, reclaim_stale_locks
 from ..io.outputs import Outputs, inside
@@ -200,11 +201,15 @@ def series(
     plan_meshes(shape0, element_size=settings.element_size, roi=roi, level=settings.level,
                 coarsest=settings.coarsest, min_margin=face_margin(settings.smoothing))
     check_scheduler(scheduler)
-    plan = Outputs(inputs=(*scans, mask), overwrite=overwrite)
-    entry = plan.add(output, "series", resumable=True)
     identities = [identify_input(s, sc) for s, sc in zip(scans, opened)]
     series_print = fingerprint({"scans": identities, "settings": settings.to_json(), "roi": parse_roi(roi),
                                 "mode": mode, "mask": None if mask is None else identify_input(mask, open_any(mask))})
+    if not overwrite and _completed(output, series_print):  # the same command again: nothing to do
+        if progress is not None:
+            progress({"stage": "complete", "path": str(output)})
+        return open_series(output)
+    plan = Outputs(inputs=(*scans, mask), overwrite=overwrite)
+    entry = plan.add(output, "series", resumable=True)
     out = Path(output)
     with OutputLock(out):
         fresh = entry.state != "resume"
@@ -260,8 +265,9 @@ def _resumable(out: Path) -> bool:
 
 def _attrs(group: Path) -> dict:
     try:
-        return dict(json.loads((group / "zarr.json").read_text()).get("attributes", {}).get("chunkdic", {}))
-    except (OSError, ValueError, AttributeError):
+        meta = read_json_object(group / "zarr.json")
+        return dict(json_dict(json_dict(meta.get("attributes") or {}).get("chunkdic") or {}))
+    except (OSError, ValueError):
         return {}
 
 
@@ -326,6 +332,15 @@ def _reclaim_dead_runs(out: Path) -> None:
         if folder.is_dir():
             reclaim_stale_partials(folder / "_")
             reclaim_stale_locks(folder)
+
+
+def _completed(output, print_: str) -> bool:
+    """``output`` is the complete series of this very command (its fingerprint)."""
+    p = Path(output)
+    try:
+        return not p.is_symlink() and kind_of(p) == ("series", True) and _attrs(p).get("fingerprint") == print_
+    except (OSError, ValueError):
+        return False
 
 
 def _check_resumable(out: Path, print_: str) -> None:

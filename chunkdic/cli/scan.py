@@ -112,6 +112,13 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 def _ingest(args: argparse.Namespace) -> int:
     from ..io.formats.ingest import ingest
+    from ..io.kinds import kind_of
+
+    # a complete scan at OUT is refused unless it is this very command's (then nothing is done)
+    try:
+        complete = not args.overwrite and kind_of(args.out) == ("scan", True)
+    except OSError:  # a name too long, a loop of links: the output checks say so
+        complete = False
 
     levels = f" and pyramid levels 1..{args.levels}" if args.levels else ""
     t0 = time.perf_counter()
@@ -122,6 +129,9 @@ def _ingest(args: argparse.Namespace) -> int:
                   shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
                   dataset=args.dataset, overwrite=args.overwrite, levels=args.levels, progress=progress,
                   resample=args.resample)
+    if complete:
+        say(f"{args.out} is already complete (the same source and options): nothing to do")
+        return 0
     progress.done()
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
     return 0

@@ -44,6 +44,7 @@ from pathlib import Path
 from ..errors import InputError
 from .kinds import KINDS, Kind, kind_of, mark_folder, ours_in_folder
 from .locks import OutputLock
+from .madeof import record, recorded
 from .owntree import check_own_tree, remove
 from .siblings import name_limits, partial_name, reclaim_stale_partials
 from .store import drain_zarr_io
@@ -239,8 +240,10 @@ def check_writable(directory, what: str = "") -> None:
         raise InputError(f"cannot write in {directory}{what}: {exc.strerror}") from None
 
 
-def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable: bool) -> str:
-    """How to treat an existing ``real``: "absent", "empty-folder", "resume" or "replace"."""
+def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable: bool,
+                    made: str | None = None) -> str:
+    """How to treat an existing ``real``: "absent", "empty-folder", "resume", "replace" or "done"
+    (a complete output of this very command: it records ``made``, :mod:`chunkdic.io.madeof`)."""
     if real.is_symlink():
         raise InputError(f"output {_say(p)} is a symbolic link: refusing to write through it; choose another path")
     if not real.exists():
@@ -256,6 +259,8 @@ def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable:
         check_own_tree(real, what=kind.label)  # written into again: never through a link out of it
         return "resume"
     if not overwrite:
+        if found == kind.name and complete and made is not None and recorded(real) == made:
+            return "done"
         if found == kind.name and complete:
             raise InputError(f"output {_say(p)} is a complete {kind.label}: choose another path or pass --overwrite")
         if found == kind.name:
@@ -273,7 +278,7 @@ def _check_existing(p: Path, real: Path, kind: Kind, overwrite: bool, resumable:
 
 
 def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumable: bool = False,
-                 parents: bool = False) -> str:
+                 parents: bool = False, made_of: str | None = None) -> str:
     """Check one output against every rule (module docstring); no side effects.
 
     Parameters
@@ -291,11 +296,14 @@ def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumab
     parents : bool
         Missing parent directories may be created (``ingest``); the nearest existing
         ancestor must then be a writable directory outside every Zarr store.
+    made_of : str, optional
+        What this command makes the output of (:func:`chunkdic.io.madeof.made_of`): a complete
+        output recording the same is this command's own, and has nothing to do ("done").
 
     Returns
     -------
     str
-        ``"absent"``, ``"empty-folder"``, ``"resume"`` or ``"replace"``.
+        ``"absent"``, ``"empty-folder"``, ``"resume"``, ``"replace"`` or ``"done"``.
 
     Raises
     ------
@@ -309,7 +317,7 @@ def check_output(path, kind: str, *, inputs=(), overwrite: bool = False, resumab
     _check_cwd(p, real)
     _check_inputs(p, real, input_roots(inputs))
     _check_location(p, real, k, parents)
-    state = _check_existing(p, real, k, overwrite, resumable)
+    state = _check_existing(p, real, k, overwrite, resumable, made_of)
     check_writable(real.parent if real.parent.is_dir() else _existing_ancestor(p), f" (for output {_say(p)})")
     return state
 
@@ -332,6 +340,7 @@ class Entry:
     made: list = field(default_factory=list)  # the directories this run created
     lock: OutputLock | None = None  # the one-writer lock, held from _begin to commit or rollback
     begun: bool = False  # writing began (rollback undoes only such entries: never another run's output)
+    made_of: str | None = None  # recorded in the output at the commit (chunkdic.io.madeof)
 
 
 class Outputs:
@@ -356,11 +365,13 @@ class Outputs:
         self._open = False
 
     def add(self, path, kind: str, *, staged: bool | None = None, resumable: bool = False,
-            parents: bool = False) -> Entry:
+            parents: bool = False, made_of: str | None = None) -> Entry:
         """Declare and check one output; nothing is written yet.
 
         ``parents``: create missing parent directories when writing begins (removed again
-        if the run fails).
+        if the run fails). ``made_of``: what this command makes it of
+        (:func:`chunkdic.io.madeof.made_of`), recorded in it at the commit; the same command
+        on its own complete output finds it ``done`` (:attr:`done`).
         """
         if path is None or os.fspath(path) == "":
             raise InputError(f"empty path for the {KINDS[kind].label}")
@@ -374,18 +385,27 @@ class Outputs:
             if other in real.parents or real in other.parents:
                 raise InputError(f"outputs {_say(e.final)} and {_say(path)} overlap: choose separate paths")
         state = check_output(path, kind, inputs=self.inputs, overwrite=self.overwrite, resumable=resumable,
-                             parents=parents)
+                             parents=parents, made_of=made_of)
         if staged is None:
             staged = k.form != "folder" and not resumable
-        entry = Entry(Path(path), k, staged, state, parents=_missing_parents(Path(path)) if parents else [])
+        entry = Entry(Path(path), k, staged, state, parents=_missing_parents(Path(path)) if parents else [],
+                      made_of=made_of)
         entry.work = entry.final
         self.entries.append(entry)
         if self._open:
             self._begin(entry)
         return entry
 
+    @property
+    def done(self) -> bool:
+        """Every output is already this command's own, complete: nothing to do, nothing to write."""
+        return bool(self.entries) and all(e.state == "done" for e in self.entries)
+
     # -- side effects -----------------------------------------------------------------
     def _begin(self, e: Entry) -> None:
+        if e.state == "done":  # some outputs done, others not: the done ones are as any complete one
+            raise InputError(f"output {_say(e.final)} is a complete {e.kind.label}: choose another path or pass "
+                             "--overwrite")
         for d in e.parents:
             if not d.exists():
                 d.mkdir()
@@ -458,6 +478,8 @@ class Outputs:
 
     def _commit(self) -> None:
         for e in self.entries:
+            if e.staged and e.made_of is not None and e.work.exists():
+                record(e.work, e.made_of)  # before the rename: the output is whole with it, or absent
             if e.staged:
                 if not e.work.exists():
                     continue  # this output was not written (an optional step was skipped)
@@ -471,6 +493,8 @@ class Outputs:
                 os.replace(e.work, e.final)
             elif e.kind.form == "folder":
                 mark_folder(e.final, e.kind.name, complete=True)
+                if e.made_of is not None:
+                    record(e.final, e.made_of)
 
     def rollback(self) -> None:
         """Remove what this run created; never what was there before."""

@@ -30,7 +30,7 @@ log = logging.getLogger(__name__)
 
 def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite: bool = False,
                levels: int = 0, progress: Callable[[float], None] | None = None, inputs=(),
-               parents: bool = False) -> "Scan":
+               parents: bool = False, made_of: str | None = None) -> "Scan":
     """Write a 3-D array as a stored scan: a Zarr v3 group with OME-NGFF 0.5 metadata.
 
     Level ``"0"`` is ``data``, written chunk by chunk by Dask (``data`` is never computed
@@ -60,6 +60,9 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     progress : callable(float), optional
         Called with the fraction done (0..1), on the threaded scheduler as tasks finish
         and on a distributed client (the current one) as the chunk writes finish.
+    made_of : str, optional
+        What the scan is made of (:mod:`chunkdic.io.madeof`), recorded in it: the same call
+        again on its own complete scan writes nothing and returns it.
 
     Returns
     -------
@@ -88,7 +91,10 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     levels = int(levels)
     check_levels(data.shape, levels)
     plan = Outputs(inputs=inputs, overwrite=overwrite)
-    entry = plan.add(path, "scan", parents=parents)  # every check before anything is written
+    entry = plan.add(path, "scan", parents=parents, made_of=made_of)  # every check before anything is written
+    if plan.done:
+        log.info("%s is already complete (the same source and options): nothing to do", path)
+        return open_scan(str(path))
     forget_open_arrays()
     weights = [1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)]
     cuts = np.cumsum([0.0] + weights) / sum(weights)

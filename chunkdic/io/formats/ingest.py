@@ -26,6 +26,7 @@ import numpy as np
 from ...errors import InputError
 from ...inputs import check_finite
 from ..handles import RefReader
+from ..madeof import made_of
 from ..ngff import normalize_unit, normalize_voxel_size
 from ..resample import resampled
 from ..scan import Scan, open_scan
@@ -165,8 +166,11 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
         log.info("resampling %s from voxel size %s to %s %s", label, vs, new, unit_out)
         vs = new
     log.info("ingesting %s: shape %s %s, voxel size %s %s", label, data.shape, data.dtype, vs, unit_out)
+    made = made_of("ingest", [in_path], {"voxel_size": vs, "unit": unit_out, "chunks": chunks, "shape": shape,
+                                          "dtype": dtype, "byte_order": byte_order, "offset": offset,
+                                          "dataset": dataset, "levels": levels, "resample": resample})
     return write_scan(out_p, data, voxel_size=vs, unit=unit_out, chunks=chunks, overwrite=overwrite,
-                      levels=levels, progress=progress, inputs=[in_path], parents=parents)
+                      levels=levels, progress=progress, inputs=[in_path], parents=parents, made_of=made)
 
 
 def _mtime(p: Path) -> int:
