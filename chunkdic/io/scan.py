@@ -449,6 +449,8 @@ def _open(src) -> Scan:
             return Scan(path=str(p), voxel_size=None, unit=None, _stored={0: ref})
         hint = " (convert it with `chunkdic ingest`)" if p.suffix.lower() in _INGEST_SUFFIXES else ""
         raise InputError(f"{p} is not a Zarr store or a .npy file{hint}")
+    if not p.is_dir():  # a FIFO, a socket, a device: never opened (a FIFO would wait for a writer)
+        raise InputError(f"{p} is not a Zarr store, a .npy file or a folder (a FIFO, a socket or a device?)")
     try:
         node = zarr.open(store=str(p), mode="r")
     except Exception as e:  # noqa: BLE001
