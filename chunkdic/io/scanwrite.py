@@ -18,6 +18,7 @@ import numpy as np
 from ..errors import InputError
 from .coarsen import pyramid_dtype
 from .handles import forget_open_arrays
+from .jsonfile import json_dict, read_json_object
 from .levels import check_levels, write_level
 from .ngff import normalize_unit, normalize_voxel_size, update_group_metadata
 from .outputs import Outputs
@@ -194,8 +195,8 @@ def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
     if not os.path.exists(path):
         return False
     try:
-        with open(os.path.join(path, "zarr.json")) as fh:
-            ck = (json.load(fh).get("attributes") or {}).get("chunkdic")
+        ck = json_dict(read_json_object(os.path.join(path, "zarr.json")).get("attributes") or {}).get("chunkdic")
+        ck = json_dict(ck) if ck is not None else None
     except (OSError, ValueError):
         ck = None
     if ck is None:  # killed between mkdir and the group's metadata: nothing of value yet
@@ -205,14 +206,16 @@ def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
         raise InputError(f"{path} holds an interrupted write of another scan (other settings): "
                          "pass --overwrite to start again")
     try:
-        with open(os.path.join(path, "0", "zarr.json")) as fh:
-            meta = json.load(fh)
+        meta = read_json_object(os.path.join(path, "0", "zarr.json"))
     except (OSError, ValueError):
         remove(path)  # killed before level 0 existed: start again
         return False
-    same = (tuple(meta.get("shape", ())) == tuple(data.shape)
-            and np.dtype(meta.get("data_type")) == np.dtype(data.dtype)
-            and tuple(meta["chunk_grid"]["configuration"]["chunk_shape"]) == tuple(chunk_shape))
+    try:
+        same = (tuple(meta.get("shape", ())) == tuple(data.shape)
+                and np.dtype(meta.get("data_type")) == np.dtype(data.dtype)
+                and tuple(meta["chunk_grid"]["configuration"]["chunk_shape"]) == tuple(chunk_shape))
+    except (KeyError, TypeError, ValueError, AttributeError):
+        same = False
     if not same:
         raise InputError(f"{path} holds an interrupted write of another scan (shape, dtype or chunks "
                          "differ): pass --overwrite to start again")
