@@ -727,7 +727,8 @@ def die():
     os.kill(os.getpid(), signal.SIGKILL)
 def ours(p):
     return str(p).rstrip("/").endswith(target)
-real_rename, real_replace, real_remove = os.rename, os.replace, outputs._remove
+REMOVE = "remove" if hasattr(outputs, "remove") else "_remove"  # the one removal (older trees: _remove)
+real_rename, real_replace, real_remove = os.rename, os.replace, getattr(outputs, REMOVE)
 def rename(src, dst, *a, **k):
     if point == "before-rename" and ours(src):
         die()
@@ -745,7 +746,8 @@ def remove(path):
         shutil.rmtree(path / "checkpoint", ignore_errors=True)
         die()
     real_remove(path)
-os.rename, os.replace, outputs._remove = rename, replace, remove
+os.rename, os.replace = rename, replace
+setattr(outputs, REMOVE, remove)
 if point == "chunk-writes":
     from zarr.storage import LocalStore
     real_set, count = LocalStore.set, [0]

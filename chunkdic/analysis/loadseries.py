@@ -58,7 +58,8 @@ from ..io.formats.anyscan import open_any
 from ..io.jsonfile import json_dict, read_json_object
 from ..io.kinds import kind_of
 from ..io.locks import OutputLock, reclaim_stale_locks
-from ..io.outputs import Outputs, inside
+from ..io.outputrules import inside
+from ..io.outputs import Outputs
 from ..io.owntree import remove
 from ..io.scan import open_scan
 from ..io.scratch import reclaim_stale_scratch

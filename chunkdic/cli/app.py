@@ -401,7 +401,7 @@ def _check_cwd() -> None:
     try:
         os.getcwd()
     except FileNotFoundError:
-        from ..io.outputs import CWD_GONE
+        from ..io.outputrules import CWD_GONE
 
         raise InputError(CWD_GONE) from None
 
@@ -441,7 +441,7 @@ def _cwd_gone() -> str | None:
     try:
         os.getcwd()
     except FileNotFoundError:
-        from ..io.outputs import CWD_GONE
+        from ..io.outputrules import CWD_GONE
 
         return CWD_GONE.replace("(it was removed)", "(it was removed during the run)")
     return None

@@ -31,7 +31,7 @@ from .display import (
 from .handles import forget_open_arrays, ref_dask
 from .levels import check_levels, write_level
 from .ngff import update_group_metadata
-from .outputs import check_writable
+from .outputrules import check_writable
 from .owntree import check_own_tree, remove
 from .locks import OutputLock
 from .scan import Scan, open_scan

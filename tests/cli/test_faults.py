@@ -30,7 +30,7 @@ from chunkdic.cli.app import main
 from chunkdic.errors import InputError
 from chunkdic.io import owners, scratch
 from chunkdic.io.integrity import content_identity
-from chunkdic.io.outputs import check_output
+from chunkdic.io.outputrules import check_output
 from chunkdic.synth import synthetic
 
 # kills, races and full disks on whole commands: `pytest -m 'not slow'` leaves them out
