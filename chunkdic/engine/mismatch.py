@@ -14,9 +14,10 @@ no brightness model counts as a mismatch) and ``Σ w (f - f̄)²``, the referenc
 variation. An element is *mismatched* (:func:`mismatched`) when
 
 - its residual leaves more than :data:`UNEXPLAINED` of that variation unexplained, and
-- it is textured: its own variation per voxel exceeds :data:`TEXTURE` times the noise. An
-  element of pure noise (air around a specimen) cannot be judged: its residual is its noise
-  whatever the field.
+- it is textured: its own variation per voxel exceeds :data:`TEXTURE` times the noise (and a
+  thousandth of the typical element's, :data:`FLAT_SHARE`, for scans without noise). An
+  element of pure noise (air around a specimen) or a flat one cannot be judged: its residual
+  is its noise whatever the field.
 
 The noise is the residual per voxel of the best matched elements (:data:`NOISE_QUANTILE`
 of it over the elements): the pass's ``σ_r²`` (:attr:`chunkdic.engine.level.Pass.noise_variance`)
@@ -53,6 +54,8 @@ TEXTURE = 4.0
 #: the noise is the residual per voxel of the best matched elements: this quantile of it over
 #: the elements (a median is raised by the mismatched ones once they are half or more)
 NOISE_QUANTILE = 0.1
+#: an element whose own variation per voxel is below this share of the median element's is flat
+FLAT_SHARE = 1e-3
 #: an element whose ``Σ (g - ḡ)²`` is below this fraction of ``Σ g²`` fixes no gain
 FLAT = 1e-12
 
@@ -95,7 +98,10 @@ def mismatched(residual: np.ndarray, valid: np.ndarray) -> np.ndarray:
         return unexplained
     n = np.where(used, valid, 1.0)
     noise = float(np.quantile(ssr[used] / n[used], NOISE_QUANTILE))
-    return unexplained & (own / n > TEXTURE * noise)
+    # and never below a thousandth of the typical element's own variation: a noise-free scan
+    # has no noise to stand out of, but its flat parts are no texture either (as weak nodes)
+    floor = max(noise, FLAT_SHARE * float(np.median(own[used] / n[used])))
+    return unexplained & (own / n > TEXTURE * floor)
 
 
 def node_share(bad: np.ndarray, valid: np.ndarray) -> np.ndarray:
