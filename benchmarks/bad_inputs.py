@@ -1425,8 +1425,8 @@ def _cwd_during(case, d, scratch) -> str:
     lines = []
     for line in proc.stderr:
         lines.append(line)
-        if case.env["AT"] in line and wd.exists():
-            shutil.rmtree(wd)
+        while case.env["AT"] in line and wd.exists():  # rm -r while the run writes there: until gone
+            shutil.rmtree(wd, ignore_errors=True)
     rc = proc.wait(timeout=case.timeout)
     err = "".join(lines)
     errors = [ln for ln in err.splitlines() if ln.startswith("chunkdic: error:")]
