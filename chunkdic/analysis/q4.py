@@ -196,7 +196,7 @@ class _Level:
     def judge(self, u: np.ndarray, status: str) -> str:
         """The status of the field ``u`` that ended the level as ``status``, judged as the 3-D
         engine judges a result: ``excluded`` when more than ``chunkdic.max-excluded-fraction``
-        of the ROI's pixels map outside ``g`` (a 20-pixel wrap-around roll of a 40-pixel image
+        of the ROI's pixels map outside ``g`` (a 20-pixel wrap-around roll of a 48-pixel image
         converges on the part that did not wrap), ``mismatch`` when the residual of too many
         nodes is not noise (:mod:`chunkdic.engine.mismatch`: two unrelated images)."""
         gv, valid, outside = self.sample(u)

@@ -41,8 +41,8 @@ from ..errors import DiskSpaceError, InputError
 from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
-from ..io.scratch import kept_scratch, reclaimable_scratch_bytes
 from ..io.scan import open_scan
+from ..io.scratch import kept_scratch, reclaimable_scratch_bytes
 from ..mesh import Mesh
 from ..scheduler import local_workers
 from .greylevel import aligned_block_elements, offset_cell

@@ -49,14 +49,12 @@ import numpy as np
 
 from ..kernels.b import element_to_nodes
 from ..kernels.blocks import LAGS, ElementSums
-from .mismatch import local_residual
+from .mismatch import FLAT, local_residual
 from .settings import DEFAULT_GREY_CELL_VOXELS
 
 MODELS = ("none", "global", "drift", "element")
 #: bounds of a per-element gain (``element`` model)
 GAIN_RANGE = (0.5, 2.0)
-#: an element whose ``Σ (g' - mean)²`` is below this fraction of ``Σ g'²`` fixes no gain
-FLAT = 1e-12
 # positions of the quantities in ElementSums (blocks.QUANTITIES)
 _D, _G, _ONE, _Z, _Y, _X = range(6)
 _THETA = (_G, _Z, _Y, _X)  # global unknowns of the drift model: gain, then the drift per axis

@@ -56,7 +56,8 @@ TEXTURE = 4.0
 NOISE_QUANTILE = 0.1
 #: an element whose own variation per voxel is below this share of the median element's is flat
 FLAT_SHARE = 1e-3
-#: an element whose ``Σ (g - ḡ)²`` is below this fraction of ``Σ g²`` fixes no gain
+#: an element whose ``Σ (g - ḡ)²`` is below this fraction of ``Σ g²`` fixes no gain (here and in
+#: the ``element`` brightness model, :mod:`chunkdic.engine.greylevel`)
 FLAT = 1e-12
 
 
