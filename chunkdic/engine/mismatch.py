@@ -47,7 +47,8 @@ __all__ = ["UNEXPLAINED", "TEXTURE", "local_residual", "mismatched", "node_share
            "residual_status"]
 
 #: an element leaving more than this share of the reference's own variation unexplained
-#: is not matched (honest pairs: at most 0.3 on textured elements; unrelated: 0.9-1)
+#: is not matched (the suite's honest pairs: 99 % of textured elements below 0.26, a few
+#: up to 0.58 on a band at ℓ = 4; half-noise and unrelated elements: 0.5-1)
 UNEXPLAINED = 0.4
 #: an element is textured when its own variation exceeds this many times the noise
 TEXTURE = 4.0
