@@ -15,7 +15,7 @@ DEFAULTS = {
         # whole number of elements that fits (at least one).
         "block-voxels": 128,
         # Largest edge (voxels) of a task of the prefilter of g (its halo: 16 voxels per side;
-        # None: 160, chunkdic.engine.prefilter.TASK_EDGE).
+        # None: 160, chunkdic.passes.prefilter.TASK_EDGE).
         "prepare-voxels": None,
         # Peak resident memory per process to plan for ("2GiB"; None: no target): block and
         # prefilter task sizes are chosen to fit it, a run that cannot is refused (docs/engine.md).
@@ -56,7 +56,7 @@ DEFAULTS = {
         # little texture (their values come from the regularisation, not the images).
         "max-weak-fraction": 0.2,
         # ... and "mismatch" when more than this fraction of its measured nodes leave a
-        # residual that is not noise (chunkdic.engine.mismatch: the deformed scan does not
+        # residual that is not noise (chunkdic.method.mismatch: the deformed scan does not
         # match the reference there, whatever the field).
         "max-mismatch-fraction": 0.1,
         # A node whose elements hold fewer valid voxels than this fraction of one element

@@ -1,3 +1,4 @@
 from .driver import correlate
-from .planning import plan_meshes
-from .settings import Settings
+from .front import RunSpec, prepare_run
+from .meshes import plan_meshes
+from .runplan import Plan, plan
