@@ -77,6 +77,16 @@ def own_display(path) -> bool | None:
     return meta.get("node_type") == "group" and isinstance(ck, dict) and ck.get("kind") == "display"
 
 
+def remove_display(node: Path) -> None:
+    """Remove chunkdic's ``display`` group ``node``, its ``zarr.json`` last: a removal killed
+    halfway leaves a group still marked chunkdic's (or an empty folder), which the next build
+    replaces, never a folder of arrays without the metadata that says whose they are."""
+    for child in node.iterdir():
+        if child.name != "zarr.json":
+            remove(child)
+    remove(node)
+
+
 def check_display_slot(path) -> None:
     """Refuse (one line) to write ``--display`` where the scan holds a ``display`` node chunkdic did not write."""
 
@@ -254,7 +264,7 @@ def write_display(path: str, *, progress=None) -> list[int]:
     check_display_slot(path)
     root = zarr.open_group(store=str(path), mode="r+")
     if own_display(path):
-        remove(Path(path) / DISPLAY_GROUP)
+        remove_display(Path(path) / DISPLAY_GROUP)
     # marked chunkdic's at once: a build killed from here on leaves a group the next one replaces
     g = root.create_group(DISPLAY_GROUP, attributes={"chunkdic": {"kind": "display", "complete": False}})
     refs = scan.stored_refs()

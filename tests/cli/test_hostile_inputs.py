@@ -265,3 +265,63 @@ def test_pyramid_display_resumes_over_the_empty_folder_a_kill_leaves(pair, capsy
     assert main(["pyramid", "s/ref.zarr", "--levels", "1", "--display"]) == 0
     meta = json.loads((pair / "s/ref.zarr/display/zarr.json").read_text())
     assert meta["attributes"]["chunkdic"]["kind"] == "display" and meta["attributes"]["chunkdic"]["complete"]
+
+
+class _Killed(BaseException):
+    """A kill: no handler of the interrupted code runs (not an Exception)."""
+
+
+@pytest.mark.slow  # some 80 kills, each followed by a pyramid --display
+def test_pyramid_display_resumes_after_a_kill_at_any_line(pair, capsys, monkeypatch):
+    """``write_display`` over the scan's own complete display (so its removal runs too), interrupted
+    at each line of ``write_display`` and of the removal of the old display, and before each file
+    or folder removed, in turn: every time the next ``pyramid --display`` completes, and the display is the levels'
+    means (sums / 8^s)."""
+    import sys
+
+    from chunkdic.io import display, owntree
+
+    monkeypatch.chdir(pair)
+    scan = pair / "s/ref.zarr"
+    argv = ["pyramid", "s/ref.zarr", "--levels", "2", "--display"]
+    assert main(argv) == 0
+    where = {(display.__file__, "write_display"), (display.__file__, "remove_display"), (owntree.__file__, "remove")}
+    kills, seen = 0, 0
+
+    def place_to_die():
+        nonlocal seen
+        seen += 1
+        if seen == kills + 1:
+            raise _Killed
+
+    def trace(frame, event, arg):
+        if (frame.f_code.co_filename, frame.f_code.co_name) not in where:
+            return None
+        if event == "line":
+            place_to_die()
+        return trace
+
+    for name in ("unlink", "rmdir"):  # shutil.rmtree's removals, one by one
+        real = getattr(os, name)
+        monkeypatch.setattr(os, name, lambda *a, _real=real, **k: (place_to_die(), _real(*a, **k))[1])
+    while True:
+        seen = 0
+        sys.settrace(trace)
+        try:
+            display.write_display(str(scan))
+            break  # ran to its end: every line has been a place to die
+        except BaseException as exc:  # a cleanup on the way out may fail too (shutil closing a closed fd)
+            if not isinstance(exc, _Killed) and not isinstance(exc.__context__, _Killed):
+                raise
+            kills += 1
+        finally:
+            sys.settrace(None)
+        seen = -10**9  # the recovery is not interrupted
+        assert main(argv) == 0, capsys.readouterr().err
+        meta = json.loads((scan / "display/zarr.json").read_text())["attributes"]["chunkdic"]
+        assert meta["complete"] and meta["levels"] == [1, 2]
+    assert kills > 30
+    for s in (1, 2):
+        mean = zarr.open_array(str(scan / f"display/{s}"), mode="r")[...]
+        level = zarr.open_array(str(scan / f"{s}"), mode="r")[...]
+        assert np.array_equal(mean, (level / 8.0**s).astype(np.float32))
