@@ -21,6 +21,7 @@ from ..method.events import EXPLAIN
 from ..errors import InputError, WorkerLostError
 from ..results.result import FLAG_MISMATCH
 from ..scheduler import SCHEDULER_HELP
+from .rerun import judged_run
 from .common import (
     add_engine_options,
     add_length_options,
@@ -411,7 +412,8 @@ def _check_cwd() -> None:
 def _dispatch(args) -> int:
     try:
         _check_cwd()
-        return args.func(args)
+        with judged_run(args) as done:
+            return 0 if done else args.func(args)
     except InputError as exc:
         # whatever failed, a working directory removed during the run is why (its outputs went with it)
         say(f"chunkdic: error: {_cwd_gone() or (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)}")

@@ -6,7 +6,10 @@ and exits 0, writing nothing. To know that the output *is* its own, every output
 digest of what made it (:func:`made_of`: the command, each input's identity and the options
 that shape the output); :func:`already_made` compares. A correlation, a series and a
 pyramid have their own fingerprints (:mod:`chunkdic.engine.checkpoint`); this is the same
-for the others (``ingest``, ``export``, ``cutcheck``).
+for the others: ``ingest``, ``export`` and ``cutcheck`` name what shapes their outputs; for
+the other commands the CLI digests its command line (:mod:`chunkdic.cli.rerun`) and declares
+it for the output it names (:func:`making`), which :class:`~chunkdic.io.outputs.Outputs`
+records there.
 
 Where the digest lies, by the output's form (:mod:`chunkdic.io.kinds`): a store's
 ``attrs["chunkdic"]["made_of"]`` (its ``zarr.json``), a folder's marker, a JSON file's own
@@ -16,6 +19,8 @@ Where the digest lies, by the output's form (:mod:`chunkdic.io.kinds`): a store'
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import hashlib
 import json
 import os
@@ -25,9 +30,28 @@ from pathlib import Path
 from .jsonfile import json_dict, read_json_object
 from .kinds import MARKER, VTK_TITLE, VTU_MARK, kind_of
 
-__all__ = ["made_of", "path_identity", "recorded", "record", "already_made"]
+__all__ = ["made_of", "path_identity", "recorded", "record", "already_made", "making", "made_here"]
 
 _DIGEST = re.compile(rb"made_of=([0-9a-f]{32})")
+#: the output being made and its digest, declared by the caller of an API function (:func:`making`)
+_MAKING: contextvars.ContextVar[tuple[str, str] | None] = contextvars.ContextVar("chunkdic_making", default=None)
+
+
+@contextlib.contextmanager
+def making(path, digest: str):
+    """Within: the output declared at ``path`` without a digest of its own records ``digest``
+    (:func:`made_here`), so that the same command finds it its own next time."""
+    token = _MAKING.set((os.path.realpath(path), digest))
+    try:
+        yield
+    finally:
+        _MAKING.reset(token)
+
+
+def made_here(path) -> str | None:
+    """The digest declared for ``path`` by an enclosing :func:`making`, or None."""
+    current = _MAKING.get()
+    return current[1] if current is not None and os.path.realpath(path) == current[0] else None
 
 
 def path_identity(path) -> dict:

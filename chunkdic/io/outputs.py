@@ -33,7 +33,7 @@ from pathlib import Path
 from ..errors import InputError
 from .kinds import KINDS, Kind, kind_of, mark_folder, ours_in_folder
 from .locks import OutputLock
-from .madeof import record
+from .madeof import made_here, record
 from .outputrules import check_output, missing_parents, real_path, say_path
 from .owntree import remove
 from .siblings import partial_name, reclaim_stale_partials
@@ -92,11 +92,13 @@ class Outputs:
 
         ``parents``: create missing parent directories when writing begins (removed again
         if the run fails). ``made_of``: what this command makes it of
-        (:func:`chunkdic.io.madeof.made_of`), recorded in it at the commit; the same command
-        on its own complete output finds it ``done`` (:attr:`done`).
+        (:func:`chunkdic.io.madeof.made_of`; default: the one a caller declared for ``path``,
+        :func:`chunkdic.io.madeof.making`), recorded in it at the commit; the same command on
+        its own complete output finds it ``done`` (:attr:`done`).
         """
         if path is None or os.fspath(path) == "":
             raise InputError(f"empty path for the {KINDS[kind].label}")
+        made_of = made_of if made_of is not None else made_here(path)
         k = KINDS[kind]
         real = real_path(Path(path))
         for e in self.entries:
