@@ -1352,7 +1352,16 @@ def faults4(add, cor, ov) -> None:
                        ("export --csv", ["export", "r.zarr", "--csv", "out.csv"]),
                        ("export --corrected", ["export", "r.zarr", "--corrected", "out.zarr"]),
                        ("export --fields", ["export", "r.zarr", "--fields", "out.zarr"]),
-                       ("cutcheck", ["cutcheck", "r.zarr", "-o", "out"])):
+                       ("cutcheck", ["cutcheck", "r.zarr", "-o", "out"]),
+                       ("mask", ["mask", "s/ref.zarr", "-o", "out.zarr"]), ("synth", ["synth", "out", "--shape", "16"]),
+                       ("table", ["table", "r.zarr", "-o", "out"]), ("report", ["report", "r.zarr", "-o", "out"]),
+                       ("gauge", ["gauge", "r.zarr", "--points", "8,8,8", "24,24,24", "-o", "out"]),
+                       ("crack", ["crack", "r.zarr", "-o", "out"]),
+                       ("uncertainty", ["uncertainty", "s/ref.zarr", "--element-sizes", "8", "-o", "out"]),
+                       ("sweep", ["sweep", "s/ref.zarr", "s/def.zarr", "--element-sizes", "8", "--no-a-priori", "-o",
+                                  "out"]),
+                       ("resolution", ["resolution", "s/ref.zarr", "--element-sizes", "8", "-o", "out"]),
+                       ("demo", ["demo", "out", "--size", "48", "--element-size", "8"])):
         add(K, f"{name} run again on its own complete output", argv, kind="rerun", timeout=300)
     add(K, "pyramid --display over the empty display/ a kill left", ["pyramid", "s/ref.zarr", "--levels", "1",
                                                                       "--display"], setup=_empty_display,

@@ -30,7 +30,7 @@ def _set_attr_raw(zarr_json, key: str, raw: str) -> None:
     zarr_json.write_text(json.dumps(doc).replace('"@@"', raw))
 
 
-READERS = {"strain": ["strain", "r.zarr"], "table": ["table", "r.zarr"],
+READERS = {"strain": ["strain", "r.zarr"], "table": ["table", "r.zarr"], "report": ["report", "r.zarr", "-o", "fig"],
            "export": ["export", "r.zarr", "--csv", "n.csv", "--units", "physical"],
            "init": ["correlate", "s/ref.zarr", "s/def.zarr", "-l", "8", "--init", "r.zarr", "-o", "o.zarr"]}
 EDITS = {"element_size 1e400": ("element_size", "1e400"), "level 5000": ("level", "5000"),
@@ -46,6 +46,27 @@ def test_edited_result_metadata_is_one_line(pair, capsys, monkeypatch, edit, rea
     _set_attr_raw(pair / "r.zarr/zarr.json", *EDITS[edit])
     before = tree(pair)
     refused(READERS[reader], capsys, r"a damaged result|not a chunkdic result", only_line=False)
+    assert tree(pair) == before
+
+
+@pytest.mark.parametrize("reader", READERS)
+def test_a_result_whose_metadata_nest_100000_deep_is_one_line(pair, capsys, monkeypatch, reader):
+    monkeypatch.chdir(pair)
+    (pair / "r.zarr/zarr.json").write_text('{"attributes": ' + "[" * 100_000 + "]" * 100_000 + "}")
+    before = tree(pair)
+    refused(READERS[reader], capsys, only_line=False)
+    assert tree(pair) == before
+
+
+@pytest.mark.parametrize("argv", [["export", "r.zarr", "--corrected", "c.zarr"], ["report", "r.zarr", "-o", "fig"],
+                                  ["cutcheck", "r.zarr", "-o", "cut"]])
+def test_a_recorded_reference_that_is_a_fifo_is_refused_without_opening_it(pair, capsys, monkeypatch, argv):
+    """The scan a result records is replaced by a FIFO: opening it would wait for a writer for ever."""
+    monkeypatch.chdir(pair)
+    shutil.rmtree(pair / "s/ref.zarr")
+    os.mkfifo(pair / "s/ref.zarr")
+    before = tree(pair)
+    refused(argv, capsys, "FIFO|not a (file|folder|directory)|named pipe", only_line=False)
     assert tree(pair) == before
 
 
@@ -209,19 +230,34 @@ def test_remove_never_follows_a_link(tmp_path):
     assert (tmp_path / "outside/keep.txt").read_text() == "keep"
 
 
-@pytest.mark.parametrize("link", ["1 -> outside", "1 -> def.zarr", "2 -> outside", "display -> outside"])
+@pytest.mark.parametrize("link", ["1 -> outside", "1 -> def.zarr", "2 -> outside", "display -> outside",
+                                  "1/c -> outside", "1/c/0 -> outside"])
 def test_pyramid_writes_nothing_through_a_link_out_of_the_scan(pair, capsys, monkeypatch, link):
     """A level (or display/) of the scan that is a link to an outside folder or another store: refused,
     naming the link; the outside folder, the other store and the scan unchanged (it built the level
-    inside the outside folder, or crashed on "Cannot call rmtree on a symbolic link")."""
+    inside the outside folder, or crashed on "Cannot call rmtree on a symbolic link"). A link deeper
+    in a level left incomplete: the level is rebuilt inside the scan, nothing written outside."""
     monkeypatch.chdir(pair)
     name, target = link.split(" -> ")
     (pair / "outside").mkdir()
-    os.symlink("../../outside" if target == "outside" else "../def.zarr", pair / "s/ref.zarr" / name)
+    if "/" in name:  # deeper: the level exists (complete), a folder of its chunks is a link
+        assert main(["pyramid", "s/ref.zarr", "--levels", "1"]) == 0
+        shutil.rmtree(pair / "s/ref.zarr" / name)
+        zarr.open_group(str(pair / "s/ref.zarr"), mode="r+")["1"].attrs["chunkdic"] = {"level": 1, "complete": False}
+    up = "../" * (name.count("/") + 2)
+    os.symlink(f"{up}outside" if target == "outside" else "../def.zarr", pair / "s/ref.zarr" / name)
     before = tree(pair)
     extra = ["--display"] if name == "display" else []
-    refused(["pyramid", "s/ref.zarr", "--levels", "2", *extra], capsys, "symbolic link", only_line=False)
-    assert tree(pair) == before
+    argv = ["pyramid", "s/ref.zarr", "--levels", "2", *extra]
+    if "/" not in name:
+        refused(argv, capsys, "symbolic link", only_line=False)
+        assert tree(pair) == before
+        return
+    # inside an incomplete level of its own: the level is rebuilt, its link removed as a link
+    assert main(argv) == 0
+    assert not any(p.is_symlink() for p in (pair / "s/ref.zarr").rglob("*"))
+    assert not any((pair / "outside").iterdir())
+    assert zarr.open_group(str(pair / "s/ref.zarr"), mode="r")["1"].attrs["chunkdic"]["complete"]
 
 
 def test_a_resumed_output_whose_checkpoint_is_a_link_out_of_it_is_refused(pair, capsys, monkeypatch):
