@@ -49,9 +49,12 @@ from pathlib import Path
 from typing import ClassVar
 
 HERE = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(HERE / "tests"))
+from bombs import deflate_bomb, zstd_bomb  # noqa: E402  (the tests' bomb makers)
 N = 32
 T = (0.6, -0.4, 0.3)
 HANG = 25.0  # seconds: a case still running then is a hang
+SLOW_HANG = 90.0  # the same for a command that opens HDF5 or scans first (a loaded machine takes 10-30 s)
 
 FIXTURE = r"""
 import json, sys, numpy as np
@@ -66,6 +69,10 @@ chunkdic.correlate(str(d / "s/ref.zarr"), str(d / "s/def.zarr"), element_size=8,
 np.save(d / "f.npy", foam.render((N,) * 3, seed=4).astype(np.float32))
 np.save(d / "g.npy", foam.render((N,) * 3, seed=4, field=synthetic.Translation(T),
                                  which="deformed").astype(np.float32))
+from chunkdic.io.formats.ingest import ingest
+for name, src, vs in (("r20", "ref", 20), ("d20", "def", 20), ("d21", "def", 21), ("da", "def", (20, 21, 20)),
+                      ("d25", "def", 25)):
+    ingest(str(d / f"s/{src}.zarr/0"), str(d / f"vs/{name}.zarr"), voxel_size=vs, unit="um")
 """ % (N, T)
 
 VERIFY = r"""
@@ -227,12 +234,13 @@ class Case:
     setup: object = None  # callable(d)
     cwd: str = "."
     kind: str = "refuse"  # refuse | concurrent | changed | scratch | locked | resumes | completes | gone_cwd |
-    #                       commit_kill | worker | race2 | full_series
+    #                       commit_kill | worker | race2 | full_series | rerun | tolerates | kill_when | cwd_during
     mount: str | None = None  # "ro:DIR" or "full:DIR" (a private tmpfs at DIR)
     timeout: float = 120.0
     env: dict = field(default_factory=dict)
     change: object = None  # kind "changed": callable(d) applied after the kill
     expect: str | None = None  # a refusal's error line must match this regex (it names the real cause)
+    max_rss: int | None = None  # MB: the command's peak resident memory must stay below (bombs)
 
     tree: ClassVar[str] = str(HERE)  # the tree under test (one per sweep)
 
@@ -579,6 +587,7 @@ def cases(servers: Servers | None) -> list[Case]:
     add("H2", "sweep --level -1", ["sweep", "s/ref.zarr", "s/def.zarr", "-l", "8", "--level", "-1", "-o", "sw"])
     issue24(add, cor, ov)
     faults2(add, cor, ov)
+    faults4(add, cor, ov)
     return C
 
 
@@ -718,7 +727,8 @@ def die():
     os.kill(os.getpid(), signal.SIGKILL)
 def ours(p):
     return str(p).rstrip("/").endswith(target)
-real_rename, real_replace, real_remove = os.rename, os.replace, outputs._remove
+REMOVE = "remove" if hasattr(outputs, "remove") else "_remove"  # the one removal (older trees: _remove)
+real_rename, real_replace, real_remove = os.rename, os.replace, getattr(outputs, REMOVE)
 def rename(src, dst, *a, **k):
     if point == "before-rename" and ours(src):
         die()
@@ -736,7 +746,8 @@ def remove(path):
         shutil.rmtree(path / "checkpoint", ignore_errors=True)
         die()
     real_remove(path)
-os.rename, os.replace, outputs._remove = rename, replace, remove
+os.rename, os.replace = rename, replace
+setattr(outputs, REMOVE, remove)
 if point == "chunk-writes":
     from zarr.storage import LocalStore
     real_set, count = LocalStore.set, [0]
@@ -1066,6 +1077,378 @@ def _full_series(case, d, scratch) -> str:
     return ""
 
 
+# --------------------------------------------------------------------------- issue 40
+
+
+def _attr_raw(rel: str, key: str, raw: str):
+    """Set ``attributes.chunkdic[key]`` of ``rel`` (a zarr.json) to the JSON text ``raw`` (``1e400``, ``NaN``)."""
+    def setup(d: Path) -> None:
+        doc = json.loads((d / rel).read_text())
+        doc["attributes"]["chunkdic"][key] = "@@RAW@@"
+        (d / rel).write_text(json.dumps(doc).replace('"@@RAW@@"', raw))
+    return setup
+
+
+def _write(rel: str, text: str):
+    def setup(d: Path) -> None:
+        (d / rel).parent.mkdir(parents=True, exist_ok=True)
+        (d / rel).write_text(text)
+    return setup
+
+
+def _nested(depth: int) -> str:
+    return "[" * depth + "]" * depth
+
+
+def _edit_doc(rel: str, fn):
+    def setup(d: Path) -> None:
+        doc = json.loads((d / rel).read_text())
+        (d / rel).write_text(json.dumps(fn(doc)))
+    return setup
+
+
+def _fifo_reference(d: Path) -> None:
+    os.mkfifo(d / "fifo")
+    edit_attrs(d / "r.zarr/zarr.json", lambda a: a["inputs"].update(reference=str(d / "fifo")))
+
+
+H5 = r"""
+import os, sys, numpy as np, h5py
+os.chdir(sys.argv[1])
+v = np.load("f.npy")
+with h5py.File("src.h5", "w") as f: f["v"] = v
+with h5py.File("extlink.h5", "w") as f: f["v"] = h5py.ExternalLink("missing.h5", "/v")
+with h5py.File("loop.h5", "w") as f:
+    f["a"] = h5py.SoftLink("/b"); f["b"] = h5py.SoftLink("/a")
+os.mkfifo("fifo.raw")
+with h5py.File("fifo.h5", "w") as f:
+    f.create_dataset("v", shape=v.shape, dtype=v.dtype, external=[("fifo.raw", 0, v.nbytes)])
+layout = h5py.VirtualLayout(shape=v.shape, dtype=v.dtype)
+layout[:16] = h5py.VirtualSource("gone.h5", "v", shape=(16,) + v.shape[1:])
+layout[16:] = h5py.VirtualSource("src.h5", "v", shape=v.shape)[16:]
+with h5py.File("vds.h5", "w") as f: f.create_virtual_dataset("v", layout, fillvalue=0)
+"""
+
+
+def _h5(d: Path) -> None:
+    subprocess.run([sys.executable, "-c", H5, str(d)], check=True, env=Case.env_for(Case.tree), capture_output=True)
+
+
+def _link(rel: str, target: str, make: str | None = None):
+    """``rel`` a symbolic link to ``target`` (relative to ``rel``'s folder); ``make``: a folder to create first."""
+    def setup(d: Path) -> None:
+        if make:
+            (d / make).mkdir(parents=True, exist_ok=True)
+        os.symlink(target, d / rel)
+    return setup
+
+
+def _interrupted_with_link(d: Path) -> None:
+    """out.zarr: the fixture's result marked incomplete, its checkpoint a link to a folder outside it."""
+    shutil.copytree(d / "r.zarr", d / "out.zarr")
+    edit_attrs(d / "out.zarr/zarr.json", lambda a: a.update(complete=False))
+    (d / "outside").mkdir()
+    shutil.rmtree(d / "out.zarr/checkpoint", ignore_errors=True)
+    os.symlink("../outside", d / "out.zarr/checkpoint")
+
+
+def _bomb(rel: str, which: str):
+    """The chunk file ``rel`` replaced by a bomb of the base fixture (``bombs/zstd`` 4 GiB, ``bombs/zlib`` 512 MiB)."""
+    def setup(d: Path) -> None:
+        shutil.copy(d / "bombs" / which, d / rel)
+    return setup
+
+
+V2_ZLIB = r"""
+import sys, numpy as np, zarr
+a = zarr.create_array(sys.argv[1], shape=(32, 32, 32), chunks=(16, 16, 16), dtype="float32", zarr_format=2,
+                      compressors={"id": "zlib"})
+a[...] = np.load(sys.argv[2])
+"""
+
+
+def _v2_bomb(d: Path) -> None:
+    subprocess.run([sys.executable, "-c", V2_ZLIB, str(d / "g2.zarr"), str(d / "g.npy")], check=True,
+                   env=Case.env_for(Case.tree), capture_output=True)
+    shutil.copy(d / "bombs/zlib", d / "g2.zarr/1.1.1")
+
+
+TIFF_BOMB = r"""
+import sys, struct, numpy as np, tifffile
+path, strip, n = sys.argv[1], open(sys.argv[2], "rb").read(), int(sys.argv[3])
+tifffile.imwrite(path, np.zeros((32, 32, 32), np.uint8), compression="zlib", metadata=None)
+data = bytearray(open(path, "rb").read())
+with tifffile.TiffFile(path) as t:
+    tags = [{k.name: k for k in pg.tags.values()} for pg in t.pages]
+off = len(data)
+data += strip
+for tg in tags:
+    for name in ("ImageWidth", "ImageLength", "RowsPerStrip"):
+        struct.pack_into("<I", data, tg[name].valueoffset, n)
+    struct.pack_into("<I", data, tg["StripOffsets"].valueoffset, off)
+    struct.pack_into("<I", data, tg["StripByteCounts"].valueoffset, len(strip))
+open(path, "wb").write(bytes(data))
+"""
+
+
+def _tiff_bomb(d: Path) -> None:
+    """bomb.tif: 32 deflate pages whose one strip decodes to 23 170² zero bytes (512 MiB each)."""
+    subprocess.run([sys.executable, "-c", TIFF_BOMB, str(d / "bomb.tif"), str(d / "bombs/zlib"), "23170"],
+                   check=True, env=Case.env_for(Case.tree), capture_output=True)
+
+
+V2_HUGE = r"""
+import sys, zarr
+zarr.create_array(sys.argv[1], shape=(1000, 1000, 1000), chunks=(1, 1, 1), dtype="uint8", zarr_format=2)
+"""
+
+
+def _v2_huge(d: Path) -> None:
+    subprocess.run([sys.executable, "-c", V2_HUGE, str(d / "huge.zarr")], check=True, env=Case.env_for(Case.tree),
+                   capture_output=True)
+
+
+def _empty_display(d: Path) -> None:
+    (d / "s/ref.zarr/display").mkdir()
+
+
+def faults4(add, cor, ov) -> None:
+    """Issue 40: results whose metadata were edited, malformed JSON where chunkdic reads its
+    own records, names too long, HDF5 links and storage, voxel sizes, writes through links,
+    bombs (with the peak RSS bounded), and leftovers and messages (a re-run on a complete
+    output, a display killed while made, the working directory removed during a run)."""
+    K = "K40"
+    readers = {"strain": ["strain", "r.zarr"], "table": ["table", "r.zarr"], "report": ["report", "r.zarr", "-o", "fig"],
+               "export --vtk": ["export", "r.zarr", "--vtk", "m.vtu"],
+               "export --csv --units physical": ["export", "r.zarr", "--csv", "n.csv", "--units", "physical"],
+               "export --corrected": ["export", "r.zarr", "--corrected", "c.zarr"],
+               "correlate --init": [*cor, "--init", "r.zarr", "-o", "o.zarr"]}
+    # 1. edited result metadata, read by every command that reads a result
+    edits = {"element_size 1e400": _attr_raw("r.zarr/zarr.json", "element_size", "1e400"),
+             "level 5000": _attr_raw("r.zarr/zarr.json", "level", "5000"),
+             "level \"x\"": _attr_raw("r.zarr/zarr.json", "level", '"x"'),
+             "voxel_size NaN": _attr_raw("r.zarr/zarr.json", "voxel_size", "[NaN, 1, 1]"),
+             "voxel_size -20": _attr_raw("r.zarr/zarr.json", "voxel_size", "[-20, -20, -20]"),
+             "zarr.json nested 1e5 deep": _write("r.zarr/zarr.json", _nested(100_000))}
+    for what, setup in edits.items():
+        for cmd, argv in readers.items():
+            add(K, f"{cmd} of a result with {what}", argv, setup=setup)
+    add(K, "export --corrected, the recorded reference a FIFO", readers["export --corrected"], setup=_fifo_reference,
+        timeout=SLOW_HANG)
+    add(K, "report, the recorded reference a FIFO", readers["report"], setup=_fifo_reference, timeout=SLOW_HANG)
+    # 2. malformed JSON where an output, a folder marker, a lock lies
+    docs = {"nested 1e6 deep": _nested(1_000_000), "a list": "[1, 2]", "1e400": "1e400"}
+    for what, text in docs.items():
+        add(K, f"correlate -o r.zarr --overwrite, its zarr.json {what}", [*cor, "-o", "r.zarr", ov],
+            setup=_write("r.zarr/zarr.json", text))
+        add(K, f"report -o fig --overwrite, its marker {what}", ["report", "r.zarr", "-o", "fig", ov],
+            setup=_write("fig/.chunkdic.json", text))
+        add(K, f"correlate -o o.zarr, its lock {what}", [*cor, "-o", "o.zarr"], setup=_write(".o.zarr.chunkdic-lock", text))
+    add(K, "correlate -o r.zarr --overwrite, attributes a list", [*cor, "-o", "r.zarr", ov],
+        setup=_edit_doc("r.zarr/zarr.json", lambda doc: {**doc, "attributes": [1]}))
+    add(K, "correlate -o r.zarr --overwrite, kind a list", [*cor, "-o", "r.zarr", ov],
+        setup=_edit_doc("r.zarr/zarr.json", lambda doc: {**doc, "attributes": {"chunkdic": {"kind": ["result"]}}}))
+    add(K, "report -o fig --overwrite, its marker's kind a list", ["report", "r.zarr", "-o", "fig", ov],
+        setup=_write("fig/.chunkdic.json", '{"kind": ["figures"], "complete": true}'))
+    host = socket.gethostname()
+    for pid in ("1e400", "-5", "99999999999999999999", '"x"'):
+        add(K, f"correlate -o o.zarr, its lock naming pid {pid}", [*cor, "-o", "o.zarr"],
+            setup=_write(".o.zarr.chunkdic-lock", f'{{"host": "{host}", "pid": {pid}, "start": null}}'))
+    for what, text in (("pid 1e400", f'{{"host": "{host}", "pid": 1e400}}'), ("nested 1e6 deep", _nested(1_000_000)),
+                       ("a list", "[]")):
+        add(K, f"correlate beside a scratch directory whose owner record is {what}",
+            ["correlate", "f.npy", "g.npy", "-l", "8", "-o", "o.zarr"], kind="tolerates", env={"RECORD": text})
+    # 3. names of 300 bytes, paths beyond PATH_MAX
+    long = "a" * 300
+    deep = "/".join(["d" * 200] * 24) + "/f.npy"  # 4 830 bytes: beyond PATH_MAX
+    for name, argv in (("correlate, a 300-byte input name", ["correlate", f"{long}.zarr", "s/def.zarr", "-l", "8", "-o",
+                                                              "o.zarr"]),
+                       ("correlate --mask, a 300-byte name", [*cor, "--mask", f"{long}.npy", "-o", "o.zarr"]),
+                       ("ingest, a 300-byte input name", ["ingest", f"{long}.npy", "o.zarr"]),
+                       ("ingest, a 300-byte parent folder", ["ingest", "f.npy", f"{long}/x/o.zarr"]),
+                       ("correlate, an input path beyond PATH_MAX", ["correlate", deep, "g.npy", "-l", "8", "-o",
+                                                                      "o.zarr"]),
+                       ("export --corrected --ref beyond PATH_MAX", ["export", "r.zarr", "--corrected", "c.zarr", "--ref",
+                                                                      deep]),
+                       ("strain of a result beyond PATH_MAX", ["strain", deep.replace("f.npy", "r.zarr")])):
+        add(K, name, argv)
+    add(K, "correlate, a 300-byte scratch directory", ["correlate", "f.npy", "g.npy", "-l", "8", "-o", "o.zarr"],
+        env={"SCRATCH": long})
+    # 4. HDF5
+    for name, src in (("an external link to a missing file", "extlink.h5:/v"), ("a soft-link loop", "loop.h5:/a"),
+                      ("external storage that is a FIFO", "fifo.h5:/v"),
+                      ("a virtual dataset whose source is missing", "vds.h5:/v")):
+        add(K, f"ingest {name}", ["ingest", src, "o.zarr"], setup=_h5, timeout=SLOW_HANG)
+        add(K, f"correlate --mask {name}", [*cor, "--mask", src, "-o", "o.zarr"], setup=_h5, timeout=SLOW_HANG)
+    add(K, "correlate a virtual dataset whose source is missing", ["correlate", "vds.h5:/v", "g.npy", "-l", "8", "-o",
+                                                                   "o.zarr"], setup=_h5)
+    # 5. voxel sizes
+    for name, argv in (("correlate 20 um against 21 um", ["correlate", "vs/r20.zarr", "vs/d21.zarr", "-l", "8", "-o",
+                                                          "o.zarr"]),
+                       ("correlate 20 um against 20 x 21 x 20 um", ["correlate", "vs/r20.zarr", "vs/da.zarr", "-l", "8",
+                                                                    "-o", "o.zarr"]),
+                       ("series with one scan at 25 um", ["series", "vs/r20.zarr", "vs/d20.zarr", "vs/d25.zarr", "-l",
+                                                          "8", "-o", "o.zarr"]),
+                       ("sweep 20 um against 21 um", ["sweep", "vs/r20.zarr", "vs/d21.zarr", "-l", "8", "--no-a-priori",
+                                                      "-o", "sw"])):
+        add(K, name, argv, expect="voxel size")
+
+    def recorded_21(d: Path) -> None:
+        edit_attrs(d / "r.zarr/zarr.json", lambda a: a.update(
+            voxel_size=[20, 20, 20], unit="micrometer",
+            inputs={"reference": str(d / "vs/r20.zarr"), "deformed": str(d / "vs/d21.zarr")}))
+
+    for cmd in (["export", "r.zarr", "--csv", "n.csv", "--units", "physical"],
+                ["export", "r.zarr", "--vtk", "m.vtu", "--units", "physical"],
+                ["export", "r.zarr", "--corrected", "c.zarr"]):
+        add(K, f"{' '.join(cmd[2:])} of a result whose scans are 20 and 21 um", cmd, setup=recorded_21,
+            expect="voxel size")
+    for opt in (["-l", "1e-300um"], ["-l", "1e-300mm"]):
+        add(K, f"correlate {' '.join(opt)}", ["correlate", "vs/r20.zarr", "vs/d20.zarr", *opt, "-o", "o.zarr"],
+            expect=re.escape(opt[1]))
+    # 6. nothing written through a link out of an output's own tree
+    for name, setup, argv in (
+            ("pyramid, level 1 a link to an empty outside folder", _link("s/ref.zarr/1", "../../outside", "outside"),
+             ["pyramid", "s/ref.zarr", "--levels", "2"]),
+            ("pyramid, level 1 a link to another store", _link("s/ref.zarr/1", "../def.zarr"),
+             ["pyramid", "s/ref.zarr", "--levels", "2"]),
+            ("pyramid, level 2 a link outside", _link("s/ref.zarr/2", "../../outside", "outside"),
+             ["pyramid", "s/ref.zarr", "--levels", "2"]),
+            ("pyramid --display, display a link outside", _link("s/ref.zarr/display", "../../outside", "outside"),
+             ["pyramid", "s/ref.zarr", "--levels", "1", "--display"]),
+            ("pyramid, the scan's zarr.json a link outside",
+             lambda d: (shutil.copy(d / "s/ref.zarr/zarr.json", d / "meta.json"),
+                        (d / "s/ref.zarr/zarr.json").unlink(), os.symlink("../../meta.json", d / "s/ref.zarr/zarr.json")),
+             ["pyramid", "s/ref.zarr", "--levels", "1"]),
+            ("correlate resuming an output whose checkpoint is a link outside", _interrupted_with_link,
+             [*cor, "-o", "out.zarr"])):
+        add(K, name, argv, setup=setup)
+    # 7. bombs: refused with the process's peak RSS bounded
+    for name, setup, argv in (
+            ("correlate, a 4 GiB zstd chunk in the reference", _bomb("s/ref.zarr/0/c/1/0/1", "zstd"), [*cor, "-o", "o.zarr"]),
+            ("pyramid, a 4 GiB zstd chunk", _bomb("s/ref.zarr/0/c/1/0/1", "zstd"), ["pyramid", "s/ref.zarr", "--levels", "1"]),
+            ("ingest, a 4 GiB zstd chunk", _bomb("s/ref.zarr/0/c/1/0/1", "zstd"), ["ingest", "s/ref.zarr", "o.zarr"]),
+            ("export --corrected, a 4 GiB zstd chunk in the deformed scan", _bomb("s/def.zarr/0/c/0/1/1", "zstd"),
+             ["export", "r.zarr", "--corrected", "c.zarr"]),
+            ("correlate --mask, a 4 GiB zstd chunk in the mask",
+             lambda d: (shutil.copytree(d / "s/ref.zarr", d / "m.zarr"), _bomb("m.zarr/0/c/0/0/0", "zstd")(d)),
+             [*cor, "--mask", "m.zarr", "-o", "o.zarr"]),
+            ("correlate, a 512 MiB zlib chunk in a Zarr v2 input", _v2_bomb,
+             ["correlate", "f.npy", "g2.zarr", "-l", "8", "-o", "o.zarr"]),
+            ("ingest, a 512 MiB zlib chunk in a Zarr v2 input", _v2_bomb, ["ingest", "g2.zarr", "o.zarr"]),
+            ("ingest, deflate TIFF pages of 23 170² (512 MiB each)", _tiff_bomb, ["ingest", "bomb.tif", "o.zarr"]),
+            ("correlate --mask, deflate TIFF pages of 23 170²", _tiff_bomb, [*cor, "--mask", "bomb.tif", "-o", "o.zarr"])):
+        add(K, name, argv, setup=setup, max_rss=900)
+    for cmd in (["strain", "r.zarr"], ["table", "r.zarr"], ["export", "r.zarr", "--csv", "n.csv"]):
+        add(K, f"{cmd[0]}, a 4 GiB zstd chunk in the displacement", cmd, max_rss=900,
+            setup=lambda d: shutil.copy(d / "bombs/zstd", next(p for p in (d / "r.zarr/displacement/c").rglob("*")
+                                                               if p.is_file())))
+    add(K, "correlate --mask, a Zarr v2 mask of 10^9 chunk keys", [*cor, "--mask", "huge.zarr", "-o", "o.zarr"],
+        setup=_v2_huge, timeout=SLOW_HANG)
+    # 8. messages and leftovers
+    for name, argv in (("correlate", [*cor, "-o", "out.zarr"]), ("pyramid", ["pyramid", "s/ref.zarr", "--levels", "1"]),
+                       ("series", ["series", "s/ref.zarr", "s/def.zarr", "-l", "8", "-o", "out.zarr"]),
+                       ("ingest", ["ingest", "f.npy", "out.zarr"]), ("export --vtk", ["export", "r.zarr", "--vtk", "out.vtu"]),
+                       ("export --csv", ["export", "r.zarr", "--csv", "out.csv"]),
+                       ("export --corrected", ["export", "r.zarr", "--corrected", "out.zarr"]),
+                       ("export --fields", ["export", "r.zarr", "--fields", "out.zarr"]),
+                       ("cutcheck", ["cutcheck", "r.zarr", "-o", "out"]),
+                       ("mask", ["mask", "s/ref.zarr", "-o", "out.zarr"]), ("synth", ["synth", "out", "--shape", "16"]),
+                       ("table", ["table", "r.zarr", "-o", "out"]), ("report", ["report", "r.zarr", "-o", "out"]),
+                       ("gauge", ["gauge", "r.zarr", "--points", "8,8,8", "24,24,24", "-o", "out"]),
+                       ("crack", ["crack", "r.zarr", "-o", "out"]),
+                       ("uncertainty", ["uncertainty", "s/ref.zarr", "--element-sizes", "8", "-o", "out"]),
+                       ("sweep", ["sweep", "s/ref.zarr", "s/def.zarr", "--element-sizes", "8", "--no-a-priori", "-o",
+                                  "out"]),
+                       ("resolution", ["resolution", "s/ref.zarr", "--element-sizes", "8", "-o", "out"]),
+                       ("demo", ["demo", "out", "--size", "48", "--element-size", "8"])):
+        add(K, f"{name} run again on its own complete output", argv, kind="rerun", timeout=300)
+    add(K, "pyramid --display over the empty display/ a kill left", ["pyramid", "s/ref.zarr", "--levels", "1",
+                                                                      "--display"], setup=_empty_display,
+        kind="completes", env={"OUT": "s/ref.zarr"})
+    add(K, "pyramid --display killed once display/ exists, run again", ["pyramid", "s/ref.zarr", "--levels", "1",
+                                                                         "--display"],
+        kind="kill_when", env={"WHEN": "s/ref.zarr/display", "OUT": "s/ref.zarr"})
+    add(K, "correlate, the working directory removed during the run",
+        ["correlate", "{d}/s/ref.zarr", "{d}/s/def.zarr", "-l", "6", "--tolerance", "1e-6", "--regularization-length",
+         "16", "-o", "o.zarr"], kind="cwd_during", env={"AT": "level 0 iter  1"},
+        expect="no longer exists|was removed")
+
+
+def _rerun(case, d, scratch) -> str:
+    """The command twice: the first completes; the second, on its own complete output, exits 0
+    saying so, and changes nothing."""
+    first, _ = _run(case, case.argv, d, scratch)
+    if first.returncode not in (0, 1) or "Traceback" in first.stderr:
+        return f"harness: the first run: exit {first.returncode}: {first.stderr.strip().splitlines()[-1:]!r}"
+    before = snapshot(d)
+    again, _ = _run(case, case.argv, d, scratch)
+    if again.returncode != 0 or "Traceback" in again.stderr:
+        return f"again: exit {again.returncode}: {again.stderr.strip().splitlines()[-1:]!r}"
+    changed = diff(before, snapshot(d))
+    return f"again: case directory {changed}" if changed else ""
+
+
+def _tolerates(case, d, scratch) -> str:
+    """A ``chunkdic-*`` directory in the scratch root whose owner record is ``RECORD`` (malformed):
+    the run completes, and that directory is left as it was."""
+    planted = scratch / "chunkdic-planted"
+    planted.mkdir()
+    (planted / ".chunkdic-scratch.json").write_text(case.env["RECORD"])
+    proc, _ = _run(case, case.argv, d, scratch)
+    if "Traceback" in proc.stderr or proc.returncode not in (0, 1):
+        return f"exit {proc.returncode}: {proc.stderr.strip().splitlines()[-1:]!r}"
+    if not (planted / ".chunkdic-scratch.json").is_file():
+        return "the foreign scratch directory was removed"
+    left = [p.name for p in scratch.iterdir() if p != planted]
+    return f"scratch left: {left[:3]}" if left else ""
+
+
+def _kill_when(case, d, scratch) -> str:
+    """SIGKILL as soon as ``WHEN`` exists; the same command then completes ``OUT``, leaving nothing."""
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=_env(scratch),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + case.timeout
+    while proc.poll() is None and time.time() < deadline and not (d / case.env["WHEN"]).exists():
+        time.sleep(0.002)
+    proc.kill()
+    proc.wait()
+    if not (d / case.env["WHEN"]).exists():
+        return "harness: the run ended before the path appeared"
+    again = subprocess.run([sys.executable, "-m", "chunkdic", *case.argv], cwd=d, env=_env(scratch),
+                           capture_output=True, text=True, timeout=case.timeout)
+    if again.returncode != 0 or "Traceback" in again.stderr:
+        return f"again: exit {again.returncode}: {again.stderr.strip().splitlines()[-1:]!r}"
+    stray = [p for p in _stray(d) if "chunkdic-lock" in p or "partial" in p]
+    return _is_complete(d, case.env["OUT"]) or (f"left: {stray[:3]}" if stray else "")
+
+
+def _cwd_during(case, d, scratch) -> str:
+    """The working directory removed (``rm -r``) on the line ``AT``: exit 2, one line that says so
+    (not a full disk), no traceback."""
+    wd = d / "wd"
+    wd.mkdir()
+    argv = [a.replace("{d}", str(d)) for a in case.argv]
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", *argv], cwd=wd, env=_env(scratch),
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    lines = []
+    for line in proc.stderr:
+        lines.append(line)
+        while case.env["AT"] in line and wd.exists():  # rm -r while the run writes there: until gone
+            shutil.rmtree(wd, ignore_errors=True)
+    rc = proc.wait(timeout=case.timeout)
+    err = "".join(lines)
+    errors = [ln for ln in err.splitlines() if ln.startswith("chunkdic: error:")]
+    if wd.exists():
+        return "harness: the run ended before the line"
+    if "Traceback" in err or rc != 2 or len(errors) != 1 or err.strip().splitlines()[-1] != errors[0]:
+        return f"exit {rc}: {err.strip().splitlines()[-1:]!r}"
+    if "free space" in errors[0] or "No space" in errors[0]:
+        return f"blamed on the disk: {errors[0][:160]!r}"
+    left = list(scratch.iterdir())
+    return _expected(case, err) or (f"scratch left: {[p.name for p in left][:3]}" if left else "")
+
+
 # --------------------------------------------------------------------------- running
 
 
@@ -1094,11 +1477,26 @@ def _run(case: Case, argv: list, d: Path, scratch: Path, extra_env=None, timeout
     env.update({k: v for k, v in case.env.items() if k.startswith("DASK_")})
     env.update(extra_env or {})
     listing = scratch.parent / f"{scratch.name}.mounted"  # what the command left on the private mount
-    proc = subprocess.run(_cmd(case, argv, d, listing), cwd=d / case.cwd, env=env, capture_output=True,
-                          text=True, timeout=timeout or case.timeout)
+    cmd = _cmd(case, argv, d, listing)
+    rss = scratch.parent / f"{scratch.name}.rss"
+    if case.max_rss is not None:  # the command's own peak RSS (its children's maximum, in kB)
+        cmd = [sys.executable, "-c", RSS, str(rss), *cmd]
+    proc = subprocess.run(cmd, cwd=d / case.cwd, env=env, capture_output=True, text=True,
+                          timeout=timeout or case.timeout)
     mounted = listing.read_text() if case.mount and listing.exists() else ""
     listing.unlink(missing_ok=True)
+    if case.max_rss is not None:
+        peak = int(rss.read_text()) // 1024 if rss.exists() else -1
+        rss.unlink(missing_ok=True)
+        if not 0 <= peak < case.max_rss:
+            proc.stderr += f"\nharness: peak RSS {peak} MB, more than {case.max_rss} MB"
+            proc.returncode = 99
     return proc, mounted
+
+
+#: runs argv[2:], writes its peak RSS (kB) to argv[1], exits with its status
+RSS = ("import resource, subprocess, sys; r = subprocess.run(sys.argv[2:]).returncode; "
+       "open(sys.argv[1], 'w').write(str(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)); sys.exit(r)")
 
 
 def _promise(proc, mounted: str, before: dict, after: dict, scratch: Path) -> str:
@@ -1149,7 +1547,8 @@ def run_case(case: Case, base: Path, work: Path, index: int) -> Outcome:
         why = {"refuse": _refuse, "concurrent": _concurrent, "changed": _changed, "scratch": _scratch,
                "locked": _locked, "resumes": _resumes, "completes": _completes, "gone_cwd": _gone_cwd,
                "commit_kill": _commit_kill, "worker": _worker, "race2": _race2,
-               "full_series": _full_series}[case.kind](case, d, scratch)
+               "full_series": _full_series, "rerun": _rerun, "tolerates": _tolerates, "kill_when": _kill_when,
+               "cwd_during": _cwd_during}[case.kind](case, d, scratch)
     except subprocess.TimeoutExpired:
         why = f"hang (> {case.timeout:.0f} s)"
     except Exception as exc:  # noqa: BLE001 - a harness problem is reported, not hidden
@@ -1174,7 +1573,9 @@ def _expected(case, stderr: str) -> str:
     return "" if re.search(case.expect, last[0]) else f"error line does not name the cause: {last[0][:160]!r}"
 
 
-_HOLD = ("import sys, time; from chunkdic.io.ownership import OutputLock; "
+_HOLD = ("import sys, time\ntry:\n    from chunkdic.io.locks import OutputLock\n"
+         "except ImportError:  # a tree from before the split of io.ownership\n"
+         "    from chunkdic.io.ownership import OutputLock\n"
          "OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(600)")
 
 
@@ -1315,6 +1716,9 @@ def main() -> int:
             subprocess.run([sys.executable, "-c", FIXTURE, str(base)], env=Case.env_for(Case.tree), check=True,
                            capture_output=True)
             (base / "notes.txt").write_text("a user's notes\n")
+            (base / "bombs").mkdir()
+            (base / "bombs/zstd").write_bytes(zstd_bomb(4 << 30))  # 128 kB
+            (base / "bombs/zlib").write_bytes(deflate_bomb(512 << 20))  # 0.5 MB
         print(f"tree {Case.tree}: {len(todo)} cases, {args.jobs} at a time"
               + (f", {len(skipped)} skipped (no unshare)" if skipped else ""), flush=True)
         outcomes = []

@@ -64,6 +64,10 @@ DEFAULTS = {
         # ... and "weak-texture" when more than this fraction of its measured nodes see too
         # little texture (their values come from the regularisation, not the images).
         "max-weak-fraction": 0.2,
+        # ... and "mismatch" when more than this fraction of its measured nodes leave a
+        # residual that is not noise (chunkdic.method.mismatch: the deformed scan does not
+        # match the reference there, whatever the field).
+        "max-mismatch-fraction": 0.1,
         # A node whose elements hold fewer valid voxels than this fraction of one element
         # has no data: NaN in the result, flagged.
         "min-node-support": 0.1,

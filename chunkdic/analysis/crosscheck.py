@@ -50,10 +50,14 @@ import json
 import math
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from dataclasses import fields as dataclass_fields
 
 import numpy as np
 
+from ..io.jsonfile import read_json
+from ..io.madeof import made_of
 from ..io.outputs import Outputs
+from ..method.events import Complete
 from ..results.result import Result, open_result
 from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
 from ..scheduler import check_scheduler, open_runner
@@ -142,6 +146,13 @@ class Cut:
         d = asdict(self)
         d["components"] = list(self.components)
         return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Cut":
+        """The cut :meth:`as_dict` wrote (``cutcheck.json``)."""
+        floats = {f.name for f in dataclass_fields(cls) if f.type in ("float", float)}
+        return cls(**{k: (math.nan if k in floats and v is None else tuple(v) if k == "components" else v)
+                      for k, v in d.items()})
 
 
 def correlation_length(u: np.ndarray, spacing: float) -> float:
@@ -349,8 +360,13 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     scans = input_scans(res, ref, deformed)  # every input checked before anything is written
     check_scheduler(scheduler)
     check_figure_options(fmt, dpi)
-    plan = Outputs(inputs=input_paths(res, ref, deformed), overwrite=overwrite)
-    out = plan.add(output, "cutcheck").final if output is not None else None
+    inputs = input_paths(res, ref, deformed)
+    plan = Outputs(inputs=inputs, overwrite=overwrite)
+    made = made_of("cutcheck", inputs, {"fmt": fmt, "dpi": dpi})
+    out = plan.add(output, "cutcheck", made_of=made).final if output is not None else None
+    if plan.done:  # the same command again on its own complete folder: its recorded cuts
+        emit(progress, Complete(path=str(out)))
+        return [Cut.from_dict(d) for d in read_json(out / "cutcheck.json")]
     ell = int(res.info["element_size"])
     est = res.info.get("noise") or {}
     noise = (float(est.get("sigma_r") or math.nan), float(est.get("kappa") or math.nan))

@@ -41,7 +41,6 @@ import contextlib
 import dataclasses
 import errno
 import json
-import shutil
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -57,10 +56,16 @@ from ..engine.meshes import parse_roi
 from ..method.settings import Settings
 from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
+from ..io.jsonfile import json_dict, read_json_object
 from ..io.kinds import kind_of
-from ..io.outputs import Outputs, inside
-from ..io.ownership import OutputLock, reclaim_stale_locks, reclaim_stale_partials, reclaim_stale_scratch
+from ..io.locks import OutputLock, reclaim_stale_locks
+from ..io.outputrules import inside
+from ..io.outputs import Outputs
+from ..io.owntree import remove
 from ..io.scan import open_scan
+from ..io.scratch import reclaim_stale_scratch
+from ..io.siblings import reclaim_stale_partials
+from ..io.units import check_voxel_sizes
 from ..mesh import carry_field
 from ..results.result import HISTORY_FIELDS, Result, open_result
 from ..results.strain import strain_summary
@@ -185,6 +190,7 @@ def series(
         if not Path(s).exists():
             raise InputError(f"series scan {i} {s} does not exist")
         opened.append(open_scan(s))
+    check_voxel_sizes({f"series scan {i} ({s})": sc for i, (s, sc) in enumerate(zip(scans, opened))})
     shape0 = opened[0].shape(0)
     for i, sc in enumerate(opened[1:], 1):
         if sc.shape(0) != shape0:
@@ -195,11 +201,15 @@ def series(
                        **options)
     settings, roi = spec.settings, spec.roi
     check_scheduler(scheduler)
-    plan = Outputs(inputs=(*scans, mask), overwrite=overwrite)
-    entry = plan.add(output, "series", resumable=True)
     identities = [identify_input(s, sc) for s, sc in zip(scans, opened)]
     series_print = fingerprint({"scans": identities, "settings": settings.to_json(), "roi": parse_roi(roi),
                                 "mode": mode, "mask": None if mask is None else identify_input(mask, open_any(mask))})
+    if not overwrite and _completed(output, series_print):  # the same command again: nothing to do
+        if progress is not None:
+            progress({"stage": "complete", "path": str(output)})
+        return open_series(output)
+    plan = Outputs(inputs=(*scans, mask), overwrite=overwrite)
+    entry = plan.add(output, "series", resumable=True)
     out = Path(output)
     with OutputLock(out):
         fresh = entry.state != "resume"
@@ -255,8 +265,9 @@ def _resumable(out: Path) -> bool:
 
 def _attrs(group: Path) -> dict:
     try:
-        return dict(json.loads((group / "zarr.json").read_text()).get("attributes", {}).get("chunkdic", {}))
-    except (OSError, ValueError, AttributeError):
+        meta = read_json_object(group / "zarr.json")
+        return dict(json_dict(json_dict(meta.get("attributes") or {}).get("chunkdic") or {}))
+    except (OSError, ValueError):
         return {}
 
 
@@ -321,6 +332,15 @@ def _reclaim_dead_runs(out: Path) -> None:
         if folder.is_dir():
             reclaim_stale_partials(folder / "_")
             reclaim_stale_locks(folder)
+
+
+def _completed(output, print_: str) -> bool:
+    """``output`` is the complete series of this very command (its fingerprint)."""
+    p = Path(output)
+    try:
+        return not p.is_symlink() and kind_of(p) == ("series", True) and _attrs(p).get("fingerprint") == print_
+    except (OSError, ValueError):
+        return False
 
 
 def _check_resumable(out: Path, print_: str) -> None:
@@ -422,7 +442,7 @@ def _remove_debris(path: Path) -> None:
     series' lock (its fingerprint checked): a folder there that is not a result is its own
     debris. A recognisable result (complete, or with its checkpoint) is kept."""
     if path.is_dir() and not path.is_symlink() and kind_of(path)[0] is None:
-        shutil.rmtree(path)
+        remove(path)
 
 
 def _complete(path: Path) -> bool:

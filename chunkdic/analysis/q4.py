@@ -44,6 +44,8 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+from .. import config
+from ..method.mismatch import judged, local_residual, mismatched_nodes
 from ..passes.translation import phase_correlation
 from ..method.stopping import (  # the engine's stopping rule, shared on purpose
     State,
@@ -72,7 +74,9 @@ class Q4Result:
     mesh : Mesh2D
         The mesh of level 0.
     status : str
-        ``converged``, ``stalled``, ``diverged`` or ``max-iterations`` (the engine's rule).
+        ``converged``, ``stalled``, ``diverged`` or ``max-iterations`` (the engine's rule), or
+        ``excluded`` / ``mismatch`` for a field that converged on too small a part of the
+        image or whose residual is not noise (:meth:`_Level.judge`).
     gap, initial_gap : float
         Matching gap of the returned field and of ``u = 0`` on level 0 (dimensionless).
     excluded : int
@@ -162,21 +166,50 @@ class _Level:
         self.rigid = np.array(blocks)  # Σ_a N_a = 1: the rigid 2×2 system is the sum of M's blocks
         Y, X = np.meshgrid(*(np.arange(r.start, r.stop, dtype=np.float64) for r in roi), indexing="ij")
         self.X = (Y.ravel(), X.ravel())
+        # the element of each ROI pixel (row-major over the elements)
+        ell = mesh.element_size
+        self.element = ((Y.ravel() - roi[0].start) // ell * mesh.shape[1] + (X.ravel() - roi[1].start) // ell).astype(
+            np.int64)
 
-    def assemble(self, u: np.ndarray) -> _Pass:
-        """``b`` (2 n nodes), gap and pixel counts of the nodal field ``u`` (2, ny, nx)."""
+    def sample(self, u: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """``g(X + u(X))`` at the ROI pixels, which of them are used, and how many ``f`` pixels
+        map outside ``g`` (1-D arrays over the ROI pixels, row by row)."""
         pos = [x + self.phi @ c.ravel() for x, c in zip(self.X, u)]
-        valid = self.f_ok.copy()
+        inside = np.ones(self.f.shape, bool)
         for p, n in zip(pos, self.g_shape):
-            valid &= (p >= 0) & (p <= n - 1)
+            inside &= (p >= 0) & (p <= n - 1)
+        valid = self.f_ok & inside
         if self.g_bad is not None:
             near = [np.clip(np.rint(p), 0, n - 1).astype(np.int64) for p, n in zip(pos, self.g_shape)]
             valid &= ~self.g_bad[near[0], near[1]]
         gv = ndi.map_coordinates(self.g, pos, order=self.order, mode="mirror", prefilter=False)
+        return gv, valid, int(np.count_nonzero(self.f_ok & ~inside))
+
+    def assemble(self, u: np.ndarray) -> _Pass:
+        """``b`` (2 n nodes), gap and pixel counts of the nodal field ``u`` (2, ny, nx)."""
+        gv, valid, _ = self.sample(u)
         r = np.where(valid, self.f - gv, 0.0)
         n_valid = int(valid.sum())
         gap = math.sqrt(float(r @ r) / n_valid) / self.range if n_valid and self.range > 0 else math.inf
         return _Pass(self.L.T @ r, gap, int(valid.size - n_valid), n_valid)
+
+    def judge(self, u: np.ndarray, status: str) -> str:
+        """The status of the field ``u`` that ended the level as ``status``, judged as the 3-D
+        engine judges a result: ``excluded`` when more than ``chunkdic.max-excluded-fraction``
+        of the ROI's pixels map outside ``g`` (a 20-pixel wrap-around roll of a 48-pixel image
+        converges on the part that did not wrap), ``mismatch`` when the residual of too many
+        nodes is not noise (:mod:`chunkdic.method.mismatch`: two unrelated images)."""
+        gv, valid, outside = self.sample(u)
+        if status == "converged" and outside > config.get("max-excluded-fraction") * max(int(self.f_ok.sum()), 1):
+            return "excluded"
+        w = valid.astype(np.float64)
+        d = np.where(valid, self.f - gv, 0.0)
+        g = np.where(valid, gv, 0.0)
+        n_el = int(np.prod(self.mesh.shape))
+        sums = [np.bincount(self.element, weights=v, minlength=n_el).reshape(self.mesh.shape)
+                for v in (w, d, g, d * d, d * g, g * g)]
+        bad = mismatched_nodes(local_residual(*sums), sums[0])
+        return judged(status, int(bad.sum()), int(np.prod(self.mesh.nodes_shape)))
 
 
 def _iterate(lvl: _Level, u: np.ndarray, tolerance: float, max_iterations: int, s: int,
@@ -320,6 +353,7 @@ def correlate2d(ref, deformed, *, element_size: int, roi=None, coarsest: int | N
             initial = lvl.assemble(np.zeros((2,) + meshes[0].nodes_shape)).gap
         state = _iterate(lvl, u, coarse_tolerance if s else tolerance, max_iterations, s, history)
         u = state.u
-    return Q4Result(displacement=u, node_coords=meshes[0].node_coords(), mesh=meshes[0], status=state.status,
+    status = lvl.judge(u, state.status)
+    return Q4Result(displacement=u, node_coords=meshes[0].node_coords(), mesh=meshes[0], status=status,
                     gap=state.gap, initial_gap=initial, excluded=state.excluded, history=history,
                     levels=sorted(meshes, reverse=True), seconds=time.perf_counter() - t_start)

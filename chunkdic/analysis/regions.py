@@ -184,10 +184,9 @@ def mask_region(result, mask, *, label: int | None = None, scheduler=None) -> Re
     InputError
         The mask's shape is not the reference's, or no element carries the label.
     """
-    import shutil
-
     from ..io.formats.anyscan import open_any
-    from ..io.ownership import make_scratch
+    from ..io.owntree import remove
+    from ..io.scratch import make_scratch
 
     scan = open_any(mask)
     expected = (result.info.get("input_shapes") or {}).get("reference")
@@ -208,7 +207,7 @@ def mask_region(result, mask, *, label: int | None = None, scheduler=None) -> Re
             for z, c in runner.map_unordered(_mask_row, [(ref, r, ell0, label) for r in rows]):
                 counts[(z - roi0[0][0]) // ell0] = c[0]
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove(tmp)
     elements = counts >= MASK_FRACTION * ell0**3
     if not elements.any():
         raise InputError(f"{text}: no element of the mesh has at least half its voxels "

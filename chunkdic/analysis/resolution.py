@@ -59,6 +59,7 @@ from ..solve.transfer import THRESHOLD, c8_l10, c8_ratio  # noqa: F401  (c8_rati
 from ..inputs import number
 from ..io.handles import ArrayRef
 from ..io.outputs import Outputs
+from ..io.owntree import remove
 from ..io.scan import open_scan
 from ..mesh import Mesh
 from ..method.settings import Settings
@@ -334,9 +335,7 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
         trans = moved_copy(shifted, out / "translated.zarr", runner=runner, noise=std, key=keys["translated"],
                            attrs={"resolution": {"role": "translated", "shift": list(t), "noise": std}},
                            progress=stage("translated"))
-    import shutil
-
-    shutil.rmtree(out / "shifted.zarr", ignore_errors=True)
+    remove(out / "shifted.zarr")
     settings = {"element_size": None, **options}  # options: every correlation's settings (study_settings)
     rows, profiles = [], {}
     for ell in sizes:

@@ -19,7 +19,9 @@ import numpy as np
 
 from ..method.events import EXPLAIN
 from ..errors import InputError, WorkerLostError
+from ..results.result import FLAG_MISMATCH
 from ..scheduler import SCHEDULER_HELP
+from .rerun import judged_run
 from .common import (
     add_engine_options,
     add_length_options,
@@ -113,6 +115,11 @@ def _summary(result, seconds: float) -> str:
         line += (f"\n  weak-texture: {info.get('weak_nodes', 0)} of the measured nodes see too little texture to be "
                  "measured (their values come from the regularisation); the rest converged, but so large a share "
                  "is not called converged (mask the untextured region, or a larger --element-size)")
+    elif info["status"] == "mismatch":
+        bad = int(np.count_nonzero(result.flags & FLAG_MISMATCH)) if result.flags is not None else 0
+        line += (f"\n  mismatch: {bad} of the measured nodes leave a residual that is not noise (the deformed scan "
+                 "does not match the reference there, whatever the field; flagged in the result); the iterations "
+                 "converged, but so large a share is not called converged (check the scans, or mask that region)")
     elif info["status"] in ("stalled", "diverged", "max-iterations"):
         from ..method.stopping import STALL_PATIENCE
 
@@ -335,6 +342,16 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 #: file-system errors reported in one line (disk full, read-only, permissions, I/O)
 _FS_ERRORS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EFBIG, errno.EIO}
+#: errors of a path itself (an input, a mask, the scratch directory), and what to do about them
+_PATH_ERRORS = {errno.ENAMETOOLONG: "a name longer than the file system's NAME_MAX (255 bytes) or a path longer "
+                                    "than its PATH_MAX: use shorter names, or a shorter path (a link, cd)",
+                errno.ELOOP: "it lies under a loop of symbolic links: choose another path"}
+
+
+def _shown(path) -> str:
+    """A path for an error line: its start and end when it is long."""
+    text = os.fsdecode(path) if path is not None else "(a path)"
+    return text if len(text) <= 120 else f"{text[:60]}…{text[-50:]}"
 
 
 @contextlib.contextmanager
@@ -387,7 +404,7 @@ def _check_cwd() -> None:
     try:
         os.getcwd()
     except FileNotFoundError:
-        from ..io.outputs import CWD_GONE
+        from ..io.outputrules import CWD_GONE
 
         raise InputError(CWD_GONE) from None
 
@@ -395,16 +412,19 @@ def _check_cwd() -> None:
 def _dispatch(args) -> int:
     try:
         _check_cwd()
-        return args.func(args)
+        with judged_run(args) as done:
+            return 0 if done else args.func(args)
     except InputError as exc:
-        say(f"chunkdic: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}")
+        # whatever failed, a working directory removed during the run is why (its outputs went with it)
+        say(f"chunkdic: error: {_cwd_gone() or (str(exc).splitlines()[0] if str(exc) else type(exc).__name__)}")
         return EXIT_BAD_INPUT
     except OSError as exc:
-        if isinstance(exc, FileNotFoundError) and not _cwd_exists():
-            # the working directory was removed while the run worked (its outputs with it)
-            from ..io.outputs import CWD_GONE
-
-            say(f"chunkdic: error: {CWD_GONE.replace('(it was removed)', '(it was removed during the run)')}")
+        if isinstance(exc, FileNotFoundError) and _cwd_gone():
+            say(f"chunkdic: error: {_cwd_gone()}")
+            return EXIT_BAD_INPUT
+        if exc.errno in _PATH_ERRORS:  # a path no file system takes, met wherever it was first used
+            say(f"chunkdic: error: {_shown(exc.filename)}: {exc.strerror} ({errno.errorcode[exc.errno]}): "
+                + _PATH_ERRORS[exc.errno])
             return EXIT_BAD_INPUT
         if exc.errno not in _FS_ERRORS:
             raise
@@ -420,12 +440,15 @@ def _dispatch(args) -> int:
         return 130
 
 
-def _cwd_exists() -> bool:
+def _cwd_gone() -> str | None:
+    """The error line for a working directory removed during the run, or None while it exists."""
     try:
         os.getcwd()
     except FileNotFoundError:
-        return False
-    return True
+        from ..io.outputrules import CWD_GONE
+
+        return CWD_GONE.replace("(it was removed)", "(it was removed during the run)")
+    return None
 
 
 if __name__ == "__main__":

@@ -351,6 +351,7 @@ def run_report(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    from ..io.madeof import made_of
     from ..io.outputs import Outputs
     from ..results import scans as resultscans
     from ..results.result import open_result
@@ -382,13 +383,18 @@ def run_export(args: argparse.Namespace) -> int:
         scans = resultscans.input_scans(res, args.ref, args.deformed)
         check_scheduler(args.scheduler)
     # every output checked (and every input) before the first is written; all or nothing
-    plan = Outputs(inputs=resultscans.input_paths(res, args.ref, args.deformed), overwrite=args.overwrite)
-    entries = {name: plan.add(path, kind) for name, path, kind in
-               (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
-                ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
-                ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"),
-                ("displacements", args.displacements, "displacements"))
-               if path}
+    inputs = resultscans.input_paths(res, args.ref, args.deformed)
+    plan = Outputs(inputs=inputs, overwrite=args.overwrite)
+    options = {"units": args.units, "strain": args.strain, "fields_level": args.fields_level}
+    # a node table and its sidecar record one digest (the sidecar holds it for both)
+    entries = {name: plan.add(path, kind, made_of=made_of("export", inputs, {**options, "output": name.split("-")[0]}))
+               for name, path, kind in (("vtk", args.vtk, "vtk"), ("csv", args.csv, "csv"),
+                                        ("csv-meta", args.csv and export.csv_sidecar(args.csv), "csv-meta"),
+                                        ("corrected", args.corrected, "corrected"), ("fields", args.fields, "fields"),
+                                        ("displacements", args.displacements, "displacements")) if path}
+    if plan.done:  # the same command again on its own complete outputs
+        say(f"{', '.join(str(e.final) for e in plan.entries)}: already complete (same result, options): nothing to do")
+        return 0
     # the free disk, once the paths are checked; the sizes are said once the outputs are ours (locked)
     sizes = _plan_images(res, args, scans[0].shape(0)) if args.corrected or args.fields else []
     with plan:

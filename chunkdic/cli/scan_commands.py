@@ -46,6 +46,9 @@ def register(subparsers) -> None:
     p.add_argument("--unit", "--voxel-unit", dest="unit",
                    help="length unit of --voxel-size, e.g. micrometer (um), millimeter (mm); required with a bare "
                         "--voxel-size (a unit is never guessed)")
+    p.add_argument("--resample", metavar="SIZE",
+                   help="resample onto this voxel size (trilinear): 20um, 20,20,25um, or numbers in the scan's unit; "
+                        "for a scan to correlate with one of another voxel size (correlate refuses such a pair)")
     p.add_argument("--chunks", type=int, metavar="N", help="Zarr chunk edge in voxels (default 128)")
     p.add_argument("--shape", metavar="Z,Y,X", help="raw input: array shape")
     p.add_argument("--dtype", help="raw input: uint8, uint16, float32 (also int16, uint32, int32, float64)")
@@ -109,6 +112,13 @@ def run_ingest(args: argparse.Namespace) -> int:
 
 def _ingest(args: argparse.Namespace) -> int:
     from ..io.formats.ingest import ingest
+    from ..io.kinds import kind_of
+
+    # a complete scan at OUT is refused unless it is this very command's (then nothing is done)
+    try:
+        complete = not args.overwrite and kind_of(args.out) == ("scan", True)
+    except OSError:  # a name too long, a loop of links: the output checks say so
+        complete = False
 
     levels = f" and pyramid levels 1..{args.levels}" if args.levels else ""
     t0 = time.perf_counter()
@@ -117,7 +127,11 @@ def _ingest(args: argparse.Namespace) -> int:
     progress = Progress("ingest" + (" + pyramid" if args.levels else ""), header=f"ingest {args.src} -> {args.out}{levels}")
     scan = ingest(args.src, args.out, voxel_size=args.voxel_size, unit=args.unit, chunks=args.chunks,
                   shape=args.shape, dtype=args.dtype, byte_order=args.byte_order, offset=args.offset,
-                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels, progress=progress)
+                  dataset=args.dataset, overwrite=args.overwrite, levels=args.levels, progress=progress,
+                  resample=args.resample)
+    if complete:
+        say(f"{args.out} is already complete (the same source and options): nothing to do")
+        return 0
     progress.done()
     _summary(scan, time.perf_counter() - t0, _nbytes(scan, 0), "read")
     return 0

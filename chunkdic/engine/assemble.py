@@ -2,9 +2,9 @@
 
 What :func:`chunkdic.correlate` returns (and saves): the displacement of the correlated
 level with NaN where no node was measured, the node flags (:mod:`chunkdic.results.layout`),
-the status (a converged run whose excluded voxels or weak nodes are too many is not
-called converged), the gaps, the brightness and noise found, the regularisation used and
-the settings.
+the status (a converged run whose excluded voxels, weak nodes or nodes with a residual that
+is not noise are too many is not called converged: :mod:`chunkdic.method.mismatch`), the
+gaps, the brightness and noise found, the regularisation used and the settings.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import numpy as np
 from .. import config
 from ..method.length import freed_terms
 from ..method.level_solve import LevelOutcome
+from ..method.mismatch import residual_status
 from ..method.stopping import State
 from ..results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, Result, node_flags
 from ..solve.transfer import nominal_l10
@@ -45,6 +46,7 @@ def assemble_result(ctx, run: RunState, final: State, outcome: LevelOutcome) -> 
         # a half-untextured scan "converged" with 2-3.5 voxel errors on its flat half: the
         # iterations converged, but so many nodes are the regularisation's guesses
         status = statuses[finest] = "weak-texture"
+    status = statuses[finest] = residual_status(status, flags, final.elements)
     reg_length = outcome.reg_length
     info = {
         "element_size": settings.element_size,
@@ -96,7 +98,7 @@ def brightness_summary(model: str, elements: np.ndarray | None) -> dict:
         if gain.size:
             out.update(gain=float(np.median(gain)), offset=float(np.median(offset)),
                        offset_range=[float(offset.min()), float(offset.max())],
-                       drift=[float(v) for v in elements[3:, 0, 0, 0]])
+                       drift=[float(v) for v in elements[3:6, 0, 0, 0]])
     return out
 
 

@@ -66,7 +66,7 @@ class Checkpoint:
         """Open the output for a run: fresh, or resumed from a matching checkpoint.
 
         The caller has checked the output (:mod:`chunkdic.io.outputs`: not an input, ours,
-        ``--overwrite`` rules) and holds its lock (:class:`chunkdic.io.ownership.OutputLock`);
+        ``--overwrite`` rules) and holds its lock (:class:`chunkdic.io.locks.OutputLock`);
         here, under the lock, an existing group is read again. Returns the checkpoint and
         the saved state (``None`` for a fresh run). Refuses (InputError) a result completed
         meanwhile and a run made with other inputs or settings, naming the input whose
@@ -154,6 +154,10 @@ def kept_checkpoint_error(exc: OSError, output) -> InputError:
     the checkpoint stays (marked incomplete) and the same command resumes from it."""
     where = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
     cause = f"{exc.strerror or exc}{where}"
+    if isinstance(exc, FileNotFoundError):  # no disk error: something of the run was removed under it
+        return InputError(f"{cause}: a file or folder of the run was removed while it ran (its working directory, "
+                          f"the output {output}?): nothing to free; run the same command again from an existing "
+                          "directory")
     return DiskSpaceError(f"{cause}; the checkpoint in {output} is kept (marked incomplete): "
                           "free space and run the same command again to resume, or remove it", cause=cause, kept=True)
 

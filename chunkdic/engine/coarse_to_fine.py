@@ -12,7 +12,6 @@ checkpoint saves after every pass (:mod:`chunkdic.engine.checkpoint`).
 from __future__ import annotations
 
 import dataclasses
-import shutil
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io.handles import forget_open_arrays
+from ..io.owntree import remove
 from ..mesh import Mesh
 from ..method.events import LevelDone, Resume, emit
 from ..method.level_solve import LevelOutcome, run_level
@@ -135,7 +135,7 @@ def release_scan_levels(ctx: RunContext, s: int) -> None:
     if doomed:
         ctx.runner.run_everywhere(forget_open_arrays)
         for path in doomed:
-            shutil.rmtree(path, ignore_errors=True)
+            remove(path)
 
 
 def reused_stores(ctx: RunContext, run: RunState) -> list[str]:

@@ -22,7 +22,7 @@ import logging
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.scan import Scan, open_scan
-from ..io.units import lengths_in_voxels
+from ..io.units import check_voxel_sizes, lengths_in_voxels
 from ..mesh import Mesh
 from ..method.settings import Settings
 from ..passes.masks import check_mask_shape
@@ -93,6 +93,7 @@ def prepare_run(ref, deformed, settings: Settings | None = None, *, roi=None, ro
     options, roi = voxel_lengths(settings, options, roi, roi_unit, ref)
     settings = settings_from(settings, options, caller)
     f_scan, g_scan = open_scan(ref), open_scan(deformed)
+    check_voxel_sizes({"the reference": f_scan, "the deformed scan": g_scan})
     for role, scan in (("reference", f_scan), ("deformed scan", g_scan)):
         if scan.dtype(0) == bool:  # a mask is bool; a scan to correlate must have grey levels
             raise InputError(f"the {role} is a two-level (bool) image: it has no sub-voxel information; correlate "

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import shutil
 import time
 from pathlib import Path
 
@@ -24,8 +23,10 @@ import dask.config
 from .. import config
 from ..errors import InputError
 from ..io.outputs import Outputs
-from ..io.ownership import (OutputLock, adopt_scratch, directory_bytes, interrupted_run_of, leave_scratch,
-                            make_scratch, reclaim_stale_scratch)
+from ..io.locks import OutputLock
+from ..io.owntree import remove
+from ..io.scratch import (adopt_scratch, directory_bytes, interrupted_run_of, leave_scratch, make_scratch,
+                          reclaim_stale_scratch)
 from ..kernels import jit as kernels
 from ..method.events import Compile, PlanMade, ScratchKept, Start, emit
 from ..method.runstate import RunState
@@ -192,7 +193,7 @@ def _open_scratch(identity: str | None, resuming: bool, level: int | None,
 
     Resuming (the output held this run's checkpoint), the scratch directory the interrupted
     run of the same ``identity`` left (its process dead, or it ended interrupted) is adopted
-    (:func:`chunkdic.io.ownership.adopt_scratch`) and pruned to the stores of the ``level``
+    (:func:`chunkdic.io.scratch.adopt_scratch`) and pruned to the stores of the ``level``
     it was solving (:func:`chunkdic.passes.scratchstore.prune_adopted`); each store is reused only
     when complete (checked where it is opened). Otherwise a new one. ``resume``: ``(output,
     fingerprint)``, recorded so that the directory is kept for the resume of that output
@@ -213,7 +214,7 @@ def _close_scratch(scratch: Path, kept_for: tuple[str, str] | None, progress) ->
     kept (Ctrl-C, a lost cluster, a full disk after a checkpoint: the output of ``kept_for =
     (output, fingerprint)`` holds this run's checkpoint, marked incomplete): then it is left
     for the resume, which adopts it instead of preparing the scans again, and no other run
-    reclaims it while the output stays so (:func:`chunkdic.io.ownership.leave_scratch`).
+    reclaims it while the output stays so (:func:`chunkdic.io.scratch.leave_scratch`).
     ``kept_for`` None: a run that cannot resume. The runner is closed by now: no task of
     this run writes into it any more."""
     if kept_for is not None and interrupted_run_of(*kept_for):
@@ -224,7 +225,7 @@ def _close_scratch(scratch: Path, kept_for: tuple[str, str] | None, progress) ->
             return
         except OSError:  # its owner record cannot be rewritten (a full disk): it goes
             pass
-    shutil.rmtree(scratch, ignore_errors=True)
+    remove(scratch)
 
 
 def _start_output(outputs: Outputs, entry, identity: RunIdentity):

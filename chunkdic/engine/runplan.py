@@ -25,7 +25,7 @@ from ..inputs import memory_target_of
 from ..io.diskspace import DISK_MARGIN
 from ..io.diskspace import existing_parent as _existing_parent
 from ..io.diskspace import free_bytes as _free
-from ..io.ownership import kept_scratch, reclaimable_scratch_bytes
+from ..io.scratch import kept_scratch, reclaimable_scratch_bytes
 from ..method.settings import Settings
 from ..passes.haloed import quantization
 from ..passes.prefilter import prepared_grid, task_edge

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..io.display import windows as channel_windows
 from ..io.ngff import image_attrs
-from ..io.ownership import final_name
+from ..io.siblings import final_name
 from ..io.store import compressors
 
 #: the coarsest pyramid level keeps every axis at least this long (voxels)

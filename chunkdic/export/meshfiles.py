@@ -22,7 +22,7 @@ from ..io.kinds import VTK_TITLE, VTU_MARK
 from ..io.outputs import Outputs
 from ..mesh import level0_position
 from ..results.result import Result, jsonable
-from ..results.scans import as_result
+from ..results.scans import as_result, check_recorded_voxel_sizes
 from ..results.strain import DEFAULT_MEASURE, check_measure, principal_strains
 
 __all__ = ["write_vtk", "write_vtk_file", "write_nodes_csv", "write_nodes_csv_files", "read_vtk_metadata", "csv_sidecar",
@@ -53,6 +53,7 @@ def _positions(result: Result, units: str):
     vs = result.info.get("voxel_size")
     if not vs:
         raise InputError("this result has no voxel size: export in voxels, or give the scans a voxel size")
+    check_recorded_voxel_sizes(result)
     scale = result.scale
     v = np.asarray(vs, float)[:, None, None, None]
     level0 = level0_position(X, scale)

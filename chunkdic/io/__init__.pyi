@@ -4,7 +4,8 @@ from .handles import ArrayRef
 from .kinds import kind_of
 from .masking import make_mask
 from .outputs import Outputs, check_output
-from .ownership import OutputLock, make_scratch
+from .locks import OutputLock
+from .scratch import make_scratch
 from .pyramid import build_pyramid
 from .scan import Scan, open_scan
 from .scanwrite import write_scan

@@ -13,30 +13,40 @@ that neighbours, which share chunks, run close in time. At 512³: the ``M`` pass
 "Reading the scans' chunks").
 
 The fast path takes the arrays whose layout it knows exactly: Zarr v3, a regular chunk
-grid, the default chunk keys, the ``bytes`` codec followed by at most one of ``blosc`` or
-``zstd`` (what :func:`chunkdic.io.store.compressors` writes). Anything else (sharding, Zarr v2, other codecs, transformers) is read by
-zarr-python as before: :func:`layout_of` returns None for it. The voxels are the same
-bytes either way (the same decoder, numcodecs). A Blosc chunk is checked against its
-frame header before decoding (the decoder trusts the header's length, docs/safety.md):
-a damaged chunk gives the same one-line error as a read through zarr.
+grid, the default chunk keys, the ``bytes`` codec followed by at most one of ``blosc``,
+``zstd`` (what :func:`chunkdic.io.store.compressors` writes), ``gzip`` or ``zlib``; and
+Zarr v2 arrays in C order with one of those compressors (or none) and no filters. Anything
+else (sharding, filters, other codecs, transformers) is read by zarr-python as before:
+:func:`layout_of` returns None for it. The voxels are the same bytes either way.
+
+Every chunk decodes into at most its own size (a *decompression bomb*, a few kB that
+declare gigabytes, is refused before it is expanded; zarr-python decodes the whole
+frame first, once per thread): a Blosc chunk is checked against its frame header (the
+decoder trusts the header's length, docs/safety.md), a zstd frame against the content size
+its header declares and decoded into a buffer of the chunk's size, a gzip/zlib stream
+decoded with the chunk's size as the bound. A damaged chunk gives the same one-line error
+as a read through zarr.
 """
 
 from __future__ import annotations
 
 import functools
 import itertools
-import json
 import math
 import os
 import threading
+import zlib
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-#: the codecs after ``bytes`` this reader decodes itself
-_COMPRESSORS = ("blosc", "zstd")
+from .jsonfile import read_json_object
+
+#: the codecs after ``bytes`` this reader decodes itself, by their Zarr v3 and v2 names
+_COMPRESSORS = {"blosc": "blosc", "zstd": "zstd", "gzip": "zlib", "zlib": "zlib", "numcodecs.zlib": "zlib",
+                "numcodecs.gzip": "zlib"}
 
 
 class ChunkDamaged(ValueError):
@@ -59,12 +69,14 @@ class ChunkLayout:
         Array and chunk shapes (voxels).
     dtype : numpy.dtype
         Stored dtype, with the ``bytes`` codec's byte order.
-    compressor : {"", "blosc", "zstd"}
-        The one bytes-to-bytes codec ("": none).
+    compressor : {"", "blosc", "zstd", "zlib"}
+        The one bytes-to-bytes codec ("": none; "zlib" for a zlib or gzip stream).
     separator : str
         Chunk key separator (``"/"`` or ``"."``).
     fill : float or int
         Value of a chunk with no file.
+    prefix : tuple of str
+        Key components before the chunk index (``("c",)`` in Zarr v3, none in v2).
     """
 
     directory: str
@@ -74,13 +86,14 @@ class ChunkLayout:
     compressor: str
     separator: str
     fill: float | int
+    prefix: tuple[str, ...] = ("c",)
 
     @property
     def chunk_bytes(self) -> int:
         return int(np.prod(self.chunks)) * self.dtype.itemsize
 
     def chunk_file(self, index) -> Path:
-        return Path(self.directory, self.separator.join(["c", *map(str, index)]))
+        return Path(self.directory, self.separator.join([*self.prefix, *map(str, index)]))
 
 
 @functools.lru_cache(maxsize=64)
@@ -89,14 +102,16 @@ def layout_of(path: str, key: str) -> ChunkLayout | None:
     does not read it itself (then zarr-python does). Cached per process, forgotten with the
     open handles (:func:`chunkdic.io.handles.forget_open_arrays`)."""
     directory = Path(path, key) if key else Path(path)
-    try:
-        meta = json.loads((directory / "zarr.json").read_text())
-    except (OSError, ValueError):
-        return None
-    try:
-        return _layout(str(directory), meta)
-    except (KeyError, TypeError, ValueError):
-        return None
+    for name, read in (("zarr.json", _layout), (".zarray", _layout_v2)):
+        try:
+            meta = read_json_object(directory / name)
+        except (OSError, ValueError):
+            continue
+        try:
+            return read(str(directory), meta)
+        except (KeyError, TypeError, ValueError, AttributeError, IndexError):
+            return None
+    return None
 
 
 def _layout(directory: str, meta: dict) -> ChunkLayout | None:
@@ -111,26 +126,52 @@ def _layout(directory: str, meta: dict) -> ChunkLayout | None:
     compressor = codecs[1]["name"] if len(codecs) == 2 else ""
     if compressor and compressor not in _COMPRESSORS:
         return None
+    compressor = _COMPRESSORS.get(compressor, "")
     dtype = np.dtype(meta["data_type"])
     if dtype.kind not in "biuf":
         return None
     endian = (codecs[0].get("configuration") or {}).get("endian", "little")
     dtype = dtype.newbyteorder("<" if endian == "little" else ">")
-    fill = meta.get("fill_value", 0)
+    fill = _fill(meta.get("fill_value", 0), dtype)
+    separator = (keys.get("configuration") or {}).get("separator", "/")
+    return _checked(ChunkLayout(directory, tuple(meta["shape"]), tuple(grid["configuration"]["chunk_shape"]), dtype,
+                                compressor, separator, fill))
+
+
+def _layout_v2(directory: str, meta: dict) -> ChunkLayout | None:
+    """A Zarr v2 array (``.zarray``) in C order, no filters, one of the known compressors or none."""
+    if meta.get("zarr_format") != 2 or meta.get("filters") or meta.get("order", "C") != "C":
+        return None
+    compressor = meta.get("compressor")
+    name = "" if compressor is None else _COMPRESSORS.get(compressor["id"])
+    if name is None:
+        return None
+    dtype = np.dtype(meta["dtype"])
+    if dtype.kind not in "biuf":
+        return None
+    fill = 0 if meta.get("fill_value") is None else _fill(meta["fill_value"], dtype)
+    return _checked(ChunkLayout(directory, tuple(meta["shape"]), tuple(meta["chunks"]), dtype, name,
+                                meta.get("dimension_separator", "."), fill, ()))
+
+
+def _fill(fill, dtype: np.dtype) -> float | int:
+    """A fill value of the metadata as a number (``ValueError`` for one this reader does not read)."""
     if isinstance(fill, str):
         special = {"NaN": math.nan, "Infinity": math.inf, "-Infinity": -math.inf}
         if fill not in special or dtype.kind != "f":
-            return None
+            raise ValueError(f"fill value {fill!r}")
         fill = special[fill]
     if isinstance(fill, bool):
         fill = int(fill)
     if not isinstance(fill, (int, float)):
-        return None
-    separator = (keys.get("configuration") or {}).get("separator", "/")
-    shape, chunks = tuple(meta["shape"]), tuple(grid["configuration"]["chunk_shape"])
-    if len(shape) != len(chunks) or not all(c > 0 for c in chunks):
-        return None
-    return ChunkLayout(directory, shape, chunks, dtype, compressor, separator, fill)
+        raise ValueError(f"fill value {fill!r}")
+    return fill
+
+
+def _checked(layout: ChunkLayout) -> ChunkLayout | None:
+    ok = (len(layout.shape) == len(layout.chunks) and all(isinstance(n, int) and n >= 0 for n in layout.shape)
+          and all(isinstance(c, int) and c > 0 for c in layout.chunks) and layout.separator in ("/", "."))
+    return layout if ok else None
 
 
 class ChunkCache:
@@ -260,10 +301,36 @@ def _decompress(layout: ChunkLayout, data: bytes):
             raise ValueError(fault)
         return blosc.decompress(data)
     if layout.compressor == "zstd":
-        from numcodecs import Zstd
+        from numcodecs import zstd
 
-        return Zstd().decode(data)
+        declared = zstd_content_size(data)
+        if declared is not None and declared != layout.chunk_bytes:
+            raise ValueError(f"its zstd frame declares {declared} bytes, not the chunk's {layout.chunk_bytes}")
+        out = bytearray(layout.chunk_bytes)  # the bound: a frame that needs more fails
+        zstd.decompress(data, out)
+        return out
+    if layout.compressor == "zlib":
+        stream = zlib.decompressobj(32 + zlib.MAX_WBITS)  # a zlib or a gzip header, recognised
+        out = stream.decompress(data, layout.chunk_bytes + 1)
+        if len(out) > layout.chunk_bytes or stream.unconsumed_tail:
+            raise ValueError(f"its stream decodes to more than the chunk's {layout.chunk_bytes} bytes")
+        return out + stream.flush()
     return data
+
+
+def zstd_content_size(data: bytes) -> int | None:
+    """The decoded size a zstd frame's header declares (RFC 8878, 3.1.1), or None when it
+    declares none (or ``data`` is no zstd frame: its decoder says so)."""
+    if len(data) < 6 or data[:4] != b"\x28\xb5\x2f\xfd":
+        return None
+    descriptor = data[4]
+    single = (descriptor >> 5) & 1
+    pos = 5 + (0 if single else 1) + (0, 1, 2, 4)[descriptor & 3]  # window descriptor, dictionary id
+    size = (1 if single else 0, 2, 4, 8)[descriptor >> 6]
+    if size == 0 or len(data) < pos + size:
+        return None
+    value = int.from_bytes(data[pos:pos + size], "little")
+    return value + 256 if size == 2 else value
 
 
 def read_region(layout: ChunkLayout, region) -> np.ndarray:
@@ -288,6 +355,15 @@ def read_region(layout: ChunkLayout, region) -> np.ndarray:
             dst.append(slice(lo - a, hi - a))
         out[tuple(dst)] = chunk[tuple(src)]
     return out
+
+
+def read_whole(path: str, key: str = "") -> np.ndarray | None:
+    """The whole Zarr array ``path``/``key`` from its chunk files (:func:`read_region`: every chunk
+    decoded into at most its own size), or None when this module does not read its layout."""
+    layout = layout_of(str(path), key)
+    if layout is None:
+        return None
+    return read_region(layout, tuple(slice(0, n) for n in layout.shape))
 
 
 def z_order_key(index) -> int:

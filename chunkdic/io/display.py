@@ -30,15 +30,18 @@ larger one).
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
 from ..scheduler import open_runner
 from .handles import ref_dask
+from .jsonfile import json_dict, read_json_object
 from .ngff import complete_levels, ngff_attrs, omero, update_group_metadata
-from .ownership import final_name
+from .owntree import remove
 from .scan import open_scan
+from .siblings import final_name
 from .store import compressors, store_array
 
 log = logging.getLogger(__name__)
@@ -55,20 +58,33 @@ WINDOW_SAMPLES = 2_000_000
 
 def own_display(path) -> bool | None:
     """What the scan group ``path`` holds under :data:`DISPLAY_GROUP`: ``None`` (nothing),
-    ``True`` (chunkdic's mean pyramid, ``attrs["chunkdic"]["kind"] == "display"``) or
-    ``False`` (anything else: a user's array or group, which chunkdic never removes)."""
-    import json
-    from pathlib import Path
-
+    ``True`` (chunkdic's mean pyramid, ``attrs["chunkdic"]["kind"] == "display"``, complete or
+    not, or an empty directory: what a build killed right after making the folder leaves, which
+    holds nothing to lose) or ``False`` (anything else: a user's array or group, or a link,
+    which chunkdic never removes)."""
     node = Path(path) / DISPLAY_GROUP
     if not node.exists() and not node.is_symlink():
         return None
+    if node.is_symlink():
+        return False
+    if node.is_dir() and not any(node.iterdir()):
+        return True
     try:
-        meta = json.loads((node / "zarr.json").read_text())
+        meta = read_json_object(node / "zarr.json")
+        ck = json_dict(meta.get("attributes") or {}).get("chunkdic")
     except (OSError, ValueError):
         return False
-    ck = (meta.get("attributes") or {}).get("chunkdic")
     return meta.get("node_type") == "group" and isinstance(ck, dict) and ck.get("kind") == "display"
+
+
+def remove_display(node: Path) -> None:
+    """Remove chunkdic's ``display`` group ``node``, its ``zarr.json`` last: a removal killed
+    halfway leaves a group still marked chunkdic's (or an empty folder), which the next build
+    replaces, never a folder of arrays without the metadata that says whose they are."""
+    for child in node.iterdir():
+        if child.name != "zarr.json":
+            remove(child)
+    remove(node)
 
 
 def check_display_slot(path) -> None:
@@ -248,8 +264,9 @@ def write_display(path: str, *, progress=None) -> list[int]:
     check_display_slot(path)
     root = zarr.open_group(store=str(path), mode="r+")
     if own_display(path):
-        del root[DISPLAY_GROUP]
-    g = root.create_group(DISPLAY_GROUP)
+        remove_display(Path(path) / DISPLAY_GROUP)
+    # marked chunkdic's at once: a build killed from here on leaves a group the next one replaces
+    g = root.create_group(DISPLAY_GROUP, attributes={"chunkdic": {"kind": "display", "complete": False}})
     refs = scan.stored_refs()
     chunk0 = tuple(root["0"].chunks)
     for i, s in enumerate(levels):

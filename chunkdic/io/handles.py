@@ -113,7 +113,7 @@ def forget_open_arrays() -> None:
     forget_chunks()
 
 
-class _RefReader:
+class RefReader:
     """Array-like over an :class:`ArrayRef` for ``dask.array.from_array`` (small, picklable)."""
 
     def __init__(self, ref: ArrayRef):
@@ -142,7 +142,7 @@ def ref_dask(ref: ArrayRef, chunks=None):
 
     chunks = _ref_chunks(ref) if chunks is None else chunks
     name = "scan-" + tokenize(ref.kind, ref.path, ref.key, ref.shape, ref.dtype, _mtime(ref))
-    return da.from_array(_RefReader(ref), chunks=chunks, name=name, asarray=False,
+    return da.from_array(RefReader(ref), chunks=chunks, name=name, asarray=False,
                          meta=np.empty((0, 0, 0), np.dtype(ref.dtype)))
 
 

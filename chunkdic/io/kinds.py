@@ -16,6 +16,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from .jsonfile import json_dict, read_json, read_json_object
+
 __all__ = ["VTU_MARK", "VTK_TITLE", "MARKER", "Kind", "KINDS", "kind_of", "store_kind", "ours_in_folder", "mark_folder"]
 
 #: marker file of the folders chunkdic writes: JSON ``{"kind": ..., "complete": ...}``
@@ -81,10 +83,10 @@ VTK_TITLE = b"written by chunkdic (export, VTK)"
 def _zarr_attrs(path: Path) -> dict | None:
     """``attributes["chunkdic"]`` of the Zarr v3 node at ``path`` (None if not one of ours)."""
     try:
-        meta = json.loads((path / "zarr.json").read_text())
+        meta = read_json_object(path / "zarr.json")
+        ck = json_dict(meta.get("attributes") or {}).get("chunkdic")
     except (OSError, ValueError):
         return None
-    ck = (meta.get("attributes") or {}).get("chunkdic")
     return dict(ck) if isinstance(ck, dict) else None
 
 
@@ -95,6 +97,8 @@ def store_kind(path: Path) -> tuple[str | None, bool]:
     if ck is None:
         return None, False
     kind = ck.get("kind")
+    if kind is not None and not isinstance(kind, str):
+        return "unknown", False  # a chunkdic attribute that is none of chunkdic's kinds: never replaced
     if kind is None:  # legacy stores
         if "fingerprint" in ck or "element_size" in ck:
             kind = "result"
@@ -111,10 +115,10 @@ def store_kind(path: Path) -> tuple[str | None, bool]:
 
 def _read_marker(path: Path) -> dict | None:
     try:
-        d = json.loads((path / MARKER).read_text())
+        d = read_json(path / MARKER)
     except (OSError, ValueError):
         return None
-    return d if isinstance(d, dict) and "kind" in d else None
+    return d if isinstance(d, dict) and isinstance(d.get("kind"), str) else None
 
 
 def ours_in_folder(path: Path, kind: Kind) -> tuple[list[Path], list[Path]]:
@@ -163,10 +167,8 @@ def _vtk_marked(head: bytes) -> bool:
 def _json_kind(path: Path) -> str | None:
     """``kind`` of a small JSON object file (the node table's sidecar), else None."""
     try:
-        if path.stat().st_size > 1 << 20:
-            return None
-        d = json.loads(path.read_text())
-    except (OSError, ValueError, UnicodeDecodeError):
+        d = read_json(path, max_bytes=1 << 20)
+    except (OSError, ValueError):
         return None
     return d.get("kind") if isinstance(d, dict) and isinstance(d.get("kind"), str) else None
 

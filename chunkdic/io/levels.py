@@ -10,10 +10,13 @@ of :meth:`chunkdic.io.scan.Scan.refs`.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from ..errors import InputError
 from .handles import ArrayRef, forget_open_arrays
+from .owntree import remove
 from .store import aligned, chunk_shape_for, compressors, store_array
 
 
@@ -21,9 +24,8 @@ def create_level(path: str, s: int, shape, dtype, chunk_shape):
     """(Re)create level array ``s`` of group ``path``, flagged incomplete."""
     import zarr
 
+    remove(Path(path) / str(s))
     g = zarr.open_group(store=path, mode="r+")
-    if str(s) in g:
-        del g[str(s)]
     g.create_array(
         str(s), shape=tuple(int(n) for n in shape), dtype=np.dtype(dtype), chunks=tuple(chunk_shape),
         compressors=compressors(dtype), fill_value=0, dimension_names=("z", "y", "x"),

@@ -44,7 +44,9 @@ from .handles import ArrayRef
 from .levels import create_level, mark_complete
 from .ngff import multiscales
 from .outputs import Outputs
-from .ownership import final_name, make_scratch
+from .owntree import remove
+from .scratch import make_scratch
+from .siblings import final_name
 
 __all__ = ["make_mask", "otsu", "parse_cylinder", "parse_box", "MASK_COLOR"]
 
@@ -254,8 +256,6 @@ def make_mask(scan, out, *, threshold: float | str | None = "otsu", fill_holes: 
     --------
     >>> chunkdic.make_mask("scan.zarr", "mask.zarr", largest=True)  # doctest: +SKIP
     """
-    import shutil
-
     t0 = time.perf_counter()
     say = progress or (lambda msg: None)
     src = open_any(scan)
@@ -302,7 +302,7 @@ def make_mask(scan, out, *, threshold: float | str | None = "otsu", fill_holes: 
                 raise InputError("the mask is empty: no voxel above the threshold (inside --cylinder/--box)")
             _finish(entry.work, material, shape)
     finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        remove(scratch)
     total = int(np.prod(shape))
     return {"path": str(out), "threshold": threshold, "material": int(material), "fraction": material / total,
             "shape": shape, "seconds": time.perf_counter() - t0}

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..mesh import level0_position
-from .ownership import final_name
+from .siblings import final_name
 
 # OME-NGFF space units (UDUNITS-2 names) and the spellings users type.
 _SPACE_UNITS = {

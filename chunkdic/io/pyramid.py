@@ -31,8 +31,9 @@ from .display import (
 from .handles import forget_open_arrays, ref_dask
 from .levels import check_levels, write_level
 from .ngff import update_group_metadata
-from .outputs import check_writable
-from .ownership import OutputLock
+from .outputrules import check_writable
+from .owntree import check_own_tree, remove
+from .locks import OutputLock
 from .scan import Scan, open_scan
 
 log = logging.getLogger(__name__)
@@ -57,9 +58,9 @@ def build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None
     # Levels at or above the first rebuilt one were built from data that is being replaced
     # (or were interrupted): drop them all before writing anything.
     for name in [k for k in g.array_keys() if k.isdigit() and int(k) >= todo_from]:
-        del g[name]
+        remove(Path(path) / name)
     if own_display(path):  # means of the levels being replaced (never a user's node of that name)
-        del g[DISPLAY_GROUP]
+        remove(Path(path) / DISPLAY_GROUP)
     update_group_metadata(path)
     chunk0 = tuple(g["0"].chunks)
     if cuts is None:
@@ -78,8 +79,7 @@ def build_levels(path: str, levels: int, *, rebuild: bool = False, progress=None
         except Exception:
             # a refusal (damaged input, full disk) removes the level this run began, leaving the
             # scan as it found it; an interrupted run leaves it marked incomplete (rebuilt later)
-            if str(s) in g:
-                del g[str(s)]
+            remove(Path(path) / str(s))
             update_group_metadata(path)
             raise
         update_group_metadata(path)
@@ -136,6 +136,9 @@ def build_pyramid(path, levels: int, *, overwrite: bool = False,
         raise InputError(f"--levels must be >= 1, got {levels}")
     if not (p / "zarr.json").exists():
         raise InputError(f"{p} is not a Zarr v3 scan group: run `chunkdic ingest` on it first")
+    # the levels are written into the scan group itself, and only there: never through a
+    # link to a folder or store outside it
+    check_own_tree(p, [p / "zarr.json", p / DISPLAY_GROUP, *(p / str(s) for s in range(1, levels + 1))], what="scan")
     import zarr
 
     try:

@@ -40,6 +40,7 @@ from .ngff import (
     normalize_voxel_size,
     voxel_from_group_attrs,
 )
+from .owntree import remove
 from .scratch_levels import build_level
 from .store import chunk_is_complete, chunk_shape_for
 
@@ -160,7 +161,7 @@ class Scan:
             else an embedded thread pool for this call.
         adopt : bool, keyword-only
             ``scratch_dir`` is an interrupted run's, written for this very scan (the caller
-            checked: :func:`chunkdic.io.ownership.adopt_scratch`): its levels marked complete,
+            checked: :func:`chunkdic.io.scratch.adopt_scratch`): its levels marked complete,
             of the expected shape and dtype and whose every chunk is complete
             (:func:`chunkdic.io.store.chunk_is_complete`), are used instead of built again.
 
@@ -189,7 +190,6 @@ class Scan:
         and levels coarser than every wanted one (done before the interruption) are removed."""
         import concurrent.futures
         import itertools
-        import shutil
 
         import zarr
 
@@ -205,7 +205,7 @@ class Scan:
         self._scratch_group = str(groups[0])
         for name in list(root.array_keys()):  # levels coarser than any wanted: done before the kill
             if name.isdigit() and int(name) > max(wanted):
-                shutil.rmtree(groups[0] / name, ignore_errors=True)
+                remove(groups[0] / name)
         for s in sorted(wanted - set(self._stored) - set(self._scratch)):
             try:
                 arr = zarr.open_array(store=str(groups[0]), path=str(s), mode="r")
@@ -449,6 +449,8 @@ def _open(src) -> Scan:
             return Scan(path=str(p), voxel_size=None, unit=None, _stored={0: ref})
         hint = " (convert it with `chunkdic ingest`)" if p.suffix.lower() in _INGEST_SUFFIXES else ""
         raise InputError(f"{p} is not a Zarr store or a .npy file{hint}")
+    if not p.is_dir():  # a FIFO, a socket, a device: never opened (a FIFO would wait for a writer)
+        raise InputError(f"{p} is not a Zarr store, a .npy file or a folder (a FIFO, a socket or a device?)")
     try:
         node = zarr.open(store=str(p), mode="r")
     except Exception as e:  # noqa: BLE001

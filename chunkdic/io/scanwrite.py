@@ -18,9 +18,11 @@ import numpy as np
 from ..errors import InputError
 from .coarsen import pyramid_dtype
 from .handles import forget_open_arrays
+from .jsonfile import json_dict, read_json_object
 from .levels import check_levels, write_level
 from .ngff import normalize_unit, normalize_voxel_size, update_group_metadata
 from .outputs import Outputs
+from .owntree import remove
 from .pyramid import build_levels
 from .scan import Scan, open_scan
 
@@ -29,7 +31,7 @@ log = logging.getLogger(__name__)
 
 def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite: bool = False,
                levels: int = 0, progress: Callable[[float], None] | None = None, inputs=(),
-               parents: bool = False) -> "Scan":
+               parents: bool = False, made_of: str | None = None) -> "Scan":
     """Write a 3-D array as a stored scan: a Zarr v3 group with OME-NGFF 0.5 metadata.
 
     Level ``"0"`` is ``data``, written chunk by chunk by Dask (``data`` is never computed
@@ -59,6 +61,9 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     progress : callable(float), optional
         Called with the fraction done (0..1), on the threaded scheduler as tasks finish
         and on a distributed client (the current one) as the chunk writes finish.
+    made_of : str, optional
+        What the scan is made of (:mod:`chunkdic.io.madeof`), recorded in it: the same call
+        again on its own complete scan writes nothing and returns it.
 
     Returns
     -------
@@ -87,7 +92,10 @@ def write_scan(path, data, *, voxel_size=None, unit=None, chunks=None, overwrite
     levels = int(levels)
     check_levels(data.shape, levels)
     plan = Outputs(inputs=inputs, overwrite=overwrite)
-    entry = plan.add(path, "scan", parents=parents)  # every check before anything is written
+    entry = plan.add(path, "scan", parents=parents, made_of=made_of)  # every check before anything is written
+    if plan.done:
+        log.info("%s is already complete (the same source and options): nothing to do", path)
+        return open_scan(str(path))
     forget_open_arrays()
     weights = [1.0] + [8.0 ** -(s - 1) for s in range(1, levels + 1)]
     cuts = np.cumsum([0.0] + weights) / sum(weights)
@@ -173,7 +181,7 @@ def _remove_partial_chunk_files(level_dir: str) -> None:
     for root, _, names in os.walk(level_dir):
         for name in names:
             if _ZARR_PARTIAL.fullmatch(name):
-                os.remove(os.path.join(root, name))
+                remove(os.path.join(root, name))
 
 
 _ZARR_PARTIAL = re.compile(r".+\.[0-9a-f]{32}\.partial")
@@ -184,30 +192,30 @@ def _matching_partial_scan(path: str, own: dict, data, chunk_shape) -> bool:
 
     A group killed before its level 0 array was created is just started again.
     """
-    import shutil
-
     if not os.path.exists(path):
         return False
     try:
-        with open(os.path.join(path, "zarr.json")) as fh:
-            ck = (json.load(fh).get("attributes") or {}).get("chunkdic")
+        ck = json_dict(read_json_object(os.path.join(path, "zarr.json")).get("attributes") or {}).get("chunkdic")
+        ck = json_dict(ck) if ck is not None else None
     except (OSError, ValueError):
         ck = None
     if ck is None:  # killed between mkdir and the group's metadata: nothing of value yet
-        shutil.rmtree(path)
+        remove(path)
         return False
     if any(ck.get(k) != v for k, v in own.items()):  # later stages add keys (levels, display window)
         raise InputError(f"{path} holds an interrupted write of another scan (other settings): "
                          "pass --overwrite to start again")
     try:
-        with open(os.path.join(path, "0", "zarr.json")) as fh:
-            meta = json.load(fh)
+        meta = read_json_object(os.path.join(path, "0", "zarr.json"))
     except (OSError, ValueError):
-        shutil.rmtree(path)  # killed before level 0 existed: start again
+        remove(path)  # killed before level 0 existed: start again
         return False
-    same = (tuple(meta.get("shape", ())) == tuple(data.shape)
-            and np.dtype(meta.get("data_type")) == np.dtype(data.dtype)
-            and tuple(meta["chunk_grid"]["configuration"]["chunk_shape"]) == tuple(chunk_shape))
+    try:
+        same = (tuple(meta.get("shape", ())) == tuple(data.shape)
+                and np.dtype(meta.get("data_type")) == np.dtype(data.dtype)
+                and tuple(meta["chunk_grid"]["configuration"]["chunk_shape"]) == tuple(chunk_shape))
+    except (KeyError, TypeError, ValueError, AttributeError):
+        same = False
     if not same:
         raise InputError(f"{path} holds an interrupted write of another scan (shape, dtype or chunks "
                          "differ): pass --overwrite to start again")

@@ -123,9 +123,11 @@ def write_region(path: str, key: str, region, data: np.ndarray) -> None:
     arr[tuple(region)] = data
 
 
-def _write_block(block: np.ndarray, path: str, key: str, block_info=None) -> np.ndarray:
+def _write_block(block: np.ndarray, path: str, key: str, z0: int = 0, block_info=None) -> np.ndarray:
+    """Write one block where it belongs (``z0``: the first plane of the slab it came from)."""
     loc = block_info[0]["array-location"]
-    write_region(path, key, tuple(slice(a, b) for a, b in loc), block)
+    write_region(path, key, tuple(slice(a + (z0 if i == 0 else 0), b + (z0 if i == 0 else 0))
+                                  for i, (a, b) in enumerate(loc)), block)
     return np.ones((1, 1, 1), np.int64)
 
 
@@ -223,6 +225,26 @@ def _compute_on_client(client, x, progress, start: float, end: float) -> None:
         progress(end)
 
 
+#: blocks of one computed graph at most: a larger array is written in slabs of whole block
+#: planes, each its own graph (a Zarr input declaring 10 000³ voxels in 128³ chunks, 493 039
+#: blocks, grew the graph of one compute past 1 GiB in 60 s before a chunk was written)
+MAX_GRAPH_BLOCKS = 8192
+
+
+def _batches(numblocks) -> list[tuple[int, int]]:
+    """Ranges of block planes (along z) of at most :data:`MAX_GRAPH_BLOCKS` blocks (one plane at least)."""
+    per_plane = max(1, int(np.prod(numblocks[1:])))
+    step = max(1, MAX_GRAPH_BLOCKS // per_plane)
+    return [(z, min(z + step, numblocks[0])) for z in range(0, numblocks[0], step)]
+
+
+def _writes(data, path, key: str, z0: int = 0):
+    """One task per block of ``data`` writing it into ``path``/``key`` from plane ``z0`` on."""
+    out_chunks = tuple((1,) * len(c) for c in data.chunks)
+    return data.map_blocks(_write_block, path=str(path), key=key, z0=z0, dtype=np.int64, chunks=out_chunks,
+                           meta=np.empty((0, 0, 0), np.int64))
+
+
 def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0, resume: bool = False) -> int:
     """Write dask array ``data`` into the existing Zarr array ``path``/``key``, block by block.
 
@@ -244,12 +266,16 @@ def store_array(data, path: str, key: str, progress=None, start=0.0, end=1.0, re
         raise InputError(f"cannot write an array of shape {data.shape} into {path}/{key} of shape {arr.shape}")
     unit = arr.shards if getattr(arr, "shards", None) else arr.chunks
     check_write_alignment(data.chunks, data.shape, unit, name=f"{path}/{key}")
-    out_chunks = tuple((1,) * len(c) for c in data.chunks)
-    done = data.map_blocks(_write_block, path=str(path), key=key, dtype=np.int64, chunks=out_chunks,
-                           meta=np.empty((0, 0, 0), np.int64))
     if not resume:
-        _compute(done, progress, start, end)
-        return int(np.prod(done.numblocks))
+        # slab by slab: map_blocks builds a record per block up front (its block_info)
+        batches = _batches(data.numblocks)
+        planes = np.cumsum((0,) + data.chunks[0])
+        for i, (k0, k1) in enumerate(batches):
+            z0, z1 = int(planes[k0]), int(planes[k1])
+            a, b = start + (end - start) * i / len(batches), start + (end - start) * (i + 1) / len(batches)
+            _compute(_writes(data[z0:z1], path, key, z0), progress, a, b)
+        return int(np.prod(data.numblocks))
+    done = _writes(data, path, key)
     # only the blocks still missing: computing a subset of the delayed blocks culls the
     # graph, so the source tasks of complete blocks never run
     # checked in threads (reading and decoding release the GIL): one by one, the 8192

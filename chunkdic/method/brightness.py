@@ -49,13 +49,12 @@ import numpy as np
 
 from ..kernels.b import element_to_nodes
 from ..kernels.blocks import LAGS, ElementSums
+from .mismatch import FLAT, local_residual
 from .settings import DEFAULT_GREY_CELL_VOXELS
 
 MODELS = ("none", "global", "drift", "element")
 #: bounds of a per-element gain (``element`` model)
 GAIN_RANGE = (0.5, 2.0)
-#: an element whose ``Σ (g' - mean)²`` is below this fraction of ``Σ g'²`` fixes no gain
-FLAT = 1e-12
 # positions of the quantities in ElementSums (blocks.QUANTITIES)
 _D, _G, _ONE, _Z, _Y, _X = range(6)
 _THETA = (_G, _Z, _Y, _X)  # global unknowns of the drift model: gain, then the drift per axis
@@ -107,7 +106,8 @@ class Partials:
     scalars : ndarray, shape (m,), float64
         Sums over the block's valid voxels (first: ``Σ w``).
     elements : ndarray, shape (p, ez, ey, ex), float64
-        Per-element fields (first: ``Σ w`` per element).
+        Per-element fields (first: ``Σ w`` per element; last: the :data:`RESIDUAL_ROWS`
+        rows of :func:`residual_rows`).
     n_excluded : int
         Voxels whose ``X + u(X)`` leaves ``g``.
     lags : ndarray, shape (6, LAGS + 1)
@@ -140,6 +140,10 @@ class Fit:
         Offset gradient (grey levels per voxel, z, y, x) of the ``drift`` model, else 0.
     valid_per_element : ndarray, shape (ez, ey, ex), float64
         ``Σ w`` per element.
+    residual : ndarray, shape (2, ez, ey, ex), float64, optional
+        Per element, the residual left by the element's own best gain and offset and the
+        reference's own variation (:func:`residual_rows`), grey levels²: what tells a residual
+        that is noise from one that is not (:mod:`chunkdic.method.mismatch`).
     """
 
     b: np.ndarray
@@ -149,6 +153,7 @@ class Fit:
     offset: np.ndarray
     drift: np.ndarray
     valid_per_element: np.ndarray
+    residual: np.ndarray | None = None
 
     def share(self, fields: np.ndarray) -> None:
         """Point gain, offset and valid counts at rows 0-2 of ``fields`` (the same values, as
@@ -205,12 +210,31 @@ def _cell_centred(sums: ElementSums, k: int):
     return Bc, Gc, o
 
 
+#: rows at the end of every model's element fields (:func:`residual_rows`)
+RESIDUAL_ROWS = 2
+
+
+def residual_rows(gram: np.ndarray) -> np.ndarray:
+    """:func:`chunkdic.method.mismatch.local_residual` of each element from its element sums
+    (``f - c = d + g'``): shape (2, ez, ey, ex), grey levels²."""
+    return local_residual(gram[..., _ONE, _ONE], gram[..., _D, _ONE], gram[..., _G, _ONE], gram[..., _D, _D],
+                          gram[..., _D, _G], gram[..., _G, _G])
+
+
 def reduce_block(sums: ElementSums, model: str, cell: int = 1) -> Partials:
     """Reduce a block's element sums for ``model`` (task side).
 
     ``cell``: elements per side of the cells sharing one offset (``drift``; the block holds
     whole cells from its first element, :func:`aligned_block_elements`; 1: per element).
+    Every model's element rows end with the :func:`residual_rows`.
     """
+    part = _reduce_model(sums, model, cell)
+    part.elements = np.concatenate([part.elements, residual_rows(sums.gram)])
+    return part
+
+
+def _reduce_model(sums: ElementSums, model: str, cell: int) -> Partials:
+    """:func:`reduce_block` without the residual rows."""
     B, G = sums.B, sums.gram
     lags = sums.lags if sums.lags is not None else np.zeros((6, LAGS + 1))
     n_e = G[..., _ONE, _ONE]
@@ -395,15 +419,17 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
     # a copy: a view would keep every row of ``elements`` (7 float64 per element with the
     # drift model) alive in the pass the level holds (docs/distributed.md)
     n_e = elements[0].copy()
+    residual = elements[-RESIDUAL_ROWS:].copy()
+    elements = elements[:-RESIDUAL_ROWS]
     n = scalars[0]
     ones = np.ones_like(n_e) if model in ("none", "global") else None  # not held by the other models
     zero3 = np.zeros(3)
     if model == "none":
-        return Fit(b, float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e)
+        return Fit(b, float(scalars[1]), float(n), ones, 0 * ones, zero3, n_e, residual)
     if model == "global":
         alpha, mu = _global_coefficients(model, scalars)
         ssr, _ = misfit(model, scalars)
-        return Fit(b, ssr, float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e)
+        return Fit(b, ssr, float(n), (1 + alpha) * ones, (mu - alpha * center) * ones, zero3, n_e, residual)
     if model == "drift":
         theta = _global_coefficients(model, scalars)
         ssr, _ = misfit(model, scalars)
@@ -414,8 +440,8 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
             beta = offset_plane_slope(mu, n_e)
         # offset at the element centre (q~ = 0): μ_e - α c
         return Fit(b, ssr, float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
-                   beta / float(element_size), n_e)
+                   beta / float(element_size), n_e, residual)
     if model == "element":
         alpha, mu = elements[1], elements[2]
-        return Fit(b, float(scalars[1]), float(n), 1 + alpha, mu - alpha * center, zero3, n_e)
+        return Fit(b, float(scalars[1]), float(n), 1 + alpha, mu - alpha * center, zero3, n_e, residual)
     raise ValueError(f"unknown brightness model {model!r}")

@@ -27,11 +27,13 @@ from .stopping import History, State, decide, noise_step_of, still_to_come
 
 
 def element_fields(p) -> np.ndarray:
-    """Per-element gain, offset (at the centre), valid voxels of a pass, and the drift
-    (grey levels per voxel, z, y, x, repeated per element): shape (6, ez, ey, ex)."""
-    out = np.empty((6,) + p.fit.gain.shape)  # filled row by row: no stacked temporary
+    """Per-element gain, offset (at the centre), valid voxels of a pass, the drift (grey
+    levels per voxel, z, y, x, repeated per element) and the residual rows
+    (:func:`~chunkdic.method.brightness.residual_rows`): shape (8, ez, ey, ex)."""
+    out = np.empty((8,) + p.fit.gain.shape)  # filled row by row: no stacked temporary
     out[0], out[1], out[2] = p.fit.gain, p.fit.offset, p.fit.valid_per_element
-    out[3:] = p.fit.drift[:, None, None, None]
+    out[3:6] = p.fit.drift[:, None, None, None]
+    out[6:] = np.nan if p.fit.residual is None else p.fit.residual
     return out
 
 

@@ -140,9 +140,10 @@ class History:
 class State:
     """Modified Gauss–Newton state on one level: everything needed to resume exactly.
 
-    ``elements`` holds the per-element brightness gain, offset and valid voxel count of
-    the pass that measured ``u`` (shape (3, ez, ey, ex)); ``best_*`` the same for the
-    field of lowest gap.
+    ``elements`` holds the element fields of the pass that measured ``u``
+    (:func:`chunkdic.method.gauss_newton.element_fields`, shape (8, ez, ey, ex): brightness
+    gain, offset, valid voxel count, drift, the residual rows :mod:`chunkdic.method.mismatch`
+    judges); ``best_*`` the same for the field of lowest gap.
     """
 
     u: np.ndarray

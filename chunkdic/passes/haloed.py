@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import config
+from ..io.owntree import remove
 from ..kernels.quantize import quantize_u16
 from . import scratchstore
 
@@ -97,7 +98,7 @@ class HaloedBlocks:
         import zarr
 
         blocks, stored, codecs = cls._layout(path, grid, chunk, dtype, quantize_from)
-        Path(path, COMPLETE).unlink(missing_ok=True)
+        remove(Path(path, COMPLETE))
         zarr.create_array(str(path), shape=blocks.grid + blocks.chunk, chunks=(1, 1, 1) + blocks.chunk, dtype=stored,
                           compressors=codecs, fill_value=0, zarr_format=3, overwrite=True)
         return blocks
@@ -142,7 +143,7 @@ class HaloedBlocks:
 
     def unmark(self) -> None:
         """Client side, before a pass rewrites the copy: no longer complete."""
-        Path(self.path, COMPLETE).unlink(missing_ok=True)
+        remove(Path(self.path, COMPLETE))
 
     def mark_complete(self) -> None:
         """Client side, after the ``M`` pass: every block's chunk is written."""

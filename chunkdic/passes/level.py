@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import shutil
 import time
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from .. import config
 from ..errors import InputError
 from ..io.chunkread import forget_chunks, z_order_key
 from ..io.handles import ArrayRef, forget_open_arrays
+from ..io.owntree import remove
 from ..kernels.blocks import LAGS
 from ..mesh import Mesh
 from ..method.brightness import aligned_block_elements, offset_cell
@@ -366,7 +366,7 @@ class LevelPasses:
     def _delete(self, paths: list[Path]) -> None:
         self.runner.run_everywhere(forget_open_arrays)
         for path in paths:
-            shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+            remove(path)
 
     def translation(self) -> np.ndarray:
         """The phase-correlation translation over the ROI, as one task (:mod:`chunkdic.passes.translation`)."""

@@ -22,12 +22,12 @@ level ≥ 1 a 16-bit scan's sums are 1/8 of level 0 or less).
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
 
 from .. import config
+from ..io.owntree import remove
 
 #: steps of the 16-bit scratch grid merged into one by the compact layout
 COMPACT_STEP = 16
@@ -130,7 +130,7 @@ def g_store(scratch, level: int, build: int) -> Path:
 
 
 def prune_adopted(scratch: Path, level: int | None) -> None:
-    """Remove from an adopted scratch directory (:func:`chunkdic.io.ownership.adopt_scratch`) the
+    """Remove from an adopted scratch directory (:func:`chunkdic.io.scratch.adopt_scratch`) the
     level stores no level of this run will adopt: those of levels coarser than ``level`` (the
     level of the interrupted run's checkpoint, done or under way; None: keep every level's),
     a prepared ``g`` left without its completion record or superseded by a later build, and
@@ -161,4 +161,4 @@ def prune_adopted(scratch: Path, level: int | None) -> None:
         if (level is not None and s > level) or (k is not None and k != latest.get(s)):
             doomed.append(entry)
     for path in doomed:
-        shutil.rmtree(path, ignore_errors=True) if path.is_dir() else path.unlink(missing_ok=True)
+        remove(path)

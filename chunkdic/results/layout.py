@@ -7,7 +7,7 @@ history (:class:`chunkdic.method.stopping.History`) and the run that flags the n
 
 from __future__ import annotations
 
-__all__ = ["HISTORY_FIELDS", "FLAG_NO_DATA", "FLAG_WEAK", "FLAG_MASKED", "LAYOUT", "HISTORY_LAYOUT"]
+__all__ = ["HISTORY_FIELDS", "FLAG_NO_DATA", "FLAG_WEAK", "FLAG_MASKED", "FLAG_MISMATCH", "LAYOUT", "HISTORY_LAYOUT"]
 
 #: the columns of a result's history: one row per pass of every level
 HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
@@ -22,6 +22,10 @@ FLAG_NO_DATA = 1
 FLAG_WEAK = 2
 #: node flag: outside the specimen mask (no active element around it); NaN, not measured
 FLAG_MASKED = 4
+#: node flag: half or more of the node's elements leave a residual that is not noise (the
+#: deformed scan does not match the reference there: :mod:`chunkdic.method.mismatch`); its
+#: value is not measured, whatever the iterations did
+FLAG_MISMATCH = 8
 
 #: dimension names, unit and description of every array of a result group (the ``units``
 #: follow CF usage: ``"1"`` is dimensionless; ``"voxel"`` is a voxel of the correlated level)
@@ -32,7 +36,7 @@ LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
                     "standard uncertainty of the nodal displacement, components (z, y, x)"),
     "strain": (("component_i", "component_j", "ez", "ey", "ex"), "1",
                "small-strain tensor at the element centres, axes (z, y, x)"),
-    "flags": (("z", "y", "x"), "1", "node flags (bits): 1 no data, 2 weak texture, 4 masked"),
+    "flags": (("z", "y", "x"), "1", "node flags (bits): 1 no data, 2 weak texture, 4 masked, 8 mismatch"),
     "active": (("ez", "ey", "ex"), "1", "element took part (specimen mask)"),
     "brightness": (("gain_offset", "ez", "ey", "ex"), "1",
                    "per-element gain (dimensionless) and offset (grey levels of the level): f = gain g + offset"),

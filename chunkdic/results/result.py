@@ -19,6 +19,7 @@ every result.
 
 from __future__ import annotations
 
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,8 +28,9 @@ import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.chunkread import read_whole
 from ..mesh import Mesh, level0_position
-from .layout import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, HISTORY_FIELDS, HISTORY_LAYOUT, LAYOUT
+from .layout import FLAG_MASKED, FLAG_MISMATCH, FLAG_NO_DATA, FLAG_WEAK, HISTORY_FIELDS, HISTORY_LAYOUT, LAYOUT
 
 @dataclass
 class Result:
@@ -55,8 +57,8 @@ class Result:
         ``(z, y, x)``; ``None`` until computed (:meth:`element_strain` computes it).
     flags : ndarray, shape (nz, ny, nx), uint8, optional
         Per-node flags, bits :data:`FLAG_NO_DATA` (displacement NaN: not measured),
-        :data:`FLAG_WEAK` (poorly textured, regularised, or not settled at the noise level) and :data:`FLAG_MASKED` (outside
-        the specimen mask, NaN).
+        :data:`FLAG_WEAK` (poorly textured, regularised, or not settled at the noise level), :data:`FLAG_MASKED` (outside
+        the specimen mask, NaN) and :data:`FLAG_MISMATCH` (a residual that is not noise).
     active : ndarray, shape (ez, ey, ex), uint8, optional
         Elements that took part (a specimen mask's material elements, :mod:`chunkdic.passes.masks`);
         ``None`` without a mask.
@@ -328,10 +330,10 @@ def open_result(path: str | os.PathLike) -> Result:
         raise InputError(f"result {path} lacks the attribute(s) {', '.join(missing)}: not a chunkdic result, "
                          "or a damaged one")
     try:
-        u = root["displacement"][...]
-        X = root["node_coords"][...]
-        history = {name: root["history"][name][...] for name in HISTORY_FIELDS}
-        optional = {name: root[name][...] if name in root else None
+        u = _array(root, path, "displacement")
+        X = _array(root, path, "node_coords")
+        history = {name: _array(root, path, f"history/{name}") for name in HISTORY_FIELDS}
+        optional = {name: _array(root, path, name) if name in root else None
                     for name in ("strain", "flags", "brightness", "active", "uncertainty")}
     except KeyError as exc:
         raise InputError(f"result {path} lacks the array {exc.args[0]!r}: a damaged result") from None
@@ -342,14 +344,49 @@ def open_result(path: str | os.PathLike) -> Result:
     return Result(u, X, history, info, str(path), **optional)
 
 
+#: the deepest pyramid level a result can name (a 2^32-voxel axis: more than any scan)
+MAX_LEVEL = 32
+
+
+def _check_facts(path, info: dict) -> None:
+    """The attributes every reader converts are what chunkdic writes (else one-line InputError):
+    ``level`` an integer 0 … :data:`MAX_LEVEL` (``scale`` its ``2 ** level``), ``voxel_size``
+    none or three positive finite numbers. An edited value (``1e400``, which JSON reads as
+    infinity, ``"x"``, ``NaN``, ``-20``) is refused before any reader computes with it."""
+    level = info.get("level", 0)
+    if isinstance(level, bool) or not isinstance(level, int) or not 0 <= level <= MAX_LEVEL:
+        raise InputError(f"result {path}: attribute level {level!r} is not a pyramid level (0 to {MAX_LEVEL}): "
+                         "a damaged result")
+    scale = info.get("scale", 2**level)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or scale != 2**level:
+        raise InputError(f"result {path}: attribute scale {scale!r} is not 2 ** level ({2**level}): a damaged result")
+    vs = info.get("voxel_size")
+    ok = vs is None or (isinstance(vs, (list, tuple)) and len(vs) == 3 and all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0 for v in vs))
+    if not ok:
+        raise InputError(f"result {path}: attribute voxel_size {vs!r} is not three positive finite numbers: a "
+                         "damaged result")
+
+
+def _array(root, path: Path, name: str) -> np.ndarray:
+    """Array ``name`` of the result group ``root`` (at ``path``), read from its chunk files so that
+    no chunk decodes into more than its own size (:func:`chunkdic.io.chunkread.read_whole`);
+    through zarr for a layout that reader does not know. KeyError when absent."""
+    node = root[name]  # KeyError: absent
+    whole = read_whole(str(path), name)
+    return node[...] if whole is None else whole
+
+
 def _check_consistent(path, info, u, X, history) -> None:
     """The arrays of a result agree with its attributes (else one-line InputError)."""
+    _check_facts(path, info)
     try:
         ell = int(info["element_size"])
         roi = [(int(a), int(b)) for a, b in info["roi"]]
         nodes = tuple((b - a) // ell + 1 for a, b in roi)
         ok_roi = len(roi) == 3 and ell >= 1 and all((b - a) % ell == 0 and b > a for a, b in roi)
-    except (TypeError, ValueError, KeyError, ZeroDivisionError):  # element_size 0: no mesh
+    except (TypeError, ValueError, KeyError, ZeroDivisionError, OverflowError):
+        # element_size 0: no mesh; 1e400 (infinity in JSON) or "x": no number of voxels
         ok_roi, nodes = False, None
     if not ok_roi:
         raise InputError(f"result {path}: attributes element_size {info.get('element_size')!r} and roi "

@@ -12,16 +12,18 @@ exit). Used by :mod:`chunkdic.export.corrected_image`, :mod:`chunkdic.export.mes
 from __future__ import annotations
 
 import contextlib
-import shutil
 from pathlib import Path
 
 from ..errors import InputError
 from ..inputs import check_scan_for_result
-from ..io.ownership import make_scratch
+from ..io.owntree import remove
 from ..io.scan import open_scan
+from ..io.scratch import make_scratch
+from ..io.units import check_voxel_sizes
 from .result import Result, open_result
 
-__all__ = ["as_result", "input_scan", "input_scans", "input_paths", "level_refs", "interpolation_of"]
+__all__ = ["as_result", "input_scan", "input_scans", "input_paths", "level_refs", "interpolation_of",
+           "check_recorded_voxel_sizes"]
 
 
 def as_result(result) -> Result:
@@ -54,8 +56,23 @@ def input_scan(result: Result, role: str, given=None, *, optional: bool = False)
 
 
 def input_scans(result: Result, ref=None, deformed=None) -> tuple:
-    """The reference and deformed :class:`~chunkdic.Scan` of a result (:func:`input_scan`)."""
-    return input_scan(result, "reference", ref), input_scan(result, "deformed", deformed)
+    """The reference and deformed :class:`~chunkdic.Scan` of a result (:func:`input_scan`), of
+    the same voxel size (:func:`chunkdic.io.units.check_voxel_sizes`)."""
+    scans = input_scan(result, "reference", ref), input_scan(result, "deformed", deformed)
+    check_voxel_sizes({"the reference": scans[0], "the deformed scan": scans[1]})
+    return scans
+
+
+def check_recorded_voxel_sizes(result: Result) -> None:
+    """Refuse (one line) a result whose recorded scans, where still on disk, differ in voxel size
+    (:func:`chunkdic.io.units.check_voxel_sizes`): its physical lengths would be wrong. A result
+    records the reference's voxel size alone; a scan not on disk any more cannot be checked."""
+    scans = {}
+    for role, name in (("reference", "the reference"), ("deformed", "the deformed scan")):
+        src = (result.info.get("inputs") or {}).get(role)
+        if isinstance(src, str) and not src.startswith("<in-memory") and Path(src).exists():
+            scans[name] = open_scan(src)
+    check_voxel_sizes(scans)
 
 
 def input_paths(result: Result, ref=None, deformed=None) -> list:
@@ -86,7 +103,7 @@ def level_refs(result: Result, ref=None, deformed=None, *, scans=None):
         g_ref = g_scan.refs([s], scratch / "def")[s]
         yield f_ref, g_ref
     finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        remove(scratch)
 
 
 def interpolation_of(result: Result) -> str:

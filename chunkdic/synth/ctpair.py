@@ -29,13 +29,13 @@ paper's section 4.2 test), rounded to the reference's dtype.
 from __future__ import annotations
 
 import os
-import shutil
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import InputError
 from ..io.handles import ArrayRef
+from ..io.owntree import remove
 from . import ctlocal
 from .ctsim import Geometry, GreyChange, Imaging, reconstruct_slice
 from .fields import Band, Field, Translation
@@ -246,7 +246,7 @@ def fourier_deformed(ref_scan_path: str, out_dir: str, spec: CTSpecimen, schedul
     import zarr
 
     scratch = os.path.join(out_dir, "def.fourier.tmp.zarr")
-    shutil.rmtree(scratch, ignore_errors=True)
+    remove(scratch)
     src = ArrayRef("zarr", ref_scan_path, "0", spec.shape, spec.dtype)
     fourier_shift_scan(src, scratch, spec.field.t, scheduler=scheduler, overwrite=True)
     arr = da.from_zarr(zarr.open_array(store=scratch, mode="r"))

@@ -28,7 +28,6 @@ the mirror-extended volume with that same real Nyquist factor.
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -38,7 +37,8 @@ from ..errors import InputError
 from ..inputs import check_finite
 from ..io.handles import ArrayRef, forget_open_arrays
 from ..io.kinds import kind_of
-from ..io.ownership import partial_name
+from ..io.owntree import remove
+from ..io.siblings import partial_name
 from ..scheduler import open_runner
 
 __all__ = ["PENCIL_EDGE", "fourier_shift_line", "fourier_shift_rows", "fourier_shift_scan", "shift_pencil_task"]
@@ -195,7 +195,7 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
             raise InputError(f"output {out} exists: choose another path or pass --overwrite")
         if kind_of(out)[0] != "shifted":
             raise InputError(f"output {out} is not a shifted volume chunkdic wrote: refusing to replace it")
-        shutil.rmtree(out)
+        remove(out)
     shape = tuple(int(n) for n in src.shape)
     chunks = tuple(min(PENCIL_EDGE, n) for n in shape)
     tmp = partial_name(out)  # intermediate passes: a hidden sibling that names its owner
@@ -224,10 +224,10 @@ def fourier_shift_scan(src: ArrayRef, out, t, *, scheduler=None, overwrite: bool
         arr.update_attributes({"chunkdic": {"kind": "shifted", "complete": True, "fourier_shift": list(t),
                                             "method": "separable mirror-extended FFT phase shift"}})
     except BaseException:
-        shutil.rmtree(out, ignore_errors=True)
+        remove(out)
         raise
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        remove(tmp)
 
     forget_open_arrays()
     return ArrayRef("zarr", str(out), "", shape, "float32")

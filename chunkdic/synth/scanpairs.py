@@ -21,13 +21,13 @@ first (three passes), then through a noisy copy.
 
 from __future__ import annotations
 
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 from ..io.handles import ArrayRef, forget_open_arrays
+from ..io.owntree import remove
 from .fields import Star
 from .foam_kernels import add_gaussian_noise
 from .fourier_shift import PENCIL_EDGE, fourier_shift_rows
@@ -122,7 +122,7 @@ def moved_copy(src: ArrayRef, out, *, runner, noise: float = 0.0, key: int = NOI
         arr = zarr.open_array(store=str(out), mode="r+")
         arr.update_attributes({"chunkdic": {**meta, "complete": True}})
     except BaseException:
-        shutil.rmtree(out, ignore_errors=True)
+        remove(out)
         raise
 
     forget_open_arrays()

@@ -11,13 +11,13 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 from pathlib import Path
 
 import numpy as np
 
 from .. import config
 from ..errors import InputError
+from ..io.owntree import remove
 from ..io.scanwrite import write_scan_resumable
 from ..io.kinds import kind_of
 from .ctpair import CTSpecimen, as_dask_ct, fourier_deformed, standard_field
@@ -222,13 +222,13 @@ def _write_pair(out_dir, shape, make, meta, *, chunks, voxel_size, unit, levels,
         raise InputError(f"{out_dir} exists and is not a directory")
     os.makedirs(out_dir, exist_ok=True)
     if os.path.exists(fjson):
-        os.remove(fjson)  # the pair is incomplete until field.json is back
+        remove(fjson)  # the pair is incomplete until field.json is back
     if overwrite:
         for path in (ref, dfm):
             if os.path.exists(path):
                 if kind_of(Path(path))[0] != "scan":  # never a store chunkdic did not write
                     raise InputError(f"{path} is not a scan chunkdic wrote: refusing to replace it")
-                shutil.rmtree(path)
+                remove(path)
     # scans this call began (removed on failure); a resumed scan was there before: kept
     written, scratch = [], []
     try:
@@ -245,11 +245,11 @@ def _write_pair(out_dir, shape, make, meta, *, chunks, voxel_size, unit, levels,
         os.replace(tmp, fjson)
     except BaseException:
         for path in written:  # leave no half-written pair behind
-            shutil.rmtree(path, ignore_errors=True)
+            remove(path)
         raise
     finally:
         for path in scratch:
-            shutil.rmtree(path, ignore_errors=True)
+            remove(path)
     return {"reference": ref, "deformed": dfm, "field_json": fjson}
 
 

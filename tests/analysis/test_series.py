@@ -147,8 +147,14 @@ def test_resume_after_a_kill_skips_finished_steps(run, tmp_path):
     assert {e.group for e in events if not isinstance(e, SeriesStep)} == {"002-incremental", "002-cumulative"}
     for k, ref in run["series"].cumulative.items():  # identical to the uninterrupted series
         np.testing.assert_allclose(s.cumulative[k].displacement, ref.displacement, rtol=0, atol=1e-9)
+    # done: the same series again has nothing to do (its fields as they are); other settings are refused
+    mtimes = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    said = []
+    assert [r["run"] for r in chunkdic.series(run["scans"], out, progress=said.append, **OPTIONS).rows] == \
+        [r["run"] for r in s.rows]
+    assert [e["stage"] for e in said] == ["complete"] and {p: p.stat().st_mtime_ns for p in out.rglob("*")} == mtimes
     with pytest.raises(chunkdic.InputError, match="complete loading series"):
-        chunkdic.series(run["scans"], out, **OPTIONS)  # done: refused without --overwrite
+        chunkdic.series(run["scans"], out, element_size=12, regularization="none")
     with pytest.raises(chunkdic.InputError, match="other scans or settings"):
         out2 = tmp_path / "other.zarr"
         with pytest.raises(KeyboardInterrupt):

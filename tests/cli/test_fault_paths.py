@@ -18,7 +18,8 @@ from test_data_safety import N, T, refused, tree
 
 import chunkdic
 from chunkdic.cli.app import main
-from chunkdic.io.ownership import OutputLock, name_limits, partial_name
+from chunkdic.io.locks import OutputLock
+from chunkdic.io.siblings import name_limits, partial_name
 from chunkdic.synth import synthetic
 
 pytestmark = pytest.mark.slow
@@ -104,7 +105,7 @@ def test_a_longest_valid_name_works_though_its_lock_and_partial_would_not_fit(da
     r = chunkdic.open_result(result)
     assert abs(float(r.displacement[0].mean()) - T[0]) < 0.05
     # and the second writer of one of them is still refused by that (shortened) lock
-    hold = ("import sys, time; from chunkdic.io.ownership import OutputLock; "
+    hold = ("import sys, time; from chunkdic.io.locks import OutputLock; "
             "OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(60)")
     holder = subprocess.Popen([sys.executable, "-c", hold, str(vtu)], stdout=subprocess.PIPE, text=True)
     try:

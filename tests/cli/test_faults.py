@@ -28,9 +28,9 @@ from test_data_safety import N, T, nothing_left, refused, tree
 import chunkdic
 from chunkdic.cli.app import main
 from chunkdic.errors import InputError
-from chunkdic.io import ownership
+from chunkdic.io import owners, scratch
 from chunkdic.io.integrity import content_identity
-from chunkdic.io.outputs import check_output
+from chunkdic.io.outputrules import check_output
 from chunkdic.synth import synthetic
 
 # kills, races and full disks on whole commands: `pytest -m 'not slow'` leaves them out
@@ -112,7 +112,7 @@ def test_overwrite_needs_chunkdics_own_mark_for_tables_and_folders(data, tmp_pat
 
 def _hold_lock(output: Path) -> subprocess.Popen:
     """Another process that holds the one-writer lock of ``output`` (as any chunkdic writer does)."""
-    code = ("import sys, time; from chunkdic.io.ownership import OutputLock; "
+    code = ("import sys, time; from chunkdic.io.locks import OutputLock; "
             "OutputLock(sys.argv[1]).acquire(); print('locked', flush=True); time.sleep(120)")
     proc = subprocess.Popen([sys.executable, "-c", code, str(output)], stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "locked"
@@ -225,10 +225,10 @@ def test_scratch_on_a_full_disk_leaves_nothing(tmp_path, monkeypatch):
     def full(*_):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(ownership.Owner, "me", classmethod(full))
+    monkeypatch.setattr(owners.Owner, "me", classmethod(full))
     with dask.config.set({"chunkdic.scratch-directory": str(tmp_path)}):
         with pytest.raises(InputError, match="No space left on device"):
-            ownership.make_scratch()
+            scratch.make_scratch()
     assert list(tmp_path.iterdir()) == []
 
 

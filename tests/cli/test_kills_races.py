@@ -49,7 +49,7 @@ def die():
 def ours(p):
     return str(p).rstrip("/").endswith(target)
 
-real_rename, real_replace, real_remove = os.rename, os.replace, outputs._remove
+real_rename, real_replace, real_remove = os.rename, os.replace, outputs.remove
 
 def rename(src, dst, *a, **k):
     if point == "before-rename" and ours(src):
@@ -71,7 +71,7 @@ def remove(path):
         die()
     real_remove(path)
 
-os.rename, os.replace, outputs._remove = rename, replace, remove
+os.rename, os.replace, outputs.remove = rename, replace, remove
 
 if point == "chunk-writes":  # target: how many chunk writes into a staged copy before the kill
     from zarr.storage import LocalStore

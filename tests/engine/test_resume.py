@@ -314,7 +314,7 @@ def test_the_scratch_of_another_run_is_never_adopted(pair, uninterrupted, tmp_pa
     does not adopt it (it prepares the scans again) and reclaims it (its owner is dead)."""
     import json
 
-    from chunkdic.io.ownership import SCRATCH_MARKER
+    from chunkdic.io.scratch import SCRATCH_MARKER
 
     out, scratch = tmp_path / "res.zarr", tmp_path / "scratch"
     scratch.mkdir()

@@ -297,7 +297,8 @@ def test_a_dead_runs_scratch_counts_as_free_disk(pair, tmp_path, monkeypatch):
     compact layout (another scratch identity: nothing adopted) or refused to run. The plan
     counts the scratch of dead runs, which this run reclaims or adopts, as free; not what is
     kept for the resume of another output."""
-    from chunkdic.io.ownership import SCRATCH_MARKER, Owner
+    from chunkdic.io.owners import Owner
+    from chunkdic.io.scratch import SCRATCH_MARKER
 
     scratch = tmp_path / "scratch"
     scratch.mkdir()

@@ -178,8 +178,10 @@ def test_cli_export_fields_and_refusals(affine, tmp_path, capsys):
     # progress at most one line per 5 s (issue 23: 22 lines for 100³), its 100 % line included
     assert len([line for line in cap.err.splitlines() if "%" in line]) <= 1 + seconds // 5
     assert json.loads((out / "zarr.json").read_text())["attributes"]["ome"]["multiscales"][0]["name"] == "f.zarr"
-    # an existing fields image: refused without --overwrite, replaced with it
-    assert main(["export", result, "--fields", str(out)]) == 2
+    # the same command again: nothing to do; another option over it: refused without --overwrite, replaced with it
+    assert main(["export", result, "--fields", str(out)]) == 0
+    assert "nothing to do" in capsys.readouterr().err
+    assert main(["export", result, "--fields", str(out), "--strain", "small"]) == 2
     assert "complete fields image" in capsys.readouterr().err
     assert main(["export", result, "--fields", str(out), "--overwrite"]) == 0
     capsys.readouterr()

@@ -85,11 +85,11 @@ def test_interrupted_build_leaves_no_complete_level(scan_path, monkeypatch):
     p, x = scan_path
     calls = []
 
-    def flaky(block, path, key, block_info=None):
+    def flaky(block, path, key, z0=0, block_info=None):
         calls.append(key)
         if key == "2" and len(calls) > 3:
             raise KeyboardInterrupt("killed")
-        return write(block, path, key, block_info=block_info)
+        return write(block, path, key, z0, block_info=block_info)
 
     write = store._write_block
     monkeypatch.setattr(store, "_write_block", flaky)

@@ -407,3 +407,22 @@ def test_scratch_levels_of_an_interrupted_run_are_adopted_only_complete(tmp_path
     for s in (0, 1, 2):
         np.testing.assert_array_equal(again[s].read((slice(None),) * 3), block_sums(x, s))
     assert chunk1.stat().st_size > 0 and again[1].read((slice(None),) * 3).shape == block_sums(x, 1).shape
+
+
+def test_a_large_array_is_written_slab_by_slab_each_graph_bounded(tmp_path, monkeypatch):
+    """A write of more blocks than ``MAX_GRAPH_BLOCKS`` computes one graph per slab of block planes,
+    none of more blocks (dask's map_blocks records every block up front: a Zarr input declaring
+    10 000³ voxels grew one graph past 1 GiB); the array written is the same."""
+    import dask.array as da
+
+    from chunkdic.io import store
+
+    monkeypatch.setattr(store, "MAX_GRAPH_BLOCKS", 20)
+    sizes = []
+    real = store._compute
+    monkeypatch.setattr(store, "_compute", lambda x, *a, **k: (sizes.append(int(np.prod(x.numblocks))),
+                                                              real(x, *a, **k))[1])
+    data = da.arange(24 * 16 * 16, dtype=np.uint16, chunks=4).reshape(24, 16, 16).rechunk(4)
+    scan = write_scan(tmp_path / "s.zarr", data, chunks=4)
+    assert sizes == [16, 16, 16, 16, 16, 16] and sum(sizes) == 6 * 4 * 4  # 96 blocks, 16 per plane of blocks
+    assert np.array_equal(np.asarray(scan.level(0)), np.arange(24 * 16 * 16, dtype=np.uint16).reshape(24, 16, 16))

@@ -140,8 +140,11 @@ def test_vtk_and_csv_export(translation, tmp_path):
     assert np.allclose(table[:, 6:9], res.displacement.reshape(3, -1).T, atol=1e-6)
     assert np.allclose(table[:, 9:12], res.uncertainty.reshape(3, -1).T, rtol=1e-6)
     assert np.array_equal(table[:, 12], res.flags.ravel())
-    with pytest.raises(InputError):
-        _run(["export", str(d / "result.zarr"), "--vtk", str(vtu)])  # exists, no --overwrite
+    made = vtu.stat().st_mtime_ns
+    assert _run(["export", str(d / "result.zarr"), "--vtk", str(vtu)]) == 0  # its own, complete: nothing to do
+    assert vtu.stat().st_mtime_ns == made
+    with pytest.raises(InputError):  # another strain measure over the complete file, no --overwrite
+        _run(["export", str(d / "result.zarr"), "--vtk", str(vtu), "--strain", "small"])
 
 
 def test_hexahedra_are_positively_oriented():

@@ -35,6 +35,8 @@ def open_source(src, layout: Layout = Layout()) -> Source:
         layout = Layout(layout.shape, layout.dtype, layout.byte_order, layout.offset, dataset)
     if not path.exists():
         raise InputError(f"input {path} does not exist")
+    if not (path.is_file() or path.is_dir()):  # never opened: a FIFO would wait for a writer for ever
+        raise InputError(f"input {path} is not a file or a folder (a FIFO, a socket or a device?)")
     if path.suffix.lower() in SUFFIXES_HDF5 or layout.dataset is not None:
         return Hdf5().open(path, layout)
     formats = FORMATS if layout.shape is None else (Zarr(), TiffFolder(), Raw())  # a raw layout wins over suffixes

@@ -73,9 +73,8 @@ def _open_hdf5(path: Path, dataset):
                 raise InputError(f"{path}: name the dataset as {path}:/path/to/dataset (3-D datasets: "
                                  f"{', '.join(candidates[:6]) or 'none'})")
             dataset = candidates[0]
-        if dataset not in f or not isinstance(f[dataset], h5py.Dataset):
-            raise InputError(f"{path}: no dataset {dataset!r} (3-D datasets: {', '.join(candidates[:6]) or 'none'})")
-        d = f[dataset]
+        d = _dataset(f, path, dataset, candidates)
+        _check_storage(path, d)
         if d.ndim != 3:
             raise InputError(f"{path}:{dataset} has shape {d.shape}; a scan must be 3-D (z, y, x)")
         if d.dtype.kind not in "uif":
@@ -96,6 +95,66 @@ def _open_hdf5(path: Path, dataset):
         except (InputError, TypeError, ValueError):
             vs, unit = None, None
         return H5Reader(str(path), dataset, d.shape, d.dtype), vs, unit
+
+
+def _dataset(f, path: Path, dataset: str, candidates: list[str]):
+    """The dataset ``dataset`` of the open file ``f``, refused in one line when it is not one:
+    absent, a group, or a link that leads nowhere (an external link to a missing file, a loop
+    of soft links: h5py raises KeyError or RuntimeError from deep inside HDF5)."""
+    import h5py
+
+    try:
+        d = f[dataset] if dataset in f else None
+    except Exception as exc:  # noqa: BLE001 - HDF5's own error: name the link
+        raise InputError(f"{path}:{dataset} cannot be opened ({type(exc).__name__}: {exc}".splitlines()[0][:200]
+                         + "): a link to a missing file or a loop of links?") from None
+    if not isinstance(d, h5py.Dataset):
+        raise InputError(f"{path}: no dataset {dataset!r} (3-D datasets: {', '.join(candidates[:6]) or 'none'})")
+    return d
+
+
+def _check_storage(path: Path, d) -> None:
+    """Refuse (one line) a dataset whose data live where reading them would hang or lie: an
+    external storage file that is not a regular file (a FIFO blocks the reader for ever, a
+    device never ends) or is missing, and a virtual dataset with a source file or dataset
+    missing (HDF5 reads its part as the fill value, without a word)."""
+    for name, offset, size in d.external or ():
+        name = os.fsdecode(name)
+        where = _located(path, name)
+        if where is None:
+            raise InputError(f"{path}:{d.name}: its external storage file {name} does not exist")
+        if not where.is_file():
+            raise InputError(f"{path}:{d.name}: its external storage file {where} is not a regular file (a FIFO, "
+                             "a device?): refusing to read it")
+        if size != 0xFFFFFFFFFFFFFFFF and where.stat().st_size < offset + size:  # H5F_UNLIMITED: to the end
+            raise InputError(f"{path}:{d.name}: its external storage file {where} holds "
+                             f"{where.stat().st_size} bytes, fewer than the {offset + size} it should")
+    if getattr(d, "is_virtual", False):
+        import h5py
+
+        for source in d.virtual_sources():
+            name = source.file_name
+            where = path if name == "." else _located(path, name)
+            if where is None or not where.is_file():
+                raise InputError(f"{path}:{d.name}: virtual dataset whose source file {name} is missing: its "
+                                 "part would read as the fill value")
+            try:
+                with h5py.File(where, "r") as src:
+                    ok = isinstance(src.get(source.dset_name), h5py.Dataset)
+            except Exception:  # noqa: BLE001 - unreadable: as missing
+                ok = False
+            if not ok:
+                raise InputError(f"{path}:{d.name}: virtual dataset whose source {name}:{source.dset_name} is "
+                                 "missing: its part would read as the fill value")
+
+
+def _located(path: Path, name: str) -> Path | None:
+    """Where HDF5 finds the file ``name`` that ``path`` refers to: absolute, or relative to
+    ``path``'s directory, then to the current directory; None when in neither."""
+    for candidate in (Path(name),) if os.path.isabs(name) else (path.parent / name, Path(name)):
+        if candidate.exists() or candidate.is_symlink():
+            return candidate
+    return None
 
 
 class H5Reader(Reader):

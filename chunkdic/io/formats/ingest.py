@@ -25,10 +25,14 @@ import numpy as np
 
 from ...errors import InputError
 from ...inputs import check_finite
+from ..handles import RefReader
+from ..madeof import made_of
 from ..ngff import normalize_unit, normalize_voxel_size
+from ..resample import resampled
 from ..scan import Scan, open_scan
 from ..scanwrite import write_scan
 from ..store import chunk_shape_for
+from ..units import resample_size
 from .base import Layout
 from .detect import open_source
 
@@ -67,7 +71,7 @@ def _check_finite(block: np.ndarray, reader=None, block_info=None) -> np.ndarray
 def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dtype=None,
            byte_order: str = "little", offset: int = 0, dataset: str | None = None,
            overwrite: bool = False, levels: int = 0, parents: bool = True,
-           progress: Callable[[float], None] | None = None) -> Scan:
+           progress: Callable[[float], None] | None = None, resample=None) -> Scan:
     """Convert a scan file or folder into a stored scan group (Zarr v3, OME-NGFF 0.5).
 
     Parameters
@@ -103,6 +107,11 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
         inside an input or a Zarr store; removed again if the run fails).
     progress : callable(float), optional
         Called with the fraction done.
+    resample : float, tuple of 3 float or str, optional
+        A voxel size to resample the scan onto (trilinear, :mod:`chunkdic.io.resample`):
+        ``"20um"``, ``"20,20,25um"``, or numbers in the scan's own unit. The scan needs a
+        voxel size (its metadata or ``voxel_size``). Brings a scan onto the voxel size of
+        the scan it is to be correlated with (:func:`chunkdic.io.units.check_voxel_sizes`).
 
     Returns
     -------
@@ -138,6 +147,7 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
         data = scan.level(0)
         meta_vs, meta_unit = scan.voxel_size, scan.unit
         label = str(in_path)
+        reader = RefReader(scan.stored_refs()[0])
     else:
         label = reader.label
         cshape = chunk_shape_for(reader.shape, chunks)
@@ -150,9 +160,17 @@ def ingest(src, out, *, voxel_size=None, unit=None, chunks=None, shape=None, dty
                                    meta=np.empty((0, 0, 0), reader.dtype))
     vs = user_vs if user_vs is not None else meta_vs
     unit_out = user_unit if user_vs is not None else meta_unit
+    if resample is not None:
+        new = resample_size(resample, vs, unit_out)
+        data = resampled(reader, tuple(n / v for n, v in zip(new, vs)), chunk_shape_for(data.shape, chunks))
+        log.info("resampling %s from voxel size %s to %s %s", label, vs, new, unit_out)
+        vs = new
     log.info("ingesting %s: shape %s %s, voxel size %s %s", label, data.shape, data.dtype, vs, unit_out)
+    made = made_of("ingest", [in_path], {"voxel_size": vs, "unit": unit_out, "chunks": chunks, "shape": shape,
+                                          "dtype": dtype, "byte_order": byte_order, "offset": offset,
+                                          "dataset": dataset, "levels": levels, "resample": resample})
     return write_scan(out_p, data, voxel_size=vs, unit=unit_out, chunks=chunks, overwrite=overwrite,
-                      levels=levels, progress=progress, inputs=[in_path], parents=parents)
+                      levels=levels, progress=progress, inputs=[in_path], parents=parents, made_of=made)
 
 
 def _mtime(p: Path) -> int:

@@ -89,6 +89,28 @@ def _tiff_voxel_size(tif) -> tuple[tuple | None, str | None]:
     return None, None
 
 
+#: a compressed page (a slice, decoded whole) or tile larger than this is refused from its
+#: tags, before anything is decoded: a few MB of deflate data declaring a 60 000² page would
+#: allocate 3.4 GiB per reading thread (an 11 585² uint16 slice is 256 MiB; an uncompressed
+#: one of any size is memory-mapped instead)
+TIFF_DECODE_LIMIT = 256 * 2**20
+
+
+def _check_decode_size(path, page) -> None:
+    """Refuse a compressed TIFF page whose decoded page or tile its tags declare larger than
+    :data:`TIFF_DECODE_LIMIT` (an uncompressed one is memory-mapped, never decoded whole)."""
+    if page.is_memmappable:
+        return
+    item = np.dtype(page.dtype).itemsize
+    for what, shape in (("page", page.shape), ("tile or strip", getattr(page, "chunks", page.shape))):
+        nbytes = int(np.prod([int(n) for n in shape], dtype=object)) * item
+        if nbytes > TIFF_DECODE_LIMIT:
+            raise InputError(f"{path}: a compressed {what} of {' x '.join(str(int(n)) for n in shape)} {page.dtype} "
+                             f"({nbytes / 2**30:.1f} GiB) would be decoded whole, more than "
+                             f"{TIFF_DECODE_LIMIT / 2**20:g} MiB: save the scan uncompressed, or with smaller slices or "
+                             "tiles")
+
+
 def _check_tiff_extent(path, tif, pages) -> None:
     """Refuse a TIFF whose image data end beyond the end of the file (truncated copy)."""
     size = os.path.getsize(path)
@@ -118,6 +140,7 @@ def _open_tiff_folder(folder: Path):
                 page = tif.pages[0]
                 shape, dtype = tuple(page.shape), np.dtype(page.dtype)
                 _check_tiff_extent(f, tif, [page])
+                _check_decode_size(f, page)
                 if i == 0:
                     vs, unit = _tiff_voxel_size(tif)
                     memmappable = bool(page.is_memmappable)
@@ -142,7 +165,7 @@ def _open_tiff_folder(folder: Path):
 
 #: a compressed TIFF whose smallest decodable unit (tile or strip) spans every slice is
 #: refused above this size: each slab task would decode the whole volume
-WHOLE_VOLUME_TIFF_LIMIT = 256 * 2**20
+WHOLE_VOLUME_TIFF_LIMIT = TIFF_DECODE_LIMIT
 
 
 def _check_tiff_chunking(path: Path, shape, dtype) -> None:
@@ -173,6 +196,7 @@ def open_tiff_file(path: Path):
             except Exception:  # noqa: BLE001
                 memmappable = False
             page_shape = tuple(n for n in series.pages[0].shape if n != 1) if pages else ()
+            _check_decode_size(path, tif.pages[0])
             if memmappable:
                 end = int(series.dataoffset) + int(np.prod(series.shape)) * dtype.itemsize
                 if end > os.path.getsize(path):

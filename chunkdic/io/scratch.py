@@ -1,16 +1,10 @@
-"""Who owns a path: process identities, one-writer locks, and stale leftovers of dead runs.
+"""Scratch directories: made with an owner record, kept for a resume, adopted or reclaimed.
 
-Every file or directory that a chunkdic run leaves behind while it works (a lock file, a
-half-written output, a scratch directory) records its owner: host name, process id and
-the process's start time. The start time tells a live owner from a dead one whose pid was
-reused. A leftover is reclaimed only when its owner is known dead: same host, and no
-process with that pid and start time. A leftover of another host is never touched (that
-host may be alive and share the file system).
-
-Only paths that carry chunkdic's own names and owner records are ever removed here:
-``.NAME.chunkdic-lock`` (a lock), ``.NAME.chunkdic-partial-HOST-PID-XXXX`` (a staged
-output, see :mod:`chunkdic.io.outputs`) and ``chunkdic-*`` scratch directories holding
-``SCRATCH_MARKER``.
+Inputs that are not on disk, missing pyramid levels and a correlation's prepared scans go
+into a scratch directory ``chunkdic-XXXX`` under ``chunkdic.scratch-directory``, which
+records its owner (:data:`SCRATCH_MARKER`: host, pid, start time; :mod:`chunkdic.io.owners`).
+Only ``chunkdic-*`` directories holding that record are ever removed or adopted here, so
+nothing else in a shared temporary directory is touched.
 
 A dead run's scratch directory is either reclaimed (removed) or, by a run that resumes the
 very same run (:func:`adopt_scratch`: the identity recorded in its marker), adopted. Both
@@ -28,31 +22,27 @@ complete, removed or replaced by another run's, the next run reclaims it as any 
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
 import os
 import re
-import shutil
 import socket
 import tempfile
-import time
 import uuid
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 from .. import config
 from ..errors import InputError
+from .jsonfile import json_dict, read_json_object
+from .owners import Owner, host_tag
+from .owntree import remove
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Owner", "OutputLock", "make_scratch", "reclaim_stale_scratch", "partial_name", "final_name",
-           "reclaim_stale_partials", "reclaim_stale_locks", "name_limits", "LOCK_SUFFIX", "SCRATCH_MARKER",
-           "adopt_scratch", "interrupted_run_of", "reclaimable_scratch_bytes", "directory_bytes", "leave_scratch",
-           "kept_scratch"]
+__all__ = ["SCRATCH_MARKER", "scratch_root", "make_scratch", "adopt_scratch", "leave_scratch", "reclaim_stale_scratch",
+           "interrupted_run_of", "reclaimable_scratch_bytes", "kept_scratch", "directory_bytes"]
 
-LOCK_SUFFIX = ".chunkdic-lock"
-PARTIAL_TAG = ".chunkdic-partial-"
 SCRATCH_PREFIX = "chunkdic-"
 SCRATCH_MARKER = ".chunkdic-scratch.json"
 #: a dead run's scratch directory being removed (renamed first: one reclaimer wins)
@@ -61,303 +51,8 @@ RECLAIMED_TAG = ".chunkdic-reclaimed-"
 ADOPTING_TAG = ".chunkdic-adopting-"
 
 
-#: bytes kept free in a derived name for the longest suffix added to it later (the
-#: ``.stale-XXXXXXXX`` of a lock taken over)
-_SPARE = 16
-
-
-def name_limits(directory) -> tuple[int, int]:
-    """``(NAME_MAX, PATH_MAX)`` in bytes for ``directory``'s file system (255, 4096 where unknown)."""
-    limits = []
-    for key, default in (("PC_NAME_MAX", 255), ("PC_PATH_MAX", 4096)):
-        try:
-            limits.append(int(os.pathconf(directory, key)))
-        except (OSError, ValueError):
-            limits.append(default)
-    return limits[0], limits[1]
-
-
-def _hidden_sibling(final: Path, stem: str, tail: str) -> Path:
-    """``final.parent / ("." + stem + tail)``, or, when that name would be longer than the
-    file system allows (a valid output name of 240 bytes plus ``.chunkdic-partial-HOST-…``),
-    the same with the middle of ``stem`` replaced by a digest of the whole output name
-    (``.aaaa~1f2e3d4c5b6aaaaa.chunkdic-lock``). Deterministic: two runs on one output derive
-    the same lock name, and different outputs never share one. The end of ``stem`` is kept:
-    the lock of a staged copy (``export --fields`` stages inside a staged copy) keeps the
-    copy's ``…chunkdic-partial-HOST-PID-XXXXXX`` so that it is reclaimed with it."""
-    name = f".{stem}{tail}"
-    name_max = name_limits(final.parent if final.parent.is_dir() else ".")[0]
-    budget = name_max - _SPARE
-    if len(os.fsencode(name)) <= budget:
-        return final.parent / name
-    digest = "~" + hashlib.sha256(os.fsencode(final.name)).hexdigest()[:12] + "~"
-    room = budget - len(os.fsencode(f".{digest}{tail}"))
-    front, back = stem[:-96], stem[-96:]  # the end (a staged copy's owner) is cut last
-    while len(os.fsencode(front + back)) > room:  # by characters: never a broken UTF-8 sequence
-        if len(front) > 16 or not back:
-            front = front[:-1]
-        else:
-            back = back[1:]
-    return final.parent / f".{front}{digest}{back}{tail}"
-
-
-def _stat_fields(path: str) -> list[str] | None:
-    """The fields of a ``/proc/…/stat`` file after the command name (state first), else None."""
-    try:
-        with open(path) as fh:
-            stat = fh.read()
-    except OSError:
-        return None
-    # the command name (field 2) may hold spaces and parentheses: split after the last ')'
-    return stat.rsplit(")", 1)[1].split()
-
-
-def _start_time(pid: int) -> str | None:
-    """Start time of process ``pid`` in clock ticks since boot (Linux), else None."""
-    fields = _stat_fields(f"/proc/{pid}/stat")
-    return None if fields is None else fields[19]
-
-
-def _exited(pid: int) -> bool:
-    """Whether process ``pid`` has exited but is not yet reaped by its parent (a zombie: every
-    thread in state ``Z``/``X``, Linux). Such a process holds no file and writes nothing, but
-    ``kill(pid, 0)`` still succeeds: a run killed by ``kill -9`` from a parent that has not
-    waited for it yet (a notebook's ``Popen``, a batch script's background job) is dead."""
-    try:
-        tasks = os.listdir(f"/proc/{pid}/task")
-    except OSError:
-        tasks = [str(pid)]
-    states = [_stat_fields(f"/proc/{pid}/task/{t}/stat") for t in tasks] or [_stat_fields(f"/proc/{pid}/stat")]
-    return all(f is not None and f[0] in ("Z", "X") for f in states)
-
-
-@dataclass(frozen=True)
-class Owner:
-    """A process: ``host``, ``pid`` and its ``start`` time (None where unknown)."""
-
-    host: str
-    pid: int
-    start: str | None = None
-
-    @classmethod
-    def me(cls) -> "Owner":
-        return cls(socket.gethostname(), os.getpid(), _start_time(os.getpid()))
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "Owner":
-        return cls(str(d["host"]), int(d["pid"]), d.get("start"))
-
-    def is_dead(self) -> bool:
-        """True only when this owner is known dead (same host, no such live process)."""
-        if self.host != socket.gethostname():
-            return False
-        try:
-            os.kill(self.pid, 0)
-        except ProcessLookupError:
-            return True
-        except PermissionError:  # alive, someone else's
-            return False
-        if _exited(self.pid):
-            return True  # killed (or ended), not yet reaped by its parent: whoever it was, it is dead
-        if self.start is not None:
-            now = _start_time(self.pid)
-            return now is not None and now != self.start  # the pid was reused
-        return False
-
-    def describe(self) -> str:
-        return f"pid {self.pid} on {self.host}"
-
-
-# --------------------------------------------------------------------------- locks
-
-
-class OutputLock:
-    """One writer per output: an exclusive lock file next to it (``.NAME.chunkdic-lock``).
-
-    The file is created atomically (``O_EXCL``) and holds the owner (JSON). A lock whose
-    owner is dead (killed with SIGKILL, machine rebooted) is taken over; a live owner's
-    lock is refused with one line naming it. Released (removed) on exit.
-    """
-
-    def __init__(self, output):
-        out = Path(output)
-        self.output = out
-        self.path = _hidden_sibling(out, out.name, LOCK_SUFFIX)
-        self.held = False
-
-    def acquire(self) -> "OutputLock":
-        """Take the lock. Re-entrant within a process: when this process already holds the
-        lock of the same output (``correlate`` holds it while ``Result.save`` stages the
-        result), this handle does not own it and its :meth:`release` does nothing."""
-        key = _lock_key(self.path)
-        if key in _HELD:
-            return self
-        me = Owner.me()
-        record = json.dumps({**asdict(me), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
-                             "output": str(self.output)})
-        for _ in range(3):
-            try:
-                fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
-            except FileExistsError:
-                self._take_over_if_stale()
-                continue
-            except OSError as exc:
-                raise InputError(f"cannot create the lock {self.path}: {exc.strerror}") from None
-            try:
-                with os.fdopen(fd, "w") as fh:
-                    fh.write(record)
-            except OSError as exc:  # a full disk: the empty lock file would outlive the refusal
-                self.path.unlink(missing_ok=True)
-                raise InputError(f"cannot write the lock {self.path}: {exc.strerror}") from None
-            self.held = True
-            _HELD.add(key)
-            return self
-        raise InputError(f"output {self.output} is locked by {self.path} and the lock could not be taken")
-
-    def live_owner(self) -> str | None:
-        """Who holds this lock, if a live process (or one on another host) does: ``"pid 12 on
-        host since …"``; None when the lock is free, stale, unreadable or held by this process.
-        No side effects."""
-        if _lock_key(self.path) in _HELD:
-            return None
-        try:
-            info = json.loads(self.path.read_text())
-            owner = Owner.from_dict(info)
-        except (OSError, ValueError, KeyError, TypeError):
-            return None
-        return None if owner.is_dead() else f"{owner.describe()} since {info.get('since', '?')}"
-
-    def _take_over_if_stale(self) -> None:
-        try:
-            info = json.loads(self.path.read_text())
-            owner = Owner.from_dict(info)
-        except FileNotFoundError:
-            return  # released meanwhile: try again
-        except (OSError, ValueError, KeyError, TypeError):
-            age = time.time() - _mtime(self.path)
-            if age < 10:  # being written right now by its owner
-                time.sleep(0.2)
-                return
-            raise InputError(f"output {self.output} has an unreadable lock {self.path}: remove it if no "
-                             "chunkdic run is writing this output") from None
-        if not owner.is_dead():
-            hint = "" if owner.host == socket.gethostname() else \
-                f" (if that run is dead, remove {self.path})"
-            raise InputError(f"output {self.output} is being written by another chunkdic run "
-                             f"({owner.describe()} since {info.get('since', '?')}): wait for it to finish or "
-                             f"stop it{hint}")
-        # Rename first: of two runs recovering the same stale lock, only one rename succeeds.
-        grave = self.path.with_name(self.path.name + f".stale-{uuid.uuid4().hex[:8]}")
-        try:
-            os.rename(self.path, grave)
-        except FileNotFoundError:
-            return
-        grave.unlink(missing_ok=True)
-        log.info("took over the stale lock of %s (%s is dead)", self.output, owner.describe())
-
-    def release(self) -> None:
-        if self.held:
-            _HELD.discard(_lock_key(self.path))
-            self.path.unlink(missing_ok=True)
-            self.held = False
-
-    def __enter__(self) -> "OutputLock":
-        return self.acquire()
-
-    def __exit__(self, *exc) -> None:
-        self.release()
-
-
-#: the lock files this process holds (resolved paths): :meth:`OutputLock.acquire` is re-entrant
-_HELD: set[str] = set()
-
-
-def _lock_key(path: Path) -> str:
-    return os.path.join(os.path.realpath(path.parent), path.name)
-
-
-def _mtime(path: Path) -> float:
-    try:
-        return path.stat().st_mtime
-    except OSError:
-        return time.time()
-
-
-# --------------------------------------------------------------------------- staged outputs
-
-
-def partial_name(final: Path) -> Path:
-    """Name of a staged (half-written) version of ``final``: a hidden sibling that names
-    its owner and keeps the suffix (writers such as meshio choose the format by it)."""
-    me = Owner.me()
-    host = re.sub(r"[^A-Za-z0-9_]", "_", me.host)
-    return _hidden_sibling(final, final.stem, f"{PARTIAL_TAG}{host}-{me.pid}-{uuid.uuid4().hex[:6]}{final.suffix}")
-
-
-def final_name(path) -> str:
-    """The name a staged output will have once in place (``.x.chunkdic-partial-HOST-PID-XXXXXX.zarr``
-    -> ``x.zarr``); other names unchanged. Metadata that records the store's own name uses it."""
-    name = Path(path).name
-    m = re.fullmatch(r"\.(.*)" + re.escape(PARTIAL_TAG) + r"[A-Za-z0-9_]+-\d+-[0-9a-f]{6}(\.[^.]*)?", name)
-    return name if m is None else m.group(1) + (m.group(2) or "")
-
-
-def reclaim_stale_partials(final: Path) -> list[Path]:
-    """Remove the staged outputs of dead runs (this host) in the directory of ``final``:
-    of ``final`` and of any other output there (a killed ``export --fields`` leaves one
-    beside its output, which the next run of any command writing there reclaims). Only
-    entries named as chunkdic's staged outputs whose owner pid is dead; returns them."""
-    host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
-    # a staged copy, or the lock of one (an output staged inside a staged copy, as export
-    # --fields does, locks that copy: its lock is orphaned with it)
-    pattern = re.compile(r"\..+" + re.escape(f"{PARTIAL_TAG}{host}-") + r"(\d+)-[0-9a-f]{6}(\.[^.]*)?"
-                         + f"({re.escape(LOCK_SUFFIX)})?$")
-    removed = []
-    try:
-        entries = list(final.parent.iterdir())
-    except OSError:
-        return removed
-    for entry in entries:
-        m = pattern.match(entry.name)
-        if m is None:
-            continue
-        pid = int(m.group(1))
-        # no start time in a name: a live pid counts as the owner (never remove a live run's work)
-        if Owner(socket.gethostname(), pid).is_dead():
-            _remove(entry)
-            removed.append(entry)
-            log.info("removed %s, left by a dead run", entry)
-    return removed
-
-
-def reclaim_stale_locks(directory: Path) -> list[Path]:
-    """Remove the locks in ``directory`` whose owner is dead (this host). A lock is taken over
-    by the next run on its output; this is for the outputs no run will write again, such as
-    a loading series' step that a killed run had just completed (the re-run skips it). The
-    caller holds the lock of what contains ``directory``, so no live run can be taking one
-    of them over meanwhile."""
-    removed = []
-    try:
-        entries = [e for e in Path(directory).iterdir() if e.name.endswith(LOCK_SUFFIX)]
-    except OSError:
-        return removed
-    for entry in entries:
-        try:
-            owner = Owner.from_dict(json.loads(entry.read_text()))
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
-        if owner.is_dead():
-            entry.unlink(missing_ok=True)
-            removed.append(entry)
-            log.info("removed the lock %s of a dead run (%s)", entry, owner.describe())
-    return removed
-
-
-# --------------------------------------------------------------------------- scratch
-
-
 def scratch_root() -> Path:
-
+    """The root under which scratch directories are made (``chunkdic.scratch-directory``)."""
     return Path(config.get("scratch-directory") or tempfile.gettempdir())
 
 
@@ -384,7 +79,7 @@ def make_scratch(prefix: str = SCRATCH_PREFIX, *, run: str | None = None,
         _write_marker(path, run, resume)
     except OSError as exc:
         if path is not None:  # made, but its owner record could not be written (a full disk)
-            _remove(path)
+            remove(path)
         raise _unwritable(root, exc) from None
     return path
 
@@ -422,8 +117,8 @@ def interrupted_run_of(output, fingerprint: str) -> bool:
     (``zarr.json``, attribute ``chunkdic``: ``complete`` false, the same ``fingerprint``);
     anything unreadable answers False."""
     try:
-        meta = json.loads((Path(output) / "zarr.json").read_text())
-        attrs = meta["attributes"]["chunkdic"]
+        meta = read_json_object(Path(output) / "zarr.json")
+        attrs = json_dict(json_dict(meta.get("attributes"))["chunkdic"])
         return attrs.get("complete") is False and attrs.get("fingerprint") == fingerprint
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return False
@@ -533,7 +228,7 @@ def _read_marker(entry: Path) -> dict | None:
     try:
         if not _own_directory(entry):
             return None
-        info = json.loads((entry / SCRATCH_MARKER).read_text())
+        info = read_json_object(entry / SCRATCH_MARKER)
         Owner.from_dict(info)
         return info
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
@@ -561,7 +256,7 @@ def adopt_scratch(run: str, root: Path | None = None, *, resume: tuple[str, str]
         entries = sorted(e for e in root.iterdir() if e.name.startswith(SCRATCH_PREFIX))
     except OSError:
         return None
-    host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
+    host = host_tag()
     mine = None if resume is None else _resolved(resume[0])
     for entry in entries:
         info = _read_marker(entry)
@@ -577,7 +272,7 @@ def adopt_scratch(run: str, root: Path | None = None, *, resume: tuple[str, str]
             _write_marker(claimed, run, resume)
             os.rename(claimed, final)
         except OSError as exc:
-            _remove(claimed)
+            remove(claimed)
             raise _unwritable(root, exc) from None
         log.info("adopted the scratch directory %s of the interrupted run (%s %s) as %s", entry,
                  Owner.from_dict(info).describe(), "ended" if info.get("released") is True else "is dead", final)
@@ -604,13 +299,13 @@ def reclaim_stale_scratch(root: Path | None = None, *, release=None) -> list[Pat
         entries = list(root.iterdir())
     except OSError:
         return removed
-    host = re.sub(r"[^A-Za-z0-9_]", "_", socket.gethostname())
+    host = host_tag()
     release = None if release is None else _resolved(release)
     claim = re.compile(re.escape(f"{ADOPTING_TAG}{host}-") + r"(\d+)-[0-9a-f]{8}$")
     for entry in entries:
         if entry.name.startswith(RECLAIMED_TAG):
             if _own_directory(entry):
-                _remove(entry)  # only a reclaimer names so: one died while removing it (or removes it now)
+                remove(entry)  # only a reclaimer names so: one died while removing it (or removes it now)
             continue
         m = claim.match(entry.name)
         if m is not None:
@@ -631,14 +326,7 @@ def reclaim_stale_scratch(root: Path | None = None, *, release=None) -> list[Pat
             os.rename(entry, grave)  # of two reclaimers (or a reclaimer and an adopter) one wins
         except OSError:
             continue
-        _remove(grave)
+        remove(grave)
         removed.append(entry)
         log.info("reclaimed the scratch directory %s of a dead run", entry)
     return removed
-
-
-def _remove(path: Path) -> None:
-    if path.is_dir() and not path.is_symlink():
-        shutil.rmtree(path, ignore_errors=True)
-    else:
-        path.unlink(missing_ok=True)

@@ -1,5 +1,5 @@
 """A dead run's scratch directory is adopted only by a run of the same identity, claimed by a
-rename, and reclaimed otherwise (chunkdic.io.ownership; issue 21, item 5)."""
+rename, and reclaimed otherwise (chunkdic.io.scratch; issue 21, item 5)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import sys
 
 import pytest
 
-from chunkdic.io import ownership
-from chunkdic.io.ownership import SCRATCH_MARKER, Owner, adopt_scratch, make_scratch, reclaim_stale_scratch
+from chunkdic.io import owners, scratch
+from chunkdic.io.owners import Owner, host_tag
+from chunkdic.io.scratch import SCRATCH_MARKER, adopt_scratch, make_scratch, reclaim_stale_scratch
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +78,7 @@ def test_other_dead_runs_scratch_is_reclaimed_and_a_users_folder_kept(tmp_path, 
 
 
 def test_leftovers_of_a_dead_reclaimer_or_adopter_are_removed(tmp_path, dead_pid):
-    host = ownership.re.sub(r"[^A-Za-z0-9_]", "_", ownership.socket.gethostname())
+    host = host_tag()
     grave = _left_by(tmp_path, ".chunkdic-reclaimed-0123abcd", dead_pid, "run-a")
     claimed = _left_by(tmp_path, f".chunkdic-adopting-{host}-{dead_pid}-0123abcd", dead_pid, "run-a")
     alive = _left_by(tmp_path, f".chunkdic-adopting-{host}-{os.getpid()}-4567abcd", dead_pid, "run-a")
@@ -99,13 +100,13 @@ def test_a_killed_owner_its_parent_has_not_reaped_is_dead(tmp_path):
     proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(600)"])
     try:
         time.sleep(0.2)
-        owner = Owner(Owner.me().host, proc.pid, ownership._start_time(proc.pid))
+        owner = Owner(Owner.me().host, proc.pid, owners._start_time(proc.pid))
         assert not owner.is_dead()  # alive
         os.kill(proc.pid, signal.SIGKILL)
         deadline = time.time() + 10
-        while time.time() < deadline and ownership._stat_fields(f"/proc/{proc.pid}/stat")[0] != "Z":
+        while time.time() < deadline and owners._stat_fields(f"/proc/{proc.pid}/stat")[0] != "Z":
             time.sleep(0.05)
-        assert ownership._stat_fields(f"/proc/{proc.pid}/stat")[0] == "Z"  # killed, not reaped: a zombie
+        assert owners._stat_fields(f"/proc/{proc.pid}/stat")[0] == "Z"  # killed, not reaped: a zombie
         assert owner.is_dead() and Owner(owner.host, proc.pid).is_dead()
         left = _left_by(tmp_path, "chunkdic-zombie", proc.pid, "run-a")
         assert adopt_scratch("run-a", tmp_path) is not None and not left.exists()
@@ -151,10 +152,10 @@ def test_the_scratch_of_an_interrupted_output_is_kept_from_other_runs(tmp_path, 
     assert reclaim_stale_scratch(root) == [plain] and kept.exists()
     with dask.config.set({"chunkdic.scratch-directory": str(root)}):
         other = make_scratch()  # another run (a report, a correlation without output) starts meanwhile
-    assert kept.exists() and ownership.reclaimable_scratch_bytes(root) == 0
+    assert kept.exists() and scratch.reclaimable_scratch_bytes(root) == 0
     # the run writing that output counts it as its own (it adopts it, or starts the run over)
     marker_bytes = (kept / SCRATCH_MARKER).stat().st_size
-    assert ownership.reclaimable_scratch_bytes(root, release=out) == 5000 + len("data") + marker_bytes
+    assert scratch.reclaimable_scratch_bytes(root, release=out) == 5000 + len("data") + marker_bytes
     got = adopt_scratch("run-a", root, resume=(str(out), "fp-a"))
     assert got is not None and sorted(root.iterdir()) == sorted([other, got])
     marker = json.loads((got / SCRATCH_MARKER).read_text())
@@ -194,7 +195,7 @@ def test_a_scratch_left_by_an_interrupted_call_is_adopted_even_by_the_same_proce
     with dask.config.set({"chunkdic.scratch-directory": str(root)}):
         path = make_scratch(run="run-a", resume=(str(out), "fp-a"))
         assert adopt_scratch("run-a") is None  # a live run's: never
-        ownership.leave_scratch(path)
+        scratch.leave_scratch(path)
         assert reclaim_stale_scratch() == [] and path.exists()  # kept for the resume
         got = adopt_scratch("run-a", resume=(str(out), "fp-a"))
     assert got is not None and not path.exists()
