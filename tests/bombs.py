@@ -1,5 +1,5 @@
 """Decompression bombs: a few bytes that declare (and decode to) far more, made without ever
-holding what they decode to. Shared by the tests and benchmarks/bad_inputs.py."""
+holding what they decode to. Shared by the tests and the sweep (tests/sweep/bad_inputs.py)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/bad_inputs.py [--tree DIR] [--jobs 2] [--only REGEX] [--list] [--keep DIR]
+    python tests/sweep/bad_inputs.py [--tree DIR] [--jobs 2] [--only REGEX] [--list] [--keep DIR]
 
 ``--tree`` is the source tree whose ``chunkdic`` package is run (default: this one), so
 the same sweep measures an older checkout (``git archive main | tar -x -C /tmp/before``,
@@ -48,7 +48,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
-HERE = Path(__file__).resolve().parent.parent
+HERE = Path(__file__).resolve().parents[2]  # the source tree
 sys.path.insert(0, str(HERE / "tests"))
 from bombs import deflate_bomb, zstd_bomb  # noqa: E402  (the tests' bomb makers)
 N = 32
@@ -1689,6 +1689,25 @@ def _scratch(case, d, scratch) -> str:
     return f"scratch of the killed run left: {[p.name for p in left]}" if left else ""
 
 
+def make_base(work: Path) -> Path:
+    """The fixture every case copies (``work/base``; made once by the tree under test)."""
+    base = work / "base"
+    if not base.exists():
+        subprocess.run([sys.executable, "-c", FIXTURE, str(base)], env=Case.env_for(Case.tree), check=True,
+                       capture_output=True)
+        (base / "notes.txt").write_text("a user's notes\n")
+        (base / "bombs").mkdir()
+        (base / "bombs/zstd").write_bytes(zstd_bomb(4 << 30))  # 128 kB
+        (base / "bombs/zlib").write_bytes(deflate_bomb(512 << 20))  # 0.5 MB
+    return base
+
+
+def can_mount() -> bool:
+    """Whether ``unshare -m`` works here (the read-only and full-disk cases need it)."""
+    return bool(shutil.which("unshare")) and subprocess.run(["unshare", "-m", "true"],
+                                                             capture_output=True).returncode == 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--tree", default=str(HERE), help="source tree whose chunkdic package is run")
@@ -1698,7 +1717,7 @@ def main() -> int:
     ap.add_argument("--keep", default=None, help="work directory (default: a temporary one, removed)")
     args = ap.parse_args()
     Case.tree = str(Path(args.tree).resolve())
-    mount_ok = shutil.which("unshare") and subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode == 0
+    mount_ok = can_mount()
     servers = None if args.list else Servers()
     try:
         todo = [c for c in cases(servers) if args.only is None or re.search(args.only, f"{c.cls} {c.name}")]
@@ -1711,14 +1730,7 @@ def main() -> int:
             return 0
         work = Path(args.keep or tempfile.mkdtemp(prefix="bad-inputs-"))
         work.mkdir(parents=True, exist_ok=True)
-        base = work / "base"
-        if not base.exists():
-            subprocess.run([sys.executable, "-c", FIXTURE, str(base)], env=Case.env_for(Case.tree), check=True,
-                           capture_output=True)
-            (base / "notes.txt").write_text("a user's notes\n")
-            (base / "bombs").mkdir()
-            (base / "bombs/zstd").write_bytes(zstd_bomb(4 << 30))  # 128 kB
-            (base / "bombs/zlib").write_bytes(deflate_bomb(512 << 20))  # 0.5 MB
+        base = make_base(work)
         print(f"tree {Case.tree}: {len(todo)} cases, {args.jobs} at a time"
               + (f", {len(skipped)} skipped (no unshare)" if skipped else ""), flush=True)
         outcomes = []
