@@ -19,6 +19,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import numpy as np
+
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.scan import Scan, open_scan
@@ -132,7 +134,26 @@ def open_crack(crack, ref_shape0, settings: Settings) -> Scan:
     if scan.dtype(0).kind not in "biu":
         raise InputError(f"the crack labels are {scan.dtype(0)}: a label image (integer or bool, non-zero on the "
                          "surface) is expected, not a grey-level scan")
+    if _is_empty(scan):
+        raise InputError("the crack labels have no non-zero voxel: no crack surface to correlate with")
     return scan
+
+
+#: the largest level a front-door check reads on the client (voxels): a stored pyramid's
+#: coarse level, or a small label image
+CHECK_VOXELS = 128**3
+
+
+def _is_empty(scan: Scan) -> bool:
+    """Whether the label image has no non-zero voxel, read from its smallest stored level
+    when that is small (a pyramid's sums are zero only where every voxel is); a large image
+    without a pyramid is not read here (an empty one then splits no node: the field is the
+    correlation without the crack)."""
+    stored = scan.stored_levels()
+    level = max(stored) if stored else 0
+    if int(np.prod(scan.shape(level))) > CHECK_VOXELS:
+        return False
+    return not bool(np.asarray(scan.level(level)).any())
 
 
 def settings_from(settings: Settings | None, options: dict, caller: str = "correlate") -> Settings:

@@ -3,9 +3,9 @@
 A crack given as a label image (non-zero voxels: the surface, docs/cracks.md, "Correlating
 with a known crack") splits the support of a node — its ``(2ℓ)³`` box of elements, clipped
 to the mesh — into pieces: the connected components (6-connectivity) of the voxels off the
-surface. A node whose support falls into two or more pieces is *split*: the largest piece
-keeps the node's own value ``u`` (copy 0, the side the node mostly lies on), the others
-share its second copy ``u'`` (copy 1, the other side); a support merely touched by the
+surface. A node whose support falls into two or more pieces is *split*: the piece it lies
+in keeps the node's own value ``u`` (copy 0), the others share its second copy ``u'``
+(copy 1, the other side); a support merely touched by the
 surface (near a crack tip, the material joined around it) keeps one copy. Each voxel of an
 element with a split node takes, for each of the element's nodes, the copy of the piece it
 lies in (:func:`cut_block`); the surface's own voxels belong to neither side and are left
@@ -37,7 +37,7 @@ from ..mesh import LOCAL_NODES, STENCIL_OFFSETS, shape_table
 #: thinner sliver (the surface near the support's far face) determines a copy too poorly to
 #: measure it (modified Gauss–Newton crawled at 0.7 % and 0.07 % on the 64³ test pair), and
 #: its voxels are left out instead, the node keeping one copy, its penalty still released
-MIN_PIECE = 0.05
+MIN_PIECE = 0.01
 
 __all__ = ["MIN_PIECE", "CrackLabels", "CutBlock", "cut_block", "cut_b_sums", "cut_m_sums", "read_cut"]
 
@@ -147,7 +147,7 @@ def cut_block(voxels: np.ndarray, first, block_elements, mesh_elements, ell: int
         surface = voxels[box]
         if not surface.any():
             continue
-        other = _other_side(surface)
+        other = _other_side(surface, [(n - a) * ell for n, a in zip(node, lo)])
         if other is None:
             continue
         released[local] = True
@@ -209,14 +209,17 @@ def _support_weight(node, lo, shape, ell: int) -> np.ndarray:
     return axes[0][:, None, None] * axes[1][None, :, None] * axes[2][None, None, :]
 
 
-def _other_side(surface: np.ndarray) -> np.ndarray | None:
-    """The voxels of a node's support off its largest piece (uint8), None when the surface
-    leaves the support in one piece. Pieces of equal size: the first in raster order is the largest."""
+def _other_side(surface: np.ndarray, corner) -> np.ndarray | None:
+    """The voxels of a node's support off the node's own piece (uint8), None when the surface
+    leaves the support in one piece. The node's piece is the one most of the 2×2×2 voxels
+    around it (``corner``: the node's position's voxel index in the support box, its upper
+    neighbours) lie in; the largest piece when the surface covers them all."""
     labels, count = ndi.label(~surface)
     if count < 2:
         return None
-    sizes = np.bincount(labels.ravel())[1:]
-    main = int(np.argmax(sizes)) + 1
+    around = labels[tuple(slice(max(c - 1, 0), c + 1) for c in corner)]
+    votes = np.bincount(around.ravel(), minlength=count + 1)[1:]
+    main = int(np.argmax(votes if votes.any() else np.bincount(labels.ravel())[1:])) + 1
     return ((labels != main) & (labels > 0)).astype(np.uint8)
 
 

@@ -40,7 +40,7 @@ class PassSums:
         scalars and ``other``, the nodal rows of the second copies at its split nodes
         (``(nodes (n, 3), rows (R, n, 3))``, :func:`chunkdic.passes.crack_cut.other_rows`)."""
         mesh = self.mesh
-        if self.crack is not None and other is not None:
+        if self.crack is not None and self.crack.count and other is not None:
             self._add_other(*other)
         if self.nodal is None:
             self.nodal = np.zeros((part.nodal.shape[0],) + mesh.nodes_shape + (3,))
