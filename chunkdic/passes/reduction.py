@@ -29,7 +29,7 @@ class PassSums:
     def __init__(self, mesh: Mesh, probes: int = 0, crack=None):
         self.mesh, self.crack = mesh, crack
         #: the second copies' nodal rows (R, K, 3) of a known crack's split nodes (:mod:`chunkdic.method.crack`)
-        self.other = None
+        self.other, self.nodal_rows = None, 0
         self.nodal = self.scalars = self.elements = None
         self.n_excluded = 0
         self.lags = np.zeros((6, LAGS + 1))
