@@ -138,7 +138,7 @@ def cmd_correlate(args) -> int:
     t0 = time.perf_counter()
     result = correlate(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init,
                        output=args.output, overwrite=args.overwrite, progress=print_progress,
-                       memory_target=args.memory_target, **engine_options(args))
+                       memory_target=args.memory_target, crack=args.crack, **engine_options(args))
     say(_summary(result, time.perf_counter() - t0))
     print(args.output)
     return 0 if result.converged else 1
@@ -259,6 +259,10 @@ def _add_correlate(sub) -> None:
                    help="start from this earlier result's field when it matches better than no motion and "
                         "the rigid translation (lowest gap; any element size, ROI or level of the same "
                         "reference; the run then starts on --level unless --coarsest is given)")
+    p.add_argument("--crack", default=None, metavar="LABELS",
+                   help="a known crack surface: a label image of the reference's shape (non-zero voxels = the "
+                        "surface; Zarr, .npy, TIFF, HDF5): the elements it cuts are split, each side with its own "
+                        "node copies, the Tikhonov penalty released across it (docs/cracks.md)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output")
     p.add_argument("--memory-target", default=None, metavar="SIZE",
                    help="peak memory per process to plan for, e.g. 2GiB (default: chunkdic.memory-target, else "

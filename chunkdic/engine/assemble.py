@@ -81,12 +81,14 @@ def assemble_result(ctx, run: RunState, final: State, outcome: LevelOutcome) -> 
                            "nominal_l10": nominal_l10(settings.element_size * 2**finest,
                                                       reg_length if np.isfinite(reg_length) else None)},
         "settings": settings.to_json(),
+        **({} if outcome.split is None else {"crack": {"split_nodes": int(len(outcome.split)),
+                                                        "cut_edges": int(outcome.crack_edges)}}),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "chunkdic_version": _version(),
     }
     brightness = None if final.elements is None else final.elements[:2]
     return Result(u, mesh.node_coords(), run.history.arrays(), info, flags=flags, brightness=brightness,
-                  active=outcome.active, uncertainty=sigma_u)
+                  active=outcome.active, uncertainty=sigma_u, other_side=_other_side(outcome, final))
 
 
 def brightness_summary(model: str, elements: np.ndarray | None) -> dict:
@@ -109,3 +111,13 @@ def _version() -> str:
         return version("chunkdic")
     except PackageNotFoundError:
         return "unknown"
+
+
+def _other_side(outcome: LevelOutcome, final: State) -> np.ndarray | None:
+    """The second copies of a known crack's split nodes on the node grid (NaN elsewhere), None without a crack."""
+    if outcome.split is None:
+        return None
+    out = np.full(final.u.shape, np.nan)
+    if final.u_other is not None and len(outcome.split):
+        out[(slice(None), *outcome.split.T)] = np.asarray(final.u_other).T
+    return out

@@ -216,6 +216,8 @@ def identify_run(spec, ref, deformed, mask=None) -> RunIdentity:
         inputs["mask"] = identify_input(mask, spec.mask_scan)
     described = {"settings": spec.settings.to_json(), "roi": parse_roi(spec.roi),
                  "inputs": [inputs["reference"], inputs["deformed"]], "mask": inputs.get("mask")}
+    if getattr(spec, "crack_scan", None) is not None:  # absent otherwise: other runs' fingerprints unchanged
+        inputs["crack"] = described["crack"] = identify_input(spec.crack, spec.crack_scan)
     init_id = None
     if spec.init is not None:  # absent otherwise: fingerprints of runs without init are unchanged
         init_id = described["init"] = init_identity(spec.init)

@@ -59,6 +59,7 @@ class RunContext:
     init: Result | None = None
     matrix: StoredMatrix | None = None
     adopted: bool = False
+    crack_ref: object = None
 
     @property
     def finest(self) -> int:
@@ -100,7 +101,7 @@ def solve_one_level(ctx: RunContext, run: RunState, s: int, coarser_u: np.ndarra
     t0 = time.perf_counter()
     passes = LevelPasses(s, ctx.meshes[s], ctx.f_refs[s], ctx.g_refs[s], ctx.runner, ctx.settings, ctx.scratch,
                          ctx.progress, None if ctx.mask_refs is None else ctx.mask_refs[s], matrix=ctx.matrix,
-                         adopt=ctx.adopted)
+                         adopt=ctx.adopted, crack=ctx.crack_ref if s == ctx.finest else None)
     run, outcome = run_level(passes, run, coarser_u, meshes=ctx.meshes, levels=ctx.levels, settings=ctx.settings,
                              earlier=ctx.init, progress=ctx.progress, on_iteration=lambda r: ctx.save(r, s))
     # the level's M, solver and last pass are gone with run_level's frame: not held through the

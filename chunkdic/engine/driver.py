@@ -42,6 +42,7 @@ def correlate(
     overwrite: bool = False,
     progress: Callable[[Event], None] | None = None,
     mask=None,
+    crack=None,
     init=None,
     roi_unit: str | None = None,
     memory_target=None,
@@ -80,6 +81,13 @@ def correlate(
         Specimen mask of the reference's shape (any input :func:`chunkdic.open_scan`
         reads; non-zero = material): only elements with enough material take part, nodes
         outside are NaN (:mod:`chunkdic.passes.masks`).
+    crack : str, Path, array, optional
+        A known crack surface: a label image of the reference's shape (any input a mask may
+        be; non-zero voxels = the surface). The elements it cuts are split, each side with
+        its own copies of their nodes, the Tikhonov penalty released across it, on the
+        correlated level (docs/cracks.md, "Correlating with a known crack");
+        ``result.displacement`` is each node's own side, ``result.other_side`` the second
+        copies at the split nodes.
     init : str, Path or Result, optional
         An earlier result to start from (a previous step of a loading series, another
         element size, ROI or level), when its gap is lower than no motion's and the rigid
@@ -117,7 +125,8 @@ def correlate(
     >>> round(float(res.displacement[0].mean()), 3), res.info["status"]
     (1.0, 'converged')
     """
-    spec = prepare_run(ref, deformed, settings, roi=roi, roi_unit=roi_unit, init=init, mask=mask, **options)
+    spec = prepare_run(ref, deformed, settings, roi=roi, roi_unit=roi_unit, init=init, mask=mask, crack=crack,
+                       **options)
     identity = identify_run(spec, ref, deformed, mask)
     if output is not None and not overwrite:
         done = completed_already(output, identity.fingerprint)  # the same command re-run on its own complete result
@@ -126,7 +135,7 @@ def correlate(
             return done
     budget = make_plan(spec.f_scan, spec.g_scan, spec.meshes, spec.settings, scheduler=scheduler, output=output,
                        target=memory_target_of(memory_target))
-    budget.check()  # memory target and free disk: refused before anything is written
+    budget.check(crack=spec.crack_scan is not None)  # memory, disk: refused before anything is written
     outputs = entry = None
     if output is not None:  # every output rule (chunkdic.io.outputs), nothing written yet
         outputs = Outputs(inputs=run_inputs(spec, ref, deformed, mask), overwrite=overwrite)

@@ -19,6 +19,8 @@ from __future__ import annotations
 import dataclasses
 import logging
 
+import numpy as np
+
 from ..errors import InputError
 from ..io.formats.anyscan import open_any
 from ..io.scan import Scan, open_scan
@@ -66,6 +68,8 @@ class RunSpec:
     levels: list[int]
     mask_scan: Scan | None = None
     init: Result | None = None
+    crack_scan: Scan | None = None
+    crack: object = None
 
     @property
     def finest(self) -> int:
@@ -73,12 +77,12 @@ class RunSpec:
 
 
 def prepare_run(ref, deformed, settings: Settings | None = None, *, roi=None, roi_unit: str | None = None,
-                init=None, mask=None, caller: str = "correlate", **options) -> RunSpec:
+                init=None, mask=None, crack=None, caller: str = "correlate", **options) -> RunSpec:
     """The :class:`RunSpec` of a correlation of ``ref`` and ``deformed`` (module docstring).
 
     Parameters
     ----------
-    ref, deformed, settings, roi, roi_unit, init, mask, **options
+    ref, deformed, settings, roi, roi_unit, init, mask, crack, **options
         As for :func:`chunkdic.correlate`.
     caller : str
         The public function's name, for the refusal of an unknown keyword.
@@ -110,7 +114,47 @@ def prepare_run(ref, deformed, settings: Settings | None = None, *, roi=None, ro
     mask_scan = None if mask is None else open_any(mask)  # also a TIFF or HDF5 mask, read in place
     if mask_scan is not None:
         check_mask_shape(mask_scan, f_scan.shape(0))
-    return RunSpec(settings, f_scan, g_scan, roi, meshes, levels, mask_scan, earlier)
+    crack_scan = None if crack is None else open_crack(crack, f_scan.shape(0), settings)
+    return RunSpec(settings, f_scan, g_scan, roi, meshes, levels, mask_scan, earlier, crack_scan, crack)
+
+
+def open_crack(crack, ref_shape0, settings: Settings) -> Scan:
+    """The crack surface's label image opened and checked (docs/cracks.md, "Correlating with a
+    known crack"): any format a mask may have, the reference's level-0 shape, integer or
+    bool labels, with the Tikhonov regularisation or none (the penalty it releases)."""
+    if settings.regularization == "equilibrium-gap":
+        raise InputError("--crack releases the Tikhonov penalty across the surface: use --regularization tikhonov "
+                         "or none, not equilibrium-gap")
+    try:
+        scan = open_any(crack)
+    except InputError as exc:
+        raise InputError(f"the crack labels: {exc}") from None
+    shape = tuple(int(n) for n in scan.shape(0))
+    if shape != tuple(int(n) for n in ref_shape0):
+        raise InputError(f"the crack labels have shape {shape}, the reference {tuple(ref_shape0)}: they must be equal")
+    if scan.dtype(0).kind not in "biu":
+        raise InputError(f"the crack labels are {scan.dtype(0)}: a label image (integer or bool, non-zero on the "
+                         "surface) is expected, not a grey-level scan")
+    if _is_empty(scan):
+        raise InputError("the crack labels have no non-zero voxel: no crack surface to correlate with")
+    return scan
+
+
+#: the largest level a front-door check reads on the client (voxels): a stored pyramid's
+#: coarse level, or a small label image
+CHECK_VOXELS = 128**3
+
+
+def _is_empty(scan: Scan) -> bool:
+    """Whether the label image has no non-zero voxel, read from its smallest stored level
+    when that is small (a pyramid's sums are zero only where every voxel is); a large image
+    without a pyramid is not read here (an empty one then splits no node: the field is the
+    correlation without the crack)."""
+    stored = scan.stored_levels()
+    level = max(stored) if stored else 0
+    if int(np.prod(scan.shape(level))) > CHECK_VOXELS:
+        return False
+    return not bool(np.asarray(scan.level(level)).any())
 
 
 def settings_from(settings: Settings | None, options: dict, caller: str = "correlate") -> Settings:

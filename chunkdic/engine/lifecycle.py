@@ -140,11 +140,15 @@ def open_levels(held: Holding, budget: Plan, progress=None) -> tuple[RunContext,
     g_refs = spec.g_scan.refs(needed, scratch / "def", runner=runner, adopt=adopted)
     mask_refs = None if spec.mask_scan is None else prepare_mask(spec.mask_scan, spec.f_scan.shape(0), needed,
                                                                  scratch / "mask", runner)
+    # the crack surface on the correlated level only: coarser levels give it a continuous start
+    crack_ref = None if spec.crack_scan is None else prepare_mask(spec.crack_scan, spec.f_scan.shape(0), [spec.finest],
+                                                                  scratch / "crack", runner)[spec.finest]
     _compile_kernels(runner, progress)
     emit(progress, PlanMade(plan=calibrated(budget, spec.g_scan, spec.settings)))
     ckpt = held.checkpoint
     ctx = RunContext(spec.settings, spec.meshes, spec.levels, f_refs, g_refs, runner, scratch, progress, ckpt,
-                     mask_refs, spec.init, matrix=None if ckpt is None else StoredMatrix(ckpt.path), adopted=adopted)
+                     mask_refs, spec.init, matrix=None if ckpt is None else StoredMatrix(ckpt.path), adopted=adopted,
+                     crack_ref=crack_ref)
     return ctx, None if resume is None else RunState.from_checkpoint(resume)
 
 
@@ -155,7 +159,8 @@ def finish(result: Result, held: Holding, ref, deformed, mask=None) -> Result:
     result.info.update(
         voxel_size=spec.f_scan.voxel_size, unit=spec.f_scan.unit, fingerprint=identity.fingerprint,
         inputs={"reference": _describe(ref), "deformed": _describe(deformed),
-                "mask": None if mask is None else _describe(mask)},
+                "mask": None if mask is None else _describe(mask),
+                **({} if spec.crack is None else {"crack": _describe(spec.crack)})},
         input_shapes={"reference": list(spec.f_scan.shape(0)), "deformed": list(spec.g_scan.shape(0))},
         init=identity.init,
     )
@@ -172,7 +177,7 @@ def finish(result: Result, held: Holding, ref, deformed, mask=None) -> Result:
 def run_inputs(spec: RunSpec, ref, deformed, mask=None) -> tuple:
     """The run's inputs as the output rules take them (:class:`chunkdic.io.outputs.Outputs`):
     the scans, the mask and the earlier result it starts from (none may be the output)."""
-    return ref, deformed, mask, None if spec.init is None else spec.init.path
+    return ref, deformed, mask, None if spec.init is None else spec.init.path, spec.crack
 
 
 def _scratch_identity(held: Holding, runner) -> str | None:

@@ -201,8 +201,12 @@ class Plan:
     def to_json(self) -> dict:
         return dataclasses.asdict(self)
 
-    def check(self) -> None:
-        """Refuse (:class:`InputError`, one line) a run the memory target or the disk cannot hold."""
+    def check(self, *, crack: bool = False) -> None:
+        """Refuse (:class:`InputError`, one line) a run the memory target or the disk cannot hold
+        (``crack``: a known crack, whose second node copies the node blocks do not hold)."""
+        if crack and self.mesh_data != "client":
+            raise InputError(f"--crack needs the mesh data in the client, and the plan puts them in node blocks "
+                             f"({self.mesh_why}): raise --memory-target or set chunkdic.mesh-data to client")
         if self.memory_target is not None and self.process_bytes > self.memory_target:
             finest = self.levels[-1]
             raise InputError(

@@ -1,3 +1,4 @@
+from .crack import CrackCoupling, solve_coupled
 from .gauss_newton import iterate
 from .level_solve import LevelOutcome, run_level, solve_level
 from .operator import Operator

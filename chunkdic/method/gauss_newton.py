@@ -20,6 +20,7 @@ import numpy as np
 import copy
 
 from ..solve.cg import rhs_norm
+from .crack import solve_coupled
 from .events import Iteration, Rigid, emit
 from .operator import Operator
 from .protocol import Pass, Passes
@@ -121,7 +122,7 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
         it = state.iteration
         t0, c0 = time.perf_counter(), time.process_time()
         summed_ahead = first is not None and ahead_new
-        p, first = (passes.assemble_b(state.u, op) if first is None else first), None
+        p, first = (passes.assemble_b(state.u, op, other=state.u_other) if first is None else first), None
         if summed_ahead:  # its time is this iteration's
             t0 -= p.seconds
         state.noise_variance, state.kappa = float(p.noise_variance), float(p.kappa)
@@ -143,18 +144,24 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
             rhs = op.solver.penalty_gradient(np.moveaxis(state.u, 0, -1))
             np.subtract(p.b, rhs, out=rhs)  # in place: one mesh-sized vector fewer
             norm = rhs_norm(rhs)
-            delta, cg_iterations = op.solver.solve(rhs, overwrite_b=True, reference=state.largest_rhs)
+            delta_other = None
+            if op.crack is None or not op.crack.count:
+                delta, cg_iterations = op.solver.solve(rhs, overwrite_b=True, reference=state.largest_rhs)
+            else:
+                delta, delta_other, cg_iterations = solve_coupled(op.solver, op.crack, rhs, p.b_other)
             del rhs
             state.largest_rhs = max(state.largest_rhs, norm)  # the CG reference (kept by the checkpoint)
             t2 = time.perf_counter()
             q, unsettled, fraction = noise_step(op, p, delta, tolerance)
             state.note_noise_step(q, unsettled, fraction)
             d = float(np.abs(delta).max())
+            if delta_other is not None and delta_other.size:
+                d = max(d, float(np.abs(delta_other).max()))
             # converged: the increment, or once the increments shrink fast, all those still to
             # come (a geometric series from the last two) below the tolerance; no pass
             # confirms it (the gap differs from this pass's to second order in the increment)
             if d >= tolerance and still_to_come(state.last_delta, d) >= tolerance:
-                state.step(delta)
+                state.step(delta, delta_other)
             else:
                 # no node moves by the tolerance any more (nor, predicted, in the passes to
                 # come): none is unsettled, whatever its step measured in its own noise
@@ -162,7 +169,7 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
                 if resolve:
                     state.last_delta = d
                 else:
-                    state.step(delta)
+                    state.step(delta, delta_other)
                 state.finish("converged", keep_current=True)
                 event.update(status=state.status)
             history.add(passes.level, it, p.gap, state.last_delta, p.n_excluded)

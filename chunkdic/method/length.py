@@ -66,11 +66,17 @@ def regularize(op: Operator, settings: Settings, level: int, element_size: float
         kind = "tikhonov"
     reg = Regularizer(kind, op.nodes_shape, element_size)
     weight = op.unit_weight(kind, element_size) * float(length) ** reg.order
+    freed = released(op, freed)
     if freed is not None:
         reg = reg.with_freed(freed)
     op.solver.regularize(reg, weight)
     log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", level, kind, length, weight)
     return Penalty(kind, float(length), weight)
+
+
+def released(op: Operator, freed: np.ndarray | None) -> np.ndarray | None:
+    """``freed`` with the terms across a known crack freed too (:meth:`chunkdic.method.crack.CrackCoupling.release`)."""
+    return freed if op.crack is None else op.crack.release(freed, op.nodes_shape)
 
 
 def regularization_length(settings: Settings, state: State, level: int, mesh: Mesh) -> float:
@@ -116,7 +122,7 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     def choose(freed, guess=None):
         return choose_length(settings.regularization, op.solver.matrix, mesh.element_size, u, p.b,
                              p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
-                             rule=settings.regularization_rule, freed=freed, guess=guess)
+                             rule=settings.regularization_rule, freed=released(op, freed), guess=guess)
 
     # probed first: the length the level has iterated with so far (2ℓ; on heterogeneous fields
     # the choice is 1-3 candidates from it), not the middle candidate, whose long-length solve

@@ -57,6 +57,10 @@ class LevelOutcome:
         Per-node uncertainty, voxels of the level.
     noise : dict
         ``sigma_r`` and ``kappa`` the uncertainty comes from.
+    split : ndarray, shape (K, 3), int, optional
+        With a known crack, the nodes it splits (the state's ``u_other`` holds their second copies).
+    crack_edges : int
+        The mesh edges the crack meets (0: none, or no crack).
     """
 
     weak: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3), int))
@@ -65,6 +69,8 @@ class LevelOutcome:
     reg_length: float = math.nan
     sigma_u: np.ndarray | None = None
     noise: dict = dataclasses.field(default_factory=dict)
+    split: np.ndarray | None = None
+    crack_edges: int = 0
 
 
 def run_level(passes: Passes, run: RunState, coarser_u: np.ndarray | None, *, meshes: dict, levels: list,
@@ -144,7 +150,7 @@ def measure_start_gaps(passes: Passes, op: Operator, state: State, rigid_t: np.n
     (docs/engine.md, "The start"). Returns ``(pass at state.u, initial gap, rigid gap)``."""
     t0, c0 = time.perf_counter(), time.process_time()
     passes.prepare(state.u)
-    p = passes.assemble_b(state.u, op, probes={"initial": np.zeros((3,) + passes.mesh.nodes_shape),
+    p = passes.assemble_b(state.u, op, other=state.u_other, probes={"initial": np.zeros((3,) + passes.mesh.nodes_shape),
                                                "rigid": uniform(rigid_t, passes.mesh)})
     initial, rigid = p.probe_gaps["initial"], p.probe_gaps["rigid"]
     emit(progress, Gaps(level=passes.level, initial_gap=initial, rigid_gap=rigid, translation=np.asarray(rigid_t).tolist(), seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0))
@@ -178,7 +184,7 @@ def solve_level(passes: Passes, op: Operator, state: State, penalty: Penalty, se
         summed_now = last is None
         if summed_now:  # a level resumed after its iterations ended: the pass at its field again
             passes.prepare(state.u)
-            last = passes.assemble_b(state.u, op)
+            last = passes.assemble_b(state.u, op, other=state.u_other)
         state, penalty = choose_regularization(op, state, last, penalty, settings, passes.level, passes.mesh,
                                                progress)
         ahead = [last]
@@ -195,13 +201,15 @@ def level_outcome(passes: Passes, op: Operator, state: State, last: Pass | None,
     pass's noise (kept in the state: a level resumed after its end ran no pass)."""
     s = passes.level
     outcome = LevelOutcome(weak=unreliable_nodes(op, state, s, progress), masked=op.masked_nodes(),
-                           active=op.active, reg_length=penalty.length * 2**s)
+                           active=op.active, reg_length=penalty.length * 2**s,
+                           split=None if op.crack is None else op.crack.nodes,
+                           crack_edges=0 if op.crack is None else len(op.crack.edges))
     if correlated:
         noise = state
         if not math.isfinite(state.noise_variance):
             if last is None:
                 passes.prepare(state.u)
-                last = passes.assemble_b(state.u, op)
+                last = passes.assemble_b(state.u, op, other=state.u_other)
             noise = last
         outcome.sigma_u = nodal_uncertainty(op.solver, noise.noise_variance, noise.kappa)
         outcome.noise = {"sigma_r": float(np.sqrt(noise.noise_variance)), "kappa": float(noise.kappa)}

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..solve.cg import PoorTextureWarning, StencilSolver
 from ..solve.regularizer import Regularizer, plane_wave_unit
+from .crack import CrackCoupling
 
 log = logging.getLogger(__name__)
 
@@ -51,6 +52,7 @@ class Assembled:
     fmin: float
     fmax: float
     cells: np.ndarray | None = None
+    crack: tuple | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +80,9 @@ class Operator:
         the level: a checkpoint keeps it, so that a resumed level rebuilds the very same ``M``.
     reused : bool
         Read from the output where an interrupted run kept it, not summed by a pass.
+    crack : CrackCoupling, optional
+        The nodes a known crack splits and their second copies' couplings (None: no crack,
+        or one that splits no node).
     """
 
     solver: StencilSolver
@@ -88,6 +93,7 @@ class Operator:
     sensitivity_lags: np.ndarray
     built_at: np.ndarray
     reused: bool = False
+    crack: CrackCoupling | None = None
     # λ of a unit regularisation length per penalty kind: nine products with M each, once
     # (the correlated level weighs up to three lengths against the same M)
     _unit_weights: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)
@@ -136,10 +142,12 @@ def build_operator(m: Assembled, built_at: np.ndarray, *, cell: int = 1, reused:
         ``M`` has no gradient at all (:class:`~chunkdic.solve.cg.StencilSolver`).
     """
     lags, active, fmin, fmax = m.lags, m.active, float(m.fmin), float(m.fmax)
-    S, cells, m = m.stencil, m.cells, None
+    S, cells, crack, m = m.stencil, m.cells, m.crack, None
     # the rigid-body restriction of M: since Σ_a N_a = 1, Σ_voxels ∇f ∇fᵀ = Σ_ij M_ij (the solver's)
     solver = make_solver(S, cells=cells, cell=cell)
-    return Operator(solver, solver.rigid_matrix, active, fmax - fmin, 0.5 * (fmin + fmax), lags, built_at, reused)
+    crack = None if crack is None else CrackCoupling.from_pairs(*crack, solver.nodes_shape, solver.scale)
+    return Operator(solver, solver.rigid_matrix, active, fmax - fmin, 0.5 * (fmin + fmax), lags, built_at, reused,
+                    crack)
 
 
 def warn_weak_nodes(op: Operator, mesh, level: int, correlated: int) -> None:

@@ -54,6 +54,9 @@ class Pass:
         The gaps of the further fields the pass measured (:meth:`Passes.assemble_b`'s ``probes``).
     seconds : float
         Wall time of the pass.
+    b_other : ndarray, shape (K, 3), float64, optional
+        ``b`` of the second copies of the nodes a known crack splits
+        (:mod:`chunkdic.method.crack`), None without one.
     """
 
     fit: Fit
@@ -63,6 +66,7 @@ class Pass:
     kappa: float = 1.0
     probe_gaps: dict = dataclasses.field(default_factory=dict)
     seconds: float = 0.0
+    b_other: np.ndarray | None = None
 
     @property
     def noise_variance(self) -> float:
@@ -104,10 +108,11 @@ class Passes(Protocol):
         """Whether ``u`` needs no preparation beyond what is done."""
 
     def assemble_b(self, u: np.ndarray, op: Operator, *, sample: np.ndarray | None = None,
-                   probes: dict[str, np.ndarray] | None = None) -> Pass:
+                   probes: dict[str, np.ndarray] | None = None, other: np.ndarray | None = None) -> Pass:
         """One pass for ``u`` with the operator ``op``'s element activity and centring;
         ``sample``: only these elements (uint8, the mesh's element shape); ``probes``: named
-        fields whose gap alone is measured in the same pass, on :meth:`gap`'s sample."""
+        fields whose gap alone is measured in the same pass, on :meth:`gap`'s sample;
+        ``other``: the second copies (K, 3) of ``op.crack``'s split nodes (None: ``u`` there)."""
 
     def gap(self, u: np.ndarray, op: Operator) -> float:
         """The matching gap of ``u`` alone (a diagnostic), on a sample of elements of large meshes."""

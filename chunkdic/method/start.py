@@ -293,5 +293,7 @@ def rigid_and_affine(passes: Passes, op: Operator, t_int, tolerance: float, hist
 
 
 def fresh_state(start: np.ndarray, op: Operator) -> State:
-    """The Gauss–Newton state of a new level at ``start``, recording the field ``op`` was built at."""
-    return State(start, m_start=op.built_at)
+    """The Gauss–Newton state of a new level at ``start``, recording the field ``op`` was built
+    at; with a known crack, the second copies of the split nodes start as ``start`` there."""
+    other = None if op.crack is None else op.crack.at_nodes(start)
+    return State(start, m_start=op.built_at, u_other=other)

@@ -181,6 +181,10 @@ class State:
     # the Tikhonov terms the robust reweighting freed (uint8, nodes shape + (6,), bits per
     # component; Regularizer.freed) once chosen with the length: a resumed level solves the same problem
     freed: np.ndarray | None = None
+    # with a known crack, the second copies (K, 3) of the split nodes (chunkdic.method.crack),
+    # and those of the best field
+    u_other: np.ndarray | None = None
+    best_u_other: np.ndarray | None = None
 
     SCALARS = ("iteration", "best_gap", "best_excluded", "best_valid", "since_best", "last_delta",
                "best_delta", "since_smaller", "status", "gap", "excluded", "n_valid", "reg_length",
@@ -188,14 +192,14 @@ class State:
                "noise_remaining")
     _FLOATS = ("best_gap", "last_delta", "best_delta", "gap", "reg_length", "largest_rhs", "noise_variance",
                "kappa", "last_noise_step", "gain_gap", "noise_remaining")
-    _ARRAYS = ("u", "best_u", "elements", "best_elements", "m_start", "unsettled", "freed")
+    _ARRAYS = ("u", "best_u", "elements", "best_elements", "m_start", "unsettled", "freed", "u_other", "best_u_other")
 
     def scalars(self) -> dict:
         return {k: json_float(getattr(self, k)) for k in self.SCALARS}
 
     def arrays(self) -> dict:
         out = {"u": self.u, "best_u": self.u if self.best_u is None else self.best_u}
-        for k in ("elements", "best_elements", "m_start", "unsettled", "freed"):
+        for k in ("elements", "best_elements", "m_start", "unsettled", "freed", "u_other", "best_u_other"):
             if getattr(self, k) is not None:
                 out[k] = getattr(self, k)
         return out
@@ -213,6 +217,7 @@ class State:
         self.gap, self.excluded, self.n_valid, self.elements = p.gap, p.n_excluded, p.n_valid, elements
         if p.gap < self.best_gap * (1 - 1e-9):
             self.best_gap, self.best_u, self.best_excluded, self.best_valid = p.gap, self.u, p.n_excluded, p.n_valid
+            self.best_u_other = self.u_other
             self.best_elements = elements
             self.since_best = 0
         else:
@@ -247,11 +252,16 @@ class State:
         self.status = status
         if not keep_current and self.best_u is not None:  # diverged / stalled: the best field met
             self.u, self.gap, self.excluded, self.n_valid = self.best_u, self.best_gap, self.best_excluded, self.best_valid
+            self.u_other = self.best_u_other
             self.elements = self.best_elements
 
-    def step(self, delta: np.ndarray) -> None:
-        """Apply the increment ``delta`` (nz, ny, nx, 3) and track how increments shrink."""
+    def step(self, delta: np.ndarray, delta_other: np.ndarray | None = None) -> None:
+        """Apply the increment ``delta`` (nz, ny, nx, 3) (and ``delta_other`` (K, 3) to the
+        second copies of a crack's split nodes) and track how increments shrink."""
         self.last_delta = float(np.abs(delta).max())
+        if delta_other is not None and delta_other.size:
+            self.last_delta = max(self.last_delta, float(np.abs(delta_other).max()))
+            self.u_other = self.u_other + delta_other
         if self.last_delta < SHRINK * self.best_delta:
             self.best_delta, self.since_smaller = self.last_delta, 0
         else:

@@ -1,2 +1,3 @@
+from .crack_cut import CrackLabels
 from .dense import DensePasses
 from .level import LevelPasses

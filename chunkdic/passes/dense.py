@@ -22,6 +22,7 @@ prefilter's float32 round-off at the box's faces.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import numpy as np
@@ -35,6 +36,7 @@ from ..method.brightness import offset_cell, reduce_block
 from ..method.operator import Assembled, Operator, build_operator
 from ..method.protocol import Pass
 from ..method.settings import Settings
+from .crack_cut import CrackLabels, cut_b_sums, cut_m_sums, fast_active, global_pairs, other_rows, read_cut
 from .haloed import quantization
 from .level import gap_sample
 from .prefilter import (
@@ -71,10 +73,13 @@ class DensePasses:
         Elements that take part (non-zero) (a specimen mask's, :func:`chunkdic.passes.masks.active_elements`).
     impl : {"numpy", "numba"}
         The kernels' NumPy twins or the numba kernels themselves.
+    crack : ndarray, 3-D, optional
+        A known crack surface at the level (non-zero voxels, the scans' shape;
+        :mod:`chunkdic.passes.crack_cut`).
     """
 
     def __init__(self, f: np.ndarray, g: np.ndarray, mesh: Mesh, settings: Settings, *, level: int = 0,
-                 active: np.ndarray | None = None, impl: str = "numpy"):
+                 active: np.ndarray | None = None, impl: str = "numpy", crack: np.ndarray | None = None):
         self.level, self.mesh, self.settings, self.impl = level, mesh, settings, impl
         self.active = None if active is None else (np.asarray(active) != 0).astype(np.uint8)
         self.cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
@@ -82,6 +87,9 @@ class DensePasses:
         self.margin = face_margin(sigma)
         (job,) = BlockJob.for_mesh(mesh, max(mesh.shape))
         self.job = job
+        labels = None if crack is None else CrackLabels(_InMemory(np.asarray(crack)), mesh.origin, mesh.shape,
+                                                        self.margin)
+        self.cut = read_cut(labels, job.block.elements, job.ell)
         self.f_raw, self.g_raw = np.asarray(f), np.asarray(g)
         self.f_block, self.lo, self.hi = _haloed_reference(self.f_raw, job, sigma)
         g = self.g_raw
@@ -103,12 +111,18 @@ class DensePasses:
         stencil, fmin, fmax, lags, *cells = m_block(
             self.f_block, self.lo, self.hi, job.ell, impl=self.impl, grey=s.grey, center=float(self.f_block.mean()),
             u_nodes=u, core_origin=job.start, g_shape=self.g_shape, margin=self.margin, with_lags=True,
-            cell=self.cell, active=self.active)
+            cell=self.cell, active=fast_active(self.active, self.cut, self.mesh.shape))
+        crack = None
+        if self.cut is not None:
+            part, pairs = cut_m_sums(self.cut, self.f_block, self.lo, self.hi, job.ell, u, job.start, self.g_shape,
+                                     margin=self.margin, active=self.active)
+            stencil = stencil + part
+            crack = global_pairs(pairs, self.cut, (0, 0, 0))
         half = np.zeros(self.mesh.nodes_shape + (14, 3, 3), dtype=np.float32)
         half += stencil[..., 13:, :, :]  # the stored half stencil, float32 (solve.HALF_OFFSETS)
         if not float(fmax - fmin) > 0:
             raise InputError(f"the reference is constant over the ROI at level {self.level}: nothing to correlate")
-        m = Assembled(half, lags, self.active, float(fmin), float(fmax), cells[0] if cells else None)
+        m = Assembled(half, lags, self.active, float(fmin), float(fmax), cells[0] if cells else None, crack)
         return build_operator(m, u, cell=self.cell)
 
     def covers(self, u: np.ndarray) -> bool:
@@ -125,8 +139,9 @@ class DensePasses:
             self.box = reachable_box(self.mesh, u, self.g_shape, margin=max(8, self.mesh.element_size))
 
     def assemble_b(self, u: np.ndarray, op: Operator, *, sample: np.ndarray | None = None,
-                   probes: dict[str, np.ndarray] | None = None) -> Pass:
-        """One pass for ``u`` (one kernel call over the ROI per field)."""
+                   probes: dict[str, np.ndarray] | None = None, other: np.ndarray | None = None) -> Pass:
+        """One pass for ``u`` (one kernel call over the ROI per field; ``other``: the second
+        copies (K, 3) of ``op.crack``'s split nodes)."""
         t0 = time.perf_counter()
         names = list(probes or {})
         active = op.active if sample is None else sample
@@ -136,17 +151,31 @@ class DensePasses:
         grey, cell = self.settings.grey, self.cell
         probe_parts = []
         for name in names:
-            part = reduce_block(self._sums(probes[name], op, probe_active), grey, cell)
+            part = reduce_block(self._sums(probes[name], op, probe_active)[0], grey, cell)
             probe_parts.append((part.scalars, part.n_excluded))
-        sums = PassSums(self.mesh, len(names))
-        sums.add(self.job.block, reduce_block(self._sums(u, op, active), grey, cell), probe_parts)
+        sums = PassSums(self.mesh, len(names), op.crack)
+        whole_other = None if op.crack is None else op.crack.other_field(u, other)
+        main, B1 = self._sums(u, op, active, whole_other)
+        rows = None
+        if B1 is not None:
+            nodal = reduce_block(dataclasses.replace(main, B=B1), grey, cell).nodal
+            rows = other_rows(nodal, self.cut, (0, 0, 0))
+        sums.add(self.job.block, reduce_block(main, grey, cell), probe_parts, rows)
         return sums.result(grey, op, names, t0)
 
-    def _sums(self, u: np.ndarray, op: Operator, active: np.ndarray | None):
+    def _sums(self, u: np.ndarray, op: Operator, active: np.ndarray | None, other: np.ndarray | None = None):
+        """The element sums of ``u`` (and, with a crack, the second copies' ``B``, else None)."""
         job = self.job
-        return b_sums(self.f_block, self.lo, self.hi, job.ell, u, job.start, self.g, (0, 0, 0), self.g_shape,
-                      interpolation=self.settings.interpolation, impl=self.impl, prefiltered=True, center=op.center,
-                      margin=self.margin, active=None if active is None else np.asarray(active, np.uint8))
+        active = None if active is None else np.asarray(active, np.uint8)
+        out = b_sums(self.f_block, self.lo, self.hi, job.ell, u, job.start, self.g, (0, 0, 0), self.g_shape,
+                     interpolation=self.settings.interpolation, impl=self.impl, prefiltered=True, center=op.center,
+                     margin=self.margin, active=fast_active(active, self.cut, self.mesh.shape))
+        if self.cut is None:
+            return out, None
+        B1 = cut_b_sums(out, self.cut, self.f_block, self.lo, self.hi, job.ell, u, u if other is None else other,
+                        job.start, self.g, (0, 0, 0), self.g_shape, interpolation=self.settings.interpolation,
+                        center=op.center, margin=self.margin, active=active)
+        return out, B1
 
     def gap(self, u: np.ndarray, op: Operator) -> float:
         """The matching gap of ``u`` alone, on the sample of elements the block passes use."""

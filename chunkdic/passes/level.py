@@ -32,6 +32,7 @@ from ..method.protocol import Pass
 from ..method.settings import Settings
 from ..scheduler import release_freed_memory
 from ..solve.cg import StencilSolver
+from .crack_cut import CrackLabels
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
 from .mesh_blocks import BlockedMatrix, holder_for, in_blocks
@@ -107,11 +108,13 @@ class LevelPasses:
         Where ``M`` is kept for a resumed run (the output); None: not kept.
     adopt : bool
         The scratch is an interrupted run's: its complete stores of this level are reused.
+    crack : ArrayRef, optional
+        A known crack surface at this level (non-zero voxels; :mod:`chunkdic.passes.crack_cut`).
     """
 
     def __init__(self, s: int, mesh: Mesh, f_ref: ArrayRef, g_ref: ArrayRef, runner, settings: Settings,
                  scratch: Path, progress=None, mask: ArrayRef | None = None, *, matrix: StoredMatrix | None = None,
-                 adopt: bool = False):
+                 adopt: bool = False, crack: ArrayRef | None = None):
         self.level, self.mesh, self.runner, self.settings = s, mesh, runner, settings
         self.scratch, self.progress, self.matrix = Path(scratch), progress, matrix
         self.cell = cell = offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
@@ -130,7 +133,9 @@ class LevelPasses:
         #: what every task reads, but the centring of an operator and the prepared g (task_inputs)
         self.inputs = LevelInputs.for_settings(f_ref, g_ref, f_copy, level=s,
                                                interpolation=settings.interpolation, smoothing=settings.smoothing,
-                                               grey=settings.grey, mask=mask, grey_cell=cell)
+                                               grey=settings.grey, mask=mask, grey_cell=cell,
+                                               crack=None if crack is None else CrackLabels(crack, mesh.origin,
+                                                                                            mesh.shape, margin))
         #: the prepared g and how many were built (each a store of its own): prepare(), release()
         self.prepared, self.builds = None, 0
         #: where the level's mesh data live when they go to node blocks (mesh_blocks.in_blocks), else None
@@ -208,8 +213,10 @@ class LevelPasses:
         (:meth:`_m_pass`), or read from the output where an interrupted run of the same run
         kept it (:mod:`chunkdic.passes.stored_matrix`); a pass that built it keeps it there."""
         t0, c0 = time.perf_counter(), time.process_time()
-        # M in node blocks is not kept in the output: a resumed run sums it again
-        key = None if self.matrix is None or self.holder is not None else self.matrix_key(u)
+        # M in node blocks, or with a crack (the stored M keeps no second copies' couplings), is
+        # not kept in the output: a resumed run sums it again
+        key = (None if self.matrix is None or self.holder is not None or self.inputs.crack is not None
+               else self.matrix_key(u))
         m = None if key is None else self.matrix.load(key)
         reused = m is not None
         if m is None:
@@ -259,12 +266,17 @@ class LevelPasses:
         cells = (np.zeros(tuple(-(-n // k) for n in mesh.shape) + (k + 1,) * 3 + (3, 4), np.float32)
                  if k > 1 and blocked is None else None)  # the mesh's cells' couplings (kernels.m.cell_couplings)
         inputs.f_copy.unmark()  # rewritten (a start chosen later builds M again): complete once every block is
-        for blk, part, lo, hi, block_lags, frac, block_cells in self._map(m_task, args, "M pass",
-                                                                          total=len(self.jobs)):
+        pairs, released = {}, []
+        for blk, part, lo, hi, block_lags, frac, block_cells, block_crack in self._map(m_task, args, "M pass",
+                                                                                       total=len(self.jobs)):
             if blocked is not None:
                 blocked.add(blk, part, block_cells)
             else:
                 S[blk.node_slices] += part[..., 13:, :, :]
+            if block_crack is not None:
+                for key, value in block_crack[0].items():
+                    pairs[key] = pairs.get(key, 0.0) + value
+                released.append(block_crack[1])
             if cells is not None:  # blocks hold whole cells from a cell's first element
                 first = [e0 // k for e0, _ in blk.elements]
                 cells[tuple(slice(c, c + n) for c, n in zip(first, block_cells.shape[:3]))] = block_cells
@@ -279,7 +291,8 @@ class LevelPasses:
         if blocked is not None:
             S, cells = blocked.stencil(), blocked.cells()
             blocked.close()
-        return Assembled(S, lags, active, float(fmin), float(fmax), cells)
+        crack = (pairs, np.concatenate(released)) if released else None
+        return Assembled(S, lags, active, float(fmin), float(fmax), cells, crack)
 
     def _f_copy_pass(self) -> None:
         """Write the haloed ``f`` alone (``M`` read from the output, the interrupted run's copy
@@ -390,7 +403,7 @@ class LevelPasses:
         return self.assemble_b(u, op, sample=gap_sample(self.mesh.shape, op.active)).gap
 
     def assemble_b(self, u: np.ndarray, op: Operator, *, sample: np.ndarray | None = None,
-                   probes: dict[str, np.ndarray] | None = None) -> Pass:
+                   probes: dict[str, np.ndarray] | None = None, other: np.ndarray | None = None) -> Pass:
         """One pass for the nodal field ``u``: ``b``, brightness, gap and voxel counts.
 
         ``sample`` (uint8, the mesh's element shape): only its non-zero elements take part
@@ -399,7 +412,8 @@ class LevelPasses:
         as :meth:`gap` measures it (its sample of elements), from the blocks' reads of this
         pass: ``Pass.probe_gaps`` maps each name to its gap (the brightness is fitted to
         every probe as to ``u``). Their cost is the sums alone: one element in 8 on large
-        meshes, an eighth of a pass's arithmetic each and no reads.
+        meshes, an eighth of a pass's arithmetic each and no reads. ``other``: the second
+        copies (K, 3) of ``op.crack``'s split nodes (None: ``u`` there).
         """
         t0 = time.perf_counter()
         if not self.f_ready:
@@ -410,15 +424,17 @@ class LevelPasses:
         if probe_active is None:
             probe_active = op.active
         inputs = self.task_inputs(op)
+        whole_other = None if op.crack is None else op.crack.other_field(u, other)
 
         def args_of(job):
             fields = tuple(_nodes_of(probes[name], job) for name in names)
-            return (inputs, job, _nodes_of(u, job), _active_of(active, job), fields, _active_of(probe_active, job))
+            return (inputs, job, _nodes_of(u, job), _active_of(active, job), fields, _active_of(probe_active, job),
+                    None if whole_other is None else _nodes_of(whole_other, job))
 
-        sums = PassSums(self.mesh, len(names))
-        for blk, part, probe_parts in self._map(b_task, (args_of(job) for job in self.jobs), "b pass",
-                                                total=len(self.jobs)):
-            sums.add(blk, part, probe_parts)
+        sums = PassSums(self.mesh, len(names), op.crack)
+        for blk, part, probe_parts, other_part in self._map(b_task, (args_of(job) for job in self.jobs), "b pass",
+                                                            total=len(self.jobs)):
+            sums.add(blk, part, probe_parts, other_part)
         part = None
         return sums.result(self.settings.grey, op, names, t0)
 

@@ -26,18 +26,25 @@ from ..method.protocol import Pass
 class PassSums:
     """The sums of one pass's block partials over a level's mesh, and those of its probes."""
 
-    def __init__(self, mesh: Mesh, probes: int = 0):
-        self.mesh = mesh
+    def __init__(self, mesh: Mesh, probes: int = 0, crack=None):
+        self.mesh, self.crack = mesh, crack
+        #: the second copies' nodal rows (R, K, 3) of a known crack's split nodes (:mod:`chunkdic.method.crack`)
+        self.other, self.nodal_rows = None, 0
         self.nodal = self.scalars = self.elements = None
         self.n_excluded = 0
         self.lags = np.zeros((6, LAGS + 1))
         self.probe_scalars = [None] * probes
 
-    def add(self, block, part, probe_parts=()) -> None:
-        """Add one block's partials (a :class:`~chunkdic.mesh.Block`'s share) and its probes' scalars."""
+    def add(self, block, part, probe_parts=(), other=None) -> None:
+        """Add one block's partials (a :class:`~chunkdic.mesh.Block`'s share), its probes'
+        scalars and ``other``, the nodal rows of the second copies at its split nodes
+        (``(nodes (n, 3), rows (R, n, 3))``, :func:`chunkdic.passes.crack_cut.other_rows`)."""
         mesh = self.mesh
+        if self.crack is not None and self.crack.count and other is not None:
+            self._add_other(*other)
         if self.nodal is None:
             self.nodal = np.zeros((part.nodal.shape[0],) + mesh.nodes_shape + (3,))
+            self.nodal_rows = part.nodal.shape[0]
             self.scalars = np.zeros_like(part.scalars)
             self.elements = np.zeros((part.elements.shape[0],) + tuple(mesh.shape))
         self.nodal[(slice(None), *block.node_slices)] += part.nodal
@@ -48,6 +55,16 @@ class PassSums:
         for k, (sc, _) in enumerate(probe_parts):
             self.probe_scalars[k] = sc.copy() if self.probe_scalars[k] is None else self.probe_scalars[k] + sc
 
+    def _add_other(self, nodes: np.ndarray, rows: np.ndarray) -> None:
+        split = self.crack.nodes
+        if self.other is None:
+            self.other = np.zeros((rows.shape[0], len(split), 3))
+        flat = np.ravel_multi_index(tuple(split.T), self.mesh.nodes_shape)
+        at = np.ravel_multi_index(tuple(np.asarray(nodes).T), self.mesh.nodes_shape)
+        k = np.searchsorted(flat, at)
+        known = (k < len(flat)) & (flat[np.minimum(k, len(flat) - 1)] == at)  # a node M found no texture of: none
+        np.add.at(self.other, (slice(None), k[known]), rows[:, known])
+
     def result(self, grey: str, op: Operator, names=(), started: float | None = None) -> Pass:
         """The pass these sums give for the brightness model ``grey`` and the operator ``op``
         (its centring, range and sensitivity lags); ``names``: the probes'; ``started``: the
@@ -56,6 +73,10 @@ class PassSums:
         # before the element rows are fitted: they never coexist with the fit's arrays
         b = nodal_rhs(grey, self.nodal, self.scalars)
         self.nodal = None
+        b_other = None
+        if self.crack is not None:
+            other = np.zeros((self.nodal_rows, self.crack.count, 3)) if self.other is None else self.other
+            b_other = nodal_rhs(grey, other, self.scalars)
         fit = element_fit(grey, b, self.scalars, self.elements, op.center, self.mesh.element_size)
         self.elements = b = None
         gap = matching_gap(fit.ssr, fit.weight, op)
@@ -64,7 +85,7 @@ class PassSums:
         probe_gaps = {name: matching_gap(*misfit(grey, sc), op) for name, sc in zip(names, self.probe_scalars)}
         n_excluded = self.n_excluded
         seconds = 0.0 if started is None else time.perf_counter() - started
-        return Pass(fit, gap, self.mesh.n_voxels - n_excluded, n_excluded, kappa, probe_gaps, seconds)
+        return Pass(fit, gap, self.mesh.n_voxels - n_excluded, n_excluded, kappa, probe_gaps, seconds, b_other)
 
 
 def matching_gap(ssr: float, weight: float, op: Operator) -> float:

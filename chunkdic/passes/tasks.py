@@ -8,7 +8,7 @@ partials (shared/DESIGN.md, "Out-of-core shape").
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -20,6 +20,7 @@ from ..kernels.m import m_block
 from ..kernels.window import g_window
 from ..mesh import Block, Mesh
 from ..method.brightness import Partials, reduce_block
+from .crack_cut import CrackLabels, cut_b_sums, cut_m_sums, fast_active, global_pairs, other_rows, read_cut
 from .haloed import HaloedBlocks
 from .masks import active_elements, element_fractions
 from .prefilter import (
@@ -110,6 +111,8 @@ class LevelInputs:
     grey_cell : int
         Elements per side of the cells sharing one brightness offset
         (:func:`chunkdic.method.brightness.offset_cell`; blocks hold whole cells).
+    crack : CrackLabels or None
+        A known crack surface at this level (:mod:`chunkdic.passes.crack_cut`).
     """
 
     f: ArrayRef
@@ -126,17 +129,18 @@ class LevelInputs:
     mask: ArrayRef | None = None
     g_grid: tuple[float, float] = (0.0, 0.0)
     grey_cell: int = 1
+    crack: CrackLabels | None = None
 
     @classmethod
     def for_settings(cls, f: ArrayRef, g: ArrayRef, f_copy: HaloedBlocks | None, *, level: int,
                      interpolation: str, smoothing: float, grey: str, mask: ArrayRef | None = None,
-                     grey_cell: int = 1) -> "LevelInputs":
+                     grey_cell: int = 1, crack: CrackLabels | None = None) -> "LevelInputs":
         """The one way to make a level's inputs from a run's settings: the B-spline halo from
         ``chunkdic.bspline-halo`` and the margin near the faces of ``g`` from the low-pass
         (:func:`chunkdic.passes.prefilter.face_margin`) are derived here, once."""
         return cls(f, g, f_copy, interpolation, float(smoothing), grey, int(config.get("bspline-halo")),
                    face_margin(smoothing), level=int(level), mask=mask,
-                   g_grid=prepared_grid(g.dtype, smoothing, interpolation), grey_cell=int(grey_cell))
+                   g_grid=prepared_grid(g.dtype, smoothing, interpolation), grey_cell=int(grey_cell), crack=crack)
 
     @property
     def g_needs_preparing(self) -> bool:
@@ -181,20 +185,31 @@ def m_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray):
     Reads the block with the halo its low-pass needs, checks it, low-passes it and keeps
     the prepared block with its one-voxel halo as its chunk of ``inputs.f_copy`` for the
     ``b`` passes. ``u_block``: the level's starting field on the block's nodes; voxels it
-    maps outside ``g`` are left out of ``M`` as the ``b`` passes leave them out.
+    maps outside ``g`` are left out of ``M`` as the ``b`` passes leave them out. The last
+    value: with a known crack, the entries of the split nodes' second copies (global node
+    triples, :func:`chunkdic.passes.crack_cut.cut_m_sums`) and the block's released nodes
+    (:func:`chunkdic.passes.crack_cut.global_pairs`), else None.
     """
     f, lo, hi = read_prepared_reference(inputs, job.start, job.shape, halo=1)
     f = np.asarray(inputs.f_copy.write(job.index, f), dtype=np.float32)  # as the b passes will read it
     fractions = None
     if inputs.mask is not None:
         fractions = element_fractions(inputs.mask, inputs.level, job.start, job.shape, job.ell)
+    active = None if fractions is None else active_elements(fractions)
+    cut = read_cut(inputs.crack, job.block.elements, job.ell)
     # the brightness condensation is invariant to the centring constant: the block's mean
     # keeps its sums small
     stencil, fmin, fmax, lags, *cells = m_block(f, lo, hi, job.ell, grey=inputs.grey, center=float(f.mean()),
                                                 u_nodes=u_block, core_origin=job.start, g_shape=inputs.g.shape,
                                                 margin=inputs.g_margin, with_lags=True, cell=inputs.grey_cell,
-                                                active=None if fractions is None else active_elements(fractions))
-    return job.block, stencil, fmin, fmax, lags, fractions, (cells[0] if cells else None)
+                                                active=fast_active(active, cut, job.block.n_elements))
+    pairs = None
+    if cut is not None:
+        part, pairs = cut_m_sums(cut, f, lo, hi, job.ell, u_block, job.start, inputs.g.shape,
+                                 margin=inputs.g_margin, active=active)
+        stencil = stencil + part
+        pairs = global_pairs(pairs, cut, [e0 for e0, _ in job.block.elements])
+    return job.block, stencil, fmin, fmax, lags, fractions, (cells[0] if cells else None), pairs
 
 
 def f_copy_task(inputs: LevelInputs, job: BlockJob) -> Block:
@@ -208,7 +223,7 @@ def f_copy_task(inputs: LevelInputs, job: BlockJob) -> Block:
 
 def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
            active: np.ndarray | None = None, probes: tuple = (),
-           probe_active: np.ndarray | None = None) -> tuple[Block, Partials, list]:
+           probe_active: np.ndarray | None = None, other_block: np.ndarray | None = None) -> tuple:
     """Task: this block's share of one Gauss–Newton pass (:class:`chunkdic.method.brightness.Partials`).
 
     ``f`` (with its halo) comes from the level's haloed copy written by the ``M`` pass;
@@ -219,29 +234,49 @@ def b_task(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray,
     ``probes``: further nodal fields over the block's nodes (each (3, ez+1, ey+1, ex+1))
     whose misfit alone is wanted (the reported gaps of no motion and of the rigid
     translation): summed over the elements ``probe_active`` keeps, from the same reads of
-    ``f`` and ``g`` (one window covering every field). Returns ``(block, partials, probe_parts)``,
-    ``probe_parts`` one ``(scalars, n_excluded)`` per probe (the misfit's scalars of
+    ``f`` and ``g`` (one window covering every field). Returns ``(block, partials, probe_parts,
+    other)``, ``probe_parts`` one ``(scalars, n_excluded)`` per probe (the misfit's scalars of
     :class:`Partials`: a few numbers, no nodal rows).
+
+    With a known crack (``inputs.crack``), the elements with a split node are summed by
+    :func:`chunkdic.passes.crack_cut.cut_b_sums`, their voxels using the copies of their side:
+    ``other_block`` the second copies on the block's nodes (None: ``u_block``; the probes
+    have none); ``other`` the nodal rows of the second copies at the block's split nodes
+    (:func:`chunkdic.passes.crack_cut.other_rows`), None without split nodes.
     """
     region, lo, hi = job.haloed_region(inputs.f.shape)
     f = inputs.f_copy.read(job.index, tuple(r.stop - r.start for r in region))
-    g, g_origin = read_g_window(inputs, job, u_block, *probes)
+    cut = read_cut(inputs.crack, job.block.elements, job.ell)
+    if other_block is None or cut is None:
+        other_block = None
+    g, g_origin = read_g_window(inputs, job, u_block, *probes, *(() if other_block is None else (other_block,)))
 
-    def sums(u, act):
+    def sums(u, act, other=None):
         if g is None:
             # no voxel of the block maps inside g: every active voxel is excluded
             n_off = 0 if act is None else int(np.sum(act == 0)) * job.ell**3
             return ElementSums(np.zeros(job.block.n_elements + (6, 8, 3)),
-                               np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off)
-        return b_sums(f, lo, hi, job.ell, u, job.start, g, g_origin, inputs.g.shape,
-                      interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
-                      margin=inputs.g_margin, active=act)
+                               np.zeros(job.block.n_elements + (6, 6)), int(np.prod(job.shape)) - n_off), None
+        out = b_sums(f, lo, hi, job.ell, u, job.start, g, g_origin, inputs.g.shape,
+                     interpolation=inputs.interpolation, prefiltered=True, center=inputs.center,
+                     margin=inputs.g_margin, active=fast_active(act, cut, job.block.n_elements))
+        if cut is None:
+            return out, None
+        B1 = cut_b_sums(out, cut, f, lo, hi, job.ell, u, u if other is None else other, job.start, g, g_origin,
+                        inputs.g.shape, interpolation=inputs.interpolation, center=inputs.center,
+                        margin=inputs.g_margin, active=act)
+        return out, B1
 
     probe_parts = []
     for u in probes:
-        part = reduce_block(sums(u, probe_active), inputs.grey, inputs.grey_cell)
+        part = reduce_block(sums(u, probe_active)[0], inputs.grey, inputs.grey_cell)
         probe_parts.append((part.scalars, part.n_excluded))
-    return job.block, reduce_block(sums(u_block, active), inputs.grey, inputs.grey_cell), probe_parts
+    main, B1 = sums(u_block, active, other_block)
+    other = None
+    if B1 is not None:
+        rows = reduce_block(replace(main, B=B1), inputs.grey, inputs.grey_cell).nodal
+        other = other_rows(rows, cut, [e0 for e0, _ in job.block.elements])
+    return job.block, reduce_block(main, inputs.grey, inputs.grey_cell), probe_parts, other
 
 
 def read_g_window(inputs: LevelInputs, job: BlockJob, u_block: np.ndarray, *more: np.ndarray):

@@ -36,6 +36,8 @@ LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
                     "standard uncertainty of the nodal displacement, components (z, y, x)"),
     "strain": (("component_i", "component_j", "ez", "ey", "ex"), "1",
                "small-strain tensor at the element centres, axes (z, y, x)"),
+    "other_side": (("component", "z", "y", "x"), "voxel",
+                   "displacement of the other side of a known crack at the nodes it splits (NaN elsewhere)"),
     "flags": (("z", "y", "x"), "1", "node flags (bits): 1 no data, 2 weak texture, 4 masked, 8 mismatch"),
     "active": (("ez", "ey", "ex"), "1", "element took part (specimen mask)"),
     "brightness": (("gain_offset", "ez", "ey", "ex"), "1",

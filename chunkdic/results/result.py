@@ -68,6 +68,11 @@ class Result:
     brightness : ndarray, shape (2, ez, ey, ex), float64, optional
         Per-element gain and offset of the grey-level model (:mod:`chunkdic.method.brightness`):
         ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
+    other_side : ndarray, shape (3, nz, ny, nx), float64, optional
+        With a known crack (``correlate(crack=…)``), the second copies of the nodes it splits:
+        the displacement of the other side of the surface at the node (``displacement`` is the
+        node's own side), NaN at the other nodes; the jump there is ``other_side − displacement``
+        (docs/cracks.md). None without a crack.
     """
 
     displacement: np.ndarray
@@ -80,6 +85,7 @@ class Result:
     brightness: np.ndarray | None = None
     active: np.ndarray | None = None
     uncertainty: np.ndarray | None = None
+    other_side: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -176,7 +182,7 @@ class Result:
         arrays = {"displacement": self.displacement, "node_coords": X}
         if "element_size" in self.info:
             arrays["strain"] = self.element_strain()
-        for name in ("flags", "brightness", "active", "uncertainty"):
+        for name in ("flags", "brightness", "active", "uncertainty", "other_side"):
             if getattr(self, name) is not None:
                 arrays[name] = getattr(self, name)
         for axis, name in enumerate("zyx"):  # the mesh is regular: one position per node index
@@ -334,7 +340,7 @@ def open_result(path: str | os.PathLike) -> Result:
         X = _array(root, path, "node_coords")
         history = {name: _array(root, path, f"history/{name}") for name in HISTORY_FIELDS}
         optional = {name: _array(root, path, name) if name in root else None
-                    for name in ("strain", "flags", "brightness", "active", "uncertainty")}
+                    for name in ("strain", "flags", "brightness", "active", "uncertainty", "other_side")}
     except KeyError as exc:
         raise InputError(f"result {path} lacks the array {exc.args[0]!r}: a damaged result") from None
     except Exception as exc:  # noqa: BLE001 - undecodable chunks

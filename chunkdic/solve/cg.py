@@ -144,6 +144,7 @@ class StencilSolver:
         self.multigrid = multigrid
         self._matrices = None  # the Galerkin coarse M (chunkdic.solve.multigrid), built on first use
         self._vcycle = None
+        self._jacobi = None  # block-Jacobi's inverse blocks for precondition(), made on first use
 
     def diagonal_blocks(self, planes: slice = slice(None)) -> np.ndarray:
         """The 3×3 diagonal blocks of ``M`` on the z planes ``planes`` (default: all), weak
@@ -183,6 +184,7 @@ class StencilSolver:
         self.regularizer = regularizer if weight > 0 else None
         self.weight = float(weight) if self.regularizer is not None else 0.0
         self._vcycle = None  # its own arrays freed before the new ones are built
+        self._jacobi = None
         self._diag_args = no_diagonal(self.nodes_shape)
         if self.regularizer is not None:
             self._reg_args = self.regularizer.numba_args()
@@ -240,6 +242,16 @@ class StencilSolver:
         if self.regularizer is not None:
             add_weighted(*self._reg_args, self.weight, x, out)
         return out
+
+    def precondition(self, r: np.ndarray) -> np.ndarray:
+        """This solver's preconditioner applied to ``r`` (nz, ny, nx, 3): the V-cycle when it
+        pays, else block-Jacobi (a caller's own CG on a larger system, :mod:`chunkdic.method.crack`)."""
+        r = np.ascontiguousarray(r, dtype=np.float64)
+        if self._vcycle is not None:
+            return self._vcycle.cycle(r, out=np.empty_like(r))
+        if self._jacobi is None:
+            self._jacobi = self.diagonal_inverse()
+        return np.einsum("...ij,...j->...i", self._jacobi, r)
 
     def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
               reference: float | None = None) -> tuple[np.ndarray, int]:
