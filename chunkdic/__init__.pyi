@@ -5,10 +5,12 @@ from .analysis.metrology import fit_power_law, uncertainty
 from .analysis.q4 import correlate2d
 from .analysis.resolution import resolution
 from .analysis.scoring import score_displacement
+from .analysis.texture import TextureReport, texture
 from .analysis.zoisweep import sweep, zoi_table
 from .engine.budget import Plan, plan
 from .engine.driver import correlate
 from .engine.settings import Settings
+from .engine.texturestats import ElementSizeWarning
 from .errors import InputError
 from .io.display import write_display
 from .io.formats.ingest import ingest

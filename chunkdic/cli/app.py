@@ -284,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     from . import scan as _cli_scan
     from . import series as _cli_series
     from . import synth as _cli_synth
+    from . import texture as _cli_texture
     from . import view as _cli_view
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
@@ -296,6 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_synth.register(sub)
     _cli_report.register(sub)
     _cli_resolution.register(sub)
+    _cli_texture.register(sub)
     _cli_q4.register(sub)
     _cli_series.register(sub)
     _cli_view.register(sub)

@@ -1,3 +1,4 @@
 from .driver import correlate
 from .planning import plan_meshes
 from .settings import Settings
+from .texturestats import ElementSizeWarning

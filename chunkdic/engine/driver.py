@@ -64,6 +64,7 @@ from .steps import (
     start_field,
     start_state,
 )
+from .texturestats import warn_small_elements
 
 __all__ = ["correlate", "Settings"]
 
@@ -237,6 +238,7 @@ def correlate(
             mask_refs = None if mask is None else prepare_mask(mask_scan, f_scan.shape(0), needed, scratch / "mask",
                                                                 runner)
             _compile_kernels(runner, progress)
+            warn_small_elements(f_refs[settings.level], meshes[settings.level].roi, settings, runner)
             emit(progress, stage="plan", plan=calibrated(budget, g_scan, settings))
             ctx = RunContext(settings, meshes, levels, f_refs, g_refs, runner, scratch, progress, ckpt,
                              mask_refs, init_result, matrix=None if ckpt is None else StoredMatrix(ckpt.path),
