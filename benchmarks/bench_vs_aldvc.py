@@ -314,6 +314,8 @@ def _chunkdic_child(args) -> None:
     if "problem" in kept:  # every candidate length's linearised field (benchmarks/_oracle.py)
         lengths, fields = candidate_fields(kept["problem"])
         extra = {"oracle_lengths": lengths, "oracle_u": fields.reshape(len(lengths), 3, -1)}
+        # the problem itself, for studies of the choice away from the engine (bench_length_texture.py)
+        np.savez(args.out + "-problem.npz", **kept["problem"], reference=args.ref)
     np.savez(args.out + ".npz", points=points, u=u, **extra)
     hist = res.history
     summary = {

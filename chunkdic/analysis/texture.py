@@ -95,7 +95,8 @@ def texture(ref, element_sizes=DEFAULT_SIZES, *, noise: float | None = None, smo
     ref : str, Path, ndarray, dask array or zarr array/group
         The reference scan (any input :func:`chunkdic.open_scan` reads).
     element_sizes : sequence of int
-        Element sizes to report on, voxels of ``level``.
+        Element sizes to report on, voxels of ``level`` (none: the autocorrelation length and
+        the weakly textured elements of :data:`~chunkdic.engine.texturestats.LADDER` only).
     noise : float, optional
         Std of the image noise of each scan, grey levels of ``level``; default estimated from
         the reference (robust spread of its second differences).
@@ -122,17 +123,15 @@ def texture(ref, element_sizes=DEFAULT_SIZES, *, noise: float | None = None, smo
     True
     """
     sizes = tuple(int(number(e, "--element-sizes", minimum=2, integer=True)) for e in element_sizes)
-    if not sizes:
-        raise InputError("give at least one element size")
     if noise is not None:
         noise = float(number(noise, "--noise", above=0))
     smoothing = float(number(smoothing, "--smoothing", minimum=0))
     edge = int(number(edge, "--box", minimum=16, integer=True))
     scan = open_scan(ref)
     level = int(number(level, "--level", minimum=0, integer=True))
-    if min(scan.shape(level)) < 2 * max(3, min(sizes)):
+    if min(scan.shape(level)) < 2 * max((3, *sizes)):
         raise InputError(f"the reference at level {level} ({scan.shape(level)}) is too small for elements of "
-                         f"{min(sizes)} voxels")
+                         f"{max(sizes, default=3)} voxels (two per axis at least)")
     check_scheduler(scheduler)
     scratch = make_scratch("chunkdic-texture-")
     try:
