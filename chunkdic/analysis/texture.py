@@ -65,7 +65,7 @@ class TextureReport:
         acl = ", ".join(f"≥ {MAX_LAG}" if math.isinf(a) else f"{a:.1f}" for a in s.acl)
         noise = f"{s.noise:.4g} grey levels per scan ({'estimated from the reference' if s.noise_estimated else 'given'})"
         out = [f"autocorrelation length (z, y, x): {acl} voxels",
-               f"noise: {noise}; low-pass {self.smoothing:g} voxel; {s.boxes} boxes of ≤ {s.box_edge}³ voxels sampled",
+               f"noise: {noise}; low-pass {self.smoothing:g} voxel; {s.boxes} box{'es' if s.boxes > 1 else ''} of ≤ {s.box_edge}³ voxels sampled",
                "element size | weakly textured elements | predicted σ_u median / 90 % (voxels, unregularised) | κ"]
         for ell in self.element_sizes:
             weak = s.weak_fraction.get(ell)
