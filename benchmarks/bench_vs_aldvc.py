@@ -532,8 +532,10 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_
         if not peer_too:
             runs["chunkdic"][-1].update(oracle_scores(candidates, pts, case, ell, None, args.points))
             continue
-        a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
-                           threads=args.threads, timeout=args.timeout)
+        a = peer.load_run(base / "aldvc") if args.reuse_peer else None
+        if a is None:
+            a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
+                               threads=args.threads, timeout=args.timeout)
         score = _score(a.points, a.u, a.valid, case, ell)
         # the same field scored with every node al-dvc returns, flagged ones included
         every = _score(a.points, a.u, None, case, ell) if a.points is not None else {}
@@ -772,6 +774,9 @@ def parse_args(argv=None):
                         "fixed length beside the automatic one")
     p.add_argument("--oracle-full", action="store_true",
                    help="with --oracle: run the whole engine at the oracle's length too (one more run per case)")
+    p.add_argument("--reuse-peer", action="store_true",
+                   help="score al-dvc's result an earlier run left in --workdir instead of running it again "
+                        "(same scans and settings: its field is deterministic; its wall time is not kept)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a chunkdic setting for every run, e.g. --set regularization=none (repeatable)")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per tool run")
