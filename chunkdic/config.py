@@ -15,7 +15,7 @@ DEFAULTS = {
         # whole number of elements that fits (at least one).
         "block-voxels": 128,
         # Largest edge (voxels) of a task of the prefilter of g (its halo: 16 voxels per side;
-        # None: 160, chunkdic.engine.prefilter.TASK_EDGE).
+        # None: 160, chunkdic.passes.prefilter.TASK_EDGE).
         "prepare-voxels": None,
         # Peak resident memory per process to plan for ("2GiB"; None: no target): block and
         # prefilter task sizes are chosen to fit it, a run that cannot is refused (docs/engine.md).

@@ -22,6 +22,7 @@ import math
 
 import numpy as np
 
+from . import config
 from .errors import InputError
 
 __all__ = ["number", "check_finite", "non_finite_error", "check_scan_for_result", "check_shape_for_result"]
@@ -147,3 +148,25 @@ def check_shape_for_result(info: dict, shape0, role: str, *, what: str,
             if a < 0 or b > n:
                 raise InputError(f"{what} has shape {shape} at level {level}, too small for the result's ROI "
                                  f"{a}:{b} on axis {'zyx'[axis]}: {hint}")
+
+
+
+
+def parse_memory(value) -> int | None:
+    """Bytes from ``"2GiB"``, ``"1.5 GB"``, ``2e9`` or ``None``; refuse anything else."""
+    if value is None or value == "":
+        return None
+    from dask.utils import parse_bytes
+
+    try:
+        out = int(parse_bytes(value)) if isinstance(value, str) else int(value)
+    except (TypeError, ValueError):
+        raise InputError(f"memory target {value!r}: expected a size such as 2GiB or 1500MB") from None
+    if out <= 0:
+        raise InputError(f"memory target {value!r} must be positive")
+    return out
+
+
+def memory_target_of(value=None) -> int | None:
+    """``value``, else ``chunkdic.memory-target`` from dask.config, as bytes (or ``None``)."""
+    return parse_memory(value if value is not None else config.get("memory-target"))

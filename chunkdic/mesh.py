@@ -240,7 +240,7 @@ def carry_field(u: np.ndarray, source: Mesh, source_level: int, points: np.ndarr
     Parameters
     ----------
     u : ndarray, shape (3, nz+1, ny+1, nx+1), float64, voxels of ``source_level``
-        Nodal field of ``source`` (no NaN: see :func:`chunkdic.engine.initial.filled`).
+        Nodal field of ``source`` (no NaN: see :func:`chunkdic.method.start.filled`).
     source : Mesh
     source_level : int
     points : ndarray, shape (3, ...), float64, voxels of ``level``

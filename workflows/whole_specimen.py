@@ -187,8 +187,8 @@ def main(argv=None) -> dict:
     # 5. figures (mid-plane cuts, Uz and eps_zz maps, gap history) and the mesh for ParaView
     if not args.no_report:
         t0 = time.perf_counter()
-        from chunkdic.views.export import write_vtk
-        from chunkdic.views.report import report
+        from chunkdic.export.meshfiles import write_vtk
+        from chunkdic.plot.report import report
 
         # redrawn on every run: overwrite replaces only the figures and mesh an earlier run wrote
         figures = report(result, workdir / "report", overwrite=True,

@@ -7,7 +7,7 @@ exact, the 2-D field would be zero; the paper found it below 0.02 pixel on every
 "similar to white noise". A wrong 3-D field shows instead as a larger 2-D field that
 varies smoothly in space.
 
-The cuts come from worker tasks (:func:`chunkdic.views.correction.planes`, one element layer
+The cuts come from worker tasks (:func:`chunkdic.export.correction.planes`, one element layer
 per task: the client never reads a slab of a scan). Each pair is the reference *as the
 engine saw it* (low-passed) and the corrected image ``λ g̃(X + u(X)) + μ`` (the engine's
 warp kernel and the brightness it found), so that the check sees the 3-D field's error and
@@ -57,8 +57,8 @@ from ..io.outputs import Outputs
 from ..results.result import Result, open_result
 from ..results.scans import input_paths, input_scans, interpolation_of, level_refs
 from ..scheduler import check_scheduler, open_runner
-from ..views import correction
-from ..views.figures import (
+from ..export import correction
+from ..plot.figures import (
     AXES,
     check_figure_options,
     figure,
@@ -207,11 +207,11 @@ def noise_floor(prepared: np.ndarray, corrected: np.ndarray, element_size: int, 
     """The 2-D correlation's predicted standard uncertainty on a cut, pixels.
 
     The a-priori estimate of global DIC, ``Cov(u) = κ σ_r² M⁻¹`` (paper 4.2; the 3-D engine's
-    per-node uncertainty, :func:`chunkdic.engine.noise.nodal_uncertainty`), applied to the
+    per-node uncertainty, :func:`chunkdic.method.noise.nodal_uncertainty`), applied to the
     2-D correlation of the cut: ``M`` is its level-0 Q4 matrix on this pair (as
     :mod:`chunkdic.analysis.q4` builds it, pixels outside a mask left out), ``σ_r`` the
     residual noise the 3-D run measured, and the noise correlation factor ``κ`` of the 3-D
-    run (a cube of the per-axis factor, :mod:`chunkdic.engine.noise`) taken to the power 2/3
+    run (a cube of the per-axis factor, :mod:`chunkdic.method.noise`) taken to the power 2/3
     for two axes.
 
     Parameters
@@ -330,7 +330,7 @@ def cutcheck(result, output=None, *, ref=None, deformed=None, scheduler=None, ov
     fmt : {"png", "pdf", "svg"}, keyword-only
         File format of the figure.
     dpi : int, keyword-only, optional
-        Its resolution, dots per inch (default :data:`chunkdic.views.figures.DEFAULT_DPI`).
+        Its resolution, dots per inch (default :data:`chunkdic.plot.figures.DEFAULT_DPI`).
 
     Returns
     -------
@@ -379,7 +379,7 @@ def plot_cutcheck(result: Result, cuts: list[Cut], fields: list[Q4Result], path,
     scale) with arrows showing its direction (auto-scaled per panel).
 
     Axes in voxels of the result's level, in the scan's frame; the title of each panel gives
-    the cut's figures. Written by :func:`chunkdic.views.figures.save` (format from the extension
+    the cut's figures. Written by :func:`chunkdic.plot.figures.save` (format from the extension
     of ``path``, resolution ``dpi``).
     """
 

@@ -49,11 +49,12 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.checkpoint import fingerprint, identify_input
-from ..engine.driver import correlate, settings_from, voxel_lengths
-from ..engine.initial import filled
-from ..engine.planning import parse_roi, plan_meshes
-from ..engine.prefilter import face_margin
-from ..engine.settings import Settings
+from ..engine.driver import correlate
+from ..engine.front import prepare_run
+from ..method.events import SeriesStep, emit
+from ..method.start import filled
+from ..engine.meshes import parse_roi
+from ..method.settings import Settings
 from ..errors import DiskSpaceError, InputError
 from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
@@ -172,12 +173,8 @@ def series(
     >>> print(s.table())  # doctest: +SKIP
     """
     scans = list(scans)
-    if scans and isinstance(scans[0], (str, Path)):
-        options, roi = voxel_lengths(settings, options, roi, roi_unit, scans[0])
-    settings = settings_from(settings, options)
     if mode not in MODES:
         raise InputError(f"series mode must be one of {', '.join(MODES)}, got {mode!r}")
-    scans = list(scans)
     if len(scans) < 2:
         raise InputError(f"a series needs at least 2 scans (the reference first), got {len(scans)}")
     opened = []
@@ -192,9 +189,10 @@ def series(
         if sc.shape(0) != shape0:
             raise InputError(f"series scan {i} {scans[i]} has shape {sc.shape(0)}, the reference {scans[0]} has "
                              f"{shape0}: every scan of a series must have the reference's shape")
-    # the ROI and meshes, as every step will plan them (refused here, before any output)
-    plan_meshes(shape0, element_size=settings.element_size, roi=roi, level=settings.level,
-                coarsest=settings.coarsest, min_margin=face_margin(settings.smoothing))
+    # the settings, ROI and meshes every step will have (refused here, before any output)
+    spec = prepare_run(scans[0], scans[1], settings, roi=roi, roi_unit=roi_unit, mask=mask, caller="series",
+                       **options)
+    settings, roi = spec.settings, spec.roi
     check_scheduler(scheduler)
     plan = Outputs(inputs=(*scans, mask), overwrite=overwrite)
     entry = plan.add(output, "series", resumable=True)
@@ -375,14 +373,15 @@ def _step(out: Path, name: str, ref, deformed, start: Result | None, settings: S
     _remove_debris(path)
     if path.exists() and _complete(path):
         res, run = open_result(path), "done before"
-        _emit(progress, stage="series-step", group=name, pair=pair, run=run)
+        emit(progress, SeriesStep(group=name, pair=pair, run=run))
     else:
         if path.exists():
             run = "resumed"
-        _emit(progress, stage="series-step", group=name, pair=pair, run=run)
+        emit(progress, SeriesStep(group=name, pair=pair, run=run))
 
-        def tagged(event, name=name):
-            _emit(progress, **event, group=name)
+        def tagged(event, name=name):  # the correlation's events, named by the step they belong to
+            if progress is not None:
+                progress(dataclasses.replace(event, group=name))
 
         res = correlate(ref, deformed, settings, roi=roi, scheduler=scheduler, output=path,
                         progress=tagged, mask=mask, init=start)
@@ -444,6 +443,3 @@ def _row(res: Result, k: int, pair: str, kind: str, group: str, run: str, second
             "level": res.level}
 
 
-def _emit(progress, **event) -> None:
-    if progress is not None:
-        progress(event)

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from ..engine.driver import correlate
-from ..engine.planning import box_at_level, parse_roi, plan_meshes
-from ..engine.prefilter import face_margin
-from ..engine.settings import Settings
+from ..engine.front import prepare_run
+from ..engine.meshes import box_at_level, parse_roi
+from ..method.settings import Settings
 from ..errors import InputError
 from ..inputs import number
 from ..io.handles import ArrayRef
@@ -39,7 +39,8 @@ from ..io.scan import open_scan
 from ..results.strain import strain_summary
 from ..scheduler import check_scheduler
 from ..synth.fourier_shift import fourier_shift_scan
-from ..views.report import plot_uncertainty
+from ..plot.report import plot_uncertainty
+from .challenge import challenge_numbers
 
 log = logging.getLogger(__name__)
 
@@ -134,7 +135,8 @@ UNCERTAINTY_COLUMNS = [
     ("element_size", "ZOI size (vox.)", "d"),
     ("bias_z", "bias Uz (vox.)", "+.4f"), ("bias_y", "bias Uy (vox.)", "+.4f"), ("bias_x", "bias Ux (vox.)", "+.4f"),
     ("std_z", "σ(Uz) (vox.)", ".4f"), ("std_y", "σ(Uy) (vox.)", ".4f"), ("std_x", "σ(Ux) (vox.)", ".4f"),
-    ("sigma_u", "σ(U) (vox.)", ".4f"), ("delta_eps", "δε (–)", ".2e"),
+    ("sigma_u", "σ(U) (vox.)", ".4f"), ("bias", "|μ| (vox.)", ".4f"), ("u_rms", "u_rms (vox.)", ".4f"),
+    ("delta_eps", "δε (–)", ".2e"),
     ("final_gap_percent", "gap (%)", ".3f"), ("nodes", "nodes", "d"), ("status", "status", "s"),
 ]
 
@@ -153,7 +155,9 @@ class UncertaintyReport:
     rows : list of dict
         Per element size: ``element_size``, ``bias_z/y/x`` and ``std_z/y/x`` (voxels of the
         correlated level), ``sigma_u`` (RMS of the three std), ``delta_eps``,
-        ``final_gap_percent``, ``nodes``, ``status``, ``result`` (path).
+        ``final_gap_percent``, ``nodes``, ``status``, ``result`` (path); the DVC Challenge 2.0
+        ``noise_floor_z/y/x`` (= ``std``), ``u_rms_z/y/x`` and pooled ``bias``, ``noise_floor``,
+        ``u_rms`` (:mod:`chunkdic.analysis.challenge`).
     fit : PowerLaw or None
         Fit of ``sigma_u`` against the element size (None with fewer than two sizes).
     shift : tuple of 3 float
@@ -193,7 +197,9 @@ def _displacement_stats(result, t) -> dict:
     err = u - np.asarray(t, float)[:, None]
     bias, std = err.mean(axis=1), u.std(axis=1)
     s = strain_summary(result, measure="small")  # the paper's small strain (rigid translations: the same)
-    return {
+    # the DVC Challenge 2.0 numbers: std is its noise floor (about the mean: the translation removed)
+    challenge = {k: v for k, v in challenge_numbers(err).items() if k != "points"}
+    return {**challenge,
         "element_size": int(result.info["element_size"]),
         "bias_z": float(bias[0]), "bias_y": float(bias[1]), "bias_x": float(bias[2]),
         "std_z": float(std[0]), "std_y": float(std[1]), "std_x": float(std[2]),
@@ -227,32 +233,32 @@ def check_shift(shift) -> tuple[float, float, float]:
     return t
 
 
-def with_settings(settings: Settings | None, level: int, interpolation: str, options: dict | None):
-    """``level``, ``interpolation`` and ``options`` of the studies that correlate once per element
-    size, with a template :class:`Settings` folded in (its fields before ``options``)."""
-    if settings is None:
-        return level, interpolation, options
-    fields = {k: v for k, v in settings.to_json().items() if k not in ("element_size", "level", "interpolation")}
-    return settings.level, settings.interpolation, {**fields, **(options or {})}
+def study_settings(settings: Settings | None, options: dict, defaults: dict) -> dict:
+    """The keyword settings of every correlation of a study, but its element size: the
+    fields of a template ``settings`` (as :func:`chunkdic.correlate` takes them), else the
+    study's ``defaults``, then the keyword ``options`` (:class:`Settings` fields)."""
+    base = defaults if settings is None else {k: v for k, v in settings.to_json().items() if k != "element_size"}
+    return {**base, **options}
 
 
-def check_plan(scan, sizes, roi, level: int, interpolation: str, options: dict | None = None) -> None:
-    """Every element size must fit the scan's ROI at ``level`` (checked before any output)."""
-    given = {k: v for k, v in {**PAPER_SETTINGS, **(options or {})}.items() if k in Settings.names()}
+def check_plan(ref, deformed, sizes, given: dict, *, roi=None, roi_unit: str | None = None, caller: str):
+    """Every element size must make a run of ``ref`` and ``deformed`` with the settings
+    ``given`` (:func:`chunkdic.engine.front.prepare_run`: options, units, ROI and meshes;
+    checked before any output); the ROI in level-0 voxels."""
+    spec = None
     for ell in sizes:
-        settings = Settings(element_size=ell, level=level, interpolation=interpolation, **given)  # validates
-        plan_meshes(scan.shape(0), element_size=ell, roi=roi, level=level,
-                    min_margin=face_margin(settings.smoothing))
+        spec = prepare_run(ref, deformed, None, roi=roi, roi_unit=roi_unit, caller=caller,
+                           **{**given, "element_size": ell})
+    return spec.roi
 
 
 #: the paper's analyses characterise the C8 basis itself: no regularisation unless asked for
 PAPER_SETTINGS = {"regularization": "none"}
 
 
-def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=None, level: int = 0,
-                interpolation: str = "cubic", scheduler=None, overwrite: bool = False,
-                progress: Callable[[dict], None] | None = None, options: dict | None = None,
-                settings: Settings | None = None) -> UncertaintyReport:
+def uncertainty(scan, element_sizes: Sequence[int], out_dir, settings: Settings | None = None, *, shift=0.5,
+                roi=None, roi_unit: str | None = None, scheduler=None, overwrite: bool = False,
+                progress: Callable[[dict], None] | None = None, **options) -> UncertaintyReport:
     """A-priori displacement and strain uncertainty versus element size (paper section 4.2).
 
     Parameters
@@ -267,28 +273,24 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
         ``uncertainty.png``.
     shift : float or tuple of 3 float, keyword-only
         Prescribed translation ``(tz, ty, tx)``, voxels of ``level`` (paper: 0.5 each).
-    roi : str, optional
-        ``"z0:z1,y0:y1,x0:x1"`` in level-0 voxels (default: centred box).
-    level : int
-        Pyramid level correlated (the level is shifted, then correlated as level 0 of
-        the pair; displacements are in its voxels).
-    interpolation : {"cubic", "linear"}
-    scheduler
+    settings : Settings, optional
+        Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
+        ``element_size`` is replaced by each of ``element_sizes``.
+    roi, roi_unit, scheduler
         As in :func:`chunkdic.correlate`.
     overwrite : bool
         Reuse a non-empty ``out_dir`` (its files are replaced).
     progress : callable(dict), optional
         Correlation events (see :func:`chunkdic.correlate`) plus ``{"stage": "shift",
         "fraction": f}`` and ``{"stage": "uncertainty", "element_size": ell, ...row}``.
-    options : dict, optional
-        More :class:`chunkdic.Settings` fields for every correlation. The analysis
-        characterises the C8 basis (the paper's power law of ``σ`` against ``ℓ``), so it runs
-        without regularisation (:data:`PAPER_SETTINGS`) unless ``options`` asks for one: a
-        regularised field's noise depends on ``ℓ_reg`` more than on ``ℓ``.
-    settings : Settings, optional
-        Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
-        ``element_size`` is replaced by each of ``element_sizes``, and it sets ``level`` and
-        ``interpolation`` (``options`` still override its fields).
+    **options
+        :class:`chunkdic.Settings` fields for every correlation, as :func:`chunkdic.correlate`
+        takes them (over ``settings``'s). ``level``: the pyramid level correlated (the level
+        is shifted, then correlated as level 0 of the pair; displacements are in its voxels).
+        The analysis characterises the C8 basis (the paper's power law of ``σ`` against
+        ``ℓ``), so without ``settings`` it runs without regularisation
+        (:data:`PAPER_SETTINGS`) unless ``options`` asks for one: a regularised field's
+        noise depends on ``ℓ_reg`` more than on ``ℓ``.
 
     Returns
     -------
@@ -301,21 +303,22 @@ def uncertainty(scan, element_sizes: Sequence[int], out_dir, *, shift=0.5, roi=N
     """
 
     sizes = check_element_sizes(element_sizes)
-    level, interpolation, options = with_settings(settings, level, interpolation, options)
+    given = study_settings(settings, options, PAPER_SETTINGS)
     t = check_shift(shift)
-    level = number(level, "level", minimum=0, integer=True)
     src_scan = open_scan(scan)
-    check_plan(src_scan, sizes, roi, level, interpolation, options)
+    roi = check_plan(src_scan, src_scan, sizes, given, roi=roi, roi_unit=roi_unit, caller="uncertainty")
     check_scheduler(scheduler)
     plan = Outputs(inputs=[scan], overwrite=overwrite)
     out = plan.add(out_dir, "uncertainty").final
     with plan:  # a failure removes what this run wrote, never older files
-        return _uncertainty(src_scan, sizes, out, t, roi, level, interpolation, scheduler, progress, options)
+        return _uncertainty(src_scan, sizes, out, t, roi, scheduler, progress, given)
 
 
-def _uncertainty(src_scan, sizes, out: Path, t, roi, level: int, interpolation: str, scheduler,
-                 progress, options) -> UncertaintyReport:
-    """:func:`uncertainty` once every input is checked and ``out`` is prepared."""
+def _uncertainty(src_scan, sizes, out: Path, t, roi, scheduler, progress, given: dict) -> UncertaintyReport:
+    """:func:`uncertainty` once every input is checked and ``out`` is prepared; ``given``: the
+    correlations' settings (:func:`study_settings`), ``roi`` in level-0 voxels."""
+    given = dict(given)
+    level = int(given.pop("level", 0))
 
     emit = progress or (lambda event: None)
     # a stored level is used in place; a missing one is written once into out_dir
@@ -329,8 +332,7 @@ def _uncertainty(src_scan, sizes, out: Path, t, roi, level: int, interpolation: 
     rows = []
     for ell in sizes:
         emit({"stage": "element-size", "element_size": ell})
-        res = correlate(_ref_path(src), _ref_path(shifted), element_size=ell, roi=roi_arg, interpolation=interpolation,
-                        **{**PAPER_SETTINGS, **(options or {})},
+        res = correlate(_ref_path(src), _ref_path(shifted), element_size=ell, roi=roi_arg, **given,
                         scheduler=scheduler, output=out / f"result-ell{ell}.zarr", overwrite=True,
                         progress=progress)
         row = _displacement_stats(res, t)

@@ -19,7 +19,7 @@ one axis less:
   coarsest level (phase correlation, then the rigid restriction of ``M``), then modified
   Gauss–Newton per level: ``M`` built once from the reference gradient (centred
   differences), ``b`` re-assembled each iteration, the engine's stopping rule
-  (:mod:`chunkdic.engine.gauss_newton`: converged, stalled, diverged, max-iterations);
+  (:mod:`chunkdic.method.gauss_newton`: converged, stalled, diverged, max-iterations);
 - cubic B-spline interpolation of ``g`` (``linear`` by option); pixels whose ``X + u(X)``
   leaves ``0 … n-1`` (or meets a NaN of ``g``) are dropped from ``b`` and counted.
 
@@ -44,8 +44,8 @@ import scipy.ndimage as ndi
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..engine.rigid import phase_correlation
-from ..engine.stopping import (  # the engine's stopping rule, shared on purpose
+from ..passes.translation import phase_correlation
+from ..method.stopping import (  # the engine's stopping rule, shared on purpose
     State,
     decide,
     noise_step_of,
@@ -196,7 +196,7 @@ def _iterate(lvl: _Level, u: np.ndarray, tolerance: float, max_iterations: int, 
             delta = lvl.solve(p.b)
             # the increment in units of the field's own uncertainty, sigma_u^2 ~ sigma_r^2 / M_ii (the
             # diagonal bound the 3-D engine uses): the stopping rule ends a level whose increments
-            # stay at the noise level as converged (chunkdic.engine.stopping)
+            # stay at the noise level as converged (chunkdic.method.stopping)
             sigma_r2 = (p.gap * lvl.range) ** 2
             if sigma_r2 > 0 and measured.any():
                 q, unsettled = noise_step_of(delta[measured][:, None], (sigma_r2 / diag[measured])[:, None], tolerance)

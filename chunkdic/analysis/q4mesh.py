@@ -4,7 +4,7 @@ One idea: what :mod:`chunkdic.analysis.q4` correlates on, with the engine's conv
 less (:mod:`chunkdic.analysis.q4` explains them): :class:`Mesh2D`, the regular Q4 mesh of a box ROI
 of whole elements (bilinear shape functions at the pixel centres, field evaluation);
 :func:`plan2d`, the mesh of each pyramid level (the rules of
-:func:`chunkdic.engine.planning.plan_meshes`); :func:`pyramid2d`, the 2×2 sum pyramid of an image;
+:func:`chunkdic.engine.meshes.plan_meshes`); :func:`pyramid2d`, the 2×2 sum pyramid of an image;
 :func:`read_image`, a 2-D grey image from a file. In memory: a 2-D image is small.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from ..engine.planning import MIN_COARSE_EDGE, box_at_level, default_margin
+from ..engine.meshes import MIN_COARSE_EDGE, box_at_level, default_margin
 from ..errors import InputError
 
 __all__ = ["Mesh2D", "plan2d", "pyramid2d", "read_image"]
@@ -139,7 +139,7 @@ def _centred(box, ell: int) -> Mesh2D | None:
 
 
 def plan2d(shape, element_size: int, roi=None, coarsest: int | None = None) -> dict[int, Mesh2D]:
-    """Q4 meshes per pyramid level, level 0 first (the rules of :func:`chunkdic.engine.planning.plan_meshes`)."""
+    """Q4 meshes per pyramid level, level 0 first (the rules of :func:`chunkdic.engine.meshes.plan_meshes`)."""
     ell = int(element_size)
     mesh = _centred(_roi_box(roi, shape, ell), ell)
     if mesh is None:
@@ -152,7 +152,7 @@ def plan2d(shape, element_size: int, roi=None, coarsest: int | None = None) -> d
         box = box_at_level(box0, 2**s)
         edge = min(b - a for a, b in box)
         if edge < (MIN_COARSE_EDGE if coarsest is None else 2):
-            if coarsest is not None:  # asked for, as the 3-D engine refuses it (engine.planning)
+            if coarsest is not None:  # asked for, as the 3-D engine refuses it (engine.meshes)
                 raise InputError(f"coarsest level {coarsest} is too coarse for this ROI (edge {edge} pixels at "
                                  f"level {s})")
             break

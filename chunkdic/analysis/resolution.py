@@ -19,6 +19,10 @@ along a code's own curve (a longer regularisation length lowers ``n`` and raises
   ``λ`` rising linearly from ``periods[0]`` to ``periods[1]`` over the rows read (at least
   ``ell`` from the faces) (:class:`chunkdic.synth.fields.Star`; default ``2 ℓ … 20 ℓ``).
 
+``n`` is the DVC Challenge 2.0 noise floor (the standard deviation about the mean: the
+translation only removed); the table adds the Challenge's bias ``|μ|`` and ``u_rms =
+√(μ² + n²)`` over the same nodes (:mod:`chunkdic.analysis.challenge`).
+
 Both are correlated with the same settings (element size, regularisation, any
 :class:`chunkdic.Settings`) against the *same* noisy reference, the star first: with an
 automatic regularisation length, the translated pair is correlated at the length chosen
@@ -58,13 +62,15 @@ from ..io.handles import ArrayRef
 from ..io.outputs import Outputs
 from ..io.scan import open_scan
 from ..mesh import Mesh
+from ..method.settings import Settings
 from ..scheduler import check_scheduler, open_runner
 from ..synth.boolean import stream_key
 from ..synth.fields import Star
 from ..synth.fourier_shift import fourier_shift_scan
 from ..synth.scanpairs import NOISE_KEYS, grey_moments, moved_copy
-from .metrology import check_element_sizes, check_plan, check_shift, write_table
-from .scoring import score_displacement
+from .challenge import challenge_numbers
+from .metrology import check_element_sizes, check_plan, check_shift, study_settings, write_table
+from .scoring import score_displacement, scored_region
 
 log = logging.getLogger(__name__)
 
@@ -77,6 +83,8 @@ RESOLUTION_COLUMNS = [
     ("regularization", "regularisation", "s"),
     ("regularization_length", "ℓ_reg (vox.)", ".1f"),
     ("noise", "n (vox.)", ".4f"),
+    ("bias", "|μ| (vox.)", ".4f"),
+    ("u_rms", "u_rms (vox.)", ".4f"),
     ("l10", "l10 % (vox.)", ".1f"),
     ("l10_bound", "l10 % is", "s"),
     ("mei", "MEI = n·l10 % (vox.²)", ".3f"),
@@ -232,10 +240,10 @@ def _level0_path(ref: ArrayRef) -> str:
     return str(Path(ref.path) / ref.key) if ref.kind == "zarr" and ref.key else ref.path
 
 
-def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, amplitude: float = 0.5,
-               periods: tuple[float, float] | None = None, seed: int = 0, scheduler=None,
+def resolution(scan, element_sizes, out_dir, settings: Settings | None = None, *, noise: float = 0.02, shift=0.5,
+               amplitude: float = 0.5, periods: tuple[float, float] | None = None, seed: int = 0, scheduler=None,
                overwrite: bool = False, progress: Callable[[dict], None] | None = None,
-               options: dict | None = None) -> ResolutionReport:
+               **options) -> ResolutionReport:
     """Noise, spatial resolution l10 % and MEI of a correlation setting, on a scan's texture.
 
     Parameters
@@ -264,9 +272,12 @@ def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, 
     scheduler, overwrite, progress
         As in :func:`chunkdic.analysis.metrology.uncertainty`; progress also receives
         ``{"stage": "resolution", ...row}``.
-    options : dict, optional
-        :class:`chunkdic.Settings` fields of every correlation (default: the engine's,
-        i.e. Tikhonov with an automatic length).
+    settings : Settings, optional
+        Every correlation's settings, as :func:`chunkdic.correlate` takes them (level 0; its
+        ``element_size`` replaced by each of ``element_sizes``).
+    **options
+        :class:`chunkdic.Settings` fields of every correlation, as :func:`chunkdic.correlate`
+        takes them (default: the engine's, i.e. Tikhonov with an automatic length).
 
     Returns
     -------
@@ -289,14 +300,15 @@ def resolution(scan, element_sizes, out_dir, *, noise: float = 0.02, shift=0.5, 
         if len(periods) != 2 or not all(math.isfinite(v) and v > 0 for v in periods):
             raise InputError(f"periods must be two positive numbers, got {periods!r}")
     src_scan = open_scan(scan)
-    given = {"regularization": "tikhonov", **(options or {})}
-    check_plan(src_scan, sizes, None, 0, given.pop("interpolation", "cubic"), given)
+    given = study_settings(settings, options, {"regularization": "tikhonov"})
+    if given.get("level", 0) != 0:
+        raise InputError("the resolution is measured on level 0 only")
+    check_plan(src_scan, src_scan, sizes, given, caller="resolution")
     check_scheduler(scheduler)
     plan = Outputs(inputs=[scan], overwrite=overwrite)
     out = plan.add(out_dir, "resolution").final
     with plan:  # a failure removes what this run wrote, never older files
-        return _resolution(src_scan, sizes, out, noise, t, amplitude, periods, seed, scheduler, progress,
-                           options or {})
+        return _resolution(src_scan, sizes, out, noise, t, amplitude, periods, seed, scheduler, progress, given)
 
 
 def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, scheduler, progress,
@@ -325,7 +337,7 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
     import shutil
 
     shutil.rmtree(out / "shifted.zarr", ignore_errors=True)
-    settings = {"element_size": None, **options}
+    settings = {"element_size": None, **options}  # options: every correlation's settings (study_settings)
     rows, profiles = [], {}
     for ell in sizes:
         lo, hi = periods if periods is not None else (2.0 * ell, 20.0 * ell)
@@ -363,6 +375,8 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
             "regularization_length": _length(reg),
             "regularization_automatic": bool(reg.get("automatic", False)),
             "noise": sc.sigma, "noise_rms": sc.rms, "nodes_scored": sc.n_points,
+            # the DVC Challenge 2.0 bias and u_rms of the same nodes (noise = its noise floor)
+            **_challenge(rt, t, shape, ell),
             "l10": length, "l10_bound": bound,
             "mei": sc.sigma * length, "mei3d": sc.sigma * length ** 1.5,
             "l10_c8": c8_l10(ell),
@@ -386,6 +400,14 @@ def _resolution(src_scan, sizes, out: Path, noise, t, amplitude, periods, seed, 
     Path(files["markdown"]).write_text(report.markdown())
     report.files = files
     return report
+
+
+def _challenge(result, t, shape, ell) -> dict:
+    """Pooled bias and ``u_rms`` of the translated pair over the scored nodes (:mod:`.challenge`)."""
+    inside = scored_region(result.node_coords, shape, ell)
+    err = result.displacement.reshape(3, -1)[:, inside] - np.asarray(t, float)[:, None]
+    d = challenge_numbers(err)
+    return {"bias": d["bias"], "u_rms": d["u_rms"], **{f"bias_{c}": d[f"bias_{c}"] for c in "zyx"}}
 
 
 def _length(reg: dict):

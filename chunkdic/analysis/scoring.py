@@ -221,7 +221,7 @@ def score_between_nodes(node_axes, u, u_true, volume_shape, ell: float, *,
     """Score a nodal field *between* its nodes: trilinear on the node grid (as a viewer shows
     it, and as the C8 basis defines it) at every voxel centre at least ``ell`` from the faces.
 
-    The rule of issue 20 for every tool alike: nodal-only scores flatter a C8 field on short
+    The rule for every tool alike: nodal-only scores flatter a C8 field on short
     waves (its L2 fit overshoots at the nodes) and hide what a user sees between them.
     Voxels outside the node grid's hull are not scored (``n_outside``); voxels in a cell with
     a NaN node count as failed.

@@ -1,12 +1,12 @@
 """Know your texture before you correlate: the report of ``chunkdic texture REF``.
 
-For a reference scan, from sampled boxes read by tasks (:mod:`chunkdic.engine.texturestats`,
+For a reference scan, from sampled boxes read by tasks (:mod:`chunkdic.passes.texture`,
 which measures; this module checks the inputs, runs it and words the report): the
 autocorrelation length per axis, for each element size the fraction of weakly textured
 elements and the noise the engine's model predicts at the nodes without regularisation,
 and the smallest element size the texture supports for the noise (docs/engine.md, "Know
 your texture"). ``correlate`` makes the same check of its own element size before it runs
-(:func:`chunkdic.engine.texturestats.warn_small_elements`).
+(:func:`chunkdic.engine.texture_check.check_texture`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import math
 import shutil
 from dataclasses import asdict, dataclass
 
-from ..engine.texturestats import LADDER, MAX_LAG, WEAK_LIMIT, WEAK_SNR, TextureStats, measure_texture
+from ..passes.texture import LADDER, MAX_LAG, WEAK_LIMIT, WEAK_SNR, TextureStats, measure_texture
 from ..errors import InputError
 from ..inputs import number
 from ..io.ownership import make_scratch
@@ -37,7 +37,7 @@ class TextureReport:
     element_sizes : tuple of int
         The sizes asked for, voxels of ``level``.
     stats : TextureStats
-        What was measured (:class:`chunkdic.engine.texturestats.TextureStats`).
+        What was measured (:class:`chunkdic.passes.texture.TextureStats`).
     level : int
         The pyramid level measured.
     smoothing : float
@@ -96,7 +96,7 @@ def texture(ref, element_sizes=DEFAULT_SIZES, *, noise: float | None = None, smo
         The reference scan (any input :func:`chunkdic.open_scan` reads).
     element_sizes : sequence of int
         Element sizes to report on, voxels of ``level`` (none: the autocorrelation length and
-        the weakly textured elements of :data:`~chunkdic.engine.texturestats.LADDER` only).
+        the weakly textured elements of :data:`~chunkdic.passes.texture.LADDER` only).
     noise : float, optional
         Std of the image noise of each scan, grey levels of ``level``; default estimated from
         the reference (robust spread of its second differences).
@@ -107,7 +107,7 @@ def texture(ref, element_sizes=DEFAULT_SIZES, *, noise: float | None = None, smo
     scheduler : optional
         Where the tasks run (:func:`chunkdic.scheduler.open_runner`).
     edge : int
-        Edge of the sampled boxes, voxels (at most :data:`~chunkdic.engine.texturestats.BOXES`).
+        Edge of the sampled boxes, voxels (at most :data:`~chunkdic.passes.texture.BOXES`).
 
     Returns
     -------

@@ -14,11 +14,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from ..engine.driver import correlate
-from ..engine.settings import Settings
+from ..method.settings import Settings
 from ..errors import InputError
-from ..inputs import number
 from ..io.outputs import Outputs
-from ..io.scan import open_scan
 from ..results.result import Result, open_result
 from ..results.strain import strain_summary
 from ..scheduler import check_scheduler
@@ -28,8 +26,8 @@ from .metrology import (
     check_element_sizes,
     check_plan,
     check_shift,
+    study_settings,
     uncertainty,
-    with_settings,
     write_table,
 )
 
@@ -113,11 +111,9 @@ def zoi_table(results, *, delta_eps: dict[int, float] | None = None) -> list[dic
     return sorted(rows, key=lambda row: -row["element_size"])
 
 
-def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, level: int = 0,
-          interpolation: str = "cubic", uncertainty_from=None, a_priori: bool = True, shift=0.5,
-          scheduler=None, overwrite: bool = False,
-          progress: Callable[[dict], None] | None = None, options: dict | None = None,
-          settings: Settings | None = None) -> dict:
+def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, settings: Settings | None = None, *, roi=None,
+          roi_unit: str | None = None, uncertainty_from=None, a_priori: bool = True, shift=0.5, scheduler=None,
+          overwrite: bool = False, progress: Callable[[dict], None] | None = None, **options) -> dict:
     """The ZOI-size sweep of paper Table 1: correlate for each element size, tabulate.
 
     Parameters
@@ -129,7 +125,10 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     out_dir : path
         Receives ``result-ell{ell}.zarr`` per size, ``zoi_table.csv`` and ``zoi_table.md``
         (and ``uncertainty/`` when the a-priori test runs).
-    roi, level, interpolation, scheduler
+    settings : Settings, optional
+        Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
+        ``element_size`` is replaced by each of ``element_sizes``.
+    roi, roi_unit, scheduler
         As in :func:`chunkdic.correlate`.
     uncertainty_from : UncertaintyReport or path, optional
         Reuse the ``delta eps`` column of an earlier :func:`uncertainty` run (its CSV or
@@ -139,13 +138,10 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
         for the same sizes to fill ``delta eps``; ``False`` leaves the column empty.
     overwrite : bool
     progress : callable(dict), optional
-    options : dict, optional
-        More :class:`chunkdic.Settings` fields; as for :func:`uncertainty`, the paper's
-        analysis runs without regularisation unless asked for (:data:`PAPER_SETTINGS`).
-    settings : Settings, optional
-        Every correlation's settings, as :func:`chunkdic.correlate` takes them; its
-        ``element_size`` is replaced by each of ``element_sizes``, and it sets ``level`` and
-        ``interpolation`` (``options`` still override its fields).
+    **options
+        :class:`chunkdic.Settings` fields (``level``, ``interpolation``, …), as
+        :func:`chunkdic.correlate` takes them; as for :func:`uncertainty`, without ``settings``
+        the paper's analysis runs without regularisation unless asked for (:data:`PAPER_SETTINGS`).
 
     Returns
     -------
@@ -155,42 +151,36 @@ def sweep(ref, deformed, element_sizes: Sequence[int], out_dir, *, roi=None, lev
     """
 
     sizes = check_element_sizes(element_sizes)
-    level, interpolation, options = with_settings(settings, level, interpolation, options)
-    level = number(level, "level", minimum=0, integer=True)
+    given = study_settings(settings, options, PAPER_SETTINGS)
     check_shift(shift)
-    f_scan = open_scan(ref)
-    open_scan(deformed)
-    check_plan(f_scan, sizes, roi, level, interpolation, options)
+    roi = check_plan(ref, deformed, sizes, given, roi=roi, roi_unit=roi_unit, caller="sweep")
     d_eps = None
     if uncertainty_from is not None:
         d_eps = read_delta_eps(uncertainty_from)  # read first: a bad table must not cost a sweep
     check_scheduler(scheduler)
-    given = [] if uncertainty_from is None or isinstance(uncertainty_from, UncertaintyReport) else [uncertainty_from]
-    plan = Outputs(inputs=[ref, deformed, *given], overwrite=overwrite)
+    earlier = [] if uncertainty_from is None or isinstance(uncertainty_from, UncertaintyReport) else [uncertainty_from]
+    plan = Outputs(inputs=[ref, deformed, *earlier], overwrite=overwrite)
     out = plan.add(out_dir, "sweep").final
     with plan:  # a failure removes what this run wrote, never older files
-        return _sweep(ref, deformed, sizes, out, roi, level, interpolation, d_eps, a_priori, shift, scheduler,
-                      progress, options)
+        return _sweep(ref, deformed, sizes, out, roi, given, d_eps, a_priori, shift, scheduler, progress)
 
 
-def _sweep(ref, deformed, sizes, out: Path, roi, level: int, interpolation: str, d_eps, a_priori: bool, shift,
-           scheduler, progress, options) -> dict:
-    """:func:`sweep` once every input is checked and ``out`` is prepared."""
+def _sweep(ref, deformed, sizes, out: Path, roi, given: dict, d_eps, a_priori: bool, shift, scheduler,
+           progress) -> dict:
+    """:func:`sweep` once every input is checked and ``out`` is prepared; ``given``: the
+    correlations' settings (:func:`~chunkdic.analysis.metrology.study_settings`)."""
 
     emit = progress or (lambda event: None)
     results = []
     for ell in sizes:
         emit({"stage": "element-size", "element_size": ell})
-        results.append(correlate(ref, deformed, element_size=ell, roi=roi, level=level,
-                                 interpolation=interpolation, scheduler=scheduler,
-                                 **{**PAPER_SETTINGS, **(options or {})},
+        results.append(correlate(ref, deformed, element_size=ell, roi=roi, **given, scheduler=scheduler,
                                  output=out / f"result-ell{ell}.zarr", overwrite=True, progress=progress))
     report = None
     if d_eps is None and a_priori:
         emit({"stage": "a-priori"})
-        report = uncertainty(ref, sizes, out / "uncertainty", shift=shift, roi=roi, level=level,
-                             interpolation=interpolation, scheduler=scheduler, progress=progress,
-                             options=options)
+        report = uncertainty(ref, sizes, out / "uncertainty", shift=shift, roi=roi, scheduler=scheduler,
+                             progress=progress, **given)
         d_eps = read_delta_eps(report)
     elif d_eps is None:
         d_eps = {}

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.events import EXPLAIN
+from ..method.events import EXPLAIN
 from ..errors import InputError, WorkerLostError
 from ..scheduler import SCHEDULER_HELP
 from .common import (
@@ -86,7 +86,7 @@ def _summary(result, seconds: float) -> str:
     length = result.voxel_length()  # physical size of a level voxel, (z, y, x); None without a voxel size
     unit = info.get("unit") or "unit"
     physical = ""
-    if length is not None:  # the same means in the scan's unit (issue 13: physical units end to end)
+    if length is not None:  # the same means in the scan's unit (physical units end to end)
         physical = " (" + ", ".join(f"{np.nanmean(u[i]) * length[i]:+.4g}" for i in range(3)) + f" {unit})"
     line = (
         f"{info['status']}: final gap {100 * info['final_gap']:.3f}% (initial {100 * info['initial_gap']:.3f}%, "
@@ -114,7 +114,7 @@ def _summary(result, seconds: float) -> str:
                  "measured (their values come from the regularisation); the rest converged, but so large a share "
                  "is not called converged (mask the untextured region, or a larger --element-size)")
     elif info["status"] in ("stalled", "diverged", "max-iterations"):
-        from ..engine.stopping import STALL_PATIENCE
+        from ..method.stopping import STALL_PATIENCE
 
         line += "\n  " + EXPLAIN[info["status"]].format(patience=STALL_PATIENCE)
     if info["excluded_voxels"] and info["status"] != "excluded":
@@ -139,7 +139,7 @@ def cmd_correlate(args) -> int:
 
 def _print_plan(args, element_size, roi) -> int:
     """``correlate --plan``: the plan on stdout, nothing written; exit 2 if the run would be refused."""
-    from ..engine.budget import plan
+    from ..engine.runplan import plan
 
     p = plan(args.ref, args.deformed, element_size=element_size, roi=roi, init=args.init, output=args.output,
              memory_target=args.memory_target, **engine_options(args))
@@ -278,14 +278,15 @@ def _add_demo(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from .. import __version__
-    from . import q4 as _cli_q4
-    from . import report as _cli_report
-    from . import resolution as _cli_resolution
-    from . import scan as _cli_scan
-    from . import series as _cli_series
-    from . import synth as _cli_synth
-    from . import texture as _cli_texture
-    from . import view as _cli_view
+    from . import mechanics as _cli_mechanics
+    from . import q4_commands as _cli_q4
+    from . import report_commands as _cli_report
+    from . import resolution_command as _cli_resolution
+    from . import scan_commands as _cli_scan
+    from . import series_command as _cli_series
+    from . import synth_commands as _cli_synth
+    from . import texture_command as _cli_texture
+    from . import view_command as _cli_view
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
                      formatter_class=_HelpFormatter)
@@ -296,6 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_scan.register(sub)
     _cli_synth.register(sub)
     _cli_report.register(sub)
+    _cli_mechanics.register(sub)
     _cli_resolution.register(sub)
     _cli_texture.register(sub)
     _cli_q4.register(sub)

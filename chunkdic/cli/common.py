@@ -9,7 +9,7 @@ import math
 import sys
 import time
 
-from ..engine.events import EventText
+from ..method.events import EventText
 
 
 def say(msg: str) -> None:
@@ -17,7 +17,7 @@ def say(msg: str) -> None:
 
 
 #: the lines of the current run's events, each term explained once per run (the wording
-#: lives below the CLI, in :mod:`chunkdic.engine.events`, where the engine's log uses it too)
+#: lives below the CLI, in :mod:`chunkdic.method.events`, where the engine's log uses it too)
 _TEXT = EventText(explain=True)
 
 
@@ -43,7 +43,7 @@ def print_progress(event: dict) -> None:
 
 
 #: the shortest time between two progress lines of a step (the engine's block passes use the
-#: same, :data:`chunkdic.engine.level.PROGRESS_SECONDS`)
+#: same, :data:`chunkdic.passes.level.PROGRESS_SECONDS`)
 PROGRESS_SECONDS = 5.0
 
 
@@ -120,8 +120,8 @@ def length_options(args, ref) -> tuple[int, str | None]:
 
 def add_figure_options(p) -> None:
     """``--format png|pdf|svg`` and ``--dpi`` of the commands that write figures (``report``,
-    ``cutcheck``), declared once; both go to :func:`chunkdic.views.figures.save`."""
-    from ..views.figures import DEFAULT_DPI, FORMATS
+    ``cutcheck``), declared once; both go to :func:`chunkdic.plot.figures.save`."""
+    from ..plot.figures import DEFAULT_DPI, FORMATS
 
     p.add_argument("--format", dest="fmt", choices=FORMATS, default="png",
                    help="file format of every figure (default png)")
@@ -131,13 +131,13 @@ def add_figure_options(p) -> None:
 
 def add_engine_options(p, **helps) -> None:
     """The correlation settings every correlating command takes, built from the fields of
-    :class:`~chunkdic.engine.settings.Settings` (their flag, help, choices and default are
+    :class:`~chunkdic.method.settings.Settings` (their flag, help, choices and default are
     declared there, once), then ``--mask`` and ``--scheduler``.
 
     ``helps``: a different help text for some options (by field name), where a command
     uses the option differently (e.g. ``coarsest`` in a series).
     """
-    from ..engine.settings import Settings
+    from ..method.settings import Settings
     from ..scheduler import SCHEDULER_HELP
 
     for name, meta in Settings.options():
@@ -154,13 +154,13 @@ def add_engine_options(p, **helps) -> None:
 
 def engine_options(args) -> dict:
     """The keyword arguments of :func:`chunkdic.correlate` from :func:`add_engine_options`' options."""
-    from ..engine.settings import Settings
+    from ..method.settings import Settings
 
     return {**{name: getattr(args, name) for name, _ in Settings.options()}, "mask": args.mask,
             "scheduler": args.scheduler}
 
 
-#: what a voxel size without a unit is told (issue 23: a bare number was silently read as µm)
+#: what a voxel size without a unit is told (a bare number would be silently read as µm)
 NO_UNIT = ("{option} {value} has no unit: add it ({option} {value}um) or give --unit (micrometer/um, "
            "millimeter/mm, nanometer/nm); a voxel size's unit is never guessed")
 
@@ -186,3 +186,12 @@ def voxel_size_option(text, unit, option: str = "--voxel-size") -> tuple[str | N
     if not units:
         raise InputError(NO_UNIT.format(option=option, value=text))
     return ",".join(repr(v) for v, _ in parsed), units.pop()
+
+
+def add_strain_option(p) -> None:
+    """``--strain {small,green-lagrange}`` (default Green-Lagrange: a rigid rotation gives no strain)."""
+    from ..results.strain import DEFAULT_MEASURE, MEASURES
+
+    p.add_argument("--strain", dest="strain", choices=MEASURES, default=DEFAULT_MEASURE,
+                   help="strain measure: green-lagrange (default; zero for a rigid rotation) or small "
+                        "(the paper's; a rotation of t degrees shows as a strain of about -t^2/2 rad)")

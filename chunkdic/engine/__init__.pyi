@@ -1,4 +1,5 @@
 from .driver import correlate
-from .planning import plan_meshes
-from .settings import Settings
-from .texturestats import ElementSizeWarning
+from .front import RunSpec, prepare_run
+from .meshes import plan_meshes
+from .runplan import Plan, plan
+from .texture_check import ElementSizeWarning

@@ -16,6 +16,7 @@ checkpoint leaves the previous one intact.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import uuid
@@ -28,6 +29,8 @@ from ..io.formats.detect import is_foreign
 from ..io.integrity import content_identity
 from ..io.kinds import kind_of
 from ..results.result import open_result
+from .initial import init_identity
+from .meshes import parse_roi
 
 
 def fingerprint(description: dict) -> str:
@@ -146,15 +149,6 @@ def completed_already(path, print_: str):
     return open_result(p)
 
 
-def resumed_pass(lvl, state):
-    """The latest pass at ``state.u`` on ``lvl``: the one this process ran, else (a level resumed
-    after its iterations ended) one evaluated again. Exactly the pass the interrupted run
-    held when its field stayed the pass's own (an increment left unapplied for the
-    regularisation choice, :func:`chunkdic.engine.gauss_newton.iterate` ``resolve``)."""
-    p = getattr(lvl, "last_pass", None)
-    return p if p is not None else lvl.assemble_b(state.u)
-
-
 def kept_checkpoint_error(exc: OSError, output) -> InputError:
     """The one line for a disk error (full, read-only, I/O) met after a checkpoint was saved:
     the checkpoint stays (marked incomplete) and the same command resumes from it."""
@@ -182,3 +176,45 @@ def identify_input(src, scan) -> dict:
         return {"path": str(Path(src).resolve()), "shape": scan.shape(0), "dtype": str(scan.dtype(0)),
                 "content": content}
     return {"in-memory": uuid.uuid4().hex}
+
+
+@dataclasses.dataclass(frozen=True)
+class RunIdentity:
+    """What identifies a run for resuming and in its result.
+
+    Attributes
+    ----------
+    inputs : dict
+        Per role (``reference``, ``deformed``, ``mask``), :func:`identify_input`.
+    init : dict, optional
+        The earlier result's identity (:func:`chunkdic.engine.initial.init_identity`).
+    fingerprint : str
+        The hash of the inputs, the settings, the ROI and the start field (:func:`fingerprint`).
+    """
+
+    inputs: dict
+    init: dict | None
+    fingerprint: str
+
+    @property
+    def resumable(self) -> bool:
+        """Every input is on disk: an in-memory input's identity is random, such a run never resumes."""
+        return not any("in-memory" in i for i in [*(i for i in self.inputs.values() if i is not None),
+                                                   self.init or {}])
+
+
+def identify_run(spec, ref, deformed, mask=None) -> RunIdentity:
+    """The :class:`RunIdentity` of the run ``spec`` (:class:`chunkdic.engine.front.RunSpec`) of
+    ``ref`` and ``deformed`` (as given: paths or arrays) and a ``mask``."""
+    inputs = {role: identify_input(src, scan) for role, src, scan in
+              (("reference", ref, spec.f_scan), ("deformed", deformed, spec.g_scan))}
+    if mask is not None:
+        inputs["mask"] = identify_input(mask, spec.mask_scan)
+    described = {"settings": spec.settings.to_json(), "roi": parse_roi(spec.roi),
+                 "inputs": [inputs["reference"], inputs["deformed"]], "mask": inputs.get("mask")}
+    init_id = None
+    if spec.init is not None:  # absent otherwise: fingerprints of runs without init are unchanged
+        init_id = described["init"] = init_identity(spec.init)
+        if spec.init.path is None:  # an in-memory result never resumes, as in-memory scans
+            init_id["in-memory"] = uuid.uuid4().hex
+    return RunIdentity(inputs, init_id, fingerprint(described))

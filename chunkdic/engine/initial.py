@@ -1,13 +1,12 @@
-"""A start field from an earlier result (``correlate(..., init=RESULT)``, ``--init``).
+"""An earlier result to start from (``correlate(..., init=RESULT)``, ``--init``): opened, checked, identified.
 
 Besides no motion and the rigid translation found on the coarsest level, a correlation may
 start from the displacement field of an earlier result, when that field's gap is the lowest
-of the three (:func:`chunkdic.engine.steps.best_start`): the previous step of a loading series,
-a coarser or finer element size, another ROI or another pyramid level. The earlier C8
-field is evaluated with its own shape functions at the new mesh's nodes, positions and
-values converted between levels with the half-voxel offset of shared/DESIGN.md, by
-:func:`chunkdic.mesh.carry_field`, the function that carries a field between levels in
-the engine and composes the increments of a loading series.
+of the three (:func:`chunkdic.method.start.best_start`): the previous step of a loading series,
+a coarser or finer element size, another ROI or another pyramid level. The earlier C8 field
+is evaluated at the new mesh's nodes by :func:`chunkdic.method.start.init_field` (its own
+shape functions, positions and values converted between levels with the half-voxel offset
+of shared/DESIGN.md, :func:`chunkdic.mesh.carry_field`).
 
 Choices (docs/analysis.md, "Starting from an earlier result"):
 
@@ -39,10 +38,9 @@ import numpy as np
 from ..errors import InputError
 from ..inputs import check_shape_for_result
 from ..io.kinds import kind_of
-from ..mesh import Mesh, carry_field
 from ..results.result import Result, open_result
 
-__all__ = ["open_init", "init_identity", "start_field"]
+__all__ = ["open_init", "init_identity"]
 
 
 def open_init(init, ref_shape) -> Result:
@@ -93,34 +91,3 @@ def init_identity(res: Result) -> dict:
             "fingerprint": res.info.get("fingerprint"), "created": res.info.get("created"),
             "displacement_sha256": hashlib.sha256(u.tobytes()).hexdigest()[:32],
             "element_size": res.info.get("element_size"), "level": res.level}
-
-
-def filled(u: np.ndarray) -> np.ndarray:
-    """``u`` (3, nz, ny, nx) with NaN nodes replaced by the mean of the measured ones."""
-    bad = ~np.isfinite(u).all(axis=0)
-    if not bad.any():
-        return u
-    out = np.array(u, dtype=np.float64)
-    for c in range(3):
-        out[c][bad] = np.mean(u[c][~bad])
-    return out
-
-
-def start_field(res: Result, mesh: Mesh, level: int) -> np.ndarray:
-    """The earlier field at the nodes of ``mesh`` (level ``level``), voxels of that level.
-
-    Parameters
-    ----------
-    res : Result
-        The earlier result (:func:`open_init`): displacement in voxels of its level.
-    mesh : Mesh
-        The new mesh on the level the run starts on.
-    level : int
-        That level.
-
-    Returns
-    -------
-    ndarray, shape (3, nz, ny, nx), float64, voxels of ``level``
-    """
-    return carry_field(filled(res.displacement), res.mesh, res.level, mesh.node_coords(), level,
-                       clamp=True)

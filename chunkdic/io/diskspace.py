@@ -3,9 +3,9 @@
 One idea: a command that knows how many bytes it will write compares them with the free
 space of the file system that will hold them, *before* the first byte, and refuses in one
 line (:class:`~chunkdic.errors.DiskSpaceError`, exit 2) naming the need, the free space and
-what makes it fit. Used by the correlation's plan (:mod:`chunkdic.engine.budget`: scratch
-and result) and by the image exports (:mod:`chunkdic.views.fields`,
-:mod:`chunkdic.views.corrected_image`); it sits in ``io`` so every layer above may use it.
+what makes it fit. Used by the correlation's plan (:mod:`chunkdic.engine.costs`: scratch
+and result) and by the image exports (:mod:`chunkdic.export.fields_image`,
+:mod:`chunkdic.export.corrected_image`); it sits in ``io`` so every layer above may use it.
 """
 
 from __future__ import annotations

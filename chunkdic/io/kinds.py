@@ -53,6 +53,10 @@ KINDS: dict[str, Kind] = {k.name: k for k in (
           "translated.zarr", "star-ell*.zarr", "star-ell*.csv", "result-translated-ell*.zarr",
           "result-star-ell*.zarr", "scan-*.zarr")),
     Kind("sweep", "folder", "sweep folder", ("result-ell*.zarr", "zoi_table.md", "zoi_table.csv", "uncertainty")),
+    Kind("gauge", "folder", "gauge folder", ("gauge.csv", "gauge.json", "gauge.png", "gauge.pdf", "gauge.svg")),
+    Kind("cracks", "folder", "cracks folder", ("cracks.vtu", "cracks.csv", "cracks.json", "cracks-labels.zarr")),
+    Kind("displacements", "store", "OME-NGFF displacement field"),
+    Kind("pvd", "folder", "ParaView series folder", ("series.pvd", "step-*.vtu")),
     Kind("synth", "folder", "synthetic pair folder", _SYNTH),
     Kind("demo", "folder", "demo folder", _SYNTH + ("result.zarr",)),
     Kind("vtk", "file", "VTK file", suffixes=(".vtu", ".vtk")),
@@ -60,11 +64,11 @@ KINDS: dict[str, Kind] = {k.name: k for k in (
     Kind("csv-meta", "file", "node table sidecar", suffixes=(".json",)),
 )}
 
-#: first line of a node table (``chunkdic.views.export.CSV_COLUMNS``); tables written before the
+#: first line of a node table (``chunkdic.export.meshfiles.CSV_COLUMNS``); tables written before the
 #: JSON sidecar began with a comment line ``# positions …``
 CSV_HEADER = b"iz,iy,ix,z,y,x,Uz,Uy,Ux,"
 
-#: chunkdic's own mark in the VTK files it writes (``chunkdic.views.export.write_vtk``): an
+#: chunkdic's own mark in the VTK files it writes (``chunkdic.export.meshfiles.write_vtk``): an
 #: XML comment right after meshio's in a ``.vtu``, the title line (line 2) of a legacy
 #: ``.vtk``. meshio's own signature is not enough: any meshio user's file carries it.
 VTU_MARK = b"<!--This file was written by chunkdic (export, VTK)-->"

@@ -119,7 +119,7 @@ def ngff_attrs(levels, voxel_size, unit, name) -> dict:
 
 
 def image_attrs(name: str, scale0, shift0, unit, n_levels: int, channels, windows, description: str,
-                method: str = "chunkdic.views.images.coarsen_task") -> dict:
+                method: str = "chunkdic.export.images.coarsen_task") -> dict:
     """OME-NGFF 0.5 ``ome`` attributes of a float image for viewers (fields, corrected image):
     axes ``c, z, y, x``, levels ``0..n_levels-1`` on the frame of level 0 (``scale0``,
     ``shift0``: the scan's own pyramid frame), NaN-aware means, and ``omero`` channels

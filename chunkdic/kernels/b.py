@@ -272,7 +272,7 @@ def b_sums(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g:
     g : ndarray, 3-D, grey levels
         Window of the deformed level starting at ``g_origin`` covering :func:`g_window`:
         raw samples, or (``prefiltered``) the prepared float32 samples / B-spline
-        coefficients of :mod:`chunkdic.engine.prefilter`.
+        coefficients of :mod:`chunkdic.passes.prefilter`.
     g_origin, g_shape : tuple of 3 int
         Window origin; shape of the whole deformed level.
     interpolation : {"linear", "cubic"}, keyword-only
@@ -284,9 +284,9 @@ def b_sums(f: np.ndarray, lo, hi, ell: int, u_nodes: np.ndarray, core_origin, g:
     margin : int, keyword-only
         A voxel is valid when ``margin <= X_i + u_i <= g_shape_i - 1 - margin`` on every axis;
         the data beyond still serve the interpolation and its prefilter (the engine
-        excludes where the low-pass of ``g`` is not exact, :func:`chunkdic.engine.prefilter.face_margin`).
+        excludes where the low-pass of ``g`` is not exact, :func:`chunkdic.passes.prefilter.face_margin`).
     active : ndarray, shape (ez, ey, ex), uint8, keyword-only, optional
-        0 for the elements left out (:mod:`chunkdic.engine.masks`): no sums, not counted as
+        0 for the elements left out (:mod:`chunkdic.passes.masks`): no sums, not counted as
         excluded. Default all 1.
 
     Returns

@@ -46,7 +46,7 @@ class ElementSums:
         further): ``Σ w w' Δd²``, ``Σ w w'``, ``Σ w w' 2 Δd Δg'``, ``Σ w w' Δg'²`` with
         ``Δq = q - q'`` for ``k >= 1`` and ``Δq = q`` for ``k = 0`` (the second moments), and
         ``Σ w d``, ``Σ w g'`` in ``[4, 0]``, ``[5, 0]``: the variogram of any residual
-        ``d - α g'`` (:func:`chunkdic.engine.noise.correlation_factor`; numba kernels only).
+        ``d - α g'`` (:func:`chunkdic.method.noise.correlation_factor`).
 
     ``w`` are the voxel weights: 1 inside the usable part of ``g``, tapering to 0 over
     its last voxel.

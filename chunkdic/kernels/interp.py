@@ -18,7 +18,7 @@ invalid). The caller tests validity and leaves invalid voxels out; the window it
 ``cubic`` (:func:`interp_cubic`)
     cubic B-spline of a window of *coefficients*, not intensities:
     ``scipy.ndimage.spline_filter(order=3, mode="mirror")`` of ``g``, either of the whole
-    level once (:mod:`chunkdic.engine.prefilter`) or per window extended by
+    level once (:mod:`chunkdic.passes.prefilter`) or per window extended by
     ``chunkdic.bspline-halo`` voxels (default 12; the prefilter's influence decays as
     ``0.268^d``). The value at ``p`` sums the 4 x 4 x 4 taps ``floor(p) - 1 .. floor(p) + 2``
     with the uniform cubic B-spline weights of the fractional offset ``t = p - floor(p)``

@@ -15,7 +15,7 @@ face nodes add up in the engine.
 Method: paper section 3, modified Gauss–Newton (section 3.1): ``M`` is built once from
 ``grad f``; each iteration needs ``b_(a,i) = sum_X N_a(X) d_i f(X) r(X)`` with the residual
 ``r = f(X) - (λ g(X + u(X)) + μ)``, where the brightness correction ``(λ, μ)`` is chosen by
-:mod:`chunkdic.engine.greylevel` (``λ = 1, μ = 0`` is the paper). The kernels therefore return,
+:mod:`chunkdic.method.brightness` (``λ = 1, μ = 0`` is the paper). The kernels therefore return,
 per element, the sums from which ``b`` and ``Σ r²`` follow for any ``(λ, μ)``
 (:class:`chunkdic.kernels.blocks.ElementSums`): with ``d = f - g(X+u)`` and ``g' = g(X+u) - c`` (``c`` a centring
 constant), ``r = d - α g' - μ'`` with ``α = λ - 1``, so
@@ -53,7 +53,7 @@ Notes for callers (the engine)
 - ``g`` window: read ``g[kernels_window.g_window(...)]`` and pass its start as ``g_origin``; the kernels
   refuse (ValueError) a window that misses samples a valid voxel needs. For cubic, pass a
   window of float32 B-spline coefficients with ``prefiltered=True`` (what the engine does,
-  :mod:`chunkdic.engine.prefilter`), or raw samples read with ``halo=chunkdic.bspline-halo`` (12)
+  :mod:`chunkdic.passes.prefilter`), or raw samples read with ``halo=chunkdic.bspline-halo`` (12)
   and let the kernels prefilter it (``scipy.ndimage.spline_filter``, mirror).
 - Validity: a voxel counts when ``0 <= X_i + u_i <= g_shape_i - 1`` on every axis (a NaN
   displacement makes it invalid); invalid voxels are left out of every ``b`` sum and
@@ -131,3 +131,41 @@ def compiled_on_disk() -> bool:
         return all(os.path.exists(d._cache._cache_file._index_path) for d in (b_kernel, m_kernel))
     except Exception:  # noqa: BLE001 - numba internals changed: assume cached
         return True
+
+
+
+
+#: modules whose numba kernels a correlation runs: the block kernels, the pyramid's sums,
+#: the client's solver (a run compiles those missing from numba's cache)
+KERNEL_MODULES = ("chunkdic.kernels.b", "chunkdic.kernels.m", "chunkdic.kernels.interp", "chunkdic.kernels.rows",
+                  "chunkdic.kernels.warp", "chunkdic.kernels.lowpass", "chunkdic.kernels.pwrite", "chunkdic.kernels.quantize",
+                  "chunkdic.io.coarsen",
+                  "chunkdic.solve.stencil", "chunkdic.solve.galerkin", "chunkdic.solve.multigrid",
+                  "chunkdic.solve.penalty")
+
+
+def kernels_cached() -> bool:
+    """Whether numba's on-disk cache holds every kernel of :data:`KERNEL_MODULES`, so a run
+    loads them rather than compiling (its base memory is then :data:`WARM_BASE_BYTES`).
+
+    Probing only the ``b`` and ``M`` kernels (:func:`chunkdic.kernels.compiled_on_disk`) is
+    not enough: on a fresh clone whose first test ran those, the next run still compiled
+    the solver's and the low-pass's kernels, and peaked 21 % above a plan that assumed
+    the warm base. Reads numba's cache locator (not a public API): any surprise answers
+    False, the higher estimate.
+    """
+    import importlib
+
+    try:
+        from numba.core.dispatcher import Dispatcher
+
+        for name in KERNEL_MODULES:
+            module = importlib.import_module(name)
+            for obj in vars(module).values():
+                if (isinstance(obj, Dispatcher) and obj.py_func.__module__ == name
+                        and obj.targetoptions.get("inline") != "always"):  # inlined helpers have no cache
+                    if not os.path.exists(obj._cache._cache_file._index_path):
+                        return False
+    except Exception:  # noqa: BLE001 - numba internals changed: assume a compiling run
+        return False
+    return True

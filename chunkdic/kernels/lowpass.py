@@ -7,7 +7,7 @@ and the B-spline prefilter (the recursive filter of :func:`scipy.ndimage.spline_
 applied line after line while the line is in cache: three sweeps of the window instead of
 scipy's six (three per filter), and the lines along z and y are filtered a whole plane at
 a time so that the inner loops run over contiguous x (vectorised). Measured on 192³
-windows (one thread): 2.6× faster than scipy's two calls (:mod:`chunkdic.engine.prefilter`
+windows (one thread): 2.6× faster than scipy's two calls (:mod:`chunkdic.passes.prefilter`
 chooses this kernel; docs/engine.md, "Image preparation").
 
 Results equal scipy's to float32 round-off: the causal initialisation of the recursive

@@ -256,7 +256,7 @@ def _assemble_stencil(T, C, K, sym, condensed):
 
 #: eigenvalues of a cell's offset Gram matrix below this fraction of its largest are dropped
 #: (a thin cell at a mask's edge does not fix its slopes; the ``b`` pass's pseudo-inverse,
-#: :func:`chunkdic.engine.greylevel._reduce_cells`, uses the same cut)
+#: :func:`chunkdic.method.brightness._reduce_cells`, uses the same cut)
 CELL_RCOND = 1e-12
 
 
@@ -282,7 +282,7 @@ def _cell_gram(K: np.ndarray, o: tuple) -> np.ndarray:
 def cell_couplings(C: np.ndarray, K: np.ndarray, k: int) -> np.ndarray:
     """The Schur complement of affine brightness offsets per cell of ``k³`` elements, factored.
 
-    The ``drift`` model with cells (:mod:`chunkdic.engine.greylevel`) eliminates, per cell,
+    The ``drift`` model with cells (:mod:`chunkdic.method.brightness`) eliminates, per cell,
     an offset ``a + b·(X - X_c)`` at every pass (variable projection). The Gauss–Newton
     matrix of the field is then ``M - Σ_c V_c D_c⁻¹ V_cᵀ``, ``V_c[(n, i), q] = Σ w N_n ∂_i f q``
     and ``D_c = Σ w q qᵀ`` over the cell's voxels, ``q = (1, z, y, x)``. That term couples every
@@ -352,7 +352,7 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     impl : {"numba", "numpy"}, keyword-only
         Fused kernel or its NumPy twin (test oracle).
     grey : {"none", "global", "drift", "element"}, keyword-only
-        Brightness model (:mod:`chunkdic.engine.greylevel`). ``drift`` and ``element`` have
+        Brightness model (:mod:`chunkdic.method.brightness`). ``drift`` and ``element`` have
         per-element brightness unknowns, eliminated exactly (variable projection), so the
         Gauss–Newton matrix is ``M`` minus their Schur complement per element, with ``f``
         standing for ``g(X + u)`` as in the rest of the modified Gauss–Newton.
@@ -368,14 +368,14 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
         Positions within ``margin`` voxels of a face of ``g`` count as outside (see
         :func:`b_sums`).
     active : ndarray, shape (ez, ey, ex), uint8, keyword-only, optional
-        0 for the elements left out (:mod:`chunkdic.engine.masks`); default all 1.
+        0 for the elements left out (:mod:`chunkdic.passes.masks`); default all 1.
     with_lags : bool, keyword-only
         Also return ``lags`` (3, LAGS + 1): ``Σ w ∂_i f(x) w ∂_i f(x + k)`` along x, the
         autocorrelation of the sensitivities that estimates the noise correlation
-        (:func:`chunkdic.engine.noise.correlation_factor`). numba only.
+        (:func:`chunkdic.method.noise.correlation_factor`).
     cell : int, keyword-only
         With ``grey="drift"``: elements per side of the cells sharing one affine offset
-        (:func:`chunkdic.engine.greylevel.offset_cell`, the block's first element starting a
+        (:func:`chunkdic.method.brightness.offset_cell`, the block's first element starting a
         cell). Above 1 the stencil is ``M`` itself and the offsets' Schur complement comes
         apart, as :func:`cell_couplings` (it reaches across the cell, beyond the stencil).
         numba only.
@@ -415,7 +415,7 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
         if grey == "drift" and int(cell) > 1:
             raise ValueError("the brightness cells' couplings have no NumPy twin (impl='numba')")
         return kernels_numpy.m_block_numpy(f32, lo, hi, int(ell), elems, CONDENSED[grey], float(center),
-                                           u if masked else None, origin, shape, int(margin), active)
+                                           u if masked else None, origin, shape, int(margin), active, with_lags)
     ell = int(ell)
     idx = [grad_index(core[a], lo[a], hi[a]) for a in range(3)]
     xi = voxel_xi(ell)

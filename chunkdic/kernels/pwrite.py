@@ -1,7 +1,7 @@
 """Rows of a 3-D region written into a raw file by ``pwrite``, without the GIL (numba).
 
 The prefilter of ``g`` writes each task's region into a memory-mappable ``.npy`` store
-(:func:`chunkdic.engine.prefilter.write_npy_region`) one row at a time (its rows are not
+(:func:`chunkdic.passes.prefilter.write_npy_region`) one row at a time (its rows are not
 contiguous in the file): 21 600 ``pwrite`` calls for a 147³ task. From Python, each call
 releases and retakes the GIL; with two such tasks and the client in one process on a busy
 machine the threads queued for it (the convoy effect) and a task took 1-5 s instead of

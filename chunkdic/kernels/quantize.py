@@ -1,7 +1,7 @@
 """Float data onto a 16-bit grid and back, in one sweep (numba).
 
 The scratch stores keep prepared scans as ``uint16`` on a grid ``offset + step · q``
-(:func:`chunkdic.engine.prefilter.prepared_grid`). Written as NumPy expressions, a block's
+(:func:`chunkdic.passes.prefilter.prepared_grid`). Written as NumPy expressions, a block's
 quantisation made four to six float temporaries of the region (a 130³ block of the haloed
 ``f``: 8.7 ms in float64, then 3 ms to read it back as float32), about a tenth of the ``M``
 pass's time per block; one loop makes both the stored values and the float32 ones the
@@ -27,15 +27,15 @@ def quantize_u16(data: np.ndarray, offset: float, step: float, *, wide: bool) ->
         The grid (``step`` > 0).
     wide : bool, keyword-only
         Round ``(data - offset) / step`` computed in float64 (the haloed ``f``,
-        :class:`chunkdic.engine.haloed.HaloedBlocks`), else ``(data - offset) · (1 / step)`` in
-        float32 (the prepared ``g``, :func:`chunkdic.engine.prefilter.quantize`).
+        :class:`chunkdic.passes.haloed.HaloedBlocks`), else ``(data - offset) · (1 / step)`` in
+        float32 (the prepared ``g``, :func:`chunkdic.passes.prefilter.quantize`).
 
     Returns
     -------
     q : ndarray, data's shape, uint16
         Rounded to the nearest (half to even) and clipped to ``[0, 65535]``.
     back : ndarray, data's shape, float32
-        ``offset + step · q`` in float32, as :func:`chunkdic.engine.prefilter.dequantize` reads it.
+        ``offset + step · q`` in float32, as :func:`chunkdic.passes.prefilter.dequantize` reads it.
 
     >>> q, back = quantize_u16(np.array([[[-1.0, 0.24, 0.26, 1e9]]], np.float32), 0.0, 0.5, wide=True)
     >>> q.tolist(), back.tolist()

@@ -13,7 +13,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from ..mesh import LOCAL_NODES, shape_table
-from .blocks import ElementSums, gradient_block, voxel_xi
+from .blocks import LAG_STRIDE, LAGS, ElementSums, gradient_block, voxel_xi
 
 
 def _stencil_index(offset) -> int:
@@ -26,9 +26,17 @@ def _element_weights(active, elems, ell) -> np.ndarray:
     return np.repeat(np.repeat(np.repeat(a, ell, axis=0), ell, axis=1), ell, axis=2)
 
 
+def lag_rows(core) -> np.ndarray:
+    """The rows of a block core (bool, shape ``core[:2]``) whose lag sums are taken: one in
+    :data:`~chunkdic.kernels.blocks.LAG_STRIDE`, counted over the block's rows in order."""
+    return (np.arange(core[0] * core[1]).reshape(core[0], core[1]) % LAG_STRIDE) == 0
+
+
 def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_nodes=None, core_origin=None,
-                  g_shape=None, margin: int = 0, active=None):
-    """``M`` stencil (optionally minus the brightness Schur complement), min and max of ``f``.
+                  g_shape=None, margin: int = 0, active=None, with_lags: bool = False):
+    """``M`` stencil (optionally minus the brightness Schur complement), min and max of ``f``
+    and, ``with_lags``, the sensitivities' lag sums (3, LAGS + 1): ``Σ w ∂_i f(x) w ∂_i f(x + k)``
+    along x on the rows of :func:`lag_rows`.
 
     With ``u_nodes``, voxels whose ``X + u(X)`` leaves ``[margin, g_shape - 1 - margin]`` are left out.
     """
@@ -62,7 +70,14 @@ def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_node
         for a, da in enumerate(LOCAL_NODES):
             for b, db in enumerate(LOCAL_NODES):
                 S[ez + da[0], ey + da[1], ex + da[2], _stencil_index(db - da)] += Ke[a, :, b, :]
-    return S, float(core.min()), float(core.max())
+    out = (S, float(core.min()), float(core.max()))
+    if with_lags:
+        rows = lag_rows(core.shape)
+        wg = (weight * grad)[:, rows]  # (3, rows, nx)
+        lags = np.array([[np.sum(wg[i, :, :wg.shape[-1] - k] * wg[i, :, k:]) for k in range(LAGS + 1)]
+                         for i in range(3)])
+        out += (lags,)
+    return out
 
 
 def taper(pos: np.ndarray, g_shape, margin: int) -> np.ndarray:
@@ -136,4 +151,20 @@ def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, 
                       qx.reshape(-1)])
         B[e] = np.einsum("va,iv,qv->qai", W, G * w, v)
         gram[e] = (v * w) @ v.T
-    return ElementSums(B, gram, int(mask.size - mask.sum()) - n_off)
+    return ElementSums(B, gram, int(mask.size - mask.sum()) - n_off, residual_lags(d, gp, weight))
+
+
+def residual_lags(d: np.ndarray, gp: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """The lag sums (6, LAGS + 1) of :class:`~chunkdic.kernels.blocks.ElementSums` on the rows
+    of :func:`lag_rows`: pairs of voxels ``k`` apart along x, weighted ``w w'``."""
+    rows = lag_rows(d.shape)
+    d, gp, w = d[rows], gp[rows], weight[rows]
+    lags = np.zeros((6, LAGS + 1))
+    n = d.shape[-1]
+    for k in range(LAGS + 1):
+        ww = w[:, :n - k] * w[:, k:]
+        dd = d[:, :n - k] - d[:, k:] if k else d
+        dg = gp[:, :n - k] - gp[:, k:] if k else gp
+        lags[:4, k] = [np.sum(ww * dd * dd), np.sum(ww), np.sum(ww * 2.0 * dd * dg), np.sum(ww * dg * dg)]
+    lags[4, 0], lags[5, 0] = np.sum(w * d), np.sum(w * gp)
+    return lags

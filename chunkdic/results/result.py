@@ -28,49 +28,7 @@ import numpy as np
 from .. import config
 from ..errors import InputError
 from ..mesh import Mesh, level0_position
-
-HISTORY_FIELDS = ("level", "iteration", "gap", "max_delta", "excluded")
-
-#: node flag: the node's elements hold (almost) no voxel that maps inside ``g``; its
-#: displacement is NaN (not measured)
-FLAG_NO_DATA = 1
-#: node flag: poorly textured (its 3x3 block of ``M`` is nearly singular); regularised,
-#: its value is unreliable. Also set on the few nodes a level converged at the noise level
-#: still moved by more than ``STEP_CAP`` × their uncertainty (docs/engine.md, "Iterations
-#: and stopping"): poorly seen too, their value is not settled
-FLAG_WEAK = 2
-#: node flag: outside the specimen mask (no active element around it); NaN, not measured
-FLAG_MASKED = 4
-
-#: dimension names, unit and description of every array of a result group (the ``units``
-#: follow CF usage: ``"1"`` is dimensionless; ``"voxel"`` is a voxel of the correlated level)
-LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
-    "displacement": (("component", "z", "y", "x"), "voxel", "nodal displacement, components (Uz, Uy, Ux)"),
-    "node_coords": (("component", "z", "y", "x"), "voxel", "node position, components (z, y, x)"),
-    "uncertainty": (("component", "z", "y", "x"), "voxel",
-                    "standard uncertainty of the nodal displacement, components (z, y, x)"),
-    "strain": (("component_i", "component_j", "ez", "ey", "ex"), "1",
-               "small-strain tensor at the element centres, axes (z, y, x)"),
-    "flags": (("z", "y", "x"), "1", "node flags (bits): 1 no data, 2 weak texture, 4 masked"),
-    "active": (("ez", "ey", "ex"), "1", "element took part (specimen mask)"),
-    "brightness": (("gain_offset", "ez", "ey", "ex"), "1",
-                   "per-element gain (dimensionless) and offset (grey levels of the level): f = gain g + offset"),
-    "z": (("z",), "voxel", "node position along z"),
-    "y": (("y",), "voxel", "node position along y"),
-    "x": (("x",), "voxel", "node position along x"),
-    "ez": (("ez",), "voxel", "element centre along z"),
-    "ey": (("ey",), "voxel", "element centre along y"),
-    "ex": (("ex",), "voxel", "element centre along x"),
-}
-#: the same for the arrays of the ``history`` group (one entry per level and iteration)
-HISTORY_LAYOUT: dict[str, tuple[tuple[str, ...], str, str]] = {
-    "level": (("step",), "1", "pyramid level"),
-    "iteration": (("step",), "1", "iteration (negative: rigid-translation steps)"),
-    "gap": (("step",), "1", "matching gap rms(r) / (max f - min f) (paper 5.1)"),
-    "max_delta": (("step",), "voxel", "max |da| of the update that followed (NaN: final evaluation)"),
-    "excluded": (("step",), "voxel", "voxels left out (X + u(X) outside the deformed scan); a count"),
-}
-
+from .layout import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK, HISTORY_FIELDS, HISTORY_LAYOUT, LAYOUT
 
 @dataclass
 class Result:
@@ -84,7 +42,7 @@ class Result:
         Node positions.
     history : dict of 1-D ndarrays
         Per level and iteration: ``level``, ``iteration``, matching gap ``gap``
-        (paper section 5.1), ``max_delta`` = max |δa| of the update that followed
+        (paper section 5.1), ``max_delta`` = ``max |δa|`` of the update that followed
         (NaN for the final evaluation), ``excluded`` voxels.
     info : dict
         Everything else: ``element_size``, ``roi`` (level voxels, ``[[z0, z1], …]``),
@@ -100,13 +58,13 @@ class Result:
         :data:`FLAG_WEAK` (poorly textured, regularised, or not settled at the noise level) and :data:`FLAG_MASKED` (outside
         the specimen mask, NaN).
     active : ndarray, shape (ez, ey, ex), uint8, optional
-        Elements that took part (a specimen mask's material elements, :mod:`chunkdic.engine.masks`);
+        Elements that took part (a specimen mask's material elements, :mod:`chunkdic.passes.masks`);
         ``None`` without a mask.
     uncertainty : ndarray, shape (3, nz, ny, nx), float64, optional
         Standard deviation of each nodal displacement from the final residual's noise,
-        voxels of ``level`` (:func:`chunkdic.engine.noise.nodal_uncertainty`); NaN where not measured.
+        voxels of ``level`` (:func:`chunkdic.method.noise.nodal_uncertainty`); NaN where not measured.
     brightness : ndarray, shape (2, ez, ey, ex), float64, optional
-        Per-element gain and offset of the grey-level model (:mod:`chunkdic.engine.greylevel`):
+        Per-element gain and offset of the grey-level model (:mod:`chunkdic.method.brightness`):
         ``f(X) ≈ gain · g(X + u(X)) + offset``, grey levels of the correlated level.
     """
 
@@ -188,23 +146,6 @@ class Result:
 
         self.check_displacement()
         return strain_summary(self, exclude_outer=exclude_outer, measure=measure or DEFAULT_MEASURE)
-
-    def to_vtk(self, path, *, units: str = "voxels", strain: str | None = None, overwrite: bool = False) -> dict:
-        """Write the mesh, nodal displacement and element strains as VTK (ParaView): :func:`chunkdic.write_vtk`.
-
-        ``strain``: ``"green-lagrange"`` (default) or ``"small"``; ``units``: ``"voxels"`` or ``"physical"``.
-        """
-        # lazy, and the one import of views by results (a contract exception in pyproject.toml): the writer
-        # belongs with the other exports in views, the method is the form users expect (xarray's to_netcdf)
-        from ..views.export import write_vtk
-
-        return write_vtk(self, path, units=units, overwrite=overwrite, **({"strain": strain} if strain else {}))
-
-    def to_csv(self, path, *, units: str = "voxels", overwrite: bool = False) -> int:
-        """Write the node table (one line per node, JSON sidecar ``PATH.json``): :func:`chunkdic.write_nodes_csv`."""
-        from ..views.export import write_nodes_csv  # lazy: as in to_vtk
-
-        return write_nodes_csv(self, path, units=units, overwrite=overwrite)
 
     def check_displacement(self) -> None:
         """Refuse a result whose nodal field has NaN/inf values the result does not explain.
@@ -408,7 +349,7 @@ def _check_consistent(path, info, u, X, history) -> None:
         roi = [(int(a), int(b)) for a, b in info["roi"]]
         nodes = tuple((b - a) // ell + 1 for a, b in roi)
         ok_roi = len(roi) == 3 and ell >= 1 and all((b - a) % ell == 0 and b > a for a, b in roi)
-    except (TypeError, ValueError, KeyError, ZeroDivisionError):  # element_size 0: no mesh (issue 24)
+    except (TypeError, ValueError, KeyError, ZeroDivisionError):  # element_size 0: no mesh
         ok_roi, nodes = False, None
     if not ok_roi:
         raise InputError(f"result {path}: attributes element_size {info.get('element_size')!r} and roi "

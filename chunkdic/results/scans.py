@@ -5,7 +5,7 @@ computed from (the recorded paths, or the ones the user passes instead, checked 
 the result), the list of on-disk inputs for the output checks of :mod:`chunkdic.io.outputs`,
 the interpolation it used, and :func:`level_refs`, the result's pyramid level of both
 scans as :class:`~chunkdic.io.handles.ArrayRef` (missing levels written to scratch, removed on
-exit). Used by :mod:`chunkdic.views.corrected_image`, :mod:`chunkdic.views.export`, :mod:`chunkdic.views.report`,
+exit). Used by :mod:`chunkdic.export.corrected_image`, :mod:`chunkdic.export.meshfiles`, :mod:`chunkdic.plot.report`,
 :mod:`chunkdic.analysis.crosscheck` and the CLI.
 """
 

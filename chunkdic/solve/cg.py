@@ -5,7 +5,7 @@ preconditioner converge in about a hundred iterations whatever the mesh size, wh
 direct factorisation costs seconds to minutes (shared/DESIGN.md). The stencil is used
 as is for the matrix-vector product, never converted to CSR, and only its symmetric half
 is kept (:data:`~chunkdic.solve.stencil.HALF_OFFSETS`): at 128³ nodes the float32 half stencil is 1 GB instead
-of 2. The regularisation ``R`` (:mod:`chunkdic.solve.regularization`) is applied matrix-free
+of 2. The regularisation ``R`` (:mod:`chunkdic.solve.regularizer`) is applied matrix-free
 in the same CG. A long Tikhonov length makes ``M + λ R`` a fourth-order operator whose
 smooth modes block-Jacobi cannot reach (hundreds to thousands of iterations): there a
 multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) preconditions the same CG instead.
@@ -22,7 +22,8 @@ from ..errors import InputError
 from . import lanes
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
-from .regularization import NO_FREED, Regularizer, add_weighted
+from .penalty import NO_FREED, add_weighted
+from .regularizer import Regularizer
 from .stencil import half_matvec, no_diagonal, pcg, pcg_block_jacobi, subtract_cells
 
 log = logging.getLogger(__name__)
@@ -64,7 +65,7 @@ class StencilSolver:
         asked ever more CG iterations of an increment nobody uses (measured at 300³ with a
         long regularisation length: 1 281 iterations, 3.1 s, for a step of max 3e-6 voxel).
         The increments then carry an error of at most ``rtol`` times the first step's size:
-        with the default 1e-5 (1e-7 until session 30), 5e-6 voxel after a first step of half a
+        with the default 1e-5, 5e-6 voxel after a first step of half a
         voxel, two hundred times below the level-0 tolerance of 1e-3; at 1024³ (ℓ = 16) the
         level-0 solves took 30-40 % fewer iterations (docs/engine.md, "Solve").
     maxiter : int
@@ -94,8 +95,8 @@ class StencilSolver:
         self.rtol, self.maxiter = rtol, maxiter
         self.cells = np.zeros((0, 0, 0, 2, 2, 2, 3, 4), np.float32) if cells is None else cells
         self.cell = int(cell)
-        #: norm of the largest right-hand side solved so far (kept by checkpoints: a
-        #: resumed run stops CG where the uninterrupted one did)
+        #: norm of the largest right-hand side solved so far without a caller's ``reference``
+        #: (:meth:`solve`)
         self.largest_rhs = 0.0
         self.nodes_shape = half.shape[:3]
         # the eigenvalues of the diagonal blocks, a slab of planes at a time: the client
@@ -155,7 +156,7 @@ class StencilSolver:
     def local_variances(self) -> np.ndarray:
         """``diag(A_ii⁻¹ M_ii A_ii⁻¹)`` of every node (nz, ny, nx, 3), float64, ``A = M + λ R``:
         each node's variance per unit noise when its neighbours are held
-        (:func:`chunkdic.engine.noise.nodal_uncertainty`), computed in float64 a slab of
+        (:func:`chunkdic.method.noise.nodal_uncertainty`), computed in float64 a slab of
         planes at a time (the former whole-mesh arrays: 3 × 72 B per node)."""
         out = np.empty(self.nodes_shape + (3,))
         for planes in z_slabs(self.nodes_shape):
@@ -222,19 +223,28 @@ class StencilSolver:
             add_weighted(*self._reg_args, self.weight, x, out)
         return out
 
-    def solve(self, b: np.ndarray, *, overwrite_b: bool = False) -> tuple[np.ndarray, int]:
+    def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
+              reference: float | None = None) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
 
         ``overwrite_b``: CG may use ``b`` (float64, contiguous) as its residual vector,
         leaving it changed: one mesh-sized vector fewer at the client's peak.
+        ``reference``: the caller's CG reference, the largest right-hand-side norm of its
+        earlier solves (:func:`rhs_norm`; ``rtol`` is relative to the larger of it and
+        ``b``'s): the Gauss–Newton state keeps it, so that a resumed run stops CG where the
+        uninterrupted one did. ``None``: the solver's own, :attr:`largest_rhs`, which this
+        solve raises.
         Returns the solution and the number of CG iterations.
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
         code, Ke, Kf, sw, ew, freed = self._reg_args
-        norm = float(np.sqrt(np.sum(b * b)))
-        self.largest_rhs = max(self.largest_rhs, norm)
-        rtol = self.rtol * self.largest_rhs / norm if norm > 0 else self.rtol
+        norm = rhs_norm(b)
+        if reference is None:
+            self.largest_rhs = largest = max(self.largest_rhs, norm)
+        else:
+            largest = max(float(reference), norm)
+        rtol = self.rtol * largest / norm if norm > 0 else self.rtol
         if self._vcycle is not None:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
@@ -256,6 +266,11 @@ class StencilSolver:
         reg_args = (code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed)
         return lanes.pcg_two_lanes(self.matrix, self._diag_args, b, x, rtol, self.maxiter, reg_args, self.weight,
                                    self.cells, self.cell, overwrite_b)
+
+
+def rhs_norm(b: np.ndarray) -> float:
+    """The Euclidean norm of a right-hand side ``b`` (nz, ny, nx, 3): what CG's tolerance is relative to."""
+    return float(np.sqrt(np.sum(b * b)))
 
 
 def z_slabs(nodes_shape, nodes: int = None):
@@ -289,6 +304,6 @@ def warmup() -> None:
     solver.solve(np.ones((7, 7, 7, 3)))
     # the V-cycle's coarse penalty product (reached only on larger meshes): compiled here
     # too, so that every kernel of a run is in numba's cache after a first run
-    # (chunkdic.engine.budget.kernels_cached)
+    # (chunkdic.kernels.jit.kernels_cached)
     regularizer_stencil(Regularizer("tikhonov", (3, 3, 3), 2.0)).matvec_add(1.0, np.ones((3, 3, 3, 3)),
                                                                            np.zeros((3, 3, 3, 3)))

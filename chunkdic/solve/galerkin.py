@@ -14,7 +14,7 @@ assembled):
   *class stencil*: one block row per combination of per-axis classes (the first
   :data:`CORE` positions, the interior, the last :data:`CORE`), at most 9³ rows whatever
   the mesh. The fine one is probed on a mesh of at most 7³ nodes (like
-  :meth:`~chunkdic.solve.regularization.Regularizer.diagonal_blocks`), the coarse ones follow
+  :meth:`~chunkdic.solve.regularizer.Regularizer.diagonal_blocks`), the coarse ones follow
   by the same Galerkin product.
 
 Memory: the coarse ``M`` are 1/8, 1/64, … of the fine one (float32), the ``R`` class
@@ -30,7 +30,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from .regularization import Regularizer
+from .regularizer import Regularizer
 
 COARSEST = 216
 #: positions per mesh end that a class stencil keeps apart from the interior: enough for

@@ -8,7 +8,7 @@ is ``nogil``: here the calling thread applies the stencil while one more thread 
 the cells and the penalty into a vector of its own (the two halves balance within 10 %),
 and block-Jacobi, node by node, is split by halves of the z planes. The same arithmetic as
 :func:`~chunkdic.solve.stencil.pcg_block_jacobi` in another order of summation; one
-mesh-sized float64 vector more (24 B per node, counted by :mod:`chunkdic.engine.budget`).
+mesh-sized float64 vector more (24 B per node, counted by :mod:`chunkdic.engine.costs`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import threading
 import numpy as np
 
 from .. import config
-from .regularization import add_weighted
+from .penalty import add_weighted
 from .stencil import _subtract_cells, axpy, block_solve, half_matvec, pcg
 
 #: the two lanes pay from this many nodes (below, the threads' hand-over, ~50 µs per

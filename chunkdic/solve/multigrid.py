@@ -5,8 +5,8 @@ regularisation ``λ R`` of a long length is a fourth-order operator whose smooth
 block-Jacobi cannot reach: 600–1 300 iterations at 25³ nodes (docs/engine.md, "Solve").
 One V-cycle of this module takes their place as the preconditioner: 7 to 16 iterations
 from ℓ to 32ℓ there, the same counts at 16³ to 48³ nodes. :class:`~chunkdic.solve.cg.StencilSolver`
-uses it at long lengths, for both kinds. The equilibrium gap was left out until its edge
-term (issue 20): its null space then held every field set by the box's edges, out of
+uses it at long lengths, for both kinds. The equilibrium gap needs its edge
+term for that: without it, its null space holds every field set by the box's edges, out of
 reach of a point smoother and of the coarse grid alike (measured: 627 iterations instead
 of 2 000 at 32ℓ, but no faster); with 24 null fields, as Tikhonov's, 27–74 iterations
 from 8ℓ to 32ℓ on 24³ nodes, where block-Jacobi needs 214–1 861.
@@ -38,7 +38,8 @@ from .galerkin import (
     regularizer_hierarchy,
     transfer,
 )
-from .regularization import Regularizer, add_weighted
+from .regularizer import Regularizer
+from .penalty import add_weighted
 from .stencil import axpy, block_jacobi, block_jacobi_step, block_solve, block_solve_step, dot, half_matvec
 
 DEGREE = 1

@@ -17,14 +17,14 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..mesh import STENCIL_OFFSETS
-from .regularization import Regularizer, plane_wave_weight
+from .regularizer import Regularizer, plane_wave_weight
 from .stencil import stencil_matvec
 
 #: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)
 CANDIDATES = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
 #: the criteria :func:`choose_length` knows (docs/engine.md, the comparison); :data:`DEFAULT_RULE` is the default
 RULES = ("discrepancy-texture", "upre", "discrepancy", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve")
-#: the engine's default (:class:`chunkdic.engine.settings.Settings` ``regularization_rule``):
+#: the engine's default (:class:`chunkdic.method.settings.Settings` ``regularization_rule``):
 #: the predicted risk measured better on translations at ℓ = 8 (2×) and level on
 #: heterogeneous fields, but chose too short at ℓ = 4 on pure noise (docs/engine.md)
 DEFAULT_RULE = "discrepancy-texture"
@@ -51,7 +51,7 @@ class Choice:
     ----------
     length : float
         The chosen ``ℓ_reg``, voxels of the level (its ``λ`` on the whole mesh:
-        :func:`~chunkdic.solve.regularization.plane_wave_weight`).
+        :func:`~chunkdic.solve.regularizer.plane_wave_weight`).
     lengths, misfit, roughness : ndarray
         The candidates (voxels), the linearised data misfit increase ``Φ(λ) - Φ_0``
         (grey levels²) and ``aᵀ R a`` of each (the L-curve).
@@ -110,7 +110,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     candidate length the field minimising that misfit plus ``λ aᵀ R a`` is one solve of
     ``(M + λ R) a' = M a + b``; its misfit increase ``D(λ)`` over the data fit is what the
     rules weigh. A fitted unknown absorbs ``s² = κ σ_r²`` of the misfit from the noise
-    (:mod:`chunkdic.engine.noise`), ``N`` unknowns in all:
+    (:mod:`chunkdic.method.noise`), ``N`` unknowns in all:
 
     ``"upre"``
         The least predicted mean-square error of the field in the data norm:
@@ -160,7 +160,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         Converged field and its right-hand side.
     noise_variance : float
         What one fitted unknown absorbs from the noise: ``κ σ_r²``, grey levels²
-        (:mod:`chunkdic.engine.noise`).
+        (:mod:`chunkdic.method.noise`).
     solve_with : callable
         ``solve_with(half, regularizer, weight, rhs) -> x``: the solver of ``(M + λ R) x = rhs``.
         Every call of one region passes the same ``half`` and ``regularizer`` objects, so
@@ -176,7 +176,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         instead of searching; for benchmarks. Same choice.
     freed : ndarray, shape (nz, ny, nx, 6), uint8, optional
         Tikhonov terms left out by the robust reweighting
-        (:attr:`~chunkdic.solve.regularization.Regularizer.freed`): the length is chosen for
+        (:attr:`~chunkdic.solve.regularizer.Regularizer.freed`): the length is chosen for
         the reweighted penalty, ``λ`` normalised on the plain one as always.
     guess : float, optional
         A length (voxels of the level) the choice is expected near: the length the level
@@ -315,7 +315,7 @@ def near_freed(freed: np.ndarray) -> np.ndarray:
     Parameters
     ----------
     freed : ndarray, shape (nz, ny, nx, 6), uint8
-        :attr:`~chunkdic.solve.regularization.Regularizer.freed`.
+        :attr:`~chunkdic.solve.regularizer.Regularizer.freed`.
 
     Returns
     -------

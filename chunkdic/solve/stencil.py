@@ -11,7 +11,7 @@ import numba
 import numpy as np
 
 from ..mesh import STENCIL_OFFSETS
-from .regularization import add_weighted
+from .penalty import add_weighted
 
 #: index of the node itself in the 27-point stencil
 CENTRE = 13
@@ -102,7 +102,7 @@ def block_jacobi_step(Binv, r, x, theta):
 def _solve_block(H, Rd, iz, iy, ix, lam, i, j, k, r0, r1, r2):
     """``D⁻¹ r`` at node (i, j, k) for ``D = M_ii + λ R_ii``: ``M_ii`` the node's diagonal
     block in the half stencil ``H`` (float32, read as float64), ``R_ii`` the class block
-    ``Rd[iz[i], iy[j], ix[k]]`` (:meth:`~chunkdic.solve.regularization.Regularizer.diagonal_blocks`).
+    ``Rd[iz[i], iy[j], ix[k]]`` (:meth:`~chunkdic.solve.regularizer.Regularizer.diagonal_blocks`).
     Cholesky on the lower triangle (``D`` symmetric positive definite), float64."""
     a, b, c = iz[i], iy[j], ix[k]
     s = H[i, j, k, 0]
@@ -204,11 +204,11 @@ def pcg_block_jacobi(H, Rd, iz, iy, ix, b, x, rtol, maxiter, code, Ke, Kf, sw, e
     :func:`dot` and :func:`axpy`: written as 4-D array expressions they took numba 41 s
     to compile (the first run's largest single wait), as flat loops under a second.
 
-    ``λ R`` comes from :func:`chunkdic.solve.regularization.add_weighted`, compiled into this
-    function's Numba cache: a change of ``R`` (the Tikhonov Hessian of issue 20) is seen here
+    ``λ R`` comes from :func:`chunkdic.solve.penalty.add_weighted`, compiled into this
+    function's Numba cache: a change of ``R`` (the Tikhonov Hessian, say) is seen here
     only once this file changes too or the cache is cleared (docs/architecture.md,
     development notes). ``freed``: the Tikhonov terms the robust reweighting left out
-    (:attr:`~chunkdic.solve.regularization.Regularizer.freed`; the block-Jacobi blocks ``Rd``
+    (:attr:`~chunkdic.solve.regularizer.Regularizer.freed`; the block-Jacobi blocks ``Rd``
     stay the plain penalty's). ``cells``, ``cell``: the brightness cells' Schur complement
     (:func:`subtract_cells`; no cell: ``cells`` of length 0). ``overwrite_b``: ``b`` becomes
     the residual (changed on return).

@@ -4,7 +4,7 @@ A sine of period ``T`` imposed on the specimen comes out of a correlation attenu
 by the C8 basis (the L2 projection onto trilinear elements of edge ``ℓ``, read between the
 nodes as a viewer shows it: :func:`c8_ratio`, derived in docs/engine.md, "Spatial
 resolution") and by the regularisation, whose plane-wave normalisation penalises it
-``(ℓ_reg / T)^4`` times its image term (:func:`chunkdic.solve.regularization.plane_wave_weight`),
+``(ℓ_reg / T)^4`` times its image term (:func:`chunkdic.solve.regularizer.plane_wave_weight`),
 so that it keeps ``1 / (1 + (ℓ_reg / T)^4)`` of it. :func:`nominal_l10` is the period at
 which the product first reaches 0.9 (the DIC Challenge 2.0 definition of the spatial
 resolution). It is a lower bound: the low-pass of the scans and the noise attenuate

@@ -5,7 +5,8 @@ its inverse ``X(x)`` with ``X + u(X) = x``; :mod:`chunkdic.synth.foam` renders a
 scan as ``g(x) = f(X(x))``. Fields: :class:`Translation` (rigid), :class:`Affine` (exact
 inverse), :class:`Band`, the paper's localized compression band (inverse by Newton to
 1e-13), and :class:`Star`, a sine along z whose period rises across y (the DIC Challenge
-2.0 star, for the spatial resolution; explicit inverse). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips
+2.0 star, for the spatial resolution; explicit inverse) and :class:`Crack`, a planar crack
+(a displacement jump). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips
 through a pair's ``field.json``. All names are re-exported by :mod:`chunkdic.synth.synthetic`.
 """
 
@@ -27,6 +28,7 @@ __all__ = [
     "Affine",
     "Band",
     "Star",
+    "Crack",
     "true_displacement",
 ]
 
@@ -398,6 +400,82 @@ class Star(Field):
     def _json_fields(self):
         return {"amplitude": self.amplitude, "period_min": self.period_min, "period_max": self.period_max,
                 "y0": self.y0, "y1": self.y1, "center_z": self.center_z}
+
+
+@dataclass(frozen=True)
+class Crack(Field):
+    """A planar crack through the whole volume: a displacement jump across the plane.
+
+    ``u(X) = ± jump / 2`` on the two sides of the plane through ``point`` with unit normal
+    ``normal`` (``+`` where ``normal · (X − point) ≥ 0``), ``jump = opening · normal + sliding``
+    (``sliding`` is made tangent to the plane). The opened gap (``|normal · (x − point)| <
+    opening / 2`` in the deformed scan) has no material point: its texture is the crack faces'
+    stretched across it, ``X(x) = x − jump · normal · (x − point) / opening``, so the deformed
+    scan stays continuous and the jump is the only discontinuity of the motion.
+
+    Parameters
+    ----------
+    normal : tuple of 3 float
+        Normal of the crack plane ``(z, y, x)`` (normalised here).
+    point : tuple of 3 float, voxels
+        A point of the plane.
+    opening : float, voxels
+        Normal jump (``>= 0``).
+    sliding : tuple of 3 float, voxels
+        Tangential jump (its normal part is removed).
+    """
+
+    kind: ClassVar[str] = "crack"
+    normal: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    point: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    opening: float = 0.0
+    sliding: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def __post_init__(self):
+        n = np.asarray(_vec3(self.normal, "crack normal"))
+        if not np.linalg.norm(n) > 0:
+            raise InputError("the crack normal must not be zero")
+        n = n / np.linalg.norm(n)
+        opening = float(self.opening)
+        if not (np.isfinite(opening) and opening >= 0):
+            raise InputError(f"the crack opening must be >= 0 voxels, got {self.opening!r}")
+        t = np.asarray(_vec3(self.sliding, "crack sliding"))
+        object.__setattr__(self, "normal", tuple(float(v) for v in n))
+        object.__setattr__(self, "point", _vec3(self.point, "crack point"))
+        object.__setattr__(self, "opening", opening)
+        object.__setattr__(self, "sliding", tuple(float(v) for v in t - (t @ n) * n))
+
+    @property
+    def jump(self) -> np.ndarray:
+        """The displacement jump across the plane, ``opening · normal + sliding`` (3,), voxels."""
+        return self.opening * np.asarray(self.normal) + np.asarray(self.sliding)
+
+    def _side(self, X):
+        return sum((X[j] - self.point[j]) * self.normal[j] for j in range(3))
+
+    def displacement(self, z, y, x):
+        X = _xyz(z, y, x)
+        sign = np.where(self._side(X) >= 0, 0.5, -0.5)
+        return np.stack([sign * self.jump[i] for i in range(3)])
+
+    def inverse(self, z, y, x):
+        xs = _xyz(z, y, x)
+        s = self._side(xs)
+        half = self.opening / 2.0
+        if half > 0:  # the gap: the faces' texture stretched across it (continuous at both faces)
+            frac = np.where(s >= half, 0.5, np.where(s <= -half, -0.5, s / (2.0 * half)))
+        else:
+            frac = np.where(s >= 0, 0.5, -0.5)
+        return np.stack([xs[i] - frac * self.jump[i] for i in range(3)])
+
+    def _json_fields(self):
+        return {"normal": list(self.normal), "point": list(self.point), "opening": self.opening,
+                "sliding": list(self.sliding)}
+
+    @classmethod
+    def _from_fields(cls, d):
+        return cls(normal=tuple(d["normal"]), point=tuple(d["point"]), opening=float(d["opening"]),
+                   sliding=tuple(d.get("sliding", (0.0, 0.0, 0.0))))
 
 
 def true_displacement(field: Field, z, y, x) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Shear fields along x that vary with z: sinusoidal waves and a localised slip (issue 20).
+"""Shear fields along x that vary with z: sinusoidal waves and a localised slip.
 
 ``Ux = h(Z)``, ``Uz = Uy = 0``: the deformed position keeps ``z``, so the inverse is exact
 (``X = x - h(z)``). :class:`Wave` (``h = A sin(2π (Z - phase) / period)``) probes how short

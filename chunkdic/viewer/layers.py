@@ -35,13 +35,14 @@ Layers of a **result** (bottom to top, napari draws later layers on top):
 A **loading series** adds a leading time axis ``t`` = scan index (0 the reference): the
 scans stacked (when they share a shape; else the reference alone), the cumulative fields
 ``u_0→t`` as 4-D vectors, ``|U| (nodes)`` and ``eps_zz (elements)`` (zero at ``t = 0``).
+
+The mesh-sized layers (vectors, weak nodes, node and element values, the mask's elements) are
+:mod:`chunkdic.viewer.mesh_layers`'s.
 """
 
 from __future__ import annotations
 
 import json
-import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,60 +50,32 @@ import numpy as np
 from ..analysis.loadseries import open_series
 from ..errors import InputError
 from ..io.display import sample_step
-from ..io.formats.anyscan import open_any
 from ..io.kinds import kind_of
 from ..io.scan import open_scan
-from ..mesh import level0_position
-from ..results.result import FLAG_WEAK
 from ..results.scans import as_result, input_scan
-from ..views.fields import CHANNELS, open_levels
-from ..views.images import scan_frame
+from ..export.voxel_values import CHANNELS
+from ..export.fields_reader import open_levels
+from ..export.images import scan_frame
+from .mesh_layers import (
+    MAX_VECTORS,
+    Frame,
+    Layer,
+    contrast_window,
+    element_strain_layer,
+    mask_layer,
+    nodes_norm_layer,
+    vector_layer,
+    weak_layer,
+)
 
-__all__ = ["layers_of", "result_layers", "series_layers", "fields_layers", "find_fields", "weak_layer", "MAX_VECTORS"]
+__all__ = ["layers_of", "result_layers", "series_layers", "fields_layers", "find_fields"]
 
-#: the most displacement vectors one layer shows per time step (a stride per axis keeps it under)
-MAX_VECTORS = 4000
-#: the longest vector is drawn this fraction of the shown node spacing
-VECTOR_FILL = 0.8
-#: a weak node's marker: this fraction of the element edge across (level-0 voxels)
-WEAK_MARKER = 0.4
+
 #: channels of a fields image shown as layers (Uz, Uy, Ux are the vectors)
 FIELD_LAYERS = ("|U|", "eps_zz", "eps_eq", "residual")
 _COLORMAPS = {"|U|": "viridis", "eps_zz": "bwr", "eps_eq": "magma", "residual": "gray"}
 #: a window from at most this many sampled voxels (the client reads no more of a scan)
 _SAMPLE = 1_000_000
-
-Layer = tuple  # (data, kwargs, layer_type)
-
-
-@dataclass(frozen=True)
-class Frame:
-    """Level-0 placement of the reference scan: world = ``shift + scale * level-0 voxel``.
-
-    Attributes
-    ----------
-    scale, shift : tuple of 3 float
-        ``(z, y, x)``, in ``unit`` (voxels when ``unit`` is None).
-    unit : str or None
-        OME-NGFF length unit.
-    """
-
-    scale: tuple[float, float, float]
-    shift: tuple[float, float, float]
-    unit: str | None
-
-    def kwargs(self, *, scale=(1.0, 1.0, 1.0), offset=(0.0, 0.0, 0.0), time: bool = False) -> dict:
-        """napari placement of data whose index ``j`` is at level-0 coordinate ``offset + scale j``."""
-        s = [float(a * b) for a, b in zip(self.scale, scale)]
-        t = [float(o + a * b) for o, a, b in zip(self.shift, self.scale, offset)]
-        kw = {"scale": ([1.0] if time else []) + s, "translate": ([0.0] if time else []) + t,
-              "axis_labels": (("t",) if time else ()) + ("z", "y", "x")}
-        if self.unit:
-            kw["units"] = (("dimensionless",) if time else ()) + (self.unit,) * 3
-        return kw
-
-
-# --------------------------------------------------------------------------- entry point
 
 
 def layers_of(path, *, fields=None, scan: bool = True, max_vectors: int = MAX_VECTORS) -> list[Layer]:
@@ -143,9 +116,6 @@ def layers_of(path, *, fields=None, scan: bool = True, max_vectors: int = MAX_VE
     return result_layers(path, fields=fields, scan=scan, max_vectors=max_vectors)
 
 
-# --------------------------------------------------------------------------- a result
-
-
 def result_layers(result, *, fields=None, scan: bool = True, max_vectors: int = MAX_VECTORS) -> list[Layer]:
     """Layers of one result (module docstring): reference, fields, mask, displacement, weak nodes.
 
@@ -164,8 +134,8 @@ def result_layers(result, *, fields=None, scan: bool = True, max_vectors: int = 
     if fields is not None:
         out += fields_layers(fields)
     else:
-        out += [_nodes_norm([res], frame), _element_strain([res], frame)]
-    mask = _mask_layer(res, frame)
+        out += [nodes_norm_layer([res], frame), element_strain_layer([res], frame)]
+    mask = mask_layer(res, frame)
     if mask is not None:
         out.append(mask)
     out.append(vector_layer([res], frame, max_vectors))
@@ -215,9 +185,6 @@ def _store_meta(path: Path) -> dict:
         return {}
 
 
-# --------------------------------------------------------------------------- images
-
-
 def scan_layer(scans, frame: Frame, name: str) -> Layer:
     """A scan (or scans stacked along ``t``) as a multiscale image of level means.
 
@@ -259,23 +226,7 @@ def _scan_window(scan, coarsest) -> list[float]:
         return [float(stored[0]), float(stored[1])]
     step = sample_step(coarsest.shape, _SAMPLE)
     sample = np.asarray(coarsest[::step, ::step, ::step], dtype=np.float64)
-    return _window(sample)
-
-
-def _window(values: np.ndarray, *, symmetric: bool = False) -> list[float]:
-    """Contrast limits of ``values``: 1st/99th percentiles (``±`` the larger when
-    ``symmetric``), widened when they coincide (napari needs ``lo < hi``)."""
-    v = values[np.isfinite(values)]
-    if v.size == 0:
-        return [-1.0, 1.0] if symmetric else [0.0, 1.0]
-    lo, hi = (float(q) for q in np.percentile(v, [1, 99]))
-    if symmetric:
-        hi = max(abs(lo), abs(hi), float(np.abs(v).max()) * 1e-3)
-        lo = -hi
-    if not hi > lo:
-        pad = max(abs(hi), 1.0) * 1e-6
-        lo, hi = lo - pad, hi + pad
-    return [lo, hi]
+    return contrast_window(sample)
 
 
 def fields_layers(path) -> list[Layer]:
@@ -297,9 +248,9 @@ def fields_layers(path) -> list[Layer]:
         w = windows.get(label) or {}
         limits = [float(w.get("start", 0.0)), float(w.get("end", 1.0))]
         if label in ("eps_zz", "residual"):
-            limits = _window(np.asarray(limits), symmetric=True)
+            limits = contrast_window(np.asarray(limits), symmetric=True)
         elif not limits[1] > limits[0]:
-            limits = _window(np.asarray(limits))
+            limits = contrast_window(np.asarray(limits))
         kw = {"name": label, "colormap": _COLORMAPS[label], "contrast_limits": limits, "visible": label == "|U|",
               "opacity": 0.6, "blending": "translucent",
               "metadata": {"path": str(path), "channel": label,
@@ -323,184 +274,6 @@ def _ngff_frame(multiscale: dict) -> Frame:
     return Frame(tuple(scale), tuple(shift), units.pop() if len(units) == 1 else None)
 
 
-def _grid(res, *, elements: bool) -> tuple[tuple, tuple]:
-    """``(scale, offset)`` in level-0 voxels of a result's node grid (``elements=False``)
-    or element-centre grid: index ``k`` at level-``s`` coordinate ``o + k ell - 0.5``
-    (nodes) or ``o + k ell + (ell - 1)/2`` (centres)."""
-    mesh, f = res.mesh, 2.0**res.level
-    first = [o + ((mesh.element_size - 1) / 2 if elements else -0.5) for o in mesh.origin]
-    return (mesh.element_size * f,) * 3, tuple(float(v) for v in level0_position(first, f))
-
-
-def _displacement(res, frame: Frame) -> np.ndarray:
-    """Nodal displacement ``(3, nz, ny, nx)`` in the frame's unit (level-0 voxels × scale)."""
-    return res.displacement * 2.0**res.level * np.reshape(frame.scale, (3, 1, 1, 1))
-
-
-def _stack(values: list[np.ndarray], time: bool) -> np.ndarray:
-    """One array, or the time stack with ``t = 0`` (the reference: zero field) first."""
-    if not time:
-        return values[0]
-    return np.stack([np.zeros_like(values[0])] + values)
-
-
-def _nodes_norm(results, frame: Frame) -> Layer:
-    """``|U|`` on the node grid (mesh-sized), in the frame's unit."""
-    time = len(results) > 1
-    values = [np.sqrt((_displacement(r, frame) ** 2).sum(axis=0)).astype(np.float32) for r in results]
-    data = _stack(values, time)
-    scale, offset = _grid(results[0], elements=False)
-    return data, {"name": "|U| (nodes)", "colormap": "viridis", "contrast_limits": _window(data), "opacity": 0.6,
-                  "visible": False, "metadata": {"unit": frame.unit or "level-0 voxels"},
-                  **frame.kwargs(scale=scale, offset=offset, time=time)}, "image"
-
-
-def _element_strain(results, frame: Frame) -> Layer:
-    """``eps_zz`` per element (the result's element strain), NaN outside the mask."""
-    time = len(results) > 1
-    values = []
-    for r in results:
-        e = np.array(r.element_strain()[0, 0], dtype=np.float32)
-        if r.active is not None:
-            e[~(r.active > 0)] = np.nan
-        values.append(e)
-    data = _stack(values, time)
-    scale, offset = _grid(results[0], elements=True)
-    return data, {"name": "eps_zz (elements)", "colormap": "bwr", "contrast_limits": _window(data, symmetric=True),
-                  "opacity": 0.6, "visible": False, **frame.kwargs(scale=scale, offset=offset, time=time)}, "image"
-
-
-def _mask_layer(res, frame: Frame) -> Layer | None:
-    """The specimen mask as Labels (1 = material): the recorded mask file at level 0 when
-    it opens, else the result's active elements on the element grid; None without a mask."""
-    src = (res.info.get("inputs") or {}).get("mask")
-    kw = {"name": "mask", "opacity": 0.3, "visible": False, "metadata": {"source": src}}
-    if isinstance(src, str) and Path(src).exists():
-        try:
-            level0 = open_any(src).level(0)  # a TIFF or HDF5 mask too, read in place
-        except InputError:
-            level0 = None
-        if level0 is not None:
-            return (level0 != 0).astype(np.uint8), {**kw, **frame.kwargs()}, "labels"
-    if res.active is None:
-        return None
-    scale, offset = _grid(res, elements=True)
-    kw["metadata"] = {"source": "active elements"}
-    return (np.asarray(res.active) > 0).astype(np.uint8), {**kw, **frame.kwargs(scale=scale, offset=offset)}, "labels"
-
-
-# --------------------------------------------------------------------------- vectors
-
-
-def stride(shape, limit: int) -> int:
-    """The smallest stride ``k`` with ``prod(ceil(n / k)) <= limit`` (one per axis).
-
-    Examples
-    --------
-    >>> stride((10, 10, 10), 1000), stride((10, 10, 10), 999), stride((10, 10, 10), 1)
-    (1, 2, 10)
-    """
-    if limit < 1:
-        raise InputError(f"the number of vectors must be at least 1, got {limit}")
-    k = 1
-    while math.prod(-(-n // k) for n in shape) > limit:
-        k += 1
-    return k
-
-
-def vector_layer(results, frame: Frame, max_vectors: int = MAX_VECTORS) -> Layer:
-    """The nodal displacement of one result (3-D) or of the steps of a series (4-D, ``t``
-    = step ``1..n``) as napari Vectors, sub-sampled and coloured by ``|U|``.
-
-    Positions and directions are level-0 voxels (napari's ``scale``/``translate`` place them
-    in the frame, directions scaled per axis as positions); NaN nodes are left out.
-    """
-    time = len(results) > 1
-    k = stride(results[0].displacement.shape[1:], max_vectors)
-    rows, norms = [], []
-    for t, r in enumerate(results, start=1):
-        sel = (slice(None),) + (slice(None, None, k),) * 3
-        X = level0_position(r.node_coords[sel], 2.0**r.level).reshape(3, -1).T
-        d = (r.displacement[sel] * 2.0**r.level).reshape(3, -1).T
-        ok = np.isfinite(d).all(axis=1) & np.isfinite(X).all(axis=1)
-        X, d = X[ok], d[ok]
-        norms.append(np.sqrt(((d * np.asarray(frame.scale)) ** 2).sum(axis=1)))
-        if time:
-            X = np.column_stack([np.full(len(X), float(t)), X])
-            d = np.column_stack([np.zeros(len(d)), d])
-        rows.append(np.stack([X, d], axis=1))
-    data = np.concatenate(rows).astype(np.float32) if rows else np.zeros((0, 2, 4 if time else 3), np.float32)
-    norm = np.concatenate(norms)
-    spacing = k * results[0].mesh.element_size * 2.0**results[0].level * min(frame.scale)
-    top = float(norm.max()) if norm.size else 0.0
-    length = VECTOR_FILL * spacing / top if top > 0 else 1.0
-    kw = {"name": "displacement", "features": {"|U|": norm.astype(np.float32)}, "edge_color": "|U|",
-          "edge_colormap": "viridis", "length": float(length), "vector_style": "arrow",
-          "edge_width": float(max(1.0, 0.1 * k * results[0].mesh.element_size * 2.0**results[0].level)),
-          "metadata": {"length": float(length), "stride": k, "unit": frame.unit or "level-0 voxels",
-                       "vectors_per_step": [len(r) for r in rows]},
-          **frame.kwargs(time=time)}
-    return data, kw, "vectors"
-
-
-# --------------------------------------------------------------------------- weak nodes
-
-
-def weak_layer(results, frame: Frame) -> Layer | None:
-    """The nodes flagged weak (:data:`chunkdic.results.result.FLAG_WEAK`) of one result (3-D)
-    or of the steps of a series (4-D, ``t`` = step ``1..n``) as napari Points; None when no
-    node is flagged (or the results carry no flags).
-
-    A weak node's value is regularised or not settled at the noise level: the points say
-    where the field is the regulariser's rather than the scans' (what the VTU and CSV
-    exports' ``flags`` say, shown on the scan). Positions are level-0 voxels, placed in the
-    frame like every layer; the name carries the count (``weak nodes (12)``; a series: the
-    most on any step), the features the node index and its flag bits (napari's status bar
-    and tooltip show them for the point under the cursor).
-
-    Parameters
-    ----------
-    results : list of Result
-        One result, or the cumulative steps of a series (one mesh).
-    frame : Frame
-
-    Returns
-    -------
-    (data, kwargs, "points") or None
-        ``data`` shape ``(k, 3)`` (``(k, 4)`` with ``t`` first for a series), float32,
-        level-0 voxels.
-    """
-    time = len(results) > 1
-    rows, index, bits, counts = [], [], [], []
-    for t, r in enumerate(results, start=1):
-        flags = np.zeros(r.displacement.shape[1:], np.uint8) if r.flags is None else np.asarray(r.flags)
-        nodes = np.nonzero(flags & FLAG_WEAK)
-        X = level0_position(r.node_coords[(slice(None), *nodes)], 2.0**r.level).T  # (k, 3)
-        if time:
-            X = np.column_stack([np.full(len(X), float(t)), X])
-        rows.append(X)
-        index.append(np.column_stack(nodes))
-        bits.append(flags[nodes])
-        counts.append(len(X))
-    if not any(counts):
-        return None
-    index = np.concatenate(index).astype(np.int32)
-    res = results[0]
-    size = WEAK_MARKER * res.mesh.element_size * 2.0**res.level
-    name = f"weak nodes ({counts[0]})" if not time else f"weak nodes (up to {max(counts)} per step)"
-    kw = {"name": name, "symbol": "x", "size": float(size), "face_color": "orangered", "opacity": 0.9,
-          "out_of_slice_display": True,  # nodes sit half a voxel off the voxel planes a slice shows
-          "features": {"iz": index[:, 0], "iy": index[:, 1], "ix": index[:, 2],
-                       "flags": np.concatenate(bits).astype(np.int32)},
-          "metadata": {"count": counts[0] if not time else counts, "flag": FLAG_WEAK,
-                       "meaning": "weak node: poorly textured, regularised, or not settled at the noise level"},
-          **frame.kwargs(time=time)}
-    return np.concatenate(rows).astype(np.float32), kw, "points"
-
-
-# --------------------------------------------------------------------------- a series
-
-
 def series_layers(path, *, scan: bool = True, max_vectors: int = MAX_VECTORS) -> list[Layer]:
     """Layers of a loading series with a time axis ``t`` = scan index (module docstring).
 
@@ -520,8 +293,8 @@ def series_layers(path, *, scan: bool = True, max_vectors: int = MAX_VECTORS) ->
         out.append(scan_layer(scans if stackable else scans[:1], frame, "scans" if stackable else "reference"))
     same_mesh = len({(r.mesh, r.level) for r in steps}) == 1
     groups = [steps] if same_mesh else [[r] for r in steps[-1:]]
-    out += [_nodes_norm(groups[0], frame), _element_strain(groups[0], frame)]
-    mask = _mask_layer(steps[0], frame)
+    out += [nodes_norm_layer(groups[0], frame), element_strain_layer(groups[0], frame)]
+    mask = mask_layer(steps[0], frame)
     if mask is not None:
         out.append(mask)
     out.append(vector_layer(groups[0], frame, max_vectors))

@@ -62,7 +62,7 @@ def test_summary_line_states_the_rule_applied():
     """The verdict line says the bounds used (noise floor or the paper's 0.02 px), not always 0.02."""
     from types import SimpleNamespace
 
-    from chunkdic.cli.q4 import _rule
+    from chunkdic.cli.q4_commands import _rule
 
     cuts = [SimpleNamespace(axis=a, floor=f, bound=max(0.02, 2 * f), bound_mean=max(0.02, 3 * f / 6))
             for a, f in (("z", 0.18), ("y", 0.2), ("x", 0.19))]

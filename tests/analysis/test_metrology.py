@@ -11,9 +11,10 @@ import zarr
 
 from chunkdic.analysis import metrology, zoisweep
 from chunkdic.analysis.metrology import PowerLaw, fit_power_law
-from chunkdic.cli import report as _cli_report
+from chunkdic.cli import report_commands as _cli_report
 from chunkdic.errors import InputError
 from chunkdic.io.handles import ArrayRef
+from chunkdic.results.result import open_result
 from chunkdic.synth import foam, fourier_shift, synthetic
 
 
@@ -116,6 +117,10 @@ def test_uncertainty_command_on_synthetic_texture(uncertainty_dir):
     png = (uncertainty_dir / "uncertainty.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
     assert (uncertainty_dir / "result-ell16.zarr").is_dir()
+    # the DVC Challenge 2.0 u_rms: the RMS error over the nodes and components, from the result itself
+    err = open_result(uncertainty_dir / "result-ell16.zarr").displacement - 0.5
+    assert float(rows[16]["u_rms"]) == pytest.approx(float(np.sqrt(np.mean(err**2))), rel=1e-9)
+    assert float(rows[16]["bias"]) == pytest.approx(float(np.sqrt(np.mean(err.mean(axis=(1, 2, 3)) ** 2))), rel=1e-9)
 
 
 def test_uncertainty_refuses_bad_input(affine_pair, tmp_path):
@@ -155,18 +160,21 @@ def test_sweep_table(affine_pair, uncertainty_dir, tmp_path):
 
 
 def test_studies_take_settings_like_correlate():
-    """``sweep``/``uncertainty(settings=...)``: the template's fields reach every correlation
-    (its element size replaced per size), ``options`` still override them."""
-    from chunkdic.analysis.metrology import with_settings
-    from chunkdic.engine.settings import Settings
-
-    template = Settings(element_size=99, level=1, interpolation="linear", smoothing=0.0, regularization="tikhonov")
-    level, interp, options = with_settings(template, 0, "cubic", {"tolerance": 1e-4, "smoothing": 0.5})
-    assert (level, interp) == (1, "linear")
-    assert "element_size" not in options and options["regularization"] == "tikhonov"
-    assert options["smoothing"] == 0.5 and options["tolerance"] == 1e-4
-    assert with_settings(None, 2, "cubic", None) == (2, "cubic", None)
+    """``sweep``/``uncertainty``/``resolution(settings=..., **options)``: the template's fields
+    reach every correlation (its element size replaced per size), keyword options still
+    override them; without a template the paper's analysis runs unregularised."""
     import inspect
 
-    for fn in (zoisweep.sweep, metrology.uncertainty):
-        assert "settings" in inspect.signature(fn).parameters
+    from chunkdic.analysis.metrology import PAPER_SETTINGS, study_settings
+    from chunkdic.analysis.resolution import resolution
+    from chunkdic.method.settings import Settings
+
+    template = Settings(element_size=99, level=1, interpolation="linear", smoothing=0.0, regularization="tikhonov")
+    given = study_settings(template, {"tolerance": 1e-4, "smoothing": 0.5}, PAPER_SETTINGS)
+    assert (given["level"], given["interpolation"]) == (1, "linear")
+    assert "element_size" not in given and given["regularization"] == "tikhonov"
+    assert given["smoothing"] == 0.5 and given["tolerance"] == 1e-4
+    assert study_settings(None, {"level": 2}, PAPER_SETTINGS) == {"regularization": "none", "level": 2}
+    for fn in (zoisweep.sweep, metrology.uncertainty, resolution):
+        params = inspect.signature(fn).parameters
+        assert "settings" in params and params["options"].kind is inspect.Parameter.VAR_KEYWORD

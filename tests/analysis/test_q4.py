@@ -148,8 +148,8 @@ def test_cutcheck_flags_a_wrong_field(synthetic_result):
     from chunkdic.analysis.crosscheck import check_cut
     from chunkdic.results.scans import level_refs
     from chunkdic.scheduler import open_runner
-    from chunkdic.views import correction
-    from chunkdic.views.figures import mid_planes
+    from chunkdic.export import correction
+    from chunkdic.plot.figures import mid_planes
 
     with level_refs(res) as (f, g), open_runner(None) as runner:
         for normal, axis in enumerate("zyx"):
@@ -249,7 +249,7 @@ def test_cli_cutcheck_json_and_exit_status(synthetic_result, capsys):
 def test_increments_at_the_noise_level_end_converged_not_max_iterations():
     """Two noisy copies of one image (5 % of its range, independent): no motion to find, and
     with an unreachable tolerance the increments stay at the noise level. The 2-D check uses
-    the 3-D engine's rule (chunkdic.engine.stopping): converged at the noise level (before:
+    the 3-D engine's rule (chunkdic.method.stopping): converged at the noise level (before:
     max-iterations with the very same field). Measured: RMS 0.44 px, 39 passes."""
     f = smooth_noise((1, 96, 96), sigma=1.5, seed=3)[0]
     rng = np.random.default_rng(1)

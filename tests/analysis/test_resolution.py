@@ -82,7 +82,7 @@ def test_unregularised_c8_l10_on_the_star(tmp_path, ell, shape):
 
     synthesize(tmp_path / "g", shape, specimen="grains", field=None, noise=0.0, seed=3)
     rep = resolution(str(tmp_path / "g" / "ref.zarr"), [ell], tmp_path / "r", noise=0.01,
-                     periods=(1.5 * ell, 5.0 * ell), options={"regularization": "none", "smoothing": 0.0, "max_iterations": 60})
+                     periods=(1.5 * ell, 5.0 * ell), regularization="none", smoothing=0.0, max_iterations=60)
     row = rep.rows[0]
     assert row["l10_bound"] == "="
     assert abs(row["l10"] / c8_l10(ell) - 1) < 0.2, row

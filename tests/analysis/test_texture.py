@@ -16,9 +16,10 @@ import pytest
 from scipy.ndimage import fourier_shift, gaussian_filter
 
 import chunkdic
-from chunkdic.engine.settings import Settings
-from chunkdic.engine.texturestats import ElementSizeWarning, warn_small_elements
+from chunkdic.engine.texture_check import ElementSizeWarning, check_texture
 from chunkdic.io.scan import open_scan
+from chunkdic.mesh import Mesh
+from chunkdic.method.settings import Settings
 from chunkdic.scheduler import open_runner
 
 
@@ -107,7 +108,7 @@ def test_predicted_noise_is_the_engines_scatter_on_a_translated_pair():
 
 def test_correlate_warns_in_one_line_when_the_element_size_is_below_what_the_texture_supports(tmp_path):
     """The checkerboard (flat blocks of 16³) at ℓ = 8: one ElementSizeWarning naming the smallest
-    supported size; a 20-voxel element size: none (the check alone, from the runner's tasks)."""
+    supported size; a 32-voxel element size: none (the check alone, from the runner's tasks)."""
     f = _checkerboard(96)
     with pytest.warns(ElementSizeWarning, match=r"element size 8 voxels is below the smallest .* \(\d+ voxels\)"):
         res = chunkdic.correlate(f, f, element_size=8, coarsest=0, regularization_length=16.0)
@@ -115,8 +116,8 @@ def test_correlate_warns_in_one_line_when_the_element_size_is_below_what_the_tex
     ref = open_scan(f).refs([0], tmp_path)[0]
     with open_runner() as runner, warnings.catch_warnings():
         warnings.simplefilter("error", ElementSizeWarning)
-        stats = warn_small_elements(ref, [(0, 96)] * 3, Settings(element_size=24), runner)
-    assert stats.smallest is not None and stats.smallest <= 24
+        length = check_texture(ref, Mesh((0, 0, 0), 32, (3, 3, 3)), Settings(element_size=32), runner)
+    assert 0 < length < 16
 
 
 def test_cli_prints_the_report_and_refuses_bad_sizes_in_one_line(tmp_path, capsys):

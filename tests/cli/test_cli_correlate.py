@@ -96,7 +96,8 @@ def test_no_traceback_from_the_installed_command(pair, tmp_path):
 
 
 def test_long_passes_report_blocks_rate_and_eta(pair, tmp_path, capsys, monkeypatch):
-    from chunkdic.engine import level, prefilter
+    from chunkdic.passes import level
+    from chunkdic.passes import prefilter
 
     monkeypatch.setattr(level, "PROGRESS_SECONDS", 0.0)  # every block counts as "long"
     monkeypatch.setattr(prefilter, "TASK_EDGE", 16)  # several prefilter tasks on this small pair

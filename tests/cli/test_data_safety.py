@@ -507,7 +507,7 @@ def test_F4_read_only_or_full_disk(data, tmp_path, case):
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     errors = [ln for ln in err if ln.startswith("chunkdic: error:")]
     assert len(errors) == 1 and err[-1] == errors[0], proc.stderr
-    # a correlation whose plan (chunkdic.engine.budget) sees the small scratch disk is refused before it starts
+    # a correlation whose plan (chunkdic.engine.costs) sees the small scratch disk is refused before it starts
     expected = {"read-only": "Read-only file system", "full scratch": "No space left on device|not enough disk"}
     assert re.search(next((v for k, v in expected.items() if k in case), "No space left on device"), errors[0])
     assert proc.stdout.strip() == ""  # nothing left on the mounted disk

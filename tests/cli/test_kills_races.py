@@ -280,7 +280,7 @@ def test_series_on_a_full_disk_keeps_what_resumes_and_says_so(data, tmp_path, at
     lines = [ln for ln in first.splitlines() if ln.startswith("chunkdic: error:")]
     assert report[0] == "first=2" and "Traceback" not in first, first[-3000:]
     assert len(lines) == 1 and first.strip().splitlines()[-1] == lines[0], first[-2000:]
-    # the step's plan may see the full disk first (chunkdic.engine.budget): the same promise
+    # the step's plan may see the full disk first (chunkdic.engine.costs): the same promise
     assert re.search(rf"(No space left on device|not enough disk).*; the series in {re.escape(str(mnt / 'ser.zarr'))} is kept "
                      r"\(marked incomplete, [01] steps? complete\): free space and run the same command again to "
                      "resume", lines[0]), lines[0]

@@ -7,7 +7,7 @@ import pytest
 from textures import fourier_shift, smooth_noise
 
 import chunkdic
-from chunkdic.engine.planning import plan_meshes
+from chunkdic.engine.meshes import plan_meshes
 from chunkdic.synth import foam, synthetic
 
 
@@ -210,9 +210,9 @@ def test_coarse_levels_weak_nodes_are_logged_not_warned(tmp_path, caplog, monkey
     import logging
     import warnings
 
-    from chunkdic.engine import planning
+    from chunkdic.engine import meshes
 
-    monkeypatch.setattr(planning, "COARSE_MIN_ELEMENT", 6)
+    monkeypatch.setattr(meshes, "COARSE_MIN_ELEMENT", 6)
 
     pair = synthetic.synthesize(tmp_path / "p", 128, seed=1)
     with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.INFO, logger="chunkdic"):
@@ -228,7 +228,7 @@ def _run_rule(gaps, deltas, noise_steps, tolerance=1e-3, max_iterations=30):
     (a uniform increment) measured ``noise_step`` times the field's uncertainty."""
     from types import SimpleNamespace
 
-    from chunkdic.engine.stopping import State, decide
+    from chunkdic.method.stopping import State, decide
 
     state = State(np.zeros((3, 2, 2, 2)))
     for gap, delta, q in zip(gaps, deltas, noise_steps):
@@ -282,7 +282,7 @@ def test_a_few_running_away_nodes_do_not_hide_a_field_at_its_noise_level():
     0.4 % unsettled, a field within its noise (the plain RMS said 2.53: stalled). A wrong
     field, every node moving by 1-6 σ_u: most nodes unsettled and the rest at ~2 σ_u, not
     quiet. A component below the tolerance never unsettles its node."""
-    from chunkdic.engine.stopping import NOISE_STEP, STEP_CAP, UNSETTLED_FRACTION, State, noise_step_of
+    from chunkdic.method.stopping import NOISE_STEP, STEP_CAP, UNSETTLED_FRACTION, State, noise_step_of
 
     sigma = np.full((1000, 3), 0.02)
     delta = np.full((1000, 3), 0.05 * 0.02)

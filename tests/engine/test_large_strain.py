@@ -7,12 +7,12 @@ and a rotation of 10° about z, both about the volume's centre: analytic affine 
 independent in the two scans, uint16) at 96³, so the displacement reaches ±9.6 voxels
 along z (20 %) and 8 voxels at the corners of a slice (10°). Before the affine step the
 defaults ended ``stalled`` / ``max-iterations`` with 0.03-0.30 voxel RMS error (max 15
-voxels) at ℓ = 8 on 100³ grains (benchmarks/records/bench_large_strain_before_large_grains.json).
+voxels) at ℓ = 8 on 100³ grains (a record of validation/scripts/bench_large_strain.py, in git history).
 
 Scored as the project scores (issue 20): the field between the nodes, trilinear on the node
 grid, at every voxel at least ℓ from the faces, RMS of the vector error
 (:func:`chunkdic.analysis.scoring.score_between_nodes`). The comment of each case gives the
-figures measured at 100³ (benchmarks/bench_large_strain.py).
+figures measured at 100³ (validation/scripts/bench_large_strain.py).
 """
 
 from __future__ import annotations

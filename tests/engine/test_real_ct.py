@@ -10,7 +10,7 @@ Sizes: the shifts at 80³ (at 64³ only 8 nodes are ``>= 16`` voxels from the fa
 band and its grey-level changes at 96³ (at 80³ the band spans too few scored nodes: RMS
 0.0505 at ℓ = 12 against 0.040 at 96³).
 
-al-dvc 1.2.1 (``al-dvc run --winsize 2ℓ --step ℓ``, its defaults; benchmarks/bench_vs_aldvc.py,
+al-dvc 1.2.1 (``al-dvc run --winsize 2ℓ --step ℓ``, its defaults; validation/scripts/bench_vs_aldvc.py,
 measured by the lead on the same specimens at 100³, same scoring) gives the bounds of issue 10.
 Each test's comment holds the figure measured here (default settings unless stated).
 """
@@ -144,7 +144,7 @@ def test_stagnating_gap_is_reported_stalled_with_exit_1(tmp_path, capsys):
     improvement; never ``converged`` either way.)
     """
     import chunkdic
-    from chunkdic.engine.stopping import STALL_PATIENCE
+    from chunkdic.method.stopping import STALL_PATIENCE
 
     f = smooth_noise((48, 48, 48), sigma=1.2, seed=1).astype(np.float32)
     g = smooth_noise((48, 48, 48), sigma=1.2, seed=2).astype(np.float32)

@@ -153,7 +153,7 @@ def test_killed_after_the_robust_reweighting_resumes_with_the_same_freed_terms(b
 #: arrays, with the stencil's first chunk cut short, before the record that marks it complete
 _DIE_WRITING_M = r'''
 import os, signal, sys
-from chunkdic.engine import stored_matrix
+from chunkdic.passes import stored_matrix
 from chunkdic.cli.app import main
 
 real = stored_matrix.StoredMatrix._set_record

@@ -54,7 +54,7 @@ def band_runs(tmp_path_factory):
 @pytest.mark.slow
 def test_reweighting_measures_the_band_better_than_the_plain_penalty(band_runs):
     """Averaged over where the band falls, the reweighted field's error between the nodes is
-    below the plain penalty's by more than 8 %. Measured by ``benchmarks/bench_irls.py`` on
+    below the plain penalty's by more than 8 %. Measured by ``validation/scripts/bench_irls.py`` on
     the same pairs, on the voxels common with al-dvc (13 … 85): 0.0433 → 0.0409 (offset 0,
     the band's plane on a node) and 0.0352 → 0.0268 (offset 4, between two nodes), −14 % on
     the mean; this test scores every voxel ≥ ℓ from the faces."""

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from chunkdic.cli import scan as _cli_scan
+from chunkdic.cli import scan_commands as _cli_scan
 from chunkdic.errors import InputError
 from chunkdic.io.formats.base import natural_key
 from chunkdic.io.formats.ingest import ingest, slab_chunks

@@ -82,7 +82,7 @@ def test_cg_with_cells_solves_the_reduced_system(monkeypatch, two_lanes, weight)
     # solve of the voxel-by-voxel matrix: the serial CG, and the client's two-lane one
     # (solve.lanes: the stencil on one thread, the cells and the penalty on another)
     from chunkdic.solve import lanes
-    from chunkdic.solve.regularization import Regularizer
+    from chunkdic.solve.regularizer import Regularizer
 
     monkeypatch.setattr(lanes, "LANES_FROM", 0 if two_lanes else 10**12)
     monkeypatch.setattr(lanes, "second_lane", lambda real=lanes.second_lane: real() if two_lanes else None)

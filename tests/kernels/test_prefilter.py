@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
-from chunkdic.engine.prefilter import build_prepared, prepared_halo, write_npy_region
+from chunkdic.passes.prefilter import build_prepared, prepared_halo, write_npy_region
 from chunkdic.io.handles import ArrayRef
 from chunkdic.scheduler import open_runner
 

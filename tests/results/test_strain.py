@@ -155,7 +155,7 @@ def test_rigid_rotation_gives_no_strain_with_the_default_measure(capsys):
     default (Green-Lagrange) strain is zero to round-off, the rotation is 10°; the small
     strain shows the known false strain cos 10° - 1 = -0.01519 on the in-plane axes, and
     the command-level warning says so."""
-    from chunkdic.cli.report import rotation_warning
+    from chunkdic.cli.report_commands import rotation_warning
     from chunkdic.results.strain import (
         DEFAULT_MEASURE,
         displacement_gradient,

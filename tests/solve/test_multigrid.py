@@ -9,7 +9,7 @@ from scipy.interpolate import RegularGridInterpolator
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS
 from chunkdic.solve import galerkin
 from chunkdic.solve.cg import StencilSolver
-from chunkdic.solve.regularization import Regularizer, plane_wave_weight
+from chunkdic.solve.regularizer import Regularizer, plane_wave_weight
 from chunkdic.solve.stencil import stencil_matvec
 
 

@@ -2,7 +2,7 @@
 
 Truths: analytic fields the operators must leave alone (rigid, linear, in equilibrium) or
 map to known values (``x⁴``), the plane-wave normalisation written in
-:mod:`chunkdic.solve.regularization`, the known fields of the CT-like pairs (``tests/ctcases.py``;
+:mod:`chunkdic.solve.regularizer`, the known fields of the CT-like pairs (``tests/ctcases.py``;
 scores by :func:`chunkdic.score_displacement`), a prescribed homogeneous strain, block-size
 invariance. Measured values are in the comments.
 """
@@ -19,8 +19,8 @@ from textures import cylinder_pair, smooth_noise
 import chunkdic
 from chunkdic.analysis.scoring import scored_region
 from chunkdic.cli.app import main
-from chunkdic.engine.planning import plan_meshes
-from chunkdic.engine.prefilter import face_margin
+from chunkdic.engine.meshes import plan_meshes
+from chunkdic.passes.prefilter import face_margin
 from chunkdic.errors import InputError
 from chunkdic.results.result import FLAG_MASKED, FLAG_WEAK
 from chunkdic.results.strain import strain_summary
@@ -32,7 +32,7 @@ from chunkdic.solve.regchoice import (
     dof_fraction,
     regions,
 )
-from chunkdic.solve.regularization import (
+from chunkdic.solve.regularizer import (
     Regularizer,
     plane_wave_weight,
     plane_waves,
@@ -539,7 +539,7 @@ def test_predicted_risk_picks_the_length_of_least_error_on_noisy_known_fields():
 
 
 def test_a_sweep_of_any_rule_carries_the_risk_so_upre_can_be_applied_to_its_curves():
-    """``benchmarks/bench_reg_criteria.py`` sweeps once (default rule, the discrepancy) and
+    """``validation/scripts/bench_reg_criteria.py`` sweeps once (default rule, the discrepancy) and
     applies every rule to the per-region curves. The sweep left the risk's trace term at
     zero unless the rule was ``upre``, so ``argmin(misfit + penalty)`` was the shortest
     candidate on every case, pure noise included (issue 20's records, after the default
@@ -689,7 +689,7 @@ def test_nodal_uncertainty_matches_the_measured_scatter(ct_cases, ell):
 
 def test_exact_diagonal_equals_the_dense_inverse():
     """diag(A⁻¹ M A⁻¹) over the inner nodes of a 6³ regularised system, against a dense inverse."""
-    from chunkdic.engine.noise import exact_diagonal
+    from chunkdic.method.noise import exact_diagonal
     from chunkdic.solve.cg import StencilSolver
 
     rng = np.random.default_rng(3)
@@ -788,7 +788,7 @@ def test_mask_pyramid_by_tasks_equals_the_binarised_sums(tmp_path):
     an odd-shaped float mask with zeros): equal to NumPy's binarisation and 2×2×2 sums."""
     import dask
 
-    from chunkdic.engine.masks import prepare_mask
+    from chunkdic.passes.masks import prepare_mask
     from chunkdic.scheduler import open_runner
 
     rng = np.random.default_rng(0)

@@ -14,14 +14,9 @@ import pytest
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS
 from chunkdic.solve import galerkin
 from chunkdic.solve.cg import StencilSolver
-from chunkdic.solve.regularization import (
-    NO_FREED,
-    TERM_KINDS,
-    Regularizer,
-    add_weighted,
-    plane_wave_weight,
-    robust_freed,
-)
+from chunkdic.solve.penalty import NO_FREED, TERM_KINDS, add_weighted
+from chunkdic.solve.regularizer import Regularizer, plane_wave_weight
+from chunkdic.solve.reweighting import robust_freed
 from chunkdic.solve.stencil import stencil_matvec
 
 ZZ, ZY = TERM_KINDS.index("zz"), TERM_KINDS.index("zy")

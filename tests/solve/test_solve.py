@@ -8,7 +8,7 @@ import pytest
 from chunkdic.errors import InputError
 from chunkdic.mesh import LOCAL_NODES, STENCIL_OFFSETS
 from chunkdic.solve.cg import StencilSolver
-from chunkdic.solve.regularization import Regularizer
+from chunkdic.solve.regularizer import Regularizer
 from chunkdic.solve.stencil import half_stencil, rigid_restriction, stencil_matvec
 
 

@@ -268,7 +268,7 @@ def test_synthesize_writes_pair(tmp_path):
 def test_cli_synth(tmp_path):
     import argparse
 
-    from chunkdic.cli import synth as _cli_synth
+    from chunkdic.cli import synth_commands as _cli_synth
 
     parser = argparse.ArgumentParser()
     _cli_synth.register(parser.add_subparsers(dest="command"))

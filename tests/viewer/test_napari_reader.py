@@ -21,9 +21,12 @@ import chunkdic
 from chunkdic.cli.app import main
 from chunkdic.results.result import FLAG_MASKED, FLAG_NO_DATA, FLAG_WEAK
 from chunkdic.synth import synthetic
-from chunkdic.viewer.layers import Frame, layers_of, result_layers, stride, weak_layer
+from chunkdic.viewer.layers import layers_of, result_layers
+from chunkdic.viewer.mesh_layers import Frame, stride, weak_layer
 from chunkdic.viewer.reader import napari_get_reader
-from chunkdic.views.fields import CHANNELS, open_levels, write_fields
+from chunkdic.export.voxel_values import CHANNELS
+from chunkdic.export.fields_reader import open_levels
+from chunkdic.export.fields_image import write_fields
 
 N, ELL, VOXEL = 40, 8, 6.5
 C = (N - 1) / 2

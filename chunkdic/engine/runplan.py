@@ -1,0 +1,409 @@
+"""The plan of a correlation before anything runs: what it holds, writes and costs.
+
+:func:`plan` (and every :func:`chunkdic.correlate`, before it writes anything) works out
+the levels, their meshes and blocks, the peak memory of each process, the scratch disk and
+the output's size, and the time, from the cost model of :mod:`chunkdic.engine.costs`.
+
+A memory target (``memory_target=``, ``--memory-target``, ``chunkdic.memory-target``) picks
+the largest block (and prefilter task) edge whose estimated peak fits; a run that cannot
+fit it, or whose scratch or output does not fit the free disk, is refused
+(:class:`~chunkdic.errors.InputError`, one line, exit 2) before anything is written.
+docs/engine.md, "Plan, memory target and disk".
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .. import config
+from ..errors import DiskSpaceError, InputError
+from ..inputs import memory_target_of
+from ..io.diskspace import DISK_MARGIN
+from ..io.diskspace import existing_parent as _existing_parent
+from ..io.diskspace import free_bytes as _free
+from ..io.ownership import kept_scratch, reclaimable_scratch_bytes
+from ..mesh import Mesh
+from ..method.brightness import aligned_block_elements, offset_cell
+from ..method.settings import Settings
+from ..passes.haloed import quantization
+from ..passes.prefilter import prepare_voxels, prepared_grid, prepared_halo, task_edge
+from ..passes.scratchstore import COMPACT_RATIO, COMPACT_WORK, layout
+from ..passes.stored_matrix import cells_bytes
+from ..scheduler import threads_of
+from .costs import (
+    BASE_BYTES,
+    CLIENT_BYTES_PER_NODE,
+    COSTS,
+    FIXED_SECONDS,
+    MIN_PREPARE_EDGE,
+    PASSES,
+    SOLVE_SECONDS_PER_NODE,
+    SOLVES,
+    UNCALIBRATED,
+    GiB,
+    MiB,
+    base_bytes,
+    calibrate,
+    chunk_cache_bytes,
+    level_disk,
+    output_bytes,
+    peak_scratch,
+    prepare_bytes,
+    pyramid_levels,
+    pyramid_tasks,
+    read_buffer_bytes,
+    task_bytes,
+)
+from .front import prepare_run
+
+
+@dataclasses.dataclass(frozen=True)
+class LevelPlan:
+    """One level of a :class:`Plan` (voxels of the level)."""
+
+    level: int
+    nodes: tuple[int, int, int]
+    roi_voxels: int
+    block_elements: int
+    block_edge: int
+    blocks: int
+    f_copy_bytes: int
+    prepared_bytes: int
+    task_bytes: int
+    work: float
+    seconds: float = math.nan
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """What a correlation will hold, write and cost (estimates, bytes and seconds).
+
+    Attributes
+    ----------
+    levels : tuple of LevelPlan
+        Coarsest first.
+    threads : int
+        Tasks at once (threads of the embedded pool, or workers' threads).
+    separate_client : bool
+        Tasks run in other processes (a LocalCluster or a cluster): the client's process
+        holds no task, each worker one task per thread.
+    client_bytes, task_bytes : int
+        The client's mesh-sized data; the largest task.
+    process_bytes : int
+        Estimated peak resident memory of the largest process.
+    pyramid_bytes, scratch_bytes, output_bytes : int
+        Scratch pyramid levels (all of them at the start; each deleted when its level
+        ends); peak scratch (the largest, over levels, of a level's haloed ``f`` and
+        prepared ``g`` plus the pyramid levels still held); the result.
+    layout : {"fast", "compact"}
+        How the levels' scratch stores are kept (:mod:`chunkdic.passes.scratchstore`):
+        compact when the fast layout's ``fast_scratch_bytes`` do not fit the free disk
+        (``chunkdic.scratch-layout: auto``), or when forced.
+    scratch_dir, output_dir : str
+        Where they go; ``scratch_free``, ``output_free`` their free bytes now.
+    seconds : float
+        Estimated wall time of the correlation; ``calibration`` says from what.
+    block_voxels, prepare_edge : int
+        Block edge target (``chunkdic.block-voxels``) and prefilter task edge chosen.
+    memory_target : int or None
+        Bytes per process asked for.
+    """
+
+    levels: tuple
+    threads: int
+    separate_client: bool
+    client_bytes: int
+    task_bytes: int
+    process_bytes: int
+    pyramid_bytes: int
+    scratch_bytes: int
+    output_bytes: int
+    scratch_dir: str
+    scratch_free: int
+    output_dir: str | None
+    output_free: int | None
+    seconds: float
+    calibration: str
+    block_voxels: int
+    prepare_edge: int
+    memory_target: int | None = None
+    fixed_work: float = 0.0
+    solve_seconds: float = 0.0
+    smallest_bytes: int = 0
+    layout: str = "fast"
+    fast_scratch_bytes: int = 0
+    base_bytes: int = BASE_BYTES
+
+    def timed(self, seconds_per_voxel: float | None, label: str | None = None) -> "Plan":
+        """The plan with its times from ``seconds_per_voxel`` of one task's prefilter of ``g``
+        (:func:`calibrate`; ``None``: :data:`UNCALIBRATED` assumed)."""
+        unit = UNCALIBRATED if seconds_per_voxel is None else seconds_per_voxel
+        if label is None:
+            label = (f"calibrated now: prefilter of g at {1e-6 / unit:.1f} Mvoxel/s per task, {self.threads} at once"
+                     if seconds_per_voxel is not None else
+                     f"not calibrated: prefilter of g at {1e-6 / unit:.0f} Mvoxel/s per task assumed")
+        levels = tuple(dataclasses.replace(lv, seconds=lv.work * unit / self.threads) for lv in self.levels)
+        seconds = sum(lv.seconds for lv in levels) + self.fixed_work * unit / self.threads
+        return dataclasses.replace(self, levels=levels, seconds=seconds + FIXED_SECONDS + self.solve_seconds,
+                                   calibration=label)
+
+    def summary(self) -> str:
+        """Several lines for a person: one per level, then memory, disk and time."""
+        out = [f"plan: levels {[lv.level for lv in self.levels]}, {self.threads} tasks at once"
+               + (" in worker processes" if self.separate_client else " in this process")]
+        for lv in self.levels:
+            out.append(f"  level {lv.level}: {'x'.join(map(str, lv.nodes))} nodes, {lv.roi_voxels / 1e6:.1f} Mvoxel, "
+                       f"{lv.blocks} blocks of {lv.block_edge}³ voxels ({lv.block_elements}³ elements), "
+                       f"task {_b(lv.task_bytes)}, scratch {_b(lv.f_copy_bytes + lv.prepared_bytes)}, "
+                       f"~{lv.seconds:.0f} s")
+        target = "" if self.memory_target is None else f" (target {_b(self.memory_target)})"
+        out.append(f"  memory: client {_b(self.client_bytes)} of mesh data, tasks {_b(self.task_bytes)} at once; "
+                   f"peak per process ~{_b(self.process_bytes)}{target}")
+        disk = f"  disk: scratch {_b(self.scratch_bytes)} (pyramids {_b(self.pyramid_bytes)}) in {self.scratch_dir} " \
+               f"({_b(self.scratch_free)} free), {self._layout_words()}"
+        if self.output_dir is not None:
+            disk += f"; output {_b(self.output_bytes)} in {self.output_dir} ({_b(self.output_free)} free)"
+        out.append(disk)
+        out.append(f"  time: ~{_duration(self.seconds)} ({self.calibration})")
+        return "\n".join(out)
+
+    def line(self) -> str:
+        """The plan in one line (printed at the start of every run)."""
+        finest = self.levels[-1]
+        return (f"plan: levels {[lv.level for lv in self.levels]}, level {finest.level} "
+                f"{'x'.join(map(str, finest.nodes))} nodes in {finest.blocks} blocks of {finest.block_edge}³; "
+                f"memory ~{_b(self.process_bytes)} per process (client {_b(self.client_bytes)}, tasks "
+                f"{_b(self.task_bytes)}); scratch {_b(self.scratch_bytes)} {self.layout}; ~{_duration(self.seconds)}")
+
+    def _layout_words(self) -> str:
+        if self.layout == "fast":
+            return "fast layout (uncompressed)"
+        why = (f"the fast layout's {_b(self.fast_scratch_bytes)} do not fit"
+               if self.fast_scratch_bytes * DISK_MARGIN > self.scratch_free else "chunkdic.scratch-layout")
+        return f"compact layout (coarser grid, compressed; {why}; passes slower)"
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def check(self) -> None:
+        """Refuse (:class:`InputError`, one line) a run the memory target or the disk cannot hold."""
+        if self.memory_target is not None and self.process_bytes > self.memory_target:
+            finest = self.levels[-1]
+            raise InputError(
+                f"memory target {_b(self.memory_target)} per process cannot hold this run: the client alone needs "
+                f"{_b(self.base_bytes + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
+                f"is {_b(self.smallest_bytes)} with the smallest blocks: raise the target, or use larger elements "
+                f"or a coarser level")
+        same_disk = self.output_dir is not None and _device(self.scratch_dir) == _device(self.output_dir)
+        need = self.scratch_bytes + (self.output_bytes if same_disk else 0)
+        if need * DISK_MARGIN > self.scratch_free:
+            what = "scratch and output need" if same_disk else "scratch needs"
+            what += " in the compact layout" if self.layout == "compact" else ""
+            raise DiskSpaceError(f"not enough disk: this run's {what} {_b(need)} in {self.scratch_dir}, "
+                                 f"{_b(self.scratch_free)} free: free some, or set chunkdic.scratch-directory "
+                                 f"(DASK_CHUNKDIC__SCRATCH_DIRECTORY) to a larger disk{_kept_words(self.scratch_dir)}")
+        if self.output_dir is not None and not same_disk and self.output_bytes * DISK_MARGIN > self.output_free:
+            raise DiskSpaceError(f"not enough disk for the output: {_b(self.output_bytes)} needed in "
+                                 f"{self.output_dir}, {_b(self.output_free)} free")
+
+
+def _kept_words(scratch_dir) -> str:
+    """What the scratch kept for other outputs' resumes holds in ``scratch_dir`` (a refusal's
+    hint: resuming or removing those outputs frees it), or ``""``."""
+    kept = kept_scratch(Path(scratch_dir))
+    if not kept:
+        return ""
+    outputs = ", ".join(dict.fromkeys(out for _, out, _ in kept))
+    return (f" ({_b(sum(n for _, _, n in kept))} there is kept for the resume of {outputs}: resume, or remove "
+            "the output to free it)")
+
+
+def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=None, target=None,
+              scratch_dir=None) -> Plan:
+    """The :class:`Plan` of a run; ``target`` (bytes per process) chooses the block edge and
+    the prefilter's task edge: the largest (up to ``chunkdic.block-voxels`` and
+    :data:`~chunkdic.passes.prefilter.TASK_EDGE`) whose estimated peak fits."""
+    threads, concurrency, separate = threads_of(scheduler)
+    base = base_bytes()
+    levels = sorted(meshes, reverse=True)
+    sigma, interp = settings.smoothing, settings.interpolation
+    prepared = interp == "cubic" or sigma > 0
+    finest = meshes[levels[-1]]
+
+    def cell_of(mesh: Mesh) -> int:
+        return offset_cell(settings.grey, mesh.element_size, settings.grey_cell)
+
+    def client_bytes(mesh: Mesh) -> int:
+        # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
+        return CLIENT_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, cell_of(mesh))
+
+    client = client_bytes(finest)
+    pyr_task, pyr_tasks = max(pyramid_tasks(scan, levels) for scan in (f_scan, g_scan))
+
+    h = prepared_halo(sigma, interp, int(config.get("bspline-halo")))
+
+    def prepare_task_bytes(s: int, edges) -> int:
+        """The largest prefilter task of level ``s`` with tasks of ``edges`` voxels."""
+        shape = g_scan.shape(s)
+        return prepare_bytes(edges, sigma, interp, shape=shape, raw_itemsize=np.dtype(g_scan.dtype(s)).itemsize,
+                             quantized=prepared_grid(g_scan.dtype(s), sigma, interp)[1] > 0,
+                             read_bytes=read_buffer_bytes(g_scan, s, [e + 2 * h for e in edges]))
+
+    def elements(edge: int, mesh: Mesh) -> int:
+        # as the level makes its blocks (whole brightness cells, chunkdic.passes.level.LevelPasses)
+        m = aligned_block_elements(settings.block_elements or max(1, edge // mesh.element_size), cell_of(mesh))
+        return min(m, max(mesh.shape))
+
+    def peak(edge: int, prep_edge: int) -> tuple[int, int]:
+        """(largest task, peak of the largest process) with blocks of ``edge`` voxels: a kind
+        of task runs at most ``threads`` at once, and never more than there are of it; in
+        this process, with the client's data of the level the tasks belong to (a coarse
+        level's prefilter, whose reads decode the scratch pyramid's uint32 chunks, may hold
+        more than the finest level's tasks, but beside a small mesh)."""
+        held = [(pyr_task * min(threads, pyr_tasks), 0)]  # (tasks at once, the client's data then)
+        for s in levels:
+            mesh = meshes[s]
+            on_client = client_bytes(mesh)
+            m = elements(edge, mesh)
+            n_blocks = math.prod(-(-n // m) for n in mesh.shape)
+            cache = chunk_cache_bytes((f_scan, g_scan), s)  # once per process, shared by its threads
+            held.append((task_bytes(m * mesh.element_size, sigma, interp) * min(threads, n_blocks) + cache,
+                         on_client))
+            if prepared:
+                box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)[2]
+                edges = [task_edge(b, 1, prep_edge) for b in box]
+                n_prep = math.prod(-(-b // e) for b, e in zip(box, edges))
+                held.append((prepare_task_bytes(s, edges) * min(threads, n_prep) + cache, on_client))
+        task = max(t for t, _ in held)
+        if separate:
+            return task, base + max(client, task)
+        return task, base + max(client, max(t + c for t, c in held))
+
+    edge, prep_edge = int(config.get("block-voxels")), prepare_voxels()
+    smallest = peak(1, MIN_PREPARE_EDGE)[1]
+    if target is not None and smallest <= target:  # else refused, the plan showing the default blocks
+        ell_min = min(m.element_size for m in meshes.values())
+        while peak(edge, prep_edge)[1] > target and edge > ell_min and settings.block_elements is None:
+            edge = max(ell_min, int(edge * 0.8))
+            prep_edge = max(MIN_PREPARE_EDGE, min(prep_edge, edge + 32))
+        while peak(edge, prep_edge)[1] > target and prep_edge > MIN_PREPARE_EDGE:
+            prep_edge = max(MIN_PREPARE_EDGE, prep_edge - 16)
+    task, process = peak(edge, prep_edge)
+
+    plans = []
+    for i, s in enumerate(levels):
+        mesh = meshes[s]
+        m = elements(edge, mesh)
+        n_blocks = math.prod(-(-n // m) for n in mesh.shape)
+        f_copy, prep, box = level_disk(mesh, g_scan.shape(s), m, sigma, f_scan.dtype(s), prepared, g_scan.dtype(s), interp)
+        passes = PASSES["finest"] if i == len(levels) - 1 else PASSES["coarse"]
+        passes += PASSES["coarsest-extra"] if i == 0 else 0
+        filtered = math.prod(b + 2 * h * -(-b // task_edge(b, 1, prep_edge)) for b in box) if prep else 0
+        work = mesh.n_voxels * (COSTS["m"] + passes * COSTS["b"]) + filtered
+        plans.append(LevelPlan(s, tuple(mesh.nodes_shape), int(mesh.n_voxels), int(m), int(m * mesh.element_size),
+                               int(n_blocks), f_copy, prep, task_bytes(m * mesh.element_size, sigma, interp), work))
+    pyramids = {}
+    for scan in (f_scan, g_scan):
+        for s, b in pyramid_levels(scan, levels).items():
+            pyramids[s] = pyramids.get(s, 0) + b
+    pyr = sum(pyramids.values())
+    root = Path(scratch_dir or config.get("scratch-directory") or tempfile.gettempdir())
+    # what dead runs left there is this run's to reclaim or (a resume) to reuse: free for the plan,
+    # or a resume would find its own interrupted run's scratch filling the disk it needs
+    free = _free(root) + reclaimable_scratch_bytes(root, release=output)
+    fast = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
+    chosen = layout()
+    if chosen == "auto":
+        chosen = "compact" if fast * DISK_MARGIN > free else "fast"
+    if chosen == "compact":
+        plans = [compact_level(lv, f_scan.dtype(lv.level), g_scan.dtype(lv.level), sigma, interp) for lv in plans]
+    scratch = peak_scratch(pyramids, {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans})
+    pyr_work = 2 * COSTS["pyramid"] * math.prod(f_scan.shape(0)) if pyr else 0.0
+    solve_seconds = SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape)
+    out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
+    return Plan(tuple(plans), concurrency, separate, client, task, process, pyr, scratch, output_bytes(finest, cell_of(finest)),
+                str(_existing_parent(root.absolute())), free, None if out_dir is None else str(out_dir),
+                None if out_dir is None else _free(out_dir), math.nan, "", edge, prep_edge, target, pyr_work,
+                solve_seconds, smallest, chosen, fast, base).timed(None)
+
+
+def compact_level(lv: LevelPlan, f_dtype, g_dtype, sigma: float, interpolation: str) -> LevelPlan:
+    """``lv`` with its 16-bit scratch stores planned at :data:`COMPACT_RATIO` of their bytes
+    (the compact layout compresses those only: float32 stores stay as they are), and its
+    work :data:`COMPACT_WORK` times larger when it has such stores."""
+    f_copy, prep = lv.f_copy_bytes, lv.prepared_bytes
+    if sigma > 0 and quantization(f_dtype)[1] > 0:
+        f_copy = int(f_copy * COMPACT_RATIO["f"])
+    if prep and prepared_grid(g_dtype, sigma, interpolation)[1] > 0:
+        prep = int(prep * COMPACT_RATIO["g"])
+    slower = COMPACT_WORK if (f_copy, prep) != (lv.f_copy_bytes, lv.prepared_bytes) else 1.0
+    return dataclasses.replace(lv, f_copy_bytes=f_copy, prepared_bytes=prep, work=lv.work * slower)
+
+
+def plan(ref, deformed, settings: Settings | None = None, *, roi=None, scheduler=None, output=None, init=None,
+         mask=None, roi_unit: str | None = None, memory_target=None, calibrate: bool = True, **options) -> Plan:
+    """The plan of ``correlate(ref, deformed, ...)`` with the same arguments, without running it.
+
+    Reads only the scans' metadata (and, with ``calibrate``, one region of ``g`` per task,
+    timed); writes nothing. :meth:`Plan.summary` prints it; :meth:`Plan.check` raises the
+    :class:`~chunkdic.errors.InputError` that :func:`chunkdic.correlate` would refuse the
+    run with (memory target or disk).
+
+    Parameters
+    ----------
+    ref, deformed, settings, roi, scheduler, output, init, mask, roi_unit, **options
+        As for :func:`chunkdic.correlate` (lengths in a physical unit too, ``element_size="80um"``;
+        the mask's scratch levels, uint8 sums, are not counted).
+    memory_target : str or int, optional
+        Peak resident memory per process, ``"2GiB"`` or bytes; default
+        ``chunkdic.memory-target`` (dask.config), else none.
+    calibrate : bool
+        Time the prefilter of one region of ``g`` per task for the time estimate.
+
+    Returns
+    -------
+    Plan
+
+    Examples
+    --------
+    >>> import numpy as np, chunkdic
+    >>> f = np.random.default_rng(0).random((64, 64, 64)).astype(np.float32)
+    >>> p = chunkdic.plan(f, f, element_size=16, memory_target="4GiB")
+    >>> [lv.level for lv in p.levels], p.process_bytes < 2**32
+    ([1, 0], True)
+    """
+
+    spec = prepare_run(ref, deformed, settings, roi=roi, roi_unit=roi_unit, init=init, mask=mask, caller="plan",
+                       **options)
+    out = make_plan(spec.f_scan, spec.g_scan, spec.meshes, spec.settings, scheduler=scheduler, output=output,
+                    target=memory_target_of(memory_target))
+    return calibrated(out, spec.g_scan, spec.settings) if calibrate else out
+
+
+def calibrated(p: Plan, g_scan, settings) -> Plan:
+    """``p`` timed by :func:`calibrate` on ``g_scan``'s first stored level (as it is without one)."""
+    stored = g_scan.stored_refs()
+    if not stored or not (settings.interpolation == "cubic" or settings.smoothing > 0):
+        return p
+    return p.timed(calibrate(stored[min(stored)], settings.smoothing, settings.interpolation, p.threads))
+
+
+def _device(path) -> int:
+    return os.stat(_existing_parent(path)).st_dev
+
+
+def _b(n: float) -> str:
+    for unit, size in (("GiB", GiB), ("MiB", MiB)):
+        if n >= size or unit == "MiB":
+            return f"{n / size:.2f} {unit}" if unit == "GiB" else f"{n / size:.0f} MiB"
+    return f"{n} B"
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"

@@ -1,0 +1,2 @@
+from .dense import DensePasses
+from .level import LevelPasses

@@ -1,0 +1,2 @@
+from .mechplots import plot_gauge, plot_profile
+from .report import report

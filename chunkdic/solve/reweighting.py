@@ -1,0 +1,106 @@
+"""Robust reweighting of the Tikhonov penalty: the terms a field's kinks free.
+
+One round of iteratively reweighted least squares with a hard threshold: the terms of the
+Hessian penalty (:data:`~chunkdic.solve.penalty.TERM_KINDS`) whose value lies beyond
+:data:`ROBUST_THRESHOLD` robust standard deviations of their kind and component get weight
+0 (:attr:`chunkdic.solve.regularizer.Regularizer.freed`). docs/engine.md, "The band and the
+slip at ℓ = 8".
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.ndimage import find_objects, label
+
+from .penalty import TERM_KINDS
+
+#: the robust reweighting frees a term beyond this many robust standard deviations of its kind and
+#: component (:func:`robust_freed`; docs/engine.md, "The band and the slip at ℓ = 8")
+ROBUST_THRESHOLD = 6.0
+#: terms beyond the threshold are freed only as a connected set (same kind and component, 26
+#: neighbours) that spans at least this fraction of the mesh's nodes along one axis: a kink is
+#: a surface or a line across the field, outliers of the noise (weakly textured nodes) compact
+#: clusters (:func:`robust_freed`)
+SPANNING_FRACTION = 0.5
+#: the robust standard deviation of a normal sample from its median absolute value
+MAD_TO_SIGMA = 1.4826
+
+
+def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarray:
+    """The Tikhonov terms of the field ``x`` to free: one robust reweighting (IRLS with a
+    hard threshold) of the Hessian penalty.
+
+    Each term (a second difference along a grid line, a mixed difference of a 2×2 square,
+    per component) whose value exceeds ``threshold`` robust standard deviations of its kind
+    and component (:data:`MAD_TO_SIGMA` × the median of their absolute values over the
+    mesh), in a connected set of such terms (same kind and component) spanning at least
+    :data:`SPANNING_FRACTION` of the mesh along one axis, gets weight 0: the kinks of a band
+    or a slip, where the field truly bends along a surface, while the noise and smooth fields
+    (a wave's differences are the wave itself, their robust σ its amplitude) keep every
+    term. Without the span, weakly textured nodes (elements small against the texture's
+    features), whose noise is heavy-tailed and correlated over a few nodes, freed clusters of
+    up to ~13 terms (extent ≤ 5 nodes of 25) on waves, and the length chosen for the freed
+    penalty went long (docs/engine.md, "The regularisation length"). docs/engine.md, "The
+    band and the slip at ℓ = 8".
+
+    Parameters
+    ----------
+    x : ndarray, shape (nz, ny, nx, 3), float
+        The nodal field (voxels of the level), e.g. the regularised solution at the chosen length.
+    threshold : float
+        In robust standard deviations.
+
+    Returns
+    -------
+    freed : ndarray, shape (nz, ny, nx, 6), uint8
+        :attr:`Regularizer.freed`. Built one kind and component at a time: the client holds
+        one float64 difference array of the mesh's size at once (8 B per node).
+    """
+    x = np.asarray(x)
+    shape = x.shape[:3]
+    freed = np.zeros(shape + (len(TERM_KINDS),), np.uint8)
+    for c in range(3):
+        u = x[..., c]
+        for t in range(len(TERM_KINDS)):
+            d, anchor = _term_values(u, t)
+            if d.size == 0:
+                continue
+            a = np.abs(d)
+            sigma = MAD_TO_SIGMA * float(np.median(a))
+            if not sigma > 0:
+                continue
+            beyond = a > threshold * sigma
+            del a, d
+            freed[anchor + (t,)] |= (_spanning(beyond, shape).astype(np.uint8) << c)
+    return freed
+
+
+def _spanning(beyond: np.ndarray, shape) -> np.ndarray:
+    """The terms of ``beyond`` (bool, one kind and component) in connected sets (26 neighbours)
+    whose extent along some axis reaches :data:`SPANNING_FRACTION` of the mesh's ``shape`` (nodes)."""
+    if not beyond.any():
+        return beyond
+    labels, _ = label(beyond, np.ones((3, 3, 3), bool))
+    keep = np.zeros(int(labels.max()) + 1, bool)
+    for k, box in enumerate(find_objects(labels), start=1):
+        keep[k] = any(b.stop - b.start >= SPANNING_FRACTION * n for b, n in zip(box, shape))
+    return keep[labels]
+
+
+def _term_values(u: np.ndarray, t: int) -> tuple[np.ndarray, tuple]:
+    """The terms of kind ``TERM_KINDS[t]`` of a scalar nodal field ``u`` (nz, ny, nx) and where
+    they are anchored (a tuple of slices into the nodes): the unweighted difference."""
+    if t < 3:
+        n = u.shape[t]
+        lo, mid, hi = ([slice(None)] * 3 for _ in range(3))
+        lo[t], mid[t], hi[t] = slice(0, n - 2), slice(1, n - 1), slice(2, n)
+        return u[tuple(lo)] - 2.0 * u[tuple(mid)] + u[tuple(hi)], tuple(mid)
+    p, q = {3: (0, 1), 4: (0, 2), 5: (1, 2)}[t]
+
+    def corner(dp, dq):
+        s = [slice(None)] * 3
+        s[p] = slice(dp, u.shape[p] - 1 + dp)
+        s[q] = slice(dq, u.shape[q] - 1 + dq)
+        return tuple(s)
+
+    return u[corner(0, 0)] - u[corner(1, 0)] - u[corner(0, 1)] + u[corner(1, 1)], corner(0, 0)

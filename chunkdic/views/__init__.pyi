@@ -1,3 +1,0 @@
-from .corrected_image import open_corrected, write_corrected
-from .export import write_nodes_csv, write_vtk
-from .fields import open_fields, open_levels, write_fields
