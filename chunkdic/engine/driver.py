@@ -50,6 +50,7 @@ from .masks import check_mask_shape, prepare_mask
 from .planning import parse_roi, plan_meshes
 from .prefilter import face_margin
 from .runstate import LevelOutcome, RunState
+from .schedule import measure_texture, start_length
 from .settings import Settings
 from .stored_matrix import StoredMatrix
 from .steps import (
@@ -382,6 +383,7 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
         emit(ctx.progress, stage="resume", level=run.resumed_level, iteration=run.gn.iteration,
              reused=_reused(ctx, run))
     u, outcome = None, LevelOutcome()
+    texture = measure_texture(ctx.runner, ctx.f_refs[ctx.finest], ctx.meshes[ctx.finest], ctx.finest, ctx.progress)
     for s in ctx.levels:
         if run.done_before_resume(s):
             release_scan_levels(ctx, s)
@@ -392,7 +394,8 @@ def _run(ctx: RunContext, run: RunState | None = None) -> Result:
             lvl = open_level(ctx, run, s, start)
             if run.gn is None:
                 start_state(ctx, run, lvl, start, t_int)
-            lvl.regularize(regularization_length(ctx.settings, run.gn, s, lvl.mesh), run.gn.freed)
+            start = start_length(lvl.mesh.element_size, texture / 2.0 ** (s - ctx.finest))
+            lvl.regularize(regularization_length(ctx.settings, run.gn, s, start), run.gn.freed)
             # a level resumed after its iterations ended (killed at "converged") may run no pass
             lvl.prepare_interpolation(run.gn.u, when_needed=run.gn.status is not None)
             if s == ctx.finest and run.initial_gap is None:

@@ -103,6 +103,10 @@ class EventText:
             return (f"level {event['level']} affine {event['iteration']:2d}: gap {100 * event['gap']:.3f}%  "
                     f"max|da| {event['max_delta']:.2e}  dU/dX diagonal ({g[0][0]:+.4f}, {g[1][1]:+.4f}, "
                     f"{g[2][2]:+.4f})")
+        if stage == "texture":
+            return (f"level {event['level']}: texture autocorrelation length {event['length']:.1f} voxels; "
+                    f"regularisation length {event['start_length']:.1f} voxels until the choice "
+                    f"(elements of {event['element_size']})")
         if stage == "start-choice":
             names = {"rigid": "rigid + affine", "zero": "no motion", "init": "earlier field",
                      "translation": "translation alone"}

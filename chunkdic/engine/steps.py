@@ -39,8 +39,6 @@ from .settings import Settings
 from .stopping import State
 from .stored_matrix import StoredMatrix
 
-#: the regularisation length before (coarse levels: instead of) the automatic choice, in element sizes
-START_LENGTH = 2.0
 #: Gauss-Newton passes of the rigid step (a uniform translation: three unknowns)
 RIGID_ITERATIONS = 10
 #: a chosen start farther than this (voxels of the level) from the field M was built at rebuilds M
@@ -305,13 +303,14 @@ def release_scan_levels(ctx: RunContext, s: int) -> None:
             shutil.rmtree(path, ignore_errors=True)
 
 
-def regularization_length(settings: Settings, state: State, s: int, mesh: Mesh) -> float:
-    """``ℓ_reg`` for level ``s``, voxels of the level: given, chosen (resumed), or the starting one."""
+def regularization_length(settings: Settings, state: State, s: int, start: float) -> float:
+    """``ℓ_reg`` for level ``s``, voxels of the level: given, chosen (resumed), or ``start``, the
+    length the level starts with (:func:`chunkdic.engine.schedule.start_length`)."""
     if settings.regularization_length is not None:
         return settings.regularization_length / 2.0**s
     if math.isfinite(state.reg_length):
         return state.reg_length
-    return START_LENGTH * mesh.element_size
+    return start
 
 
 def length_to_choose(settings: Settings, state: State) -> bool:
