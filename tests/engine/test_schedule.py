@@ -36,12 +36,14 @@ def test_autocorrelation_length_along_one_axis_only():
 
 
 def test_start_length_grows_as_the_square_of_the_texture_scale_in_elements():
-    """2ℓ (A/ℓ)² rounded geometrically to the candidates ℓ·2^(k/2) from 2ℓ to 32ℓ (by hand):
-    A ≤ ℓ or unknown: 2ℓ; A/ℓ = 1.44: 4.13 → 4; 2.5: 12.5 → 8√2 (11.3); 5: 50 → 32."""
+    """2ℓ (A/ℓ')² with ℓ' = max(ℓ, 8), rounded geometrically to the candidates ℓ·2^(k/2) from
+    2ℓ to 32ℓ (by hand): A ≤ ℓ' or unknown: 2ℓ; A/ℓ' = 1.44: 4.13 → 4; 2.5: 12.5 → 8√2
+    (11.3); 30/8: 28.1 → 32; below ℓ = 8 the ratio is to 8 voxels (a fine texture keeps 2ℓ)."""
     assert start_length(8, 6.0) == 16.0
     assert start_length(8, math.nan) == 16.0
-    assert start_length(6, 6.5) == 12.0  # 2.35: nearer 2 than 2√2
+    assert start_length(4, 7.9) == 8.0
     assert start_length(8, 11.5) == 32.0
+    assert start_length(6, 11.5) == 24.0
     assert start_length(8, 20.0) == pytest.approx(8 * 8 * math.sqrt(2))
     assert start_length(6, 30.0) == 192.0
 
