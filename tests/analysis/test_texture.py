@@ -21,24 +21,7 @@ from chunkdic.io.scan import open_scan
 from chunkdic.mesh import Mesh
 from chunkdic.method.settings import Settings
 from chunkdic.scheduler import open_runner
-
-
-def fft_autocorrelation_length(v: np.ndarray) -> list[float]:
-    """1/e lag per axis of the whole volume's autocorrelation (3-D FFT, mean removed, each lag
-    divided by its number of pairs), linear between lags: the independent estimate."""
-    v = v.astype(np.float64) - v.mean()
-    shape = [2 * n for n in v.shape]
-    acov = np.fft.irfftn(np.abs(np.fft.rfftn(v, s=shape, axes=(0, 1, 2))) ** 2, s=shape, axes=(0, 1, 2))
-    pairs = np.fft.irfftn(np.abs(np.fft.rfftn(np.ones(v.shape), s=shape, axes=(0, 1, 2))) ** 2, s=shape,
-                          axes=(0, 1, 2))
-    rho = acov / np.maximum(pairs, 1.0)
-    rho /= rho[0, 0, 0]
-    out = []
-    for ax in range(3):
-        line = np.moveaxis(rho, ax, 0)[: v.shape[ax] // 2, 0, 0]
-        j = int(np.flatnonzero(line < 1 / math.e)[0])
-        out.append(j - 1 + (line[j - 1] - 1 / math.e) / (line[j - 1] - line[j]))
-    return out
+from textures import fft_autocorrelation_length
 
 
 def test_autocorrelation_length_matches_an_fft_of_the_whole_volume_and_the_gaussian_truth():
