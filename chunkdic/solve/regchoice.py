@@ -30,7 +30,7 @@ RULES = ("discrepancy-texture", "upre", "discrepancy", "discrepancy-half", "disc
 DEFAULT_RULE = "discrepancy-texture"
 #: ``"discrepancy-texture"``: the share of the noise budget a feature's smoothing may take is
 #: the texture's evenness (:func:`texture_evenness`) to this power, and at least
-#: :data:`EVENNESS_FLOOR` (docs/engine.md, "The regularisation length")
+#: :data:`EVENNESS_FLOOR` (docs/engine.md, "The regularisation length on a coarse texture")
 EVENNESS_EXPONENT = 0.5
 EVENNESS_FLOOR = 0.2
 #: ``"discrepancy-kinks"``: in the choice after a robust reweighting, an unknown within one
@@ -278,7 +278,7 @@ def texture_evenness(half: np.ndarray) -> float:
     Near 1 where every element holds texture (a fine texture at a large ``ℓ``: 0.94–0.97 on
     the CT-like specimens at ℓ = 12–16); small where many nodes see little of it and a few
     see much (elements small against the texture's features: 0.45–0.47 at ℓ = 4 on the same
-    specimens; docs/engine.md, "The regularisation length"). Traces below 1e-3 of the mean
+    specimens; docs/engine.md, "The regularisation length on a coarse texture"). Traces below 1e-3 of the mean
     (air, a pore) count as 1e-3 of it.
 
     Parameters
@@ -304,7 +304,7 @@ def feature_share(half: np.ndarray) -> float:
     smooths most where the texture is weakest (there the penalty outweighs the data). Where
     the texture is uneven the misfit sees a small part of the error the field makes, so
     Morozov's budget, right on an even texture, lets the length grow too long (measured:
-    docs/engine.md, "The regularisation length").
+    docs/engine.md, "The regularisation length on a coarse texture").
     """
     return float(min(1.0, max(EVENNESS_FLOOR, texture_evenness(half) ** EVENNESS_EXPONENT)))
 

@@ -40,7 +40,7 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarr
     term. Without the span, weakly textured nodes (elements small against the texture's
     features), whose noise is heavy-tailed and correlated over a few nodes, freed clusters of
     up to ~13 terms (extent ≤ 5 nodes of 25) on waves, and the length chosen for the freed
-    penalty went long (docs/engine.md, "The regularisation length"). docs/engine.md, "The
+    penalty went long (docs/engine.md, "The regularisation length on a coarse texture"). docs/engine.md, "The
     band and the slip at ℓ = 8".
 
     Parameters

@@ -1,4 +1,4 @@
-"""The automatic regularisation length on a coarse texture (docs/engine.md, "The regularisation length").
+"""The automatic regularisation length on a coarse texture (docs/engine.md, "The regularisation length on a coarse texture").
 
 A concrete specimen at texture scale 4 (large aggregates with little inner texture), 96³,
 seed 5 (autocorrelation length 21.5, 20.1, 18.4 voxels along z, y, x: a 96³ window holds

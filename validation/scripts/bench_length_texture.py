@@ -2,9 +2,9 @@
 
 Usage::
 
-    python benchmarks/bench_length_texture.py capture --pairs PAIRDIR --workdir DIR \
+    python validation/scripts/bench_length_texture.py capture --pairs PAIRDIR --workdir DIR \
         [--cases band slip wave32 ...] [--specimens concrete] [--scales 1 2 4] [--spacings 8] [--noise-free]
-    python benchmarks/bench_length_texture.py evaluate --workdir DIR [--json PATH]
+    python validation/scripts/bench_length_texture.py evaluate --workdir DIR [--json PATH]
 
 ``capture`` runs the defaults on the ``bench_vs_aldvc.py`` pairs of ``PAIRDIR`` (100³, seed
 1; ``-tsS`` for a texture scale S) up to the length choice and stores the linearised problem
@@ -76,8 +76,8 @@ def capture(args) -> None:
                         if out.exists():
                             continue
 
-                        def save(problem, lvl, src=src, out=out):
-                            np.savez(out, **problem, length=lvl.regularization_length,
+                        def save(problem, penalty, src=src, out=out):
+                            np.savez(out, **problem, length=penalty.length,
                                      field=(src / "field.json").read_text(), shape=np.array([100, 100, 100]))
 
                         seconds = capture_choice(

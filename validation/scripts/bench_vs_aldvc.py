@@ -311,7 +311,7 @@ def _chunkdic_child(args) -> None:
     points = res.node_coords.reshape(3, -1) * scale + (scale - 1) / 2
     u = res.displacement.reshape(3, -1) * scale
     extra = {}
-    if "problem" in kept:  # every candidate length's linearised field (benchmarks/_oracle.py)
+    if "problem" in kept:  # every candidate length's linearised field (validation/scripts/_oracle.py)
         lengths, fields = candidate_fields(kept["problem"])
         extra = {"oracle_lengths": lengths, "oracle_u": fields.reshape(len(lengths), 3, -1)}
         # the problem itself, for studies of the choice away from the engine (bench_length_texture.py)
@@ -565,7 +565,7 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_
 
 
 def oracle_scores(candidates, pts, case: Case, ell: int, peer_field, sample) -> dict:
-    """Each candidate length's linearised field (benchmarks/_oracle.py) scored as the tool's own:
+    """Each candidate length's linearised field (validation/scripts/_oracle.py) scored as the tool's own:
     between the nodes over all voxels ≥ ``ell`` from the faces and, with al-dvc's field, on the
     voxels both tools score; ``oracle_*`` the least error (σ for the translations) and its length."""
     lengths, fields = candidates
@@ -770,7 +770,7 @@ def parse_args(argv=None):
                    help="texture scales of the CT specimens (synth texture_scale: 1, 2, 4 give autocorrelation "
                         "lengths of about 6, 12 and 24 voxels; default 1)")
     p.add_argument("--oracle", action="store_true",
-                   help="also score every candidate length's linearised field (benchmarks/_oracle.py): the best "
+                   help="also score every candidate length's linearised field (validation/scripts/_oracle.py): the best "
                         "fixed length beside the automatic one")
     p.add_argument("--oracle-full", action="store_true",
                    help="with --oracle: run the whole engine at the oracle's length too (one more run per case)")

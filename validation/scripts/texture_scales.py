@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/texture_scales.py [--size 192] [--specimens grains concrete] [--scales 1 2 4]
+    python validation/scripts/texture_scales.py [--size 192] [--specimens grains concrete] [--scales 1 2 4]
         [--workdir DIR] [--json PATH]
 
 For each specimen and scale, a reference scan (seed 1, noise 0.02, uint16) is synthesized
