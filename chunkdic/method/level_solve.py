@@ -133,7 +133,8 @@ def run_level(passes: Passes, run: RunState, coarser_u: np.ndarray | None, *, me
             on_iteration(dataclasses.replace(run, gn=current))
 
     state, penalty, last = solve_level(passes, op, state, penalty, settings, tolerance=tolerance, choose=correlated,
-                                       history=run.history, progress=progress, on_iteration=saved, ahead=ahead)
+                                       history=run.history, progress=progress, on_iteration=saved, ahead=ahead,
+                                       texture_length=texture_length)
     outcome = level_outcome(passes, op, state, last, penalty, correlated=correlated, progress=progress)
     return dataclasses.replace(run, gn=state, statuses={**run.statuses, s: state.status}), outcome
 
@@ -158,7 +159,8 @@ def measure_start_gaps(passes: Passes, op: Operator, state: State, rigid_t: np.n
 
 def solve_level(passes: Passes, op: Operator, state: State, penalty: Penalty, settings: Settings, *,
                 tolerance: float, choose: bool, history: History, progress=None, on_iteration=None,
-                ahead: list[Pass] | None = None) -> tuple[State, Penalty, Pass | None]:
+                ahead: list[Pass] | None = None, texture_length: float = math.nan
+                ) -> tuple[State, Penalty, Pass | None]:
     """Modified Gauss–Newton on the level from ``state`` with the penalty ``op``'s solver
     holds, choosing the regularisation length when ``choose`` (the correlated level) and the
     settings leave it automatic.
@@ -170,8 +172,10 @@ def solve_level(passes: Passes, op: Operator, state: State, penalty: Penalty, se
     iterations that follow converge it to the tolerance (each a ``b`` pass fewer).
 
     ``ahead``: the pass already summed at ``state.u`` (:func:`measure_start_gaps`), handed
-    over in a list that the iterations empty. Returns the state, the penalty the solver
-    holds, and the last pass (None: none ran).
+    over in a list that the iterations empty; ``texture_length``: the reference's
+    autocorrelation length on the level (voxels), which the robust reweighting reads
+    (:func:`~chunkdic.method.length.choose_regularization`). Returns the state, the penalty
+    the solver holds, and the last pass (None: none ran).
     """
     choosing = choose and length_to_choose(settings, state)
     if state.status is None:
@@ -185,7 +189,7 @@ def solve_level(passes: Passes, op: Operator, state: State, penalty: Penalty, se
             passes.prepare(state.u)
             last = passes.assemble_b(state.u, op)
         state, penalty = choose_regularization(op, state, last, penalty, settings, passes.level, passes.mesh,
-                                               progress)
+                                               progress, texture_length=texture_length)
         ahead = [last]
         del last
         state, last = iterate(passes, op, state, tolerance, settings.max_iterations, history, progress,

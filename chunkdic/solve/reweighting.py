@@ -20,13 +20,14 @@ ROBUST_THRESHOLD = 6.0
 #: terms beyond the threshold are freed only as a connected set (same kind and component, 26
 #: neighbours) that spans at least this fraction of the mesh's nodes along one axis: a kink is
 #: a surface or a line across the field, outliers of the noise (weakly textured nodes) compact
-#: clusters (:func:`robust_freed`)
+#: clusters (:func:`robust_freed`; the engine asks for it on a coarse texture only,
+#: :func:`chunkdic.method.length.choose_regularization`)
 SPANNING_FRACTION = 0.5
 #: the robust standard deviation of a normal sample from its median absolute value
 MAD_TO_SIGMA = 1.4826
 
 
-def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarray:
+def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: float = SPANNING_FRACTION) -> np.ndarray:
     """The Tikhonov terms of the field ``x`` to free: one robust reweighting (IRLS with a
     hard threshold) of the Hessian penalty.
 
@@ -34,7 +35,7 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarr
     per component) whose value exceeds ``threshold`` robust standard deviations of its kind
     and component (:data:`MAD_TO_SIGMA` × the median of their absolute values over the
     mesh), in a connected set of such terms (same kind and component) spanning at least
-    :data:`SPANNING_FRACTION` of the mesh along one axis, gets weight 0: the kinks of a band
+    ``spanning`` of the mesh along one axis (0: every such term), gets weight 0: the kinks of a band
     or a slip, where the field truly bends along a surface, while the noise and smooth fields
     (a wave's differences are the wave itself, their robust σ its amplitude) keep every
     term. Without the span, weakly textured nodes (elements small against the texture's
@@ -71,19 +72,19 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarr
                 continue
             beyond = a > threshold * sigma
             del a, d
-            freed[anchor + (t,)] |= (_spanning(beyond, shape).astype(np.uint8) << c)
+            freed[anchor + (t,)] |= (_spanning(beyond, shape, spanning).astype(np.uint8) << c)
     return freed
 
 
-def _spanning(beyond: np.ndarray, shape) -> np.ndarray:
+def _spanning(beyond: np.ndarray, shape, fraction: float) -> np.ndarray:
     """The terms of ``beyond`` (bool, one kind and component) in connected sets (26 neighbours)
-    whose extent along some axis reaches :data:`SPANNING_FRACTION` of the mesh's ``shape`` (nodes)."""
-    if not beyond.any():
+    whose extent along some axis reaches ``fraction`` of the mesh's ``shape`` (nodes)."""
+    if fraction <= 0 or not beyond.any():
         return beyond
     labels, _ = label(beyond, np.ones((3, 3, 3), bool))
     keep = np.zeros(int(labels.max()) + 1, bool)
     for k, box in enumerate(find_objects(labels), start=1):
-        keep[k] = any(b.stop - b.start >= SPANNING_FRACTION * n for b, n in zip(box, shape))
+        keep[k] = any(b.stop - b.start >= fraction * n for b, n in zip(box, shape))
     return keep[labels]
 
 

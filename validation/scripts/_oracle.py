@@ -32,10 +32,10 @@ def keep_choice_problem():
     original = level_solve.choose_regularization
     box: dict = {}
 
-    def hook(op, state, p, penalty, settings, level, mesh, progress=None):
+    def hook(op, state, p, penalty, settings, level, mesh, progress=None, **kw):
         if "problem" not in box:
             box["problem"] = linearised_problem(op, state, p, settings, level, mesh)
-        return original(op, state, p, penalty, settings, level, mesh, progress)
+        return original(op, state, p, penalty, settings, level, mesh, progress, **kw)
 
     level_solve.choose_regularization = hook
     try:
