@@ -10,9 +10,11 @@ from .analysis.resolution import resolution
 from .analysis.rigid import fit_rigid, remove_rigid
 from .analysis.scoring import score_displacement
 from .analysis.stats import stats
+from .analysis.texture import TextureReport, texture
 from .analysis.zoisweep import sweep, zoi_table
 from .engine.runplan import Plan, plan
 from .engine.driver import correlate
+from .engine.texture_check import ElementSizeWarning
 from .method.settings import Settings
 from .errors import InputError
 from .io.display import write_display

@@ -41,6 +41,36 @@ def _vs_aldvc_rows(raw: dict) -> list[dict]:
     return rows
 
 
+def _texture_rows(raw: dict) -> list[dict]:
+    """:func:`_vs_aldvc_rows` with the texture scale (``concrete-ts2``: concrete at 2) and the oracle:
+    the least error of the candidate lengths ``ℓ·2^(k/2)`` (their linearised fields, scored on the
+    voxels both tools score) and its length."""
+    rows = _vs_aldvc_rows(raw)
+    for row, r in zip(rows, raw["results"]):
+        specimen, _, scale = row["specimen"].partition("-ts")
+        c = r["chunkdic"]
+        oracle = c.get("oracle_rms_common", c.get("oracle_rms"))
+        row.update(specimen=specimen, texture_scale=float(scale or 1), oracle=oracle,
+                   oracle_length=c.get("oracle_length"),
+                   over_oracle=row["chunkdic"] / oracle if (oracle and row["chunkdic"]) else None)
+    return rows
+
+
+def _texture_scales_rows(raw: dict) -> list[dict]:
+    """One row per specimen, texture scale and ℓ: the autocorrelation length per axis and the
+    per-element mean squared gradient's median, 10 % quantile over the median, and the fraction
+    of elements below a tenth of the median."""
+    rows = []
+    for r in raw["rows"]:
+        acl = r["acl"]
+        for ell, g in r["gradient"].items():
+            rows.append({"specimen": r["specimen"], "texture_scale": r["scale"], "size": r["size"],
+                         "acl_z": acl[0], "acl_y": acl[1], "acl_x": acl[2], "ell": int(ell),
+                         "median": g["median"], "q10_over_median": g["q10_over_median"],
+                         "below_tenth": g["below_tenth_of_median"]})
+    return rows
+
+
 def _resolution_rows(raw: dict) -> list[dict]:
     keep = ("specimen", "ell", "seed", "tool", "setting", "l10", "l10_bound", "n", "mei", "mei3d",
             "status_star", "status_translated")
@@ -127,6 +157,20 @@ STUDIES = {s.name: s for s in (
           "scripts/bench_vs_aldvc.py", ALDVC_100, _vs_aldvc_rows,
           legacy=("bench_vs_aldvc_100_session30.json",),
           about="both tools with their defaults, 2 threads, CT-like grains and concrete, noise 0.02 per scan"),
+    Study("texture", "Coarse textures at ℓ = 8: the automatic length, the best fixed length and al-dvc", "validation",
+          "scripts/bench_vs_aldvc.py",
+          ("--sizes", "100", "--cases", "heterogeneous", "crack", "--specimen", "concrete", "--texture-scales", "1",
+           "2", "4", "--spacings", "8", "--repeats", "1", "--threads", "2", "--oracle", "--workdir", "{workdir}",
+           "--record", "{raw}"), _texture_rows,
+          about="100³ concrete at texture scales 1, 2, 4 (autocorrelation length about 6, 12, 23 voxels), noise "
+                "0.02 per scan; errors between the nodes on the voxels both tools score; the oracle is the least "
+                "error of the linearised fields of the candidate lengths ℓ·2^(k/2)"),
+    Study("texture_scales", "The CT specimens' texture at each texture scale", "validation",
+          "scripts/texture_scales.py",
+          ("--size", "192", "--specimens", "grains", "concrete", "--scales", "1", "2", "4", "5", "--workdir",
+           "{workdir}", "--json", "{raw}"), _texture_scales_rows,
+          legacy=("texture_scales_192.json",),
+          about="192³ reference scans, seed 1, noise 0.02; the whole scan's 3-D FFT; |∇f|² by centred differences"),
     Study("resolution", "Spatial resolution (l10 %) and MEI on the star, against al-dvc", "validation",
           "scripts/bench_star_vs_aldvc.py",
           ("--specimen", "grains", "concrete", "--spacings", "8", "--regularizations", "tikhonov", "--seed", "1",

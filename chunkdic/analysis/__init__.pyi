@@ -11,4 +11,5 @@ from .repeats import repeat_noise
 from .rigid import RigidMotion, fit_rigid, remove_rigid
 from .scoring import score_displacement
 from .stats import Profile, RegionStats, profile, region_stats, stats
+from .texture import TextureReport, texture
 from .zoisweep import sweep, zoi_table

@@ -296,6 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     from . import scan_commands as _cli_scan
     from . import series_command as _cli_series
     from . import synth_commands as _cli_synth
+    from . import texture_command as _cli_texture
     from . import view_command as _cli_view
 
     parser = _Parser(prog="chunkdic", description="Out-of-core C8 digital volume correlation.",
@@ -309,6 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_report.register(sub)
     _cli_mechanics.register(sub)
     _cli_resolution.register(sub)
+    _cli_texture.register(sub)
     _cli_q4.register(sub)
     _cli_series.register(sub)
     _cli_view.register(sub)

@@ -12,7 +12,7 @@ from .common import Progress
 FIELDS = ("none", "translation", "affine", "band", "star")
 SPECIMENS = ("foam", "grains", "concrete")
 CASES = ("fourier-shift", "shift", "band")
-CT_OPTIONS = ("imaging", "angles", "filter", "blur", "rings", "gain", "offset", "drift")
+CT_OPTIONS = ("imaging", "angles", "filter", "blur", "rings", "gain", "offset", "drift", "texture_scale")
 FOAM_OPTIONS = ("cell_size", "bead_size", "wall_width")
 DEFAULT_TRANSLATION = (2.3, -1.4, 0.7)
 DEFAULT_PERIODS = (16.0, 160.0)
@@ -83,6 +83,10 @@ def register(subparsers) -> None:
                          "local: the same phase maps seen through the FBP's measured blur plus "
                          "ramp-spectrum noise of the same --noise, computed per chunk "
                          "(cost per voxel independent of the size; docs/synthetic.md)")
+    ct.add_argument("--texture-scale", type=float, default=None, metavar="FACTOR",
+                    help="factor on every size of the microstructure (grains, aggregates, pores, the matrix "
+                         "texture; default 1: autocorrelation length about 6 voxels, 2: 12, 4: 24; "
+                         "docs/synthetic.md, \"Texture scale\")")
     ct.add_argument("--angles", type=int, default=None,
                     help="projections over 180 degrees (default pi/2 * max(ny, nx), Nyquist)")
     ct.add_argument("--filter", choices=("ramp", "hann"), default=None,
@@ -159,7 +163,8 @@ def _check_options(args) -> None:
                      ("strain", dict(above=-1)), ("shear", {}), ("seed", dict(minimum=0, integer=True)),
                      ("levels", dict(minimum=0, integer=True)), ("chunks", dict(minimum=1, integer=True)),
                      ("angles", dict(minimum=1, integer=True)), ("blur", dict(minimum=0)), ("rings", dict(minimum=0)),
-                     ("gain", dict(above=0)), ("offset", {}), ("drift", {}), ("amplitude", {})):
+                     ("gain", dict(above=0)), ("offset", {}), ("drift", {}), ("amplitude", {}),
+                     ("texture_scale", dict(above=0))):
         if getattr(args, name) is not None:
             number(getattr(args, name), "--" + name.replace("_", "-"), **kw)
     if args.periods is not None:

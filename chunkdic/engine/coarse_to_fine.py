@@ -12,6 +12,7 @@ checkpoint saves after every pass (:mod:`chunkdic.engine.checkpoint`).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -43,7 +44,9 @@ class RunContext:
     solve); ``init`` an earlier result to start from (:mod:`chunkdic.engine.initial`);
     ``matrix`` where each level's ``M`` is kept for a resumed run (the output,
     :mod:`chunkdic.passes.stored_matrix`); ``adopted``: the scratch is an interrupted run's,
-    whose complete level stores are reused.
+    whose complete level stores are reused; ``texture_length``: the reference's autocorrelation
+    length on the correlated level, voxels of it (NaN: unknown;
+    :func:`chunkdic.engine.texture_check.check_texture`), which sets each level's start length.
     """
 
     settings: Settings
@@ -60,6 +63,7 @@ class RunContext:
     matrix: StoredMatrix | None = None
     adopted: bool = False
     crack_ref: object = None
+    texture_length: float = math.nan
 
     @property
     def finest(self) -> int:
@@ -103,7 +107,8 @@ def solve_one_level(ctx: RunContext, run: RunState, s: int, coarser_u: np.ndarra
                          ctx.progress, None if ctx.mask_refs is None else ctx.mask_refs[s], matrix=ctx.matrix,
                          adopt=ctx.adopted, crack=ctx.crack_ref if s == ctx.finest else None)
     run, outcome = run_level(passes, run, coarser_u, meshes=ctx.meshes, levels=ctx.levels, settings=ctx.settings,
-                             earlier=ctx.init, progress=ctx.progress, on_iteration=lambda r: ctx.save(r, s))
+                             earlier=ctx.init, progress=ctx.progress, on_iteration=lambda r: ctx.save(r, s),
+                             texture_length=ctx.texture_length / 2.0 ** (s - ctx.finest))
     # the level's M, solver and last pass are gone with run_level's frame: not held through the
     # next level's M pass (an eighth of its own) or the result's assembly (docs/distributed.md)
     passes.release()

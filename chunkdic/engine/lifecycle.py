@@ -41,6 +41,7 @@ from .coarse_to_fine import RunContext
 from .front import RunSpec
 from .meshes import parse_roi
 from .runplan import Plan, calibrated
+from .texture_check import check_texture
 
 #: the settings of ``chunkdic.`` (dask config) that a scratch directory's stores depend on
 SCRATCH_CONFIG = ("block-voxels", "scratch-precision", "scratch-layout", "bspline-halo", "chunk-size", "compressor")
@@ -121,7 +122,8 @@ def failing(held: Holding):
 
 def open_levels(held: Holding, budget: Plan, progress=None) -> tuple[RunContext, RunState | None]:
     """The run's scratch (an interrupted run's adopted), the scans' levels it solves (missing
-    pyramid levels built by the runner's tasks), the mask's, the kernels compiled: the
+    pyramid levels built by the runner's tasks), the mask's, the kernels compiled, the
+    reference's texture read (:func:`~chunkdic.engine.texture_check.check_texture`): the
     :class:`RunContext` of its levels and the state it resumes from (None: a new run)."""
     spec, runner, resume = held.spec, held.runner, held.resume
     # an interrupted run of this very run (its output was there): its scratch is adopted when
@@ -144,11 +146,13 @@ def open_levels(held: Holding, budget: Plan, progress=None) -> tuple[RunContext,
     crack_ref = None if spec.crack_scan is None else prepare_mask(spec.crack_scan, spec.f_scan.shape(0), [spec.finest],
                                                                   scratch / "crack", runner)[spec.finest]
     _compile_kernels(runner, progress)
+    level = spec.settings.level
+    texture = check_texture(f_refs[level], spec.meshes[level], spec.settings, runner, progress)
     emit(progress, PlanMade(plan=calibrated(budget, spec.g_scan, spec.settings)))
     ckpt = held.checkpoint
     ctx = RunContext(spec.settings, spec.meshes, spec.levels, f_refs, g_refs, runner, scratch, progress, ckpt,
                      mask_refs, spec.init, matrix=None if ckpt is None else StoredMatrix(ckpt.path), adopted=adopted,
-                     crack_ref=crack_ref)
+                     crack_ref=crack_ref, texture_length=texture)
     return ctx, None if resume is None else RunState.from_checkpoint(resume)
 
 

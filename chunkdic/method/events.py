@@ -279,6 +279,28 @@ class Iteration(Event):
 
 
 @dataclasses.dataclass(frozen=True, kw_only=True)
+class Texture(Event):
+    """The reference's texture on the correlated level, read before the levels run
+    (:mod:`chunkdic.engine.texture_check`): its autocorrelation length and the regularisation
+    length a large deformation starts with on it (:func:`chunkdic.method.length.start_length`) and
+    the one a fine texture starts with (``usual_length``), voxels of the level; emitted only when
+    they differ (a coarse texture)."""
+
+    stage: ClassVar[str] = "texture"
+    level: int
+    length: float
+    start_length: float
+    usual_length: float
+    element_size: float
+    smallest: int | None = None
+
+    def words(self, text):
+        return (f"level {self.level}: texture autocorrelation length {self.length:.1f} voxels; under a large "
+                f"deformation the levels start with a regularisation length of {self.start_length:.1f} voxels "
+                f"(elements of {self.element_size:g})")
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True)
 class Regularization(Event):
     stage: ClassVar[str] = "regularization"
     level: int

@@ -74,7 +74,8 @@ class LevelOutcome:
 
 
 def run_level(passes: Passes, run: RunState, coarser_u: np.ndarray | None, *, meshes: dict, levels: list,
-              settings: Settings, earlier=None, progress=None, on_iteration=None) -> tuple[RunState, LevelOutcome]:
+              settings: Settings, earlier=None, progress=None, on_iteration=None,
+              texture_length: float = math.nan) -> tuple[RunState, LevelOutcome]:
     """Solve the level of ``passes`` from the run's state (module docstring).
 
     Parameters
@@ -97,6 +98,10 @@ def run_level(passes: Passes, run: RunState, coarser_u: np.ndarray | None, *, me
     on_iteration : callable, optional
         ``on_iteration(run)`` after every Gauss–Newton pass, with the run's state then
         (checkpoints).
+    texture_length : float
+        The reference's autocorrelation length on this level, voxels of it (NaN: unknown): it
+        sets the regularisation length the level starts with
+        (:func:`chunkdic.method.length.start_length`).
 
     Returns
     -------
@@ -120,8 +125,8 @@ def run_level(passes: Passes, run: RunState, coarser_u: np.ndarray | None, *, me
     else:  # resumed: the very same M, around the field it was first built at (the checkpoint's)
         op = passes.assemble_m(state.u if state.m_start is None else state.m_start)
     warn_weak_nodes(op, mesh, s, settings.level)
-    penalty = regularize(op, settings, s, mesh.element_size, regularization_length(settings, state, s, mesh),
-                         state.freed)
+    penalty = regularize(op, settings, s, mesh.element_size,
+                         regularization_length(settings, state, s, mesh, texture_length), state.freed)
     ahead = None
     if correlated and run.initial_gap is None:
         first, initial, rigid = measure_start_gaps(passes, op, state, run.rigid_t * 2.0 ** (coarsest - s), progress)
@@ -134,7 +139,8 @@ def run_level(passes: Passes, run: RunState, coarser_u: np.ndarray | None, *, me
             on_iteration(dataclasses.replace(run, gn=current))
 
     state, penalty, last = solve_level(passes, op, state, penalty, settings, tolerance=tolerance, choose=correlated,
-                                       history=run.history, progress=progress, on_iteration=saved, ahead=ahead)
+                                       history=run.history, progress=progress, on_iteration=saved, ahead=ahead,
+                                       texture_length=texture_length)
     outcome = level_outcome(passes, op, state, last, penalty, correlated=correlated, progress=progress)
     return dataclasses.replace(run, gn=state, statuses={**run.statuses, s: state.status}), outcome
 
@@ -159,7 +165,8 @@ def measure_start_gaps(passes: Passes, op: Operator, state: State, rigid_t: np.n
 
 def solve_level(passes: Passes, op: Operator, state: State, penalty: Penalty, settings: Settings, *,
                 tolerance: float, choose: bool, history: History, progress=None, on_iteration=None,
-                ahead: list[Pass] | None = None) -> tuple[State, Penalty, Pass | None]:
+                ahead: list[Pass] | None = None, texture_length: float = math.nan
+                ) -> tuple[State, Penalty, Pass | None]:
     """Modified Gauss–Newton on the level from ``state`` with the penalty ``op``'s solver
     holds, choosing the regularisation length when ``choose`` (the correlated level) and the
     settings leave it automatic.
@@ -171,8 +178,10 @@ def solve_level(passes: Passes, op: Operator, state: State, penalty: Penalty, se
     iterations that follow converge it to the tolerance (each a ``b`` pass fewer).
 
     ``ahead``: the pass already summed at ``state.u`` (:func:`measure_start_gaps`), handed
-    over in a list that the iterations empty. Returns the state, the penalty the solver
-    holds, and the last pass (None: none ran).
+    over in a list that the iterations empty; ``texture_length``: the reference's
+    autocorrelation length on the level (voxels), which the robust reweighting reads
+    (:func:`~chunkdic.method.length.choose_regularization`). Returns the state, the penalty
+    the solver holds, and the last pass (None: none ran).
     """
     choosing = choose and length_to_choose(settings, state)
     if state.status is None:
@@ -186,7 +195,7 @@ def solve_level(passes: Passes, op: Operator, state: State, penalty: Penalty, se
             passes.prepare(state.u)
             last = passes.assemble_b(state.u, op, other=state.u_other)
         state, penalty = choose_regularization(op, state, last, penalty, settings, passes.level, passes.mesh,
-                                               progress)
+                                               progress, texture_length=texture_length)
         ahead = [last]
         del last
         state, last = iterate(passes, op, state, tolerance, settings.max_iterations, history, progress,

@@ -63,7 +63,7 @@ class Settings:
         drift across the ROI. docs/engine.md, "Brightness".
     regularization : {"none", "tikhonov", "equilibrium-gap"}
         Penalty on the short wavelengths of the field (:mod:`chunkdic.solve.regularizer`).
-    regularization_rule : {"discrepancy", "upre", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve"}
+    regularization_rule : {"discrepancy-texture", "discrepancy", "upre", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve"}
         How the automatic length is chosen (:func:`chunkdic.solve.regchoice.choose_length`;
         docs/engine.md compares them).
     regularization_length : float or None
@@ -105,9 +105,11 @@ class Settings:
                                "ℓ = 8, docs/engine.md)", flag="--grey-level-cell", metavar="VOXELS")
     regularization: str = _option("tikhonov", "penalty on the field's short wavelengths (default tikhonov, on "
                                   "its curvature)", choices=REGULARIZATIONS)
-    regularization_rule: str = _option(DEFAULT_RULE, "how the automatic length is chosen (default discrepancy: "
-                                       "Morozov's principle; upre: least predicted error; discrepancy-kinks: "
-                                       "longer after a reweighting frees a slip or a band, docs/engine.md)",
+    regularization_rule: str = _option(DEFAULT_RULE, "how the automatic length is chosen (default discrepancy-texture: "
+                                       "Morozov's principle, a feature's share of the budget set by how evenly the "
+                                       "texture covers the nodes; discrepancy: Morozov's principle; upre: least "
+                                       "predicted error; discrepancy-kinks: longer after a reweighting frees a slip or "
+                                       "a band, docs/engine.md)",
                                        choices=RULES)
     regularization_length: float | None = _option(None, "its length, voxels of level 0 (default: chosen from the "
                                                   "data and printed)", kind=float, metavar="L")

@@ -24,11 +24,16 @@ from .stencil import stencil_matvec
 #: candidate lengths of the automatic choice, in element sizes (geometric, 1 to 32)
 CANDIDATES = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
 #: the criteria :func:`choose_length` knows (docs/engine.md, the comparison); :data:`DEFAULT_RULE` is the default
-RULES = ("upre", "discrepancy", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve")
+RULES = ("discrepancy-texture", "upre", "discrepancy", "discrepancy-half", "discrepancy-kinks", "gcv", "l-curve")
 #: the engine's default (:class:`chunkdic.method.settings.Settings` ``regularization_rule``):
 #: the predicted risk measured better on translations at ℓ = 8 (2×) and level on
 #: heterogeneous fields, but chose too short at ℓ = 4 on pure noise (docs/engine.md)
-DEFAULT_RULE = "discrepancy"
+DEFAULT_RULE = "discrepancy-texture"
+#: ``"discrepancy-texture"``: the share of the noise budget a feature's smoothing may take is
+#: the texture's evenness (:func:`texture_evenness`) to this power, and at least
+#: :data:`EVENNESS_FLOOR` (docs/engine.md, "The regularisation length on a coarse texture")
+EVENNESS_EXPONENT = 0.5
+EVENNESS_FLOOR = 0.2
 #: ``"discrepancy-kinks"``: in the choice after a robust reweighting, an unknown within one
 #: node of a freed term counts this many times in the noise budget (docs/engine.md, "The
 #: slip: a budget for the kinks' model error")
@@ -117,7 +122,14 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     ``"gcv"``
         The same with white noise (``s² = σ_r²``, i.e. ``κ = 1``): what generalised
         cross-validation reduces to when the voxels far outnumber the unknowns.
-    ``"discrepancy"`` (default), ``"discrepancy-half"``
+    ``"discrepancy-texture"`` (default)
+        Morozov's principle as ``"discrepancy"`` below, but where a feature bounds the length
+        (a longer candidate exceeds the budget), the longest length whose misfit increase
+        stays within :func:`feature_share` of the budget: on an uneven texture the misfit
+        sees a small part of the error a long length makes where the texture is weak. Where
+        no candidate exceeds the budget (noise only, a uniform or linear field), the longest;
+        for a reweighted penalty (``freed``), the discrepancy.
+    ``"discrepancy"``, ``"discrepancy-half"``
         Morozov's principle: the longest length with ``D(λ) - D(ℓ) <= τ s² N``, ``τ`` = 1
         or 1/2 (a safety factor).
     ``"discrepancy-kinks"``
@@ -210,6 +222,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         counted = n_unknowns if near is None else n_unknowns + 3 * (KINK_WEIGHT - 1.0) * int(near[sub].sum())
         budget = float(noise_variance) * counted
         tau = 0.5 if rule == "discrepancy-half" else 1.0
+        # the choice for a reweighted penalty keeps the whole budget: the features its freed
+        # terms leave (a slip's or a band's flanks) are the smooth fields a long length suits
+        share = feature_share(H) if rule == "discrepancy-texture" and freed is None else 1.0
         if rule in ("upre", "gcv") or sweep:
             # A sweep keeps the risk's trace term whatever the rule, so that a benchmark can
             # apply every rule to its curves (with the penalty left at zero, "upre" applied
@@ -229,7 +244,10 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
                 pick = min(_corner(misfit - base, rough), best_index)
             else:
                 pick = int(np.flatnonzero(misfit[:best_index + 1] - base <= tau * budget).max())
-            curves.append({"misfit": misfit - base, "roughness": rough, "penalty": penalty, "budget": budget})
+                if share < 1.0 and pick + 1 < len(lengths) and misfit[pick + 1] - base > tau * budget:
+                    pick = int(np.flatnonzero(misfit[:pick + 1] - base <= share * budget).max())
+            curves.append({"misfit": misfit - base, "roughness": rough, "penalty": penalty, "budget": budget,
+                           "share": share})
         elif rule in ("upre", "gcv"):
             pick = _least(risk, best_index + 1)
         else:
@@ -243,11 +261,53 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             first = len(lengths) // 2 if guess is None else int(np.argmin(np.abs(np.log(lengths / guess))))
             pick = _longest_within(lambda i: evaluate(i) - base <= tau * budget, best_index + 1,
                                    first if best is None else best_index, walk=guess is not None)
+            if share < 1.0 and pick + 1 <= best_index and evaluate(pick + 1) - base > tau * budget:
+                # a feature bounds the length here (the longer candidate was solved and failed): its
+                # smoothing may take only the texture's share of the budget (feature_share)
+                pick = _longest_within(lambda i: evaluate(i) - base <= share * budget, pick + 1, pick)
         if best is None or pick < best_index:
             corner = float(lengths[_corner(misfit - base, rough)]) if sweep else math.nan
             best, best_index = Choice(float(lengths[pick]), lengths, misfit, rough, budget, corner), pick
     best.rule, best.curves = rule, curves
     return best
+
+
+def texture_evenness(half: np.ndarray) -> float:
+    """How evenly the texture covers the nodes: the geometric over the arithmetic mean of the
+    nodes' texture (the trace of their diagonal block of ``M``) over the inner nodes, in (0, 1].
+
+    Near 1 where every element holds texture (a fine texture at a large ``ℓ``: 0.94–0.97 on
+    the CT-like specimens at ℓ = 12–16); small where many nodes see little of it and a few
+    see much (elements small against the texture's features: 0.45–0.47 at ℓ = 4 on the same
+    specimens; docs/engine.md, "The regularisation length on a coarse texture"). Traces below 1e-3 of the mean
+    (air, a pore) count as 1e-3 of it.
+
+    Parameters
+    ----------
+    half : ndarray, shape (nz, ny, nx, 14, 3, 3)
+        The half stencil of ``M``.
+    """
+    trace = np.trace(half[..., 0, :, :], axis1=-2, axis2=-1).astype(np.float64)
+    inner = tuple(slice(1, n - 1) if n > 2 else slice(None) for n in trace.shape)
+    t = trace[inner].ravel()
+    mean = float(t.mean())
+    if not mean > 0:
+        return 1.0
+    return float(np.exp(np.mean(np.log(np.maximum(t, 1e-3 * mean)))) / mean)
+
+
+def feature_share(half: np.ndarray) -> float:
+    """The share of the noise budget that smoothing a feature may take in the
+    ``"discrepancy-texture"`` rule: :func:`texture_evenness` to :data:`EVENNESS_EXPONENT`,
+    at least :data:`EVENNESS_FLOOR`, at most 1.
+
+    Why: the misfit of a smoothed feature is its error weighted by the texture, and a length
+    smooths most where the texture is weakest (there the penalty outweighs the data). Where
+    the texture is uneven the misfit sees a small part of the error the field makes, so
+    Morozov's budget, right on an even texture, lets the length grow too long (measured:
+    docs/engine.md, "The regularisation length on a coarse texture").
+    """
+    return float(min(1.0, max(EVENNESS_FLOOR, texture_evenness(half) ** EVENNESS_EXPONENT)))
 
 
 def near_freed(freed: np.ndarray) -> np.ndarray:

@@ -10,26 +10,39 @@ slip at ℓ = 8".
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import find_objects, label
 
 from .penalty import TERM_KINDS
 
 #: the robust reweighting frees a term beyond this many robust standard deviations of its kind and
 #: component (:func:`robust_freed`; docs/engine.md, "The band and the slip at ℓ = 8")
 ROBUST_THRESHOLD = 6.0
+#: terms beyond the threshold are freed only as a connected set (same kind and component, 26
+#: neighbours) that spans at least this fraction of the mesh's nodes along one axis: a kink is
+#: a surface or a line across the field, outliers of the noise (weakly textured nodes) compact
+#: clusters (:func:`robust_freed`; the engine asks for it on a coarse texture only,
+#: :func:`chunkdic.method.length.choose_regularization`)
+SPANNING_FRACTION = 0.5
 #: the robust standard deviation of a normal sample from its median absolute value
 MAD_TO_SIGMA = 1.4826
 
 
-def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarray:
+def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: float = SPANNING_FRACTION) -> np.ndarray:
     """The Tikhonov terms of the field ``x`` to free: one robust reweighting (IRLS with a
     hard threshold) of the Hessian penalty.
 
     Each term (a second difference along a grid line, a mixed difference of a 2×2 square,
     per component) whose value exceeds ``threshold`` robust standard deviations of its kind
     and component (:data:`MAD_TO_SIGMA` × the median of their absolute values over the
-    mesh) gets weight 0: the kinks of a band or a slip, where the field truly bends, while
-    the noise and smooth fields (a wave's differences are the wave itself, their robust σ
-    its amplitude) keep every term. docs/engine.md, "The band and the slip at ℓ = 8".
+    mesh), in a connected set of such terms (same kind and component) spanning at least
+    ``spanning`` of the mesh along one axis (0: every such term), gets weight 0: the kinks of a band
+    or a slip, where the field truly bends along a surface, while the noise and smooth fields
+    (a wave's differences are the wave itself, their robust σ its amplitude) keep every
+    term. Without the span, weakly textured nodes (elements small against the texture's
+    features), whose noise is heavy-tailed and correlated over a few nodes, freed clusters of
+    up to ~13 terms (extent ≤ 5 nodes of 25) on waves, and the length chosen for the freed
+    penalty went long (docs/engine.md, "The regularisation length on a coarse texture"). docs/engine.md, "The
+    band and the slip at ℓ = 8".
 
     Parameters
     ----------
@@ -59,8 +72,20 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD) -> np.ndarr
                 continue
             beyond = a > threshold * sigma
             del a, d
-            freed[anchor + (t,)] |= (beyond.astype(np.uint8) << c)
+            freed[anchor + (t,)] |= (_spanning(beyond, shape, spanning).astype(np.uint8) << c)
     return freed
+
+
+def _spanning(beyond: np.ndarray, shape, fraction: float) -> np.ndarray:
+    """The terms of ``beyond`` (bool, one kind and component) in connected sets (26 neighbours)
+    whose extent along some axis reaches ``fraction`` of the mesh's ``shape`` (nodes)."""
+    if fraction <= 0 or not beyond.any():
+        return beyond
+    labels, _ = label(beyond, np.ones((3, 3, 3), bool))
+    keep = np.zeros(int(labels.max()) + 1, bool)
+    for k, box in enumerate(find_objects(labels), start=1):
+        keep[k] = any(b.stop - b.start >= fraction * n for b, n in zip(box, shape))
+    return keep[labels]
 
 
 def _term_values(u: np.ndarray, t: int) -> tuple[np.ndarray, tuple]:

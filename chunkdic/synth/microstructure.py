@@ -23,6 +23,16 @@ homogeneous Poisson process: the expected volume fraction of the union is
 follows. A point sees only the spheres of the 27 cells around its cell
 (:mod:`chunkdic.synth.boolean` has the kernels).
 
+Texture scale
+-------------
+``texture_scale`` multiplies every size of a specimen (radii of each population, the
+concrete matrix's texture lattice) and leaves its fractions and grey levels alone: the
+same material seen at a finer or coarser binning, with the same voxel-sized edges, noise
+and reconstruction. The autocorrelation length of the scans grows in proportion (about 6
+voxels at 1; docs/synthetic.md, "Texture scale", has the measured statistics) while the
+texture per element falls: sizes of 4 to 32 voxels cover fine granular scans to
+cementitious and rock scans whose large inclusions carry little inner texture.
+
 Partial volume (analytic, no supersampling)
 -------------------------------------------
 A voxel's value is the fraction of the voxel (unit cube centred on the point) inside the
@@ -76,6 +86,8 @@ __all__ = [
 # hash channels (distinct streams from one seed); ctsim uses 31..
 CH_GRAINS, CH_AGGREGATES, CH_PORES, CH_TEXTURE = 21, 22, 23, 24
 _S11 = np.uint64(11)
+#: the factor ``texture_scale`` may take (module docstring, "Texture scale")
+TEXTURE_SCALE_RANGE = (0.25, 16.0)
 _INV53 = 1.0 / (1 << 53)
 
 
@@ -101,6 +113,11 @@ class Population:
         if not (0.0 <= self.sigma <= 2.0):
             raise InputError(f"{name} radius sigma must lie in [0, 2], got {self.sigma!r}")
 
+    def scaled(self, factor: float) -> "Population":
+        """The same population with every radius multiplied by ``factor`` (same volume fraction)."""
+        return Population(self.fraction, self.median * factor, self.sigma, self.r_min * factor,
+                          self.r_max * factor)
+
     def mean_r3(self) -> float:
         """``E[r^3]`` of the truncated lognormal law, voxels^3."""
         return mean_r3(self.median, self.sigma, self.r_min, self.r_max)
@@ -109,6 +126,12 @@ class Population:
         """Kernel vector (:func:`chunkdic.synth.boolean.population_vector`)."""
         return population_vector(self.fraction, self.median, self.sigma, self.r_min,
                                  self.r_max, level, spread)
+
+
+def _check_scale(scale: float) -> None:
+    lo, hi = TEXTURE_SCALE_RANGE
+    if not (lo <= scale <= hi):
+        raise InputError(f"texture_scale must lie in [{lo:g}, {hi:g}], got {scale!r}")
 
 
 def _finite(obj, names):
@@ -140,6 +163,8 @@ class GrainsParams:
         per-grain variation; default 1.0, 0.05.
     pore_level : float
         Grey level of the pore space, default 0.
+    texture_scale : float
+        Factor applied to every size above (module docstring, "Texture scale"), default 1.
     """
 
     seed: int = 0
@@ -151,20 +176,23 @@ class GrainsParams:
     grain_level: float = 1.0
     grain_spread: float = 0.05
     pore_level: float = 0.0
+    texture_scale: float = 1.0
 
     kind = "grains"
 
     def __post_init__(self):
         object.__setattr__(self, "seed", int(self.seed))
         _finite(self, [n for n in self.__dataclass_fields__ if n != "seed"])
+        _check_scale(self.texture_scale)
         self.grains.check("grain")
         if not (0.0 <= self.grain_spread < 0.5):
             raise InputError(f"grain_spread must lie in [0, 0.5), got {self.grain_spread!r}")
 
     @property
     def grains(self) -> Population:
+        """The grains as drawn (radii times :attr:`texture_scale`)."""
         return Population(self.solid_fraction, self.radius_median, self.radius_sigma,
-                          self.radius_min, self.radius_max)
+                          self.radius_min, self.radius_max).scaled(self.texture_scale)
 
     def to_json(self) -> dict:
         return {"specimen": self.kind, **asdict(self)}
@@ -198,6 +226,9 @@ class ConcreteParams:
     texture_contrast, texture_size : float
         Amplitude (peak, phase units) and lattice spacing (voxels) of the matrix's C2
         value noise, default 0.08 (std ~0.025) and 2.
+    texture_scale : float
+        Factor applied to every size above (radii of aggregates and pores, the matrix
+        texture's lattice; module docstring, "Texture scale"), default 1.
     """
 
     seed: int = 0
@@ -217,28 +248,32 @@ class ConcreteParams:
     pore_level: float = 0.0
     texture_contrast: float = 0.08
     texture_size: float = 2.0
+    texture_scale: float = 1.0
 
     kind = "concrete"
 
     def __post_init__(self):
         object.__setattr__(self, "seed", int(self.seed))
         _finite(self, [n for n in self.__dataclass_fields__ if n != "seed"])
+        _check_scale(self.texture_scale)
         self.aggregates.check("aggregate")
         self.pores.check("pore")
         if not (0.0 <= self.aggregate_spread < 0.5):
             raise InputError(f"aggregate_spread must lie in [0, 0.5), got {self.aggregate_spread!r}")
-        if not (self.texture_contrast >= 0.0 and self.texture_size >= 0.5):
+        if not (self.texture_contrast >= 0.0 and self.texture_size * self.texture_scale >= 0.5):
             raise InputError("texture_contrast must be >= 0 and texture_size >= 0.5 voxel")
 
     @property
     def aggregates(self) -> Population:
+        """The aggregates as drawn (radii times :attr:`texture_scale`)."""
         return Population(self.aggregate_fraction, self.aggregate_median, self.aggregate_sigma,
-                          self.aggregate_min, self.aggregate_max)
+                          self.aggregate_min, self.aggregate_max).scaled(self.texture_scale)
 
     @property
     def pores(self) -> Population:
+        """The pores as drawn (radii times :attr:`texture_scale`)."""
         return Population(self.pore_fraction, self.pore_median, self.pore_sigma,
-                          self.pore_min, self.pore_max)
+                          self.pore_min, self.pore_max).scaled(self.texture_scale)
 
     def to_json(self) -> dict:
         return {"specimen": self.kind, **asdict(self)}
@@ -249,7 +284,7 @@ class ConcreteParams:
         keys = np.array([stream_key(self.seed, CH_AGGREGATES), stream_key(self.seed, CH_PORES),
                          stream_key(self.seed, CH_TEXTURE)], np.uint64)
         prm = np.array([1, self.pore_level, self.matrix_level, self.texture_contrast,
-                        1.0 / self.texture_size], np.float64)
+                        1.0 / (self.texture_size * self.texture_scale)], np.float64)
         return pops, keys, prm
 
 

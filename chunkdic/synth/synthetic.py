@@ -72,7 +72,7 @@ def _metadata(field, p: TextureParams, shape, dtype, noise) -> dict:
 
 
 SPECIMEN_NAMES = ("foam", "grains", "concrete")
-_CT_ONLY = ("angles", "filter", "blur", "rings", "gain", "offset", "drift", "mode", "imaging")
+_CT_ONLY = ("angles", "filter", "blur", "rings", "gain", "offset", "drift", "mode", "imaging", "texture_scale")
 
 
 def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "foam",
@@ -120,7 +120,9 @@ def synthesize(out_dir, shape, *, field: Field | None = None, specimen: str = "f
         an uninterrupted run bit for bit. Scans written with other settings are refused.
     **params
         Foam: other :class:`TextureParams` fields. CT specimens: specimen parameters
-        (:class:`~chunkdic.synth.microstructure.GrainsParams`, ``ConcreteParams``), imaging
+        (:class:`~chunkdic.synth.microstructure.GrainsParams`, ``ConcreteParams``; among them
+        ``texture_scale``, the factor on every size of the microstructure: about 6 voxels of
+        autocorrelation length at 1, docs/synthetic.md "Texture scale"), imaging
         (``imaging="fbp"`` or ``"local"``, :mod:`chunkdic.synth.ctlocal`; ``angles``, ``filter``,
         ``blur``, ``rings``) and the grey-level change of the
         deformed scan (``gain``, ``offset``, ``drift``; :class:`~chunkdic.synth.ctsim.GreyChange`).

@@ -82,10 +82,10 @@ def capture_choice(run: Callable[[], object], save: Callable[[dict, object], Non
 
     original = level_solve.choose_regularization
 
-    def hook(op, state, p, penalty, settings, level, mesh, progress=None):
+    def hook(op, state, p, penalty, settings, level, mesh, progress=None, **kw):
         problem = linearised_problem(op, state, p, settings, level, mesh)
         if engine_choice:
-            _, penalty = original(op, state, p, penalty, settings, level, mesh, progress)
+            _, penalty = original(op, state, p, penalty, settings, level, mesh, progress, **kw)
         save(problem, penalty)
         raise ChoiceCaptured
 

@@ -280,6 +280,24 @@ def run_aldvc(exe: Path, ref: Path, deformed: Path, out_dir: Path, *, winsize: i
     return AldvcRun(points, u, valid, "ok", wall, pipeline, peak, info, cpu)
 
 
+def load_run(out_dir: Path) -> AldvcRun | None:
+    """An earlier :func:`run_aldvc` result left in ``out_dir`` (its ``aldvc.npz`` and log), or
+    None: al-dvc's fields are deterministic for the same scans and settings, so a benchmark
+    that changes only chunkdic may score them again instead of running al-dvc again. Wall,
+    CPU and peak memory of the earlier process are not kept (NaN); its "Done in" time is."""
+    out_dir = Path(out_dir)
+    npz, log_path = out_dir / "aldvc.npz", out_dir / "aldvc.log"
+    if not (npz.exists() and log_path.exists()):
+        return None
+    text = log_path.read_text(errors="replace")
+    done = re.search(r"Done in ([0-9.]+)s", text)
+    points, u, valid, info = read_result(npz)
+    info.update(parse_log(text))
+    info["log"], info["reused"] = str(log_path), True
+    nan = float("nan")
+    return AldvcRun(points, u, valid, "ok", nan, float(done.group(1)) if done else nan, nan, info, nan)
+
+
 def parse_log(text: str) -> dict:
     """Diagnostics that the ``.npz`` does not keep: beta, ADMM steps, local pass summary."""
     out: dict = {}

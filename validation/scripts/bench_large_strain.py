@@ -16,10 +16,18 @@ of the vector error):
 - ``shift``: translation (0.5, 0.5, 0.5) (the standard ``shift`` case);
 - ``band``: the standard compression band (−8 %, 6 voxels).
 
+``--scales`` coarsens the texture: every size of the specimen (grain radii; aggregate and
+pore radii and the matrix's value-noise spacing) is multiplied by the factor
+(:func:`scaled_specimen`; synth's defaults unchanged), and the reference's autocorrelation
+length per axis (1/e of its unbiased autocorrelation, by FFT: :func:`autocorrelation_length`)
+is measured and printed with each pair. Factor 1: about 6 voxels; 2.25: about 12; 4.5:
+about 24.
+
 Usage::
 
     python benchmarks/bench_large_strain.py --size 100 --cases comp10 comp20 rot10 --spacings 8 6
     python benchmarks/bench_large_strain.py --size 100 --cases shift band --spacings 16 12 8 --record NAME
+    python benchmarks/bench_large_strain.py --size 128 --scales 1 2.25 4.5 --aldvc --record NAME
 
 docs/engine.md, "ROI and meshes", records what it measured.
 """
@@ -27,6 +35,7 @@ docs/engine.md, "ROI and meshes", records what it measured.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import math
 import sys
@@ -56,14 +65,59 @@ def large_field(case: str, n: int):
     raise ValueError(case)
 
 
-def make_pair(root: Path, specimen: str, case: str, n: int, seed: int = 0) -> dict:
+def scaled_specimen(specimen: str, factor: float) -> dict:
+    """The specimen parameters that multiply every size of its texture by ``factor`` (voxels):
+    grain radii (``grains``); aggregate and pore radii and the matrix's value-noise spacing
+    (``concrete``). ``{}`` at factor 1 (the defaults)."""
+    from chunkdic.synth.microstructure import SPECIMENS
+
+    if factor == 1:
+        return {}
+    sizes = {"grains": ("radius_median", "radius_min", "radius_max"),
+             "concrete": ("aggregate_median", "aggregate_min", "aggregate_max", "pore_median", "pore_min",
+                          "pore_max", "texture_size")}[specimen]
+    defaults = SPECIMENS[specimen]()
+    return {name: getattr(defaults, name) * factor for name in sizes}
+
+
+def autocorrelation_length(volume: np.ndarray) -> list[float]:
+    """Lag (voxels) where the normalised autocorrelation of ``volume`` (3-D) first falls to 1/e,
+    per axis ``(z, y, x)``, linearly interpolated between lags. Unbiased: the autocorrelation
+    (by FFT, zero-padded to twice the shape) is divided by the number of voxel pairs at each lag."""
+    v = volume.astype(np.float64)
+    v -= v.mean()
+    shape, axes = [2 * n for n in v.shape], (0, 1, 2)
+
+    def power(a):
+        return np.fft.irfftn(np.abs(np.fft.rfftn(a, s=shape, axes=axes)) ** 2, s=shape, axes=axes)
+
+    ac = power(v) / np.maximum(power(np.ones_like(v)), 1.0)
+    ac /= ac[0, 0, 0]
+    out = []
+    for a in range(3):
+        line = ac[tuple(slice(0, v.shape[a] // 2) if b == a else 0 for b in range(3))]
+        j = int(np.argmax(line < 1 / np.e))
+        out.append(float(j - 1 + (line[j - 1] - 1 / np.e) / (line[j - 1] - line[j])) if j > 0 else math.nan)
+    return out
+
+
+def make_pair(root: Path, specimen: str, case: str, n: int, seed: int = 0, scale: float = 1.0) -> dict:
     from chunkdic.synth import synthetic
 
-    out = root / f"{specimen}-{case}-{n}-{seed}"
+    out = root / f"{specimen}-{case}-{n}-{seed}-x{scale:g}"
+    params = scaled_specimen(specimen, scale)
     if case in ("shift", "band"):
-        return synthetic.standard_case(out, case, n, specimen=specimen, noise=0.02, seed=seed, overwrite=True)
+        return synthetic.standard_case(out, case, n, specimen=specimen, noise=0.02, seed=seed, overwrite=True,
+                                       **params)
     return synthetic.synthesize(out, n, field=large_field(case, n), specimen=specimen, noise=0.02, seed=seed,
-                                overwrite=True)
+                                overwrite=True, **params)
+
+
+def reference_acl(pair: dict) -> list[float]:
+    """The autocorrelation length per axis of the pair's reference (read whole: benchmark sizes)."""
+    from chunkdic.io.scan import open_scan
+
+    return autocorrelation_length(np.asarray(open_scan(pair["reference"]).refs([0])[0].open()[:]))
 
 
 def run(pair: dict, n: int, ell: int, **settings) -> dict:
@@ -109,11 +163,14 @@ def main(argv=None) -> int:
     ap.add_argument("--specimens", nargs="+", default=["grains", "concrete"])
     ap.add_argument("--cases", nargs="+", default=["comp10", "comp20", "rot10"])
     ap.add_argument("--spacings", nargs="+", type=int, default=[8, 6])
+    ap.add_argument("--scales", nargs="+", type=float, default=[1.0],
+                    help="texture scale factors (every size of the specimen multiplied: scaled_specimen)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a chunkdic setting (value parsed as JSON when it can be)")
     ap.add_argument("--coarse-min-element", type=int,
                     help="override chunkdic.engine.meshes.COARSE_MIN_ELEMENT (measuring the schedule)")
     ap.add_argument("--aldvc", action="store_true", help="also run al-dvc on each pair (benchmarks/aldvc.py)")
+    ap.add_argument("--aldvc-only", action="store_true", help="run al-dvc alone on each pair, not chunkdic")
     ap.add_argument("--threads", type=int, default=2, help="al-dvc's threads")
     ap.add_argument("--record", help="write benchmarks/records/bench_large_strain_NAME.json")
     args = ap.parse_args(argv)
@@ -130,21 +187,26 @@ def main(argv=None) -> int:
         planning.COARSE_MIN_ELEMENT = args.coarse_min_element
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
-        for specimen in args.specimens:
-            for case in args.cases:
-                pair = make_pair(Path(tmp), specimen, case, args.size)
-                for ell in args.spacings:
+        for specimen, scale, case in itertools.product(args.specimens, args.scales, args.cases):
+            pair = make_pair(Path(tmp), specimen, case, args.size, scale=scale)
+            acl = reference_acl(pair)
+            print(f"{specimen} x{scale:g} {case}: autocorrelation length {' '.join(f'{v:.1f}' for v in acl)}",
+                  flush=True)
+            tag = dict(specimen=specimen, scale=scale, acl=acl, case=case)
+            for ell in args.spacings:
+                if not args.aldvc_only:
                     r = run(pair, args.size, ell, **settings)
-                    r.update(specimen=specimen, case=case, ell=ell)
+                    r.update(tag, ell=ell)
                     rows.append(r)
-                    print(f"{specimen:9s} {case:7s} ell={ell:3d} {r['status']:15s} rms={r['rms']:.4f} "
-                          f"max={r['max']:.3f} wall={r['wall']:.1f}s reg={r['reg_length']}", flush=True)
-                    if args.aldvc:
-                        a = run_peer(pair, args.size, ell, Path(tmp), args.threads)
-                        a.update(specimen=specimen, case=case, ell=ell, tool="al-dvc")
-                        rows.append(a)
-                        print(f"{'':9s} {'al-dvc':7s} ell={ell:3d} {a['status']:15s} rms={a['rms']:.4f} "
-                              f"max={a['max']:.3f} wall={a['wall']:.1f}s flagged={a.get('flagged')}", flush=True)
+                    print(f"{specimen:9s} x{scale:<4g} {case:7s} ell={ell:3d} {r['status']:15s} rms={r['rms']:.4f} "
+                          f"max={r['max']:.3f} wall={r['wall']:.1f}s reg={r['reg_length']} levels={r['levels']}",
+                          flush=True)
+                if args.aldvc or args.aldvc_only:
+                    a = run_peer(pair, args.size, ell, Path(tmp), args.threads)
+                    a.update(tag, ell=ell, tool="al-dvc")
+                    rows.append(a)
+                    print(f"{'':9s} {'':5s} {'al-dvc':7s} ell={ell:3d} {a['status']:15s} rms={a['rms']:.4f} "
+                          f"max={a['max']:.3f} wall={a['wall']:.1f}s flagged={a.get('flagged')}", flush=True)
     if args.record:
         RECORDS.mkdir(exist_ok=True)
         path = RECORDS / f"bench_large_strain_{args.record}.json"

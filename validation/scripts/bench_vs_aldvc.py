@@ -90,6 +90,7 @@ until the end), so an interrupted run keeps what completed.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -106,20 +107,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import aldvc as peer  # noqa: E402  (benchmarks/aldvc.py, next to this file)
+from _oracle import candidate_fields, keep_choice_problem  # noqa: E402
 
 RECORDS = Path(__file__).resolve().parent / "records"
 #: heterogeneous fields of issue 20 (independent noise in each scan): shear waves, a shear slip
 WAVES = ("wave24", "wave32", "wave48", "wave64")
-HETEROGENEOUS = WAVES + ("slip", "band")
+HETEROGENEOUS = WAVES + ("slip", "band", "crack")
 #: large deformations (bench_large_strain.py's fields): 10 / 20 % compression, 10 degree rotation
 LARGE = ("comp10", "comp20", "rot10")
-CASE_NAMES = ("shift", "noise", "band", "band-grey", "star", *WAVES, "slip", *LARGE)
+CASE_NAMES = ("shift", "noise", "band", "band-grey", "star", *WAVES, "slip", "crack", *LARGE)
 #: the default case list (the cases of issue 20 plus the two translations)
 DEFAULT_CASES = ("shift", "noise", "band", "band-grey", "star")
 CASE_GROUPS = {"heterogeneous": HETEROGENEOUS, "large": LARGE, "all": CASE_NAMES}
 #: the star of issue 20: Ux = 0.5 sin(2 pi (z - zc) / period(y)), period 10 -> 100 voxels across y
 STAR = {"amplitude": 0.5, "period_min": 10.0, "period_max": 100.0}
 SHIFT = (0.5, 0.5, 0.5)
+#: the crack: a sliding jump Ux = ±0.3 voxel across the plane z = c (a slip whose edge is far below a voxel)
+CRACK = {"jump": 0.6, "edge": 0.01}
 
 
 def _error(msg: str) -> None:
@@ -162,23 +166,32 @@ def _pair(out: Path, n: int, args, specimen: str, *, field, **extra) -> dict:
     kw = {"seed": args.seed, "dtype": args.dtype, "overwrite": True, "noise": args.noise}
     if specimen != "foam":
         kw["specimen"] = specimen
+        if getattr(args, "scale", 1.0) != 1.0:
+            kw["texture_scale"] = args.scale
     paths = synthetic.synthesize(out, (n,) * 3, field=field, **kw, **extra)
     print(f"# synthesized {out.name} ({n}^3) in {time.perf_counter() - t0:.1f} s", flush=True)
     return paths
 
 
 def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | None:
-    """Write the scans of case ``name`` at ``n``³ under ``workdir`` (kept between runs)."""
+    """Write the scans of case ``name`` at ``n``³ under ``workdir`` (kept between runs);
+    ``args.scale``: the specimen's texture scale (``texture_scale`` of :func:`chunkdic.synth.synthetic.synthesize`)."""
     from chunkdic.synth.fields import Translation
 
+    scale = getattr(args, "scale", 1.0)
     tag = f"{name}-{n}-{specimen}-{args.dtype}-n{args.noise:g}-s{args.seed}"
+    if scale != 1.0 and specimen != "foam":
+        tag += f"-ts{scale:g}"
+        specimen_label = f"{specimen}-ts{scale:g}"
+    else:
+        specimen_label = specimen
     if name.startswith("band") and args.band_lateral is not None:
         tag += f"-lat{args.band_lateral:g}"
     offset = getattr(args, "feature_offset", 0.0) or 0.0
-    if offset and (name in WAVES or name == "slip" or name.startswith("band")):
+    if offset and (name in WAVES or name in ("slip", "crack") or name.startswith("band")):
         tag += f"-off{offset:g}"
     out = workdir / tag
-    label = f"{name}/{specimen}"
+    label = f"{name}/{specimen_label}"
     if name == "shift":
         if specimen == "foam":
             from chunkdic.io.scan import open_scan
@@ -205,12 +218,14 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
         paths = _pair(out, n, args, specimen, field=field)
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
                     f"star, period 10-100 across y, independent noise {args.noise:g}")
-    if name in WAVES or name == "slip":
+    if name in WAVES or name in ("slip", "crack"):
         from chunkdic.synth.shear import Slip, Wave
 
         c = (n - 1) / 2.0 + offset
         if name == "slip":  # Ux = 0.5 tanh((z - c) / 3): a 1-voxel slip across ~6 voxels
             field, note = Slip(center=c, jump=1.0, edge=3.0), "shear slip 1 voxel, edge 3"
+        elif name == "crack":  # Ux = ±0.3 on either side of z = c: a sliding crack
+            field, note = Slip(center=c, **CRACK), "sliding crack, Ux = ±0.3 voxel"
         else:  # Ux = 0.5 sin(2 pi (z - c) / period)
             field = Wave(period=float(name[4:]), amplitude=0.5, phase=c)
             note = f"shear wave period {name[4:]}, amplitude 0.5"
@@ -284,15 +299,24 @@ def _chunkdic_child(args) -> None:
     # starts, as al-dvc's "Done in" time starts after its imports; `proc` counts both. zarr is
     # imported by chunkdic on the first scan it opens: 0.18 s inside the call before session 32)
 
-    t0, c0 = time.perf_counter(), time.process_time()
     options = json.loads(args.options or "{}")
-    res = chunkdic.correlate(args.ref, args.deformed, element_size=args.element_size, **options)
+    oracle = options.pop("__oracle", False)
+    with contextlib.ExitStack() as stack:
+        kept = stack.enter_context(keep_choice_problem()) if oracle else {}
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = chunkdic.correlate(args.ref, args.deformed, element_size=args.element_size, **options)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     scale = float(res.info.get("scale", 1))
     # level-s voxels -> level-0 voxels (shared/DESIGN.md: centre offset (2^s - 1) / 2)
     points = res.node_coords.reshape(3, -1) * scale + (scale - 1) / 2
     u = res.displacement.reshape(3, -1) * scale
-    np.savez(args.out + ".npz", points=points, u=u)
+    extra = {}
+    if "problem" in kept:  # every candidate length's linearised field (validation/scripts/_oracle.py)
+        lengths, fields = candidate_fields(kept["problem"])
+        extra = {"oracle_lengths": lengths, "oracle_u": fields.reshape(len(lengths), 3, -1)}
+        # the problem itself, for studies of the choice away from the engine (bench_length_texture.py)
+        np.savez(args.out + "-problem.npz", **kept["problem"], reference=args.ref)
+    np.savez(args.out + ".npz", points=points, u=u, **extra)
     hist = res.history
     summary = {
         "wall": wall, "cpu": cpu, "status": res.info.get("status"), "converged": res.converged,
@@ -326,6 +350,8 @@ def run_chunkdic(case: Case, ell: int, threads: int, out: Path, timeout: float, 
     summary = json.loads(Path(str(out) + ".json").read_text())
     with np.load(str(out) + ".npz") as d:
         summary["points"], summary["u"] = d["points"], d["u"]
+        if "oracle_u" in d:
+            summary["oracle_lengths"], summary["oracle_u"] = d["oracle_lengths"], d["oracle_u"]
     summary.update(proc=proc_wall, proc_cpu=proc_cpu, peak_rss_mb=peak)
     return summary
 
@@ -494,17 +520,22 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_
     scores of :func:`chunkdic.score_displacement` stay in the record as ``nodal_*``.
     """
     runs = {"chunkdic": []} | ({"al-dvc": []} if peer_too else {})
+    options = dict(args.options) | ({"__oracle": True} if args.oracle else {})
     for rep in range(args.repeats):
         base = workdir / "runs" / f"{case.name}-{case.shape[0]}-ell{ell}-r{rep}"
-        c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout, args.options)
+        c = run_chunkdic(case, ell, args.threads, base / "chunkdic", args.timeout, options)
         pts, uc = c.pop("points", None), c.pop("u", None)
+        candidates = (c.pop("oracle_lengths", None), c.pop("oracle_u", None))
         score = _score(pts, uc, None, case, ell)
         runs["chunkdic"].append({**c, **score, **_nodal(score), **_between(pts, uc, case, ell, args.points),
                                  **_star(pts, uc, None, case, ell)})
         if not peer_too:
+            runs["chunkdic"][-1].update(oracle_scores(candidates, pts, case, ell, None, args.points))
             continue
-        a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
-                           threads=args.threads, timeout=args.timeout)
+        a = peer.load_run(base / "aldvc") if args.reuse_peer else None
+        if a is None:
+            a = peer.run_aldvc(exe, npys[0], npys[1], base / "aldvc", winsize=2 * ell, step=ell,
+                               threads=args.threads, timeout=args.timeout)
         score = _score(a.points, a.u, a.valid, case, ell)
         # the same field scored with every node al-dvc returns, flagged ones included
         every = _score(a.points, a.u, None, case, ell) if a.points is not None else {}
@@ -517,7 +548,42 @@ def compare(case: Case, ell: int, args, exe: Path, workdir: Path, npys, *, peer_
         common = between_common({"chunkdic": (pts, uc), "al-dvc": (a.points, a.u)}, case, ell, args.points)
         for tool, extra in common.items():
             runs[tool][-1].update(extra)
+        runs["chunkdic"][-1].update(oracle_scores(candidates, pts, case, ell, (a.points, a.u), args.points))
+    if args.oracle_full and runs["chunkdic"][-1].get("oracle_length"):
+        # the whole engine at the oracle's length (the plain penalty): checks the linearisation
+        L = runs["chunkdic"][-1]["oracle_length"]
+        c = run_chunkdic(case, ell, args.threads, workdir / "runs" / f"{case.name}-{case.shape[0]}-ell{ell}-full",
+                         args.timeout, dict(args.options) | {"regularization_length": L})
+        pts, uc = c.pop("points", None), c.pop("u", None)
+        full = _between(pts, uc, case, ell, args.points)
+        if peer_too and a.points is not None:
+            full.update(between_common({"chunkdic": (pts, uc), "al-dvc": (a.points, a.u)}, case, ell,
+                                       args.points).get("chunkdic", {}))
+        runs["chunkdic"][-1].update({f"oracle_full_{k}": v for k, v in full.items()
+                                     if k in ("rms", "sigma", "rms_common", "sigma_common")})
     return {tool: _summarise(r) | {"runs": r} for tool, r in runs.items()}
+
+
+def oracle_scores(candidates, pts, case: Case, ell: int, peer_field, sample) -> dict:
+    """Each candidate length's linearised field (validation/scripts/_oracle.py) scored as the tool's own:
+    between the nodes over all voxels ≥ ``ell`` from the faces and, with al-dvc's field, on the
+    voxels both tools score; ``oracle_*`` the least error (σ for the translations) and its length."""
+    lengths, fields = candidates
+    if lengths is None or case.field is None:
+        return {}
+    key = "sigma" if case.name.split("/")[0] in ("shift", "noise") else "rms"
+    out = {"oracle_lengths": [float(v) for v in lengths], f"oracle_{key}_all": [], f"oracle_{key}_common_all": []}
+    for u in fields:
+        out[f"oracle_{key}_all"].append(_between(pts, u, case, ell, sample).get(key))
+        if peer_field is not None and peer_field[0] is not None:
+            common = between_common({"chunkdic": (pts, u), "al-dvc": peer_field}, case, ell, sample)
+            out[f"oracle_{key}_common_all"].append(common.get("chunkdic", {}).get(f"{key}_common"))
+    pick = out[f"oracle_{key}_common_all"] or out[f"oracle_{key}_all"]
+    best = int(np.nanargmin(np.array(pick, dtype=float)))
+    out.update({"oracle_length": float(lengths[best]), f"oracle_{key}": out[f"oracle_{key}_all"][best]})
+    if out[f"oracle_{key}_common_all"]:
+        out[f"oracle_{key}_common"] = out[f"oracle_{key}_common_all"][best]
+    return out
 
 
 def warm_up(exe: Path, args, workdir: Path) -> None:
@@ -641,12 +707,24 @@ def _write_record(args, payload: dict, quiet: bool = False) -> None:
         f"bench_vs_aldvc_{'-'.join(str(s) for s in args.sizes)}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "host": platform.node(), "cores": os.cpu_count(),
+            "machine": f"{platform.machine()} {platform.processor() or platform.platform()}", "commit": _commit(),
             "threads": args.threads, "aldvc_version": peer.VERSION, "aldvc_settings": peer.FIXED_SETTINGS,
             "argv": sys.argv[1:]}
     with open(path, "w") as fh:
         json.dump({"meta": meta, **payload}, fh, indent=1, default=_json_default)
     if not quiet:
         print(f"# record: {path}")
+
+
+def _commit() -> str:
+    """The checkout's commit (with ``+dirty`` when the tree has changes), or ``"unknown"``."""
+    here = Path(__file__).resolve().parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True).stdout.strip()
+    except OSError:
+        return "unknown"
+    return (sha or "unknown") + ("+dirty" if dirty else "")
 
 
 def _json_default(o):
@@ -688,6 +766,17 @@ def parse_args(argv=None):
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--specimen", nargs="+", default=["grains", "concrete"], choices=["grains", "concrete", "foam"],
                    help="specimens of the built-in cases (default: the CT-like grains and concrete)")
+    p.add_argument("--texture-scales", type=float, nargs="+", default=[1.0], metavar="FACTOR",
+                   help="texture scales of the CT specimens (synth texture_scale: 1, 2, 4 give autocorrelation "
+                        "lengths of about 6, 12 and 24 voxels; default 1)")
+    p.add_argument("--oracle", action="store_true",
+                   help="also score every candidate length's linearised field (validation/scripts/_oracle.py): the best "
+                        "fixed length beside the automatic one")
+    p.add_argument("--oracle-full", action="store_true",
+                   help="with --oracle: run the whole engine at the oracle's length too (one more run per case)")
+    p.add_argument("--reuse-peer", action="store_true",
+                   help="score al-dvc's result an earlier run left in --workdir instead of running it again "
+                        "(same scans and settings: its field is deterministic; its wall time is not kept)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a chunkdic setting for every run, e.g. --set regularization=none (repeatable)")
     p.add_argument("--timeout", type=float, default=3600.0, help="seconds per tool run")
@@ -751,12 +840,13 @@ def main(argv=None) -> int:
     if not args.no_warmup:
         warm_up(exe, args, workdir)
     cases = []
-    for n in args.sizes:
-        for specimen in args.specimen:
-            for name in args.cases:
-                c = build_case(name, n, specimen, workdir, args)
-                if c is not None:
-                    cases.append(c)
+    for args.scale in args.texture_scales:
+        for n in args.sizes:
+            for specimen in args.specimen:
+                for name in args.cases:
+                    c = build_case(name, n, specimen, workdir, args)
+                    if c is not None:
+                        cases.append(c)
     cases += [pair_case(p) for p in args.pair]
     print(f"# medians of {args.repeats} run(s); with a known field: between the nodes (trilinear on each "
           f"tool's node grid, every voxel >= ell from the faces), sigma pooled, RMS vector error; "
@@ -794,17 +884,22 @@ def summary_table(results: list[dict]) -> str:
     the ratio chunkdic / al-dvc, chunkdic's status and regularisation length, wall times, and
     each grid's floor (the exact field at its nodes, trilinear between them, same voxels)."""
     head = ("| case | ell | chunkdic | al-dvc | ratio | chunkdic, all voxels >= ell | chunkdic status "
-            "| reg. length | wall chunkdic / al-dvc (s) | grid floor chunkdic / al-dvc |")
-    lines = [head, "|---|---|---|---|---|---|---|---|---|---|"]
+            "| reg. length | oracle (length) | chunkdic / oracle | wall chunkdic / al-dvc (s) "
+            "| grid floor chunkdic / al-dvc |")
+    lines = [head, "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         c, a = r["chunkdic"], r.get("al-dvc") or {}
         name = r["case"].split("/")[0]
         key = "sigma" if name in ("shift", "noise") else "rms"
         ce, ae = (c.get(f"{key}_common"), a.get(f"{key}_common")) if a else (None, None)
         ratio = ce / ae if ce is not None and ae and math.isfinite(ce) and math.isfinite(ae) else None
+        # the oracle on the same voxels as the tool's own figure: common ones beside al-dvc, else all
+        mine, oracle = (ce, c.get(f"oracle_{key}_common")) if a else (c.get(key), c.get(f"oracle_{key}"))
+        vs_oracle = mine / oracle if mine is not None and oracle else None
         label = f"{r['case']} ({'σ' if key == 'sigma' else 'RMS'})"
         lines.append(f"| {label} | {r['ell']} | {_fmt(ce, '.4f')} | {_fmt(ae, '.4f')} | {_fmt(ratio, '.2f')} | "
                      f"{_fmt(c.get(key), '.4f')} | {c.get('status', '-')} | {_fmt(c.get('reg_length'), '.0f')} | "
+                     f"{_fmt(oracle, '.4f')} ({_fmt(c.get('oracle_length'), '.0f')}) | {_fmt(vs_oracle, '.2f')} | "
                      f"{_fmt(c.get('wall'), '.1f')} / {_fmt(a.get('wall'), '.1f')} | "
                      f"{_fmt(c.get('floor_common'), '.4f')} / {_fmt(a.get('floor_common'), '.4f')} |")
     return "\n".join(lines)

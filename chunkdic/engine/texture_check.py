@@ -1,0 +1,86 @@
+"""The reference's texture, read before a correlation's levels run.
+
+One measurement (:func:`chunkdic.passes.texture.measure_texture`: :data:`CHECK_BOXES` boxes of
+:data:`CHECK_EDGE` voxels inside the ROI of the correlated level, smaller ones that tile a
+small ROI, at least 3 ℓ; each reduced by one task, the client never holds a voxel) answers
+two questions:
+
+- is ``ℓ`` below the smallest element size the texture supports? Then :func:`check_texture`
+  warns in one line (:class:`ElementSizeWarning`); the correlation runs as asked, the
+  regularisation filling in the weakly textured elements (docs/engine.md, "Know your
+  texture");
+- how long are the texture's features? The autocorrelation length (the median over the
+  axes) sets the regularisation length each level starts with
+  (:func:`chunkdic.method.length.start_length`).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from ..io.handles import ArrayRef
+from ..mesh import Mesh
+from ..method.events import Texture, emit
+from ..method.length import START_LENGTH, start_length
+from ..method.settings import Settings
+from ..passes.texture import LADDER, TextureStats, measure_texture
+
+__all__ = ["ElementSizeWarning", "check_texture", "texture_length"]
+
+#: boxes read before a correlation (edge in voxels of the level, or 3 ℓ when larger) and the
+#: largest lag of their autocorrelation: 0.8 s warm on a 300³ ROI (a loaded 2-core machine)
+CHECK_EDGE = 48
+CHECK_BOXES = 8
+CHECK_LAG = 48
+
+
+class ElementSizeWarning(UserWarning):
+    """The element size is below the smallest the reference's texture supports."""
+
+
+def texture_length(stats: TextureStats) -> float:
+    """One autocorrelation length from the three axes' (voxels): their median, an axis beyond
+    the lags examined counted as the longest lag; NaN for a constant reference."""
+    acl = np.array(stats.acl, dtype=float)
+    acl[np.isinf(acl)] = CHECK_LAG
+    acl = acl[np.isfinite(acl)]
+    return float(np.median(acl)) if acl.size else math.nan
+
+
+def check_texture(ref: ArrayRef, mesh: Mesh, settings: Settings, runner, progress=None) -> float:
+    """The correlated level's texture (module docstring): warn when ``ℓ`` is below what it
+    supports, report a coarse one (a :class:`~chunkdic.method.events.Texture` event) and return
+    its autocorrelation length, voxels of the level.
+
+    Parameters
+    ----------
+    ref : ArrayRef
+        The reference on the correlated level.
+    mesh : Mesh
+        That level's mesh (its ROI is sampled).
+    settings : Settings
+    runner : object
+        Where the box tasks run (``runner.map_unordered``).
+    progress : callable, optional
+    """
+    ell = int(mesh.element_size)
+    within = [(r.start, r.stop) for r in mesh.roi]
+    # boxes of half the ROI's shortest side when smaller than CHECK_EDGE: eight that tile it
+    edge = max(min(CHECK_EDGE, min(b - a for a, b in within) // 2), 3 * ell)
+    ladder = sorted({*(e for e in LADDER if 2 * e <= edge), ell})
+    stats = measure_texture(ref, runner.map_unordered, smoothing=settings.smoothing, edge=edge, boxes=CHECK_BOXES,
+                            ladder=ladder, max_lag=CHECK_LAG, within=within)
+    if stats.smallest is not None and ell < stats.smallest:
+        warnings.warn(f"element size {ell} voxels is below the smallest the reference's texture supports "
+                      f"({stats.smallest} voxels): {100 * stats.weak_fraction.get(ell, math.nan):.0f} % of its elements "
+                      f"carry less texture than noise (noise {stats.noise:.3g} estimated); the regularisation fills "
+                      f"them in (chunkdic texture REF tells more)", ElementSizeWarning, stacklevel=2)
+    length = texture_length(stats)
+    event = Texture(level=settings.level, length=length, start_length=start_length(ell, length),
+                    usual_length=START_LENGTH * ell, element_size=mesh.element_size, smallest=stats.smallest)
+    if event.start_length != event.usual_length:
+        emit(progress, event)
+    return length
