@@ -12,13 +12,13 @@ your texture"). ``correlate`` makes the same check of its own element size befor
 from __future__ import annotations
 
 import math
-import shutil
 from dataclasses import asdict, dataclass
 
 from ..passes.texture import LADDER, MAX_LAG, WEAK_LIMIT, WEAK_SNR, TextureStats, measure_texture
 from ..errors import InputError
 from ..inputs import number
-from ..io.ownership import make_scratch
+from ..io.owntree import remove
+from ..io.scratch import make_scratch
 from ..io.scan import open_scan
 from ..scheduler import check_scheduler, open_runner
 
@@ -140,5 +140,5 @@ def texture(ref, element_sizes=DEFAULT_SIZES, *, noise: float | None = None, smo
             stats = measure_texture(f, runner.map_unordered, element_sizes=sizes, noise=noise, smoothing=smoothing,
                                     edge=edge)
     finally:
-        shutil.rmtree(scratch, ignore_errors=True)
+        remove(scratch)
     return TextureReport(sizes, stats, level, smoothing)

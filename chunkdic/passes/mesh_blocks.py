@@ -14,11 +14,11 @@ for the :class:`~chunkdic.solve.partitioned.PartitionedSolver`.
 from __future__ import annotations
 
 import functools
-import shutil
 from pathlib import Path
 
 import numpy as np
 
+from ..io.owntree import remove
 from .. import config
 from ..mesh import Mesh
 from ..scheduler import threads_of
@@ -125,4 +125,4 @@ class BlockedMatrix:
 
     def close(self) -> None:
         """Remove the partials (the held node blocks stay with the holder)."""
-        shutil.rmtree(self.directory, ignore_errors=True)
+        remove(self.directory)

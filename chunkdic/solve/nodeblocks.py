@@ -18,12 +18,13 @@ blocks per thread whatever the mesh (docs/distributed.md, "Mesh data beyond one 
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import dask
 import dask.array as da
 import numpy as np
+
+from ..io.owntree import remove
 
 
 def node_chunks(nodes_shape, block_elements: int) -> tuple[tuple[int, ...], ...]:
@@ -187,7 +188,7 @@ class DiskHolder:
             return list(dask.compute(*xs))
 
     def close(self) -> None:
-        shutil.rmtree(self.directory, ignore_errors=True)
+        remove(self.directory)
         self._stores.clear()
 
 
