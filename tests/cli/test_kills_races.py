@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zarr
+from processes import descendants
 from test_data_safety import N, T, tree
 from test_fault_paths import _listing
 
@@ -297,21 +298,6 @@ def test_series_on_a_full_disk_keeps_what_resumes_and_says_so(data, tmp_path, at
 # --------------------------------------------------------------------------- item 5: a Dask worker killed
 
 
-def _descendants(pid: int) -> dict[int, str]:
-    kids = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{entry}/stat").read_text()
-            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-            kids[int(entry)] = cmdline
-            kids.update(_descendants(int(entry)))
-    return kids
-
 
 @pytest.mark.parametrize("at", ["correlating 002-incremental", "level 0: starting from"])
 def test_series_survives_a_local_worker_killed_when_a_step_starts(data, tmp_path, at):
@@ -325,8 +311,8 @@ def test_series_survives_a_local_worker_killed_when_a_step_starts(data, tmp_path
     for line in proc.stderr:
         lines.append(line)
         if victim is None and at in line:
-            workers = [p for p, c in _descendants(proc.pid).items() if "spawn_main" in c]
-            assert workers, _descendants(proc.pid)
+            workers = [p for p, c in descendants(proc.pid).items() if "spawn_main" in c]
+            assert workers, descendants(proc.pid)
             victim = workers[-1]
             os.kill(victim, signal.SIGKILL)
     code = proc.wait(timeout=600)

@@ -51,6 +51,7 @@ from typing import ClassVar
 HERE = Path(__file__).resolve().parents[2]  # the source tree
 sys.path.insert(0, str(HERE / "tests"))
 from bombs import deflate_bomb, zstd_bomb  # noqa: E402  (the tests' bomb makers)
+from processes import descendants  # noqa: E402
 N = 32
 T = (0.6, -0.4, 0.3)
 HANG = 25.0  # seconds: a case still running then is a hang
@@ -954,21 +955,6 @@ def _commit_kill(case, d, scratch) -> str:
         (f"scratch left: {[p.name for p in left][:3]}" if left else "")
 
 
-def _descendants(pid: int) -> dict:
-    kids = {}
-    for entry in os.listdir("/proc"):
-        if not entry.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{entry}/stat").read_text()
-            cmdline = Path(f"/proc/{entry}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-            kids[int(entry)] = cmdline
-            kids.update(_descendants(int(entry)))
-    return kids
-
 
 def _worker(case, d, scratch) -> str:
     """One LocalCluster worker killed on the line AT: the run goes on (or says why not in one
@@ -979,7 +965,7 @@ def _worker(case, d, scratch) -> str:
     for line in proc.stderr:
         lines.append(line)
         if victim is None and case.env["AT"] in line:
-            workers = [p for p, c in _descendants(proc.pid).items() if "spawn_main" in c]
+            workers = [p for p, c in descendants(proc.pid).items() if "spawn_main" in c]
             if workers:
                 victim = workers[-1]
                 os.kill(victim, signal.SIGKILL)
