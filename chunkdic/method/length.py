@@ -185,12 +185,14 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     curvature terms of the field this length gives (:func:`linearised_field`) beyond
     :data:`~chunkdic.solve.reweighting.ROBUST_THRESHOLD` robust σ freed
     (:func:`~chunkdic.solve.reweighting.robust_freed`) and the length chosen again for the
-    reweighted penalty (docs/engine.md, "Robust reweighting"). On a coarse texture
-    (``texture_length``, the reference's autocorrelation length on the level, above
-    :data:`FINE_TEXTURE`) only terms in sets spanning the mesh are freed
-    (:data:`~chunkdic.solve.reweighting.SPANNING_FRACTION`): there the weakly textured nodes'
-    heavy-tailed noise frees compact clusters; on a fine texture the small sets go with the
-    kinks' (a slip at ℓ = 8: 0.0555 voxel with them, 0.0586 without).
+    reweighted penalty (docs/engine.md, "Robust reweighting"). Where the texture's features
+    outgrow the elements (``texture_length``, the reference's autocorrelation length on the
+    level, above :data:`FINE_TEXTURE` or above ``ℓ``) only terms in sheets spanning the mesh
+    are freed (:data:`~chunkdic.solve.reweighting.SPANNING_FRACTION`): there the weakly
+    textured nodes' heavy-tailed noise frees clusters and streaks (waves at ℓ = 4 on a
+    6-voxel texture: 0.031–0.073 voxel with them, 0.018–0.055 without); where every element
+    holds texture the small sets go with the kinks' (a slip at ℓ = 8: 0.0555 voxel with
+    them, 0.0586 without).
 
     Returns the state restarted under the outcome (``reg_length``, ``freed``, which the
     checkpoint keeps) and the penalty the operator's solver now holds.
@@ -225,7 +227,7 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     length, freed = choice.length, None
     for k in range(settings.reweights):
         freed = robust_freed(linearised_field(op, u, p.b, state.largest_rhs),
-                             spanning=SPANNING_FRACTION if texture_length > FINE_TEXTURE else 0.0)
+                             spanning=SPANNING_FRACTION if texture_length > min(mesh.element_size, FINE_TEXTURE) else 0.0)
         terms = freed_terms(freed)
         if terms == 0:  # nothing beyond the threshold: the plain penalty, as chosen
             freed = None
