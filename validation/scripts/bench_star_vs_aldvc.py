@@ -63,6 +63,7 @@ from bench_vs_aldvc import (  # noqa: E402
     RECORDS,
     Case,
     _between,
+    _commit,
     _fmt,
     _star,
     between_common,
@@ -231,7 +232,8 @@ def table(rows: list[dict]) -> str:
 def _write(args, rows, complete: bool) -> None:
     path = Path(args.record) if args.record else RECORDS / "bench_star_vs_aldvc.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "argv": sys.argv[1:], "threads": args.threads,
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": _commit(), "argv": sys.argv[1:],
+            "threads": args.threads,
             "cores": os.cpu_count(), "aldvc_version": peer.VERSION, "aldvc_settings": peer.FIXED_SETTINGS,
             "loadavg_end": Path("/proc/loadavg").read_text().split()[:3] if Path("/proc/loadavg").exists() else None}
     with open(path, "w") as fh:
