@@ -200,7 +200,8 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     textured nodes' heavy-tailed noise frees clusters and streaks (waves at ℓ = 4 on a
     6-voxel texture: 0.031–0.073 voxel with them, 0.018–0.055 without); where every element
     holds texture the small sets go with the kinks' (a slip at ℓ = 8: 0.0555 voxel with
-    them, 0.0586 without).
+    them, 0.0586 without). A large deformation of a coarse texture (:func:`large_on_coarse`)
+    is chosen for with the plain discrepancy principle's whole budget.
 
     Returns the state restarted under the outcome (``reg_length``, ``freed``, which the
     checkpoint keeps) and the penalty the operator's solver now holds.
