@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-HERE = Path(__file__).resolve().parent
+HERE = Path(__file__).resolve().parent.parent / "validation" / "scripts"  # bench_vs_aldvc.py
 CASES = ("wave24", "wave32", "slip", "band")
 SPECIMENS = ("grains", "concrete")
 

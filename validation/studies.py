@@ -48,8 +48,8 @@ def _texture_rows(raw: dict) -> list[dict]:
     rows = _vs_aldvc_rows(raw)
     for row, r in zip(rows, raw["results"]):
         specimen, _, scale = row["specimen"].partition("-ts")
-        c = r["chunkdic"]
-        oracle = c.get("oracle_rms_common", c.get("oracle_rms"))
+        c, metric = r["chunkdic"], row["metric"]
+        oracle = c.get(f"oracle_{metric}_common", c.get(f"oracle_{metric}"))
         row.update(specimen=specimen, texture_scale=float(scale or 1), oracle=oracle,
                    oracle_length=c.get("oracle_length"),
                    over_oracle=row["chunkdic"] / oracle if (oracle and row["chunkdic"]) else None)
@@ -75,6 +75,20 @@ def _resolution_rows(raw: dict) -> list[dict]:
     keep = ("specimen", "ell", "seed", "tool", "setting", "l10", "l10_bound", "n", "mei", "mei3d",
             "status_star", "status_translated")
     return [{k: r.get(k) for k in keep} for r in raw["rows"]]
+
+
+def _texture_resolution_rows(raw: dict) -> list[dict]:
+    """:func:`_resolution_rows` with the texture scale (``concrete-ts2``: concrete at 2) and
+    al-dvc's MEI over chunkdic's beside each chunkdic row."""
+    rows = _resolution_rows(raw)
+    peers = {(r["specimen"], r["ell"], r["seed"]): r for r in rows if r["tool"] == "al-dvc"}
+    for row in rows:
+        peer = peers.get((row["specimen"], row["ell"], row["seed"]))
+        specimen, _, scale = row["specimen"].partition("-ts")
+        row.update(specimen=specimen, texture_scale=float(scale or 1),
+                   mei_ratio=peer["mei"] / row["mei"] if peer and peer is not row and peer["mei"] and row["mei"]
+                   else None)
+    return rows
 
 
 def _large_strain_rows(raw: dict) -> list[dict]:
@@ -157,14 +171,22 @@ STUDIES = {s.name: s for s in (
           "scripts/bench_vs_aldvc.py", ALDVC_100, _vs_aldvc_rows,
           legacy=("bench_vs_aldvc_100_session30.json",),
           about="both tools with their defaults, 2 threads, CT-like grains and concrete, noise 0.02 per scan"),
-    Study("texture", "Coarse textures at ℓ = 8: the automatic length, the best fixed length and al-dvc", "validation",
+    Study("texture", "Three texture scales: the automatic length, the best fixed length and al-dvc", "validation",
           "scripts/bench_vs_aldvc.py",
-          ("--sizes", "100", "--cases", "heterogeneous", "crack", "--specimen", "concrete", "--texture-scales", "1",
-           "2", "4", "--spacings", "8", "--repeats", "1", "--threads", "2", "--oracle", "--workdir", "{workdir}",
-           "--record", "{raw}"), _texture_rows,
+          ("--sizes", "100", "--cases", "noise", "heterogeneous", "crack", "large", "--specimen", "concrete",
+           "--texture-scales", "1", "2", "4", "--spacings", "16", "12", "8", "--solo-spacings", "6", "4",
+           "--threads", "2", "--oracle", "--workdir", "{workdir}", "--record", "{raw}"), _texture_rows,
           about="100³ concrete at texture scales 1, 2, 4 (autocorrelation length about 6, 12, 23 voxels), noise "
-                "0.02 per scan; errors between the nodes on the voxels both tools score; the oracle is the least "
-                "error of the linearised fields of the candidate lengths ℓ·2^(k/2)"),
+                "0.02 per scan; errors between the nodes on the voxels both tools score (chunkdic's own at ℓ = 6 "
+                "and 4); the oracle is the least error of the linearised fields of the candidate lengths "
+                "ℓ·2^(k/2)"),
+    Study("texture_resolution", "Spatial resolution and MEI on the star at three texture scales, against al-dvc",
+          "validation", "scripts/bench_star_vs_aldvc.py",
+          ("--specimen", "concrete", "--texture-scales", "1", "2", "4", "--spacings", "8", "--regularizations",
+           "tikhonov", "--seed", "1", "--threads", "2", "--workdir", "{workdir}", "--record", "{raw}"),
+          _texture_resolution_rows,
+          about="96×240×96 concrete at texture scales 1, 2, 4, noise 0.02 per scan, ℓ = 8: l10 % on the star, "
+                "the noise n of a translation at the star's setting, MEI = n · l10 %"),
     Study("texture_scales", "The CT specimens' texture at each texture scale", "validation",
           "scripts/texture_scales.py",
           ("--size", "192", "--specimens", "grains", "concrete", "--scales", "1", "2", "4", "5", "--workdir",

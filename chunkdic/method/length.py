@@ -160,6 +160,14 @@ def mean_gradient(u: np.ndarray, element_size: float) -> float:
     return out
 
 
+def large_on_coarse(state: State, mesh: Mesh, texture_length: float) -> bool:
+    """Is the level's field ``state.u`` a large deformation (:data:`LARGE_GRADIENT`) of a
+    coarse texture (``texture_length`` above ``max(ℓ, FINE_TEXTURE)``), where
+    :func:`start_length` starts long?"""
+    ell = mesh.element_size
+    return start_length(ell, texture_length, mean_gradient(state.u, ell)) > START_LENGTH * ell
+
+
 def regularization_length(settings: Settings, state: State, level: int, mesh: Mesh,
                           texture_length: float = math.nan) -> float:
     """``ℓ_reg`` for ``level``, voxels of the level: given, chosen (resumed), or the starting one
@@ -185,12 +193,15 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     curvature terms of the field this length gives (:func:`linearised_field`) beyond
     :data:`~chunkdic.solve.reweighting.ROBUST_THRESHOLD` robust σ freed
     (:func:`~chunkdic.solve.reweighting.robust_freed`) and the length chosen again for the
-    reweighted penalty (docs/engine.md, "Robust reweighting"). On a coarse texture
-    (``texture_length``, the reference's autocorrelation length on the level, above
-    :data:`FINE_TEXTURE`) only terms in sets spanning the mesh are freed
-    (:data:`~chunkdic.solve.reweighting.SPANNING_FRACTION`): there the weakly textured nodes'
-    heavy-tailed noise frees compact clusters; on a fine texture the small sets go with the
-    kinks' (a slip at ℓ = 8: 0.0555 voxel with them, 0.0586 without).
+    reweighted penalty (docs/engine.md, "Robust reweighting"). Where the texture's features
+    outgrow the elements (``texture_length``, the reference's autocorrelation length on the
+    level, above :data:`FINE_TEXTURE` or above ``ℓ``) only terms in sheets spanning the mesh
+    are freed (:data:`~chunkdic.solve.reweighting.SPANNING_FRACTION`): there the weakly
+    textured nodes' heavy-tailed noise frees clusters and streaks (waves at ℓ = 4 on a
+    6-voxel texture: 0.031–0.073 voxel with them, 0.018–0.055 without); where every element
+    holds texture the small sets go with the kinks' (a slip at ℓ = 8: 0.0555 voxel with
+    them, 0.0586 without). A large deformation of a coarse texture (:func:`large_on_coarse`)
+    is chosen for with the plain discrepancy principle's whole budget.
 
     Returns the state restarted under the outcome (``reg_length``, ``freed``, which the
     checkpoint keeps) and the penalty the operator's solver now holds.
@@ -208,10 +219,17 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
         last["solver"].regularize(reg, weight)
         return last["solver"].solve(rhs)[0]
 
+    rule = settings.regularization_rule
+    if rule == "discrepancy-texture" and large_on_coarse(state, mesh, texture_length):
+        # the misfit a length gives up on a large deformation of a coarse texture is the noise's
+        # and the imaging's, not a feature's: the whole budget (docs/engine.md, "The
+        # regularisation length on a coarse texture")
+        rule = "discrepancy"
+
     def choose(freed, guess=None):
         return choose_length(settings.regularization, op.solver.matrix, mesh.element_size, u, p.b,
                              p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
-                             rule=settings.regularization_rule, freed=released(op, freed), guess=guess)
+                             rule=rule, freed=released(op, freed), guess=guess)
 
     # probed first: the length the level has iterated with so far (2ℓ; on heterogeneous fields
     # the choice is 1-3 candidates from it), not the middle candidate, whose long-length solve
@@ -225,7 +243,7 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     length, freed = choice.length, None
     for k in range(settings.reweights):
         freed = robust_freed(linearised_field(op, u, p.b, state.largest_rhs),
-                             spanning=SPANNING_FRACTION if texture_length > FINE_TEXTURE else 0.0)
+                             spanning=SPANNING_FRACTION if texture_length > min(mesh.element_size, FINE_TEXTURE) else 0.0)
         terms = freed_terms(freed)
         if terms == 0:  # nothing beyond the threshold: the plain penalty, as chosen
             freed = None

@@ -18,11 +18,13 @@ from .penalty import TERM_KINDS
 #: component (:func:`robust_freed`; docs/engine.md, "The band and the slip at ℓ = 8")
 ROBUST_THRESHOLD = 6.0
 #: terms beyond the threshold are freed only as a connected set (same kind and component, 26
-#: neighbours) that spans at least this fraction of the mesh's nodes along one axis: a kink is
-#: a surface or a line across the field, outliers of the noise (weakly textured nodes) compact
-#: clusters (:func:`robust_freed`; the engine asks for it on a coarse texture only,
+#: neighbours) that spans at least this fraction of the mesh's nodes along :data:`SPANNING_AXES`
+#: axes: a kink (a band's edge, a slip, a crack) is a surface across the field, outliers of
+#: the noise (weakly textured nodes) compact clusters or streaks along one of the texture's
+#: features (:func:`robust_freed`; the engine asks for it on a coarse texture only,
 #: :func:`chunkdic.method.length.choose_regularization`)
 SPANNING_FRACTION = 0.5
+SPANNING_AXES = 2
 #: the robust standard deviation of a normal sample from its median absolute value
 MAD_TO_SIGMA = 1.4826
 
@@ -34,15 +36,17 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: f
     Each term (a second difference along a grid line, a mixed difference of a 2×2 square,
     per component) whose value exceeds ``threshold`` robust standard deviations of its kind
     and component (:data:`MAD_TO_SIGMA` × the median of their absolute values over the
-    mesh), in a connected set of such terms (same kind and component) spanning at least
-    ``spanning`` of the mesh along one axis (0: every such term), gets weight 0: the kinks of a band
-    or a slip, where the field truly bends along a surface, while the noise and smooth fields
+    mesh) gets weight 0, with ``spanning`` only in a connected set of such terms (same kind
+    and component) whose extent reaches ``spanning`` of the mesh along
+    :data:`SPANNING_AXES` axes, a sheet (0: every such term): the kinks of a band, a slip or
+    a crack, where the field truly bends along a surface, while the noise and smooth fields
     (a wave's differences are the wave itself, their robust σ its amplitude) keep every
-    term. Without the span, weakly textured nodes (elements small against the texture's
-    features), whose noise is heavy-tailed and correlated over a few nodes, freed clusters of
-    up to ~13 terms (extent ≤ 5 nodes of 25) on waves, and the length chosen for the freed
-    penalty went long (docs/engine.md, "The regularisation length on a coarse texture"). docs/engine.md, "The
-    band and the slip at ℓ = 8".
+    term. Weakly textured nodes (elements small against the texture's features) have
+    heavy-tailed noise correlated over a few nodes: without the span they freed clusters of
+    up to ~13 terms on waves (extent ≤ 5 nodes of 25), and with a span along one axis a
+    streak of 14 terms on a 24-voxel wave, and the length chosen for the freed penalty went
+    long (docs/engine.md, "The regularisation length on a coarse texture", and "The band and
+    the slip at ℓ = 8").
 
     Parameters
     ----------
@@ -50,6 +54,9 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: f
         The nodal field (voxels of the level), e.g. the regularised solution at the chosen length.
     threshold : float
         In robust standard deviations.
+    spanning : float
+        The fraction of the mesh's nodes a freed set must reach along :data:`SPANNING_AXES`
+        axes; 0 frees every term beyond the threshold.
 
     Returns
     -------
@@ -78,13 +85,13 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: f
 
 def _spanning(beyond: np.ndarray, shape, fraction: float) -> np.ndarray:
     """The terms of ``beyond`` (bool, one kind and component) in connected sets (26 neighbours)
-    whose extent along some axis reaches ``fraction`` of the mesh's ``shape`` (nodes)."""
+    whose extent reaches ``fraction`` of the mesh's ``shape`` (nodes) along :data:`SPANNING_AXES` axes."""
     if fraction <= 0 or not beyond.any():
         return beyond
     labels, _ = label(beyond, np.ones((3, 3, 3), bool))
     keep = np.zeros(int(labels.max()) + 1, bool)
     for k, box in enumerate(find_objects(labels), start=1):
-        keep[k] = any(b.stop - b.start >= fraction * n for b, n in zip(box, shape))
+        keep[k] = sum(b.stop - b.start >= fraction * n for b, n in zip(box, shape)) >= SPANNING_AXES
     return keep[labels]
 
 

@@ -167,6 +167,11 @@ class ValidationTable(Directive):
         return out
 
 
+def _order(value):
+    """Numbers in their order, before text in its own."""
+    return (0, value, "") if isinstance(value, (int, float)) and not isinstance(value, bool) else (1, 0, str(value))
+
+
 class ValidationGeomean(Directive):
     """``.. validation-geomean:: RECORD`` with ``:value: key``, ``:by: key1, key2`` and
     ``:where:``: the geometric mean of ``value`` over the rows of each group."""
@@ -184,7 +189,7 @@ class ValidationGeomean(Directive):
             if r.get(value):
                 groups[tuple(r.get(k) for k in by)].append(float(r[value]))
         rows = [[*map(str, key), f"{math.exp(sum(map(math.log, v)) / len(v)):.2f}", str(len(v))]
-                for key, v in sorted(groups.items(), key=lambda kv: tuple(map(str, kv[0])))]
+                for key, v in sorted(groups.items(), key=lambda kv: tuple(map(_order, kv[0])))]
         header = self.options.get("header", f"geometric mean of {value}")
         return [table([*by, header, "cases"], rows)]
 

@@ -126,6 +126,25 @@ def test_robust_reweighting_frees_the_kink_and_nothing_of_a_wave_or_of_noise():
     assert not robust_freed(0.01 * rng.standard_normal(shape + (3,))).any()
 
 
+
+def test_spanning_reweighting_frees_a_surface_and_not_a_streak():
+    """With ``spanning`` (the engine's choice on coarse textures) only sets that span the mesh
+    along two axes are freed: the kink's plane of zz terms of u_x (11 × 9 × 8 nodes, the plane
+    z = 5 whole) is; a streak of outliers along one line of nodes (u_y 1 voxel off along the
+    y line at z = 3, x = 2: its zz terms at z = 2, 3, 4 over all of y, one axis spanned), the
+    signature of a weakly textured feature, is not. Without ``spanning`` both are freed."""
+    shape = (11, 9, 8)
+    rng = np.random.default_rng(2)
+    z = np.arange(shape[0], dtype=np.float64)[:, None, None]
+    x = 0.01 * rng.standard_normal(shape + (3,))
+    x[..., 2] += 0.4 * np.abs(z - 5.0)
+    x[3, :, 2, 1] += 1.0
+    kink = np.zeros(shape + (6,), np.uint8)
+    kink[5, :, :, ZZ] = 1 << 2
+    np.testing.assert_array_equal(robust_freed(x, spanning=0.5), kink)
+    streak = robust_freed(x, spanning=0.0) & (1 << 1)
+    assert streak[2:5, :, 2, ZZ].all()
+
 def _mass_stencil(nodes, seed=0):
     """Half stencil (float32) of ``Σ_e m ⊗ T_e``: the C8 mass matrix ``m`` times a random SPD 3×3
     per element (as tests/solve/test_multigrid.py)."""

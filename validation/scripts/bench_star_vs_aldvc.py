@@ -37,6 +37,8 @@ Usage::
         --spacings 16 12 8 --solo-spacings 6 --threads 2 --workdir /tmp/star
     nice python validation/scripts/bench_star_vs_aldvc.py --seed 2 --spacings 8 --threads 2 \
         --workdir /tmp/star --record validation/scripts/records/bench_star_vs_aldvc_seed2.json
+    nice python validation/scripts/bench_star_vs_aldvc.py --specimen concrete --texture-scales 1 2 4 \
+        --spacings 8 --regularizations tikhonov --threads 2 --workdir /tmp/star   # MEI per texture scale
 
 The run prints one line per tool and setting as it goes, then a Markdown table; the JSON
 record (``validation/scripts/records/bench_star_vs_aldvc.json`` unless ``--record``) is rewritten
@@ -61,6 +63,7 @@ from bench_vs_aldvc import (  # noqa: E402
     RECORDS,
     Case,
     _between,
+    _commit,
     _fmt,
     _star,
     between_common,
@@ -88,18 +91,26 @@ def star_field(shape, ell: int):
                 y1=shape[1] - 0.5 - ell, center_z=(shape[0] - 1) / 2.0)
 
 
-def make_pair(workdir: Path, name: str, shape, specimen: str, field, args) -> Case:
-    """Render a pair (kept under ``workdir`` between runs: same seed, same scans)."""
+def specimen_label(specimen: str, scale: float) -> str:
+    """``concrete`` at texture scale 1, ``concrete-ts2`` at 2 (as ``bench_vs_aldvc.py`` names them)."""
+    return specimen if scale == 1.0 else f"{specimen}-ts{scale:g}"
+
+
+def make_pair(workdir: Path, name: str, shape, specimen: str, field, args, scale: float = 1.0) -> Case:
+    """Render a pair (kept under ``workdir`` between runs: same seed, same scans); ``scale``: the
+    specimen's texture scale (``texture_scale`` of :func:`chunkdic.synth.synthetic.synthesize`)."""
     from chunkdic.synth import synthetic
 
-    tag = f"{name}-{'x'.join(map(str, shape))}-{specimen}-n{args.noise:g}-s{args.seed}"
+    label = specimen_label(specimen, scale)
+    tag = f"{name}-{'x'.join(map(str, shape))}-{label}-n{args.noise:g}-s{args.seed}"
     out = workdir / tag
     if not (out / "field.json").exists():
         t0 = time.perf_counter()
+        extra = {"texture_scale": scale} if scale != 1.0 else {}
         synthetic.synthesize(out, shape, field=field, specimen=specimen, seed=args.seed, dtype="uint16",
-                             noise=args.noise, overwrite=True)
+                             noise=args.noise, overwrite=True, **extra)
         print(f"# synthesized {tag} in {time.perf_counter() - t0:.1f} s", flush=True)
-    return Case(f"{name}/{specimen}", str(out / "ref.zarr"), str(out / "def.zarr"), field, tuple(shape))
+    return Case(f"{name}/{label}", str(out / "ref.zarr"), str(out / "def.zarr"), field, tuple(shape))
 
 
 def _row(tool: str, star: dict, trans: dict, common: dict | None, setting) -> dict:
@@ -153,10 +164,11 @@ def measure(exe, args, workdir: Path) -> list[dict]:
     rows = []
     spacings = [(e, True) for e in args.spacings] + [(e, False) for e in args.solo_spacings
                                                      if e not in args.spacings]
-    for specimen in args.specimen:
-        trans = make_pair(workdir, "translated", shape, specimen, Translation(SHIFT), args)
+    for scale, base in ((s, b) for s in args.texture_scales for b in args.specimen):
+        specimen = specimen_label(base, scale)
+        trans = make_pair(workdir, "translated", shape, base, Translation(SHIFT), args, scale)
         for ell, peer_too in spacings:
-            star = make_pair(workdir, f"star-ell{ell}", shape, specimen, star_field(shape, ell), args)
+            star = make_pair(workdir, f"star-ell{ell}", shape, base, star_field(shape, ell), args, scale)
             runs = workdir / "runs" / f"{specimen}-ell{ell}-s{args.seed}"
             grids = {}
             results = {}
@@ -220,7 +232,8 @@ def table(rows: list[dict]) -> str:
 def _write(args, rows, complete: bool) -> None:
     path = Path(args.record) if args.record else RECORDS / "bench_star_vs_aldvc.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "argv": sys.argv[1:], "threads": args.threads,
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": _commit(), "argv": sys.argv[1:],
+            "threads": args.threads,
             "cores": os.cpu_count(), "aldvc_version": peer.VERSION, "aldvc_settings": peer.FIXED_SETTINGS,
             "loadavg_end": Path("/proc/loadavg").read_text().split()[:3] if Path("/proc/loadavg").exists() else None}
     with open(path, "w") as fh:
@@ -238,6 +251,9 @@ def _json_default(o):
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--specimen", nargs="+", default=["grains", "concrete"], choices=["grains", "concrete"])
+    p.add_argument("--texture-scales", type=float, nargs="+", default=[1.0], metavar="FACTOR",
+                   help="texture scales of the specimens (synth texture_scale: 1, 2, 4 give autocorrelation "
+                        "lengths of about 6, 12 and 24 voxels; default 1)")
     p.add_argument("--shape", type=int, nargs=3, default=[96, 240, 96], metavar=("NZ", "NY", "NX"),
                    help="scan shape (default 96 240 96: the star's periods run along y)")
     p.add_argument("--spacings", type=int, nargs="*", default=[16, 12, 8], help="spacings run by both tools")
