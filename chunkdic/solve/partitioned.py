@@ -29,10 +29,11 @@ import numpy as np
 
 from ..errors import InputError
 from .cg import relative_tolerance
+from .haloedfiles import HaloedFiles
 from .nodeblocks import core_slices, extended_chunks, fold_faces, from_client, haloed
 from .penalty import NO_FREED, add_weighted, freed_diagonal
 from .regularizer import Regularizer
-from .stencil import _subtract_cells, block_solve, half_matvec, no_diagonal
+from .stencil import _subtract_cells, block_solve, half_matvec, no_diagonal, pcg
 
 log = logging.getLogger(__name__)
 
@@ -115,6 +116,11 @@ class PartitionedSolver:
         # are 4-D, aligned block by block (map_blocks aligns trailing axes otherwise)
         self._H = _flat(self.matrix_blocks)
         self._W = None if cells is None else _flat(cells)
+        #: with the blocks on disk, the vectors stay in the process (:meth:`_in_process`)
+        self._files = self._diagonal = None
+        if holder.where == "disk":
+            self._files = HaloedFiles(self._H, self._W, self.cell, holder.directory / "haloed", holder.threads)
+            (self._diagonal,) = holder.values(self.matrix_blocks[..., :1, :, :])
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0, NO_FREED)
@@ -157,16 +163,33 @@ class PartitionedSolver:
         return _map(_jacobi_block, self._H, r, Rd=Rd, index=(iz, iy, ix), lam=self.weight, chunks=r.chunks,
                     dtype=np.float64)
 
+    def _in_process(self, x: np.ndarray, out: np.ndarray | None, penalty: bool = True,
+                    cells: bool = True) -> np.ndarray:
+        """``(M - cells + λ R) x`` with ``x`` and the product in the process: the stencil's
+        blocks read from their files, the penalty (matrix-free) on the whole vector."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.empty(x.shape) if out is None else out
+        self._files.product(x, out, cells=cells)
+        if penalty and self.regularizer is not None:
+            add_weighted(*self._reg_args, self.weight, x, out)
+        return out
+
     def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(M + λ R) x`` (nz, ny, nx, 3), float64, in the client."""
+        if self._files is not None:
+            return self._in_process(x, out)
         return self._gather(self._product(self._vector(x, "in")), out)
 
     def data_matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``M x`` minus the brightness cells' complement."""
+        if self._files is not None:
+            return self._in_process(x, out, penalty=False)
         return self._gather(self._product(self._vector(x, "in"), penalty=False), out)
 
     def stencil_product(self, x: np.ndarray) -> np.ndarray:
         """``M x`` alone (no cells, no penalty)."""
+        if self._files is not None:
+            return self._in_process(x, None, penalty=False, cells=False)
         return self._gather(self._product(self._vector(x, "in"), penalty=False, cells=False))
 
     def _gather(self, y: da.Array, out: np.ndarray | None = None) -> np.ndarray:
@@ -235,16 +258,28 @@ class PartitionedSolver:
     def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
               reference: float | None = None) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b`` (nz, ny, nx, 3): :meth:`~chunkdic.solve.cg.StencilSolver.solve`'s
-        CG (block-Jacobi), its vectors in node blocks (``b`` is copied into them: ``overwrite_b``
-        changes nothing). Returns the solution (in the client) and the number of CG iterations."""
+        CG (block-Jacobi). With the blocks on disk its vectors are in the process
+        (:func:`~chunkdic.solve.stencil.pcg`, the products block by block from the stencil's
+        files; ``overwrite_b`` as in memory); on workers they are node blocks there (``b``
+        copied into them). Returns the solution (in the client) and the number of CG iterations."""
         rtol = relative_tolerance(self, b, reference)
+        if self._files is not None:
+            b = np.array(b, dtype=np.float64, order="C", copy=None if overwrite_b else True)
+            x = np.zeros_like(b)
+            Rd, iz, iy, ix = self._diag_args
+            iterations = pcg(self.matvec, lambda r, z: block_solve(self._diagonal, Rd, iz, iy, ix, self.weight, r, z),
+                             b, x, rtol, self.maxiter, overwrite_b=True)
+            return x, self._iterations(iterations)
         r = self._vector(b, "r")
         x, iterations = self._pcg(r, rtol)
+        return self._gather(x), self._iterations(iterations)
+
+    def _iterations(self, iterations: int) -> int:
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
-                          stacklevel=2)
-            iterations = self.maxiter
-        return self._gather(x), iterations
+                          stacklevel=3)
+            return self.maxiter
+        return iterations
 
     def _pcg(self, r: da.Array, rtol: float) -> tuple[da.Array, int]:
         """:func:`~chunkdic.solve.stencil.pcg_block_jacobi` on node blocks from ``x = 0``: three

@@ -102,14 +102,14 @@ class _StandInRunner:
 
         for inputs, job, _u in args:
             # as engine.tasks.m_task: the level's brightness model and cells (their Schur
-            # complement, kept by the client since session 30)
+            # complement, kept by the client)
             key = tuple(job.shape) + (inputs.grey, inputs.grey_cell)
             if key not in self._cache:
                 f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in job.shape)).astype("float32")
                 self._cache[key] = m_block(f, (1, 1, 1), (1, 1, 1), job.ell, grey=inputs.grey, center=100.0,
                                            with_lags=True, cell=inputs.grey_cell)
             stencil, fmin, fmax, lags, *cells = self._cache[key]
-            yield job.block, stencil, fmin, fmax, lags, None, (cells[0] if cells else None)
+            yield job.block, stencil, fmin, fmax, lags, None, (cells[0] if cells else None), None  # no crack
 
     def _b_pass(self, args):
         """A ``b`` pass: each block's partials reduced by the real ``reduce_block`` from random
@@ -119,7 +119,7 @@ class _StandInRunner:
         from chunkdic.method.brightness import reduce_block
         from chunkdic.kernels.blocks import LAGS, ElementSums
 
-        for inputs, job, _u, _active, probes, _probe_active in args:
+        for inputs, job, _u, _active, probes, _probe_active, _other in args:
             key = ("b", inputs.grey) + tuple(job.block.n_elements)
             if key not in self._cache:
                 n = tuple(job.block.n_elements)
@@ -129,7 +129,7 @@ class _StandInRunner:
                 B = self._rng.normal(size=n + (6, 8, 3))
                 self._cache[key] = reduce_block(ElementSums(B, gram, 0, np.zeros((6, LAGS + 1))), inputs.grey)
             part = self._cache[key]
-            yield job.block, part, [(part.scalars, part.n_excluded) for _ in probes]  # the start gaps' probes
+            yield job.block, part, [(part.scalars, part.n_excluded) for _ in probes], None  # the start gaps' probes; no crack
 
     def run_everywhere(self, fn):
         fn()
