@@ -68,12 +68,15 @@ class BlockedMatrix:
     def __init__(self, mesh: Mesh, block_elements: int, cell: int, holder, directory: Path):
         import zarr
 
-        from ..solve.nodeblocks import extended_chunks, node_chunks
+        from ..solve.nodeblocks import extended_chunks, node_block_elements, node_chunks
 
         self.holder, self.directory, self.cell = holder, Path(directory), int(cell)
-        self.chunks = node_chunks(mesh.nodes_shape, block_elements)
-        self.ext = extended_chunks(self.chunks)
         m = int(block_elements)
+        # the partials come per voxel block; the node blocks are unions of voxel blocks, as
+        # large as a task's memory allows (nodeblocks.node_block_elements)
+        self.chunks = node_chunks(mesh.nodes_shape, node_block_elements(mesh.shape, m, holder.tasks))
+        voxel_chunks = node_chunks(mesh.nodes_shape, m)
+        self.ext = extended_chunks(voxel_chunks)
         self.directory.mkdir(parents=True, exist_ok=True)
         create = functools.partial(zarr.create_array, dtype=np.float32, fill_value=0, compressors=None,
                                    zarr_format=3)
@@ -83,10 +86,10 @@ class BlockedMatrix:
         if self.cell > 1:
             k = self.cell
             n_cells = tuple(-(-n // k) for n in mesh.shape)
-            self.cell_chunks = tuple(tuple(-(-c // k) for c in axis[:-1]) + (n - sum(-(-c // k) for c in axis[:-1]),)
-                                     for axis, n in zip(self.chunks, n_cells))
+            self.voxel_cell_chunks = _cell_chunks(voxel_chunks, n_cells, k)
+            self.cell_chunks = _cell_chunks(self.chunks, n_cells, k)
             self._cells = create(str(self.directory / "m_cells.zarr"), shape=n_cells + (k + 1,) * 3 + (3, 4),
-                                 chunks=tuple(max(c) for c in self.cell_chunks) + (k + 1,) * 3 + (3, 4))
+                                 chunks=tuple(max(c) for c in self.voxel_cell_chunks) + (k + 1,) * 3 + (3, 4))
         self._m = m
 
     def add(self, blk, part: np.ndarray, block_cells: np.ndarray | None) -> None:
@@ -105,7 +108,7 @@ class BlockedMatrix:
         from ..solve.nodeblocks import fold_faces
 
         partials = da.from_zarr(self._partials, chunks=self.ext + ((14,), (3,), (3,)))
-        return self.holder.hold(fold_faces(partials), "stencil")
+        return self.holder.hold(fold_faces(partials).rechunk(self.chunks + ((14,), (3,), (3,))), "stencil")
 
     def cells(self):
         """The brightness cells' couplings, chunked by the cells of each node block, held (dask array)."""
@@ -113,8 +116,9 @@ class BlockedMatrix:
 
         if self._cells is None:
             return None
-        chunks = self.cell_chunks + tuple((n,) for n in self._cells.shape[3:])
-        return self.holder.hold(da.from_zarr(self._cells, chunks=chunks), "cells")
+        trailing = tuple((n,) for n in self._cells.shape[3:])
+        cells = da.from_zarr(self._cells, chunks=self.voxel_cell_chunks + trailing)
+        return self.holder.hold(cells.rechunk(self.cell_chunks + trailing), "cells")
 
     def solver(self, stencil, *, cells=None, cell: int = 1):
         """The :class:`~chunkdic.solve.partitioned.PartitionedSolver` of the blocks
@@ -126,3 +130,9 @@ class BlockedMatrix:
     def close(self) -> None:
         """Remove the partials (the held node blocks stay with the holder)."""
         remove(self.directory)
+
+
+def _cell_chunks(chunks, n_cells, k: int) -> tuple:
+    """The brightness cells of each node block of ``chunks`` (blocks hold whole cells): per axis."""
+    return tuple(tuple(-(-c // k) for c in axis[:-1]) + (n - sum(-(-c // k) for c in axis[:-1]),)
+                 for axis, n in zip(chunks, n_cells))

@@ -97,7 +97,7 @@ class HaloedFiles:
 
     def _stencil_block(self, b, x, out) -> None:
         halo, own, local, _ = self.geometry[b]
-        H = np.load(self._path("stencil", b))
+        H = np.asarray(np.load(self._path("stencil", b), mmap_mode="r"))
         xh = np.ascontiguousarray(x[halo])
         y = np.empty(xh.shape)
         half_matvec(H.reshape(H.shape[:3] + (14, 3, 3)), xh, y)

@@ -18,6 +18,7 @@ blocks per thread whatever the mesh (docs/distributed.md, "Mesh data beyond one 
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import dask
@@ -25,6 +26,42 @@ import dask.array as da
 import numpy as np
 
 from ..io.owntree import remove
+
+
+#: bytes a block task holds per node of its haloed block: the float32 half stencil read from
+#: its file (504 B), the vector's haloed copy and the block's product (48 B), the brightness
+#: cells' couplings (94 B with cells of 4 elements)
+TASK_BYTES_PER_NODE = 650
+#: largest block task (bytes; 48³ elements, 86 MiB): the halo adds an eighth to such a block's
+#: reads, and larger blocks save little more while each thread holds one
+MAX_TASK_BYTES = 96 * 2**20
+
+
+def node_block_elements(elements_shape, block_elements: int, tasks: int) -> int:
+    """Elements per side of a node block: the largest multiple of the passes' ``block_elements``
+    (node blocks are unions of voxel blocks) whose task, its haloed block at
+    :data:`TASK_BYTES_PER_NODE`, stays within :data:`MAX_TASK_BYTES`, that leaves at least two
+    blocks per task at once (as many as the voxel blocks allow), and whose last block along
+    each axis is at least half a block (the tasks balanced).
+
+    >>> node_block_elements((64, 64, 64), 16, 2)
+    32
+    >>> node_block_elements((96, 96, 96), 16, 2)
+    48
+    """
+    m0 = max(1, int(block_elements))
+
+    def count(m):
+        return math.prod(-(-int(e) // m) for e in elements_shape)
+
+    want = min(2 * max(1, int(tasks)), count(m0))
+    best = m0
+    for m in range(2 * m0, max(elements_shape) + 1, m0):
+        fits = TASK_BYTES_PER_NODE * math.prod(min(m, int(e)) + 3 for e in elements_shape) <= MAX_TASK_BYTES
+        balanced = all(int(e) % m == 0 or int(e) % m >= m / 2 or int(e) < m for e in elements_shape)
+        if fits and balanced and count(m) >= want:
+            best = m
+    return best
 
 
 def node_chunks(nodes_shape, block_elements: int) -> tuple[tuple[int, ...], ...]:
@@ -109,6 +146,12 @@ class WorkerHolder:
     def __init__(self, client):
         self.client = client
 
+    @property
+    def tasks(self) -> int:
+        """Tasks at once on the cluster (its workers' threads)."""
+        workers = self.client.scheduler_info().get("workers", {})
+        return max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
+
     def hold(self, x: da.Array, name: str) -> da.Array:
         """``x`` computed and kept on the workers (its blocks where they were computed)."""
         return self.step({name: x})[0][name]
@@ -148,6 +191,7 @@ class DiskHolder:
 
     def __init__(self, directory, threads: int = 1):
         self.directory, self.threads = Path(directory), max(1, int(threads))
+        self.tasks = self.threads
         self.directory.mkdir(parents=True, exist_ok=True)
         self._stores: dict[str, list] = {}
         self._turn: dict[str, int] = {}
