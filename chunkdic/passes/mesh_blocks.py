@@ -21,7 +21,7 @@ import numpy as np
 from ..io.owntree import remove
 from .. import config
 from ..mesh import Mesh
-from ..scheduler import threads_of
+from ..scheduler import release_freed_memory, threads_of
 
 # dask.array (and the node blocks, built on it) are imported by the levels that use them:
 # a correlation whose mesh data stay in the client never loads it (about 1 s;
@@ -91,6 +91,8 @@ class BlockedMatrix:
             self._cells = create(str(self.directory / "m_cells.zarr"), shape=n_cells + (k + 1,) * 3 + (3, 4),
                                  chunks=tuple(max(c) for c in self.voxel_cell_chunks) + (k + 1,) * 3 + (3, 4))
         self._m = m
+        #: with the blocks on disk, their haloed files (summed from the partials by :meth:`stencil`)
+        self._files = None
 
     def add(self, blk, part: np.ndarray, block_cells: np.ndarray | None) -> None:
         """One block's partial stencil ``part`` (its nodes ``e0 … e1``, 27 offsets, float64) and cells."""
@@ -105,8 +107,15 @@ class BlockedMatrix:
         """The half stencil in node blocks, held (dask array, shape (nz, ny, nx, 14, 3, 3), float32)."""
         import dask.array as da
 
+        from ..solve.haloedfiles import HaloedFiles
         from ..solve.nodeblocks import fold_faces
 
+        if self.holder.where == "disk":
+            self._files = HaloedFiles.from_partials(
+                self._partials, self._m, self.chunks, self._cells, None if self._cells is None else self.cell_chunks,
+                self.cell, self.holder.directory / "haloed", self.holder.threads)
+            release_freed_memory()  # the reads' buffers, freed in the threads' heaps
+            return self._files.array()
         partials = da.from_zarr(self._partials, chunks=self.ext + ((14,), (3,), (3,)))
         return self.holder.hold(fold_faces(partials).rechunk(self.chunks + ((14,), (3,), (3,))), "stencil")
 
@@ -116,6 +125,8 @@ class BlockedMatrix:
 
         if self._cells is None:
             return None
+        if self._files is not None:
+            return self._files.cells_array()
         trailing = tuple((n,) for n in self._cells.shape[3:])
         cells = da.from_zarr(self._cells, chunks=self.voxel_cell_chunks + trailing)
         return self.holder.hold(cells.rechunk(self.cell_chunks + trailing), "cells")
@@ -125,7 +136,9 @@ class BlockedMatrix:
         (:func:`~chunkdic.method.operator.build_operator`'s ``make_solver``)."""
         from ..solve.partitioned import PartitionedSolver
 
-        return PartitionedSolver(stencil, self.holder, cells=cells, cell=cell)
+        solver = PartitionedSolver(stencil, self.holder, cells=cells, cell=cell, files=self._files)
+        release_freed_memory()  # the sweeps' blocks, freed in the threads' heaps
+        return solver
 
     def close(self) -> None:
         """Remove the partials (the held node blocks stay with the holder)."""

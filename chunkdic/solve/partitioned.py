@@ -80,13 +80,21 @@ class PartitionedSolver:
     """
 
     def __init__(self, stencil: da.Array, holder, *, cells: da.Array | None = None, cell: int = 1,
-                 weak_threshold: float = 1e-3, rtol: float = 1e-5, maxiter: int = 2000):
+                 files: HaloedFiles | None = None, weak_threshold: float = 1e-3, rtol: float = 1e-5,
+                 maxiter: int = 2000):
         self.holder, self.rtol, self.maxiter = holder, rtol, maxiter
         self.cells, self.cell = cells, int(cell)
         self.nodes_shape = tuple(int(n) for n in stencil.shape[:3])
         self.chunks = stencil.chunks[:3]
         self.largest_rhs = 0.0
         self.multigrid = False
+        #: with the blocks on disk, the vectors stay in the process (:meth:`_in_process`) and the
+        #: products read the stencil's haloed blocks from their files
+        self._files = None
+        if holder.where == "disk":
+            self._files = files if files is not None else HaloedFiles.from_array(
+                _flat(stencil), None if cells is None else _flat(cells), self.cell, holder.directory / "haloed",
+                holder.threads)
         #: ``M`` restricted to uniform translations, less the brightness cells' share (3, 3),
         #: taken before the weak nodes are held (as the in-memory solver's)
         self.rigid_matrix = self._rigid(stencil)
@@ -104,23 +112,28 @@ class PartitionedSolver:
         del weak
         self.scale = scale
         held = np.zeros((0, 3, 3))
+        #: the weak nodes' held diagonal blocks less their own (float64, as the float32 stencil
+        #: holds them): what the products from the files (which keep the own) add
+        self._weak_delta = held
         if len(self.weak_nodes):
             (blocks,) = holder.values(stencil.vindex[tuple(self.weak_nodes.T)][:, 0])
             held = blocks.astype(np.float64) + weak_threshold * scale * np.eye(3)
+            self._weak_delta = held.astype(np.float32).astype(np.float64) - blocks.astype(np.float64)
         self._weak_blocks = held
-        self.matrix_blocks = holder.hold(
-            stencil.map_blocks(_hold_weak, nodes=self.weak_nodes, blocks=held.astype(np.float32), dtype=stencil.dtype),
-            "stencil") if len(held) else stencil
+        self.matrix_blocks = stencil
+        if len(held):
+            self.matrix_blocks = stencil.map_blocks(_hold_weak, nodes=self.weak_nodes, blocks=held.astype(np.float32),
+                                                    dtype=stencil.dtype)
+            if self._files is None:  # on the workers: held there once (on disk the files are read again)
+                self.matrix_blocks = holder.hold(self.matrix_blocks, "stencil")
         self.matrix = BlockStencil(self.matrix_blocks, holder)
         # the node axes and one axis of each node's entries: every block function's arrays
         # are 4-D, aligned block by block (map_blocks aligns trailing axes otherwise)
         self._H = _flat(self.matrix_blocks)
         self._W = None if cells is None else _flat(cells)
-        #: with the blocks on disk, the vectors stay in the process (:meth:`_in_process`)
-        self._files = self._diagonal = None
-        if holder.where == "disk":
-            self._files = HaloedFiles(self._H, self._W, self.cell, holder.directory / "haloed", holder.threads)
-            (self._diagonal,) = holder.values(self.matrix_blocks[..., :1, :, :])
+        #: block-Jacobi's diagonal blocks of ``M`` (nz, ny, nx, 1, 3, 3) float32, weak nodes held,
+        #: in the process with the vectors (36 B per node)
+        self._diagonal = None if self._files is None else holder.values(self.matrix_blocks[..., :1, :, :])[0]
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0, NO_FREED)
@@ -170,6 +183,9 @@ class PartitionedSolver:
         x = np.ascontiguousarray(x, dtype=np.float64)
         out = np.empty(x.shape) if out is None else out
         self._files.product(x, out, cells=cells)
+        if len(self.weak_nodes):
+            nodes = tuple(self.weak_nodes.T)
+            out[nodes] += np.einsum("wij,wj->wi", self._weak_delta, x[nodes])
         if penalty and self.regularizer is not None:
             add_weighted(*self._reg_args, self.weight, x, out)
         return out
