@@ -124,8 +124,13 @@ class PartitionedSolver:
         if len(held):
             self.matrix_blocks = stencil.map_blocks(_hold_weak, nodes=self.weak_nodes, blocks=held.astype(np.float32),
                                                     dtype=stencil.dtype)
-            if self._files is None:  # on the workers: held there once (on disk the files are read again)
-                self.matrix_blocks = holder.hold(self.matrix_blocks, "stencil")
+        self._Hh = None
+        if self._files is None:
+            # on the workers: each block's haloed stencil held once, the blocks' own nodes read
+            # from it, so that a product moves only its vector's halo
+            self._Hh = holder.hold(haloed(_flat(self.matrix_blocks), 1), "haloed")
+            self.matrix_blocks = self._Hh.map_blocks(_own_nodes, grid=self._Hh.numblocks, new_axis=[4, 5],
+                                                     chunks=self.chunks + ((14,), (3,), (3,)), dtype=stencil.dtype)
         self.matrix = BlockStencil(self.matrix_blocks, holder)
         # the node axes and one axis of each node's entries: every block function's arrays
         # are 4-D, aligned block by block (map_blocks aligns trailing axes otherwise)
@@ -152,7 +157,7 @@ class PartitionedSolver:
         numblocks = x.numblocks
         args = [haloed(x, depth)]
         if data:
-            args.append(haloed(self._H, 1))
+            args.append(self._Hh)
         if reg and self._freed is not None:
             args.append(haloed(self._freed, depth))
         y = _map(_product_block, *args, data=data, reg_args=self._reg_args if reg else None,
@@ -298,25 +303,27 @@ class PartitionedSolver:
         return iterations
 
     def _pcg(self, r: da.Array, rtol: float) -> tuple[da.Array, int]:
-        """:func:`~chunkdic.solve.stencil.pcg_block_jacobi` on node blocks from ``x = 0``: three
+        """:func:`~chunkdic.solve.stencil.pcg_block_jacobi` on node blocks from ``x = 0``: two
         passes over the blocks per iteration, each holding its vectors and gathering its dot
-        products in the same pass (``q`` and ``p·q``; ``x``, ``r``, ``r·r`` and ``r·D⁻¹r``; ``p``)."""
+        products in the same pass (the new ``p``, ``q = A p`` and ``p·q``; ``x``, ``r``,
+        ``r·r`` and ``r·D⁻¹r``)."""
         step, precondition = self.holder.step, self._precondition
         x = da.zeros(r.shape, chunks=r.chunks)
         _, (bb, rz) = step({}, lambda _: [_dot(r, r), _dot(r, precondition(r))])
         bnorm = math.sqrt(bb)
         if bnorm == 0.0:
             return x, 0
-        p = step({"p": precondition(r)})[0]["p"]
+        p = precondition(r)
         for it in range(1, self.maxiter + 1):
-            held, (pq,) = step({"q": self._product(p)}, lambda d: [_dot(p, d["q"])])
+            held, (pq,) = step({"p": p, "q": self._product(p)}, lambda d: [_dot(d["p"], d["q"])])
+            p = held["p"]
             alpha = rz / pq
             held, (rr, rz_new) = step({"x": x + alpha * p, "r": r - alpha * held["q"]},
                                       lambda d: [_dot(d["r"], d["r"]), _dot(d["r"], precondition(d["r"]))])
             x, r = held["x"], held["r"]
             if math.sqrt(rr) <= rtol * bnorm:
                 return x, it
-            p = step({"p": precondition(r) + (rz_new / rz) * p})[0]["p"]
+            p = precondition(r) + (rz_new / rz) * p
             rz = rz_new
         return x, -1
 
@@ -339,6 +346,12 @@ def _dot(a: da.Array, b: da.Array):
 
 
 # --- block functions (each one task) ----------------------------------------------------
+
+def _own_nodes(Hh, grid, block_info=None):
+    """The block's own nodes of its haloed stencil (…, 126) as (…, 14, 3, 3)."""
+    own = Hh[core_slices(block_info[0]["chunk-location"], grid, 1, Hh.shape)]
+    return own.reshape(own.shape[:3] + (14, 3, 3))
+
 
 def _mean_eigenvalue(H):
     """The mean eigenvalue of each node's diagonal block (float64)."""
