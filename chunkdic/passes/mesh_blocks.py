@@ -5,10 +5,13 @@ A level whose mesh data go to blocks (``chunkdic.mesh-data``, the plan's
 whole stencil of ``M`` in the client: each block's partial stencil (its nodes ``e0 … e1``,
 float32 half, as the client's stencil holds it) and its brightness cells' couplings are
 written as they arrive, one whole chunk per block, into Zarr stores under the level's
-scratch; the node blocks are then the partials with the next blocks' first planes added
-(:func:`~chunkdic.solve.nodeblocks.fold_faces`), held by the level's holder (persisted on
-the workers of a cluster, or a Zarr store read block by block with the embedded scheduler)
-for the :class:`~chunkdic.solve.partitioned.PartitionedSolver`.
+scratch; the node blocks (unions of the passes' voxel blocks, as large as a task's memory
+allows: :func:`~chunkdic.solve.nodeblocks.node_block_elements`) are then the partials with
+the next blocks' first planes added, held by the level's holder: persisted on the workers
+of a cluster (:func:`~chunkdic.solve.nodeblocks.fold_faces`), or, with the embedded
+scheduler, each block with its halo summed straight into a file
+(:meth:`~chunkdic.solve.haloedfiles.HaloedFiles.from_partials`) for the
+:class:`~chunkdic.solve.partitioned.PartitionedSolver`.
 """
 
 from __future__ import annotations
@@ -40,7 +43,7 @@ def in_blocks(mesh: Mesh) -> bool:
 
 
 def holder_for(runner, directory: Path):
-    """Where node blocks live: the workers of a ``distributed`` runner, else a Zarr store in ``directory``."""
+    """Where node blocks live: the workers of a ``distributed`` runner, else files in ``directory``."""
     from ..solve.nodeblocks import DiskHolder, WorkerHolder
 
     client = getattr(runner, "client", None)
@@ -78,8 +81,10 @@ class BlockedMatrix:
         voxel_chunks = node_chunks(mesh.nodes_shape, m)
         self.ext = extended_chunks(voxel_chunks)
         self.directory.mkdir(parents=True, exist_ok=True)
+        # flat chunk keys: the stores are removed once the node blocks are made, and a nested
+        # layout's directories cost more to remove than the chunks (1.5 ms each here)
         create = functools.partial(zarr.create_array, dtype=np.float32, fill_value=0, compressors=None,
-                                   zarr_format=3)
+                                   zarr_format=3, chunk_key_encoding={"name": "default", "separator": "."})
         self._partials = create(str(self.directory / "m_partials.zarr"),
                                 shape=tuple(sum(e) for e in self.ext) + (14, 3, 3), chunks=(m + 1,) * 3 + (14, 3, 3))
         self._cells = None

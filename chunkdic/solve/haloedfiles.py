@@ -198,18 +198,21 @@ def _fold_positions(lo: int, hi: int, m: int, blocks: int):
 
 def _folded(partials, region, m: int, blocks) -> np.ndarray:
     """The half stencil of the nodes ``region`` (three slices), (…, 126) float32: their
-    partials added over the voxel blocks that share them (:func:`_fold_positions`)."""
+    partials added over the voxel blocks that share them (:func:`_fold_positions`), from one
+    read of the partials those voxel blocks hold."""
     axes = [_fold_positions(s.start, s.stop, m, nb) for s, nb in zip(region, blocks)]
-    out = np.asarray(partials.oindex[tuple(a[0] for a in axes)])
-    out = out.reshape(out.shape[:3] + (-1,))
+    lo = [int(min(a[0].min(), a[2].min() if len(a[2]) else a[0].min())) for a in axes]
+    hi = [int(a[0].max()) + 1 for a in axes]
+    read = np.asarray(partials[tuple(slice(a, b) for a, b in zip(lo, hi))])
+    read = read.reshape(read.shape[:3] + (-1,))
+    out = read[np.ix_(*(a[0] - o for a, o in zip(axes, lo)))]
     for pick in range(1, 8):  # every choice, per axis, of the own plane or the previous block's
         second = [(pick >> a) & 1 for a in range(3)]
         if any(s and not len(axes[a][1]) for a, s in enumerate(second)):
             continue
-        rows = tuple(ax[2] if s else ax[0] for ax, s in zip(axes, second))
+        rows = tuple((ax[2] if s else ax[0]) - o for ax, s, o in zip(axes, second, lo))
         where = tuple(ax[1] if s else np.arange(len(ax[0])) for ax, s in zip(axes, second))
-        part = np.asarray(partials.oindex[rows])
-        out[np.ix_(*where)] += part.reshape(part.shape[:3] + (-1,))
+        out[np.ix_(*where)] += read[np.ix_(*rows)]
     return out
 
 

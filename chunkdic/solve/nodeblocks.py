@@ -1,8 +1,9 @@
 """Mesh-sized arrays in blocks of nodes, held where the memory is: on Dask workers or in a Zarr store.
 
-A mesh whose stencil and solver vectors do not fit one process is cut into *node blocks*
-aligned with the voxel blocks of the passes: the block of elements ``[e0, e1)`` per axis
-owns the nodes ``[e0, e1)``, the last block also the mesh's last node. A block's product
+A mesh whose stencil and solver vectors do not fit one process is cut into *node blocks*,
+unions of the voxel blocks of the passes as large as a task's memory allows
+(:func:`node_block_elements`): the block of elements ``[e0, e1)`` per axis owns the nodes
+``[e0, e1)``, the last block also the mesh's last node. A block's product
 with the 27-point stencil of ``M`` needs its neighbours' nodes one node away (two for the
 penalty ``R``): :func:`haloed` gives each block that halo (``dask.array.overlap``, nothing
 beyond the mesh's faces) and :func:`core_slices` the block's own nodes inside it. What a
@@ -13,7 +14,9 @@ Where the blocks live is a :class:`Holder`: :class:`WorkerHolder` persists them 
 workers of a ``distributed`` cluster (products run there as tasks, only scalars come
 back); :class:`DiskHolder` writes them to a Zarr store under the run's scratch and reads
 them back block by block with Dask's threaded scheduler, so that one process holds a few
-blocks per thread whatever the mesh (docs/distributed.md, "Mesh data beyond one process").
+blocks per thread whatever the mesh (there the stencil's blocks are files of their own,
+:mod:`chunkdic.solve.haloedfiles`, and the solver's vectors stay in the process;
+docs/distributed.md, "Mesh data beyond one process").
 """
 
 from __future__ import annotations

@@ -3,14 +3,22 @@
 :class:`PartitionedSolver` is a drop-in for :class:`~chunkdic.solve.cg.StencilSolver`
 (the method sees the same operations: ``solve``, ``matvec``, ``data_matvec``,
 ``stencil_product``, ``regularize``, ``penalty_gradient``, ``local_variances``, the weak
-nodes, ``rigid_matrix``), with ``M``'s half stencil, the brightness cells' couplings and
-every CG vector held in node blocks (:mod:`chunkdic.solve.nodeblocks`) on the workers or
-in a Zarr store instead of the client. Each product is one task per block over the block
-and its halo (one node for ``M``, two for ``R``; the cells' couplings are summed over the
-block's cells and folded onto the next block's first planes), block-Jacobi is node by
-node, and CG's dot products are sums of the blocks' partial sums gathered by the client.
+nodes, ``rigid_matrix``), with ``M``'s half stencil and the brightness cells' couplings
+held in node blocks (:mod:`chunkdic.solve.nodeblocks`) instead of the client:
+
+- on the workers of a cluster, with every CG vector: each block's haloed stencil is
+  persisted once, a product is one task per block over the block and its vector's halo
+  (one node for ``M``, two for ``R``; the cells' couplings summed over the block's cells
+  and folded onto the next block's first planes), block-Jacobi is node by node, CG's dot
+  products are sums of the blocks' partial sums gathered by the client, two passes per
+  iteration;
+- with the embedded scheduler, in files (:mod:`chunkdic.solve.haloedfiles`), the vectors in
+  the process: CG is the in-memory :func:`~chunkdic.solve.stencil.pcg` whose product reads
+  each block's haloed stencil once, the penalty and block-Jacobi on the whole vectors.
+
 The same kernels as the in-memory solver run on each block, so the two give the same
-iterates to the round-off of the dot products' order (tested at 1e-10).
+iterates to the round-off of the stencil's float32 sums and the dot products' order
+(tested at 1e-10).
 
 Preconditioner: block-Jacobi, whatever the length. The V-cycle's coarse levels are not
 partitioned; at the lengths where the in-memory solver takes the V-cycle
@@ -98,18 +106,15 @@ class PartitionedSolver:
         #: ``M`` restricted to uniform translations, less the brightness cells' share (3, 3),
         #: taken before the weak nodes are held (as the in-memory solver's)
         self.rigid_matrix = self._rigid(stencil)
-        # two sweeps over the blocks: the float64 mean eigenvalue of every node (8 B per node
-        # in the client, for the median), then the weak nodes against it
-        (mean,) = holder.values(stencil.map_blocks(_mean_eigenvalue, chunks=self.chunks, drop_axis=[3, 4, 5],
-                                                    dtype=np.float64))
-        scale = float(np.median(mean))
-        del mean
+        # one sweep over the blocks: the float64 mean and smallest eigenvalue of every node
+        # (16 B per node in the client), the weak nodes against the means' median
+        (eig,) = holder.values(stencil.map_blocks(_eigenvalues, chunks=self.chunks + ((2,),), drop_axis=[4, 5],
+                                                   dtype=np.float64))
+        scale = float(np.median(eig[..., 0]))
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("the reference image has no gradient in the ROI: nothing to correlate")
-        (weak,) = holder.values(stencil.map_blocks(_weak_block, limit=weak_threshold * scale, chunks=self.chunks,
-                                                    drop_axis=[3, 4, 5], dtype=bool))
-        self.weak_nodes = np.argwhere(weak)
-        del weak
+        self.weak_nodes = np.argwhere(eig[..., 1] < weak_threshold * scale)
+        del eig
         self.scale = scale
         held = np.zeros((0, 3, 3))
         #: the weak nodes' held diagonal blocks less their own (float64, as the float32 stencil
@@ -353,14 +358,10 @@ def _own_nodes(Hh, grid, block_info=None):
     return own.reshape(own.shape[:3] + (14, 3, 3))
 
 
-def _mean_eigenvalue(H):
-    """The mean eigenvalue of each node's diagonal block (float64)."""
-    return np.linalg.eigvalsh(H[..., 0, :, :].astype(np.float64)).mean(axis=-1)
-
-
-def _weak_block(H, limit):
-    """Whether each node's smallest eigenvalue is below ``limit`` (bool)."""
-    return np.linalg.eigvalsh(H[..., 0, :, :].astype(np.float64))[..., 0] < limit
+def _eigenvalues(H):
+    """The mean and the smallest eigenvalue of each node's diagonal block (…, 2), float64."""
+    w = np.linalg.eigvalsh(H[..., 0, :, :].astype(np.float64))
+    return np.stack([w.mean(axis=-1), w[..., 0]], axis=-1)
 
 
 def _block_origin(block_info) -> tuple[int, int, int]:
