@@ -13,6 +13,7 @@ threaded scheduler, each writing its own nodes of the product.
 from __future__ import annotations
 
 import math
+import mmap
 import threading
 from pathlib import Path
 
@@ -24,6 +25,10 @@ from dask.threaded import get as threaded_get
 from ..io.owntree import remove
 from .nodeblocks import extended_chunks, haloed
 from .stencil import _subtract_cells, half_matvec
+
+
+#: mappings of the blocks' files kept open at most (each holds a file descriptor)
+MAX_KEPT_MAPS = 256
 
 
 def _starts(chunks) -> list[list[int]]:
@@ -75,6 +80,7 @@ class HaloedFiles:
         #: each thread's two vectors over its largest haloed block, used by every product: a
         #: product's copies come from no allocator (glibc's heaps would keep freed ones resident)
         self._buffers = threading.local()
+        self._maps: dict = {}
         self._largest = max(math.prod(s.stop - s.start for s in self.geometry[b][0]) for b in self.blocks)
 
     @classmethod
@@ -143,15 +149,31 @@ class HaloedFiles:
         (nz, ny, nx, 3) float64 in the process: one task per block, each its own nodes of
         ``M x`` from its haloed stencil; then the cells' terms, which reach the next
         block's first planes, added under a lock."""
-        self._run(self._stencil_block, x, out)
+        # one plain graph (the in-process vectors are the tasks' arguments, not hashed): the
+        # cells' tasks after every block's own nodes are written
+        graph = {("stencil", b): (self._stencil_block, b, x, out) for b in self.blocks}
         if cells and self.with_cells:
-            self._run(self._cells_block, x, out)
+            graph["written"] = (len, list(graph))
+            graph.update({("cells", b): (self._cells_block, b, x, out, "written") for b in self.blocks})
+        threaded_get(graph, list(graph), num_workers=self.threads)
         return out
 
-    def _run(self, fn, x, out) -> None:
-        # a plain graph: the in-process vectors are the closures', not arguments to hash
-        graph = {("block", b): (fn, b, x, out) for b in self.blocks}
-        threaded_get(graph, list(graph), num_workers=self.threads)
+    def _mapped(self, name: str, b) -> np.ndarray:
+        """The block's file memory-mapped: kept for the next products when the blocks are few
+        (opening one costs about 0.4 ms, and each mapping holds a file descriptor)."""
+        key = (name, b)
+        a = self._maps.get(key)
+        if a is None:
+            a = np.load(self._path(name, b), mmap_mode="r")
+            if len(self.blocks) * (1 + self.with_cells) <= MAX_KEPT_MAPS:
+                self._maps[key] = a
+        return a
+
+    @staticmethod
+    def _unmapped(a: np.ndarray) -> None:
+        """The pages of a mapped block out of the process's resident memory (the page cache keeps
+        them): a product holds the blocks it is reading, not every block it has read."""
+        a._mmap.madvise(mmap.MADV_DONTNEED)
 
     def _vectors(self, region, x) -> tuple[np.ndarray, np.ndarray]:
         """This thread's buffers as ``x[region]`` and a vector of its shape (float64)."""
@@ -165,22 +187,25 @@ class HaloedFiles:
 
     def _stencil_block(self, b, x, out) -> None:
         halo, own, local, _ = self.geometry[b]
-        H = np.load(self._path("stencil", b), mmap_mode="r")
+        H = self._mapped("stencil", b)
         xh, y = self._vectors(halo, x)
         half_matvec(np.asarray(H).reshape(H.shape[:3] + (14, 3, 3)), xh, y)
+        self._unmapped(H)
         out[own] = y[local]
 
-    def _cells_block(self, b, x, out) -> None:
+    def _cells_block(self, b, x, out, _written=None) -> None:
         extended = self.geometry[b][3]
         k = self.cell
-        W = np.load(self._path("cells", b), mmap_mode="r")
+        W = self._mapped("cells", b)
         xe, y = self._vectors(extended, x)
         y[...] = 0.0
         _subtract_cells(np.asarray(W).reshape(W.shape[:3] + (k + 1,) * 3 + (3, 4)), k, xe, y)
+        self._unmapped(W)
         with self._lock:
             out[extended] += y
 
     def close(self) -> None:
+        self._maps.clear()
         remove(self.directory)
 
 

@@ -16,10 +16,10 @@ multigrid V-cycle's included, counted in the solve time); ``--no-multigrid`` kee
 block-Jacobi there. The default, 2048 with
 ell 16, is the mesh of a level-0 run of the scale benchmark (128³ nodes).
 
-``--mesh-data blocks`` puts the stencil and the solver's vectors in node blocks
-(docs/distributed.md, "Mesh data beyond one process"): in a Zarr store under the scratch
-read by the embedded scheduler, or with ``--workers N`` persisted on a ``LocalCluster`` of
-N single-threaded worker processes; ``--memory-target`` lets the plan's rule choose
+``--mesh-data blocks`` puts the stencil in node blocks (docs/distributed.md, "Mesh data
+beyond one process"): in files under the scratch read by the embedded scheduler, the
+solver's vectors in the process, or with ``--workers N`` persisted with the vectors on a
+``LocalCluster`` of N single-threaded worker processes; ``--memory-target`` lets the plan's rule choose
 (``auto``). The peak of every process is printed: the client's, and each worker's
 (``VmHWM`` read on the worker), with the bytes the workers sent each other. ``--compare``
 also solves the same systems in memory in a second process and prints the relative
