@@ -50,7 +50,7 @@ CLIENT_BYTES_PER_NODE = 1000
 #: client bytes per node when the level's mesh data are in node blocks
 #: (docs/distributed.md, "Mesh data beyond one process"): the Gauss–Newton state's fields,
 #: a ``b`` pass's nodal and element rows, a solve's right-hand side and solution, the
-#: penalty's setup (plane waves), with the embedded scheduler CG's vectors (5 × 24 B) and
+#: penalty's setup (plane waves), with the embedded scheduler CG's vectors (4 × 24 B) and
 #: block-Jacobi's diagonal blocks (36 B); the stencil and the cells' couplings are in the
 #: blocks, and the blocks in flight are counted apart (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES`
 #: per thread). Measured with ``bench_client_memory.py --element-size 8 --regularize 2
