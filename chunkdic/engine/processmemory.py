@@ -18,7 +18,6 @@ from ..method.settings import Settings
 from ..passes.prefilter import prepare_voxels, prepared_grid, prepared_halo, task_edge
 from ..passes.stored_matrix import cells_bytes
 from ..scheduler import threads_of
-from ..solve.nodeblocks import MAX_TASK_BYTES, TASK_BYTES_PER_NODE
 from .costs import (
     BLOCKED_CLIENT_BYTES_PER_NODE,
     CLIENT_BYTES_PER_NODE,
@@ -108,7 +107,10 @@ class MemoryModel:
         nodes = math.prod(mesh.nodes_shape)
         if self.blocks_from is not None and nodes >= self.blocks_from:
             # and with the embedded scheduler, one block in flight per thread (the mesh cut in at
-            # least two blocks per thread: nodeblocks.node_block_elements)
+            # least two blocks per thread: nodeblocks.node_block_elements; imported here, as
+            # nodeblocks imports dask.array, which a run in the client never loads)
+            from ..solve.nodeblocks import MAX_TASK_BYTES, TASK_BYTES_PER_NODE
+
             in_flight = 0 if self.separate else min(self.threads * MAX_TASK_BYTES, TASK_BYTES_PER_NODE * nodes // 2)
             return BLOCKED_CLIENT_BYTES_PER_NODE * nodes + in_flight
         # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
