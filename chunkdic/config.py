@@ -22,8 +22,8 @@ DEFAULTS = {
         "memory-target": None,
         # Where a level's mesh-sized data (M's stencil, the brightness cells' couplings, the
         # solver's vectors) live: "client" (in the client process), "blocks" (in node blocks on
-        # the workers of a cluster, or in a Zarr store under the scratch with the embedded
-        # scheduler) or "auto": in blocks on the levels whose mesh data do not fit the memory
+        # the workers of a cluster, or the stencil and cells in files under the scratch with the
+        # embedded scheduler, the vectors in the client) or "auto": in blocks on the levels whose mesh data do not fit the memory
         # target (the plan says which). docs/distributed.md, "Mesh data beyond one process".
         "mesh-data": "auto",
         # Nodes from which a level's mesh data go to blocks: set by the plan under "auto"

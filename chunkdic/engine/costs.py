@@ -50,16 +50,20 @@ CLIENT_BYTES_PER_NODE = 1000
 #: client bytes per node when the level's mesh data are in node blocks
 #: (docs/distributed.md, "Mesh data beyond one process"): the Gauss–Newton state's fields,
 #: a ``b`` pass's nodal and element rows, a solve's right-hand side and solution, the
-#: penalty's setup (plane waves), the threaded scheduler's blocks in flight; the stencil,
-#: the cells' couplings and the CG vectors are in the blocks (measured at 885 k nodes,
-#: ``bench_client_memory.py --sizes 768 --element-size 8 --regularize 2 --solves 1
-#: --mesh-data blocks``: 861 MiB, 683 B per node above the warm base, without the
-#: Gauss–Newton passes; 920 MiB in memory)
-BLOCKED_CLIENT_BYTES_PER_NODE = 700
+#: penalty's setup (plane waves), with the embedded scheduler CG's vectors (4 × 24 B) and
+#: block-Jacobi's diagonal blocks (36 B); the stencil and the cells' couplings are in the
+#: blocks, and the blocks in flight are counted apart (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES`
+#: per thread). Measured with ``bench_client_memory.py --element-size 8 --regularize 2
+#: --solves 1 --mesh-data blocks --iterations 2 --steps``: 981 MiB at 885 k nodes
+#: (``--sizes 768``), 1 467 MiB at 2.10 M nodes (``--sizes 1024``), 420 B per node between
+#: the two (190 B without the Gauss–Newton passes, 768 to 1536); about 150 MiB of the
+#: process's fixed part (Dask's arrays, the threads' buffers) is not modelled
+BLOCKED_CLIENT_BYTES_PER_NODE = 450
 #: bytes per node the node blocks hold together (spread over the workers, or on the scratch
-#: disk with the embedded scheduler): the float32 half stencil (504 B), the CG's vectors held
-#: at once (``x``, ``r``, ``p``, ``q`` and the generation being written: 6 × 24 B)
-BLOCKS_BYTES_PER_NODE = 650
+#: disk with the embedded scheduler): the float32 half stencil (504 B) with its blocks'
+#: one-node halos (an eighth at blocks of 48³ elements), and on the workers CG's vectors
+#: held at once (``x``, ``r``, ``p``, ``q``: 4 × 24 B)
+BLOCKS_BYTES_PER_NODE = 680
 #: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
 #: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
 #: blocks of 32-128 voxels)

@@ -106,7 +106,13 @@ class MemoryModel:
     def client_bytes(self, mesh: Mesh) -> int:
         nodes = math.prod(mesh.nodes_shape)
         if self.blocks_from is not None and nodes >= self.blocks_from:
-            return BLOCKED_CLIENT_BYTES_PER_NODE * nodes
+            # and with the embedded scheduler, one block in flight per thread (the mesh cut in at
+            # least two blocks per thread: nodeblocks.node_block_elements; imported here, as
+            # nodeblocks imports dask.array, which a run in the client never loads)
+            from ..solve.nodeblocks import MAX_TASK_BYTES, TASK_BYTES_PER_NODE
+
+            in_flight = 0 if self.separate else min(self.threads * MAX_TASK_BYTES, TASK_BYTES_PER_NODE * nodes // 2)
+            return BLOCKED_CLIENT_BYTES_PER_NODE * nodes + in_flight
         # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
         return CLIENT_BYTES_PER_NODE * nodes + cells_bytes(mesh.shape, self.cell_of(mesh))
 

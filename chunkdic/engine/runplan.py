@@ -188,7 +188,7 @@ class Plan:
         if self.mesh_data == "client":
             return f"in the client ({self.mesh_why})"
         where = (f"on the {self.workers} workers ({_b(self.blocks_bytes / self.workers)} each)"
-                 if self.mesh_data == "workers" else f"in a Zarr store under the scratch ({_b(self.blocks_bytes)})")
+                 if self.mesh_data == "workers" else f"in files under the scratch ({_b(self.blocks_bytes)}), the solver's vectors in the client")
         return f"in node blocks {where}, levels of {self.mesh_blocks_from}+ nodes ({self.mesh_why})"
 
     def _layout_words(self) -> str:

@@ -1,8 +1,9 @@
 """Mesh-sized arrays in blocks of nodes, held where the memory is: on Dask workers or in a Zarr store.
 
-A mesh whose stencil and solver vectors do not fit one process is cut into *node blocks*
-aligned with the voxel blocks of the passes: the block of elements ``[e0, e1)`` per axis
-owns the nodes ``[e0, e1)``, the last block also the mesh's last node. A block's product
+A mesh whose stencil and solver vectors do not fit one process is cut into *node blocks*,
+unions of the voxel blocks of the passes as large as a task's memory allows
+(:func:`node_block_elements`): the block of elements ``[e0, e1)`` per axis owns the nodes
+``[e0, e1)``, the last block also the mesh's last node. A block's product
 with the 27-point stencil of ``M`` needs its neighbours' nodes one node away (two for the
 penalty ``R``): :func:`haloed` gives each block that halo (``dask.array.overlap``, nothing
 beyond the mesh's faces) and :func:`core_slices` the block's own nodes inside it. What a
@@ -13,11 +14,14 @@ Where the blocks live is a :class:`Holder`: :class:`WorkerHolder` persists them 
 workers of a ``distributed`` cluster (products run there as tasks, only scalars come
 back); :class:`DiskHolder` writes them to a Zarr store under the run's scratch and reads
 them back block by block with Dask's threaded scheduler, so that one process holds a few
-blocks per thread whatever the mesh (docs/distributed.md, "Mesh data beyond one process").
+blocks per thread whatever the mesh (there the stencil's blocks are files of their own,
+:mod:`chunkdic.solve.haloedfiles`, and the solver's vectors stay in the process;
+docs/distributed.md, "Mesh data beyond one process").
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import dask
@@ -25,6 +29,42 @@ import dask.array as da
 import numpy as np
 
 from ..io.owntree import remove
+
+
+#: bytes a block task holds per node of its haloed block: the float32 half stencil read from
+#: its file (504 B), the vector's haloed copy and the block's product (48 B), the brightness
+#: cells' couplings (94 B with cells of 4 elements)
+TASK_BYTES_PER_NODE = 650
+#: largest block task (bytes; 48³ elements, 86 MiB): the halo adds an eighth to such a block's
+#: reads, and larger blocks save little more while each thread holds one
+MAX_TASK_BYTES = 96 * 2**20
+
+
+def node_block_elements(elements_shape, block_elements: int, tasks: int) -> int:
+    """Elements per side of a node block: the largest multiple of the passes' ``block_elements``
+    (node blocks are unions of voxel blocks) whose task, its haloed block at
+    :data:`TASK_BYTES_PER_NODE`, stays within :data:`MAX_TASK_BYTES`, that leaves at least two
+    blocks per task at once (as many as the voxel blocks allow), and whose last block along
+    each axis is at least half a block (the tasks balanced).
+
+    >>> node_block_elements((64, 64, 64), 16, 2)
+    32
+    >>> node_block_elements((96, 96, 96), 16, 2)
+    48
+    """
+    m0 = max(1, int(block_elements))
+
+    def count(m):
+        return math.prod(-(-int(e) // m) for e in elements_shape)
+
+    want = min(2 * max(1, int(tasks)), count(m0))
+    best = m0
+    for m in range(2 * m0, max(elements_shape) + 1, m0):
+        fits = TASK_BYTES_PER_NODE * math.prod(min(m, int(e)) + 3 for e in elements_shape) <= MAX_TASK_BYTES
+        balanced = all(int(e) % m == 0 or int(e) % m >= m / 2 or int(e) < m for e in elements_shape)
+        if fits and balanced and count(m) >= want:
+            best = m
+    return best
 
 
 def node_chunks(nodes_shape, block_elements: int) -> tuple[tuple[int, ...], ...]:
@@ -109,6 +149,12 @@ class WorkerHolder:
     def __init__(self, client):
         self.client = client
 
+    @property
+    def tasks(self) -> int:
+        """Tasks at once on the cluster (its workers' threads)."""
+        workers = self.client.scheduler_info().get("workers", {})
+        return max(1, sum(int(w.get("nthreads", 1)) for w in workers.values()))
+
     def hold(self, x: da.Array, name: str) -> da.Array:
         """``x`` computed and kept on the workers (its blocks where they were computed)."""
         return self.step({name: x})[0][name]
@@ -148,6 +194,7 @@ class DiskHolder:
 
     def __init__(self, directory, threads: int = 1):
         self.directory, self.threads = Path(directory), max(1, int(threads))
+        self.tasks = self.threads
         self.directory.mkdir(parents=True, exist_ok=True)
         self._stores: dict[str, list] = {}
         self._turn: dict[str, int] = {}

@@ -3,14 +3,22 @@
 :class:`PartitionedSolver` is a drop-in for :class:`~chunkdic.solve.cg.StencilSolver`
 (the method sees the same operations: ``solve``, ``matvec``, ``data_matvec``,
 ``stencil_product``, ``regularize``, ``penalty_gradient``, ``local_variances``, the weak
-nodes, ``rigid_matrix``), with ``M``'s half stencil, the brightness cells' couplings and
-every CG vector held in node blocks (:mod:`chunkdic.solve.nodeblocks`) on the workers or
-in a Zarr store instead of the client. Each product is one task per block over the block
-and its halo (one node for ``M``, two for ``R``; the cells' couplings are summed over the
-block's cells and folded onto the next block's first planes), block-Jacobi is node by
-node, and CG's dot products are sums of the blocks' partial sums gathered by the client.
+nodes, ``rigid_matrix``), with ``M``'s half stencil and the brightness cells' couplings
+held in node blocks (:mod:`chunkdic.solve.nodeblocks`) instead of the client:
+
+- on the workers of a cluster, with every CG vector: each block's haloed stencil is
+  persisted once, a product is one task per block over the block and its vector's halo
+  (one node for ``M``, two for ``R``; the cells' couplings summed over the block's cells
+  and folded onto the next block's first planes), block-Jacobi is node by node, CG's dot
+  products are sums of the blocks' partial sums gathered by the client, two passes per
+  iteration;
+- with the embedded scheduler, in files (:mod:`chunkdic.solve.haloedfiles`), the vectors in
+  the process: CG is the in-memory :func:`~chunkdic.solve.stencil.pcg` whose product reads
+  each block's haloed stencil once, the penalty and block-Jacobi on the whole vectors.
+
 The same kernels as the in-memory solver run on each block, so the two give the same
-iterates to the round-off of the dot products' order (tested at 1e-10).
+iterates to the round-off of the stencil's float32 sums and the dot products' order
+(tested at 1e-10).
 
 Preconditioner: block-Jacobi, whatever the length. The V-cycle's coarse levels are not
 partitioned; at the lengths where the in-memory solver takes the V-cycle
@@ -29,10 +37,11 @@ import numpy as np
 
 from ..errors import InputError
 from .cg import relative_tolerance
+from .haloedfiles import HaloedFiles
 from .nodeblocks import core_slices, extended_chunks, fold_faces, from_client, haloed
 from .penalty import NO_FREED, add_weighted, freed_diagonal
 from .regularizer import Regularizer
-from .stencil import _subtract_cells, block_solve, half_matvec, no_diagonal
+from .stencil import _subtract_cells, block_solve, half_matvec, no_diagonal, pcg
 
 log = logging.getLogger(__name__)
 
@@ -79,42 +88,62 @@ class PartitionedSolver:
     """
 
     def __init__(self, stencil: da.Array, holder, *, cells: da.Array | None = None, cell: int = 1,
-                 weak_threshold: float = 1e-3, rtol: float = 1e-5, maxiter: int = 2000):
+                 files: HaloedFiles | None = None, weak_threshold: float = 1e-3, rtol: float = 1e-5,
+                 maxiter: int = 2000):
         self.holder, self.rtol, self.maxiter = holder, rtol, maxiter
         self.cells, self.cell = cells, int(cell)
         self.nodes_shape = tuple(int(n) for n in stencil.shape[:3])
         self.chunks = stencil.chunks[:3]
         self.largest_rhs = 0.0
         self.multigrid = False
+        #: with the blocks on disk, the vectors stay in the process (:meth:`_in_process`) and the
+        #: products read the stencil's haloed blocks from their files
+        self._files = None
+        if holder.where == "disk":
+            self._files = files if files is not None else HaloedFiles.from_array(
+                _flat(stencil), None if cells is None else _flat(cells), self.cell, holder.directory / "haloed",
+                holder.threads)
         #: ``M`` restricted to uniform translations, less the brightness cells' share (3, 3),
         #: taken before the weak nodes are held (as the in-memory solver's)
         self.rigid_matrix = self._rigid(stencil)
-        # two sweeps over the blocks: the float64 mean eigenvalue of every node (8 B per node
-        # in the client, for the median), then the weak nodes against it
-        (mean,) = holder.values(stencil.map_blocks(_mean_eigenvalue, chunks=self.chunks, drop_axis=[3, 4, 5],
-                                                    dtype=np.float64))
-        scale = float(np.median(mean))
-        del mean
+        # one sweep over the blocks: the float64 mean and smallest eigenvalue of every node
+        # (16 B per node in the client), the weak nodes against the means' median
+        (eig,) = holder.values(stencil.map_blocks(_eigenvalues, chunks=self.chunks + ((2,),), drop_axis=[4, 5],
+                                                   dtype=np.float64))
+        scale = float(np.median(eig[..., 0]))
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("the reference image has no gradient in the ROI: nothing to correlate")
-        (weak,) = holder.values(stencil.map_blocks(_weak_block, limit=weak_threshold * scale, chunks=self.chunks,
-                                                    drop_axis=[3, 4, 5], dtype=bool))
-        self.weak_nodes = np.argwhere(weak)
-        del weak
+        self.weak_nodes = np.argwhere(eig[..., 1] < weak_threshold * scale)
+        del eig
         self.scale = scale
         held = np.zeros((0, 3, 3))
+        #: the weak nodes' held diagonal blocks less their own (float64, as the float32 stencil
+        #: holds them): what the products from the files (which keep the own) add
+        self._weak_delta = held
         if len(self.weak_nodes):
             (blocks,) = holder.values(stencil.vindex[tuple(self.weak_nodes.T)][:, 0])
             held = blocks.astype(np.float64) + weak_threshold * scale * np.eye(3)
+            self._weak_delta = held.astype(np.float32).astype(np.float64) - blocks.astype(np.float64)
         self._weak_blocks = held
-        self.matrix_blocks = holder.hold(
-            stencil.map_blocks(_hold_weak, nodes=self.weak_nodes, blocks=held.astype(np.float32), dtype=stencil.dtype),
-            "stencil") if len(held) else stencil
+        self.matrix_blocks = stencil
+        if len(held):
+            self.matrix_blocks = stencil.map_blocks(_hold_weak, nodes=self.weak_nodes, blocks=held.astype(np.float32),
+                                                    dtype=stencil.dtype)
+        self._Hh = None
+        if self._files is None:
+            # on the workers: each block's haloed stencil held once, the blocks' own nodes read
+            # from it, so that a product moves only its vector's halo
+            self._Hh = holder.hold(haloed(_flat(self.matrix_blocks), 1), "haloed")
+            self.matrix_blocks = self._Hh.map_blocks(_own_nodes, grid=self._Hh.numblocks, new_axis=[4, 5],
+                                                     chunks=self.chunks + ((14,), (3,), (3,)), dtype=stencil.dtype)
         self.matrix = BlockStencil(self.matrix_blocks, holder)
         # the node axes and one axis of each node's entries: every block function's arrays
         # are 4-D, aligned block by block (map_blocks aligns trailing axes otherwise)
         self._H = _flat(self.matrix_blocks)
         self._W = None if cells is None else _flat(cells)
+        #: block-Jacobi's diagonal blocks of ``M`` (nz, ny, nx, 1, 3, 3) float32, weak nodes held,
+        #: in the process with the vectors (36 B per node)
+        self._diagonal = None if self._files is None else holder.values(self.matrix_blocks[..., :1, :, :])[0]
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0, NO_FREED)
@@ -133,7 +162,7 @@ class PartitionedSolver:
         numblocks = x.numblocks
         args = [haloed(x, depth)]
         if data:
-            args.append(haloed(self._H, 1))
+            args.append(self._Hh)
         if reg and self._freed is not None:
             args.append(haloed(self._freed, depth))
         y = _map(_product_block, *args, data=data, reg_args=self._reg_args if reg else None,
@@ -157,16 +186,36 @@ class PartitionedSolver:
         return _map(_jacobi_block, self._H, r, Rd=Rd, index=(iz, iy, ix), lam=self.weight, chunks=r.chunks,
                     dtype=np.float64)
 
+    def _in_process(self, x: np.ndarray, out: np.ndarray | None, penalty: bool = True,
+                    cells: bool = True) -> np.ndarray:
+        """``(M - cells + λ R) x`` with ``x`` and the product in the process: the stencil's
+        blocks read from their files, the penalty (matrix-free) on the whole vector."""
+        x = np.ascontiguousarray(x, dtype=np.float64)
+        out = np.empty(x.shape) if out is None else out
+        self._files.product(x, out, cells=cells)
+        if len(self.weak_nodes):
+            nodes = tuple(self.weak_nodes.T)
+            out[nodes] += np.einsum("wij,wj->wi", self._weak_delta, x[nodes])
+        if penalty and self.regularizer is not None:
+            add_weighted(*self._reg_args, self.weight, x, out)
+        return out
+
     def matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``(M + λ R) x`` (nz, ny, nx, 3), float64, in the client."""
+        if self._files is not None:
+            return self._in_process(x, out)
         return self._gather(self._product(self._vector(x, "in")), out)
 
     def data_matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``M x`` minus the brightness cells' complement."""
+        if self._files is not None:
+            return self._in_process(x, out, penalty=False)
         return self._gather(self._product(self._vector(x, "in"), penalty=False), out)
 
     def stencil_product(self, x: np.ndarray) -> np.ndarray:
         """``M x`` alone (no cells, no penalty)."""
+        if self._files is not None:
+            return self._in_process(x, None, penalty=False, cells=False)
         return self._gather(self._product(self._vector(x, "in"), penalty=False, cells=False))
 
     def _gather(self, y: da.Array, out: np.ndarray | None = None) -> np.ndarray:
@@ -235,37 +284,51 @@ class PartitionedSolver:
     def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
               reference: float | None = None) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b`` (nz, ny, nx, 3): :meth:`~chunkdic.solve.cg.StencilSolver.solve`'s
-        CG (block-Jacobi), its vectors in node blocks (``b`` is copied into them: ``overwrite_b``
-        changes nothing). Returns the solution (in the client) and the number of CG iterations."""
+        CG (block-Jacobi). With the blocks on disk its vectors are in the process
+        (:func:`~chunkdic.solve.stencil.pcg`, the products block by block from the stencil's
+        files; ``overwrite_b`` as in memory); on workers they are node blocks there (``b``
+        copied into them). Returns the solution (in the client) and the number of CG iterations."""
         rtol = relative_tolerance(self, b, reference)
+        if self._files is not None:
+            b = np.array(b, dtype=np.float64, order="C", copy=None if overwrite_b else True)
+            x = np.zeros_like(b)
+            Rd, iz, iy, ix = self._diag_args
+            iterations = pcg(self.matvec, lambda r, z: block_solve(self._diagonal, Rd, iz, iy, ix, self.weight, r, z),
+                             b, x, rtol, self.maxiter, overwrite_b=True)
+            return x, self._iterations(iterations)
         r = self._vector(b, "r")
         x, iterations = self._pcg(r, rtol)
+        return self._gather(x), self._iterations(iterations)
+
+    def _iterations(self, iterations: int) -> int:
         if iterations < 0:
             warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
-                          stacklevel=2)
-            iterations = self.maxiter
-        return self._gather(x), iterations
+                          stacklevel=3)
+            return self.maxiter
+        return iterations
 
     def _pcg(self, r: da.Array, rtol: float) -> tuple[da.Array, int]:
-        """:func:`~chunkdic.solve.stencil.pcg_block_jacobi` on node blocks from ``x = 0``: three
+        """:func:`~chunkdic.solve.stencil.pcg_block_jacobi` on node blocks from ``x = 0``: two
         passes over the blocks per iteration, each holding its vectors and gathering its dot
-        products in the same pass (``q`` and ``p·q``; ``x``, ``r``, ``r·r`` and ``r·D⁻¹r``; ``p``)."""
+        products in the same pass (the new ``p``, ``q = A p`` and ``p·q``; ``x``, ``r``,
+        ``r·r`` and ``r·D⁻¹r``)."""
         step, precondition = self.holder.step, self._precondition
         x = da.zeros(r.shape, chunks=r.chunks)
         _, (bb, rz) = step({}, lambda _: [_dot(r, r), _dot(r, precondition(r))])
         bnorm = math.sqrt(bb)
         if bnorm == 0.0:
             return x, 0
-        p = step({"p": precondition(r)})[0]["p"]
+        p = precondition(r)
         for it in range(1, self.maxiter + 1):
-            held, (pq,) = step({"q": self._product(p)}, lambda d: [_dot(p, d["q"])])
+            held, (pq,) = step({"p": p, "q": self._product(p)}, lambda d: [_dot(d["p"], d["q"])])
+            p = held["p"]
             alpha = rz / pq
             held, (rr, rz_new) = step({"x": x + alpha * p, "r": r - alpha * held["q"]},
                                       lambda d: [_dot(d["r"], d["r"]), _dot(d["r"], precondition(d["r"]))])
             x, r = held["x"], held["r"]
             if math.sqrt(rr) <= rtol * bnorm:
                 return x, it
-            p = step({"p": precondition(r) + (rz_new / rz) * p})[0]["p"]
+            p = precondition(r) + (rz_new / rz) * p
             rz = rz_new
         return x, -1
 
@@ -289,14 +352,16 @@ def _dot(a: da.Array, b: da.Array):
 
 # --- block functions (each one task) ----------------------------------------------------
 
-def _mean_eigenvalue(H):
-    """The mean eigenvalue of each node's diagonal block (float64)."""
-    return np.linalg.eigvalsh(H[..., 0, :, :].astype(np.float64)).mean(axis=-1)
+def _own_nodes(Hh, grid, block_info=None):
+    """The block's own nodes of its haloed stencil (…, 126) as (…, 14, 3, 3)."""
+    own = Hh[core_slices(block_info[0]["chunk-location"], grid, 1, Hh.shape)]
+    return own.reshape(own.shape[:3] + (14, 3, 3))
 
 
-def _weak_block(H, limit):
-    """Whether each node's smallest eigenvalue is below ``limit`` (bool)."""
-    return np.linalg.eigvalsh(H[..., 0, :, :].astype(np.float64))[..., 0] < limit
+def _eigenvalues(H):
+    """The mean and the smallest eigenvalue of each node's diagonal block (…, 2), float64."""
+    w = np.linalg.eigvalsh(H[..., 0, :, :].astype(np.float64))
+    return np.stack([w.mean(axis=-1), w[..., 0]], axis=-1)
 
 
 def _block_origin(block_info) -> tuple[int, int, int]:

@@ -249,24 +249,24 @@ def pcg(matvec, precondition, b, x, rtol, maxiter, overwrite_b: bool = False) ->
 
     ``matvec(p, out)`` writes ``A p`` into ``out``, ``precondition(r, out)`` the
     preconditioned residual: both into this function's vectors, so that a solve holds
-    ``b``, ``x`` and four vectors of its own whatever the iterations (a new vector per call
-    held up to two more at once: 48 B per node, 100 MB at 128³ nodes). Written in Python
-    around the numba vector kernels: with a V-cycle per iteration, a few tens of
-    iterations, the interpreter's share is negligible. ``overwrite_b``: ``b`` becomes the
-    residual (changed on return).
+    ``b``, ``x`` and three vectors of its own whatever the iterations (a new vector per call
+    held up to two more at once: 48 B per node, 100 MB at 128³ nodes): the preconditioned
+    residual ``z`` is written into ``q``, whose product is spent once ``r`` is updated.
+    Written in Python around the numba vector kernels: with a V-cycle per iteration, a few
+    tens of iterations, the interpreter's share is negligible. ``overwrite_b``: ``b``
+    becomes the residual (changed on return).
     """
     bnorm = np.sqrt(dot(b.reshape(-1), b.reshape(-1)))
     r = b if overwrite_b else b.copy()
     rf, xf = r.reshape(-1), x.reshape(-1)
     if bnorm == 0.0:
         return 0
-    z = np.empty_like(b)
-    q = np.empty_like(b)
-    zf, qf = z.reshape(-1), q.reshape(-1)
-    precondition(r, z)
-    p = z.copy()
+    q = np.empty_like(b)  # A p, then z = D⁻¹ r in the same vector
+    qf = q.reshape(-1)
+    precondition(r, q)
+    p = q.copy()
     pf = p.reshape(-1)
-    rz = dot(rf, zf)
+    rz = dot(rf, qf)
     for it in range(1, maxiter + 1):
         matvec(p, q)
         alpha = rz / dot(pf, qf)
@@ -274,11 +274,11 @@ def pcg(matvec, precondition, b, x, rtol, maxiter, overwrite_b: bool = False) ->
         axpy(-alpha, qf, rf)
         if np.sqrt(dot(rf, rf)) <= rtol * bnorm:
             return it
-        precondition(r, z)
-        rz_new = dot(rf, zf)
+        precondition(r, q)
+        rz_new = dot(rf, qf)
         beta = rz_new / rz
         p *= beta
-        p += z
+        p += q
         rz = rz_new
     return -1
 

@@ -32,7 +32,7 @@ def test_a_memory_target_below_the_client_mesh_data_puts_them_in_blocks(pair):
     target = fits.smallest_bytes - 1
     plan = chunkdic.plan(f, g, calibrate=False, memory_target=target, **options)
     assert plan.mesh_data == "disk" and plan.mesh_blocks_from == 6**3
-    assert "in node blocks in a Zarr store" in plan.summary()
+    assert "in node blocks in files under the scratch" in plan.summary()
     with dask.config.set({"chunkdic.memory-target": target}):
         res = chunkdic.correlate(f, g, **options)
     assert res.info["status"] == ref.info["status"] == "converged"

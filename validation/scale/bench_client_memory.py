@@ -16,10 +16,10 @@ multigrid V-cycle's included, counted in the solve time); ``--no-multigrid`` kee
 block-Jacobi there. The default, 2048 with
 ell 16, is the mesh of a level-0 run of the scale benchmark (128³ nodes).
 
-``--mesh-data blocks`` puts the stencil and the solver's vectors in node blocks
-(docs/distributed.md, "Mesh data beyond one process"): in a Zarr store under the scratch
-read by the embedded scheduler, or with ``--workers N`` persisted on a ``LocalCluster`` of
-N single-threaded worker processes; ``--memory-target`` lets the plan's rule choose
+``--mesh-data blocks`` puts the stencil in node blocks (docs/distributed.md, "Mesh data
+beyond one process"): in files under the scratch read by the embedded scheduler, the
+solver's vectors in the process, or with ``--workers N`` persisted with the vectors on a
+``LocalCluster`` of N single-threaded worker processes; ``--memory-target`` lets the plan's rule choose
 (``auto``). The peak of every process is printed: the client's, and each worker's
 (``VmHWM`` read on the worker), with the bytes the workers sent each other. ``--compare``
 also solves the same systems in memory in a second process and prints the relative
@@ -102,14 +102,14 @@ class _StandInRunner:
 
         for inputs, job, _u in args:
             # as engine.tasks.m_task: the level's brightness model and cells (their Schur
-            # complement, kept by the client since session 30)
+            # complement, kept by the client)
             key = tuple(job.shape) + (inputs.grey, inputs.grey_cell)
             if key not in self._cache:
                 f = self._rng.normal(100.0, 20.0, tuple(n + 2 for n in job.shape)).astype("float32")
                 self._cache[key] = m_block(f, (1, 1, 1), (1, 1, 1), job.ell, grey=inputs.grey, center=100.0,
                                            with_lags=True, cell=inputs.grey_cell)
             stencil, fmin, fmax, lags, *cells = self._cache[key]
-            yield job.block, stencil, fmin, fmax, lags, None, (cells[0] if cells else None)
+            yield job.block, stencil, fmin, fmax, lags, None, (cells[0] if cells else None), None  # no crack
 
     def _b_pass(self, args):
         """A ``b`` pass: each block's partials reduced by the real ``reduce_block`` from random
@@ -119,7 +119,7 @@ class _StandInRunner:
         from chunkdic.method.brightness import reduce_block
         from chunkdic.kernels.blocks import LAGS, ElementSums
 
-        for inputs, job, _u, _active, probes, _probe_active in args:
+        for inputs, job, _u, _active, probes, _probe_active, _other in args:
             key = ("b", inputs.grey) + tuple(job.block.n_elements)
             if key not in self._cache:
                 n = tuple(job.block.n_elements)
@@ -129,7 +129,7 @@ class _StandInRunner:
                 B = self._rng.normal(size=n + (6, 8, 3))
                 self._cache[key] = reduce_block(ElementSums(B, gram, 0, np.zeros((6, LAGS + 1))), inputs.grey)
             part = self._cache[key]
-            yield job.block, part, [(part.scalars, part.n_excluded) for _ in probes]  # the start gaps' probes
+            yield job.block, part, [(part.scalars, part.n_excluded) for _ in probes], None  # the start gaps' probes; no crack
 
     def run_everywhere(self, fn):
         fn()
