@@ -242,8 +242,9 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     penalty = regularize(op, settings, level, mesh.element_size, choice.length)
     length, freed = choice.length, None
     for k in range(settings.reweights):
+        outgrown = texture_length > min(mesh.element_size, FINE_TEXTURE)  # weakly textured elements
         freed = robust_freed(linearised_field(op, u, p.b, state.largest_rhs),
-                             spanning=SPANNING_FRACTION if texture_length > min(mesh.element_size, FINE_TEXTURE) else 0.0)
+                             spanning=SPANNING_FRACTION if outgrown else 0.0)
         terms = freed_terms(freed)
         if terms == 0:  # nothing beyond the threshold: the plain penalty, as chosen
             freed = None

@@ -21,8 +21,8 @@ ROBUST_THRESHOLD = 6.0
 #: neighbours) that spans at least this fraction of the mesh's nodes along :data:`SPANNING_AXES`
 #: axes: a kink (a band's edge, a slip, a crack) is a surface across the field, outliers of
 #: the noise (weakly textured nodes) compact clusters or streaks along one of the texture's
-#: features (:func:`robust_freed`; the engine asks for it on a coarse texture only,
-#: :func:`chunkdic.method.length.choose_regularization`)
+#: features (:func:`robust_freed`; the engine asks for it where the texture's features
+#: outgrow the elements, :func:`chunkdic.method.length.choose_regularization`)
 SPANNING_FRACTION = 0.5
 SPANNING_AXES = 2
 #: the robust standard deviation of a normal sample from its median absolute value
