@@ -160,14 +160,6 @@ def mean_gradient(u: np.ndarray, element_size: float) -> float:
     return out
 
 
-def large_on_coarse(state: State, mesh: Mesh, texture_length: float) -> bool:
-    """Is the level's field ``state.u`` a large deformation (:data:`LARGE_GRADIENT`) of a
-    coarse texture (``texture_length`` above ``max(ℓ, FINE_TEXTURE)``), where
-    :func:`start_length` starts long?"""
-    ell = mesh.element_size
-    return start_length(ell, texture_length, mean_gradient(state.u, ell)) > START_LENGTH * ell
-
-
 def regularization_length(settings: Settings, state: State, level: int, mesh: Mesh,
                           texture_length: float = math.nan) -> float:
     """``ℓ_reg`` for ``level``, voxels of the level: given, chosen (resumed), or the starting one
@@ -200,8 +192,7 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     textured nodes' heavy-tailed noise frees clusters and streaks (waves at ℓ = 4 on a
     6-voxel texture: 0.031–0.073 voxel with them, 0.018–0.055 without); where every element
     holds texture the small sets go with the kinks' (a slip at ℓ = 8: 0.0555 voxel with
-    them, 0.0586 without). A large deformation of a coarse texture (:func:`large_on_coarse`)
-    is chosen for with the plain discrepancy principle's whole budget.
+    them, 0.0586 without).
 
     Returns the state restarted under the outcome (``reg_length``, ``freed``, which the
     checkpoint keeps) and the penalty the operator's solver now holds.
@@ -219,17 +210,10 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
         last["solver"].regularize(reg, weight)
         return last["solver"].solve(rhs)[0]
 
-    rule = settings.regularization_rule
-    if rule == "discrepancy-texture" and large_on_coarse(state, mesh, texture_length):
-        # the misfit a length gives up on a large deformation of a coarse texture is the noise's
-        # and the imaging's, not a feature's: the whole budget (docs/engine.md, "The
-        # regularisation length on a coarse texture")
-        rule = "discrepancy"
-
     def choose(freed, guess=None):
         return choose_length(settings.regularization, op.solver.matrix, mesh.element_size, u, p.b,
                              p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
-                             rule=rule, freed=released(op, freed), guess=guess)
+                             rule=settings.regularization_rule, freed=released(op, freed), guess=guess)
 
     # probed first: the length the level has iterated with so far (2ℓ; on heterogeneous fields
     # the choice is 1-3 candidates from it), not the middle candidate, whose long-length solve
