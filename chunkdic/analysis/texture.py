@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from ..passes.texture import LADDER, MAX_LAG, WEAK_LIMIT, WEAK_SNR, TextureStats, measure_texture
+from ..passes.texture import LADDER, MAX_LAG, SIGMA_LIMIT, WEAK_LIMIT, WEAK_SNR, TextureStats, measure_texture
 from ..errors import InputError
 from ..inputs import number
 from ..io.owntree import remove
@@ -74,7 +74,8 @@ class TextureReport:
                        f"{med:.4f} / {q90:.4f} | {s.kappa.get(ell, math.nan):.1f}")
         where = "none of " + ", ".join(map(str, LADDER)) if s.smallest is None else f"{s.smallest} voxels"
         out.append(f"smallest element size the texture supports: {where} (at most {100 * WEAK_LIMIT:.0f} % more weakly "
-                   f"textured elements, texture's gradient energy below {WEAK_SNR:g}× the noise's, than at the largest size)")
+                   f"textured elements, texture's gradient energy below {WEAK_SNR:g}× the noise's, than at the largest "
+                   f"size, and a predicted σ_u median of at most {SIGMA_LIMIT:g} voxel)")
         return out
 
     def to_json(self) -> dict:

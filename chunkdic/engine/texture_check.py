@@ -5,10 +5,11 @@ One measurement (:func:`chunkdic.passes.texture.measure_texture`: :data:`CHECK_B
 small ROI, at least 3 ℓ; each reduced by one task, the client never holds a voxel) answers
 two questions:
 
-- is ``ℓ`` below the smallest element size the texture supports? Then :func:`check_texture`
-  warns in one line (:class:`ElementSizeWarning`); the correlation runs as asked, the
-  regularisation filling in the weakly textured elements (docs/engine.md, "Know your
-  texture");
+- is ``ℓ`` below the smallest element size the texture supports (its weakly textured
+  elements and its predicted noise, :func:`chunkdic.passes.texture.smallest_supported`)?
+  Then :func:`check_texture` warns in one line (:class:`ElementSizeWarning`); the correlation
+  runs as asked, the regularisation filling in what the texture does not set
+  (docs/engine.md, "Know your texture");
 - how long are the texture's features? The autocorrelation length (the median over the
   axes) sets the regularisation length each level starts with
   (:func:`chunkdic.method.length.start_length`).
@@ -70,14 +71,16 @@ def check_texture(ref: ArrayRef, mesh: Mesh, settings: Settings, runner, progres
     within = [(r.start, r.stop) for r in mesh.roi]
     # boxes of half the ROI's shortest side when smaller than CHECK_EDGE: eight that tile it
     edge = max(min(CHECK_EDGE, min(b - a for a, b in within) // 2), 3 * ell)
-    ladder = sorted({*(e for e in LADDER if 2 * e <= edge), ell})
+    # from ℓ up: whether ℓ is supported, and if not the smallest size that is
+    ladder = sorted({*(e for e in LADDER if ell <= e and 2 * e <= edge), ell})
     stats = measure_texture(ref, runner.map_unordered, smoothing=settings.smoothing, edge=edge, boxes=CHECK_BOXES,
                             ladder=ladder, max_lag=CHECK_LAG, within=within)
     if stats.smallest is not None and ell < stats.smallest:
         warnings.warn(f"element size {ell} voxels is below the smallest the reference's texture supports "
                       f"({stats.smallest} voxels): {100 * stats.weak_fraction.get(ell, math.nan):.0f} % of its elements "
-                      f"carry less texture than noise (noise {stats.noise:.3g} estimated); the regularisation fills "
-                      f"them in (chunkdic texture REF tells more)", ElementSizeWarning, stacklevel=2)
+                      f"carry less texture than noise and its predicted noise without regularisation is "
+                      f"{stats.sigma_u.get(ell, (math.nan,))[0]:.2g} voxel (noise {stats.noise:.3g} estimated); the "
+                      f"regularisation fills them in (chunkdic texture REF tells more)", ElementSizeWarning, stacklevel=2)
     length = texture_length(stats)
     event = Texture(level=settings.level, length=length, start_length=start_length(ell, length),
                     usual_length=START_LENGTH * ell, element_size=mesh.element_size, smallest=stats.smallest)

@@ -9,15 +9,17 @@ reference alone (docs/engine.md, "Know your texture"):
 - **Weakly textured elements**: an element whose mean squared gradient of the *prepared*
   reference (the engine's Gaussian low-pass, ``smoothing``) carries less than the image noise's
   own (:data:`WEAK_SNR`): there the data hardly set the field and the regularisation fills it
-  in. The fraction of such elements falls as ``ℓ`` grows; the **smallest element size the
-  texture supports** is the smallest of :data:`LADDER` with at most :data:`WEAK_LIMIT` of them
-  (and every larger size too).
+  in. The fraction of such elements falls as ``ℓ`` grows.
 - **Predicted noise** ``σ_u`` at the nodes for the engine without regularisation: the
   engine's own model (:func:`chunkdic.method.noise.nodal_uncertainty`,
   ``κ σ_r² [M⁻¹]_ii``) on the ``M`` of sampled sub-meshes (the engine's ``M`` kernel on the
   prepared reference), with ``σ_r²`` the residual of two scans each carrying white noise of
   std ``noise`` through the low-pass, and ``κ`` its correlation factor
   (:func:`chunkdic.method.noise.correlation_factor`).
+- The **smallest element size the texture supports** (:func:`smallest_supported`): the
+  smallest of :data:`LADDER` from which on every size has at most :data:`WEAK_LIMIT` more weakly
+  textured elements than the largest size and a predicted ``σ_u`` of at most :data:`SIGMA_LIMIT`. The weak elements
+  alone miss a coarse texture: its elements hold some gradient, too little to set their nodes.
 
 The image noise is the user's (std per scan, grey levels) or, by default, estimated from
 the reference: the robust spread of its second differences (``1.4826 · median |f_{i-1} -
@@ -45,7 +47,7 @@ from ..solve.cg import StencilSolver
 from ..solve.stencil import half_stencil
 from .prefilter import gaussian_radius, lowpass
 
-__all__ = ["BOXES", "LADDER", "WEAK_LIMIT", "WEAK_SNR", "TextureStats", "measure_texture", "sample_boxes",
+__all__ = ["BOXES", "LADDER", "SIGMA_LIMIT", "WEAK_LIMIT", "WEAK_SNR", "TextureStats", "measure_texture", "sample_boxes",
            "smallest_supported"]
 
 #: element sizes (voxels) among which the smallest supported one is sought
@@ -55,6 +57,12 @@ LADDER = (4, 5, 6, 8, 10, 12, 16, 20, 24, 32, 48, 64)
 WEAK_SNR = 1.0
 #: the texture supports ``ℓ`` when at most this fraction of its elements is weakly textured
 WEAK_LIMIT = 0.1
+#: the texture supports ``ℓ`` when the median predicted ``σ_u`` (unregularised, voxels) is at most
+#: this: on the concrete specimens at texture scales 1 / 2 / 4 (noise 0.02 per scan) the
+#: regularised defaults stop gaining from smaller elements below ℓ = 4 / 6 / 8, whose
+#: predicted medians are 0.50 / 0.44 / 0.47 voxel, the next smaller sizes' 1.1 and 0.96
+#: (docs/engine.md, "Know your texture")
+SIGMA_LIMIT = 0.7
 #: boxes sampled at most (2 per axis)
 BOXES = 8
 #: lags of the autocorrelation examined at most (voxels): an autocorrelation length
@@ -84,7 +92,8 @@ class TextureStats:
     smallest : int or None
         The smallest element size the texture supports (None: none of :data:`LADDER`).
     sigma_u : dict of int to (float, float)
-        Per requested element size: the median and 90 % quantile over the sampled inner
+        Per requested element size, and per size of the ladder (a sub-mesh of three elements
+        in a box) up to the first within :data:`SIGMA_LIMIT`: the median and 90 % quantile over the sampled inner
         nodes of the predicted ``σ_u`` (pooled over the components), voxels; NaN when no
         sub-mesh of that size fits.
     kappa : dict of int to float
@@ -250,7 +259,9 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
     sizes = sorted({int(e) for e in element_sizes})
     edge = max(int(edge), *(NOISE_ELEMENTS * e + 2 for e in sizes)) if sizes else int(edge)
     regions = sample_boxes(ref.shape, edge, boxes, within)
-    results = list(map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(sizes), int(max_lag))
+    fits = min(min(b - a for a, b in box) for box in regions) // 3  # a sub-mesh of 3 elements
+    predicted = sorted({*sizes, *(e for e in ladder if e <= fits)})
+    results = list(map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(predicted), int(max_lag))
                                         for b in regions]))
     acl = autocorrelation_length(sum(r["lags"] for r in results)) if max_lag else (math.nan,) * 3
     estimated = noise is None
@@ -264,22 +275,48 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
         if e:
             e = np.concatenate(e)
             weak[ell] = float(np.mean(e < floor))
-    stats = TextureStats(acl, float(noise), estimated, weak, smallest_supported(weak),
-                         boxes=len(regions),
+    stats = TextureStats(acl, float(noise), estimated, weak, None, boxes=len(regions),
                          box_edge=max(b - a for box in regions for a, b in box))
     for ell in sizes:
         stats.sigma_u[ell], stats.kappa[ell] = _predicted_noise(results, ell, float(noise), smoothing)
+    for ell in predicted:  # the ladder's up to the first within the limit (σ_u falls as ℓ grows)
+        if ell not in stats.sigma_u:
+            stats.sigma_u[ell], stats.kappa[ell] = _predicted_noise(results, ell, float(noise), smoothing)
+        if ell not in sizes and stats.sigma_u[ell][0] <= SIGMA_LIMIT:
+            break
+    stats.smallest = smallest_supported(weak, {e: s[0] for e, s in stats.sigma_u.items()})
     return stats
 
 
-def smallest_supported(weak: dict[int, float]) -> int | None:
+def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = None) -> int | None:
     """The smallest size from which on every size has at most :data:`WEAK_LIMIT` more weakly
-    textured elements than the largest size measured: what is weak at every size (air around a
-    specimen, a pore larger than any element) is the scan's, not the element size's."""
+    textured elements than the largest size measured (what is weak at every size, air around a
+    specimen or a pore larger than any element, is the scan's, not the element size's) and a
+    median predicted ``σ_u`` of at most :data:`SIGMA_LIMIT` voxel where it is known.
+
+    Parameters
+    ----------
+    weak : dict of int to float
+        Element size (voxels) → fraction of weakly textured elements.
+    sigma : dict of int to float, optional
+        Element size (voxels) → median predicted ``σ_u``, voxels (NaN or absent: not judged).
+
+    Examples
+    --------
+    >>> smallest_supported({4: 0.08, 8: 0.04, 16: 0.01}, {4: 2.5, 8: 0.47, 16: 0.11})
+    8
+    >>> smallest_supported({4: 0.30, 8: 0.04, 16: 0.01})
+    8
+    """
     if not weak:
         return None
     base = weak[max(weak)]
-    supported = [ell for ell in weak if all(weak[m] <= base + WEAK_LIMIT for m in weak if m >= ell)]
+    sigma = sigma or {}
+
+    def holds(ell):
+        return weak[ell] <= base + WEAK_LIMIT and not sigma.get(ell, 0.0) > SIGMA_LIMIT
+
+    supported = [ell for ell in weak if all(holds(m) for m in weak if m >= ell)]
     return min(supported) if supported else None
 
 

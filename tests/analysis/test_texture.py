@@ -69,6 +69,32 @@ def test_weak_elements_of_a_checkerboard_are_counted_as_by_hand():
     assert "smallest element size the texture supports: 20 voxels" in text
 
 
+def test_a_coarse_texture_without_weak_elements_is_judged_by_its_predicted_noise(tmp_path):
+    """A coarse Gaussian texture (σ = 5 voxels, autocorrelation length about 10, std 100) holds
+    far more gradient than the noise in every element of every size: no element is weak, so
+    the weak elements alone would support ℓ = 4 whatever the noise. With noise of std 1 the
+    predicted σ_u at ℓ = 4 is below SIGMA_LIMIT and 4 is supported; with std 10 it is above
+    (σ_u ∝ noise), and the smallest supported size is the first of the ladder whose predicted
+    median is within the limit. ``correlate``'s check warns at ℓ = 4 and names that noise."""
+    from chunkdic.passes.texture import LADDER, SIGMA_LIMIT
+
+    rng = np.random.default_rng(0)
+    base = gaussian_filter(rng.standard_normal((64, 64, 64)), 5.0, mode="wrap")
+    base = base / base.std() * 100.0
+    quiet = chunkdic.texture((base + rng.standard_normal(base.shape)).astype(np.float32), [], noise=1.0, edge=64)
+    assert all(w == 0.0 for w in quiet.stats.weak_fraction.values())
+    assert quiet.stats.sigma_u[4][0] <= SIGMA_LIMIT and quiet.smallest == 4
+    noisy = (base + 10.0 * rng.standard_normal(base.shape)).astype(np.float32)
+    report = chunkdic.texture(noisy, [], noise=10.0, edge=64)
+    assert all(w == 0.0 for w in report.stats.weak_fraction.values())
+    sigma = {e: s[0] for e, s in report.stats.sigma_u.items()}
+    assert sigma[4] > SIGMA_LIMIT
+    assert report.smallest == min(e for e in LADDER if e in sigma and sigma[e] <= SIGMA_LIMIT) > 4
+    ref = open_scan(noisy).refs([0], tmp_path)[0]
+    with open_runner() as runner, pytest.warns(ElementSizeWarning, match=r"predicted noise without regularisation is"):
+        check_texture(ref, Mesh((0, 0, 0), 4, (16, 16, 16)), Settings(element_size=4), runner)
+
+
 def test_predicted_noise_is_the_engines_scatter_on_a_translated_pair():
     """A Gaussian texture (σ = 2 voxels, std 100) translated by a Fourier shift, white noise of
     std 5 added to each scan independently: the unregularised engine's scatter at the inner
