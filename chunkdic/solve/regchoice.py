@@ -132,9 +132,11 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         Morozov's principle as ``"discrepancy"`` below, but where a feature bounds the length
         (a longer candidate exceeds the budget), the longest length whose misfit increase
         stays within :func:`feature_share` of the budget: on an uneven texture the misfit
-        sees a small part of the error a long length makes where the texture is weak. Where
+        sees a small part of the error a long length makes where the texture is weak; on the
+        most uneven, also within what the noise explains (:func:`feature_allowance`). Where
         no candidate exceeds the budget (noise only, a uniform or linear field), the longest;
-        for a reweighted penalty (``freed``), the discrepancy.
+        for a reweighted penalty (``freed``), the discrepancy, but below
+        :data:`NOISE_EXPLAINED_SHARE` the same allowance.
     ``"discrepancy"``, ``"discrepancy-half"``
         Morozov's principle: the longest length with ``D(λ) - D(ℓ) <= τ s² N``, ``τ`` = 1
         or 1/2 (a safety factor).
