@@ -9,32 +9,34 @@ they ran per CG iteration; ``--record`` writes them as JSON.
 
 ``predict`` fits :func:`iteration_seconds` to a record (least squares) and prints its
 constants, its residuals on the record, and its predictions for 4096³ at ℓ = 8 and 16 on
-``--predict-workers`` workers.
+``--machines`` × ``--workers-per-machine`` single-threaded workers.
 
-The model of one CG iteration on ``W`` single-threaded workers holding ``B`` node blocks
-of ``N`` nodes in all::
+The model of one CG iteration on ``W`` single-threaded workers on ``K`` machines, the mesh
+of ``N`` nodes in node blocks on a ``g_z × g_y × g_x`` grid::
 
-    t = R · t_rt + T · t_task + N · c / W + H / β
+    t = R · t_rt + T · t_task + N · c / W + ν · N / (K · β)
 
 - ``R`` = :data:`ROUND_TRIPS`: the client's round trips through the scheduler per
   iteration (two steps of ``PartitionedSolver._pcg``, each a ``persist`` waited for and a
   ``compute`` of its dot products);
-- ``T`` the tasks per iteration, counted (``τ · B``: tasks per node block and iteration,
-  the halo exchanges' slices and the dot products' sums included), ``t_task`` the
-  scheduler's and workers' overhead per task;
+- ``T`` the tasks per iteration, ``a · B + b · P`` for ``B`` blocks and ``P`` ordered pairs
+  of neighbouring blocks (faces, edges and corners: the halo exchanges' slices), ``a`` and
+  ``b`` fitted to the counted tasks; ``t_task`` the scheduler's and workers' time per task;
 - ``c`` the kernels' seconds per node and iteration (the product of ``M + λR``,
   block-Jacobi, the vector updates), spread over the workers (over at most ``--cores``
-  workers when fitting: the machine's cores);
-- ``H`` the halo bytes a worker sends per iteration, ``β`` the network bandwidth
-  (``--bandwidth``): the vector's halo of each block, ``PENALTY_DEPTH`` nodes deep, 24 B a
-  node, for the share ``1 - 1/W`` of the blocks whose neighbours sit on other workers,
-  times ``--halo-factor`` (the measured bytes over that geometric count: Dask moves other
-  blocks too, e.g. when it balances tasks). On loopback ``β`` is too large to fit: the
-  exchange term is a prediction only.
+  when fitting: the machine's cores);
+- ``ν`` the bytes the workers send each other per node and iteration (measured: whole
+  blocks move, not only halos; the solution gathered once per solve left out), ``β`` a
+  machine's network bandwidth (``--bandwidth``), each machine sending its share ``1/K``.
+  On loopback ``β`` is too large to fit: the exchange term is a prediction only.
+
+``t_rt``, ``t_task`` and ``c`` are fitted by non-negative least squares on every measured
+case (relative residuals); ``--task-seconds`` predicts with another ``t_task`` besides (a scheduler on a core of
+its own).
 
 Usage::
 
-    nice -n 10 python validation/scale/bench_cg_scaling.py measure --record validation/scale/records/cg_scaling.json
+    nice -n 10 python -m validation run cg_scaling     # measure: validation/scale/records/cg_scaling.json
     python validation/scale/bench_cg_scaling.py predict validation/scale/records/cg_scaling.json
 """
 
@@ -62,50 +64,69 @@ ELEMENT_SIZE = 8
 BENCH = Path(__file__).with_name("bench_client_memory.py")
 
 
-def iteration_seconds(nodes: float, blocks: float, workers: int, *, t_rt: float, t_task: float, c: float,
-                      tasks_per_block: float, halo_bytes: float = 0.0, bandwidth: float = math.inf) -> dict:
-    """Predicted wall seconds of one CG iteration, and its three parts.
+def iteration_seconds(nodes: float, tasks: float, workers: int, *, t_rt: float, t_task: float, c: float,
+                      exchanged: float = 0.0, machines: int = 1, bandwidth: float = math.inf) -> dict:
+    """Predicted wall seconds of one CG iteration, and its parts.
 
     Parameters
     ----------
-    nodes, blocks : float
-        Nodes of the mesh; node blocks.
+    nodes, tasks : float
+        Nodes of the mesh; tasks per iteration (:func:`tasks_per_iteration`).
     workers : int
         Single-threaded workers (each running its share of the kernels).
     t_rt, t_task, c : float
         Seconds per round trip, per task, per node and iteration.
-    tasks_per_block : float
-        Tasks per node block and iteration.
-    halo_bytes, bandwidth : float
-        Bytes a worker sends per iteration; bytes per second of its link.
+    exchanged : float
+        Bytes the workers send each other per iteration, in all.
+    machines, bandwidth : int, float
+        Machines sharing them out; bytes per second of a machine's link.
 
     Returns
     -------
     dict
         ``fixed`` (round trips and tasks), ``compute``, ``exchange`` and ``total``, seconds.
     """
-    fixed = ROUND_TRIPS * t_rt + tasks_per_block * blocks * t_task
+    fixed = ROUND_TRIPS * t_rt + tasks * t_task
     compute = nodes * c / workers
-    exchange = halo_bytes / bandwidth
+    exchange = exchanged / machines / bandwidth
     return {"fixed": fixed, "compute": compute, "exchange": exchange, "total": fixed + compute + exchange}
+
+
+def neighbour_pairs(grid) -> int:
+    """Ordered pairs of distinct blocks that touch (face, edge or corner) on a block ``grid``.
+
+    >>> neighbour_pairs((2, 2, 2)), neighbour_pairs((4, 4, 4))  # every other block; (3g - 2)³ - g³
+    (56, 936)
+    """
+    return math.prod(3 * g - 2 for g in grid) - math.prod(grid)
+
+
+def tasks_per_iteration(grid, per_block: float, per_pair: float) -> float:
+    """Tasks of one CG iteration on node blocks on ``grid``: ``per_block`` a block and
+    ``per_pair`` a pair of neighbours (:func:`neighbour_pairs`)."""
+    return per_block * math.prod(grid) + per_pair * neighbour_pairs(grid)
 
 
 def halo_bytes_per_worker(nodes_shape, block_edge: int, workers: int, depth: int = HALO_DEPTH) -> float:
     """Bytes of the vector's halos one worker receives per product: every block's shell
-    ``depth`` nodes deep (24 B a node), of which the share ``1 - 1/workers`` comes from
-    other workers, spread over the workers (blocks of ``block_edge`` nodes, the last ones
-    clipped to the mesh)."""
-    shell = 0
-    counts = [[min(block_edge, n - i) for i in range(0, n, block_edge)] for n in nodes_shape]
-    for bz in counts[0]:
-        for by in counts[1]:
-            for bx in counts[2]:
-                shell += math.prod(b + 2 * depth for b in (bz, by, bx)) - bz * by * bx
+    ``depth`` nodes deep within the mesh (24 B a node), of which the share ``1 - 1/workers``
+    comes from other workers, spread over the workers (blocks of ``block_edge`` nodes from
+    the mesh's first node, the last ones clipped to it).
+
+    >>> halo_bytes_per_worker((8, 8, 8), 4, 2) / NODE_BYTES  # 8 blocks, each (4 + 2)³ - 4³ nodes, half from the other worker
+    304.0
+    """
+    extents = []
+    for n in nodes_shape:  # per axis: (block's nodes, its haloed nodes within the mesh)
+        extents.append([(min(i + block_edge, n) - i, min(i + block_edge + depth, n) - max(i - depth, 0))
+                        for i in range(0, n, block_edge)])
+    shell = sum(math.prod(h for _, h in e) - math.prod(b for b, _ in e)
+                for e in ((z, y, x) for z in extents[0] for y in extents[1] for x in extents[2]))
     return shell * NODE_BYTES * (1 - 1 / workers) / workers
 
 
-def node_blocks(size: int, element_size: int, workers: int) -> tuple[tuple[int, int, int], int, int]:
-    """The level-0 mesh's node shape, node block edge (elements) and node blocks of a ``size``³
+def node_grid(size: int, element_size: int, workers: int) -> tuple[tuple[int, int, int], int, tuple]:
+    """The level-0 mesh's node shape, node block edge (elements) and block grid of a ``size``³
     scan at ``element_size`` with the plan's rule for ``workers`` tasks at once."""
     from chunkdic import config
     from chunkdic.engine.meshes import plan_meshes
@@ -114,7 +135,7 @@ def node_blocks(size: int, element_size: int, workers: int) -> tuple[tuple[int, 
     mesh = plan_meshes((size,) * 3, element_size=element_size, level=0, coarsest=0)[0]
     m0 = max(1, config.get("block-voxels") // element_size)
     m = node_block_elements(mesh.shape, m0, workers)
-    return tuple(mesh.nodes_shape), m, math.prod(-(-e // m) for e in mesh.shape)
+    return tuple(mesh.nodes_shape), m, tuple(-(-e // m) for e in mesh.shape)
 
 
 def measure(args) -> list[dict]:
@@ -144,55 +165,66 @@ def _one_run(size: int, workers: int, edge: int) -> dict:
     return json.loads(line.strip()[4:])
 
 
-def fit(rows: list[dict], cores: int) -> dict:
-    """Least-squares ``t_rt``, ``t_task`` and ``c`` of :func:`iteration_seconds` (the
-    exchange left out: loopback) over the record's rows, and ``tasks_per_block``."""
-    import numpy as np
+def _grid(row) -> tuple:
+    g = round(row["node_blocks"] ** (1 / 3))
+    assert g**3 == row["node_blocks"], row
+    return (g,) * 3
 
+
+def fit(rows: list[dict], cores: int) -> dict:
+    """The model's constants from the measured rows: ``per_block`` and ``per_pair`` (the
+    counted tasks), ``t_rt``, ``t_task`` and ``c`` (non-negative least squares on the times'
+    relative residuals, the exchange left out: loopback), ``nu`` (median bytes per node and iteration sent
+    between workers, the solution's gather taken out, rows with several workers)."""
+    import numpy as np
+    from scipy.optimize import nnls
+
+    X = np.array([[r["node_blocks"], neighbour_pairs(_grid(r))] for r in rows], dtype=float)
+    (per_block, per_pair), *_ = np.linalg.lstsq(X, np.array([r["tasks_per_iteration"] for r in rows]), rcond=None)
     A = np.array([[ROUND_TRIPS, r["tasks_per_iteration"], r["nodes"] / min(r["workers"], cores)] for r in rows])
     t = np.array([r["seconds_per_iteration"] for r in rows])
-    (t_rt, t_task, c), *_ = np.linalg.lstsq(A, t, rcond=None)
-    tau = statistics.median(r["tasks_per_iteration"] / r["node_blocks"] for r in rows)
-    return {"t_rt": float(t_rt), "t_task": float(t_task), "c": float(c), "tasks_per_block": tau}
-
-
-def halo_factor(rows: list[dict]) -> float:
-    """Median of the measured bytes per iteration over the geometric halo count (rows with
-    several workers)."""
-    ratios = []
-    for r in rows:
-        if r["workers"] > 1:
-            n = round(r["nodes"] ** (1 / 3))
-            edge = r["node_block_elements"] or node_blocks(r["size"], ELEMENT_SIZE, r["workers"])[1]
-            ratios.append(r["bytes_per_iteration"] / (halo_bytes_per_worker((n,) * 3, edge, r["workers"])
-                                                      * r["workers"]))
-    return statistics.median(ratios) if ratios else 1.0
+    (t_rt, t_task, c), _ = nnls(A / t[:, None], np.ones_like(t))  # relative residuals: 0.8 s and 14 s alike
+    nu = statistics.median((r["bytes_per_iteration"] - NODE_BYTES * r["nodes"] / r["iterations"]) / r["nodes"]
+                           for r in rows if r["workers"] > 1)
+    return {"per_block": float(per_block), "per_pair": float(per_pair), "t_rt": float(t_rt), "t_task": float(t_task),
+            "c": float(c), "nu": float(nu)}
 
 
 def predict(args) -> None:
-    rows = json.loads(Path(args.record).read_text())
+    rows = json.loads(Path(args.record).read_text())["rows"]  # the raw JSON of measure, or the study's record
     k = fit(rows, args.cores)
-    factor = halo_factor(rows)
-    print(f"fitted on {len(rows)} cases: round trip {k['t_rt'] * 1e3:.1f} ms, per task {k['t_task'] * 1e3:.2f} ms, "
-          f"{k['c'] * 1e9:.0f} ns per node; {k['tasks_per_block']:.1f} tasks per node block and iteration; "
-          f"bytes sent {factor:.2f} × the geometric halo")
-    print("  measured / fitted s per iteration:")
+    timing = {key: k[key] for key in ("t_rt", "t_task", "c")}
+    print(f"fitted on {len(rows)} cases: {k['per_block']:.1f} tasks per node block and {k['per_pair']:.2f} per pair "
+          f"of neighbours; round trip {k['t_rt'] * 1e3:.1f} ms, {k['t_task'] * 1e3:.2f} ms per task, "
+          f"{k['c'] * 1e9:.0f} ns per node; {k['nu']:.0f} B per node sent between workers")
+    print("  measured / model: tasks and s per iteration")
     for r in rows:
-        p = iteration_seconds(r["nodes"], r["node_blocks"], min(r["workers"], args.cores), **k)
+        tasks = tasks_per_iteration(_grid(r), k["per_block"], k["per_pair"])
+        p = iteration_seconds(r["nodes"], r["tasks_per_iteration"], min(r["workers"], args.cores), **timing)
         print(f"    {r['nodes']:>8} nodes, {r['node_blocks']:>3} blocks, {r['workers']} workers: "
-              f"{r['seconds_per_iteration']:.3f} / {p['total']:.3f}")
+              f"{r['tasks_per_iteration']:.0f} / {tasks:.0f}; {r['seconds_per_iteration']:.3f} / {p['total']:.3f}")
     beta = args.bandwidth * 1e9 / 8
-    print(f"predicted, {args.predict_workers} workers, {args.bandwidth:g} Gbit/s per worker's link, "
-          f"{args.iterations} CG iterations per solve, {args.solves} solves per run:")
+    workers = args.machines * args.workers_per_machine
+    print(f"predicted: {args.machines} machines × {args.workers_per_machine} workers, {args.bandwidth:g} Gbit/s per "
+          f"machine, {args.iterations} CG iterations per solve, {args.solves} solves per run")
+    for t_task in [timing["t_task"], *args.task_seconds]:
+        print(f" {t_task * 1e3:.2f} ms per task" + (" (fitted)" if t_task == timing["t_task"] else ""))
+        _predict_4096(args, k, dict(timing, t_task=t_task), workers, beta)
+
+
+def _predict_4096(args, k: dict, timing: dict, workers: int, beta: float) -> None:
     for size, ell in ((4096, 16), (4096, 8)):
-        shape, m, blocks = node_blocks(size, ell, args.predict_workers)
-        nodes = math.prod(shape)
-        h = halo_bytes_per_worker(shape, m, args.predict_workers) * factor
-        p = iteration_seconds(nodes, blocks, args.predict_workers, **k, halo_bytes=h, bandwidth=beta)
-        print(f"  {size}³ ℓ {ell}: {nodes / 1e6:.1f} M nodes, {blocks} node blocks of {m}³ elements; per iteration "
-              f"{p['total']:.2f} s (fixed {p['fixed']:.2f}, compute {p['compute']:.3f}, exchange "
-              f"{p['exchange']:.4f} for {h / 2**20:.1f} MiB per worker); per solve {p['total'] * args.iterations:.0f} s, "
-              f"per run {p['total'] * args.iterations * args.solves / 60:.1f} min")
+        shape, m, grid = node_grid(size, ell, workers)
+        nodes, tasks = math.prod(shape), tasks_per_iteration(grid, k["per_block"], k["per_pair"])
+        halo = halo_bytes_per_worker(shape, m, workers) * workers
+        p = iteration_seconds(nodes, tasks, workers, **timing, exchanged=k["nu"] * nodes, machines=args.machines,
+                              bandwidth=beta)
+        print(f"  {size}³ ℓ {ell}: {nodes / 1e6:.1f} M nodes, {math.prod(grid)} node blocks of {m}³ elements, "
+              f"{tasks:.0f} tasks per iteration; per iteration {p['total']:.1f} s (round trips and tasks "
+              f"{p['fixed']:.1f}, kernels {p['compute']:.2f}, exchange {p['exchange']:.2f}: "
+              f"{k['nu'] * nodes / args.machines / 2**30:.2f} GiB per machine, halos alone "
+              f"{halo / args.machines / 2**30:.3f}); per solve {p['total'] * args.iterations / 60:.1f} min, "
+              f"per run {p['total'] * args.iterations * args.solves / 3600:.1f} h")
 
 
 def main(argv=None) -> None:
@@ -207,15 +239,18 @@ def main(argv=None) -> None:
     p = sub.add_parser("predict", help="fit the model to a record and predict 4096³")
     p.add_argument("record")
     p.add_argument("--cores", type=int, default=os.cpu_count() or 1, help="cores of the machine that measured")
-    p.add_argument("--predict-workers", type=int, default=256)
-    p.add_argument("--bandwidth", type=float, default=10.0, help="Gbit/s")
+    p.add_argument("--machines", type=int, default=16)
+    p.add_argument("--workers-per-machine", type=int, default=16)
+    p.add_argument("--bandwidth", type=float, default=10.0, help="Gbit/s per machine")
     p.add_argument("--iterations", type=int, default=11, help="CG iterations per solve")
     p.add_argument("--solves", type=int, default=14, help="solves per run")
+    p.add_argument("--task-seconds", type=float, nargs="*", default=[1e-3],
+                   help="also predict with these seconds per task")
     args = ap.parse_args(argv)
     if args.cmd == "measure":
         rows = measure(args)
         if args.record:
-            Path(args.record).write_text(json.dumps(rows, indent=1))
+            Path(args.record).write_text(json.dumps({"rows": rows}, indent=1))
     else:
         predict(args)
 

@@ -194,9 +194,9 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
 
     steps = _Steps(show_steps)
     if node_block_elements:  # the node blocks' edge forced: a cluster's tasks per iteration at a fixed mesh
-        from chunkdic.passes import mesh_blocks
+        from chunkdic.solve import nodeblocks
 
-        mesh_blocks.node_block_elements = lambda *_: node_block_elements
+        nodeblocks.node_block_elements = lambda *_: node_block_elements
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened
     client = cluster = None

@@ -126,20 +126,21 @@ def plan_only(args, workdir: Path) -> None:
                       f"{p.fast_scratch_bytes / 1e9:.1f} GB), with the scans {(p.scratch_bytes + 2 * n**3 * 2) / 1e9:.1f} GB")
                 rows.append((f"{n}³ ℓ {ell}", scheduler, per_process(p)))
     print(f"\n{'case':<11} {'scheduler':<10} {'nodes':>7} {'mesh data':<8} {'client':>9} {'worker':>9} "
-          f"{'scratch':>9} {'blocks':>9} {'passes':>8} {'solves':>8} {'refused':<8}")
+          f"{'scratch':>9} {'blocks':>9} {'output':>9} {'passes':>8} {'solves':>8} {'refused':<8}")
     for case, scheduler, f in rows:
-        gib = [f"{f[k] / 2**30:.2f}" if f[k] is not None else "-" for k in ("client", "worker", "scratch", "blocks")]
+        gib = [f"{f[k] / 2**30:.2f}" if f[k] is not None else "-" for k in ("client", "worker", "scratch", "blocks",
+                                                                                      "output")]
         print(f"{case:<11} {scheduler:<10} {f['nodes'] / 1e6:>6.1f}M {f['mesh_data']:<8} {gib[0]:>9} {gib[1]:>9} "
-              f"{gib[2]:>9} {gib[3]:>9} {f['passes'] / 60:>7.0f}m {f['solves'] / 60:>7.0f}m {f['refused']}")
+              f"{gib[2]:>9} {gib[3]:>9} {gib[4]:>9} {f['passes'] / 60:>7.0f}m {f['solves'] / 60:>7.0f}m {f['refused']}")
     print("(GiB; client: its base and mesh data; worker: its base, tasks at once and share of the node blocks; "
-          "blocks: the node blocks' files under the scratch, besides it; minutes)")
+          "blocks: the node blocks' files under the scratch, besides it; output: the result with M; minutes)")
 
 
 def per_process(p) -> dict:
     """A plan's figures per process (bytes) and its time's parts (seconds): the client's
     (``process_bytes`` when the tasks run in it), a worker's (None with the embedded pool),
     the scratch, the node blocks' files (embedded scheduler; not in ``scratch_bytes``), the
-    voxel passes and the solves, and whether :meth:`Plan.check` refuses it (memory)."""
+    output, the voxel passes and the solves, and whether :meth:`Plan.check` refuses it (memory)."""
     import math
 
     client = p.base_bytes + p.client_bytes
@@ -152,6 +153,7 @@ def per_process(p) -> dict:
     refused = p.memory_target is not None and p.process_bytes > p.memory_target
     return {"nodes": math.prod(p.levels[-1].nodes), "mesh_data": p.mesh_data, "client": client, "worker": worker,
             "scratch": p.scratch_bytes, "blocks": p.blocks_bytes if p.mesh_data == "disk" else None,
+            "output": p.output_bytes,
             "passes": p.seconds - p.solve_seconds, "solves": p.solve_seconds, "refused": "yes" if refused else "no"}
 
 
