@@ -37,7 +37,7 @@ its own).
 Usage::
 
     nice -n 10 python -m validation run cg_scaling     # measure: validation/scale/records/cg_scaling.json
-    python validation/scale/bench_cg_scaling.py predict validation/scale/records/cg_scaling.json
+    python validation/scale/bench_cg_scaling.py predict        # the record by default
 """
 
 from __future__ import annotations
@@ -62,6 +62,12 @@ HALO_DEPTH = 2
 ELEMENT_SIZE = 8
 
 BENCH = Path(__file__).with_name("bench_client_memory.py")
+#: the record the model is fitted on
+RECORD = Path(__file__).with_name("records") / "cg_scaling.json"
+#: :func:`fit` on :data:`RECORD` (9 cases: 32³ and 64³ nodes in 8 blocks, 64³ in 64; 1, 2, 4
+#: workers; the shared 2-core machine, load 0.9-4.9): tasks per block and per pair of
+#: touching blocks, seconds per round trip, per task, per node; bytes sent per node
+FITTED = {"per_block": 32.4, "per_pair": 2.16, "t_rt": 0.049, "t_task": 1.53e-3, "c": 1.51e-6, "nu": 106.0}
 
 
 def iteration_seconds(nodes: float, tasks: float, workers: int, *, t_rt: float, t_task: float, c: float,
@@ -237,7 +243,7 @@ def main(argv=None) -> None:
     m.add_argument("--repeats", type=int, default=3)
     m.add_argument("--record")
     p = sub.add_parser("predict", help="fit the model to a record and predict 4096³")
-    p.add_argument("record")
+    p.add_argument("record", nargs="?", default=str(RECORD))
     p.add_argument("--cores", type=int, default=os.cpu_count() or 1, help="cores of the machine that measured")
     p.add_argument("--machines", type=int, default=16)
     p.add_argument("--workers-per-machine", type=int, default=16)

@@ -21,7 +21,10 @@ beyond one process"): in files under the scratch read by the embedded scheduler,
 solver's vectors in the process, or with ``--workers N`` persisted with the vectors on a
 ``LocalCluster`` of N single-threaded worker processes; ``--memory-target`` lets the plan's rule choose
 (``auto``). The peak of every process is printed: the client's, and each worker's
-(``VmHWM`` read on the worker), with the bytes the workers sent each other. ``--compare``
+(``VmHWM`` read on the worker), with the bytes the workers sent each other, and a line
+``cg: {...}`` (JSON) of the solves alone: seconds, bytes sent between workers and tasks run
+per CG iteration (``bench_cg_scaling.py`` reads it); ``--node-block-elements`` forces the
+node blocks' edge. ``--compare``
 also solves the same systems in memory in a second process and prints the relative
 difference of the solutions.
 
