@@ -2,12 +2,13 @@
 fitted to it that predicts larger meshes on more workers (docs/distributed.md, "Scaling").
 
 ``measure`` runs ``bench_client_memory.py --element-size 8 --regularize 2 --solves 1
---mesh-data blocks --workers W`` for every ``--cases`` × ``--workers`` ``--repeats`` times
-(a case ``SIZE`` or ``SIZE:M``, ``M`` the elements per node block side, else the plan's rule) (each a fresh process and cluster) and keeps, for the solve alone,
-the median over the repeats of the wall time, bytes the workers sent each other and tasks
-they ran per CG iteration; ``--record`` writes them as JSON.
+--mesh-data blocks --workers W`` for every ``--cases`` × ``--workers``, ``--repeats`` times
+each in a fresh process and cluster (a case is ``SIZE``, or ``SIZE:M`` with ``M`` elements
+per node block side instead of the plan's rule), and keeps, for the solve alone, the median
+over the repeats of the wall time, bytes the workers sent each other and tasks they ran per
+CG iteration; ``--record`` writes them as JSON.
 
-``predict`` fits :func:`iteration_seconds` to a record (least squares) and prints its
+``predict`` fits :func:`iteration_seconds` to a record (:func:`fit`) and prints its
 constants, its residuals on the record, and its predictions for 4096³ at ℓ = 8 and 16 on
 ``--machines`` × ``--workers-per-machine`` single-threaded workers.
 
@@ -31,8 +32,9 @@ of ``N`` nodes in node blocks on a ``g_z × g_y × g_x`` grid::
   On loopback ``β`` is too large to fit: the exchange term is a prediction only.
 
 ``t_rt``, ``t_task`` and ``c`` are fitted by non-negative least squares on every measured
-case (relative residuals); ``--task-seconds`` predicts with another ``t_task`` besides (a scheduler on a core of
-its own).
+case (relative residuals); ``--task-seconds`` predicts with another ``t_task`` besides (a
+scheduler on a core of its own). :data:`FITTED` holds the constants fitted on the record,
+the defaults of :func:`iteration_seconds` and :func:`tasks_per_iteration`.
 
 Usage::
 
@@ -70,8 +72,9 @@ RECORD = Path(__file__).with_name("records") / "cg_scaling.json"
 FITTED = {"per_block": 32.4, "per_pair": 2.16, "t_rt": 0.049, "t_task": 1.53e-3, "c": 1.51e-6, "nu": 106.0}
 
 
-def iteration_seconds(nodes: float, tasks: float, workers: int, *, t_rt: float, t_task: float, c: float,
-                      exchanged: float = 0.0, machines: int = 1, bandwidth: float = math.inf) -> dict:
+def iteration_seconds(nodes: float, tasks: float, workers: int, *, t_rt: float = FITTED["t_rt"],
+                      t_task: float = FITTED["t_task"], c: float = FITTED["c"], exchanged: float = 0.0,
+                      machines: int = 1, bandwidth: float = math.inf) -> dict:
     """Predicted wall seconds of one CG iteration, and its parts.
 
     Parameters
@@ -107,7 +110,7 @@ def neighbour_pairs(grid) -> int:
     return math.prod(3 * g - 2 for g in grid) - math.prod(grid)
 
 
-def tasks_per_iteration(grid, per_block: float, per_pair: float) -> float:
+def tasks_per_iteration(grid, per_block: float = FITTED["per_block"], per_pair: float = FITTED["per_pair"]) -> float:
     """Tasks of one CG iteration on node blocks on ``grid``: ``per_block`` a block and
     ``per_pair`` a pair of neighbours (:func:`neighbour_pairs`)."""
     return per_block * math.prod(grid) + per_pair * neighbour_pairs(grid)
@@ -119,7 +122,9 @@ def halo_bytes_per_worker(nodes_shape, block_edge: int, workers: int, depth: int
     comes from other workers, spread over the workers (blocks of ``block_edge`` nodes from
     the mesh's first node, the last ones clipped to it).
 
-    >>> halo_bytes_per_worker((8, 8, 8), 4, 2) / NODE_BYTES  # 8 blocks, each (4 + 2)³ - 4³ nodes, half from the other worker
+    8 blocks, each with (4 + 2)³ - 4³ nodes of halo, half of them from the other worker:
+
+    >>> halo_bytes_per_worker((8, 8, 8), 4, 2) / NODE_BYTES
     304.0
     """
     extents = []

@@ -123,17 +123,18 @@ def plan_only(args, workdir: Path) -> None:
                       + (f", scratch disk free {args.free} (simulated)" if args.free else ""))
                 print(p.summary())
                 print(f"  scratch {p.scratch_bytes / 1e9:.1f} GB ({p.layout}; fast layout "
-                      f"{p.fast_scratch_bytes / 1e9:.1f} GB), with the scans {(p.scratch_bytes + 2 * n**3 * 2) / 1e9:.1f} GB")
+                      f"{p.fast_scratch_bytes / 1e9:.1f} GB), with the scans "
+                      f"{(p.scratch_bytes + 2 * n**3 * 2) / 1e9:.1f} GB")
                 rows.append((f"{n}³ ℓ {ell}", scheduler, per_process(p)))
     print(f"\n{'case':<11} {'scheduler':<10} {'nodes':>7} {'mesh data':<8} {'client':>9} {'worker':>9} "
           f"{'scratch':>9} {'blocks':>9} {'output':>9} {'passes':>8} {'solves':>8} {'refused':<8}")
     for case, scheduler, f in rows:
-        gib = [f"{f[k] / 2**30:.2f}" if f[k] is not None else "-" for k in ("client", "worker", "scratch", "blocks",
-                                                                                      "output")]
+        sizes = ("client", "worker", "scratch", "blocks", "output")
+        gib = [f"{f[k] / 2**30:.2f}" if f[k] is not None else "-" for k in sizes]
         print(f"{case:<11} {scheduler:<10} {f['nodes'] / 1e6:>6.1f}M {f['mesh_data']:<8} {gib[0]:>9} {gib[1]:>9} "
               f"{gib[2]:>9} {gib[3]:>9} {gib[4]:>9} {f['passes'] / 60:>7.0f}m {f['solves'] / 60:>7.0f}m {f['refused']}")
     print("(GiB; client: its base and mesh data; worker: its base, tasks at once and share of the node blocks; "
-          "blocks: the node blocks' files under the scratch, besides it; output: the result with M; minutes)")
+          "blocks: the node blocks' files under the scratch, besides it; output: the result store; minutes)")
 
 
 def per_process(p) -> dict:
