@@ -131,6 +131,20 @@ def _scale_rows(raw: dict) -> list[dict]:
     }]
 
 
+def _cg_scaling_rows(raw: dict) -> list[dict]:
+    """One row per mesh, node blocks and workers: the medians over the repeats (their spread
+    and the load beside)."""
+    rows = []
+    for r in raw["rows"]:
+        t = [run["seconds_per_iteration"] for run in r["runs"]]
+        rows.append({k: r[k] for k in ("size", "nodes", "node_blocks", "workers", "iterations", "seconds_per_iteration",
+                                       "bytes_per_iteration", "tasks_per_iteration")}
+                    | {"sent_mib_per_iteration": r["bytes_per_iteration"] / 2**20,
+                       "node_block_elements": r["node_block_elements"], "repeats": len(t),
+                       "seconds_min": min(t), "seconds_max": max(t), "load": r["load"][0]})
+    return rows
+
+
 def _speed_rows(raw: dict) -> list[dict]:
     rows = _vs_aldvc_rows(raw)
     for row in rows:
@@ -230,4 +244,8 @@ STUDIES = {s.name: s for s in (
           legacy=("bench_stages_512_session27.json", "bench_stages_1024_session28.json",
                   "bench_stages_2048_idle_session28.json"),
           about="the CLI's defaults (embedded scheduler, CT defaults), grains pair with the band (−5 %)"),
+    Study("cg_scaling", "The partitioned CG on a LocalCluster of 1, 2 and 4 workers: time, bytes and tasks per "
+          "iteration", "scale", "scale/bench_cg_scaling.py", ("measure", "--record", "{raw}"), _cg_scaling_rows,
+          about="bench_client_memory.py --element-size 8 --regularize 2 --solves 1 --mesh-data blocks: the solve "
+                "alone, stand-in M, medians of 3 fresh processes under nice -n 10 on the shared 2-core machine"),
 )}

@@ -21,7 +21,10 @@ beyond one process"): in files under the scratch read by the embedded scheduler,
 solver's vectors in the process, or with ``--workers N`` persisted with the vectors on a
 ``LocalCluster`` of N single-threaded worker processes; ``--memory-target`` lets the plan's rule choose
 (``auto``). The peak of every process is printed: the client's, and each worker's
-(``VmHWM`` read on the worker), with the bytes the workers sent each other. ``--compare``
+(``VmHWM`` read on the worker), with the bytes the workers sent each other, and a line
+``cg: {...}`` (JSON) of the solves alone: seconds, bytes sent between workers and tasks run
+per CG iteration (``bench_cg_scaling.py`` reads it); ``--node-block-elements`` forces the
+node blocks' edge. ``--compare``
 also solves the same systems in memory in a second process and prints the relative
 difference of the solutions.
 
@@ -33,6 +36,8 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import re
 import statistics
 import subprocess
@@ -145,9 +150,41 @@ def _worker_sent(client) -> int:
     return sum(client.run(lambda dask_worker: dask_worker.transfer_outgoing_bytes_total).values())
 
 
+def _worker_tasks(client) -> int:
+    """Tasks the workers have run so far."""
+    return sum(client.run(lambda dask_worker: dask_worker.state.executed_count).values())
+
+
+class _SolveCounters:
+    """Wall time, CG iterations, bytes the workers sent each other and tasks they ran during
+    the solves alone (the penalty's setup and the ``M`` pass left out): what a CG iteration
+    costs on a cluster (`bench_cg_scaling.py`)."""
+
+    def __init__(self, client):
+        self.client, self.seconds, self.iterations, self.sent, self.tasks = client, 0.0, 0, 0, 0
+
+    def solve(self, solver, b):
+        before = (_worker_sent(self.client), _worker_tasks(self.client)) if self.client else (0, 0)
+        t0 = time.perf_counter()
+        x, it = solver.solve(b)
+        self.seconds += time.perf_counter() - t0
+        self.iterations += it
+        if self.client:
+            self.sent += _worker_sent(self.client) - before[0]
+            self.tasks += _worker_tasks(self.client) - before[1]
+        return x, it
+
+    def line(self, nodes: int, blocks: int, workers: int) -> str:
+        """One JSON line, prefixed ``cg:``, per iteration."""
+        its = max(self.iterations, 1)
+        return "cg: " + json.dumps({"nodes": nodes, "node_blocks": blocks, "workers": workers,
+                                    "iterations": self.iterations, "seconds_per_iteration": self.seconds / its,
+                                    "bytes_per_iteration": self.sent / its, "tasks_per_iteration": self.tasks / its})
+
+
 def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid: bool = True,
            show_steps: bool = False, iterations: int = 0, mesh_data: str = "client", workers: int = 0,
-           save: str | None = None) -> None:
+           save: str | None = None, node_block_elements: int = 0) -> None:
     import dask.config
     import numpy as np
 
@@ -159,6 +196,10 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
     from chunkdic.solve.cg import warmup
 
     steps = _Steps(show_steps)
+    if node_block_elements:  # the node blocks' edge forced: a cluster's tasks per iteration at a fixed mesh
+        from chunkdic.solve import nodeblocks
+
+        nodeblocks.node_block_elements = lambda *_: node_block_elements
     mesh = plan_meshes((size,) * 3, element_size=ell, level=0, coarsest=0)[0]
     f_ref = ArrayRef("zarr", "/nonexistent", "", (size,) * 3, "uint16")  # never opened
     client = cluster = None
@@ -183,6 +224,7 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
         t_m = time.perf_counter() - t0
         runner._cache.clear()  # the stand-in's blocks: not the client's
         rng = np.random.default_rng(1)
+        counters = _SolveCounters(client)
         times, its, solutions = [], [], []
         if not multigrid:
             op.solver.multigrid = False
@@ -191,7 +233,7 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
             t0 = time.perf_counter()
             if regularize:
                 steps.run(f"regularisation {k + 1}", lambda: penalize(op, settings, 0, ell, regularize * ell))
-            x, it = steps.run(f"solve {k + 1}", lambda: op.solver.solve(b))
+            x, it = steps.run(f"solve {k + 1}", lambda: counters.solve(op.solver, b))
             times.append(time.perf_counter() - t0)
             its.append(it)
             if save:
@@ -204,6 +246,8 @@ def _child(size: int, ell: int, solves: int, regularize: float = 0.0, multigrid:
     nodes = int(np.prod(mesh.nodes_shape))
     print(f"{size:>6} {ell:>4} {nodes:>10} {len(lvl.jobs):>7} {t_m:>12.1f} {statistics.median(times):>9.2f} "
           f"{statistics.median(its):>6.0f} {steps.peak:>14.0f}  {op.solver.__class__.__name__}", flush=True)
+    if mesh_data == "blocks":
+        print("  " + counters.line(nodes, math.prod(len(c) for c in op.solver.chunks), workers), flush=True)
     if client is not None:
         sent = _worker_sent(client) - sent0
         print(f"  workers' peaks MiB: {', '.join(f'{p:.0f}' for p in _worker_peaks(client))}; "
@@ -246,6 +290,8 @@ def main(argv=None) -> None:
                    help="where the stencil and the solver's vectors live (chunkdic.mesh-data)")
     p.add_argument("--memory-target", help="plan's rule: blocks when the client's mesh data exceed it (e.g. 2GiB)")
     p.add_argument("--workers", type=int, default=0, help="node blocks on a LocalCluster of this many workers")
+    p.add_argument("--node-block-elements", type=int, default=0,
+                   help="elements per node block side (a multiple of the voxel blocks'; default: the plan's rule)")
     p.add_argument("--compare", action="store_true",
                    help="also solve in memory and print the relative difference of the solutions")
     p.add_argument("--save", help=argparse.SUPPRESS)
@@ -253,7 +299,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     if args.child:
         _child(args.child, args.element_size, args.solves, args.regularize, not args.no_multigrid, args.steps,
-               args.iterations, args.mesh_data, args.workers, args.save)
+               args.iterations, args.mesh_data, args.workers, args.save, args.node_block_elements)
         return
     print("  size  ell      nodes  blocks  M assembly s   solve s  CG it  client peak MiB  solver")
     for size in args.sizes:  # one process per size: each peak is its own
@@ -269,7 +315,8 @@ def main(argv=None) -> None:
                             "--solves", str(args.solves), "--regularize", str(args.regularize),
                             "--mesh-data", "blocks" if mode == "blocks" else "client", "--workers", str(workers)]
                            + (["--no-multigrid"] if args.no_multigrid else []) + (["--steps"] if args.steps else [])
-                           + ["--iterations", str(args.iterations)] + (["--save", out] if out else []),
+                           + ["--iterations", str(args.iterations), "--node-block-elements",
+                              str(args.node_block_elements)] + (["--save", out] if out else []),
                            check=True)
             saved.append(out)
         if args.compare:

@@ -12,12 +12,20 @@ With ``--plan-only`` nothing runs: each size gets a pair of scan groups holding 
 metadata (uint16, no chunk written: no disk), and the plan of a level-0 run is printed,
 uncalibrated; ``--free`` plans as if the scratch disk had that much free space (e.g.
 what is left once the scans are written), so the scratch layout the plan would choose
-shows (issue 21: the 2048³ pair on this machine's disk).
+shows (issue 21: the 2048³ pair on this machine's disk). ``--schedulers`` plans each size
+for each scheduler (``threads``: the embedded pool; ``local:N``: N single-threaded
+workers, as a cluster of N workers), ``--element-sizes`` at each length, and ends with a
+table of the figures per process: the client's (base and mesh data), a worker's (base,
+its tasks at once and its share of the node blocks), the scratch disk (the node blocks'
+files of the embedded scheduler apart) and the time, the voxel passes' and the solves'
+parts apart (docs/distributed.md, "Scaling").
 
 Usage::
 
     python validation/scale/bench_plan.py --sizes 128 256 512 --repeats 2 --record validation/scale/records/bench_plan.json
     python validation/scale/bench_plan.py --plan-only --sizes 2048 --free 39GB
+    python validation/scale/bench_plan.py --plan-only --sizes 4096 --element-sizes 16 8 --free 100TB \
+        --memory-target 4GiB --schedulers threads local:4 local:16 local:256
 """
 
 from __future__ import annotations
@@ -103,15 +111,51 @@ def plan_only(args, workdir: Path) -> None:
     if args.free:
         free = int(dask.utils.parse_bytes(args.free))
         runplan._free = lambda path: free
+    rows = []
     for n in args.sizes:
         d = empty_pair(workdir, n)
-        p = chunkdic.plan(d / "ref.zarr", d / "def.zarr", element_size=args.element_size,
-                          memory_target=args.memory_target or None, calibrate=False)
-        print(f"{n}³ uint16 pair ({2 * n**3 * 2 / 1e9:.1f} GB of scans), level 0, ell {args.element_size}"
-              + (f", scratch disk free {args.free} (simulated)" if args.free else ""))
-        print(p.summary())
-        print(f"  scratch {p.scratch_bytes / 1e9:.1f} GB ({p.layout}; fast layout {p.fast_scratch_bytes / 1e9:.1f} GB), "
-              f"with the scans {(p.scratch_bytes + 2 * n**3 * 2) / 1e9:.1f} GB")
+        for ell in args.element_sizes or [args.element_size]:
+            for scheduler in args.schedulers:
+                p = chunkdic.plan(d / "ref.zarr", d / "def.zarr", element_size=ell,
+                                  memory_target=args.memory_target or None, calibrate=False,
+                                  scheduler=None if scheduler == "threads" else scheduler)
+                print(f"{n}³ uint16 pair ({2 * n**3 * 2 / 1e9:.1f} GB of scans), level 0, ell {ell}, {scheduler}"
+                      + (f", scratch disk free {args.free} (simulated)" if args.free else ""))
+                print(p.summary())
+                print(f"  scratch {p.scratch_bytes / 1e9:.1f} GB ({p.layout}; fast layout "
+                      f"{p.fast_scratch_bytes / 1e9:.1f} GB), with the scans "
+                      f"{(p.scratch_bytes + 2 * n**3 * 2) / 1e9:.1f} GB")
+                rows.append((f"{n}³ ℓ {ell}", scheduler, per_process(p)))
+    print(f"\n{'case':<11} {'scheduler':<10} {'nodes':>7} {'mesh data':<8} {'client':>9} {'worker':>9} "
+          f"{'scratch':>9} {'blocks':>9} {'output':>9} {'passes':>8} {'solves':>8} {'refused':<8}")
+    for case, scheduler, f in rows:
+        sizes = ("client", "worker", "scratch", "blocks", "output")
+        gib = [f"{f[k] / 2**30:.2f}" if f[k] is not None else "-" for k in sizes]
+        print(f"{case:<11} {scheduler:<10} {f['nodes'] / 1e6:>6.1f}M {f['mesh_data']:<8} {gib[0]:>9} {gib[1]:>9} "
+              f"{gib[2]:>9} {gib[3]:>9} {gib[4]:>9} {f['passes'] / 60:>7.0f}m {f['solves'] / 60:>7.0f}m {f['refused']}")
+    print("(GiB; client: its base and mesh data; worker: its base, tasks at once and share of the node blocks; "
+          "blocks: the node blocks' files under the scratch, besides it; output: the result store; minutes)")
+
+
+def per_process(p) -> dict:
+    """A plan's figures per process (bytes) and its time's parts (seconds): the client's
+    (``process_bytes`` when the tasks run in it), a worker's (None with the embedded pool),
+    the scratch, the node blocks' files (embedded scheduler; not in ``scratch_bytes``), the
+    output, the voxel passes and the solves, and whether :meth:`Plan.check` refuses it (memory)."""
+    import math
+
+    client = p.base_bytes + p.client_bytes
+    worker = None
+    if p.separate_client:
+        held = p.blocks_bytes / p.workers if p.mesh_data == "workers" else 0
+        worker = p.base_bytes + p.task_bytes + held
+    else:
+        client = p.process_bytes
+    refused = p.memory_target is not None and p.process_bytes > p.memory_target
+    return {"nodes": math.prod(p.levels[-1].nodes), "mesh_data": p.mesh_data, "client": client, "worker": worker,
+            "scratch": p.scratch_bytes, "blocks": p.blocks_bytes if p.mesh_data == "disk" else None,
+            "output": p.output_bytes,
+            "passes": p.seconds - p.solve_seconds, "solves": p.solve_seconds, "refused": "yes" if refused else "no"}
 
 
 def one_run(d: Path, ell: int, target: str, scratch: Path) -> dict:
@@ -138,6 +182,9 @@ def main() -> None:
     ap.add_argument("--record", default=None)
     ap.add_argument("--plan-only", action="store_true", help="plan metadata-only pairs, run nothing")
     ap.add_argument("--free", default="", help="with --plan-only: free scratch disk to plan for (e.g. 39GB)")
+    ap.add_argument("--element-sizes", type=int, nargs="+", help="with --plan-only: plan each (default --element-size)")
+    ap.add_argument("--schedulers", nargs="+", default=["threads"],
+                    help="with --plan-only: plan each (threads, local:N)")
     args = ap.parse_args()
     import dask.config
 

@@ -1,0 +1,54 @@
+"""The plan of a scan too large for this machine, from its metadata alone: what it says per
+worker follows the number of workers, and nothing else does (docs/distributed.md, "Scaling")."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import dask.config
+import pytest
+import zarr
+
+import chunkdic
+from chunkdic.engine import runplan
+from chunkdic.io.integrity import MissingChunksWarning
+
+N = 1024  # 2 GiB a scan: never written, the plan reads the metadata only
+
+
+@pytest.fixture(scope="module")
+def empty_pair(tmp_path_factory):
+    """A uint16 pair of ``N``³ scans with metadata only (no chunk written)."""
+    d = tmp_path_factory.mktemp("empty")
+    for name in ("ref.zarr", "def.zarr"):
+        g = zarr.open_group(str(d / name), mode="w", zarr_format=3)
+        g.create_array("0", shape=(N,) * 3, chunks=(128,) * 3, dtype="uint16", fill_value=0)
+    return d
+
+
+def _plan(d, scheduler, monkeypatch):
+    monkeypatch.setattr(runplan, "_free", lambda path: 2**50)  # the fast layout whatever this disk holds
+    with warnings.catch_warnings(), dask.config.set({"chunkdic.mesh-data": "blocks"}):
+        warnings.simplefilter("ignore", MissingChunksWarning)
+        return chunkdic.plan(d / "ref.zarr", d / "def.zarr", element_size=8, scheduler=scheduler, calibrate=False)
+
+
+def test_plan_of_n_workers_divides_the_voxel_passes_and_the_node_blocks_by_n(empty_pair, monkeypatch):
+    """A 1024³ pair at ℓ = 8 (2.1 M nodes), on 4 and on 64 single-threaded workers: the same
+    levels, blocks, scratch and client; the voxel passes' time and each worker's share of the
+    node blocks 16 times smaller on 64 workers (the work and the blocks are the same, spread
+    over 16 times as many workers); and no chunk is written (the stores hold metadata only)."""
+    p4, p64 = (_plan(empty_pair, f"local:{n}", monkeypatch) for n in (4, 64))
+    assert (p4.workers, p64.workers) == (4, 64) and p4.mesh_data == p64.mesh_data == "workers"
+    assert math.prod(p4.levels[-1].nodes) == 128**3
+    same = ("client_bytes", "scratch_bytes", "pyramid_bytes", "blocks_bytes", "output_bytes", "solve_seconds")
+    assert [getattr(p4, k) for k in same] == [getattr(p64, k) for k in same]
+    assert [(lv.nodes, lv.blocks, lv.work) for lv in p4.levels] == [(lv.nodes, lv.blocks, lv.work) for lv in p64.levels]
+    for a, b in zip(p4.levels, p64.levels):
+        assert a.seconds == pytest.approx(16 * b.seconds, rel=1e-12)
+    share = {p.workers: p.blocks_bytes / p.workers for p in (p4, p64)}
+    assert share[4] == pytest.approx(16 * share[64], rel=1e-12)
+    assert f"on the 64 workers ({runplan._b(share[64])} each)" in p64.summary()
+    files = [f.name for f in empty_pair.rglob("*") if f.is_file()]
+    assert set(files) == {"zarr.json"}, files
