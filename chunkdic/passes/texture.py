@@ -330,6 +330,9 @@ def _predicted_noise(results, ell: int, noise: float, smoothing: float) -> tuple
     sigma, c = [], None
     inner = (slice(1, -1),) * 3
     for half in halves:
+        if not np.median(np.trace(half[..., 0, :, :], axis1=-2, axis2=-1)) > 0:  # no texture: nothing set
+            sigma.append(np.full(int(np.prod([n - 2 for n in half.shape[:3]])), np.inf))
+            continue
         solver = StencilSolver(half.copy(), multigrid=False)
         local = np.moveaxis(solver.local_variances(), -1, 0)  # diag(M_ii⁻¹), (3, nz, ny, nx)
         if c is None:  # the neighbours' share, solved exactly on the first sub-mesh (as the engine does)
@@ -338,4 +341,5 @@ def _predicted_noise(results, ell: int, noise: float, smoothing: float) -> tuple
         var = kappa * s2 * c * local
         sigma.append(np.sqrt(var[(slice(None), *inner)].mean(axis=0)).ravel())
     sigma = np.concatenate(sigma)
-    return (float(np.median(sigma)), float(np.quantile(sigma, 0.9))), float(kappa)
+    # the sample's own value, not interpolated: a flat sub-mesh's nodes are infinite
+    return (float(np.median(sigma)), float(np.quantile(sigma, 0.9, method="higher"))), float(kappa)
