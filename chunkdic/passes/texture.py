@@ -17,9 +17,10 @@ reference alone (docs/engine.md, "Know your texture"):
   std ``noise`` through the low-pass, and ``κ`` its correlation factor
   (:func:`chunkdic.method.noise.correlation_factor`).
 - The **smallest element size the texture supports** (:func:`smallest_supported`): the
-  smallest of :data:`LADDER` from which on every size has at most :data:`WEAK_LIMIT` more weakly
-  textured elements than the largest size and a predicted ``σ_u`` of at most :data:`SIGMA_LIMIT`. The weak elements
-  alone miss a coarse texture: its elements hold some gradient, too little to set their nodes.
+  smallest of :data:`LADDER` from which on every size has at most :data:`WEAK_LIMIT` more
+  weakly textured elements than the largest size and a predicted ``σ_u`` of at most
+  :data:`SIGMA_LIMIT`. The weak elements alone miss a coarse texture: its elements hold some
+  gradient, too little to set their nodes.
 
 The image noise is the user's (std per scan, grey levels) or, by default, estimated from
 the reference: the robust spread of its second differences (``1.4826 · median |f_{i-1} -
@@ -93,9 +94,9 @@ class TextureStats:
         The smallest element size the texture supports (None: none of :data:`LADDER`).
     sigma_u : dict of int to (float, float)
         Per requested element size, and per size of the ladder (a sub-mesh of three elements
-        in a box) up to the first within :data:`SIGMA_LIMIT`: the median and 90 % quantile over the sampled inner
-        nodes of the predicted ``σ_u`` (pooled over the components), voxels; NaN when no
-        sub-mesh of that size fits.
+        in a box) up to the first within :data:`SIGMA_LIMIT`: the median and 90 % quantile
+        over the sampled inner nodes of the predicted ``σ_u`` (pooled over the components),
+        voxels; NaN when no sub-mesh of that size fits, infinite where it holds no texture.
     kappa : dict of int to float
         The noise correlation factor used for each requested size.
     boxes : int

@@ -35,7 +35,7 @@ DEFAULT_RULE = "discrepancy-texture"
 EVENNESS_EXPONENT = 0.5
 EVENNESS_FLOOR = 0.2
 #: ``"discrepancy-texture"``: below this share (most elements small against the texture's
-#: features: 0.32–0.35 at ℓ = 4 on textures of 12–23 voxels, 0.43 and up elsewhere) the noise's
+#: features: 0.32–0.35 at ℓ = 4 on textures of 12–23 voxels, 0.405 and up elsewhere) the noise's
 #: own misfit increase outgrows the share at 2ℓ already, and a longer length is admitted too
 #: when the noise explains its misfit increase (:func:`noise_misfit`; docs/engine.md, "The
 #: regularisation length on a coarse texture")
@@ -351,9 +351,9 @@ def feature_allowance(share: float, budget: float, half: np.ndarray, reg: Regula
 
     Why: where the elements are small against the texture's features (ℓ = 4 on textures of
     12–23 voxels, ``share`` 0.32–0.35) the noise alone raises the misfit past the share at
-    2ℓ, and the share kept 2ℓ on every field of a 23-voxel texture; the best fixed length
-    was 3–6ℓ, with errors 1.5–2.3× lower on the band, slip, crack and the longer waves
-    (docs/engine.md, "The regularisation length on a coarse texture").
+    2ℓ, and the share alone stops at 2ℓ on every field of a 23-voxel texture, where the best
+    fixed length is 3–6ℓ and its error 1.5–2.3× lower on the band, slip, crack and longer
+    waves (docs/engine.md, "The regularisation length on a coarse texture").
     """
     allowed = np.full(len(weights), share * budget)
     if share < NOISE_EXPLAINED_SHARE:
@@ -362,10 +362,13 @@ def feature_allowance(share: float, budget: float, half: np.ndarray, reg: Regula
 
 
 def noise_misfit(half: np.ndarray, reg: Regularizer, weights, noise_variance: float, n_unknowns: int) -> np.ndarray:
-    """The misfit increase the noise alone makes at each weight of ``weights`` over the
-    first, grey levels²: ``s² · 3N · (f(λ_0) − f(λ))`` with ``f`` the fraction of degrees of
-    freedom the data still set (:func:`dof_fraction`), half the drop of the ``"upre"`` risk's
-    trace term: a fitted unknown the penalty takes over no longer absorbs its ``s²``."""
+    """The misfit increase the noise explains at each weight of ``weights`` over the first,
+    grey levels², by the discrepancy budget's own accounting (a fitted unknown absorbs ``s²``,
+    one the penalty takes over gives it back): ``s² · 3N · (f(λ_0) − f(λ))`` with ``f`` the
+    fraction of degrees of freedom the data still set (:func:`dof_fraction`), half the drop of
+    the ``"upre"`` risk's trace term. Where ``λ_0`` leaves the data nearly every degree of
+    freedom it is at least pure noise's expected increase, ``s² Σ (1 − h)²`` over the
+    eigenvalues ``h`` of ``(M + λR)⁻¹ M``."""
     dof = dof_fraction(half, reg, weights)
     return float(noise_variance) * n_unknowns * (dof[0] - dof)
 
