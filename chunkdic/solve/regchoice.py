@@ -35,7 +35,7 @@ DEFAULT_RULE = "discrepancy-texture"
 EVENNESS_EXPONENT = 0.5
 EVENNESS_FLOOR = 0.2
 #: ``"discrepancy-texture"``: below this share (most elements small against the texture's
-#: features: 0.32–0.35 at ℓ = 4 on textures of 12–23 voxels, 0.405 and up elsewhere) the noise's
+#: features: 0.32–0.35 at ℓ = 4 on textures of 9 and 23 voxels, 0.405 and up elsewhere) the noise's
 #: own misfit increase outgrows the share at 2ℓ already, and a longer length is admitted too
 #: when the noise explains its misfit increase (:func:`noise_misfit`; docs/engine.md, "The
 #: regularisation length on a coarse texture")
@@ -350,7 +350,7 @@ def feature_allowance(share: float, budget: float, half: np.ndarray, reg: Regula
     (:func:`noise_misfit`).
 
     Why: where the elements are small against the texture's features (ℓ = 4 on textures of
-    12–23 voxels, ``share`` 0.32–0.35) the noise alone raises the misfit past the share at
+    9 and 23 voxels, ``share`` 0.32–0.35) the noise alone raises the misfit past the share at
     2ℓ, and the share alone stops at 2ℓ on every field of a 23-voxel texture, where the best
     fixed length is 3–6ℓ and its error 1.5–2.3× lower on the band, slip, crack and longer
     waves (docs/engine.md, "The regularisation length on a coarse texture").
