@@ -180,9 +180,9 @@ class WorkerHolder:
         out = np.empty(x.shape, x.dtype) if out is None else out
         regions = dict(zip(np.ndindex(x.numblocks), slices_from_chunks(x.chunks)))
         blocks = x.to_delayed()
-        futures = {}
-        for index in np.ndindex(blocks.shape):
-            futures[self.client.compute(blocks[index])] = regions[index]
+        indices = list(np.ndindex(blocks.shape))
+        # one submission of every block (one graph), then each written where it goes as it arrives
+        futures = dict(zip(self.client.compute([blocks[i] for i in indices]), (regions[i] for i in indices)))
         for future, block in as_completed(list(futures), with_results=True):
             out[futures.pop(future)] = block
             future.release()
