@@ -54,11 +54,11 @@ CLIENT_BYTES_PER_NODE = 1000
 #: block-Jacobi's diagonal blocks (36 B); the stencil and the cells' couplings are in the
 #: blocks, and the blocks in flight are counted apart (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES`
 #: per thread). Measured with ``bench_client_memory.py --element-size 8 --regularize 2
-#: --solves 1 --mesh-data blocks --iterations 2 --steps``: 981 MiB at 885 k nodes
-#: (``--sizes 768``), 1 467 MiB at 2.10 M nodes (``--sizes 1024``), 420 B per node between
+#: --solves 1 --mesh-data blocks --iterations 2 --steps``: 960 MiB at 885 k nodes
+#: (``--sizes 768``), 1 424 MiB at 2.10 M nodes (``--sizes 1024``), 401 B per node between
 #: the two (190 B without the Gauss–Newton passes, 768 to 1536); about 150 MiB of the
 #: process's fixed part (Dask's arrays, the threads' buffers) is not modelled
-BLOCKED_CLIENT_BYTES_PER_NODE = 450
+BLOCKED_CLIENT_BYTES_PER_NODE = 430
 #: bytes per node the node blocks hold together (spread over the workers, or on the scratch
 #: disk with the embedded scheduler): the float32 half stencil (504 B) with its blocks'
 #: one-node halos (an eighth at blocks of 48³ elements), and on the workers CG's vectors

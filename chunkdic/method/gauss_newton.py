@@ -51,16 +51,17 @@ def noise_step(op: Operator, p: Pass, delta: np.ndarray, tolerance: float) -> tu
     solver = op.solver
     var = solver.local_variances()
     var *= float(p.kappa * p.noise_variance)
-    ok = (var > 0).all(axis=-1)
-    if solver.weak_nodes.size:
-        ok[tuple(solver.weak_nodes.T)] = False
-    if ok.all():  # every node: no mesh-sized copies of the increment and the variances
-        q, moving = noise_step_of(delta.reshape(-1, 3), var.reshape(-1, 3), tolerance)
-        return q, moving.reshape(ok.shape), float(moving.mean()) if moving.size else 0.0
-    q, moving = noise_step_of(delta[ok], var[ok], tolerance)
-    unsettled = np.zeros(ok.shape, bool)
-    unsettled[ok] = moving
-    return q, unsettled, float(moving.mean()) if moving.size else 0.0
+    ok = None
+    if solver.weak_nodes.size or not (var > 0).all():  # the weak and unmeasured nodes left out
+        ok = (var > 0).all(axis=-1)
+        if solver.weak_nodes.size:
+            ok[tuple(solver.weak_nodes.T)] = False
+        ok = ok.reshape(-1)
+    # flat views and a mask: no mesh-sized copies of the increment and the variances
+    q, unsettled = noise_step_of(delta.reshape(-1, 3), var.reshape(-1, 3), tolerance, where=ok)
+    measured = unsettled.size if ok is None else int(np.count_nonzero(ok))
+    fraction = float(np.count_nonzero(unsettled)) / measured if measured else 0.0
+    return q, unsettled.reshape(var.shape[:-1]), fraction
 
 
 def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_iterations: int, history: History,

@@ -27,6 +27,7 @@ from pathlib import Path
 import dask
 import dask.array as da
 import numpy as np
+from dask.array.core import slices_from_chunks
 
 from ..io.owntree import remove
 
@@ -171,6 +172,23 @@ class WorkerHolder:
         """The (small) results of ``xs`` in the client."""
         return self.client.compute(list(xs), sync=True)
 
+    def gather(self, x: da.Array, out: np.ndarray | None = None) -> np.ndarray:
+        """``x`` in the client, each block written into ``out`` as it arrives (allocated if
+        None): no list of blocks beside their concatenated copy (24 B per node for a vector)."""
+        from distributed import as_completed
+
+        out = np.empty(x.shape, x.dtype) if out is None else out
+        regions = dict(zip(np.ndindex(x.numblocks), slices_from_chunks(x.chunks)))
+        blocks = x.to_delayed()
+        indices = list(np.ndindex(blocks.shape))
+        # one submission of every block (one graph), then each written where it goes as it arrives
+        futures = dict(zip(self.client.compute([blocks[i] for i in indices]), (regions[i] for i in indices)))
+        for future, block in as_completed(list(futures), with_results=True):
+            out[futures.pop(future)] = block
+            future.release()
+            del future, block
+        return out
+
     def close(self) -> None:
         """Nothing kept: persisted blocks go with their last reference."""
 
@@ -233,6 +251,14 @@ class DiskHolder:
     def values(self, *xs):
         with dask.config.set(scheduler="threads", num_workers=self.threads):
             return list(dask.compute(*xs))
+
+    def gather(self, x: da.Array, out: np.ndarray | None = None) -> np.ndarray:
+        """``x`` in the process, each block written into ``out`` as it is computed (allocated
+        if None): no list of blocks beside their concatenated copy (24 B per node for a vector)."""
+        out = np.empty(x.shape, x.dtype) if out is None else out
+        with dask.config.set(scheduler="threads", num_workers=self.threads):
+            da.store(x, out, lock=False)
+        return out
 
     def close(self) -> None:
         remove(self.directory)

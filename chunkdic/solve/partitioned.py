@@ -143,7 +143,7 @@ class PartitionedSolver:
         self._W = None if cells is None else _flat(cells)
         #: block-Jacobi's diagonal blocks of ``M`` (nz, ny, nx, 1, 3, 3) float32, weak nodes held,
         #: in the process with the vectors (36 B per node)
-        self._diagonal = None if self._files is None else holder.values(self.matrix_blocks[..., :1, :, :])[0]
+        self._diagonal = None if self._files is None else holder.gather(self.matrix_blocks[..., :1, :, :])
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0, NO_FREED)
@@ -219,11 +219,7 @@ class PartitionedSolver:
         return self._gather(self._product(self._vector(x, "in"), penalty=False, cells=False))
 
     def _gather(self, y: da.Array, out: np.ndarray | None = None) -> np.ndarray:
-        (v,) = self.holder.values(y)
-        if out is None:
-            return v
-        out[...] = v
-        return out
+        return self.holder.gather(y, out)
 
     def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
         """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3): in the client, as
