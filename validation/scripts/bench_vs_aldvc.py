@@ -91,6 +91,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
+import itertools
 import json
 import math
 import os
@@ -100,7 +102,6 @@ import subprocess
 import sys
 import tempfile
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -134,7 +135,7 @@ def _error(msg: str) -> None:
 # --------------------------------------------------------------------------- cases
 
 
-@dataclass
+@dataclasses.dataclass
 class Case:
     """One pair of scans. ``reference``/``deformed``: what chunkdic reads (Zarr);
     ``field``: the true displacement (a :class:`chunkdic.synth.fields.Field`) or None."""
@@ -145,6 +146,7 @@ class Case:
     field: object | None
     shape: tuple[int, int, int]
     note: str = ""
+    offset: float = 0.0  # voxels along z the feature moved from the volume's centre (--feature-offset)
 
 
 GREY_CHANGE = {"gain": 1.1, "offset": 0.05, "drift": 0.03}
@@ -173,6 +175,11 @@ def _pair(out: Path, n: int, args, specimen: str, *, field, **extra) -> dict:
     return paths
 
 
+def offset_moves(name: str) -> bool:
+    """Whether ``--feature-offset`` moves case ``name`` (a plane feature or a wave's phase)."""
+    return name in WAVES or name in ("slip", "crack") or name.startswith("band")
+
+
 def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | None:
     """Write the scans of case ``name`` at ``n``³ under ``workdir`` (kept between runs);
     ``args.scale``: the specimen's texture scale (``texture_scale`` of :func:`chunkdic.synth.synthetic.synthesize`)."""
@@ -187,8 +194,8 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
         specimen_label = specimen
     if name.startswith("band") and args.band_lateral is not None:
         tag += f"-lat{args.band_lateral:g}"
-    offset = getattr(args, "feature_offset", 0.0) or 0.0
-    if offset and (name in WAVES or name in ("slip", "crack") or name.startswith("band")):
+    offset = (getattr(args, "feature_offset", 0.0) or 0.0) if offset_moves(name) else 0.0
+    if offset:
         tag += f"-off{offset:g}"
     out = workdir / tag
     label = f"{name}/{specimen_label}"
@@ -758,10 +765,11 @@ def parse_args(argv=None):
                    help="acquisition noise std, texture units (grey range ~1); independent per scan")
     p.add_argument("--band-lateral", type=float, default=None,
                    help="lateral expansion factor of the band cases (default: the standard case's 0.05)")
-    p.add_argument("--feature-offset", type=float, default=0.0, metavar="VOXELS",
-                   help="move the centre of the slip and band cases (and the waves' phase) along z by this "
-                        "much from the volume's centre: the score of a sharp feature depends on where it "
-                        "falls between each tool's nodes (default 0)")
+    p.add_argument("--feature-offset", type=float, nargs="+", default=[0.0], metavar="VOXELS",
+                   dest="feature_offsets",
+                   help="move the centre of the slip, crack and band cases (and the waves' phase) along z by "
+                        "this much from the volume's centre, one set of cases per value: the score of a sharp "
+                        "feature depends on where it falls between each tool's nodes (default 0)")
     p.add_argument("--dtype", default="uint16", choices=["uint8", "uint16", "float32"])
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--specimen", nargs="+", default=["grains", "concrete"], choices=["grains", "concrete", "foam"],
@@ -840,13 +848,13 @@ def main(argv=None) -> int:
     if not args.no_warmup:
         warm_up(exe, args, workdir)
     cases = []
-    for args.scale in args.texture_scales:
-        for n in args.sizes:
-            for specimen in args.specimen:
-                for name in args.cases:
-                    c = build_case(name, n, specimen, workdir, args)
-                    if c is not None:
-                        cases.append(c)
+    for args.scale, n, specimen, args.feature_offset, name in itertools.product(
+            args.texture_scales, args.sizes, args.specimen, args.feature_offsets, args.cases):
+        if args.feature_offset != args.feature_offsets[0] and not offset_moves(name):
+            continue  # a case the offset does not move (noise, large strain): once
+        c = build_case(name, n, specimen, workdir, args)
+        if c is not None:
+            cases.append(dataclasses.replace(c, offset=args.feature_offset if offset_moves(name) else 0.0))
     cases += [pair_case(p) for p in args.pair]
     print(f"# medians of {args.repeats} run(s); with a known field: between the nodes (trilinear on each "
           f"tool's node grid, every voxel >= ell from the faces), sigma pooled, RMS vector error; "
@@ -863,14 +871,16 @@ def main(argv=None) -> int:
             r = compare(case, ell, args, exe, workdir, npys, peer_too=peer_too)
             c, a = r["chunkdic"], r.get("al-dvc", {})
             ratio = a["wall"] / c["wall"] if c.get("wall") and a.get("wall") else None
-            print(row(case.shape[0], case.name, ell, "chunkdic", c), flush=True)
+            label = case.name + (f"@{case.offset:g}" if case.offset else "")
+            print(row(case.shape[0], label, ell, "chunkdic", c), flush=True)
             if peer_too:
-                print(row(case.shape[0], case.name, ell, "al-dvc", a, ratio), flush=True)
+                print(row(case.shape[0], label, ell, "al-dvc", a, ratio), flush=True)
             for tool, m in (("chunkdic", c), ("al-dvc", a)):
                 if "l10" in m:  # the star: spatial resolution read between the points (analysis/resolution.py)
                     print(f"{'':>4} {case.name:<18} {ell:>3} {tool:<8} l10 % {m.get('l10_bound', '')}"
                           f" {m['l10']:.1f} voxels", flush=True)
             results.append({"case": case.name, "note": case.note, "shape": case.shape, "ell": ell,
+                            "offset": case.offset,
                             "field": None if case.field is None else case.field.to_json(),
                             "chunkdic": c, "al-dvc": a or None, "wall_ratio": ratio})
             _write_record(args, {"results": results, "complete": False}, quiet=True)  # what completed so far
@@ -896,7 +906,8 @@ def summary_table(results: list[dict]) -> str:
         # the oracle on the same voxels as the tool's own figure: common ones beside al-dvc, else all
         mine, oracle = (ce, c.get(f"oracle_{key}_common")) if a else (c.get(key), c.get(f"oracle_{key}"))
         vs_oracle = mine / oracle if mine is not None and oracle else None
-        label = f"{r['case']} ({'σ' if key == 'sigma' else 'RMS'})"
+        at = f" @ {r['offset']:g}" if r.get("offset") else ""
+        label = f"{r['case']}{at} ({'σ' if key == 'sigma' else 'RMS'})"
         lines.append(f"| {label} | {r['ell']} | {_fmt(ce, '.4f')} | {_fmt(ae, '.4f')} | {_fmt(ratio, '.2f')} | "
                      f"{_fmt(c.get(key), '.4f')} | {c.get('status', '-')} | {_fmt(c.get('reg_length'), '.0f')} | "
                      f"{_fmt(oracle, '.4f')} ({_fmt(c.get('oracle_length'), '.0f')}) | {_fmt(vs_oracle, '.2f')} | "
