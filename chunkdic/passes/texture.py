@@ -20,7 +20,11 @@ reference alone (docs/engine.md, "Know your texture"):
   smallest of :data:`LADDER` from which on every size has at most :data:`WEAK_LIMIT` more
   weakly textured elements than the largest size and a predicted ``σ_u`` of at most
   :data:`SIGMA_LIMIT`. The weak elements alone miss a coarse texture: its elements hold some
-  gradient, too little to set their nodes.
+  gradient, too little to set their nodes. None is supported when every element of the
+  largest size is weakly textured (no texture above the noise: a flat or pure-noise scan),
+  or when no size whose ``σ_u`` is measured is within the limit (a size too large for a
+  sub-mesh in the boxes is presumed within it only when a smaller one is:
+  :meth:`TextureStats.why_unsupported` says which).
 
 The image noise is the user's (std per scan, grey levels) or, by default, estimated from
 the reference: the robust spread of its second differences (``1.4826 · median |f_{i-1} -
@@ -91,7 +95,8 @@ class TextureStats:
         Per element size of :data:`LADDER` that fits a box: the fraction of weakly
         textured elements.
     smallest : int or None
-        The smallest element size the texture supports (None: none of :data:`LADDER`).
+        The smallest element size the texture supports (None: none of the sizes measured,
+        :meth:`why_unsupported`).
     sigma_u : dict of int to (float, float)
         Per requested element size, and per size of the ladder (a sub-mesh of three elements
         in a box) up to the first within :data:`SIGMA_LIMIT`: the median and 90 % quantile
@@ -101,6 +106,10 @@ class TextureStats:
         The noise correlation factor used for each requested size.
     boxes : int
         Boxes sampled; ``box_edge`` their largest edge, voxels.
+    textured : bool
+        Whether the reference holds texture above its noise: False when every element of
+        the largest size measured is weakly textured (a flat or pure-noise scan), which then
+        supports no element size.
     """
 
     acl: tuple[float, float, float]
@@ -112,6 +121,25 @@ class TextureStats:
     kappa: dict[int, float] = field(default_factory=dict)
     boxes: int = 0
     box_edge: int = 0
+    textured: bool = True
+
+    def why_unsupported(self) -> str:
+        """Why the texture supports none of the sizes measured, in words ('' when it supports one)."""
+        if self.smallest is not None:
+            return ""
+        if not self.textured:
+            return ("no texture above the noise: every element of the largest size measured is weakly "
+                    "textured")
+        known = {e: s[0] for e, s in self.sigma_u.items() if not math.isnan(s[0])}
+        if not known:
+            return "no sub-mesh of three elements fits in the sampled boxes: the predicted noise is unknown"
+        if min(known.values()) > SIGMA_LIMIT:
+            largest = max(known)
+            return (f"the predicted σ_u median is above {SIGMA_LIMIT:g} voxel at every size measured, "
+                    f"{known[largest]:.2g} voxel at {largest} voxels, the largest that fits three elements per "
+                    f"side of the sampled boxes")
+        return (f"no size from which on every larger one has at most {100 * WEAK_LIMIT:.0f} % more weakly "
+                f"textured elements than the largest and a predicted σ_u median of at most {SIGMA_LIMIT:g} voxel")
 
 
 def sample_boxes(shape, edge: int, count: int = BOXES, within=None) -> list[tuple[tuple[int, int], ...]]:
@@ -275,7 +303,7 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
         e = [r["energy"][ell].ravel() for r in results if ell in r["energy"]]
         if e:
             e = np.concatenate(e)
-            weak[ell] = float(np.mean(e < floor))
+            weak[ell] = float(np.mean(e <= floor))  # ≤: a flat element is weak under no noise too
     stats = TextureStats(acl, float(noise), estimated, weak, None, boxes=len(regions),
                          box_edge=max(b - a for box in regions for a, b in box))
     for ell in sizes:
@@ -286,6 +314,7 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
         if ell not in sizes and stats.sigma_u[ell][0] <= SIGMA_LIMIT:
             break
     stats.smallest = smallest_supported(weak, {e: s[0] for e, s in stats.sigma_u.items()})
+    stats.textured = bool(weak) and weak[max(weak)] < 1.0
     return stats
 
 
@@ -293,14 +322,17 @@ def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = 
     """The smallest size from which on every size has at most :data:`WEAK_LIMIT` more weakly
     textured elements than the largest size measured (what is weak at every size, air around a
     specimen or a pore larger than any element, is the scan's, not the element size's) and a
-    median predicted ``σ_u`` of at most :data:`SIGMA_LIMIT` voxel where it is known.
+    median predicted ``σ_u`` of at most :data:`SIGMA_LIMIT` voxel; None when every element of
+    the largest size is weak (no texture above the noise). A size whose ``σ_u`` is not known
+    is within the limit when a smaller one is (``σ_u`` falls as ℓ grows), not otherwise.
 
     Parameters
     ----------
     weak : dict of int to float
         Element size (voxels) → fraction of weakly textured elements.
     sigma : dict of int to float, optional
-        Element size (voxels) → median predicted ``σ_u``, voxels (NaN or absent: not judged).
+        Element size (voxels) → median predicted ``σ_u``, voxels (NaN or absent: not known;
+        None: the weak elements alone judge).
 
     Examples
     --------
@@ -308,14 +340,23 @@ def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = 
     8
     >>> smallest_supported({4: 0.30, 8: 0.04, 16: 0.01})
     8
+    >>> smallest_supported({4: 0.0, 8: 0.0, 16: 0.0}, {4: 2.5, 8: 0.9})  # 16: unknown, 8 above the limit
+    >>> smallest_supported({4: 1.0, 8: 1.0, 16: 1.0})  # no texture above the noise
     """
-    if not weak:
+    if not weak or weak[max(weak)] >= 1.0:
         return None
     base = weak[max(weak)]
-    sigma = sigma or {}
+    known = None if sigma is None else {e: s for e, s in sigma.items() if not math.isnan(s)}
+
+    def quiet(ell):  # the predicted noise within the limit, or presumed so from a smaller size's
+        if known is None:
+            return True
+        if ell in known:
+            return known[ell] <= SIGMA_LIMIT
+        return any(s <= SIGMA_LIMIT for e, s in known.items() if e < ell)
 
     def holds(ell):
-        return weak[ell] <= base + WEAK_LIMIT and not sigma.get(ell, 0.0) > SIGMA_LIMIT
+        return weak[ell] <= base + WEAK_LIMIT and quiet(ell)
 
     supported = [ell for ell in weak if all(holds(m) for m in weak if m >= ell)]
     return min(supported) if supported else None

@@ -8,6 +8,7 @@ translated pair with known white noise.
 
 from __future__ import annotations
 
+import inspect
 import math
 import warnings
 
@@ -140,3 +141,64 @@ def test_cli_prints_the_report_and_refuses_bad_sizes_in_one_line(tmp_path, capsy
     assert main(["texture", str(path), "-l", "1"]) == 2
     err = capsys.readouterr().err
     assert err.strip().count("\n") == 0 and "error: --element-sizes must be >= 2" in err
+
+
+def test_a_flat_or_pure_noise_reference_supports_no_element_size(tmp_path):
+    """A constant reference holds no texture, and white noise none above its noise: neither
+    supports any element size. The report says none, and why, in its text and its JSON, with
+    the noise estimated (0 for the constant scan) or given; correlate's check warns that no
+    size is supported and names none."""
+    flat = np.full((48, 48, 48), 100.0, np.float32)
+    noise = (100.0 + 10.0 * np.random.default_rng(1).standard_normal((48, 48, 48))).astype(np.float32)
+    for f, given in ((flat, None), (flat, 1.0), (noise, None)):
+        report = chunkdic.texture(f, [8], noise=given)
+        assert report.smallest is None and not report.stats.textured
+        assert "supports: none of 4, 5, 6, 8" in report.lines()[-1]
+        assert "no texture above the noise" in report.lines()[-1]
+        assert report.to_json()["smallest"] is None and "no texture" in report.to_json()["why_unsupported"]
+    ref = open_scan(flat).refs([0], tmp_path)[0]
+    with open_runner() as runner, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_texture(ref, Mesh((0, 0, 0), 8, (6, 6, 6)), Settings(element_size=8), runner)
+    [w] = [w for w in caught if w.category is ElementSizeWarning]
+    assert "supports no element size of 8–12 voxels (no texture above the noise" in str(w.message)
+    assert "below the smallest" not in str(w.message)
+
+
+def test_a_coarse_texture_too_noisy_at_every_measured_size_supports_none_rather_than_an_unmeasured_one(tmp_path):
+    """A coarse Gaussian texture (σ = 8 voxels, std 100, noise std 20) in boxes of 24³ voxels:
+    sub-meshes of three elements fit up to ℓ = 8 only, and the predicted σ_u is above
+    SIGMA_LIMIT at every one of 4, 5, 6 and 8 (σ_u falls as ℓ grows, too slowly here). The
+    sizes 10-24 (their weak elements counted, none weak) have no predicted noise: nothing says
+    they are supported, and the report supports none. With boxes of 64³ the same scan's
+    10 voxels is measured, within the limit and supported; correlate's check at ℓ = 4 on a
+    48³ ROI (boxes of 24³) names no size."""
+    from chunkdic.passes.texture import SIGMA_LIMIT
+
+    rng = np.random.default_rng(0)
+    base = gaussian_filter(rng.standard_normal((64, 64, 64)), 8.0, mode="wrap")
+    f = (base / base.std() * 100.0 + 20.0 * rng.standard_normal(base.shape)).astype(np.float32)
+    small = chunkdic.texture(f, [], noise=20.0, edge=24)
+    assert sorted(small.stats.sigma_u) == [4, 5, 6, 8]
+    assert all(s[0] > SIGMA_LIMIT for s in small.stats.sigma_u.values())
+    assert all(w == 0.0 for w in small.stats.weak_fraction.values()) and small.stats.textured
+    assert small.smallest is None
+    assert "predicted σ_u median is above 0.7 voxel at every size measured" in small.lines()[-1]
+    large = chunkdic.texture(f, [], noise=20.0, edge=64)
+    assert large.smallest == 10 and large.stats.sigma_u[10][0] <= SIGMA_LIMIT
+    ref = open_scan(f).refs([0], tmp_path)[0]
+    with open_runner() as runner, pytest.warns(ElementSizeWarning, match=r"supports no element size of 4–12 voxels "
+                                                                         r"\(the predicted σ_u median is above"):
+        check_texture(ref, Mesh((8, 8, 8), 4, (12, 12, 12)), Settings(element_size=4), runner)
+
+
+def test_the_element_size_warning_names_the_users_call():
+    """``chunkdic.correlate(...)`` called here: the warning's file and line are this call's,
+    not a line of chunkdic (where a fixed stacklevel left it)."""
+    f = _checkerboard(64)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        line = inspect.currentframe().f_lineno + 1
+        chunkdic.correlate(f, f, element_size=8, coarsest=0, regularization_length=16.0)
+    [w] = [w for w in caught if w.category is ElementSizeWarning]
+    assert (w.filename, w.lineno) == (__file__, line)
