@@ -180,8 +180,8 @@ def box_task(ref: ArrayRef, box, sigma: float, ladder, noise_sizes, max_lag: int
     Returns
     -------
     dict
-        ``lags`` (3, 4, max_lag + 1) float64: per axis and lag ``k``, ``Σ f f_k``, ``Σ f``,
-        ``Σ f_k``, pair count; ``d2`` the median of the absolute second differences;
+        ``box`` as given; ``lags`` (3, 4, max_lag + 1) float64: per axis and lag ``k``, ``Σ f f_k``,
+        ``Σ f``, ``Σ f_k``, pair count; ``d2`` the median of the absolute second differences;
         ``energy`` ℓ → (ez, ey, ex) float64 mean ``|∇f|²`` of the prepared reference per
         element; ``half`` ℓ → half stencil (float32), ``slags`` ℓ → (3, LAGS + 1).
     """
@@ -191,7 +191,7 @@ def box_task(ref: ArrayRef, box, sigma: float, ladder, noise_sizes, max_lag: int
     raw = ref.read(outer).astype(np.float64)
     inner = tuple(slice(a - o.start, b - o.start) for (a, b), o in zip(box, outer))
     f = raw[inner]
-    out = {"lags": lag_sums(f, max_lag) if max_lag else None, "d2": _second_difference_median(f)}
+    out = {"box": box, "lags": lag_sums(f, max_lag) if max_lag else None, "d2": _second_difference_median(f)}
     prepared = lowpass(raw, sigma)  # float32, as the engine's
     energy = sum(g[inner].astype(np.float64) ** 2 for g in np.gradient(prepared))
     out["energy"] = {ell: _element_means(energy, ell) for ell in ladder if min(energy.shape) >= ell}
@@ -209,6 +209,14 @@ def box_task(ref: ArrayRef, box, sigma: float, ladder, noise_sizes, max_lag: int
         out["half"][ell] = np.ascontiguousarray(half_stencil(S), dtype=np.float32)
         out["slags"][ell] = slags
     return out
+
+
+def _in_order(regions, results) -> list[dict]:
+    """The tasks' results (each with its ``box``) in the order of ``regions``, whichever
+    finished first: the sums, and the noise factor solved on the first box's sub-mesh, are
+    then the same every run."""
+    by_box = {r["box"]: r for r in results}
+    return [by_box[b] for b in regions]
 
 
 def _second_difference_median(f: np.ndarray) -> float:
@@ -290,8 +298,8 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
     regions = sample_boxes(ref.shape, edge, boxes, within)
     fits = min(min(b - a for a, b in box) for box in regions) // 3  # a sub-mesh of 3 elements
     predicted = sorted({*sizes, *(e for e in ladder if e <= fits)})
-    results = list(map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(predicted), int(max_lag))
-                                        for b in regions]))
+    results = _in_order(regions, map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(predicted),
+                                                        int(max_lag)) for b in regions]))
     acl = autocorrelation_length(sum(r["lags"] for r in results)) if max_lag else (math.nan,) * 3
     estimated = noise is None
     if estimated:

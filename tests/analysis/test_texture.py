@@ -202,3 +202,23 @@ def test_the_element_size_warning_names_the_users_call():
         chunkdic.correlate(f, f, element_size=8, coarsest=0, regularization_length=16.0)
     [w] = [w for w in caught if w.category is ElementSizeWarning]
     assert (w.filename, w.lineno) == (__file__, line)
+
+
+def test_the_report_does_not_depend_on_which_box_task_finishes_first(tmp_path):
+    """The same eight boxes reduced by tasks that finish in the boxes' order or in the reverse
+    one (as a cluster's may): the same report to the last bit (the noise factor is solved on
+    the first box's sub-mesh, the sums added in one order)."""
+    from chunkdic.passes.texture import measure_texture
+
+    v = gaussian_filter(np.random.default_rng(5).standard_normal((64, 64, 64)), 1.5)
+    ref = open_scan((1000.0 * v / v.std()).astype(np.float32)).refs([0], tmp_path)[0]
+
+    def in_order(fn, args):
+        return [fn(*a) for a in args]
+
+    def reversed_order(fn, args):
+        return in_order(fn, args)[::-1]
+
+    forward = measure_texture(ref, in_order, element_sizes=(4,), edge=32, max_lag=16)
+    backward = measure_texture(ref, reversed_order, element_sizes=(4,), edge=32, max_lag=16)
+    assert forward.boxes == 8 and forward.sigma_u and forward == backward
