@@ -33,7 +33,10 @@ smooth texture and to the few voxels on edges).
 
 Out of core: at most :data:`BOXES` boxes of at most ``edge`` voxels per side, spread over
 the scan (an axis holding two boxes gets them at its quarters), each read and reduced by
-one task to mesh-sized sums; the client never holds a voxel.
+one task to mesh-sized sums; the client never holds a voxel. That task computes the ``M``
+of the sizes asked for and of the ladder's first only; when that one's ``σ_u`` is above
+the limit, a second task per box computes the others' (the costly part of a task, read
+only by a coarse texture or an element size it does not support).
 """
 
 from __future__ import annotations
@@ -185,23 +188,41 @@ def box_task(ref: ArrayRef, box, sigma: float, ladder, noise_sizes, max_lag: int
         ``energy`` ℓ → (ez, ey, ex) float64 mean ``|∇f|²`` of the prepared reference per
         element; ``half`` ℓ → half stencil (float32), ``slags`` ℓ → (3, LAGS + 1).
     """
-    shape = ref.shape
-    halo = gaussian_radius(sigma) + 1
-    outer = tuple(slice(max(a - halo, 0), min(b + halo, n)) for (a, b), n in zip(box, shape))
-    raw = ref.read(outer).astype(np.float64)
-    inner = tuple(slice(a - o.start, b - o.start) for (a, b), o in zip(box, outer))
-    f = raw[inner]
+    f, prepared, inner = _read_box(ref, box, sigma)
     out = {"box": box, "lags": lag_sums(f, max_lag) if max_lag else None, "d2": _second_difference_median(f)}
-    prepared = lowpass(raw, sigma)  # float32, as the engine's
     energy = sum(g[inner].astype(np.float64) ** 2 for g in np.gradient(prepared))
     out["energy"] = {ell: _element_means(energy, ell) for ell in ladder if min(energy.shape) >= ell}
-    out["half"], out["slags"] = {}, {}
+    return {**out, **_stencils(prepared, inner, noise_sizes)}
+
+
+def stencil_task(ref: ArrayRef, box, sigma: float, noise_sizes) -> dict:
+    """Task: the ``half`` and ``slags`` of :func:`box_task` alone, for sizes its round left out."""
+    _, prepared, inner = _read_box(ref, box, sigma)
+    return {"box": box, **_stencils(prepared, inner, noise_sizes)}
+
+
+def _read_box(ref: ArrayRef, box, sigma: float) -> tuple[np.ndarray, np.ndarray, tuple[slice, ...]]:
+    """The box's voxels (float64), the reference prepared over it and a halo (the engine's
+    low-pass, float32), and the box's slices in the latter."""
+    halo = gaussian_radius(sigma) + 1
+    outer = tuple(slice(max(a - halo, 0), min(b + halo, n)) for (a, b), n in zip(box, ref.shape))
+    raw = ref.read(outer).astype(np.float64)
+    inner = tuple(slice(a - o.start, b - o.start) for (a, b), o in zip(box, outer))
+    return raw[inner], lowpass(raw, sigma), inner  # float32, as the engine's
+
+
+def _stencils(prepared: np.ndarray, inner, noise_sizes) -> dict:
+    """``half`` ℓ → half stencil of ``M`` (float32) on a central sub-mesh of the box ``inner``
+    of ``prepared``, ``slags`` ℓ → its sensitivities' lag sums (3, LAGS + 1), per size that
+    fits three elements."""
+    out = {"half": {}, "slags": {}}
+    shape = [s.stop - s.start for s in inner]
     for ell in noise_sizes:
-        n_el = min(NOISE_ELEMENTS, *(s // ell for s in f.shape))
+        n_el = min(NOISE_ELEMENTS, *(s // ell for s in shape))
         if n_el < 3:  # no inner node to predict for
             continue
         # a central sub-mesh with its one-voxel halo inside the prepared window
-        start = [o.start + (s - n_el * ell) // 2 for o, s in zip(inner, f.shape)]
+        start = [o.start + (s - n_el * ell) // 2 for o, s in zip(inner, shape)]
         lo = tuple(1 if s > 0 else 0 for s in start)
         hi = tuple(1 if s + n_el * ell < p else 0 for s, p in zip(start, prepared.shape))
         region = tuple(slice(s - a, s + n_el * ell + b) for s, a, b in zip(start, lo, hi))
@@ -298,7 +319,10 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
     regions = sample_boxes(ref.shape, edge, boxes, within)
     fits = min(min(b - a for a, b in box) for box in regions) // 3  # a sub-mesh of 3 elements
     predicted = sorted({*sizes, *(e for e in ladder if e <= fits)})
-    results = _in_order(regions, map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(predicted),
+    # the stencils surely read: the sizes asked for and the ladder's first; the others only
+    # when that one is above the limit (a second round of tasks, below)
+    done = {*sizes, *predicted[:1]}
+    results = _in_order(regions, map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(sorted(done)),
                                                         int(max_lag)) for b in regions]))
     acl = autocorrelation_length(sum(r["lags"] for r in results)) if max_lag else (math.nan,) * 3
     estimated = noise is None
@@ -317,6 +341,10 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
     for ell in sizes:
         stats.sigma_u[ell], stats.kappa[ell] = _predicted_noise(results, ell, float(noise), smoothing)
     for ell in predicted:  # the ladder's up to the first within the limit (σ_u falls as ℓ grows)
+        if ell not in done:
+            rest = [e for e in predicted if e not in done]
+            _add_stencils(results, map_tasks, ref, float(smoothing), rest)
+            done.update(rest)
         if ell not in stats.sigma_u:
             stats.sigma_u[ell], stats.kappa[ell] = _predicted_noise(results, ell, float(noise), smoothing)
         if ell not in sizes and stats.sigma_u[ell][0] <= SIGMA_LIMIT:
@@ -368,6 +396,16 @@ def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = 
 
     supported = [ell for ell in weak if all(holds(m) for m in weak if m >= ell)]
     return min(supported) if supported else None
+
+
+def _add_stencils(results: list[dict], map_tasks, ref: ArrayRef, sigma: float, sizes) -> None:
+    """Each box's ``half`` and ``slags`` of ``sizes`` (a second round of tasks) added to its
+    :func:`box_task` result, in place."""
+    more = _in_order([r["box"] for r in results],
+                     map_tasks(stencil_task, [(ref, r["box"], sigma, tuple(sizes)) for r in results]))
+    for r, m in zip(results, more):
+        r["half"].update(m["half"])
+        r["slags"].update(m["slags"])
 
 
 def _predicted_noise(results, ell: int, noise: float, smoothing: float) -> tuple[tuple[float, float], float]:

@@ -222,3 +222,37 @@ def test_the_report_does_not_depend_on_which_box_task_finishes_first(tmp_path):
     forward = measure_texture(ref, in_order, element_sizes=(4,), edge=32, max_lag=16)
     backward = measure_texture(ref, reversed_order, element_sizes=(4,), edge=32, max_lag=16)
     assert forward.boxes == 8 and forward.sigma_u and forward == backward
+
+
+def test_the_noise_model_is_built_for_the_sizes_read_only_and_reads_the_same(monkeypatch, tmp_path):
+    """Eight boxes of 48³, correlate's ladder from ℓ up. A fine texture (Gaussian σ = 1.5,
+    noise std 1) supports ℓ = 8: the sub-meshes' M are built for 8 alone (8 boxes, 8 M; not
+    for 10, 12 and 16 too, which nothing reads). A coarser, noisier one (σ = 4, noise std 10)
+    does not support ℓ = 4: the other sizes' M are built by a second round of tasks, and
+    their predicted σ_u is the one measured when the sizes are asked for (the same boxes,
+    every M built in the first round)."""
+    import chunkdic.passes.texture as tex
+
+    built = []
+    m_block = tex.m_block
+    monkeypatch.setattr(tex, "m_block", lambda prepared, lo, hi, ell, **kw: built.append(ell) or
+                        m_block(prepared, lo, hi, ell, **kw))
+
+    def serial(fn, args):
+        return [fn(*a) for a in args]
+
+    rng = np.random.default_rng(2)
+    for sigma, noise, ell in ((1.5, 1.0, 8), (4.0, 10.0, 4)):
+        v = gaussian_filter(rng.standard_normal((96, 96, 96)), sigma, mode="wrap")
+        v = 100.0 * v / v.std() + noise * rng.standard_normal(v.shape)
+        ref = open_scan(v.astype(np.float32)).refs([0], tmp_path / str(ell))[0]
+        built.clear()
+        stats = tex.measure_texture(ref, serial, noise=noise, edge=48, max_lag=0,
+                                    ladder=tuple(e for e in tex.LADDER if ell <= e <= 24))
+        if ell == 8:
+            assert stats.smallest == 8 and built == [8] * 8
+        else:
+            assert stats.sigma_u[4][0] > tex.SIGMA_LIMIT and stats.smallest > 4 and len(stats.sigma_u) > 1
+            asked = tex.measure_texture(ref, serial, element_sizes=tuple(stats.sigma_u), noise=noise, edge=48,
+                                        max_lag=0, ladder=())
+            assert asked.boxes == 8 and asked.sigma_u == stats.sigma_u
