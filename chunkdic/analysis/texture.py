@@ -73,13 +73,13 @@ class TextureReport:
             med, q90 = s.sigma_u.get(ell, (math.nan, math.nan))
             out.append(f"{ell:>12} | {'-' if weak is None else f'{100 * weak:.1f} %':>24} | "
                        f"{med:.4f} / {q90:.4f} | {s.kappa.get(ell, math.nan):.1f}")
+        head = "smallest element size the texture supports:"
         if s.smallest is None:
-            out.append(f"smallest element size the texture supports: none of {', '.join(map(str, sorted(s.weak_fraction)))} "
-                       f"voxels ({s.why_unsupported()})")
+            out.append(f"{head} none of {', '.join(map(str, sorted(s.weak_fraction)))} voxels ({s.why_unsupported()})")
         else:
-            out.append(f"smallest element size the texture supports: {s.smallest} voxels (at most {100 * WEAK_LIMIT:.0f} % "
-                       f"more weakly textured elements, texture's gradient energy below {WEAK_SNR:g}× the noise's, than at "
-                       f"the largest size, and a predicted σ_u median of at most {SIGMA_LIMIT:g} voxel)")
+            out.append(f"{head} {s.smallest} voxels (at most {100 * WEAK_LIMIT:.0f} % more weakly textured elements, "
+                       f"texture's gradient energy below {WEAK_SNR:g}× the noise's, than at the largest size, and a "
+                       f"predicted σ_u median of at most {SIGMA_LIMIT:g} voxel)")
         return out
 
     def to_json(self) -> dict:

@@ -8,9 +8,9 @@ two questions:
 - is ``ℓ`` below the smallest element size the texture supports (its weakly textured
   elements and its predicted noise, :func:`chunkdic.passes.texture.smallest_supported`), or
   does it support none (no texture above the noise, or a predicted noise above the limit at
-  every size measured)? Then :func:`check_texture` warns in one line (:class:`ElementSizeWarning`); the correlation
-  runs as asked, the regularisation filling in what the texture does not set
-  (docs/engine.md, "Know your texture");
+  every size measured)? Then :func:`check_texture` warns in one line
+  (:class:`ElementSizeWarning`); the correlation runs as asked, the regularisation filling
+  in what the texture does not set (docs/engine.md, "Know your texture");
 - how long are the texture's features? The autocorrelation length (the median over the
   axes) sets the regularisation length each level starts with
   (:func:`chunkdic.method.length.start_length`).
@@ -48,12 +48,14 @@ def _unsupported_words(ell: int, stats: TextureStats) -> str:
     """The one line of :class:`ElementSizeWarning`: ``ℓ`` below the smallest supported size, or
     no size supported (and why)."""
     if stats.smallest is None:
-        where = (f": the reference's texture supports no element size of {min(stats.weak_fraction)}–{max(stats.weak_fraction)} "
-                 f"voxels ({stats.why_unsupported()}; noise {stats.noise:.3g} estimated)")
+        sizes = f"{min(stats.weak_fraction)}–{max(stats.weak_fraction)}"
+        where = (f": the reference's texture supports no element size of {sizes} voxels "
+                 f"({stats.why_unsupported()}; noise {stats.noise:.3g} estimated)")
     else:
+        sigma = stats.sigma_u.get(ell, (math.nan,))[0]
         where = (f" is below the smallest the reference's texture supports ({stats.smallest} voxels): "
                  f"{100 * stats.weak_fraction.get(ell, math.nan):.0f} % of its elements carry less texture than noise "
-                 f"and its predicted noise without regularisation is {stats.sigma_u.get(ell, (math.nan,))[0]:.2g} voxel "
+                 f"and its predicted noise without regularisation is {sigma:.2g} voxel "
                  f"(noise {stats.noise:.3g} estimated)")
     return (f"element size {ell} voxels{where}; the regularisation fills in what the texture does not set "
             f"(chunkdic texture REF tells more)")
