@@ -48,7 +48,8 @@ def _unsupported_words(ell: int, stats: TextureStats) -> str:
     """The one line of :class:`ElementSizeWarning`: ``ℓ`` below the smallest supported size, or
     no size supported (and why)."""
     if stats.smallest is None:
-        sizes = f"{min(stats.weak_fraction)}–{max(stats.weak_fraction)}"
+        lo, hi = min(stats.weak_fraction), max(stats.weak_fraction)
+        sizes = f"{lo}–{hi}" if hi > lo else f"{lo}"
         where = (f": the reference's texture supports no element size of {sizes} voxels "
                  f"({stats.why_unsupported()}; noise {stats.noise:.3g} estimated)")
     else:
