@@ -14,7 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass
 
-from ..passes.texture import LADDER, MAX_LAG, SIGMA_LIMIT, WEAK_LIMIT, WEAK_SNR, TextureStats, measure_texture
+from ..passes.texture import MAX_LAG, SIGMA_LIMIT, WEAK_LIMIT, WEAK_SNR, TextureStats, measure_texture
 from ..errors import InputError
 from ..inputs import number
 from ..io.owntree import remove
@@ -56,7 +56,8 @@ class TextureReport:
 
     @property
     def smallest(self) -> int | None:
-        """The smallest element size the texture supports (voxels), None if none of the ladder."""
+        """The smallest element size the texture supports (voxels), None if none of the sizes measured
+        (``stats.why_unsupported()`` says why)."""
         return self.stats.smallest
 
     def lines(self) -> list[str]:
@@ -72,10 +73,13 @@ class TextureReport:
             med, q90 = s.sigma_u.get(ell, (math.nan, math.nan))
             out.append(f"{ell:>12} | {'-' if weak is None else f'{100 * weak:.1f} %':>24} | "
                        f"{med:.4f} / {q90:.4f} | {s.kappa.get(ell, math.nan):.1f}")
-        where = "none of " + ", ".join(map(str, LADDER)) if s.smallest is None else f"{s.smallest} voxels"
-        out.append(f"smallest element size the texture supports: {where} (at most {100 * WEAK_LIMIT:.0f} % more weakly "
-                   f"textured elements, texture's gradient energy below {WEAK_SNR:g}× the noise's, than at the largest "
-                   f"size, and a predicted σ_u median of at most {SIGMA_LIMIT:g} voxel)")
+        head = "smallest element size the texture supports:"
+        if s.smallest is None:
+            out.append(f"{head} none of {', '.join(map(str, sorted(s.weak_fraction)))} voxels ({s.why_unsupported()})")
+        else:
+            out.append(f"{head} {s.smallest} voxels (at most {100 * WEAK_LIMIT:.0f} % more weakly textured elements, "
+                       f"texture's gradient energy below {WEAK_SNR:g}× the noise's, than at the largest size, and a "
+                       f"predicted σ_u median of at most {SIGMA_LIMIT:g} voxel)")
         return out
 
     def to_json(self) -> dict:
@@ -84,7 +88,8 @@ class TextureReport:
         d["acl"] = [None if math.isinf(a) else a for a in d["acl"]]
         for key in ("weak_fraction", "sigma_u", "kappa"):
             d[key] = {str(k): v for k, v in d[key].items()}
-        return {"element_sizes": list(self.element_sizes), "level": self.level, "smoothing": self.smoothing, **d}
+        return {"element_sizes": list(self.element_sizes), "level": self.level, "smoothing": self.smoothing, **d,
+                "why_unsupported": self.stats.why_unsupported() or None}
 
 
 def texture(ref, element_sizes=DEFAULT_SIZES, *, noise: float | None = None, smoothing: float = 1.0,

@@ -6,10 +6,11 @@ small ROI, at least 3 ℓ; each reduced by one task, the client never holds a vo
 two questions:
 
 - is ``ℓ`` below the smallest element size the texture supports (its weakly textured
-  elements and its predicted noise, :func:`chunkdic.passes.texture.smallest_supported`)?
-  Then :func:`check_texture` warns in one line (:class:`ElementSizeWarning`); the correlation
-  runs as asked, the regularisation filling in what the texture does not set
-  (docs/engine.md, "Know your texture");
+  elements and its predicted noise, :func:`chunkdic.passes.texture.smallest_supported`), or
+  does it support none (no texture above the noise, or a predicted noise above the limit at
+  every size measured)? Then :func:`check_texture` warns in one line
+  (:class:`ElementSizeWarning`); the correlation runs as asked, the regularisation filling
+  in what the texture does not set (docs/engine.md, "Know your texture");
 - how long are the texture's features? The autocorrelation length (the median over the
   axes) sets the regularisation length each level starts with
   (:func:`chunkdic.method.length.start_length`).
@@ -18,7 +19,6 @@ two questions:
 from __future__ import annotations
 
 import math
-import warnings
 
 import numpy as np
 
@@ -28,6 +28,7 @@ from ..method.events import Texture, emit
 from ..method.length import START_LENGTH, start_length
 from ..method.settings import Settings
 from ..passes.texture import LADDER, TextureStats, measure_texture
+from ..warn import warn_user
 
 __all__ = ["ElementSizeWarning", "check_texture", "texture_length"]
 
@@ -40,7 +41,25 @@ CHECK_LAG = 48
 
 
 class ElementSizeWarning(UserWarning):
-    """The element size is below the smallest the reference's texture supports."""
+    """The element size is below the smallest the reference's texture supports, or it supports none."""
+
+
+def _unsupported_words(ell: int, stats: TextureStats) -> str:
+    """The one line of :class:`ElementSizeWarning`: ``ℓ`` below the smallest supported size, or
+    no size supported (and why)."""
+    if stats.smallest is None:
+        lo, hi = min(stats.weak_fraction), max(stats.weak_fraction)
+        sizes = f"{lo}–{hi}" if hi > lo else f"{lo}"
+        where = (f": the reference's texture supports no element size of {sizes} voxels "
+                 f"({stats.why_unsupported()}; noise {stats.noise:.3g} estimated)")
+    else:
+        sigma = stats.sigma_u.get(ell, (math.nan,))[0]
+        where = (f" is below the smallest the reference's texture supports ({stats.smallest} voxels): "
+                 f"{100 * stats.weak_fraction.get(ell, math.nan):.0f} % of its elements carry less texture than noise "
+                 f"and its predicted noise without regularisation is {sigma:.2g} voxel "
+                 f"(noise {stats.noise:.3g} estimated)")
+    return (f"element size {ell} voxels{where}; the regularisation fills in what the texture does not set "
+            f"(chunkdic texture REF tells more)")
 
 
 def texture_length(stats: TextureStats) -> float:
@@ -76,12 +95,8 @@ def check_texture(ref: ArrayRef, mesh: Mesh, settings: Settings, runner, progres
     ladder = sorted({*(e for e in LADDER if ell <= e and 2 * e <= edge), ell})
     stats = measure_texture(ref, runner.map_unordered, smoothing=settings.smoothing, edge=edge, boxes=CHECK_BOXES,
                             ladder=ladder, max_lag=CHECK_LAG, within=within)
-    if stats.smallest is not None and ell < stats.smallest:
-        warnings.warn(f"element size {ell} voxels is below the smallest the reference's texture supports "
-                      f"({stats.smallest} voxels): {100 * stats.weak_fraction.get(ell, math.nan):.0f} % of its elements "
-                      f"carry less texture than noise and its predicted noise without regularisation is "
-                      f"{stats.sigma_u.get(ell, (math.nan,))[0]:.2g} voxel (noise {stats.noise:.3g} estimated); the "
-                      f"regularisation fills them in (chunkdic texture REF tells more)", ElementSizeWarning, stacklevel=2)
+    if stats.smallest is None or ell < stats.smallest:
+        warn_user(_unsupported_words(ell, stats), ElementSizeWarning)
     length = texture_length(stats)
     event = Texture(level=settings.level, length=length, start_length=start_length(ell, length),
                     usual_length=START_LENGTH * ell, element_size=mesh.element_size, smallest=stats.smallest)

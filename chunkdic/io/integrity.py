@@ -36,12 +36,12 @@ import itertools
 import logging
 import math
 import os
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from ..warn import warn_user
 from .store import blosc_frame_bytes, blosc_frame_fault
 
 log = logging.getLogger(__name__)
@@ -163,8 +163,8 @@ def check_chunks_present(path: str, key: str, *, ours: bool) -> None:
     if ours:
         raise InputError(f"{where}: {expected - present} of {expected} chunk files are missing{first}; "
                          "the scan is damaged: write or ingest it again")
-    warnings.warn(f"{where}: {expected - present} of {expected} chunks are absent{first} and read as the "
-                  f"fill value {arr.fill_value}", MissingChunksWarning, stacklevel=3)
+    warn_user(f"{where}: {expected - present} of {expected} chunks are absent{first} and read as the "
+              f"fill value {arr.fill_value}", MissingChunksWarning)
 
 
 def check_no_empty_chunks(path: str, key: str = "", *, files=None) -> None:

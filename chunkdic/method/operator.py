@@ -14,12 +14,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import warnings
 
 import numpy as np
 
 from ..solve.cg import PoorTextureWarning, StencilSolver
 from ..solve.regularizer import Regularizer, plane_wave_unit
+from ..warn import warn_user
 from .crack import CrackCoupling
 
 log = logging.getLogger(__name__)
@@ -169,9 +169,6 @@ def warn_weak_nodes(op: Operator, mesh, level: int, correlated: int) -> None:
         "node (%d, %d, %d) at voxel (%.1f, %.1f, %.1f)" % (*n, *coords[(slice(None), *n)]) for n in weak[:5]
     )
     more = f" and {len(weak) - 5} more" if len(weak) > 5 else ""
-    warnings.warn(
-        f"level {level}: {len(weak)} of {np.prod(mesh.nodes_shape)} nodes see too little texture "
-        f"to be measured ({where}{more}); they are regularised and their values are unreliable",
-        PoorTextureWarning,
-        stacklevel=4,
-    )
+    warn_user(f"level {level}: {len(weak)} of {np.prod(mesh.nodes_shape)} nodes see too little texture "
+              f"to be measured ({where}{more}); they are regularised and their values are unreliable",
+              PoorTextureWarning)

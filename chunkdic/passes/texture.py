@@ -20,7 +20,11 @@ reference alone (docs/engine.md, "Know your texture"):
   smallest of :data:`LADDER` from which on every size has at most :data:`WEAK_LIMIT` more
   weakly textured elements than the largest size and a predicted ``σ_u`` of at most
   :data:`SIGMA_LIMIT`. The weak elements alone miss a coarse texture: its elements hold some
-  gradient, too little to set their nodes.
+  gradient, too little to set their nodes. None is supported when every element of the
+  largest size is weakly textured (no texture above the noise: a flat or pure-noise scan),
+  or when no size whose ``σ_u`` is measured is within the limit (a size too large for a
+  sub-mesh in the boxes is presumed within it only when a smaller one is:
+  :meth:`TextureStats.why_unsupported` says which).
 
 The image noise is the user's (std per scan, grey levels) or, by default, estimated from
 the reference: the robust spread of its second differences (``1.4826 · median |f_{i-1} -
@@ -29,7 +33,10 @@ smooth texture and to the few voxels on edges).
 
 Out of core: at most :data:`BOXES` boxes of at most ``edge`` voxels per side, spread over
 the scan (an axis holding two boxes gets them at its quarters), each read and reduced by
-one task to mesh-sized sums; the client never holds a voxel.
+one task to mesh-sized sums; the client never holds a voxel. That task computes the ``M``
+of the sizes asked for and of the ladder's first only; when that one's ``σ_u`` is above
+the limit, a second task per box computes the others' (the costly part of a task, read
+only by a coarse texture or an element size it does not support).
 """
 
 from __future__ import annotations
@@ -91,7 +98,8 @@ class TextureStats:
         Per element size of :data:`LADDER` that fits a box: the fraction of weakly
         textured elements.
     smallest : int or None
-        The smallest element size the texture supports (None: none of :data:`LADDER`).
+        The smallest element size the texture supports (None: none of the sizes measured,
+        :meth:`why_unsupported`).
     sigma_u : dict of int to (float, float)
         Per requested element size, and per size of the ladder (a sub-mesh of three elements
         in a box) up to the first within :data:`SIGMA_LIMIT`: the median and 90 % quantile
@@ -101,6 +109,10 @@ class TextureStats:
         The noise correlation factor used for each requested size.
     boxes : int
         Boxes sampled; ``box_edge`` their largest edge, voxels.
+    textured : bool
+        Whether the reference holds texture above its noise: False when every element of
+        the largest size measured is weakly textured (a flat or pure-noise scan), which then
+        supports no element size.
     """
 
     acl: tuple[float, float, float]
@@ -112,6 +124,25 @@ class TextureStats:
     kappa: dict[int, float] = field(default_factory=dict)
     boxes: int = 0
     box_edge: int = 0
+    textured: bool = True
+
+    def why_unsupported(self) -> str:
+        """Why the texture supports none of the sizes measured, in words ('' when it supports one)."""
+        if self.smallest is not None:
+            return ""
+        if not self.textured:
+            return ("no texture above the noise: every element of the largest size measured is weakly "
+                    "textured")
+        known = {e: s[0] for e, s in self.sigma_u.items() if not math.isnan(s[0])}
+        if not known:
+            return "no sub-mesh of three elements fits in the sampled boxes: the predicted noise is unknown"
+        if min(known.values()) > SIGMA_LIMIT:
+            largest = max(known)
+            return (f"the predicted σ_u median is above {SIGMA_LIMIT:g} voxel at every size measured, "
+                    f"{known[largest]:.2g} voxel at {largest} voxels, the largest that fits three elements per "
+                    f"side of the sampled boxes")
+        return (f"no size from which on every larger one has at most {100 * WEAK_LIMIT:.0f} % more weakly "
+                f"textured elements than the largest and a predicted σ_u median of at most {SIGMA_LIMIT:g} voxel")
 
 
 def sample_boxes(shape, edge: int, count: int = BOXES, within=None) -> list[tuple[tuple[int, int], ...]]:
@@ -152,28 +183,46 @@ def box_task(ref: ArrayRef, box, sigma: float, ladder, noise_sizes, max_lag: int
     Returns
     -------
     dict
-        ``lags`` (3, 4, max_lag + 1) float64: per axis and lag ``k``, ``Σ f f_k``, ``Σ f``,
-        ``Σ f_k``, pair count; ``d2`` the median of the absolute second differences;
+        ``box`` as given; ``lags`` (3, 4, max_lag + 1) float64: per axis and lag ``k``, ``Σ f f_k``,
+        ``Σ f``, ``Σ f_k``, pair count; ``d2`` the median of the absolute second differences;
         ``energy`` ℓ → (ez, ey, ex) float64 mean ``|∇f|²`` of the prepared reference per
         element; ``half`` ℓ → half stencil (float32), ``slags`` ℓ → (3, LAGS + 1).
     """
-    shape = ref.shape
-    halo = gaussian_radius(sigma) + 1
-    outer = tuple(slice(max(a - halo, 0), min(b + halo, n)) for (a, b), n in zip(box, shape))
-    raw = ref.read(outer).astype(np.float64)
-    inner = tuple(slice(a - o.start, b - o.start) for (a, b), o in zip(box, outer))
-    f = raw[inner]
-    out = {"lags": lag_sums(f, max_lag) if max_lag else None, "d2": _second_difference_median(f)}
-    prepared = lowpass(raw, sigma)  # float32, as the engine's
+    f, prepared, inner = _read_box(ref, box, sigma)
+    out = {"box": box, "lags": lag_sums(f, max_lag) if max_lag else None, "d2": _second_difference_median(f)}
     energy = sum(g[inner].astype(np.float64) ** 2 for g in np.gradient(prepared))
     out["energy"] = {ell: _element_means(energy, ell) for ell in ladder if min(energy.shape) >= ell}
-    out["half"], out["slags"] = {}, {}
+    return {**out, **_stencils(prepared, inner, noise_sizes)}
+
+
+def stencil_task(ref: ArrayRef, box, sigma: float, noise_sizes) -> dict:
+    """Task: the ``half`` and ``slags`` of :func:`box_task` alone, for sizes its round left out."""
+    _, prepared, inner = _read_box(ref, box, sigma)
+    return {"box": box, **_stencils(prepared, inner, noise_sizes)}
+
+
+def _read_box(ref: ArrayRef, box, sigma: float) -> tuple[np.ndarray, np.ndarray, tuple[slice, ...]]:
+    """The box's voxels (float64), the reference prepared over it and a halo (the engine's
+    low-pass, float32), and the box's slices in the latter."""
+    halo = gaussian_radius(sigma) + 1
+    outer = tuple(slice(max(a - halo, 0), min(b + halo, n)) for (a, b), n in zip(box, ref.shape))
+    raw = ref.read(outer).astype(np.float64)
+    inner = tuple(slice(a - o.start, b - o.start) for (a, b), o in zip(box, outer))
+    return raw[inner], lowpass(raw, sigma), inner  # float32, as the engine's
+
+
+def _stencils(prepared: np.ndarray, inner, noise_sizes) -> dict:
+    """``half`` ℓ → half stencil of ``M`` (float32) on a central sub-mesh of the box ``inner``
+    of ``prepared``, ``slags`` ℓ → its sensitivities' lag sums (3, LAGS + 1), per size that
+    fits three elements."""
+    out = {"half": {}, "slags": {}}
+    shape = [s.stop - s.start for s in inner]
     for ell in noise_sizes:
-        n_el = min(NOISE_ELEMENTS, *(s // ell for s in f.shape))
+        n_el = min(NOISE_ELEMENTS, *(s // ell for s in shape))
         if n_el < 3:  # no inner node to predict for
             continue
         # a central sub-mesh with its one-voxel halo inside the prepared window
-        start = [o.start + (s - n_el * ell) // 2 for o, s in zip(inner, f.shape)]
+        start = [o.start + (s - n_el * ell) // 2 for o, s in zip(inner, shape)]
         lo = tuple(1 if s > 0 else 0 for s in start)
         hi = tuple(1 if s + n_el * ell < p else 0 for s, p in zip(start, prepared.shape))
         region = tuple(slice(s - a, s + n_el * ell + b) for s, a, b in zip(start, lo, hi))
@@ -181,6 +230,14 @@ def box_task(ref: ArrayRef, box, sigma: float, ladder, noise_sizes, max_lag: int
         out["half"][ell] = np.ascontiguousarray(half_stencil(S), dtype=np.float32)
         out["slags"][ell] = slags
     return out
+
+
+def _in_order(regions, results) -> list[dict]:
+    """The tasks' results (each with its ``box``) in the order of ``regions``, whichever
+    finished first: the sums, and the noise factor solved on the first box's sub-mesh, are
+    then the same every run."""
+    by_box = {r["box"]: r for r in results}
+    return [by_box[b] for b in regions]
 
 
 def _second_difference_median(f: np.ndarray) -> float:
@@ -262,8 +319,11 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
     regions = sample_boxes(ref.shape, edge, boxes, within)
     fits = min(min(b - a for a, b in box) for box in regions) // 3  # a sub-mesh of 3 elements
     predicted = sorted({*sizes, *(e for e in ladder if e <= fits)})
-    results = list(map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(predicted), int(max_lag))
-                                        for b in regions]))
+    # the stencils surely read: the sizes asked for and the ladder's first; the others only
+    # when that one is above the limit (a second round of tasks, below)
+    done = {*sizes, *predicted[:1]}
+    results = _in_order(regions, map_tasks(box_task, [(ref, b, float(smoothing), tuple(ladder), tuple(sorted(done)),
+                                                        int(max_lag)) for b in regions]))
     acl = autocorrelation_length(sum(r["lags"] for r in results)) if max_lag else (math.nan,) * 3
     estimated = noise is None
     if estimated:
@@ -275,17 +335,22 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
         e = [r["energy"][ell].ravel() for r in results if ell in r["energy"]]
         if e:
             e = np.concatenate(e)
-            weak[ell] = float(np.mean(e < floor))
+            weak[ell] = float(np.mean(e <= floor))  # ≤: a flat element is weak under no noise too
     stats = TextureStats(acl, float(noise), estimated, weak, None, boxes=len(regions),
                          box_edge=max(b - a for box in regions for a, b in box))
     for ell in sizes:
         stats.sigma_u[ell], stats.kappa[ell] = _predicted_noise(results, ell, float(noise), smoothing)
     for ell in predicted:  # the ladder's up to the first within the limit (σ_u falls as ℓ grows)
+        if ell not in done:
+            rest = [e for e in predicted if e not in done]
+            _add_stencils(results, map_tasks, ref, float(smoothing), rest)
+            done.update(rest)
         if ell not in stats.sigma_u:
             stats.sigma_u[ell], stats.kappa[ell] = _predicted_noise(results, ell, float(noise), smoothing)
         if ell not in sizes and stats.sigma_u[ell][0] <= SIGMA_LIMIT:
             break
     stats.smallest = smallest_supported(weak, {e: s[0] for e, s in stats.sigma_u.items()})
+    stats.textured = bool(weak) and weak[max(weak)] < 1.0
     return stats
 
 
@@ -293,14 +358,17 @@ def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = 
     """The smallest size from which on every size has at most :data:`WEAK_LIMIT` more weakly
     textured elements than the largest size measured (what is weak at every size, air around a
     specimen or a pore larger than any element, is the scan's, not the element size's) and a
-    median predicted ``σ_u`` of at most :data:`SIGMA_LIMIT` voxel where it is known.
+    median predicted ``σ_u`` of at most :data:`SIGMA_LIMIT` voxel; None when every element of
+    the largest size is weak (no texture above the noise). A size whose ``σ_u`` is not known
+    is within the limit when a smaller one is (``σ_u`` falls as ℓ grows), not otherwise.
 
     Parameters
     ----------
     weak : dict of int to float
         Element size (voxels) → fraction of weakly textured elements.
     sigma : dict of int to float, optional
-        Element size (voxels) → median predicted ``σ_u``, voxels (NaN or absent: not judged).
+        Element size (voxels) → median predicted ``σ_u``, voxels (NaN or absent: not known;
+        None: the weak elements alone judge).
 
     Examples
     --------
@@ -308,17 +376,36 @@ def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = 
     8
     >>> smallest_supported({4: 0.30, 8: 0.04, 16: 0.01})
     8
+    >>> smallest_supported({4: 0.0, 8: 0.0, 16: 0.0}, {4: 2.5, 8: 0.9})  # 16: unknown, 8 above the limit
+    >>> smallest_supported({4: 1.0, 8: 1.0, 16: 1.0})  # no texture above the noise
     """
-    if not weak:
+    if not weak or weak[max(weak)] >= 1.0:
         return None
     base = weak[max(weak)]
-    sigma = sigma or {}
+    known = None if sigma is None else {e: s for e, s in sigma.items() if not math.isnan(s)}
+
+    def quiet(ell):  # the predicted noise within the limit, or presumed so from a smaller size's
+        if known is None:
+            return True
+        if ell in known:
+            return known[ell] <= SIGMA_LIMIT
+        return any(s <= SIGMA_LIMIT for e, s in known.items() if e < ell)
 
     def holds(ell):
-        return weak[ell] <= base + WEAK_LIMIT and not sigma.get(ell, 0.0) > SIGMA_LIMIT
+        return weak[ell] <= base + WEAK_LIMIT and quiet(ell)
 
     supported = [ell for ell in weak if all(holds(m) for m in weak if m >= ell)]
     return min(supported) if supported else None
+
+
+def _add_stencils(results: list[dict], map_tasks, ref: ArrayRef, sigma: float, sizes) -> None:
+    """Each box's ``half`` and ``slags`` of ``sizes`` (a second round of tasks) added to its
+    :func:`box_task` result, in place."""
+    more = _in_order([r["box"] for r in results],
+                     map_tasks(stencil_task, [(ref, r["box"], sigma, tuple(sizes)) for r in results]))
+    for r, m in zip(results, more):
+        r["half"].update(m["half"])
+        r["slags"].update(m["slags"])
 
 
 def _predicted_noise(results, ell: int, noise: float, smoothing: float) -> tuple[tuple[float, float], float]:

@@ -14,11 +14,11 @@ multigrid V-cycle (:mod:`chunkdic.solve.multigrid`) preconditions the same CG in
 from __future__ import annotations
 
 import logging
-import warnings
 
 import numpy as np
 
 from ..errors import InputError
+from ..warn import warn_user
 from . import lanes
 from .galerkin import matrix_hierarchy, regularizer_stencil
 from .multigrid import VCycle
@@ -280,8 +280,7 @@ class StencilSolver:
                                           code if self.regularizer is not None else 0, Ke, Kf, sw, ew, freed,
                                           self.weight, self.cells, self.cell, overwrite_b)
         if iterations < 0:
-            warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
-                          stacklevel=2)
+            warn_user(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning)
             iterations = self.maxiter
         return x, iterations
 

@@ -30,12 +30,12 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 
 import dask.array as da
 import numpy as np
 
 from ..errors import InputError
+from ..warn import warn_user
 from .cg import relative_tolerance
 from .haloedfiles import HaloedFiles
 from .nodeblocks import core_slices, extended_chunks, fold_faces, from_client, haloed
@@ -298,8 +298,7 @@ class PartitionedSolver:
 
     def _iterations(self, iterations: int) -> int:
         if iterations < 0:
-            warnings.warn(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning,
-                          stacklevel=3)
+            warn_user(f"CG did not reach rtol={self.rtol} in {self.maxiter} iterations", RuntimeWarning)
             return self.maxiter
         return iterations
 

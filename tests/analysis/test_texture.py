@@ -8,6 +8,7 @@ translated pair with known white noise.
 
 from __future__ import annotations
 
+import inspect
 import math
 import warnings
 
@@ -140,3 +141,118 @@ def test_cli_prints_the_report_and_refuses_bad_sizes_in_one_line(tmp_path, capsy
     assert main(["texture", str(path), "-l", "1"]) == 2
     err = capsys.readouterr().err
     assert err.strip().count("\n") == 0 and "error: --element-sizes must be >= 2" in err
+
+
+def test_a_flat_or_pure_noise_reference_supports_no_element_size(tmp_path):
+    """A constant reference holds no texture, and white noise none above its noise: neither
+    supports any element size. The report says none, and why, in its text and its JSON, with
+    the noise estimated (0 for the constant scan) or given; correlate's check warns that no
+    size is supported and names none."""
+    flat = np.full((48, 48, 48), 100.0, np.float32)
+    noise = (100.0 + 10.0 * np.random.default_rng(1).standard_normal((48, 48, 48))).astype(np.float32)
+    for f, given in ((flat, None), (flat, 1.0), (noise, None)):
+        report = chunkdic.texture(f, [8], noise=given)
+        assert report.smallest is None and not report.stats.textured
+        assert "supports: none of 4, 5, 6, 8" in report.lines()[-1]
+        assert "no texture above the noise" in report.lines()[-1]
+        assert report.to_json()["smallest"] is None and "no texture" in report.to_json()["why_unsupported"]
+    ref = open_scan(flat).refs([0], tmp_path)[0]
+    with open_runner() as runner, warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        check_texture(ref, Mesh((0, 0, 0), 8, (6, 6, 6)), Settings(element_size=8), runner)
+    [w] = [w for w in caught if w.category is ElementSizeWarning]
+    assert "supports no element size of 8–12 voxels (no texture above the noise" in str(w.message)
+    assert "below the smallest" not in str(w.message)
+
+
+def test_a_coarse_texture_too_noisy_at_every_measured_size_supports_none_rather_than_an_unmeasured_one(tmp_path):
+    """A coarse Gaussian texture (σ = 8 voxels, std 100, noise std 20) in boxes of 24³ voxels:
+    sub-meshes of three elements fit up to ℓ = 8 only, and the predicted σ_u is above
+    SIGMA_LIMIT at every one of 4, 5, 6 and 8 (σ_u falls as ℓ grows, too slowly here). The
+    sizes 10-24 (their weak elements counted, none weak) have no predicted noise: nothing says
+    they are supported, and the report supports none. With boxes of 64³ the same scan's
+    10 voxels is measured, within the limit and supported; correlate's check at ℓ = 4 on a
+    48³ ROI (boxes of 24³) names no size."""
+    from chunkdic.passes.texture import SIGMA_LIMIT
+
+    rng = np.random.default_rng(0)
+    base = gaussian_filter(rng.standard_normal((64, 64, 64)), 8.0, mode="wrap")
+    f = (base / base.std() * 100.0 + 20.0 * rng.standard_normal(base.shape)).astype(np.float32)
+    small = chunkdic.texture(f, [], noise=20.0, edge=24)
+    assert sorted(small.stats.sigma_u) == [4, 5, 6, 8]
+    assert all(s[0] > SIGMA_LIMIT for s in small.stats.sigma_u.values())
+    assert all(w == 0.0 for w in small.stats.weak_fraction.values()) and small.stats.textured
+    assert small.smallest is None
+    assert "predicted σ_u median is above 0.7 voxel at every size measured" in small.lines()[-1]
+    large = chunkdic.texture(f, [], noise=20.0, edge=64)
+    assert large.smallest == 10 and large.stats.sigma_u[10][0] <= SIGMA_LIMIT
+    ref = open_scan(f).refs([0], tmp_path)[0]
+    with open_runner() as runner, pytest.warns(ElementSizeWarning, match=r"supports no element size of 4–12 voxels "
+                                                                         r"\(the predicted σ_u median is above"):
+        check_texture(ref, Mesh((8, 8, 8), 4, (12, 12, 12)), Settings(element_size=4), runner)
+
+
+def test_the_element_size_warning_names_the_users_call():
+    """``chunkdic.correlate(...)`` called here: the warning's file and line are this call's,
+    not a line of chunkdic (where a fixed stacklevel left it)."""
+    f = _checkerboard(64)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        line = inspect.currentframe().f_lineno + 1
+        chunkdic.correlate(f, f, element_size=8, coarsest=0, regularization_length=16.0)
+    [w] = [w for w in caught if w.category is ElementSizeWarning]
+    assert (w.filename, w.lineno) == (__file__, line)
+
+
+def test_the_report_does_not_depend_on_which_box_task_finishes_first(tmp_path):
+    """The same eight boxes reduced by tasks that finish in the boxes' order or in the reverse
+    one (as a cluster's may): the same report to the last bit (the noise factor is solved on
+    the first box's sub-mesh, the sums added in one order)."""
+    from chunkdic.passes.texture import measure_texture
+
+    v = gaussian_filter(np.random.default_rng(5).standard_normal((64, 64, 64)), 1.5)
+    ref = open_scan((1000.0 * v / v.std()).astype(np.float32)).refs([0], tmp_path)[0]
+
+    def in_order(fn, args):
+        return [fn(*a) for a in args]
+
+    def reversed_order(fn, args):
+        return in_order(fn, args)[::-1]
+
+    forward = measure_texture(ref, in_order, element_sizes=(4,), edge=32, max_lag=16)
+    backward = measure_texture(ref, reversed_order, element_sizes=(4,), edge=32, max_lag=16)
+    assert forward.boxes == 8 and forward.sigma_u and forward == backward
+
+
+def test_the_noise_model_is_built_for_the_sizes_read_only_and_reads_the_same(monkeypatch, tmp_path):
+    """Eight boxes of 48³, correlate's ladder from ℓ up. A fine texture (Gaussian σ = 1.5,
+    noise std 1) supports ℓ = 8: the sub-meshes' M are built for 8 alone (8 boxes, 8 M; not
+    for 10, 12 and 16 too, which nothing reads). A coarser, noisier one (σ = 4, noise std 10)
+    does not support ℓ = 4: the other sizes' M are built by a second round of tasks, and
+    their predicted σ_u is the one measured when the sizes are asked for (the same boxes,
+    every M built in the first round)."""
+    import chunkdic.passes.texture as tex
+
+    built = []
+    m_block = tex.m_block
+    monkeypatch.setattr(tex, "m_block", lambda prepared, lo, hi, ell, **kw: built.append(ell) or
+                        m_block(prepared, lo, hi, ell, **kw))
+
+    def serial(fn, args):
+        return [fn(*a) for a in args]
+
+    rng = np.random.default_rng(2)
+    for sigma, noise, ell in ((1.5, 1.0, 8), (4.0, 10.0, 4)):
+        v = gaussian_filter(rng.standard_normal((96, 96, 96)), sigma, mode="wrap")
+        v = 100.0 * v / v.std() + noise * rng.standard_normal(v.shape)
+        ref = open_scan(v.astype(np.float32)).refs([0], tmp_path / str(ell))[0]
+        built.clear()
+        stats = tex.measure_texture(ref, serial, noise=noise, edge=48, max_lag=0,
+                                    ladder=tuple(e for e in tex.LADDER if ell <= e <= 24))
+        if ell == 8:
+            assert stats.smallest == 8 and built == [8] * 8
+        else:
+            assert stats.sigma_u[4][0] > tex.SIGMA_LIMIT and stats.smallest > 4 and len(stats.sigma_u) > 1
+            asked = tex.measure_texture(ref, serial, element_sizes=tuple(stats.sigma_u), noise=noise, edge=48,
+                                        max_lag=0, ladder=())
+            assert asked.boxes == 8 and asked.sigma_u == stats.sigma_u

@@ -463,8 +463,9 @@ def test_F2_missing_chunk_file(pair, tmp_path, capsys):
     # a Zarr array written by another tool may leave empty chunks out: a warning, not a refusal
     a = zarr.create_array(str(tmp_path / "foreign.zarr"), shape=(N,) * 3, chunks=(16,) * 3, dtype="uint8")
     a[:16] = 7
-    with pytest.warns(MissingChunksWarning, match="4 of 8 chunks are absent"):
+    with pytest.warns(MissingChunksWarning, match="4 of 8 chunks are absent") as caught:
         chunkdic.open_scan(tmp_path / "foreign.zarr")
+    assert [w.filename for w in caught] == [__file__]  # the user's call, not chunkdic's line
 
 
 def test_F3_truncated_tiff(data, tmp_path, capsys):
