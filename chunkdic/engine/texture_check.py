@@ -51,13 +51,13 @@ def _unsupported_words(ell: int, stats: TextureStats) -> str:
         lo, hi = min(stats.weak_fraction), max(stats.weak_fraction)
         sizes = f"{lo}–{hi}" if hi > lo else f"{lo}"
         where = (f": the reference's texture supports no element size of {sizes} voxels "
-                 f"({stats.why_unsupported()}; noise {stats.noise:.3g} estimated)")
+                 f"({stats.why_unsupported()}; image noise {stats.noise:.3g} grey levels, estimated)")
     else:
         sigma = stats.sigma_u.get(ell, (math.nan,))[0]
         where = (f" is below the smallest the reference's texture supports ({stats.smallest} voxels): "
                  f"{100 * stats.weak_fraction.get(ell, math.nan):.0f} % of its elements carry less texture than noise "
                  f"and its predicted noise without regularisation is {sigma:.2g} voxel "
-                 f"(noise {stats.noise:.3g} estimated)")
+                 f"(image noise {stats.noise:.3g} grey levels, estimated)")
     return (f"element size {ell} voxels{where}; the regularisation fills in what the texture does not set "
             f"(chunkdic texture REF tells more)")
 
