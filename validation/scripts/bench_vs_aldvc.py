@@ -304,7 +304,7 @@ def _chunkdic_child(args) -> None:
     import chunkdic
     import chunkdic.engine.driver  # noqa: F401  (the correlation's modules: imported before the clock
     # starts, as al-dvc's "Done in" time starts after its imports; `proc` counts both. zarr is
-    # imported by chunkdic on the first scan it opens: 0.18 s inside the call before session 32)
+    # imported by chunkdic on the first scan it opens: 0.18 s inside the call, counted in the call otherwise)
 
     options = json.loads(args.options or "{}")
     oracle = options.pop("__oracle", False)
