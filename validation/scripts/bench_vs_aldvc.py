@@ -303,8 +303,8 @@ def _chunkdic_child(args) -> None:
 
     import chunkdic
     import chunkdic.engine.driver  # noqa: F401  (the correlation's modules: imported before the clock
-    # starts, as al-dvc's "Done in" time starts after its imports; `proc` counts both. zarr is
-    # imported by chunkdic on the first scan it opens: 0.18 s inside the call, counted in the call otherwise)
+    # starts, as al-dvc's "Done in" time starts after its imports; `proc` counts both. zarr too:
+    # chunkdic imports it on the first scan it opens, 0.18 s that would count inside the call)
 
     options = json.loads(args.options or "{}")
     oracle = options.pop("__oracle", False)
