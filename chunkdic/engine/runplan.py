@@ -96,7 +96,7 @@ class Plan:
         (a cluster) or on the scratch disk (the embedded scheduler);
         ``mesh_why`` says why. ``mesh_blocks_from``: levels of at least this many nodes go
         to blocks (None: none); ``blocks_bytes``: their blocks together (spread over the
-        workers, or on disk).
+        ``workers``, the processes the tasks run in, or on disk).
     layout : {"fast", "compact"}
         How the levels' scratch stores are kept (:mod:`chunkdic.passes.scratchstore`):
         compact when the fast layout's ``fast_scratch_bytes`` do not fit the free disk
@@ -274,7 +274,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
         solve_seconds=SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape),
         smallest_bytes=model.peak(1, MIN_PREPARE_EDGE)[1], layout=chosen, fast_scratch_bytes=fast,
         base_bytes=model.base, mesh_data=mesh_data, mesh_why=why, mesh_blocks_from=blocks_from,
-        blocks_bytes=model.blocks, workers=model.concurrency).timed(None)
+        blocks_bytes=model.blocks, workers=model.workers).timed(None)
 
 
 def scratch_room(scratch_dir, output) -> tuple[Path, int]:
