@@ -26,7 +26,7 @@ from ..kernels.jit import kernels_cached
 from ..mesh import Mesh
 from ..passes.haloed import quantization
 from ..passes.prefilter import gaussian_radius, prepare_deformed, prepared_grid, prepared_halo
-from ..passes.stored_matrix import cells_bytes, stored_bytes
+from ..passes.stored_matrix import BYTES_PER_NODE, cells_bytes, stored_bytes
 
 GiB, MiB = 2**30, 2**20
 #: resident memory of a running correlation's process besides its tasks and mesh data
@@ -122,6 +122,16 @@ def base_bytes() -> int:
 def blocks_bytes(mesh: Mesh, cell: int = 1) -> int:
     """Bytes of a level's node blocks (stencil, cells' couplings, CG vectors) together."""
     return BLOCKS_BYTES_PER_NODE * math.prod(mesh.nodes_shape) + cells_bytes(mesh.shape, cell)
+
+
+def mesh_blocks_scratch(mesh: Mesh, block_elements: int, cell: int = 1, on_disk: bool = True) -> int:
+    """Scratch bytes of a level's mesh data in node blocks while its ``M`` is made
+    (:class:`chunkdic.passes.mesh_blocks.MeshBlocks`): the partials (a float32 half stencil per
+    voxel block of ``block_elements``, each with its own boundary nodes, and the cells'
+    couplings) and, ``on_disk`` (the embedded scheduler), the node blocks' haloed files beside them."""
+    m = int(block_elements)
+    partials = BYTES_PER_NODE * math.prod(e + -(-e // m) for e in mesh.shape) + cells_bytes(mesh.shape, cell)
+    return int(partials + (blocks_bytes(mesh, cell) if on_disk else 0))
 
 
 def task_bytes(block_edge: int, sigma: float, interpolation: str, span: float = 0.0) -> int:
@@ -277,12 +287,15 @@ def level_disk(mesh: Mesh, g_shape, m: int, sigma: float, f_dtype, prepared: boo
     return int(f_copy), int(math.prod(box) * item), box
 
 
-def output_bytes(mesh: Mesh, cell: int = 1) -> int:
+def output_bytes(mesh: Mesh, cell: int = 1, keeps_matrix: bool = True) -> int:
     """The output's peak size: a result's nodal fields, flags, uncertainty, history, the
     checkpoint (float64), and, while the run is incomplete, the finest level's ``M`` kept for
     a resumed run (:func:`chunkdic.passes.stored_matrix.stored_bytes`, 504 bytes per node:
-    0.98 GiB at 2048³, ℓ = 16), which the complete result replaces with the rest of the checkpoint."""
-    return int(math.prod(mesh.nodes_shape) * 8 * 16 + stored_bytes(mesh.nodes_shape, cell) + MiB)
+    0.98 GiB at 2048³, ℓ = 16), which the complete result replaces with the rest of the
+    checkpoint; ``keeps_matrix`` False: a level whose mesh data are in node blocks, whose ``M``
+    is not kept (a resumed run sums it again)."""
+    kept = stored_bytes(mesh.nodes_shape, cell) if keeps_matrix else 0
+    return int(math.prod(mesh.nodes_shape) * 8 * 16 + kept + MiB)
 
 
 def calibrate(g_ref, sigma: float, interpolation: str, threads: int) -> float:

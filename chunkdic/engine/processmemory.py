@@ -85,6 +85,12 @@ class MemoryModel:
                    pyr_task, pyr_tasks)
 
     @property
+    def workers(self) -> int:
+        """Processes the tasks run in: the client's alone, or the workers (their tasks at once
+        over the threads of the largest, at least one; uneven workers count as fewer)."""
+        return max(1, -(-self.concurrency // max(self.threads, 1))) if self.separate else 1
+
+    @property
     def prepared(self) -> bool:
         """Whether ``g`` is prefiltered into scratch (cubic interpolation or a low-pass)."""
         return self.settings.interpolation == "cubic" or self.settings.smoothing > 0
@@ -165,7 +171,7 @@ class MemoryModel:
         held = self.held(edge, prep_edge)
         task = max(t for t, _ in held)
         if self.separate:  # a worker holds its tasks and its share of the node blocks
-            return task, self.base + max(self.client, task + self.blocks // max(self.concurrency, 1))
+            return task, self.base + max(self.client, task + self.blocks // self.workers)
         return task, self.base + max(self.client, max(t + c for t, c in held))
 
 

@@ -44,6 +44,7 @@ from .costs import (
     base_bytes,
     blocks_bytes,
     calibrate,
+    mesh_blocks_scratch,
     output_bytes,
     peak_scratch,
     pyramid_scratch,
@@ -96,7 +97,7 @@ class Plan:
         (a cluster) or on the scratch disk (the embedded scheduler);
         ``mesh_why`` says why. ``mesh_blocks_from``: levels of at least this many nodes go
         to blocks (None: none); ``blocks_bytes``: their blocks together (spread over the
-        workers, or on disk).
+        ``workers``, the processes the tasks run in, or on disk).
     layout : {"fast", "compact"}
         How the levels' scratch stores are kept (:mod:`chunkdic.passes.scratchstore`):
         compact when the fast layout's ``fast_scratch_bytes`` do not fit the free disk
@@ -254,19 +255,25 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
              for i, s in enumerate(model.levels)]
     pyramids = pyramid_scratch((f_scan, g_scan), model.levels)
     root, free = scratch_room(scratch_dir, output)
-    fast = peak_scratch(pyramids, _stores_bytes(plans))
+    finest = model.meshes[model.levels[-1]]
+    in_blocks = mesh_data != "client"
+    blocks_scratch = {}  # the finest level's M partials (and, on disk, node blocks) beside its stores
+    if in_blocks:
+        blocks_scratch[plans[-1].level] = mesh_blocks_scratch(finest, plans[-1].block_elements,
+                                                              model.cell_of(finest), on_disk=mesh_data == "disk")
+    fast = peak_scratch(pyramids, _stores_bytes(plans, blocks_scratch))
     chosen = scratch_layout(fast, free)
     if chosen == "compact":
         plans = [compact_level(lv, f_scan.dtype(lv.level), g_scan.dtype(lv.level), settings.smoothing,
                                settings.interpolation) for lv in plans]
     pyr = sum(pyramids.values())
-    finest = model.meshes[model.levels[-1]]
     out_dir = None if output is None else _existing_parent(Path(output).absolute().parent)
     return Plan(
         levels=tuple(plans), threads=model.concurrency, separate_client=model.separate, client_bytes=model.client,
         task_bytes=task, process_bytes=process, pyramid_bytes=pyr,
-        scratch_bytes=peak_scratch(pyramids, _stores_bytes(plans)),
-        output_bytes=output_bytes(finest, model.cell_of(finest)), scratch_dir=str(_existing_parent(root.absolute())),
+        scratch_bytes=peak_scratch(pyramids, _stores_bytes(plans, blocks_scratch)),
+        output_bytes=output_bytes(finest, model.cell_of(finest), keeps_matrix=not in_blocks),
+        scratch_dir=str(_existing_parent(root.absolute())),
         scratch_free=free, output_dir=None if out_dir is None else str(out_dir),
         output_free=None if out_dir is None else _free(out_dir), seconds=math.nan, calibration="",
         block_voxels=edge, prepare_edge=prep_edge, memory_target=target,
@@ -274,7 +281,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
         solve_seconds=SOLVE_SECONDS_PER_NODE * SOLVES * math.prod(finest.nodes_shape),
         smallest_bytes=model.peak(1, MIN_PREPARE_EDGE)[1], layout=chosen, fast_scratch_bytes=fast,
         base_bytes=model.base, mesh_data=mesh_data, mesh_why=why, mesh_blocks_from=blocks_from,
-        blocks_bytes=model.blocks, workers=model.concurrency).timed(None)
+        blocks_bytes=model.blocks, workers=model.workers).timed(None)
 
 
 def scratch_room(scratch_dir, output) -> tuple[Path, int]:
@@ -301,9 +308,10 @@ def level_plan(model: MemoryModel, s: int, edge: int, prep_edge: int, *, coarses
                      int(n_blocks), f_copy, prep, task_bytes(m * mesh.element_size, sigma, interp), work)
 
 
-def _stores_bytes(plans) -> dict[int, int]:
-    """Each level's scratch stores (its low-passed ``f`` and prepared ``g``), bytes."""
-    return {lv.level: lv.f_copy_bytes + lv.prepared_bytes for lv in plans}
+def _stores_bytes(plans, extra: dict[int, int]) -> dict[int, int]:
+    """Each level's scratch stores (its low-passed ``f`` and prepared ``g``, and ``extra``:
+    its mesh data in node blocks, :func:`~chunkdic.engine.costs.mesh_blocks_scratch`), bytes."""
+    return {lv.level: lv.f_copy_bytes + lv.prepared_bytes + extra.get(lv.level, 0) for lv in plans}
 
 
 def scratch_layout(fast_bytes: int, free: int) -> str:

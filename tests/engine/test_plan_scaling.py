@@ -52,3 +52,46 @@ def test_plan_of_n_workers_divides_the_voxel_passes_and_the_node_blocks_by_n(emp
     assert f"on the 64 workers ({runplan._b(share[64])} each)" in p64.summary()
     files = [f.name for f in empty_pair.rglob("*") if f.is_file()]
     assert set(files) == {"zarr.json"}, files
+
+
+class _Cluster:
+    """What the plan reads of a ``distributed.Client``: its workers' threads."""
+
+    def __init__(self, threads: list[int]):
+        self.threads = threads
+
+    def scheduler_info(self) -> dict:
+        return {"workers": {f"tcp://w{i}": {"nthreads": n} for i, n in enumerate(self.threads)}}
+
+
+def test_node_blocks_are_shared_by_the_workers_not_by_their_threads(empty_pair, monkeypatch):
+    """2 workers of 4 threads and 8 single-threaded workers run 8 tasks at once alike (the same
+    voxel-pass time), but the node blocks are held by processes: 2 workers hold a half each,
+    4 times the share of each of 8, and the plan names 2 workers."""
+    p2, p8 = _plan(empty_pair, _Cluster([4, 4]), monkeypatch), _plan(empty_pair, "local:8", monkeypatch)
+    assert (p2.threads, p8.threads) == (8, 8) and (p2.workers, p8.workers) == (2, 8)
+    assert p2.blocks_bytes == p8.blocks_bytes > 0
+    assert [lv.seconds for lv in p2.levels] == pytest.approx([lv.seconds for lv in p8.levels], rel=1e-12)
+    assert f"on the 2 workers ({runplan._b(p2.blocks_bytes / 2)} each)" in p2.summary()
+    assert p2.process_bytes >= p2.base_bytes + p2.blocks_bytes / 2 and p2.process_bytes > p8.process_bytes
+
+
+def test_node_blocks_count_on_the_scratch_and_not_in_the_output(empty_pair, monkeypatch):
+    """The same 1024³ pair at ℓ = 8 (128³ nodes) with the embedded scheduler, its mesh data in
+    the client or in node blocks on the scratch disk. In blocks, ``M`` (a float32 half stencil,
+    14 × 3 × 3 × 4 = 504 B per node) is on the scratch twice while it is made, as the voxel
+    blocks' partials and as the node blocks' files; and it is not kept in the output for a
+    resumed run, which the in-memory run's output is, by exactly that stencil."""
+    def plan(mode):
+        monkeypatch.setattr(runplan, "_free", lambda path: 2**50)
+        with warnings.catch_warnings(), dask.config.set({"chunkdic.mesh-data": mode, "chunkdic.num-threads": 2}):
+            warnings.simplefilter("ignore", MissingChunksWarning)
+            return chunkdic.plan(empty_pair / "ref.zarr", empty_pair / "def.zarr", element_size=8, scheduler="threads",
+                                 output=empty_pair / "out.zarr", calibrate=False, grey="global")
+    client, disk = plan("client"), plan("blocks")
+    assert (client.mesh_data, disk.mesh_data) == ("client", "disk")
+    assert math.prod(client.levels[-1].nodes) == 128**3
+    stencil = 504 * 128**3
+    assert client.output_bytes - disk.output_bytes == stencil
+    extra = disk.scratch_bytes - client.scratch_bytes
+    assert 2 * stencil <= extra <= 2 * stencil * 1.5, extra / stencil

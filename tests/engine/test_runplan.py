@@ -93,6 +93,23 @@ def test_plan_writes_nothing_and_its_memory_estimate_holds(pair, tmp_path, capsy
                                                                          measured["compiled"])
 
 
+def test_plan_without_calibration_reads_no_voxel(pair, tmp_path, capsys, monkeypatch):
+    """``--plan --no-calibration`` (a cluster other than the planning machine): the time from
+    the assumed prefilter rate, and not one region of ``g`` timed; nothing written."""
+    from chunkdic.engine import runplan
+
+    def timed_here(*args, **kwargs):
+        raise AssertionError("calibrated on the planning machine")
+
+    monkeypatch.setattr(runplan, "calibrate", timed_here)
+    out = tmp_path / "out.zarr"
+    code = main(["correlate", str(pair / "ref.npy"), str(pair / "def.npy"), "-o", str(out), "--element-size",
+                 "16", "--plan", "--no-calibration"])
+    printed = capsys.readouterr().out
+    assert code == 0 and "not calibrated: prefilter of g at 6 Mvoxel/s per task assumed" in printed
+    assert not out.exists()
+
+
 def test_memory_estimate_holds_with_the_mesh_data_in_blocks(pair, tmp_path):
     """The embedded scheduler with the mesh data in node blocks (the stencil in files under the
     scratch, CG's vectors in the process, the only process of the run): the plan's peak within

@@ -134,13 +134,13 @@ def plan_only(args, workdir: Path) -> None:
         print(f"{case:<11} {scheduler:<10} {f['nodes'] / 1e6:>6.1f}M {f['mesh_data']:<8} {gib[0]:>9} {gib[1]:>9} "
               f"{gib[2]:>9} {gib[3]:>9} {gib[4]:>9} {f['passes'] / 60:>7.0f}m {f['solves'] / 60:>7.0f}m {f['refused']}")
     print("(GiB; client: its base and mesh data; worker: its base, tasks at once and share of the node blocks; "
-          "blocks: the node blocks' files under the scratch, besides it; output: the result store; minutes)")
+          "blocks: the node blocks' files under the scratch, counted in it; output: the result store; minutes)")
 
 
 def per_process(p) -> dict:
     """A plan's figures per process (bytes) and its time's parts (seconds): the client's
     (``process_bytes`` when the tasks run in it), a worker's (None with the embedded pool),
-    the scratch, the node blocks' files (embedded scheduler; not in ``scratch_bytes``), the
+    the scratch, the node blocks' files (embedded scheduler; part of ``scratch_bytes``), the
     output, the voxel passes and the solves, and whether :meth:`Plan.check` refuses it (memory)."""
     import math
 
