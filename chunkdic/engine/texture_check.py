@@ -33,8 +33,8 @@ from ..warn import warn_user
 __all__ = ["ElementSizeWarning", "check_texture", "texture_length"]
 
 #: boxes read before a correlation (edge in voxels of the level, or 3 ℓ when larger) and the
-#: largest lag of their autocorrelation: 0.26 s warm on a 300³ ROI at ℓ = 8 and 0.15 s at ℓ = 12, of
-#: which the predicted noise 0.19 and 0.08 (a 2-core machine, load 1)
+#: largest lag of their autocorrelation: 0.21 s warm on a 300³ ROI at ℓ = 8 and 0.14 s at ℓ = 12,
+#: most of it the predicted noise's exact sub-mesh solve (a 2-core machine, load 1.4–1.9)
 CHECK_EDGE = 48
 CHECK_BOXES = 8
 CHECK_LAG = 48

@@ -108,8 +108,8 @@ class PartitionedSolver:
         self.rigid_matrix = self._rigid(stencil)
         # one sweep over the blocks: the float64 mean and smallest eigenvalue of every node
         # (16 B per node in the client), the weak nodes against the means' median
-        (eig,) = holder.values(stencil.map_blocks(_eigenvalues, chunks=self.chunks + ((2,),), drop_axis=[4, 5],
-                                                   dtype=np.float64))
+        eig = holder.gather(stencil.map_blocks(_eigenvalues, chunks=self.chunks + ((2,),), drop_axis=[4, 5],
+                                               dtype=np.float64))
         scale = float(np.median(eig[..., 0]))
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("the reference image has no gradient in the ROI: nothing to correlate")
@@ -204,22 +204,19 @@ class PartitionedSolver:
         """``(M + λ R) x`` (nz, ny, nx, 3), float64, in the client."""
         if self._files is not None:
             return self._in_process(x, out)
-        return self._gather(self._product(self._vector(x, "in")), out)
+        return self.holder.gather(self._product(self._vector(x, "in")), out)
 
     def data_matvec(self, x: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """``M x`` minus the brightness cells' complement."""
         if self._files is not None:
             return self._in_process(x, out, penalty=False)
-        return self._gather(self._product(self._vector(x, "in"), penalty=False), out)
+        return self.holder.gather(self._product(self._vector(x, "in"), penalty=False), out)
 
     def stencil_product(self, x: np.ndarray) -> np.ndarray:
         """``M x`` alone (no cells, no penalty)."""
         if self._files is not None:
             return self._in_process(x, None, penalty=False, cells=False)
-        return self._gather(self._product(self._vector(x, "in"), penalty=False, cells=False))
-
-    def _gather(self, y: da.Array, out: np.ndarray | None = None) -> np.ndarray:
-        return self.holder.gather(y, out)
+        return self.holder.gather(self._product(self._vector(x, "in"), penalty=False, cells=False))
 
     def penalty_gradient(self, a: np.ndarray) -> np.ndarray:
         """``λ R a`` for the total nodal field ``a`` (nz, ny, nx, 3): in the client, as
@@ -273,7 +270,7 @@ class PartitionedSolver:
         args = [self._H] + ([] if self._freed is None else [haloed(self._freed, PENALTY_DEPTH)])
         y = _map(_variance_block, *args, Rd=Rd, index=(iz, iy, ix), lam=self.weight, grid=self._H.numblocks,
                  weak=(self.weak_nodes, self._weak_blocks), chunks=self.chunks + ((3,),), dtype=np.float64)
-        return self._gather(y)
+        return self.holder.gather(y)
 
     # --- the solve --------------------------------------------------------------------
 
@@ -294,7 +291,7 @@ class PartitionedSolver:
             return x, self._iterations(iterations)
         r = self._vector(b, "r")
         x, iterations = self._pcg(r, rtol)
-        return self._gather(x), self._iterations(iterations)
+        return self.holder.gather(x), self._iterations(iterations)
 
     def _iterations(self, iterations: int) -> int:
         if iterations < 0:

@@ -182,7 +182,15 @@ def offset_moves(name: str) -> bool:
 
 def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | None:
     """Write the scans of case ``name`` at ``n``³ under ``workdir`` (kept between runs);
-    ``args.scale``: the specimen's texture scale (``texture_scale`` of :func:`chunkdic.synth.synthetic.synthesize`)."""
+    ``args.scale``: the specimen's texture scale (``texture_scale`` of
+    :func:`chunkdic.synth.synthetic.synthesize`), ``args.feature_offset`` the feature's offset
+    (:attr:`Case.offset`)."""
+    offset = (getattr(args, "feature_offset", 0.0) or 0.0) if offset_moves(name) else 0.0
+    case = _write_case(name, n, specimen, workdir, args, offset)
+    return None if case is None else dataclasses.replace(case, offset=offset)
+
+
+def _write_case(name: str, n: int, specimen: str, workdir: Path, args, offset: float) -> Case | None:
     from chunkdic.synth.fields import Translation
 
     scale = getattr(args, "scale", 1.0)
@@ -194,7 +202,6 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
         specimen_label = specimen
     if name.startswith("band") and args.band_lateral is not None:
         tag += f"-lat{args.band_lateral:g}"
-    offset = (getattr(args, "feature_offset", 0.0) or 0.0) if offset_moves(name) else 0.0
     if offset:
         tag += f"-off{offset:g}"
     out = workdir / tag
@@ -250,9 +257,7 @@ def build_case(name: str, n: int, specimen: str, workdir: Path, args) -> Case | 
                     f"{note}, independent noise {args.noise:g}")
     field = _band(n, args.band_lateral)
     if offset:
-        from dataclasses import replace
-
-        field = replace(field, center_z=field.center_z + offset)
+        field = dataclasses.replace(field, center_z=field.center_z + offset)
     if name == "band":
         paths = _pair(out, n, args, specimen, field=field)
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3, "band -8 %, width 6")
@@ -854,7 +859,7 @@ def main(argv=None) -> int:
             continue  # a case the offset does not move (noise, large strain): once
         c = build_case(name, n, specimen, workdir, args)
         if c is not None:
-            cases.append(dataclasses.replace(c, offset=args.feature_offset if offset_moves(name) else 0.0))
+            cases.append(c)
     cases += [pair_case(p) for p in args.pair]
     print(f"# medians of {args.repeats} run(s); with a known field: between the nodes (trilinear on each "
           f"tool's node grid, every voxel >= ell from the faces), sigma pooled, RMS vector error; "
