@@ -48,17 +48,19 @@ WARM_BASE_BYTES = 285 * MiB
 #: memory goes"). The automatic length is not known before the run: the larger.
 CLIENT_BYTES_PER_NODE = 1000
 #: client bytes per node when the level's mesh data are in node blocks
-#: (docs/distributed.md, "Mesh data beyond one process"): the Gauss–Newton state's fields,
-#: a ``b`` pass's nodal and element rows, a solve's right-hand side and solution, the
-#: penalty's setup (plane waves), with the embedded scheduler CG's vectors (4 × 24 B) and
-#: block-Jacobi's diagonal blocks (36 B); the stencil and the cells' couplings are in the
-#: blocks, and the blocks in flight are counted apart (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES`
-#: per thread). Measured with ``bench_client_memory.py --element-size 8 --regularize 2
-#: --solves 1 --mesh-data blocks --iterations 2 --steps``: 960 MiB at 885 k nodes
-#: (``--sizes 768``), 1 424 MiB at 2.10 M nodes (``--sizes 1024``), 401 B per node between
-#: the two (190 B without the Gauss–Newton passes, 768 to 1536); about 150 MiB of the
-#: process's fixed part (Dask's arrays, the threads' buffers) is not modelled
-BLOCKED_CLIENT_BYTES_PER_NODE = 430
+#: (docs/distributed.md, "Mesh data beyond one process"): the current field and the field
+#: ``M`` was built at, a ``b`` pass's nodal and element rows while they are summed (the drift
+#: cells' compact rows, 88 B), a solve's vectors (CG's four, 96 B), the penalty's setup
+#: (plane waves); the best field, the element fields and a pass's ``b`` while it is solved for
+#: are parked on the scratch (:mod:`chunkdic.passes.parked`), block-Jacobi's diagonal blocks
+#: are in files beside the stencil's, and the blocks in flight are counted apart
+#: (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES` per thread). Measured with
+#: ``bench_client_memory.py --element-size 8 --regularize 2 --solves 1 --mesh-data blocks
+#: --iterations 2 --steps``: the Gauss–Newton passes' peak 563 MiB at 885 k nodes (``--sizes
+#: 768``) and 745 MiB at 2.10 M nodes (``--sizes 1024``), 157 B per node between the two (the
+#: process's peak 604 and 745 MiB); about 250 MiB of the process's fixed part (Dask's arrays,
+#: the threads' buffers, the blocks in flight) is not modelled per node
+BLOCKED_CLIENT_BYTES_PER_NODE = 170
 #: bytes per node the node blocks hold together (spread over the workers, or on the scratch
 #: disk with the embedded scheduler): the float32 half stencil (504 B) with its blocks'
 #: one-node halos (an eighth at blocks of 48³ elements), and on the workers CG's vectors

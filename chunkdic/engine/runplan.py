@@ -248,7 +248,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     # the mesh data go to node blocks when the client's cannot fit the target even with the
     # smallest blocks
     mesh_data, why, blocks_from = mesh_placement(model, target)
-    model = dataclasses.replace(model, blocks_from=blocks_from)
+    model = dataclasses.replace(model, blocks_from=blocks_from, blocks_on_disk=mesh_data == "disk")
     edge, prep_edge = fitting_edges(model, target)
     task, process = model.peak(edge, prep_edge)
     plans = [level_plan(model, s, edge, prep_edge, coarsest=i == 0, finest=i == len(model.levels) - 1)

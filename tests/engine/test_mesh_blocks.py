@@ -74,3 +74,26 @@ def test_the_state_parked_on_the_scratch_gives_the_field_and_brightness_of_the_s
     np.testing.assert_allclose(parked.displacement, kept.displacement, rtol=0, atol=1e-12 * scale)
     np.testing.assert_allclose(parked.brightness, kept.brightness, rtol=1e-12)
     np.testing.assert_array_equal(parked.flags, kept.flags)
+
+
+def test_node_blocks_on_the_scratch_with_the_tasks_on_a_local_cluster_give_the_in_memory_field(pair, monkeypatch):
+    """Where the workers cannot hold their share of the node blocks, the plan puts them in
+    files on the scratch with the products in the client while the voxel passes run on the
+    workers (forced here on a 2-worker ``LocalCluster``): the in-memory run's field to 1e-8 of
+    its largest value, as the blocks on the workers or with the embedded scheduler."""
+    from chunkdic.engine import processmemory
+    from chunkdic.passes import level
+
+    f, g, ref = pair
+    options = dict(element_size=8, block_elements=4, coarsest=0, regularization_length=16)
+    monkeypatch.setattr(processmemory, "blocks_place", lambda model, target: ("disk", ""))
+    held, holder_for = [], level.holder_for
+    monkeypatch.setattr(level, "holder_for", lambda runner, d: held.append((runner, holder_for(runner, d))) or held[-1][1])
+    with dask.config.set({"chunkdic.mesh-data": "blocks"}):
+        plan = chunkdic.plan(f, g, calibrate=False, scheduler="local:2", **options)
+        assert plan.mesh_data == "disk" and plan.separate_client
+        res = chunkdic.correlate(f, g, scheduler="local:2", **options)
+    assert held and all(r.client is not None and h.where == "disk" for r, h in held)
+    assert res.info["status"] == ref.info["status"] == "converged"
+    scale = np.abs(ref.displacement).max()
+    np.testing.assert_allclose(res.displacement, ref.displacement, rtol=0, atol=1e-8 * scale)
