@@ -62,13 +62,15 @@ def blocks_place(model: MemoryModel, target: int | None) -> tuple[str, str]:
     """Where node blocks go, and why when it is not the rule's first choice: on the workers of
     a cluster (``workers``), or on the scratch disk with the products in the client
     (``disk``): the embedded scheduler's, and a cluster's whose workers' share of the finest
-    level's blocks, beside their smallest tasks, exceeds ``target``."""
+    level's blocks, beside their smallest tasks, exceeds ``target`` while the client, with
+    the products' blocks in flight, holds it."""
     if not model.separate:
         return "disk", ""
     finest = model.meshes[model.levels[-1]]
     share = blocks_bytes(finest, model.cell_of(finest)) // model.workers
     worker = model.base + model.peak(1, MIN_PREPARE_EDGE)[0] + share
-    if target is None or worker <= target:
+    on_disk = dataclasses.replace(model, blocks_from=math.prod(finest.nodes_shape), blocks_on_disk=True)
+    if target is None or worker <= target or model.base + on_disk.client > target:
         return "workers", ""
     return "disk", (f"; in files, as each worker's share, {format_bytes(worker)} with its tasks, would exceed "
                     f"the memory target")

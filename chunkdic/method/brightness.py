@@ -154,19 +154,29 @@ class Fit:
     drift: np.ndarray
     valid_per_element: np.ndarray
     residual: np.ndarray | None = None
+    #: the element fields parked out of memory (:meth:`share`), holding gain, offset, valid counts
+    #: and residual rows in place of the arrays above (then None)
+    parked: object = None
 
     def share(self, fields) -> None:
         """Point gain, offset, valid counts and the residual rows at rows 0-2 and 6-7 of
         ``fields`` (the same values, as :func:`chunkdic.method.gauss_newton.element_fields`
         copies them): the pass and the state then hold them once (40 B per element, 80 MB
         at 128³ elements). ``fields`` parked out of memory
-        (:meth:`~chunkdic.method.protocol.Passes.park`, not an ndarray): the pass holds none."""
+        (:meth:`~chunkdic.method.protocol.Passes.park`, not an ndarray): the pass holds none
+        of those arrays, only ``fields`` (:attr:`parked`)."""
         if not isinstance(fields, np.ndarray):
             self.gain = self.offset = self.valid_per_element = self.residual = None
+            self.parked = fields
             return
         self.gain, self.offset, self.valid_per_element = fields[0], fields[1], fields[2]
         if self.residual is not None:
             self.residual = fields[6:]
+
+
+    def median_gain(self) -> float:
+        """The median of the per-element gain (row 0 of the parked fields when the fit holds none)."""
+        return float(np.median(self.gain if self.gain is not None else self.parked[0]))
 
 
 def _nodes(B, coef) -> np.ndarray:

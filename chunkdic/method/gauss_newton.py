@@ -27,12 +27,15 @@ from .protocol import Pass, Passes
 from .stopping import History, State, decide, noise_step_of, still_to_come
 
 
-def element_fields(p) -> list[np.ndarray]:
+def element_fields(p):
     """The rows of a pass's element fields: per-element gain, offset (at the centre), valid
     voxels, the drift (grey levels per voxel, z, y, x, repeated per element) and the residual
     rows (:func:`~chunkdic.method.brightness.residual_rows`): 8 arrays of shape (ez, ey, ex),
     float64, the pass's own or broadcast (no copy), which
-    :meth:`~chunkdic.method.protocol.Passes.park` stacks (8, ez, ey, ex) row by row."""
+    :meth:`~chunkdic.method.protocol.Passes.park` stacks (8, ez, ey, ex) row by row; or, a pass
+    whose fields were parked already (:meth:`~chunkdic.method.brightness.Fit.share`), those."""
+    if p.fit.gain is None:
+        return p.fit.parked
     shape = p.fit.gain.shape
     residual = [np.broadcast_to(np.nan, shape)] * 2 if p.fit.residual is None else list(p.fit.residual)
     drift = [np.broadcast_to(np.float64(d), shape) for d in p.fit.drift]
@@ -130,7 +133,7 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
         state.noise_variance, state.kappa = float(p.noise_variance), float(p.kappa)
         cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
         event = dict(level=passes.level, iteration=it, gap=p.gap, excluded=p.n_excluded,
-                     gain=float(np.median(p.fit.gain)))
+                     gain=p.fit.median_gain())
         if math.isfinite(p.gap):
             # stacked (8, ez, ey, ex), or parked: read by the level's end and the checkpoints alone
             fields = passes.park(element_fields(p))

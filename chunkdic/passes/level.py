@@ -411,6 +411,8 @@ class LevelPasses:
         in a file under the scratch (``parked<level>/``), read back by ``np.asarray``."""
         if self.holder is None:
             return stack_rows(array)
+        if isinstance(array, Parked):  # parked already (a pass the iterations start from again)
+            return array
         return Parked(array, self.scratch / f"parked{self.level}")
 
     def assemble_b(self, u: np.ndarray, op: Operator, *, sample: np.ndarray | None = None,

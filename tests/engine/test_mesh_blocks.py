@@ -41,18 +41,21 @@ def test_a_memory_target_below_the_client_mesh_data_puts_them_in_blocks(pair):
     np.testing.assert_allclose(res.displacement, ref.displacement, rtol=0, atol=1e-8 * scale)
 
 
-def test_the_state_parked_on_the_scratch_gives_the_field_and_brightness_of_the_state_kept_in_memory(pair,
-                                                                                                     monkeypatch):
+@pytest.mark.parametrize("length, tolerance", [(16, 1e-12), (None, 1e-8)])
+def test_the_state_parked_on_the_scratch_gives_the_field_and_brightness_of_the_state_kept_in_memory(
+        pair, monkeypatch, length, tolerance):
     """A level in node blocks keeps its best field, element fields and a pass's ``b`` in files
     (``Passes.park``): a lossless round trip, so the run equals the same run with them in memory
     to the round-off by which two runs of either differ (the order in which the blocks' partials
-    add up: 2e-16 here); the files are made, and gone with the run."""
+    add up: 2e-16 of the largest displacement at a fixed length; the length's choice, where the
+    iterations start again from a pass whose fields are parked, carries it to 4e-9); the files
+    are made, and gone with the run."""
     from chunkdic.method.protocol import stack_rows
     from chunkdic.passes.level import LevelPasses
     from chunkdic.passes.parked import Parked
 
     f, g, _ = pair
-    options = dict(element_size=8, block_elements=4, coarsest=0, regularization_length=16)
+    options = dict(element_size=8, block_elements=4, coarsest=0, regularization_length=length)
     made = []
     write = Parked.__init__
 
@@ -71,8 +74,8 @@ def test_the_state_parked_on_the_scratch_gives_the_field_and_brightness_of_the_s
     assert not any(path.exists() for path in made)
     assert parked.info["status"] == kept.info["status"] == "converged"
     scale = np.abs(kept.displacement).max()
-    np.testing.assert_allclose(parked.displacement, kept.displacement, rtol=0, atol=1e-12 * scale)
-    np.testing.assert_allclose(parked.brightness, kept.brightness, rtol=1e-12)
+    np.testing.assert_allclose(parked.displacement, kept.displacement, rtol=0, atol=tolerance * scale)
+    np.testing.assert_allclose(parked.brightness, kept.brightness, rtol=tolerance)
     np.testing.assert_array_equal(parked.flags, kept.flags)
 
 
