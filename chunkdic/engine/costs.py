@@ -66,6 +66,10 @@ BLOCKED_CLIENT_BYTES_PER_NODE = 170
 #: one-node halos (an eighth at blocks of 48³ elements), and on the workers CG's vectors
 #: held at once (``x``, ``r``, ``p``, ``q``: 4 × 24 B)
 BLOCKS_BYTES_PER_NODE = 680
+#: scratch bytes per node of the arrays a client holding node blocks parks
+#: (:mod:`chunkdic.passes.parked`): the best field and a pass's ``b`` (24 B each), the element
+#: fields of the current and of the best pass (8 float64 per element each)
+PARKED_BYTES_PER_NODE = 176
 #: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
 #: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
 #: blocks of 32-128 voxels)
@@ -127,13 +131,15 @@ def blocks_bytes(mesh: Mesh, cell: int = 1) -> int:
 
 
 def mesh_blocks_scratch(mesh: Mesh, block_elements: int, cell: int = 1, on_disk: bool = True) -> int:
-    """Scratch bytes of a level's mesh data in node blocks while its ``M`` is made
-    (:class:`chunkdic.passes.mesh_blocks.MeshBlocks`): the partials (a float32 half stencil per
-    voxel block of ``block_elements``, each with its own boundary nodes, and the cells'
-    couplings) and, ``on_disk`` (the embedded scheduler), the node blocks' haloed files beside them."""
+    """Scratch bytes of a level's mesh data in node blocks, kept until the level ends
+    (:class:`chunkdic.passes.mesh_blocks.BlockedMatrix`): the partials (a float32 half stencil
+    per voxel block of ``block_elements``, each with its own boundary nodes, and the cells'
+    couplings), the client's parked arrays (:data:`PARKED_BYTES_PER_NODE`) and, ``on_disk``
+    (the embedded scheduler, or a cluster's blocks on disk), the node blocks' haloed files."""
     m = int(block_elements)
     partials = BYTES_PER_NODE * math.prod(e + -(-e // m) for e in mesh.shape) + cells_bytes(mesh.shape, cell)
-    return int(partials + (blocks_bytes(mesh, cell) if on_disk else 0))
+    parked = PARKED_BYTES_PER_NODE * math.prod(mesh.nodes_shape)
+    return int(partials + parked + (blocks_bytes(mesh, cell) if on_disk else 0))
 
 
 def task_bytes(block_edge: int, sigma: float, interpolation: str, span: float = 0.0) -> int:
