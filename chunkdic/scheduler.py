@@ -402,7 +402,7 @@ def pin_mmap_threshold() -> None:
     then the mesh-sized arrays it holds, not the heaps that the freed ones of up to 32 MB (the
     threshold's rise) leave resident. ``bench_client_memory.py --mesh-data blocks
     --iterations 2`` at 768³ and 1024³, ℓ = 8: the client's peak 837 and 1 026 MiB with the
-    rising threshold, 595 and 729 MiB with this one (docs/distributed.md). A no-op without glibc.
+    rising threshold, 604 and 745 MiB with this one (docs/distributed.md). A no-op without glibc.
     """
     libc = _libc()
     if libc is not None:

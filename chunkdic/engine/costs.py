@@ -58,8 +58,8 @@ CLIENT_BYTES_PER_NODE = 1000
 #: ``bench_client_memory.py --element-size 8 --regularize 2 --solves 1 --mesh-data blocks
 #: --iterations 2 --steps``: the Gauss–Newton passes' peak 563 MiB at 885 k nodes (``--sizes
 #: 768``) and 745 MiB at 2.10 M nodes (``--sizes 1024``), 157 B per node between the two (the
-#: process's peak 604 and 745 MiB); about 250 MiB of the process's fixed part (Dask's arrays,
-#: the threads' buffers, the blocks in flight) is not modelled per node
+#: process's peak 604 and 745 MiB); the rest, about 430 MiB with 190 MiB of kernels, is the
+#: process's base and the products' blocks in flight, which the plan counts apart
 BLOCKED_CLIENT_BYTES_PER_NODE = 170
 #: bytes per node the node blocks hold together (spread over the workers, or on the scratch
 #: disk with the embedded scheduler): the float32 half stencil (504 B) with its blocks'
