@@ -100,3 +100,39 @@ def test_node_blocks_on_the_scratch_with_the_tasks_on_a_local_cluster_give_the_i
     assert res.info["status"] == ref.info["status"] == "converged"
     scale = np.abs(ref.displacement).max()
     np.testing.assert_allclose(res.displacement, ref.displacement, rtol=0, atol=1e-8 * scale)
+
+
+@pytest.mark.slow
+def test_a_run_in_node_blocks_killed_mid_level_resumes_to_the_uninterrupted_field(pair, tmp_path, capsys):
+    """The checkpoints of a level in node blocks read the parked arrays back (the best field,
+    the element fields): a CLI run killed (SIGKILL) once its third pass of level 0 is reported
+    resumes from its checkpoint to the field of an uninterrupted run in node blocks."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    from chunkdic.cli.app import main
+
+    f, g, _ = pair
+    np.save(tmp_path / "f.npy", f)
+    np.save(tmp_path / "g.npy", g)
+    out = tmp_path / "res.zarr"
+    cmd = ["correlate", str(tmp_path / "f.npy"), str(tmp_path / "g.npy"), "-o", str(out), "--element-size", "8",
+           "--tolerance", "1e-6", "--coarsest", "0", "--regularization-length", "16"]
+    # 8 node blocks (of 4 elements), four passes of level 0
+    blocks = {"chunkdic.mesh-data": "blocks", "chunkdic.block-voxels": 32}
+    env = dict(os.environ, DASK_CHUNKDIC__MESH_DATA="blocks", DASK_CHUNKDIC__BLOCK_VOXELS="32")
+    proc = subprocess.Popen([sys.executable, "-m", "chunkdic", *cmd], stderr=subprocess.PIPE, text=True, env=env)
+    for line in proc.stderr:
+        if line.startswith("level 0 iter  2"):
+            os.kill(proc.pid, signal.SIGKILL)
+            break
+    assert proc.wait() == -signal.SIGKILL
+    with dask.config.set(blocks):
+        assert main(cmd) in (0, 1)
+        assert "resuming the interrupted run from its checkpoint: level 0, iteration" in capsys.readouterr().err
+        reference = chunkdic.correlate(f, g, element_size=8, tolerance=1e-6, coarsest=0, regularization_length=16)
+    resumed = chunkdic.open_result(out)
+    scale = np.abs(reference.displacement).max()
+    np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-8 * scale)
