@@ -57,10 +57,11 @@ CLIENT_BYTES_PER_NODE = 1000
 #: (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES` per thread). Measured with
 #: ``bench_client_memory.py --element-size 8 --regularize 2 --solves 1 --mesh-data blocks
 #: --iterations 2 --steps``: the Gauss–Newton passes' peak 563 MiB at 885 k nodes (``--sizes
-#: 768``) and 745 MiB at 2.10 M nodes (``--sizes 1024``), 157 B per node between the two (the
-#: process's peak 604 and 745 MiB); the rest, about 430 MiB with 190 MiB of kernels, is the
-#: process's base and the products' blocks in flight, which the plan counts apart
-BLOCKED_CLIENT_BYTES_PER_NODE = 170
+#: 768``), 745 MiB at 2.10 M nodes (``--sizes 1024``) and 1 552 MiB at 7.08 M nodes
+#: (``--sizes 1536``): 157 and 170 B per node between them; the rest, about 400 MiB with
+#: 190 MiB of kernels, is the process's base and the products' blocks in flight, which the
+#: plan counts apart
+BLOCKED_CLIENT_BYTES_PER_NODE = 180
 #: bytes per node the node blocks hold together (spread over the workers, or on the scratch
 #: disk with the embedded scheduler): the float32 half stencil (504 B) with its blocks'
 #: one-node halos (an eighth at blocks of 48³ elements), and on the workers CG's vectors
