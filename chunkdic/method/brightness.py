@@ -173,7 +173,6 @@ class Fit:
         if self.residual is not None:
             self.residual = fields[6:]
 
-
     def median_gain(self) -> float:
         """The median of the per-element gain (row 0 of the parked fields when the fit holds none)."""
         return float(np.median(self.gain if self.gain is not None else self.parked[0]))

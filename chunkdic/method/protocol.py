@@ -132,8 +132,8 @@ class Passes(Protocol):
 
 def stack_rows(array) -> np.ndarray:
     """``array`` itself if an ndarray, else its rows (a list of arrays of one shape, some
-    perhaps broadcast) stacked along a new first axis, float64, filled row by row (no
-    stacked temporary besides the result)."""
+    perhaps broadcast) stacked along a new first axis in their common dtype, filled row by row
+    (no stacked temporary besides the result)."""
     if isinstance(array, np.ndarray):
         return array
     out = np.empty((len(array),) + np.shape(array[0]), dtype=np.result_type(*array))
