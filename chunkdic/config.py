@@ -29,6 +29,10 @@ DEFAULTS = {
         # Nodes from which a level's mesh data go to blocks: set by the plan under "auto"
         # (None: no level).
         "mesh-blocks-from": None,
+        # Where those node blocks go, set by the plan: "workers" (a cluster's) or "disk" (files
+        # under the scratch, their products in the client: the embedded scheduler's, and a
+        # cluster's whose workers cannot hold their share); None: the scheduler's first choice.
+        "mesh-blocks-on": None,
         # Storage in scratch of the low-passed f blocks and the prepared g of a 1- or 2-byte
         # integer scan level: "uint16" (on a 16-bit grid of the dtype's range: half the disk)
         # or "float32" (exact). docs/engine.md, "Scratch disk".

@@ -31,6 +31,8 @@ def assemble_result(ctx, run: RunState, final: State, outcome: LevelOutcome) -> 
     """
     settings, finest, coarsest = ctx.settings, ctx.finest, ctx.coarsest
     mesh = ctx.meshes[finest]
+    # read back where a level in node blocks parked them (Passes.park); the final state is not reused
+    final.elements = None if final.elements is None else np.asarray(final.elements)
     flags = node_flags(mesh, final.elements, outcome.weak, outcome.masked)
     missing = (flags & (FLAG_NO_DATA | FLAG_MASKED))[None] > 0
     u = np.where(missing, np.nan, final.u)

@@ -48,22 +48,29 @@ WARM_BASE_BYTES = 285 * MiB
 #: memory goes"). The automatic length is not known before the run: the larger.
 CLIENT_BYTES_PER_NODE = 1000
 #: client bytes per node when the level's mesh data are in node blocks
-#: (docs/distributed.md, "Mesh data beyond one process"): the Gauss–Newton state's fields,
-#: a ``b`` pass's nodal and element rows, a solve's right-hand side and solution, the
-#: penalty's setup (plane waves), with the embedded scheduler CG's vectors (4 × 24 B) and
-#: block-Jacobi's diagonal blocks (36 B); the stencil and the cells' couplings are in the
-#: blocks, and the blocks in flight are counted apart (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES`
-#: per thread). Measured with ``bench_client_memory.py --element-size 8 --regularize 2
-#: --solves 1 --mesh-data blocks --iterations 2 --steps``: 960 MiB at 885 k nodes
-#: (``--sizes 768``), 1 424 MiB at 2.10 M nodes (``--sizes 1024``), 401 B per node between
-#: the two (190 B without the Gauss–Newton passes, 768 to 1536); about 150 MiB of the
-#: process's fixed part (Dask's arrays, the threads' buffers) is not modelled
-BLOCKED_CLIENT_BYTES_PER_NODE = 430
+#: (docs/distributed.md, "Mesh data beyond one process"): the current field and the field
+#: ``M`` was built at, a ``b`` pass's nodal and element rows while they are summed (the drift
+#: cells' compact rows, 88 B), a solve's vectors (CG's four, 96 B), the penalty's setup
+#: (plane waves); the best field, the element fields and a pass's ``b`` while it is solved for
+#: are parked on the scratch (:mod:`chunkdic.passes.parked`), block-Jacobi's diagonal blocks
+#: are in files beside the stencil's, and the blocks in flight are counted apart
+#: (:data:`~chunkdic.solve.nodeblocks.MAX_TASK_BYTES` per thread). Measured with
+#: ``bench_client_memory.py --element-size 8 --regularize 2 --solves 1 --mesh-data blocks
+#: --iterations 2 --steps``: the Gauss–Newton passes' peak 563 MiB at 885 k nodes (``--sizes
+#: 768``), 745 MiB at 2.10 M nodes (``--sizes 1024``) and 1 552 MiB at 7.08 M nodes
+#: (``--sizes 1536``): 157 and 170 B per node between them; the rest, about 400 MiB with
+#: 190 MiB of kernels, is the process's base and the products' blocks in flight, which the
+#: plan counts apart
+BLOCKED_CLIENT_BYTES_PER_NODE = 180
 #: bytes per node the node blocks hold together (spread over the workers, or on the scratch
 #: disk with the embedded scheduler): the float32 half stencil (504 B) with its blocks'
 #: one-node halos (an eighth at blocks of 48³ elements), and on the workers CG's vectors
 #: held at once (``x``, ``r``, ``p``, ``q``: 4 × 24 B)
 BLOCKS_BYTES_PER_NODE = 680
+#: scratch bytes per node of the arrays a client holding node blocks parks
+#: (:mod:`chunkdic.passes.parked`): the best field and a pass's ``b`` (24 B each), the element
+#: fields of the current and of the best pass (8 float64 per element each)
+PARKED_BYTES_PER_NODE = 176
 #: float32 copies of its (haloed) region that a block task holds at its peak, the memory-
 #: mapped pages of the prepared ``g`` it touches included (fitted on 128³-256³ runs,
 #: blocks of 32-128 voxels)
@@ -125,13 +132,15 @@ def blocks_bytes(mesh: Mesh, cell: int = 1) -> int:
 
 
 def mesh_blocks_scratch(mesh: Mesh, block_elements: int, cell: int = 1, on_disk: bool = True) -> int:
-    """Scratch bytes of a level's mesh data in node blocks while its ``M`` is made
-    (:class:`chunkdic.passes.mesh_blocks.MeshBlocks`): the partials (a float32 half stencil per
-    voxel block of ``block_elements``, each with its own boundary nodes, and the cells'
-    couplings) and, ``on_disk`` (the embedded scheduler), the node blocks' haloed files beside them."""
+    """Scratch bytes of a level's mesh data in node blocks, kept until the level ends
+    (:class:`chunkdic.passes.mesh_blocks.BlockedMatrix`): the partials (a float32 half stencil
+    per voxel block of ``block_elements``, each with its own boundary nodes, and the cells'
+    couplings), the client's parked arrays (:data:`PARKED_BYTES_PER_NODE`) and, ``on_disk``
+    (the embedded scheduler, or a cluster's blocks on disk), the node blocks' haloed files."""
     m = int(block_elements)
     partials = BYTES_PER_NODE * math.prod(e + -(-e // m) for e in mesh.shape) + cells_bytes(mesh.shape, cell)
-    return int(partials + (blocks_bytes(mesh, cell) if on_disk else 0))
+    parked = PARKED_BYTES_PER_NODE * math.prod(mesh.nodes_shape)
+    return int(partials + parked + (blocks_bytes(mesh, cell) if on_disk else 0))
 
 
 def task_bytes(block_edge: int, sigma: float, interpolation: str, span: float = 0.0) -> int:

@@ -87,7 +87,8 @@ def holding(spec: RunSpec, identity: RunIdentity, budget: Plan, output, outputs:
         # the scratch layout the plan chose (compact only when the fast one does not fit), and
         # the levels whose mesh data go to node blocks
         stack.enter_context(dask.config.set({"chunkdic.scratch-layout": budget.layout,
-                                             "chunkdic.mesh-blocks-from": budget.mesh_blocks_from}))
+                                             "chunkdic.mesh-blocks-from": budget.mesh_blocks_from,
+                                             "chunkdic.mesh-blocks-on": budget.mesh_data}))
         if output is not None:
             stack.enter_context(OutputLock(output))  # one writer per output
         held = None

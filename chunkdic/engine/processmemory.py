@@ -39,10 +39,10 @@ def mesh_placement(model: MemoryModel, target: int | None) -> tuple[str, str, in
     with the process's base and smallest tasks exceed the memory target; ``blocks`` puts every
     level there."""
     mode = config.get("mesh-data")
-    where = "workers" if model.separate else "disk"
     nodes = {math.prod(m.nodes_shape): m for m in model.meshes.values()}
     if mode == "blocks":
-        return where, "chunkdic.mesh-data: blocks", min(nodes)
+        where, why = blocks_place(model, target)
+        return where, f"chunkdic.mesh-data: blocks{why}", min(nodes)
     if mode == "client":
         return "client", "chunkdic.mesh-data: client", None
     if target is None:
@@ -53,7 +53,27 @@ def mesh_placement(model: MemoryModel, target: int | None) -> tuple[str, str, in
     if not over:
         return "client", f"they fit the memory target {format_bytes(target)}", None
     first = min(over)
-    return where, f"{format_bytes(need[first])} with them in the client would exceed the memory target {format_bytes(target)}", first
+    where, why = blocks_place(model, target)
+    return where, (f"{format_bytes(need[first])} with them in the client would exceed the memory target "
+                   f"{format_bytes(target)}{why}"), first
+
+
+def blocks_place(model: MemoryModel, target: int | None) -> tuple[str, str]:
+    """Where node blocks go, and why when it is not the rule's first choice: on the workers of
+    a cluster (``workers``), or on the scratch disk with the products in the client
+    (``disk``): the embedded scheduler's, and a cluster's whose workers' share of the finest
+    level's blocks, beside their smallest tasks, exceeds ``target`` while the client, with
+    the products' blocks in flight, holds it."""
+    if not model.separate:
+        return "disk", ""
+    finest = model.meshes[model.levels[-1]]
+    share = blocks_bytes(finest, model.cell_of(finest)) // model.workers
+    worker = model.base + model.peak(1, MIN_PREPARE_EDGE)[0] + share
+    on_disk = dataclasses.replace(model, blocks_from=math.prod(finest.nodes_shape), blocks_on_disk=True)
+    if target is None or worker <= target or model.base + on_disk.client > target:
+        return "workers", ""
+    return "disk", (f"; in files, as each worker's share, {format_bytes(worker)} with its tasks, would exceed "
+                    f"the memory target")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,6 +94,7 @@ class MemoryModel:
     pyramid_task: int  # bytes of the largest pyramid task
     pyramid_tasks: int  # and how many there are
     blocks_from: int | None = None  # levels of at least this many nodes hold their mesh data in node blocks
+    blocks_on_disk: bool = False  # ...on the scratch disk, their products in the client (else on the workers)
 
     @classmethod
     def of(cls, f_scan, g_scan, meshes: dict, settings, scheduler) -> "MemoryModel":
@@ -117,7 +138,11 @@ class MemoryModel:
             # nodeblocks imports dask.array, which a run in the client never loads)
             from ..solve.nodeblocks import MAX_TASK_BYTES, TASK_BYTES_PER_NODE
 
-            in_flight = 0 if self.separate else min(self.threads * MAX_TASK_BYTES, TASK_BYTES_PER_NODE * nodes // 2)
+            # (the products' threads in the client when the blocks are on disk with a cluster)
+            threads = threads_of(None)[0] if self.separate else self.threads
+            in_flight = min(threads * MAX_TASK_BYTES, TASK_BYTES_PER_NODE * nodes // 2)
+            if self.separate and not self.blocks_on_disk:
+                in_flight = 0
             return BLOCKED_CLIENT_BYTES_PER_NODE * nodes + in_flight
         # the mesh-sized data and the brightness cells' couplings (stored_matrix.cells_bytes)
         return CLIENT_BYTES_PER_NODE * nodes + cells_bytes(mesh.shape, self.cell_of(mesh))
@@ -170,8 +195,9 @@ class MemoryModel:
         a worker each hold their own; in this process, the tasks beside the client's data."""
         held = self.held(edge, prep_edge)
         task = max(t for t, _ in held)
-        if self.separate:  # a worker holds its tasks and its share of the node blocks
-            return task, self.base + max(self.client, task + self.blocks // self.workers)
+        if self.separate:  # a worker holds its tasks and its share of the node blocks (none on disk)
+            share = 0 if self.blocks_on_disk else self.blocks // self.workers
+            return task, self.base + max(self.client, task + share)
         return task, self.base + max(self.client, max(t + c for t, c in held))
 
 

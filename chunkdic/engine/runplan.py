@@ -210,10 +210,14 @@ class Plan:
                              f"({self.mesh_why}): raise --memory-target or set chunkdic.mesh-data to client")
         if self.memory_target is not None and self.process_bytes > self.memory_target:
             finest = self.levels[-1]
+            client = self.base_bytes + self.client_bytes
+            who = f"the client alone needs {_b(client)} for {math.prod(finest.nodes)} nodes"
+            if client <= self.memory_target and self.mesh_data == "workers":
+                who = (f"each worker needs {_b(self.process_bytes)} with its share of the node blocks "
+                       f"({_b(self.blocks_bytes / self.workers)})")
             raise InputError(
-                f"memory target {_b(self.memory_target)} per process cannot hold this run: the client alone needs "
-                f"{_b(self.base_bytes + self.client_bytes)} for {math.prod(finest.nodes)} nodes, and the estimated peak "
-                f"is {_b(self.smallest_bytes)} with the smallest blocks: raise the target, or use larger elements "
+                f"memory target {_b(self.memory_target)} per process cannot hold this run: {who}, and the estimated "
+                f"peak is {_b(self.smallest_bytes)} with the smallest blocks: raise the target, or use larger elements "
                 f"or a coarser level")
         same_disk = self.output_dir is not None and _device(self.scratch_dir) == _device(self.output_dir)
         need = self.scratch_bytes + (self.output_bytes if same_disk else 0)
@@ -248,7 +252,7 @@ def make_plan(f_scan, g_scan, meshes: dict, settings, *, scheduler=None, output=
     # the mesh data go to node blocks when the client's cannot fit the target even with the
     # smallest blocks
     mesh_data, why, blocks_from = mesh_placement(model, target)
-    model = dataclasses.replace(model, blocks_from=blocks_from)
+    model = dataclasses.replace(model, blocks_from=blocks_from, blocks_on_disk=mesh_data == "disk")
     edge, prep_edge = fitting_edges(model, target)
     task, process = model.peak(edge, prep_edge)
     plans = [level_plan(model, s, edge, prep_edge, coarsest=i == 0, finest=i == len(model.levels) - 1)

@@ -154,15 +154,28 @@ class Fit:
     drift: np.ndarray
     valid_per_element: np.ndarray
     residual: np.ndarray | None = None
+    #: the element fields parked out of memory (:meth:`share`), holding gain, offset, valid counts
+    #: and residual rows in place of the arrays above (then None)
+    parked: object = None
 
-    def share(self, fields: np.ndarray) -> None:
+    def share(self, fields) -> None:
         """Point gain, offset, valid counts and the residual rows at rows 0-2 and 6-7 of
         ``fields`` (the same values, as :func:`chunkdic.method.gauss_newton.element_fields`
         copies them): the pass and the state then hold them once (40 B per element, 80 MB
-        at 128³ elements)."""
+        at 128³ elements). ``fields`` parked out of memory
+        (:meth:`~chunkdic.method.protocol.Passes.park`, not an ndarray): the pass holds none
+        of those arrays, only ``fields`` (:attr:`parked`)."""
+        if not isinstance(fields, np.ndarray):
+            self.gain = self.offset = self.valid_per_element = self.residual = None
+            self.parked = fields
+            return
         self.gain, self.offset, self.valid_per_element = fields[0], fields[1], fields[2]
         if self.residual is not None:
             self.residual = fields[6:]
+
+    def median_gain(self) -> float:
+        """The median of the per-element gain (row 0 of the parked fields when the fit holds none)."""
+        return float(np.median(self.gain if self.gain is not None else self.parked[0]))
 
 
 def _nodes(B, coef) -> np.ndarray:
@@ -280,13 +293,16 @@ def _reduce_cells(sums: ElementSums, k: int, lags: np.ndarray) -> Partials:
     many, and a brightness that bends across the specimen is followed by the cells' slopes,
     as well as the element offsets with one global drift followed it (docs/engine.md).
 
-    The partials keep the layout of the per-element ``drift`` model, so that :func:`nodal_rhs`
-    and :func:`element_fit` read both: the drift rows and columns of the scalars are zero (no
-    global drift to fit), the element rows hold each element's offsets ``a + b·(X_e - X_c)``
-    of ``d`` and ``g'`` (rows ``d`` and ``g``, so that the fitted offset at the element's centre is
-    ``d-row - α g-row``), and six more scalars the cells' slopes summed with their weights (their
-    presence marks the cells' partials; the drift reported is not their mean but the plane
-    through the element offsets, :func:`offset_plane_slope`: a steadier reading)."""
+    The partials keep the leading rows of the per-element ``drift`` model's, so that
+    :func:`nodal_rhs` and :func:`element_fit` read both: the scalars' layout in full, whose
+    drift rows and columns are zero (no global drift to fit), then six more scalars, the cells'
+    slopes summed with their weights (their presence marks the cells' partials; the drift
+    reported is not their mean but the plane through the element offsets,
+    :func:`offset_plane_slope`: a steadier reading); the nodal rows of ``d`` and ``g'`` only
+    (those of the drift, zero, left out: 72 B per node fewer in the client's sums), and the
+    element rows ``Σ w`` and each element's offsets ``a + b·(X_e - X_c)`` of ``d`` and ``g'``
+    (so that the fitted offset at the element's centre is ``d-row - α g-row``; the constant
+    rows of ``1`` and the coordinates left out, 32 B per element)."""
     B, G, o = _cell_centred(sums, k)
     n_e = G[..., _ONE, _ONE]
     G_c = _cell_sum(G, k)
@@ -302,13 +318,12 @@ def _reduce_cells(sums: ElementSums, k: int, lags: np.ndarray) -> Partials:
     n_c = G_c[..., _ONE, _ONE]
     slopes = np.einsum("abc,abcjq->qj", n_c, coef[..., 1:, :])  # Σ n_c b_c for d, g' (per element length)
     coef_e = _cell_to_elements(coef, k, n_e.shape)
-    nodal = np.zeros((5,) + tuple(n + 1 for n in n_e.shape) + (3,))
+    nodal = np.zeros((len(fitted),) + tuple(n + 1 for n in n_e.shape) + (3,))
     for j, q in enumerate(fitted):
         nodal[j] = _nodes(B, {q: 1.0, **{c: -coef_e[..., i, j] for i, c in enumerate(lin)}})
-    rows = np.zeros((6,) + n_e.shape)
+    rows = np.zeros((len(fitted),) + n_e.shape)
     for j, q in enumerate(fitted):
         rows[q] = coef_e[..., 0, j] + np.einsum("...i,...i->...", coef_e[..., 1:, j], o)
-    rows[_ONE] = 1.0
     return Partials(nodal, np.concatenate([[float(n_e.sum())], S.ravel(), slopes.ravel()]),
                     np.concatenate([n_e[None], rows]), sums.n_excluded, lags)
 
@@ -390,8 +405,8 @@ def nodal_rhs(model: str, nodal: np.ndarray, scalars: np.ndarray) -> np.ndarray:
     if model == "global":
         alpha, mu = _global_coefficients(model, scalars)
         return nodal[0] - alpha * nodal[1] - mu * nodal[2]
-    if model == "drift":
-        b = np.tensordot(_global_coefficients(model, scalars), nodal[1:], axes=1)
+    if model == "drift":  # the cells' partials (_reduce_cells) hold no drift rows: their θ is zero there
+        b = np.tensordot(_global_coefficients(model, scalars)[:len(nodal) - 1], nodal[1:], axes=1)
         np.subtract(nodal[0], b, out=b)  # b = nodal[0] - Σ θ_k nodal[k], in the product's array
         return b
     raise ValueError(f"unknown brightness model {model!r}")
@@ -437,10 +452,12 @@ def element_fit(model: str, b: np.ndarray, scalars: np.ndarray, elements: np.nda
         theta = _global_coefficients(model, scalars)
         ssr, _ = misfit(model, scalars)
         alpha, beta = theta[0], theta[1:]
-        mean = elements[1:]  # element means of d, g', 1, z~, y~, x~
-        mu = mean[_D] - alpha * mean[_G] - np.tensordot(beta, mean[_Z:_X + 1], axes=1)  # a view: no copy
+        mean = elements[1:]  # element means of d, g', 1, z~, y~, x~ (the cells' partials: d, g' only)
+        mu = mean[_D] - alpha * mean[_G]
         if len(scalars) > 26:  # affine offsets per cell (_reduce_cells): the plane through the offsets
             beta = offset_plane_slope(mu, n_e)
+        else:
+            mu -= np.tensordot(beta, mean[_Z:_X + 1], axes=1)
         # offset at the element centre (q~ = 0): μ_e - α c
         return Fit(b, ssr, float(n), np.full_like(n_e, 1 + alpha), mu - alpha * center,
                    beta / float(element_size), n_e, residual)

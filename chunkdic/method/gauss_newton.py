@@ -27,15 +27,19 @@ from .protocol import Pass, Passes
 from .stopping import History, State, decide, noise_step_of, still_to_come
 
 
-def element_fields(p) -> np.ndarray:
-    """Per-element gain, offset (at the centre), valid voxels of a pass, the drift (grey
-    levels per voxel, z, y, x, repeated per element) and the residual rows
-    (:func:`~chunkdic.method.brightness.residual_rows`): shape (8, ez, ey, ex)."""
-    out = np.empty((8,) + p.fit.gain.shape)  # filled row by row: no stacked temporary
-    out[0], out[1], out[2] = p.fit.gain, p.fit.offset, p.fit.valid_per_element
-    out[3:6] = p.fit.drift[:, None, None, None]
-    out[6:] = np.nan if p.fit.residual is None else p.fit.residual
-    return out
+def element_fields(p):
+    """The rows of a pass's element fields: per-element gain, offset (at the centre), valid
+    voxels, the drift (grey levels per voxel, z, y, x, repeated per element) and the residual
+    rows (:func:`~chunkdic.method.brightness.residual_rows`): 8 arrays of shape (ez, ey, ex),
+    float64, the pass's own or broadcast (no copy), which
+    :meth:`~chunkdic.method.protocol.Passes.park` stacks (8, ez, ey, ex) row by row; or, a pass
+    whose fields were parked already (:meth:`~chunkdic.method.brightness.Fit.share`), those."""
+    if p.fit.gain is None:
+        return p.fit.parked
+    shape = p.fit.gain.shape
+    residual = [np.broadcast_to(np.nan, shape)] * 2 if p.fit.residual is None else list(p.fit.residual)
+    drift = [np.broadcast_to(np.float64(d), shape) for d in p.fit.drift]
+    return [p.fit.gain, p.fit.offset, p.fit.valid_per_element, *drift, *residual]
 
 
 def noise_step(op: Operator, p: Pass, delta: np.ndarray, tolerance: float) -> tuple[float, np.ndarray, float]:
@@ -129,10 +133,11 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
         state.noise_variance, state.kappa = float(p.noise_variance), float(p.kappa)
         cpu = time.process_time() - c0  # this process only: the tasks too with the thread pool
         event = dict(level=passes.level, iteration=it, gap=p.gap, excluded=p.n_excluded,
-                     gain=float(np.median(p.fit.gain)))
+                     gain=p.fit.median_gain())
         if math.isfinite(p.gap):
-            fields = element_fields(p)
-            state.record(p, fields)
+            # stacked (8, ez, ey, ex), or parked: read by the level's end and the checkpoints alone
+            fields = passes.park(element_fields(p))
+            state.record(p, fields, park=passes.park)
             p.fit.share(fields)
             del fields
         decide(state, p.gap, tolerance, max_iterations)
@@ -144,6 +149,7 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
             # (M + λR) δa = b − λ R a: the penalty acts on the whole field, not the increment
             rhs = op.solver.penalty_gradient(np.moveaxis(state.u, 0, -1))
             np.subtract(p.b, rhs, out=rhs)  # in place: one mesh-sized vector fewer
+            p.fit.b = passes.park(p.fit.b)  # read again only by the caller of the last pass
             norm = rhs_norm(rhs)
             delta_other = None
             if op.crack is None or not op.crack.count:
@@ -183,6 +189,8 @@ def iterate(passes: Passes, op: Operator, state: State, tolerance: float, max_it
             on_iteration(state)
         if state.status is None:
             p = None  # the pass is not held while the next one is summed
+    if p is not None:
+        p.fit.b = np.asarray(p.fit.b)  # parked while it was solved for
     return state, (p if p is not None else first)
 
 

@@ -14,7 +14,9 @@ stencil and solver, ``b``, per-element brightness. Everything that reads voxels 
 - :meth:`Passes.prepare` makes the passes ready for fields near a given one (out of core:
   the low-pass and B-spline prefilter of the part of ``g`` it reaches) and
   :meth:`Passes.covers` says whether a field needs no further preparation;
-- :meth:`Passes.translation` is the integer translation of phase correlation.
+- :meth:`Passes.translation` is the integer translation of phase correlation;
+- :meth:`Passes.park` keeps a mesh-sized array the iterations do not read out of the
+  client's memory where the level's mesh data do not fit it.
 
 Two implementations: the out-of-core block passes (:class:`chunkdic.passes.level.LevelPasses`,
 tasks over Zarr stores) and a dense twin on in-memory arrays
@@ -32,7 +34,7 @@ from ..mesh import Mesh
 from .brightness import Fit
 from .operator import Operator
 
-__all__ = ["Pass", "Passes"]
+__all__ = ["Pass", "Passes", "stack_rows"]
 
 
 @dataclasses.dataclass
@@ -114,8 +116,27 @@ class Passes(Protocol):
         fields whose gap alone is measured in the same pass, on :meth:`gap`'s sample;
         ``other``: the second copies (K, 3) of ``op.crack``'s split nodes (None: ``u`` there)."""
 
+    def park(self, array):
+        """``array`` (an ndarray, or a list of its rows along a first axis, stacked by
+        :func:`stack_rows`), or where the level's mesh data do not fit the client (node blocks)
+        an array-like kept out of its memory, written row by row, that ``np.asarray`` reads
+        back: for mesh-sized arrays the Gauss–Newton loop does not read until the level ends
+        (the best field, the element fields, a pass's ``b`` while it is solved for)."""
+
     def gap(self, u: np.ndarray, op: Operator) -> float:
         """The matching gap of ``u`` alone (a diagnostic), on a sample of elements of large meshes."""
 
     def translation(self) -> np.ndarray:
         """The integer translation (3,) of phase correlation over the level's ROI, voxels of the level."""
+
+
+def stack_rows(array) -> np.ndarray:
+    """``array`` itself if an ndarray, else its rows (a list of arrays of one shape, some
+    perhaps broadcast) stacked along a new first axis in their common dtype, filled row by row
+    (no stacked temporary besides the result)."""
+    if isinstance(array, np.ndarray):
+        return array
+    out = np.empty((len(array),) + np.shape(array[0]), dtype=np.result_type(*array))
+    for k, row in enumerate(array):
+        out[k] = row
+    return out

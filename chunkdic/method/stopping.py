@@ -234,11 +234,17 @@ class State:
             setattr(state, k, from_json_float(value) if k in cls._FLOATS else value)
         return state
 
-    def record(self, p, elements: np.ndarray) -> None:
-        """Keep the pass ``p`` that measured the current field; it becomes the best if its gap is lowest."""
+    def record(self, p, elements: np.ndarray, park=None) -> None:
+        """Keep the pass ``p`` that measured the current field; it becomes the best if its gap is lowest.
+
+        ``park``: :meth:`~chunkdic.method.protocol.Passes.park`, through which the best field is
+        kept (the iterations read it only when they return it); the element fields are kept as
+        given. ``best_u`` and the element fields may therefore be parked array-likes, which
+        ``np.asarray`` reads (:meth:`arrays` leaves that to the checkpoint's writer)."""
         self.gap, self.excluded, self.n_valid, self.elements = p.gap, p.n_excluded, p.n_valid, elements
         if p.gap < self.best_gap * (1 - 1e-9):
-            self.best_gap, self.best_u, self.best_excluded, self.best_valid = p.gap, self.u, p.n_excluded, p.n_valid
+            best_u = self.u if park is None else park(self.u)
+            self.best_gap, self.best_u, self.best_excluded, self.best_valid = p.gap, best_u, p.n_excluded, p.n_valid
             self.best_u_other = self.u_other
             self.best_elements = elements
             self.since_best = 0
@@ -273,7 +279,8 @@ class State:
     def finish(self, status: str, *, keep_current: bool) -> None:
         self.status = status
         if not keep_current and self.best_u is not None:  # diverged / stalled: the best field met
-            self.u, self.gap, self.excluded, self.n_valid = self.best_u, self.best_gap, self.best_excluded, self.best_valid
+            self.u = np.asarray(self.best_u)  # an array, also where it was parked
+            self.gap, self.excluded, self.n_valid = self.best_gap, self.best_excluded, self.best_valid
             self.u_other = self.best_u_other
             self.elements = self.best_elements
 

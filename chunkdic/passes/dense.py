@@ -34,7 +34,7 @@ from ..kernels.quantize import quantize_u16
 from ..mesh import Mesh
 from ..method.brightness import offset_cell, reduce_block
 from ..method.operator import Assembled, Operator, build_operator
-from ..method.protocol import Pass
+from ..method.protocol import Pass, stack_rows
 from ..method.settings import Settings
 from .crack_cut import CrackLabels, cut_b_sums, cut_m_sums, fast_active, global_pairs, other_rows, read_cut
 from .haloed import quantization
@@ -137,6 +137,11 @@ class DensePasses:
         """Mark the box the block passes would prepare for ``u`` (``g`` is prepared whole already)."""
         if not self.covers(u):
             self.box = reachable_box(self.mesh, u, self.g_shape, margin=max(8, self.mesh.element_size))
+
+    def park(self, array) -> np.ndarray:
+        """``array`` itself (rows stacked, :func:`~chunkdic.method.protocol.stack_rows`): the mesh
+        data of in-memory scans stay in memory."""
+        return stack_rows(array)
 
     def assemble_b(self, u: np.ndarray, op: Operator, *, sample: np.ndarray | None = None,
                    probes: dict[str, np.ndarray] | None = None, other: np.ndarray | None = None) -> Pass:

@@ -28,14 +28,15 @@ from ..mesh import Mesh
 from ..method.brightness import aligned_block_elements, offset_cell
 from ..method.events import Blocks, FCopy, Matrix, Prepared, emit
 from ..method.operator import Assembled, Operator, build_operator
-from ..method.protocol import Pass
+from ..method.protocol import Pass, stack_rows
 from ..method.settings import Settings
-from ..scheduler import release_freed_memory
+from ..scheduler import pin_mmap_threshold, release_freed_memory
 from ..solve.cg import StencilSolver
 from .crack_cut import CrackLabels
 from .haloed import HaloedBlocks
 from .masks import MIN_MATERIAL, active_elements
 from .mesh_blocks import BlockedMatrix, holder_for, in_blocks
+from .parked import Parked
 from .prefilter import adopt_prepared, build_prepared, face_margin, reachable_box, record_path
 from .reduction import PassSums
 from .scratchstore import f_store, g_store
@@ -140,6 +141,8 @@ class LevelPasses:
         self.prepared, self.builds = None, 0
         #: where the level's mesh data live when they go to node blocks (mesh_blocks.in_blocks), else None
         self.holder = holder_for(runner, self.scratch / f"mesh{s}") if in_blocks(mesh) else None
+        if self.holder is not None:  # the client's memory: the mesh data it holds, not freed buffers' heaps
+            pin_mmap_threshold()
         if adopt and self.inputs.g_needs_preparing:
             self._adopt_prepared()
 
@@ -401,6 +404,16 @@ class LevelPasses:
         pass of the iterations (the finest level's reported gaps: no pass of their own).
         """
         return self.assemble_b(u, op, sample=gap_sample(self.mesh.shape, op.active)).gap
+
+    def park(self, array):
+        """``array`` itself (rows stacked, :func:`~chunkdic.method.protocol.stack_rows`), or with
+        the level's mesh data in node blocks a :class:`~chunkdic.passes.parked.Parked` copy of it
+        in a file under the scratch (``parked<level>/``), read back by ``np.asarray``."""
+        if self.holder is None:
+            return stack_rows(array)
+        if isinstance(array, Parked):  # parked already (a pass the iterations start from again)
+            return array
+        return Parked(array, self.scratch / f"parked{self.level}")
 
     def assemble_b(self, u: np.ndarray, op: Operator, *, sample: np.ndarray | None = None,
                    probes: dict[str, np.ndarray] | None = None, other: np.ndarray | None = None) -> Pass:

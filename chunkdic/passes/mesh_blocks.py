@@ -43,11 +43,12 @@ def in_blocks(mesh: Mesh) -> bool:
 
 
 def holder_for(runner, directory: Path):
-    """Where node blocks live: the workers of a ``distributed`` runner, else files in ``directory``."""
+    """Where node blocks live: the workers of a ``distributed`` runner, else (or where the plan
+    puts them on disk, ``chunkdic.mesh-blocks-on``) files in ``directory``."""
     from ..solve.nodeblocks import DiskHolder, WorkerHolder
 
     client = getattr(runner, "client", None)
-    if client is not None:
+    if client is not None and config.get("mesh-blocks-on") != "disk":
         return WorkerHolder(client)
     return DiskHolder(directory, threads_of(None)[0])
 

@@ -24,7 +24,7 @@ from dask.threaded import get as threaded_get
 
 from ..io.owntree import remove
 from .nodeblocks import extended_chunks, haloed
-from .stencil import _subtract_cells, half_matvec
+from .stencil import _subtract_cells, block_solve, half_matvec
 
 
 #: mappings of the blocks' files kept open at most (each holds a file descriptor)
@@ -75,7 +75,7 @@ class HaloedFiles:
                 local.append(slice(lo - h0, lo - h0 + n))
                 extended.append(slice(lo, lo + int(ext[a][i])))
             self.geometry[b] = tuple(map(tuple, (halo, own, local, extended)))
-        self.with_cells = cell_chunks is not None
+        self.with_cells, self.with_diagonal = cell_chunks is not None, False
         self._lock = threading.Lock()
         #: each thread's two vectors over its largest haloed block, used by every product: a
         #: product's copies come from no allocator (glibc's heaps would keep freed ones resident)
@@ -158,6 +158,33 @@ class HaloedFiles:
         threaded_get(graph, list(graph), num_workers=self.threads)
         return out
 
+    def save_diagonal(self, diagonal: da.Array) -> None:
+        """Write block-Jacobi's diagonal blocks (dask array (nz, ny, nx, 1, 3, 3), float32, in
+        this object's node blocks), one file per block: the preconditioner reads them block by
+        block (:meth:`precondition`) instead of holding them in the process (36 B per node)."""
+        save = diagonal.map_blocks(_save_block, self.directory, "diagonal", chunks=(1,) * diagonal.ndim,
+                                   dtype=np.int8)
+        with dask.config.set(scheduler="threads", num_workers=self.threads):
+            save.compute()
+        self.with_diagonal = True
+
+    def precondition(self, r: np.ndarray, z: np.ndarray, Rd: np.ndarray, index, lam: float) -> np.ndarray:
+        """``z = D⁻¹ r`` (:func:`~chunkdic.solve.stencil.block_solve`; ``D`` the diagonal blocks
+        of :meth:`save_diagonal` plus ``lam`` times the penalty's ``Rd`` of each node's class,
+        ``index``: the class indices per axis), ``r`` and ``z`` (nz, ny, nx, 3) float64 in the
+        process: one task per block."""
+        graph = {("diagonal", b): (self._jacobi_block, b, r, z, Rd, index, lam) for b in self.blocks}
+        threaded_get(graph, list(graph), num_workers=self.threads)
+        return z
+
+    def _jacobi_block(self, b, r, z, Rd, index, lam) -> None:
+        own = self.geometry[b][1]
+        D = self._mapped("diagonal", b)
+        rb, zb = self._vectors(own, r)
+        block_solve(np.asarray(D), Rd, *(np.ascontiguousarray(i[s]) for i, s in zip(index, own)), lam, rb, zb)
+        self._unmapped(D)
+        z[own] = zb
+
     def _mapped(self, name: str, b) -> np.ndarray:
         """The block's file memory-mapped: kept for the next products when the blocks are few
         (opening one costs about 0.4 ms, and each mapping holds a file descriptor)."""
@@ -165,7 +192,7 @@ class HaloedFiles:
         a = self._maps.get(key)
         if a is None:
             a = np.load(self._path(name, b), mmap_mode="r")
-            if len(self.blocks) * (1 + self.with_cells) <= MAX_KEPT_MAPS:
+            if len(self.blocks) * (1 + self.with_cells + self.with_diagonal) <= MAX_KEPT_MAPS:
                 self._maps[key] = a
         return a
 

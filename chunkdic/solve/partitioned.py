@@ -141,9 +141,10 @@ class PartitionedSolver:
         # are 4-D, aligned block by block (map_blocks aligns trailing axes otherwise)
         self._H = _flat(self.matrix_blocks)
         self._W = None if cells is None else _flat(cells)
-        #: block-Jacobi's diagonal blocks of ``M`` (nz, ny, nx, 1, 3, 3) float32, weak nodes held,
-        #: in the process with the vectors (36 B per node)
-        self._diagonal = None if self._files is None else holder.gather(self.matrix_blocks[..., :1, :, :])
+        # with the vectors in the process, block-Jacobi's diagonal blocks of M (weak nodes held)
+        # in files of their own beside the stencil's, read block by block (36 B per node)
+        if self._files is not None:
+            self._files.save_diagonal(self.matrix_blocks[..., :1, :, :])
         self.regularizer: Regularizer | None = None
         self.weight = 0.0
         self._reg_args = (0, np.zeros((24, 24)), np.zeros((4, 4)), 0.0, 0.0, NO_FREED)
@@ -286,7 +287,7 @@ class PartitionedSolver:
             b = np.array(b, dtype=np.float64, order="C", copy=None if overwrite_b else True)
             x = np.zeros_like(b)
             Rd, iz, iy, ix = self._diag_args
-            iterations = pcg(self.matvec, lambda r, z: block_solve(self._diagonal, Rd, iz, iy, ix, self.weight, r, z),
+            iterations = pcg(self.matvec, lambda r, z: self._files.precondition(r, z, Rd, (iz, iy, ix), self.weight),
                              b, x, rtol, self.maxiter, overwrite_b=True)
             return x, self._iterations(iterations)
         r = self._vector(b, "r")

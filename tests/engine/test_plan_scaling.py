@@ -95,3 +95,33 @@ def test_node_blocks_count_on_the_scratch_and_not_in_the_output(empty_pair, monk
     assert client.output_bytes - disk.output_bytes == stencil
     extra = disk.scratch_bytes - client.scratch_bytes
     assert 2 * stencil <= extra <= 2 * stencil * 1.5, extra / stencil
+
+
+def test_node_blocks_go_to_the_scratch_when_the_workers_cannot_hold_their_share(empty_pair, monkeypatch):
+    """The 1024³ pair at ℓ = 8 (128³ nodes) on 2 single-threaded workers, mesh data in blocks by
+    the memory target. Under 2 GiB each worker holds half the node blocks (680 B per node:
+    0.67 GiB) beside its tasks. Under 1 GiB that half and a worker's base and tasks do not
+    fit, while the client's share of the mesh data does: the blocks go to files on the scratch
+    disk (their products in the client, its threads' blocks in flight counted there), the
+    workers hold tasks only, and no process is planned above the target."""
+    from chunkdic.engine.costs import BLOCKED_CLIENT_BYTES_PER_NODE, BLOCKS_BYTES_PER_NODE
+    from chunkdic.solve.nodeblocks import MAX_TASK_BYTES
+
+    def plan(target):
+        monkeypatch.setattr(runplan, "_free", lambda path: 2**50)
+        with warnings.catch_warnings(), dask.config.set({"chunkdic.num-threads": 2}):
+            warnings.simplefilter("ignore", MissingChunksWarning)
+            return chunkdic.plan(empty_pair / "ref.zarr", empty_pair / "def.zarr", element_size=8,
+                                 scheduler="local:2", calibrate=False, memory_target=target, grey="global")
+
+    roomy, tight = plan("2GiB"), plan("1GiB")
+    nodes = 128**3
+    assert roomy.mesh_data == "workers" and tight.mesh_data == "disk"
+    assert roomy.blocks_bytes == tight.blocks_bytes == BLOCKS_BYTES_PER_NODE * nodes
+    assert "in files under the scratch" in tight.summary() and "each worker's share" in tight.summary()
+    # the client: its share per node, plus two threads' blocks in flight with the blocks on disk
+    assert tight.client_bytes - roomy.client_bytes == 2 * MAX_TASK_BYTES
+    assert roomy.client_bytes == BLOCKED_CLIENT_BYTES_PER_NODE * nodes
+    assert tight.process_bytes <= 2**30 < tight.base_bytes + tight.task_bytes + tight.blocks_bytes // 2
+    assert tight.scratch_bytes - roomy.scratch_bytes >= tight.blocks_bytes  # the blocks' files
+    tight.check()

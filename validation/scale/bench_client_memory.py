@@ -125,14 +125,16 @@ class _StandInRunner:
         from chunkdic.kernels.blocks import LAGS, ElementSums
 
         for inputs, job, _u, _active, probes, _probe_active, _other in args:
-            key = ("b", inputs.grey) + tuple(job.block.n_elements)
+            key = ("b", inputs.grey, inputs.grey_cell) + tuple(job.block.n_elements)
             if key not in self._cache:
                 n = tuple(job.block.n_elements)
                 v = self._rng.normal(size=n + (6, 10))
                 v[..., 2, :] = 1.0  # the quantity ``1``: the element's voxel count on the diagonal
                 gram = np.einsum("...ik,...jk->...ij", v, v) * job.ell**3 / 10
                 B = self._rng.normal(size=n + (6, 8, 3))
-                self._cache[key] = reduce_block(ElementSums(B, gram, 0, np.zeros((6, LAGS + 1))), inputs.grey)
+                # the level's brightness model and cells, as engine.tasks.b_task reduces them
+                self._cache[key] = reduce_block(ElementSums(B, gram, 0, np.zeros((6, LAGS + 1))), inputs.grey,
+                                                inputs.grey_cell)
             part = self._cache[key]
             yield job.block, part, [(part.scalars, part.n_excluded) for _ in probes], None  # the start gaps' probes; no crack
 
