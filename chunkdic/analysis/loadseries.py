@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import errno
 import json
 import time
 from collections.abc import Callable, Sequence
@@ -55,6 +54,7 @@ from ..method.start import filled
 from ..engine.meshes import parse_roi
 from ..method.settings import Settings
 from ..errors import DiskSpaceError, InputError
+from ..io.diskspace import disk_cause
 from ..io.formats.anyscan import open_any
 from ..io.jsonfile import json_dict, read_json_object
 from ..io.kinds import kind_of
@@ -223,7 +223,7 @@ def series(
             with inside(out), _one_cluster(scheduler) as sched:
                 result = _run(scans, out, settings, mode, roi, sched, progress, mask)
         except (InputError, OSError) as exc:
-            cause = _disk_cause(exc)
+            cause = disk_cause(exc)
             if cause is not None and _resumable(out):
                 # a full (read-only, failing) disk is no bad input: the complete steps and the
                 # interrupted step's checkpoint stay, and the message says how to resume
@@ -238,19 +238,6 @@ def series(
             raise
         _finish(out, result.rows)
     return result
-
-
-#: disk errors (full, quota, read-only, I/O): the run cannot write, its inputs are fine
-_DISK_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG}
-
-
-def _disk_cause(exc: BaseException) -> str | None:
-    """The disk error behind ``exc`` in one phrase naming the path, or None (another refusal)."""
-    if isinstance(exc, DiskSpaceError):
-        return exc.cause
-    if isinstance(exc, OSError) and exc.errno in _DISK_ERRNOS:
-        return f"{exc.strerror or exc} ({exc.filename})" if exc.filename else f"{exc.strerror or exc}"
-    return None
 
 
 def _resumable(out: Path) -> bool:

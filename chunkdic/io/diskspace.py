@@ -10,18 +10,32 @@ and result) and by the image exports (:mod:`chunkdic.export.fields_image`,
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 from pathlib import Path
 
 from ..errors import DiskSpaceError
 
-__all__ = ["DISK_MARGIN", "existing_parent", "free_bytes", "same_device", "format_bytes", "check_disk"]
+__all__ = ["DISK_MARGIN", "DISK_ERRNOS", "disk_cause", "existing_parent", "free_bytes", "same_device", "format_bytes",
+           "check_disk"]
 
 GiB, MiB = 2**30, 2**20
 
 #: free disk kept beyond an estimate (file-system metadata, other writers)
 DISK_MARGIN = 1.05
+#: disk errors (full, quota, read-only, I/O, file too large): the run cannot write, its inputs are fine
+DISK_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EIO, errno.EFBIG})
+
+
+def disk_cause(exc: BaseException) -> str | None:
+    """The disk error behind ``exc`` in one phrase naming the path, or None (another failure):
+    a :class:`~chunkdic.errors.DiskSpaceError`'s cause, or an ``OSError`` of :data:`DISK_ERRNOS`."""
+    if isinstance(exc, DiskSpaceError):
+        return exc.cause
+    if isinstance(exc, OSError) and exc.errno in DISK_ERRNOS:
+        return f"{exc.strerror or exc} ({exc.filename})" if exc.filename else f"{exc.strerror or exc}"
+    return None
 
 
 def existing_parent(path) -> Path:

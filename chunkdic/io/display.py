@@ -30,6 +30,7 @@ larger one).
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +42,7 @@ from .jsonfile import json_dict, read_json_object
 from .ngff import complete_levels, ngff_attrs, omero, update_group_metadata
 from .owntree import remove
 from .scan import open_scan
-from .siblings import final_name
+from .siblings import final_name, partial_name, reclaim_stale_partials
 from .store import compressors, store_array
 
 log = logging.getLogger(__name__)
@@ -263,10 +264,18 @@ def write_display(path: str, *, progress=None) -> list[int]:
         raise InputError(f"{path} has no pyramid levels: give --levels N with --display")
     check_display_slot(path)
     root = zarr.open_group(store=str(path), mode="r+")
+    node = Path(path) / DISPLAY_GROUP
     if own_display(path):
-        remove_display(Path(path) / DISPLAY_GROUP)
-    # marked chunkdic's at once: a build killed from here on leaves a group the next one replaces
-    g = root.create_group(DISPLAY_GROUP, attributes={"chunkdic": {"kind": "display", "complete": False}})
+        remove_display(node)
+    # marked chunkdic's before it has its name: made as a staged sibling and renamed, so that a
+    # build killed at any point leaves either no display/, or one whose zarr.json says it is
+    # chunkdic's (killed while zarr wrote that file in place, it left one no reader could trust
+    # and the next build refused it); a staged group of a dead build is reclaimed
+    reclaim_stale_partials(node)
+    staged = partial_name(node)
+    zarr.open_group(store=str(staged), mode="w-", attributes={"chunkdic": {"kind": "display", "complete": False}})
+    os.rename(staged, node)
+    g = zarr.open_group(store=str(path), path=DISPLAY_GROUP, mode="r+")
     refs = scan.stored_refs()
     chunk0 = tuple(root["0"].chunks)
     for i, s in enumerate(levels):

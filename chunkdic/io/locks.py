@@ -18,7 +18,8 @@ import uuid
 from dataclasses import asdict
 from pathlib import Path
 
-from ..errors import InputError
+from ..errors import DiskSpaceError, InputError
+from .diskspace import DISK_ERRNOS
 from .jsonfile import read_json
 from .owners import Owner
 from .owntree import remove
@@ -60,13 +61,13 @@ class OutputLock:
                 self._take_over_if_stale()
                 continue
             except OSError as exc:
-                raise InputError(f"cannot create the lock {self.path}: {exc.strerror}") from None
+                raise _lock_error("create", self.path, exc) from None
             try:
                 with os.fdopen(fd, "w") as fh:
                     fh.write(record)
             except OSError as exc:  # a full disk: the empty lock file would outlive the refusal
                 remove(self.path)
-                raise InputError(f"cannot write the lock {self.path}: {exc.strerror}") from None
+                raise _lock_error("write", self.path, exc) from None
             self.held = True
             _HELD.add(key)
             return self
@@ -163,4 +164,14 @@ def reclaim_stale_locks(directory: Path) -> list[Path]:
             removed.append(entry)
             log.info("removed the lock %s of a dead run (%s)", entry, owner.describe())
     return removed
+
+
+def _lock_error(verb: str, path: Path, exc: OSError) -> InputError:
+    """The one line for a lock that cannot be made; a disk error (a full disk) is a
+    :class:`~chunkdic.errors.DiskSpaceError` with its cause, so that a command that keeps
+    what it wrote on a full disk (``series``) says so here too."""
+    message = f"cannot {verb} the lock {path}: {exc.strerror}"
+    if exc.errno in DISK_ERRNOS:
+        return DiskSpaceError(message, cause=f"{exc.strerror} ({path})")
+    return InputError(message)
 

@@ -242,6 +242,26 @@ def _unshare_ok() -> bool:
         subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode == 0
 
 
+@pytest.mark.skipif(not _unshare_ok(), reason="needs a private mount namespace (unshare -m) for a full disk")
+def test_a_lock_on_a_full_disk_is_a_disk_error_with_its_cause(tmp_path):
+    """An output's lock made on a full disk (a 64 KiB tmpfs filled) is refused as a disk error
+    (``DiskSpaceError``, whose cause a command that keeps its work on a full disk, ``series``,
+    reports as such: a series whose disk fills as a step takes its lock keeps its complete
+    steps and says so), and no lock file is left behind."""
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    probe = ("import sys; from chunkdic.errors import DiskSpaceError; from chunkdic.io.locks import OutputLock\n"
+             "try:\n    OutputLock(sys.argv[1]).acquire()\nexcept DiskSpaceError as e:\n"
+             "    print('disk', e.cause)\nelse:\n    print('taken')\n")
+    script = ('mount -t tmpfs -o size=64k tmpfs "$1" || exit 90; dd if=/dev/zero of="$1/filler" bs=4k 2>/dev/null; '
+              '"$2" -c "$3" "$1/out.zarr"; ls -A "$1"')
+    proc = subprocess.run(["unshare", "-m", "sh", "-c", script, "sh", str(mnt), sys.executable, probe],
+                          capture_output=True, text=True, timeout=120)
+    out = proc.stdout.splitlines()
+    assert proc.returncode == 0 and out[0].startswith("disk No space left on device ("), (proc.stdout, proc.stderr)
+    assert out[0].endswith(".out.zarr.chunkdic-lock)") and out[1:] == ["filler"], out
+
+
 #: in a private mount namespace: a 4 MiB tmpfs at $1; the series runs in the background until
 #: the line $2, then the disk is filled; after the run the filler goes, the same command runs
 #: again, and the series is copied out for the test to compare
