@@ -350,8 +350,14 @@ def measure_texture(ref: ArrayRef, map_tasks, *, element_sizes=(), noise: float 
         if ell not in sizes and stats.sigma_u[ell][0] <= SIGMA_LIMIT:
             break
     stats.smallest = smallest_supported(weak, {e: s[0] for e, s in stats.sigma_u.items()})
-    stats.textured = bool(weak) and weak[max(weak)] < 1.0
+    stats.textured = textured(weak)
     return stats
+
+
+def textured(weak: dict[int, float]) -> bool:
+    """Whether the reference holds texture above its noise: some element of the largest size
+    measured is not weakly textured (``weak``: element size → fraction of weak elements)."""
+    return bool(weak) and weak[max(weak)] < 1.0
 
 
 def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = None) -> int | None:
@@ -379,7 +385,7 @@ def smallest_supported(weak: dict[int, float], sigma: dict[int, float] | None = 
     >>> smallest_supported({4: 0.0, 8: 0.0, 16: 0.0}, {4: 2.5, 8: 0.9})  # 16: unknown, 8 above the limit
     >>> smallest_supported({4: 1.0, 8: 1.0, 16: 1.0})  # no texture above the noise
     """
-    if not weak or weak[max(weak)] >= 1.0:
+    if not textured(weak):
         return None
     base = weak[max(weak)]
     known = None if sigma is None else {e: s for e, s in sigma.items() if not math.isnan(s)}
