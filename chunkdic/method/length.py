@@ -41,8 +41,8 @@ START_LENGTH = 2.0
 #: element size (:func:`start_length`): the CT specimens' 5.5–6.4 voxels at ℓ = 4 keep their
 #: band's error only with a 2ℓ start
 FINE_TEXTURE = 8.0
-#: a start field whose mean displacement gradient reaches this is a large deformation
-#: (:func:`start_length`): 10 % compression is 0.03–0.10, a 10° rotation 0.17, the heterogeneous
+#: a field whose mean displacement gradient reaches this is a large deformation
+#: (:func:`start_length`, :func:`choose_regularization`): 10 % compression is 0.03–0.10, a 10° rotation 0.17, the heterogeneous
 #: cases (a −8 % band 6 voxels wide, waves and slips of 0.5 voxel) below 0.01
 LARGE_GRADIENT = 0.02
 
@@ -181,7 +181,9 @@ def length_to_choose(settings: Settings, state: State) -> bool:
 def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty, settings: Settings, level: int,
                           mesh: Mesh, progress=None, texture_length: float = math.nan) -> tuple[State, Penalty]:
     """``ℓ_reg`` chosen at the converged field ``state.u`` and its pass ``p``
-    (:func:`chunkdic.solve.regchoice.choose_length`), then ``settings.reweights`` times: the
+    (:func:`chunkdic.solve.regchoice.choose_length`; under a large deformation, a mean
+    gradient of :data:`LARGE_GRADIENT` or more, with its
+    :data:`~chunkdic.solve.regchoice.LARGE_DEFORMATION_TOLERANCE`), then ``settings.reweights`` times: the
     curvature terms of the field this length gives (:func:`linearised_field`) beyond
     :data:`~chunkdic.solve.reweighting.ROBUST_THRESHOLD` robust σ freed
     (:func:`~chunkdic.solve.reweighting.robust_freed`) and the length chosen again for the
@@ -210,10 +212,13 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
         last["solver"].regularize(reg, weight)
         return last["solver"].solve(rhs)[0]
 
+    large = mean_gradient(state.u, mesh.element_size) >= LARGE_GRADIENT
+
     def choose(freed, guess=None):
         return choose_length(settings.regularization, op.solver.matrix, mesh.element_size, u, p.b,
                              p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
-                             rule=settings.regularization_rule, freed=released(op, freed), guess=guess)
+                             rule=settings.regularization_rule, freed=released(op, freed), guess=guess,
+                             large_deformation=large)
 
     # probed first: the length the level has iterated with so far (2ℓ; on heterogeneous fields
     # the choice is 1-3 candidates from it), not the middle candidate, whose long-length solve

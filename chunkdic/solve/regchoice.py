@@ -40,6 +40,17 @@ EVENNESS_FLOOR = 0.2
 #: when the noise explains its misfit increase (:func:`noise_misfit`; docs/engine.md, "The
 #: regularisation length on a coarse texture")
 NOISE_EXPLAINED_SHARE = 0.4
+#: ``"discrepancy-texture"`` under a large deformation: the misfit increase, in noise budgets,
+#: that the longest candidate may give up with no feature bounding the length. There the
+#: imaging's mismatch (the partial volume and blur of the few edges of a coarse texture, which
+#: do not deform with the material) is fitted by short lengths as a feature would be: 10 % and
+#: 20 % compression on textures of 12–24 voxels give up 1.1–2.4 budgets at ℓ = 8–16 (4.2 at
+#: ℓ = 16 on the coarsest grains), the best fixed length being the longest. Every feature
+#: measured at ℓ = 8–16 gives up more than 4.2 (waves, bands, slips, cracks), a −20 % band 48
+#: voxels wide under the same large deformation more than 7; only at ℓ = 4–6 on textures of
+#: 12–23 voxels, sizes ``chunkdic texture`` calls unsupported, do a band, a crack and a slip
+#: give up 1.1–2.4 (docs/engine.md, "The regularisation length on a coarse texture")
+LARGE_DEFORMATION_TOLERANCE = 2.5
 #: ``"discrepancy-kinks"``: in the choice after a robust reweighting, an unknown within one
 #: node of a freed term counts this many times in the noise budget (docs/engine.md, "The
 #: slip: a budget for the kinks' model error")
@@ -109,7 +120,8 @@ def regions(shape, edge: int = None) -> list[tuple[slice, slice, slice]]:
 
 def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.ndarray,
                   noise_variance: float, solve_with, *, rule: str = DEFAULT_RULE, kappa: float = 1.0,
-                  sweep: bool = False, freed: np.ndarray | None = None, guess: float | None = None) -> Choice:
+                  sweep: bool = False, freed: np.ndarray | None = None, guess: float | None = None,
+                  large_deformation: bool = False) -> Choice:
     """The regularisation length by ``rule``, on the client.
 
     At a converged field ``a`` with right-hand side ``b``, the data misfit of a field
@@ -136,7 +148,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         most uneven, also within what the noise explains (:func:`feature_allowance`). Where
         no candidate exceeds the budget (noise only, a uniform or linear field), the longest;
         for a reweighted penalty (``freed``), the discrepancy, but below
-        :data:`NOISE_EXPLAINED_SHARE` the same allowance.
+        :data:`NOISE_EXPLAINED_SHARE` the same allowance. Under a ``large_deformation``, a
+        candidate over budget bounds the length only if the longest candidate's misfit increase
+        exceeds :data:`LARGE_DEFORMATION_TOLERANCE` budgets; otherwise the longest.
     ``"discrepancy"``, ``"discrepancy-half"``
         Morozov's principle: the longest length with ``D(λ) - D(ℓ) <= τ s² N``, ``τ`` = 1
         or 1/2 (a safety factor).
@@ -193,6 +207,10 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         The discrepancy's search probes it first, then walks up from it in growing steps, or
         bisects below it when it fails (fewer slow long-length solves; the same choice, the
         misfit being monotone in the length).
+    large_deformation : bool
+        The field is a large deformation (:data:`chunkdic.method.length.LARGE_GRADIENT`):
+        ``"discrepancy-texture"`` then takes a curve over budget for a feature only beyond
+        :data:`LARGE_DEFORMATION_TOLERANCE` budgets at the longest candidate (one more solve).
 
     Returns
     -------
@@ -256,8 +274,11 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             else:
                 pick = int(np.flatnonzero(misfit[:best_index + 1] - base <= tau * budget).max())
                 if share < 1.0 and pick + 1 < len(lengths) and misfit[pick + 1] - base > tau * budget:
-                    allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
-                    pick = _longest_within(lambda i: misfit[i] - base <= allowed[i], pick + 1, pick)
+                    if large_deformation and misfit[best_index] - base <= LARGE_DEFORMATION_TOLERANCE * budget:
+                        pick = best_index
+                    else:
+                        allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
+                        pick = _longest_within(lambda i: misfit[i] - base <= allowed[i], pick + 1, pick)
             curves.append({"misfit": misfit - base, "roughness": rough, "penalty": penalty, "budget": budget,
                            "share": share})
         elif rule in ("upre", "gcv"):
@@ -274,11 +295,15 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             pick = _longest_within(lambda i: evaluate(i) - base <= tau * budget, best_index + 1,
                                    first if best is None else best_index, walk=guess is not None)
             if share < 1.0 and pick + 1 <= best_index and evaluate(pick + 1) - base > tau * budget:
-                # a feature bounds the length here (the longer candidate was solved and failed): its
-                # smoothing may take only the texture's share of the budget (feature_share), or on
-                # the most uneven textures what the noise alone explains
-                allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
-                pick = _longest_within(lambda i: evaluate(i) - base <= allowed[i], pick + 1, pick)
+                if large_deformation and evaluate(pick + 1) - base <= LARGE_DEFORMATION_TOLERANCE * budget \
+                        and evaluate(best_index) - base <= LARGE_DEFORMATION_TOLERANCE * budget:
+                    pick = best_index  # no feature: what the longest length gives up is the imaging's
+                else:
+                    # a feature bounds the length here (the longer candidate was solved and failed):
+                    # its smoothing may take only the texture's share of the budget
+                    # (feature_share), or on the most uneven textures what the noise alone explains
+                    allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
+                    pick = _longest_within(lambda i: evaluate(i) - base <= allowed[i], pick + 1, pick)
         if best is None or pick < best_index:
             corner = float(lengths[_corner(misfit - base, rough)]) if sweep else math.nan
             best, best_index = Choice(float(lengths[pick]), lengths, misfit, rough, budget, corner), pick
