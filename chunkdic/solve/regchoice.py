@@ -46,11 +46,20 @@ NOISE_EXPLAINED_SHARE = 0.4
 #: do not deform with the material) is fitted by short lengths as a feature would be: 10 % and
 #: 20 % compression on textures of 12–24 voxels give up 1.1–2.4 budgets at ℓ = 8–16 (4.2 at
 #: ℓ = 16 on the coarsest grains), the best fixed length being the longest. Every feature
-#: measured at ℓ = 8–16 gives up more than 4.2 (waves, bands, slips, cracks), a −20 % band 48
-#: voxels wide under the same large deformation more than 7; only at ℓ = 4–6 on textures of
-#: 12–23 voxels, sizes ``chunkdic texture`` calls unsupported, do a band, a crack and a slip
-#: give up 1.1–2.4 (docs/engine.md, "The regularisation length on a coarse texture")
+#: measured at ℓ = 8–16 gives up more than 4.2 (waves, bands, slips, cracks), and a −20 % band
+#: 48 voxels wide, itself a large deformation, 7–116 but on the coarsest grains (1.2 at
+#: ℓ = 8: :data:`ACCELERATION` tells it); only at ℓ = 4–6 on textures of 12–23 voxels, sizes
+#: ``chunkdic texture`` calls unsupported, do a band, a crack and a slip give up 1.1–2.4
+#: (docs/engine.md, "The regularisation length on a coarse texture")
 LARGE_DEFORMATION_TOLERANCE = 2.5
+#: ... unless the misfit accelerates: a √2 step of the length costs at least this many times the
+#: step before it (of at least :data:`ACCELERATION_FLOOR` budgets). Smoothing a feature costs a
+#: misfit that grows as a power of the length (the penalty weighs ``(ℓ_reg / T)⁴``) until it is
+#: gone: 2.7–5.3 on the −20 % band 48 voxels wide, also where its whole misfit stays within 1.3
+#: budgets (grains at texture scale 4.5, ℓ = 8); what the degrees of freedom absorb, noise and
+#: the imaging's mismatch, grows by at most 1.73 per step on 10–20 % compression at ℓ = 8–16
+ACCELERATION = 2.0
+ACCELERATION_FLOOR = 0.05
 #: ``"discrepancy-kinks"``: in the choice after a robust reweighting, an unknown within one
 #: node of a freed term counts this many times in the noise budget (docs/engine.md, "The
 #: slip: a budget for the kinks' model error")
@@ -149,8 +158,8 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         no candidate exceeds the budget (noise only, a uniform or linear field), the longest;
         for a reweighted penalty (``freed``), the discrepancy, but below
         :data:`NOISE_EXPLAINED_SHARE` the same allowance. Under a ``large_deformation``, a
-        candidate over budget bounds the length only if the longest candidate's misfit increase
-        exceeds :data:`LARGE_DEFORMATION_TOLERANCE` budgets; otherwise the longest.
+        candidate over budget bounds the length only where the misfit says a feature
+        (:func:`no_feature`); otherwise the longest.
     ``"discrepancy"``, ``"discrepancy-half"``
         Morozov's principle: the longest length with ``D(λ) - D(ℓ) <= τ s² N``, ``τ`` = 1
         or 1/2 (a safety factor).
@@ -209,8 +218,8 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         misfit being monotone in the length).
     large_deformation : bool
         The field is a large deformation (:data:`chunkdic.method.length.LARGE_GRADIENT`):
-        ``"discrepancy-texture"`` then takes a curve over budget for a feature only beyond
-        :data:`LARGE_DEFORMATION_TOLERANCE` budgets at the longest candidate (one more solve).
+        ``"discrepancy-texture"`` then takes a curve over budget for a feature only where
+        :func:`no_feature` does not hold (every candidate solved, only then).
 
     Returns
     -------
@@ -274,7 +283,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             else:
                 pick = int(np.flatnonzero(misfit[:best_index + 1] - base <= tau * budget).max())
                 if share < 1.0 and pick + 1 < len(lengths) and misfit[pick + 1] - base > tau * budget:
-                    if large_deformation and misfit[best_index] - base <= LARGE_DEFORMATION_TOLERANCE * budget:
+                    if large_deformation and no_feature(lambda i: misfit[i] - base, best_index, budget):
                         pick = best_index
                     else:
                         allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
@@ -295,9 +304,8 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             pick = _longest_within(lambda i: evaluate(i) - base <= tau * budget, best_index + 1,
                                    first if best is None else best_index, walk=guess is not None)
             if share < 1.0 and pick + 1 <= best_index and evaluate(pick + 1) - base > tau * budget:
-                if large_deformation and evaluate(pick + 1) - base <= LARGE_DEFORMATION_TOLERANCE * budget \
-                        and evaluate(best_index) - base <= LARGE_DEFORMATION_TOLERANCE * budget:
-                    pick = best_index  # no feature: what the longest length gives up is the imaging's
+                if large_deformation and no_feature(lambda i: evaluate(i) - base, best_index, budget):
+                    pick = best_index  # what the longest length gives up is the imaging's
                 else:
                     # a feature bounds the length here (the longer candidate was solved and failed):
                     # its smoothing may take only the texture's share of the budget
@@ -309,6 +317,19 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             best, best_index = Choice(float(lengths[pick]), lengths, misfit, rough, budget, corner), pick
     best.rule, best.curves = rule, curves
     return best
+
+
+def no_feature(increase, last: int, budget: float) -> bool:
+    """Under a large deformation, whether the misfit increase over the shortest candidate,
+    ``increase(i)`` for candidates ``i <= last`` (grey levels²), is what the fitted degrees of
+    freedom absorb and give back rather than a feature's: at most
+    :data:`LARGE_DEFORMATION_TOLERANCE` budgets at ``last``, and no step of the length costing
+    :data:`ACCELERATION` times the one before it (steps of at least :data:`ACCELERATION_FLOOR`
+    budgets). Solves every candidate up to ``last`` when the first test passes."""
+    if increase(last) > LARGE_DEFORMATION_TOLERANCE * budget:
+        return False
+    steps = np.diff([increase(i) for i in range(last + 1)])
+    return not any(b >= ACCELERATION * a for a, b in zip(steps[:-1], steps[1:]) if a >= ACCELERATION_FLOOR * budget)
 
 
 def texture_evenness(half: np.ndarray) -> float:
