@@ -157,9 +157,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         most uneven, also within what the noise explains (:func:`feature_allowance`). Where
         no candidate exceeds the budget (noise only, a uniform or linear field), the longest;
         for a reweighted penalty (``freed``), the discrepancy, but below
-        :data:`NOISE_EXPLAINED_SHARE` the same allowance. Under a ``large_deformation``, a
-        candidate over budget bounds the length only where the misfit says a feature
-        (:func:`no_feature`); otherwise the longest.
+        :data:`NOISE_EXPLAINED_SHARE` the same allowance. Under a ``large_deformation``, with
+        or without ``freed``, a candidate over budget bounds the length only where the misfit
+        says a feature (:func:`no_feature`); otherwise the longest.
     ``"discrepancy"``, ``"discrepancy-half"``
         Morozov's principle: the longest length with ``D(λ) - D(ℓ) <= τ s² N``, ``τ`` = 1
         or 1/2 (a safety factor).
@@ -232,6 +232,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     sweep = sweep or rule == "l-curve"
     lengths = np.array([c * ell for c in CANDIDATES])
     near = near_freed(freed) if rule == "discrepancy-kinks" and freed is not None else None
+    large_deformation = large_deformation and rule == "discrepancy-texture"
     best, best_index, curves = None, len(lengths) - 1, []
     for sub in regions(half.shape[:3]):
         if best_index == 0 and not sweep:
@@ -282,10 +283,10 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
                 pick = min(_corner(misfit - base, rough), best_index)
             else:
                 pick = int(np.flatnonzero(misfit[:best_index + 1] - base <= tau * budget).max())
-                if share < 1.0 and pick + 1 < len(lengths) and misfit[pick + 1] - base > tau * budget:
+                if pick + 1 <= best_index and misfit[pick + 1] - base > tau * budget:
                     if large_deformation and no_feature(lambda i: misfit[i] - base, best_index, budget):
                         pick = best_index
-                    else:
+                    elif share < 1.0:
                         allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
                         pick = _longest_within(lambda i: misfit[i] - base <= allowed[i], pick + 1, pick)
             curves.append({"misfit": misfit - base, "roughness": rough, "penalty": penalty, "budget": budget,
@@ -303,10 +304,10 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             first = len(lengths) // 2 if guess is None else int(np.argmin(np.abs(np.log(lengths / guess))))
             pick = _longest_within(lambda i: evaluate(i) - base <= tau * budget, best_index + 1,
                                    first if best is None else best_index, walk=guess is not None)
-            if share < 1.0 and pick + 1 <= best_index and evaluate(pick + 1) - base > tau * budget:
+            if pick + 1 <= best_index and evaluate(pick + 1) - base > tau * budget:
                 if large_deformation and no_feature(lambda i: evaluate(i) - base, best_index, budget):
                     pick = best_index  # what the longest length gives up is the imaging's
-                else:
+                elif share < 1.0:
                     # a feature bounds the length here (the longer candidate was solved and failed):
                     # its smoothing may take only the texture's share of the budget
                     # (feature_share), or on the most uneven textures what the noise alone explains
