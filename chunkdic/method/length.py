@@ -42,8 +42,9 @@ START_LENGTH = 2.0
 #: band's error only with a 2ℓ start
 FINE_TEXTURE = 8.0
 #: a field whose mean displacement gradient reaches this is a large deformation
-#: (:func:`start_length`, :func:`choose_regularization`): 10 % compression is 0.03–0.10, a 10° rotation 0.17, the heterogeneous
-#: cases (a −8 % band 6 voxels wide, waves and slips of 0.5 voxel) below 0.01
+#: (:func:`start_length`, :func:`choose_regularization`): 10 % compression is 0.03–0.10, a 10°
+#: rotation 0.17, the heterogeneous cases (a −8 % band 6 voxels wide, waves and slips of 0.5
+#: voxel) below 0.01
 LARGE_GRADIENT = 0.02
 
 
@@ -182,8 +183,9 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
                           mesh: Mesh, progress=None, texture_length: float = math.nan) -> tuple[State, Penalty]:
     """``ℓ_reg`` chosen at the converged field ``state.u`` and its pass ``p``
     (:func:`chunkdic.solve.regchoice.choose_length`; under a large deformation, a mean
-    gradient of :data:`LARGE_GRADIENT` or more, with its
-    :data:`~chunkdic.solve.regchoice.LARGE_DEFORMATION_TOLERANCE`), then ``settings.reweights`` times: the
+    gradient of :data:`LARGE_GRADIENT` or more, a candidate over budget bounds the length only
+    where :func:`~chunkdic.solve.regchoice.no_feature` does not hold), then
+    ``settings.reweights`` times: the
     curvature terms of the field this length gives (:func:`linearised_field`) beyond
     :data:`~chunkdic.solve.reweighting.ROBUST_THRESHOLD` robust σ freed
     (:func:`~chunkdic.solve.reweighting.robust_freed`) and the length chosen again for the

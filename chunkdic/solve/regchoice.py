@@ -283,7 +283,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
                 pick = min(_corner(misfit - base, rough), best_index)
             else:
                 pick = int(np.flatnonzero(misfit[:best_index + 1] - base <= tau * budget).max())
-                if pick + 1 <= best_index and misfit[pick + 1] - base > tau * budget:
+                if pick + 1 < len(lengths) and misfit[pick + 1] - base > tau * budget:
                     if large_deformation and no_feature(lambda i: misfit[i] - base, best_index, budget):
                         pick = best_index
                     elif share < 1.0:

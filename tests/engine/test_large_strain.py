@@ -123,7 +123,7 @@ def test_large_compression_on_a_coarse_texture(tmp_path, specimen, scale, acl, c
     length gives up there exceeds the noise budget with no feature in the field: read as a
     feature, it kept 12–16 voxels and 0.13–0.18 voxel here (0.10–0.42 on the 100³ pairs of
     validation/scripts/bench_vs_aldvc.py); under a large deformation the choice takes it for
-    one only beyond :data:`~chunkdic.solve.regchoice.LARGE_DEFORMATION_TOLERANCE` budgets."""
+    one only where the misfit says a feature (:func:`chunkdic.solve.regchoice.no_feature`)."""
     p = synthetic.synthesize(tmp_path / "coarse", SIZE, field=FIELDS[case], specimen=specimen,
                              noise=0.02, texture_scale=scale)
     ref = open_scan(p["reference"]).refs([0])[0].open()[:]
