@@ -274,6 +274,18 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         else:
             penalty = np.zeros(len(lengths))
         base = evaluate(0)
+
+        def over_budget(pick: int, increase) -> int:
+            # a longer candidate than ``pick`` was solved and went over budget: under a large
+            # deformation the longest unless the misfit says a feature (no_feature); a feature
+            # bounds the length, and its smoothing may take only the texture's share of the
+            # budget (feature_share), or on the most uneven textures what the noise alone explains
+            if large_deformation and no_feature(increase, best_index, budget):
+                return best_index
+            if share < 1.0:
+                allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
+                return _longest_within(lambda i: increase(i) <= allowed[i], pick + 1, pick)
+            return pick
         if sweep:
             for i in range(1, len(lengths)):
                 evaluate(i)
@@ -284,11 +296,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             else:
                 pick = int(np.flatnonzero(misfit[:best_index + 1] - base <= tau * budget).max())
                 if pick + 1 < len(lengths) and misfit[pick + 1] - base > tau * budget:
-                    if large_deformation and no_feature(lambda i: misfit[i] - base, best_index, budget):
-                        pick = best_index
-                    elif share < 1.0:
-                        allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
-                        pick = _longest_within(lambda i: misfit[i] - base <= allowed[i], pick + 1, pick)
+                    pick = over_budget(pick, lambda i: misfit[i] - base)
             curves.append({"misfit": misfit - base, "roughness": rough, "penalty": penalty, "budget": budget,
                            "share": share})
         elif rule in ("upre", "gcv"):
@@ -305,14 +313,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             pick = _longest_within(lambda i: evaluate(i) - base <= tau * budget, best_index + 1,
                                    first if best is None else best_index, walk=guess is not None)
             if pick + 1 <= best_index and evaluate(pick + 1) - base > tau * budget:
-                if large_deformation and no_feature(lambda i: evaluate(i) - base, best_index, budget):
-                    pick = best_index  # what the longest length gives up is the imaging's
-                elif share < 1.0:
-                    # a feature bounds the length here (the longer candidate was solved and failed):
-                    # its smoothing may take only the texture's share of the budget
-                    # (feature_share), or on the most uneven textures what the noise alone explains
-                    allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
-                    pick = _longest_within(lambda i: evaluate(i) - base <= allowed[i], pick + 1, pick)
+                pick = over_budget(pick, lambda i: evaluate(i) - base)
         if best is None or pick < best_index:
             corner = float(lengths[_corner(misfit - base, rough)]) if sweep else math.nan
             best, best_index = Choice(float(lengths[pick]), lengths, misfit, rough, budget, corner), pick
