@@ -205,6 +205,15 @@ STUDIES = {s.name: s for s in (
                 "0.02 per scan; errors between the nodes on the voxels both tools score (chunkdic's own at ℓ = 6 "
                 "and 4); the oracle is the least error of the linearised fields of the candidate lengths "
                 "ℓ·2^(k/2)"),
+    Study("texture_large", "Large deformations on coarse textures, and a feature under one: the automatic length, "
+          "the best fixed length and al-dvc", "validation", "scripts/bench_vs_aldvc.py",
+          ("--sizes", "100", "--cases", "comp10", "comp20", "composed", "--specimen", "grains", "concrete",
+           "--texture-scales", "2", "4", "--spacings", "16", "12", "8", "--solo-spacings", "6", "4", "--threads", "2",
+           "--oracle", "--workdir", "{workdir}", "--record", "{raw}"), _texture_rows,
+          about="100³ grains and concrete at texture scales 2 and 4 (autocorrelation length about 12 and 23 "
+                "voxels), noise 0.02 per scan: 10 % and 20 % compression, and a crack or a slip then 10 % "
+                "compression; errors between the nodes on the voxels both tools score (chunkdic's own at ℓ = 6 "
+                "and 4); the oracle as in the texture study"),
     Study("feature_offsets", "Sharp features between the nodes: the crack, band and slip at four offsets, ℓ = 8",
           "validation", "scripts/bench_vs_aldvc.py",
           ("--sizes", "100", "--cases", "crack", "band", "slip", "--specimen", "concrete", "--texture-scales", "1",

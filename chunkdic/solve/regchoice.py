@@ -41,16 +41,18 @@ EVENNESS_FLOOR = 0.2
 #: regularisation length on a coarse texture")
 NOISE_EXPLAINED_SHARE = 0.4
 #: ``"discrepancy-texture"`` under a large deformation: the misfit increase, in noise budgets,
-#: that the longest candidate may give up with no feature bounding the length. There the
+#: that the longest candidate may give up at ℓ = 8 with no feature bounding the length; at
+#: other element sizes this times ``(ℓ / 8)²`` (:func:`large_deformation_tolerance`). There the
 #: imaging's mismatch (the partial volume and blur of the few edges of a coarse texture, which
 #: do not deform with the material) is fitted by short lengths as a feature would be: 10 % and
-#: 20 % compression on textures of 12–24 voxels give up 1.1–2.4 budgets at ℓ = 8–16 (4.2 at
-#: ℓ = 16 on the coarsest grains), the best fixed length being the longest. Every feature
-#: measured at ℓ = 8–16 gives up more than 4.2 (waves, bands, slips, cracks), and a −20 % band
-#: 48 voxels wide, itself a large deformation, 7–116 but on the coarsest grains (1.2 at
-#: ℓ = 8: :data:`ACCELERATION` tells it); only at ℓ = 4–6 on textures of 12–23 voxels, sizes
-#: ``chunkdic texture`` calls unsupported, do a band, a crack and a slip give up 1.1–2.4
-#: (docs/engine.md, "The regularisation length on a coarse texture")
+#: 20 % compression on textures of 12–24 voxels give up at most 1.2 budgets at ℓ = 8, 2.4 at
+#: 12 and 4.2 at 16, the best fixed length being the longest. The least a feature gives up
+#: (waves, bands, slips, cracks) is 4.25 at ℓ = 8, 8.9 at 12 and 14 at 16 (7–8 for a 24-voxel
+#: wave at 16, which no length resolves), 2.4 at 6 and 1.1 at 4: both grow about as ℓ^1.8,
+#: the mismatch being a misfit per voxel and the budget one per degree of freedom. A −20 %
+#: band 48 voxels wide, itself a large deformation, gives up 7–116 but on the coarsest grains
+#: (1.2 at ℓ = 8: :data:`ACCELERATION` tells it) (docs/engine.md, "The regularisation length
+#: on a coarse texture")
 LARGE_DEFORMATION_TOLERANCE = 2.5
 #: ... unless the misfit accelerates: a √2 step of the length costs at least this many times the
 #: step before it (of at least :data:`ACCELERATION_FLOOR` budgets). Smoothing a feature costs a
@@ -280,7 +282,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             # deformation the longest unless the misfit says a feature (no_feature); a feature
             # bounds the length, and its smoothing may take only the texture's share of the
             # budget (feature_share), or on the most uneven textures what the noise alone explains
-            if large_deformation and no_feature(increase, best_index, budget):
+            if large_deformation and no_feature(increase, best_index, budget, ell):
                 return best_index
             if share < 1.0:
                 allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
@@ -321,14 +323,21 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     return best
 
 
-def no_feature(increase, last: int, budget: float) -> bool:
+def large_deformation_tolerance(ell: float) -> float:
+    """The misfit increase, in noise budgets, the longest candidate may give up under a large
+    deformation with no feature bounding the length, at element size ``ell`` (voxels):
+    :data:`LARGE_DEFORMATION_TOLERANCE` at ℓ = 8, growing as ℓ²."""
+    return LARGE_DEFORMATION_TOLERANCE * (ell / 8.0) ** 2
+
+
+def no_feature(increase, last: int, budget: float, ell: float) -> bool:
     """Under a large deformation, whether the misfit increase over the shortest candidate,
     ``increase(i)`` for candidates ``i <= last`` (grey levels²), is what the fitted degrees of
     freedom absorb and give back rather than a feature's: at most
-    :data:`LARGE_DEFORMATION_TOLERANCE` budgets at ``last``, and no step of the length costing
+    :func:`large_deformation_tolerance` budgets at ``last``, and no step of the length costing
     :data:`ACCELERATION` times the one before it (steps of at least :data:`ACCELERATION_FLOOR`
     budgets). Solves every candidate up to ``last`` when the first test passes."""
-    if increase(last) > LARGE_DEFORMATION_TOLERANCE * budget:
+    if increase(last) > large_deformation_tolerance(ell) * budget:
         return False
     steps = np.diff([increase(i) for i in range(last + 1)])
     return not any(b >= ACCELERATION * a for a, b in zip(steps[:-1], steps[1:]) if a >= ACCELERATION_FLOOR * budget)

@@ -5,8 +5,9 @@ its inverse ``X(x)`` with ``X + u(X) = x``; :mod:`chunkdic.synth.foam` renders a
 scan as ``g(x) = f(X(x))``. Fields: :class:`Translation` (rigid), :class:`Affine` (exact
 inverse), :class:`Band`, the paper's localized compression band (inverse by Newton to
 1e-13), and :class:`Star`, a sine along z whose period rises across y (the DIC Challenge
-2.0 star, for the spatial resolution; explicit inverse) and :class:`Crack`, a planar crack
-(a displacement jump). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips
+2.0 star, for the spatial resolution; explicit inverse), :class:`Crack`, a planar crack
+(a displacement jump), and :class:`Composed`, one field's motion followed by another's (a
+crack under compression). Every field has ``to_json()`` and ``Field.from_json(d)``, so that it round-trips
 through a pair's ``field.json``. All names are re-exported by :mod:`chunkdic.synth.synthetic`.
 """
 
@@ -29,6 +30,7 @@ __all__ = [
     "Band",
     "Star",
     "Crack",
+    "Composed",
     "true_displacement",
 ]
 
@@ -476,6 +478,44 @@ class Crack(Field):
     def _from_fields(cls, d):
         return cls(normal=tuple(d["normal"]), point=tuple(d["point"]), opening=float(d["opening"]),
                    sliding=tuple(d.get("sliding", (0.0, 0.0, 0.0))))
+
+
+@dataclass(frozen=True)
+class Composed(Field):
+    """The motion of ``first`` followed by that of ``then``: a material point at ``X`` goes to
+    ``X + u₁(X)``, then by ``then``'s field at that position, ``u(X) = u₁(X) + u₂(X + u₁(X))``.
+    The inverse is exact where both fields' are: ``X(x) = X₁(X₂(x))``. For a feature under a
+    large deformation (a crack, then 10 % compression), where the benchmark fields are each
+    one alone.
+
+    Parameters
+    ----------
+    first, then : Field
+    """
+
+    kind: ClassVar[str] = "composed"
+    first: Field
+    then: Field
+
+    def __post_init__(self):
+        for name in ("first", "then"):
+            if not isinstance(getattr(self, name), Field):
+                raise InputError(f"composed field: {name} must be a Field, got {getattr(self, name)!r}")
+
+    def displacement(self, z, y, x):
+        X = np.stack(_xyz(z, y, x))
+        u1 = self.first.displacement(*X)
+        return u1 + self.then.displacement(*(X + u1))
+
+    def inverse(self, z, y, x):
+        return self.first.inverse(*self.then.inverse(z, y, x))
+
+    def _json_fields(self):
+        return {"first": self.first.to_json(), "then": self.then.to_json()}
+
+    @classmethod
+    def _from_fields(cls, d):
+        return cls(first=Field.from_json(d["first"]), then=Field.from_json(d["then"]))
 
 
 def true_displacement(field: Field, z, y, x) -> np.ndarray:

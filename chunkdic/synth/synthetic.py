@@ -21,7 +21,7 @@ from ..io.owntree import remove
 from ..io.scanwrite import write_scan_resumable
 from ..io.kinds import kind_of
 from .ctpair import CTSpecimen, as_dask_ct, fourier_deformed, standard_field
-from .fields import Affine, Band, Crack, Field, Star, Translation, true_displacement
+from .fields import Affine, Band, Composed, Crack, Field, Star, Translation, true_displacement
 from .foam import (
     INT_HI,
     INT_LO,
@@ -41,6 +41,7 @@ __all__ = [
     "Band",
     "Star",
     "Crack",
+    "Composed",
     "Wave",
     "Slip",
     "synthesize",

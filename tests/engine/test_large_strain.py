@@ -109,9 +109,10 @@ def test_affine_step_reports_the_homogeneous_strain(pairs):
     ("grains", 4.5, 16, "compression-20", 8),
     ("concrete", 4.0, 11, "compression-20", 8),
     ("grains", 4.5, 16, "compression-10", 12),
+    ("grains", 4.5, 16, "compression-10", 16),
 ])
 def test_large_compression_on_a_coarse_texture(tmp_path, specimen, scale, acl, case, ell):
-    """10 % and 20 % compression at ℓ = 8 and 12 on textures about 4 times coarser than the
+    """10 % and 20 % compression at ℓ = 8, 12 and 16 on textures about 4 times coarser than the
     default (autocorrelation length at least ``acl`` voxels on every axis by a whole-volume
     FFT: 16, and 11.9–13.5 on this concrete): converged within 0.03 voxel RMS between the
     nodes.
@@ -123,7 +124,9 @@ def test_large_compression_on_a_coarse_texture(tmp_path, specimen, scale, acl, c
     length gives up there exceeds the noise budget with no feature in the field: read as a
     feature, it kept 12–16 voxels and 0.13–0.18 voxel here (0.10–0.42 on the 100³ pairs of
     validation/scripts/bench_vs_aldvc.py); under a large deformation the choice takes it for
-    one only where the misfit says a feature (:func:`chunkdic.solve.regchoice.no_feature`)."""
+    one only where the misfit says a feature (:func:`chunkdic.solve.regchoice.no_feature`),
+    beyond a tolerance that grows as ℓ² (at ℓ = 16 the longest gives up 4.2 budgets: with
+    ℓ = 8's 2.5 it kept 16 voxels, 0.184 voxel)."""
     p = synthetic.synthesize(tmp_path / "coarse", SIZE, field=FIELDS[case], specimen=specimen,
                              noise=0.02, texture_scale=scale)
     ref = open_scan(p["reference"]).refs([0])[0].open()[:]
@@ -133,8 +136,9 @@ def test_large_compression_on_a_coarse_texture(tmp_path, specimen, scale, acl, c
     s = score_between_nodes(res.mesh.node_axes(), res.displacement, p["field"], (SIZE,) * 3, ell)
     assert res.info["status"] == "converged", (res.info["level_status"], s.rms)
     assert s.rms <= 0.03, s
-    texture = [e for e in events if e["stage"] == "texture"]
-    assert texture and texture[0]["start_length"] > 32
+    if ell < acl:  # the start follows the texture where it is coarser than the elements
+        texture = [e for e in events if e["stage"] == "texture"]
+        assert texture and texture[0]["start_length"] > 32
 
 
 def test_large_non_affine_band_needs_the_coarse_meshes(pairs):

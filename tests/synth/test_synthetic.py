@@ -18,6 +18,10 @@ FIELDS = {
                        center=(20.0, 24.0, 28.0), translation=(0.4, -0.3, 1.1)),
     "band": S.Band(center_z=20.0, width=12.0, strain=-0.05, lateral=0.3, center_y=24.0,
                    center_x=28.0),
+    # a sliding crack, then 10 % compression about the centre
+    "crack-then-compression": S.Composed(
+        S.Crack(normal=(1.0, 0.0, 0.0), point=(23.5, 0.0, 0.0), sliding=(0.0, 0.0, 0.6)),
+        S.Affine(((-0.10, 0.0, 0.0), (0.0, 0.03, 0.0), (0.0, 0.0, 0.03)), center=(24.0, 24.0, 24.0))),
 }
 
 
@@ -180,6 +184,23 @@ def test_translation_and_affine_inverse_exact():
         np.testing.assert_allclose(field.inverse(*x), Xs, atol=1e-10)
     # not the first-order x - u(x): an inverse that ignored the strain would fail above
     assert np.abs(a.inverse(*Xs) - (Xs - a.displacement(*Xs))).max() > 1e-4
+
+
+def test_composed_affines_are_the_product_of_their_maps():
+    """Two affine motions about one centre compose as ``x - c = (I + B)(I + A)(X - c)``."""
+    c = (10.0, -4.0, 7.0)
+    A = np.array([[-0.10, 0.02, 0.0], [0.0, 0.03, -0.01], [0.04, 0.0, 0.03]])
+    B = np.array([[0.0, -0.17, 0.0], [0.17, 0.0, 0.0], [0.0, 0.0, 0.05]])
+    both = S.Composed(S.Affine(tuple(map(tuple, A)), center=c), S.Affine(tuple(map(tuple, B)), center=c))
+    one = S.Affine(tuple(map(tuple, (np.eye(3) + B) @ (np.eye(3) + A) - np.eye(3))), center=c)
+    X = np.random.default_rng(4).uniform(-30, 60, size=(3, 40))
+    np.testing.assert_allclose(both.displacement(*X), one.displacement(*X), atol=1e-12)
+    np.testing.assert_allclose(both.inverse(*X), one.inverse(*X), atol=1e-10)
+    # the order matters: A then B is not B then A
+    swapped = S.Composed(both.then, both.first)
+    assert np.abs(swapped.displacement(*X) - both.displacement(*X)).max() > 1e-2
+    with pytest.raises(InputError):
+        S.Composed(both.first, "affine")
 
 
 def test_band_shape():

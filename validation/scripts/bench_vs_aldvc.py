@@ -58,6 +58,8 @@ Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` 
 - ``comp10`` / ``comp20`` / ``rot10`` (group ``large``): 10 / 20 % axial compression along z
   with 3 / 6 % lateral expansion, and a 10° rotation about z, about the volume's centre
   (the fields of ``bench_large_strain.py``), independent noise in each scan;
+- ``crack-comp10`` / ``slip-comp10`` (group ``composed``): the crack or the slip, then
+  ``comp10`` (:class:`chunkdic.synth.fields.Composed`): a feature under a large deformation;
 - ``star``: issue 20's 3-D star, ``Ux = 0.5 sin(2π (z − z_c) / λ(y))`` with ``λ`` from 10 to
   100 voxels across y, rendered from the geometry, independent noise in each scan; besides
   the scores, each tool's spatial resolution ``l10 %`` read between its points
@@ -116,10 +118,13 @@ WAVES = ("wave24", "wave32", "wave48", "wave64")
 HETEROGENEOUS = WAVES + ("slip", "band", "crack")
 #: large deformations (bench_large_strain.py's fields): 10 / 20 % compression, 10 degree rotation
 LARGE = ("comp10", "comp20", "rot10")
-CASE_NAMES = ("shift", "noise", "band", "band-grey", "star", *WAVES, "slip", "crack", *LARGE)
+#: a feature under a large deformation: the crack or the slip, then 10 % compression
+#: (:class:`chunkdic.synth.fields.Composed`)
+COMPOSED = ("crack-comp10", "slip-comp10")
+CASE_NAMES = ("shift", "noise", "band", "band-grey", "star", *WAVES, "slip", "crack", *LARGE, *COMPOSED)
 #: the default case list (the cases of issue 20 plus the two translations)
 DEFAULT_CASES = ("shift", "noise", "band", "band-grey", "star")
-CASE_GROUPS = {"heterogeneous": HETEROGENEOUS, "large": LARGE, "all": CASE_NAMES}
+CASE_GROUPS = {"heterogeneous": HETEROGENEOUS, "large": LARGE, "composed": COMPOSED, "all": CASE_NAMES}
 #: the star of issue 20: Ux = 0.5 sin(2 pi (z - zc) / period(y)), period 10 -> 100 voxels across y
 STAR = {"amplitude": 0.5, "period_min": 10.0, "period_max": 100.0}
 SHIFT = (0.5, 0.5, 0.5)
@@ -232,17 +237,23 @@ def _write_case(name: str, n: int, specimen: str, workdir: Path, args, offset: f
         paths = _pair(out, n, args, specimen, field=field)
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
                     f"star, period 10-100 across y, independent noise {args.noise:g}")
-    if name in WAVES or name in ("slip", "crack"):
+    if name in WAVES or name in ("slip", "crack") or name in COMPOSED:
+        from chunkdic.synth.fields import Composed
         from chunkdic.synth.shear import Slip, Wave
 
         c = (n - 1) / 2.0 + offset
-        if name == "slip":  # Ux = 0.5 tanh((z - c) / 3): a 1-voxel slip across ~6 voxels
+        feature, _, large = name.partition("-")
+        if feature == "slip":  # Ux = 0.5 tanh((z - c) / 3): a 1-voxel slip across ~6 voxels
             field, note = Slip(center=c, jump=1.0, edge=3.0), "shear slip 1 voxel, edge 3"
-        elif name == "crack":  # Ux = ±0.3 on either side of z = c: a sliding crack
+        elif feature == "crack":  # Ux = ±0.3 on either side of z = c: a sliding crack
             field, note = Slip(center=c, **CRACK), "sliding crack, Ux = ±0.3 voxel"
         else:  # Ux = 0.5 sin(2 pi (z - c) / period)
             field = Wave(period=float(name[4:]), amplitude=0.5, phase=c)
             note = f"shear wave period {name[4:]}, amplitude 0.5"
+        if large:
+            from bench_large_strain import large_field
+
+            field, note = Composed(field, large_field(large, n)), f"{note}, then {large}"
         paths = _pair(out, n, args, specimen, field=field)
         return Case(label, paths["reference"], paths["deformed"], field, (n,) * 3,
                     f"{note}, independent noise {args.noise:g}")
@@ -751,7 +762,7 @@ def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cases", nargs="+", default=list(DEFAULT_CASES), choices=CASE_NAMES + tuple(CASE_GROUPS),
                    help="built-in cases, or a group: heterogeneous (waves, slip, band), large (comp10, "
-                        f"comp20, rot10), all (default: {' '.join(DEFAULT_CASES)})")
+                        f"comp20, rot10), composed (crack-comp10, slip-comp10), all (default: {' '.join(DEFAULT_CASES)})")
     p.add_argument("--pair", action="append", default=[], metavar="DIR",
                    help="also run a synthesized pair directory (ref.zarr, def.zarr, field.json); repeatable")
     p.add_argument("--sizes", type=int, nargs="*", default=[128],
