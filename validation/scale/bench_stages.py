@@ -8,7 +8,9 @@ process (``ru_maxrss`` from ``wait4``: the largest of the process and its waited
 children), what it asked of the file system (``read_chars`` / ``write_chars``, page-cache
 hits included, sampled every 0.5 s by psutil) and what reached the disk (``ru_inblock`` /
 ``ru_oublock`` × 512 B), and where the peak was set (the progress line when the
-process's high-water mark last rose, sampled every 0.2 s). After the correlation: the
+process's high-water mark last rose, sampled every 0.2 s), and with ``--scheduler local:N``
+the peak of each process apart (the client, the nanny and the workers; RSS sampled every
+0.5 s). After the correlation: the
 end-to-end rate in Mvoxel of ROI per second per core, the rate per Gauss–Newton pass on
 the finest level (from the run's event log), and the field's error against the truth by the project's scoring rule (the
 field trilinear between the nodes, as a viewer shows it, RMS of the vector error over
@@ -21,6 +23,15 @@ Usage (issue 21's headline run, docs/distributed.md)::
         --field band --strain -0.05 --noise 0.02 --dtype uint16
     python validation/scale/bench_stages.py /big/grains2048 -l 16 --level 0 --workdir /big/run \\
         --fields-level 2 --record validation/scale/records/bench_stages_2048.json
+
+Small elements on a whole specimen, every process under a memory target, on a LocalCluster
+(run the same command again after a kill: the correlation resumes from its checkpoint, and
+the earlier stage logs are kept as ``correlate.1.log`` …)::
+
+    chunkdic synth /big/grains2048u8 --shape 2048 --specimen grains --imaging local \
+        --field band --strain -0.05 --noise 0.02 --dtype uint8
+    python validation/scale/bench_stages.py /big/grains2048u8 -l 8 --level 0 --workdir /big/run8 \
+        --scheduler local:2 --memory-target 4GiB --skip report export --record /big/run8.json
 
 The pair is read, never written; outputs go to ``--workdir`` (kept).
 """
@@ -51,6 +62,7 @@ class IoSampler:
         self.proc = psutil.Process(pid)
         self.interval = interval
         self.io: dict[int, tuple[int, int]] = {}
+        self.peak_rss: dict[int, int] = {}  # each process's largest sampled RSS
         self.peak_tree_rss = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._loop, daemon=True)
@@ -69,7 +81,9 @@ class IoSampler:
                 try:
                     c = p.io_counters()
                     self.io[p.pid] = (c.read_chars, c.write_chars)
-                    rss += p.memory_info().rss
+                    one = p.memory_info().rss
+                    rss += one
+                    self.peak_rss[p.pid] = max(self.peak_rss.get(p.pid, 0), one)
                 except psutil.Error:
                     pass
             self.peak_tree_rss = max(self.peak_tree_rss, rss)
@@ -80,7 +94,9 @@ class IoSampler:
         self._thread.join()
         return {"read_chars": sum(r for r, _ in self.io.values()),
                 "write_chars": sum(w for _, w in self.io.values()),
-                "peak_tree_rss": self.peak_tree_rss}
+                "peak_tree_rss": self.peak_tree_rss,
+                # the stage's process first, then its descendants (a LocalCluster's nanny and workers)
+                "peak_rss_each": [self.peak_rss[p] for p in sorted(self.peak_rss, key=lambda q: (q != self.proc.pid, q))]}
 
 
 class PeakTracer:
@@ -127,6 +143,11 @@ def run_stage(name: str, args: list[str], log: Path) -> dict:
     """Run ``python -m chunkdic ARGS``; stderr to ``log``; its figures."""
     cmd = [sys.executable, "-m", "chunkdic", *args]
     print(f"## {name}: {' '.join(args)}", flush=True)
+    if log.exists():  # a re-run (the correlation resuming an interrupted one) keeps the earlier log
+        k = 1
+        while log.with_suffix(f".{k}{log.suffix}").exists():
+            k += 1
+        log.rename(log.with_suffix(f".{k}{log.suffix}"))
     t0 = time.perf_counter()
     with open(log, "w") as err:
         proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=err, text=True)
@@ -140,6 +161,7 @@ def run_stage(name: str, args: list[str], log: Path) -> dict:
         proc.returncode = os.waitstatus_to_exitcode(status)
     row = {"stage": name, "args": args, "exit": proc.returncode, "wall_s": wall,
            "peak_rss_gib": ru.ru_maxrss * 1024 / GiB, "peak_tree_rss_gib": io["peak_tree_rss"] / GiB,
+           "peak_rss_each_gib": [b / GiB for b in io["peak_rss_each"]],
            "read_chars_gb": io["read_chars"] / 1e9, "write_chars_gb": io["write_chars"] / 1e9,
            "disk_read_gb": ru.ru_inblock * 512 / 1e9, "disk_write_gb": ru.ru_oublock * 512 / 1e9,
            "user_s": ru.ru_utime, "sys_s": ru.ru_stime, "stdout": out.strip()[-2000:], "log": str(log),
@@ -148,6 +170,9 @@ def run_stage(name: str, args: list[str], log: Path) -> dict:
           f"read {row['read_chars_gb']:.1f} GB ({row['disk_read_gb']:.1f} from disk)  "
           f"written {row['write_chars_gb']:.1f} GB ({row['disk_write_gb']:.1f} to disk)  "
           f"cpu {ru.ru_utime + ru.ru_stime:.0f} s", flush=True)
+    if len(row["peak_rss_each_gib"]) > 1:
+        print("   peak of each process (sampled every 0.5 s; the stage's first): "
+              + ", ".join(f"{g:.2f}" for g in row["peak_rss_each_gib"]) + " GiB", flush=True)
     # the last rises of the high-water mark: in which stage of the run the peak was set
     # (within 10 % of it; the last rise in each distinct progress line)
     last: dict[str, tuple] = {}
@@ -195,6 +220,7 @@ def main(argv=None) -> dict:
     p.add_argument("--level", type=int, default=0)
     p.add_argument("--workdir", type=Path, required=True)
     p.add_argument("--scheduler", default=None)
+    p.add_argument("--memory-target", default=None, help="passed to correlate (e.g. 4GiB)")
     p.add_argument("--fields-level", type=int, default=0,
                    help="grid level of the exported fields image (export --fields-level; 2 at 2048³)")
     p.add_argument("--points", type=int, default=2_000_000, help="voxels drawn for the field error")
@@ -207,8 +233,9 @@ def main(argv=None) -> dict:
     a.workdir.mkdir(parents=True, exist_ok=True)
     res = a.workdir / f"result_l{a.element_size}_level{a.level}.zarr"
     sched = ["--scheduler", a.scheduler] if a.scheduler else []
+    target = ["--memory-target", a.memory_target] if a.memory_target else []
     corr = ["correlate", str(a.pair / "ref.zarr"), str(a.pair / "def.zarr"), "-o", str(res),
-            "-l", str(a.element_size), "--level", str(a.level), *sched]
+            "-l", str(a.element_size), "--level", str(a.level), *sched, *target]
     git = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
                          cwd=Path(__file__).parent).stdout.strip()
     record = {"meta": {"date": time.strftime("%Y-%m-%d %H:%M:%S"), "commit": git, "cores": os.cpu_count(),
