@@ -141,8 +141,11 @@ def per_process(p) -> dict:
     """A plan's figures per process (bytes) and its time's parts (seconds): the client's
     (``process_bytes`` when the tasks run in it), a worker's (None with the embedded pool),
     the scratch, the node blocks' files (embedded scheduler; part of ``scratch_bytes``), the
-    output, the voxel passes and the solves, and whether :meth:`Plan.check` refuses it (memory)."""
+    output, the voxel passes and the solves, and whether :meth:`Plan.check` refuses it and
+    why (``memory``, ``disk``; ``no``)."""
     import math
+
+    from chunkdic.errors import DiskSpaceError, InputError
 
     client = p.base_bytes + p.client_bytes
     worker = None
@@ -151,11 +154,17 @@ def per_process(p) -> dict:
         worker = p.base_bytes + p.task_bytes + held
     else:
         client = p.process_bytes
-    refused = p.memory_target is not None and p.process_bytes > p.memory_target
+    try:
+        p.check()
+        refused = "no"
+    except DiskSpaceError:
+        refused = "disk"
+    except InputError:
+        refused = "memory"
     return {"nodes": math.prod(p.levels[-1].nodes), "mesh_data": p.mesh_data, "client": client, "worker": worker,
             "scratch": p.scratch_bytes, "blocks": p.blocks_bytes if p.mesh_data == "disk" else None,
             "output": p.output_bytes,
-            "passes": p.seconds - p.solve_seconds, "solves": p.solve_seconds, "refused": "yes" if refused else "no"}
+            "passes": p.seconds - p.solve_seconds, "solves": p.solve_seconds, "refused": refused}
 
 
 def one_run(d: Path, ell: int, target: str, scratch: Path) -> dict:
