@@ -198,10 +198,10 @@ STUDIES = {s.name: s for s in (
           about="both tools with their defaults, 2 threads, CT-like grains and concrete, noise 0.02 per scan"),
     Study("texture", "Three texture scales: the automatic length, the best fixed length and al-dvc", "validation",
           "scripts/bench_vs_aldvc.py",
-          ("--sizes", "100", "--cases", "noise", "heterogeneous", "crack", "large", "--specimen", "concrete",
-           "--texture-scales", "1", "2", "4", "--spacings", "16", "12", "8", "--solo-spacings", "6", "4",
+          ("--sizes", "100", "--cases", "noise", "heterogeneous", "crack", "large", "--specimen", "grains",
+           "concrete", "--texture-scales", "1", "2", "4", "--spacings", "16", "12", "8", "--solo-spacings", "6", "4",
            "--threads", "2", "--oracle", "--workdir", "{workdir}", "--record", "{raw}"), _texture_rows,
-          about="100³ concrete at texture scales 1, 2, 4 (autocorrelation length about 6, 12, 23 voxels), noise "
+          about="100³ grains and concrete at texture scales 1, 2, 4 (autocorrelation length about 6, 12, 23 voxels), noise "
                 "0.02 per scan; errors between the nodes on the voxels both tools score (chunkdic's own at ℓ = 6 "
                 "and 4); the oracle is the least error of the linearised fields of the candidate lengths "
                 "ℓ·2^(k/2)"),

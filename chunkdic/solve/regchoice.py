@@ -54,6 +54,13 @@ NOISE_EXPLAINED_SHARE = 0.4
 #: (1.2 at ℓ = 8: :data:`ACCELERATION` tells it) (docs/engine.md, "The regularisation length
 #: on a coarse texture")
 LARGE_DEFORMATION_TOLERANCE = 2.5
+#: ``"discrepancy-texture"``: how many times its misfit increase over the mean texture's
+#: weight a feature's smoothing costs in voxels² (:func:`least_voxel_error`); the smoothing
+#: sits where the texture is weak, and the misfit shows it there weakly. Measured on the first
+#: choices of 130 cases (waves of period 24–64, a band, a slip, a crack; grains and concrete at
+#: texture scales 2 and 4; ℓ = 4–16): 5.5–6.5 keep every case within 1.21 of the best fixed
+#: length, 4 or 8 leave 8–9 cases above 1.15 (docs/engine.md)
+BIAS_WEIGHT = 6.0
 #: ... unless the misfit accelerates: a √2 step of the length costs at least this many times the
 #: step before it (of at least :data:`ACCELERATION_FLOOR` budgets). Smoothing a feature costs a
 #: misfit that grows as a power of the length (the penalty weighs ``(ℓ_reg / T)⁴``) until it is
@@ -286,7 +293,8 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
                 return best_index
             if share < 1.0:
                 allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
-                return _longest_within(lambda i: increase(i) <= allowed[i], pick + 1, pick)
+                short = _longest_within(lambda i: increase(i) <= allowed[i], pick + 1, pick)
+                return least_voxel_error(short, pick, increase, budget, *noise_in_voxels(H, reg, weights))
             return pick
         if sweep:
             for i in range(1, len(lengths)):
@@ -381,6 +389,24 @@ def feature_share(half: np.ndarray) -> float:
     return float(min(1.0, max(EVENNESS_FLOOR, texture_evenness(half) ** EVENNESS_EXPONENT)))
 
 
+def least_voxel_error(short: int, pick: int, increase, budget: float, noise: np.ndarray, m0: float) -> int:
+    """Between the share's choice ``short`` and the discrepancy's ``pick`` (candidate indices),
+    the candidate of least predicted error in voxels, as the field is scored: the smoothing's
+    error, :data:`BIAS_WEIGHT` times what its misfit increase ``increase(i)`` (grey levels²)
+    shows through the mean texture ``m0``, plus the noise the field keeps
+    (:func:`noise_in_voxels`, ``noise`` per unknown and per ``s²``), both in units of
+    ``budget / m0``.
+
+    Why: the share stops where the misfit sees little of a feature's smoothing, but the noise
+    the field keeps in voxels is dominated by the weakly textured nodes and falls about 2.5×
+    per √2 step of the length there: where those nodes are many (elements small against a
+    coarse texture) a longer length buys more in noise than it costs in bias (docs/engine.md,
+    "The regularisation length on a coarse texture").
+    """
+    risk = [BIAS_WEIGHT * increase(i) / budget + m0 * noise[i] for i in range(short, pick + 1)]
+    return short + int(np.argmin(risk))
+
+
 def near_freed(freed: np.ndarray) -> np.ndarray:
     """The nodes within one node, along every axis, of a freed term's anchor.
 
@@ -443,6 +469,48 @@ def dof_fraction(half: np.ndarray, reg: Regularizer, weights) -> np.ndarray:
     Hutchinson estimate (6 probes, 24³ nodes, grains at ℓ = 8): within 10–20 % of the
     trace, closer than the plain mean stencil (15–40 %). Mesh-sized, no solve.
     """
+    Mh, Rh, ratio, _ = _mean_symbols(half, reg)
+    ratio = ratio.ravel()
+    return _node_mean(lambda w: np.real(np.trace(np.linalg.solve(Mh + w * Rh, Mh), axis1=1, axis2=2)).mean() / 3.0,
+                      weights, ratio)
+
+
+def noise_in_voxels(half: np.ndarray, reg: Regularizer, weights) -> tuple[np.ndarray, float]:
+    """The noise the field keeps at each weight of ``weights``, in voxels², per unknown and per
+    ``s²`` (:func:`choose_length`'s ``noise_variance``): the mean over the nodes of the diagonal
+    of ``(M + λR)⁻¹ M (M + λR)⁻¹`` (the right-hand side's noise having covariance ``s² M``, the
+    budget's model). Unlike the misfit, which weighs a node's error by its texture, it counts
+    every node alike, as the field's error is scored: the weakly textured nodes, whose noise is
+    ``1 / m_i`` times larger, dominate it.
+
+    Estimated as :func:`dof_fraction` is, in Fourier space from the mean interior stencils,
+    a node of texture ratio ``r_i = m_i / m̄`` seeing ``r_i (M̂ + μ_i R̂)`` with
+    ``μ_i = λ / r_i``: ``tr((M̂ + μR̂)⁻¹ M̂ (M̂ + μR̂)⁻¹) / (3 r_i)``.
+
+    Returns
+    -------
+    noise : ndarray, shape (len(weights),)
+        Voxels² per unknown and per grey level² of ``s²``.
+    m0 : float
+        The mean stencil's weight of a uniform displacement, ``tr M̂(0) / 3`` (grey levels² per
+        voxel²): a smooth error ``d`` of the field costs about ``m0 |d|²`` of misfit.
+    """
+    Mh, Rh, ratio, inner = _mean_symbols(half, reg)
+    ratio = ratio[inner].ravel()  # a face node's texture is a half element's
+
+    def variance(w):
+        inv = np.linalg.inv(Mh + w * Rh)
+        return np.real(np.trace(inv @ Mh @ inv, axis1=1, axis2=2)).mean() / 3.0
+
+    m0 = float(np.real(np.trace(Mh[0])) / 3.0)  # θ = 0
+    return _node_mean(variance, weights, ratio, per_node=1.0 / ratio, log=True), m0
+
+
+def _mean_symbols(half: np.ndarray, reg: Regularizer):
+    """Fourier symbols of the mean interior stencil of ``M`` and of ``R`` (probed on a 9³ mesh)
+    at up to :data:`DOF_FREQUENCIES` frequencies per axis, shapes (K, 3, 3), the frequency 0
+    first; each node's texture ratio ``m_i / m̄`` (at least 1e-3; ``m̄`` over the inner
+    nodes), shape (nz, ny, nx); and the slices of the inner nodes."""
     shape = half.shape[:3]
     inner = tuple(slice(1, n - 1) if n > 2 else slice(None) for n in shape)
     # the stencil read a slab of z planes at a time: no whole-mesh copy (504 B per node), and
@@ -479,12 +547,22 @@ def dof_fraction(half: np.ndarray, reg: Regularizer, weights) -> np.ndarray:
     Mh = Mh.reshape(-1, 3, 3)
     Rh = Rh.reshape(-1, 3, 3)
     Rh = 0.5 * (Rh + np.conj(np.swapaxes(Rh, 1, 2)))
+    ratio = np.maximum(diag / max(float(diag[inner].mean()), 1e-300), 1e-3)
+    return Mh, Rh, ratio, inner
+
+
+def _node_mean(symbol_mean, weights, ratio: np.ndarray, per_node: np.ndarray | float = 1.0,
+               log: bool = False) -> np.ndarray:
+    """``mean_i per_node_i · f(λ / r_i)`` for each ``λ`` of ``weights``, ``f = symbol_mean``
+    tabulated on a log grid spanning every ``λ / r_i`` and interpolated (in ``log f`` with
+    ``log``: a variance falls as ``λ⁻²``, over decades)."""
     weights = np.atleast_1d(np.asarray(weights, np.float64))
-    ratio = np.maximum(diag / max(float(diag[inner].mean()), 1e-300), 1e-3).ravel()
     grid = np.geomspace(weights.min() / ratio.max() / 2, weights.max() / ratio.min() * 2, 48)
-    g = np.array([float(np.real(np.trace(np.linalg.solve(Mh + w * Rh, Mh), axis1=1, axis2=2)).mean() / 3.0)
-                  for w in grid])
-    return np.array([float(np.interp(np.log(w / ratio), np.log(grid), g).mean()) for w in weights])
+    g = np.array([float(symbol_mean(w)) for w in grid])
+    if log:
+        g = np.log(np.maximum(g, 1e-300))
+    at = lambda w: np.interp(np.log(w / ratio), np.log(grid), g)  # noqa: E731
+    return np.array([float((per_node * (np.exp(at(w)) if log else at(w))).mean()) for w in weights])
 
 
 def _least(risk, stop: int) -> int:
