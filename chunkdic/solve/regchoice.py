@@ -58,8 +58,9 @@ LARGE_DEFORMATION_TOLERANCE = 2.5
 #: weight a feature's smoothing costs in voxels² (:func:`least_voxel_error`); the smoothing
 #: sits where the texture is weak, and the misfit shows it there weakly. Measured on the first
 #: choices of 130 cases (waves of period 24–64, a band, a slip, a crack; grains and concrete at
-#: texture scales 2 and 4; ℓ = 4–16): 5.5–6.5 keep every case within 1.21 of the best fixed
-#: length, 4 or 8 leave 8–9 cases above 1.15 (docs/engine.md)
+#: texture scales 2 and 4; ℓ = 4–16): 5.5–6.5 leave at most 5 cases above 1.15 of the best
+#: fixed length's error (at most 1.25), 4 or 8 leave 8–9 (up to 1.45), the share alone 11 (up
+#: to 1.96) (docs/engine.md, "The least error in voxels")
 BIAS_WEIGHT = 6.0
 #: ... unless the misfit accelerates: a √2 step of the length costs at least this many times the
 #: step before it (of at least :data:`ACCELERATION_FLOOR` budgets). Smoothing a feature costs a
@@ -163,7 +164,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         (a longer candidate exceeds the budget), the longest length whose misfit increase
         stays within :func:`feature_share` of the budget: on an uneven texture the misfit
         sees a small part of the error a long length makes where the texture is weak; on the
-        most uneven, also within what the noise explains (:func:`feature_allowance`). Where
+        most uneven, also within what the noise explains (:func:`feature_allowance`); then,
+        up to the discrepancy's length, the least predicted error in voxels
+        (:func:`least_voxel_error`), where the weakly textured nodes' noise outweighs. Where
         no candidate exceeds the budget (noise only, a uniform or linear field), the longest;
         for a reweighted penalty (``freed``), the discrepancy, but below
         :data:`NOISE_EXPLAINED_SHARE` the same allowance. Under a ``large_deformation``, with
@@ -401,7 +404,7 @@ def least_voxel_error(short: int, pick: int, increase, budget: float, noise: np.
     the field keeps in voxels is dominated by the weakly textured nodes and falls about 2.5×
     per √2 step of the length there: where those nodes are many (elements small against a
     coarse texture) a longer length buys more in noise than it costs in bias (docs/engine.md,
-    "The regularisation length on a coarse texture").
+    "The least error in voxels").
     """
     risk = [BIAS_WEIGHT * increase(i) / budget + m0 * noise[i] for i in range(short, pick + 1)]
     return short + int(np.argmin(risk))
