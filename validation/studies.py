@@ -201,10 +201,10 @@ STUDIES = {s.name: s for s in (
           ("--sizes", "100", "--cases", "noise", "heterogeneous", "crack", "large", "--specimen", "grains",
            "concrete", "--texture-scales", "1", "2", "4", "--spacings", "16", "12", "8", "--solo-spacings", "6", "4",
            "--threads", "2", "--oracle", "--workdir", "{workdir}", "--record", "{raw}"), _texture_rows,
-          about="100³ grains and concrete at texture scales 1, 2, 4 (autocorrelation length about 6, 12, 23 voxels), noise "
-                "0.02 per scan; errors between the nodes on the voxels both tools score (chunkdic's own at ℓ = 6 "
-                "and 4); the oracle is the least error of the linearised fields of the candidate lengths "
-                "ℓ·2^(k/2)"),
+          about="100³ grains and concrete at texture scales 1, 2, 4 (autocorrelation length about 6, 12 and "
+                "16–23 voxels), noise 0.02 per scan; errors between the nodes on the voxels both tools score "
+                "(chunkdic's own at ℓ = 6 and 4); the oracle is the least error of the linearised fields of the "
+                "candidate lengths ℓ·2^(k/2)"),
     Study("texture_large", "Large deformations on coarse textures, and a feature under one: the automatic length, "
           "the best fixed length and al-dvc", "validation", "scripts/bench_vs_aldvc.py",
           ("--sizes", "100", "--cases", "comp10", "comp20", "composed", "--specimen", "grains", "concrete",

@@ -297,6 +297,8 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
             if share < 1.0:
                 allowed = feature_allowance(share, budget, H, reg, weights, noise_variance, n_unknowns)
                 short = _longest_within(lambda i: increase(i) <= allowed[i], pick + 1, pick)
+                if short == pick:
+                    return pick  # nothing between the two lengths to weigh
                 return least_voxel_error(short, pick, increase, budget, *noise_in_voxels(H, reg, weights))
             return pick
         if sweep:

@@ -514,9 +514,8 @@ def test_noise_in_voxels_against_the_exact_variance(weak):
 
     Measured: within 6 % of the exact variance from ℓ to 2ℓ and 9 % at 2√2 ℓ (at 10³: 4.6 %
     and 7.1 %), where the weak half makes it 2.7× (weak 0.2) and 6.9× (0.05) the even
-    texture's at ℓ; at longer
-    lengths the exact variance meets the floor of ``R``'s null space (the box's 24
-    multilinear fields), which the estimate leaves out.
+    texture's at ℓ; at longer lengths the exact variance meets the floor of ``R``'s null
+    space (the box's 24 multilinear fields), which the estimate leaves out.
     """
     n, ell = 8, 4.0
     shape = (n, n, n)
@@ -527,7 +526,8 @@ def test_noise_in_voxels_against_the_exact_variance(weak):
     lam, Q = _eigen(reg)
     R = (Q * lam) @ Q.T
     m = np.repeat(texture.ravel(), 3)
-    weights = plane_wave_weight(reg, lambda v: texture[..., None] * v, 1.0) * (np.array(CANDIDATES) * ell) ** reg.order
+    unit = plane_wave_weight(reg, lambda v: texture[..., None] * v, 1.0)
+    weights = unit * (np.array(CANDIDATES) * ell) ** reg.order
     exact = []
     for w in weights[:4]:
         inverse = np.linalg.inv(np.diag(m) + w * R)

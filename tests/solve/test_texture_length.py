@@ -23,6 +23,7 @@ from chunkdic.synth.shear import Wave
 importlib.import_module("chunkdic.synth.shear")
 
 SIZE = 96
+GRAINS_SIZE = 100  # the texture study's grains pair (validation/scripts/bench_vs_aldvc.py, seed 1)
 pytestmark = pytest.mark.slow  # two pairs and twelve correlations at 96³
 
 
@@ -79,23 +80,23 @@ def grains_slip(tmp_path_factory):
     voxels, independent noise 0.02 in each scan."""
     from chunkdic.synth.shear import Slip
 
-    n = 100
-    return synthetic.synthesize(tmp_path_factory.mktemp("grains") / "slip", n,
-                                field=Slip(center=(n - 1) / 2, jump=1.0, edge=3.0), specimen="grains", seed=1,
-                                noise=0.02, texture_scale=4.0)
+    return synthetic.synthesize(tmp_path_factory.mktemp("grains") / "slip", GRAINS_SIZE,
+                                field=Slip(center=(GRAINS_SIZE - 1) / 2, jump=1.0, edge=3.0), specimen="grains",
+                                seed=1, noise=0.02, texture_scale=4.0)
 
 
 def test_slip_on_grains_at_ell_6_within_1_15_of_the_best_fixed_length(grains_slip):
     """Elements of 6 voxels inside grains of 15–18 (the texture's share of the budget 0.24): the
     defaults against the whole engine at 12, 17 and 24 voxels (the best: 0.113 voxel). The
-    share alone stopped at 8.5 voxels (0.161 voxel); the least error in voxels takes 17, as the weakly textured nodes' noise falls faster with the length
-    than the slip's smoothing grows (docs/engine.md, "The least error in voxels")."""
-    n = 100
+    share alone stopped at 8.5 voxels (0.161 voxel); the least error in voxels takes 17, as
+    the weakly textured nodes' noise falls faster with the length than the slip's smoothing
+    grows (docs/engine.md, "The least error in voxels")."""
+    shape = (GRAINS_SIZE,) * 3
 
     def error(**settings):
         res = chunkdic.correlate(grains_slip["reference"], grains_slip["deformed"], element_size=6, **settings)
         assert res.info["status"] == "converged"
-        return score_between_nodes(res.mesh.node_axes(), res.displacement, grains_slip["field"], (n,) * 3, 6).rms
+        return score_between_nodes(res.mesh.node_axes(), res.displacement, grains_slip["field"], shape, 6).rms
 
     auto = error()
     best = min(error(regularization_length=L) for L in (12.0, 12 * 2**0.5, 24.0))
