@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..method.events import EXPLAIN
+from ..method.events import EXPLAIN, log as event_log
 from ..errors import InputError, WorkerLostError
 from ..results.result import FLAG_MISMATCH
 from ..scheduler import SCHEDULER_HELP
@@ -394,6 +394,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     level = {1: logging.INFO, 0: logging.WARNING, -1: logging.ERROR}[args.verbosity]
     logging.basicConfig(level=level, format="%(message)s")
+    # every engine event reaches stderr through the commands' progress callback (print_progress):
+    # the engine's own log of them would print each line a second time under -v
+    event_log.setLevel(logging.CRITICAL + 1)
     warnings.showwarning = _one_line_warning
     new_run()
     stderr = sys.stderr

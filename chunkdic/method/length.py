@@ -23,7 +23,7 @@ import numpy as np
 from ..mesh import Mesh
 from ..solve.cg import StencilSolver
 from ..solve.penalty import TERM_KINDS
-from ..solve.regchoice import CANDIDATES, choose_length
+from ..solve.regchoice import CANDIDATES, choose_length, feature_regions, regions_cover
 from ..solve.regularizer import Regularizer
 from ..solve.reweighting import SPANNING_FRACTION, robust_freed
 from .events import Regularization, Reweighting, emit
@@ -75,14 +75,21 @@ def regularize(op: Operator, settings: Settings, level: int, element_size: float
         if level == settings.level:
             return Penalty()
         kind = "tikhonov"
+    weight = hold_penalty(op, kind, element_size, length, freed)
+    log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", level, kind, length, weight)
+    return Penalty(kind, float(length), weight)
+
+
+def hold_penalty(op: Operator, kind: str, element_size: float, length: float, freed: np.ndarray | None = None) -> float:
+    """Make the operator's solver hold the penalty ``kind`` of ``length`` (voxels of the level)
+    with the terms ``freed`` and those across a known crack left out; returns its weight ``λ``."""
     reg = Regularizer(kind, op.nodes_shape, element_size)
     weight = op.unit_weight(kind, element_size) * float(length) ** reg.order
     freed = released(op, freed)
     if freed is not None:
         reg = reg.with_freed(freed)
     op.solver.regularize(reg, weight)
-    log.info("level %d: %s regularisation over %.1f voxels (weight %.3g)", level, kind, length, weight)
-    return Penalty(kind, float(length), weight)
+    return weight
 
 
 def released(op: Operator, freed: np.ndarray | None) -> np.ndarray | None:
@@ -215,12 +222,13 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
         return last["solver"].solve(rhs)[0]
 
     large = mean_gradient(state.u, mesh.element_size) >= LARGE_GRADIENT
+    boxes = choice_boxes(op, settings.regularization, mesh.element_size, penalty.length, u, p.b, state.largest_rhs)
 
     def choose(freed, guess=None):
         return choose_length(settings.regularization, op.solver.matrix, mesh.element_size, u, p.b,
                              p.kappa * p.noise_variance, solve_with, kappa=p.kappa,
                              rule=settings.regularization_rule, freed=released(op, freed), guess=guess,
-                             large_deformation=large)
+                             large_deformation=large, boxes=boxes)
 
     # probed first: the length the level has iterated with so far (2ℓ; on heterogeneous fields
     # the choice is 1-3 candidates from it), not the middle candidate, whose long-length solve
@@ -249,6 +257,36 @@ def choose_regularization(op: Operator, state: State, p: Pass, penalty: Penalty,
     return state, penalty
 
 
+def misfit_map(op: Operator, kind: str, element_size: float, length: float, u: np.ndarray, b: np.ndarray,
+               reference: float) -> np.ndarray:
+    """Each node's share of the linearised misfit increase over the data fit at ``u`` (nz, ny,
+    nx, 3) with right-hand side ``b`` that the penalty ``kind`` of ``length`` (voxels of the
+    level) gives on the whole mesh: ``Δ_i·(MΔ)_i − 2 b_i·Δ_i`` with ``Δ`` the step to its field
+    (:func:`linearised_field`); shape (nz, ny, nx), grey levels². Its sum is the misfit increase
+    :func:`~chunkdic.solve.regchoice.choose_length` weighs. Leaves the solver holding that
+    penalty: the caller sets the one it wants next."""
+    hold_penalty(op, kind, element_size, length)
+    step = linearised_field(op, u, b, reference)
+    step -= u
+    out = np.einsum("...c,...c->...", step, op.solver.stencil_product(step))
+    out -= 2.0 * np.einsum("...c,...c->...", b, step)
+    return out
+
+
+def choice_boxes(op: Operator, kind: str, element_size: float, guess: float, u: np.ndarray, b: np.ndarray,
+                 reference: float) -> list | None:
+    """The sub-meshes the length choice looks at: None (the fixed
+    :func:`~chunkdic.solve.regchoice.regions`) where they leave no element out between them
+    (:func:`~chunkdic.solve.regchoice.regions_cover`), otherwise
+    boxes centred on the misfit a length twice ``guess`` gives (:func:`misfit_map`,
+    :func:`~chunkdic.solve.regchoice.feature_regions`; docs/engine.md, "Where the choice looks")."""
+    if regions_cover(op.nodes_shape):
+        return None
+    guess = guess if math.isfinite(guess) else START_LENGTH * element_size
+    probe = min(2.0 * guess, CANDIDATES[-1] * element_size)
+    return feature_regions(misfit_map(op, kind, element_size, probe, u, b, reference))
+
+
 def linearised_field(op: Operator, u: np.ndarray, b: np.ndarray, reference: float) -> np.ndarray:
     """The field the operator's current regularisation gives in one modified Gauss–Newton
     step from ``u`` (nz, ny, nx, 3) with right-hand side ``b``: ``(M + λR) x = M u + b``, shape
@@ -271,4 +309,5 @@ def freed_terms(freed: np.ndarray | None) -> int:
 
 
 __all__ = ["START_LENGTH", "FINE_TEXTURE", "LARGE_GRADIENT", "Penalty", "regularize", "start_length", "mean_gradient",
-           "regularization_length", "length_to_choose", "choose_regularization", "linearised_field", "freed_terms"]
+           "regularization_length", "length_to_choose", "choose_regularization", "hold_penalty", "misfit_map",
+           "choice_boxes", "linearised_field", "freed_terms"]

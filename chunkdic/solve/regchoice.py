@@ -76,8 +76,10 @@ ACCELERATION_FLOOR = 0.05
 KINK_WEIGHT = 2.0
 #: frequencies per axis of the Fourier estimate of the degrees of freedom (:func:`dof_fraction`)
 DOF_FREQUENCIES = 12
-#: the automatic choice looks at the central sub-mesh of at most this many nodes per axis
+#: the automatic choice looks at sub-meshes of at most this many nodes per axis ...
 CHOICE_EDGE = 24
+#: ... and at most this many of them (:func:`regions`, :func:`feature_regions`)
+MAX_REGIONS = 8
 
 
 @dataclass
@@ -122,8 +124,9 @@ def regions(shape, edge: int = None) -> list[tuple[slice, slice, slice]]:
 
     Per axis: the whole axis when it fits; one central box when it is less than 1.5 boxes
     long (two boxes would overlap by more than half and see the same field); otherwise two
-    boxes centred on the axis's quarters. Up to 8 boxes, so that a feature anywhere in the
-    ROI is seen.
+    boxes centred on the axis's quarters. Up to 8 boxes; from 48 nodes on an axis they leave
+    its middle out (:func:`regions_cover`), and the engine places its boxes on the misfit
+    instead (:func:`feature_regions`).
     """
     edge = CHOICE_EDGE if edge is None else edge
     per_axis = []
@@ -137,10 +140,61 @@ def regions(shape, edge: int = None) -> list[tuple[slice, slice, slice]]:
     return [(a, b, c) for a in per_axis[0] for b in per_axis[1] for c in per_axis[2]]
 
 
+def regions_cover(shape, edge: int = None) -> bool:
+    """Whether :func:`regions` leave no element out between two of their boxes along any axis
+    (the axis's ends may lie outside, as where one central box is used: the field is scored
+    away from the faces). Up to 47 nodes per axis they do; from 48 on (a 400³ ROI at ℓ = 8, a
+    2048³ scan at any supported size) the quarters' boxes leave the middle out, and a feature
+    there is not seen: with a slip across the middle of a 300³ grains pair as the field's only
+    feature (ℓ = 6) the choice takes the longest length, 192 voxels, and the run diverges."""
+    edge = CHOICE_EDGE if edge is None else edge
+    for n, boxes in zip(shape, zip(*regions(shape, edge))):
+        seen = np.zeros(max(n - 1, 0), bool)  # element k joins nodes k and k + 1
+        for box in boxes:
+            seen[box.start:box.stop - 1] = True
+        inside = np.flatnonzero(seen)
+        if inside.size and not seen[inside[0]:inside[-1] + 1].all():
+            return False
+    return True
+
+
+def feature_regions(score: np.ndarray, edge: int = None, count: int = MAX_REGIONS) -> list[tuple[slice, slice, slice]]:
+    """Up to ``count`` sub-meshes of at most ``edge`` nodes per axis, centred where a per-node
+    ``score`` (nz, ny, nx) is highest: the box whose sum of the score, weighted by a half sine
+    along each axis (1 in the middle, 0 at the faces), is largest, then the largest among
+    those that overlap no box taken by more than half its extent along every axis.
+
+    The engine's score is each node's share of the misfit increase that a longer length than
+    the level's gives on the whole mesh (:func:`chunkdic.method.length.misfit_map`): a
+    feature's smoothing concentrates there, the noise's spreads evenly, so the first box holds
+    the feature that bounds the length wherever it lies, away from the box's faces (where the
+    sub-mesh's free boundary would fit it). Box corners are searched on a grid of a quarter
+    of ``edge`` (and the last corner of each axis), one axis at a time: no array larger than
+    the score is made.
+    """
+    edge = CHOICE_EDGE if edge is None else edge
+    size = tuple(min(n, edge) for n in score.shape)
+    corners = [np.unique(np.r_[np.arange(0, n - e, max(e // 4, 1)), n - e]) for n, e in zip(score.shape, size)]
+    sums = np.asarray(score, dtype=np.float64)
+    for axis, (starts, e) in enumerate(zip(corners, size)):
+        taper = np.sin(np.pi * (np.arange(e) + 0.5) / e)
+        sums = np.stack([np.tensordot(taper, np.take(sums, np.arange(c, c + e), axis=axis), axes=(0, axis))
+                         for c in starts], axis=axis)
+    free = np.ones(sums.shape, bool)
+    boxes = []
+    while len(boxes) < count and free.any():
+        k = np.unravel_index(np.argmax(np.where(free, sums, -np.inf)), sums.shape)
+        corner = [int(c[i]) for c, i in zip(corners, k)]
+        boxes.append(tuple(slice(c, c + e) for c, e in zip(corner, size)))
+        near = [np.abs(c - start) * 2 < e for c, start, e in zip(corners, corner, size)]
+        free &= ~(near[0][:, None, None] & near[1][None, :, None] & near[2][None, None, :])
+    return boxes
+
+
 def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.ndarray,
                   noise_variance: float, solve_with, *, rule: str = DEFAULT_RULE, kappa: float = 1.0,
                   sweep: bool = False, freed: np.ndarray | None = None, guess: float | None = None,
-                  large_deformation: bool = False) -> Choice:
+                  large_deformation: bool = False, boxes: list | None = None) -> Choice:
     """The regularisation length by ``rule``, on the client.
 
     At a converged field ``a`` with right-hand side ``b``, the data misfit of a field
@@ -185,8 +239,8 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     ``"l-curve"``
         The corner of ``(log D, log aᵀRa)`` over all candidates (implies ``sweep``).
 
-    Each rule is applied on each of :func:`regions` and the shortest length wins (a
-    feature anywhere is kept). Monotone (discrepancy) or unimodal (risk) in the length,
+    Each rule is applied on each sub-mesh, :func:`regions` or ``boxes``, and the shortest
+    length wins (a feature anywhere is kept). Monotone (discrepancy) or unimodal (risk) in the length,
     so the engine searches: bisection, or a ternary search, a later region only below
     the best so far. Solves at long lengths are the slow ones (block-Jacobi CG needs ~45×
     more iterations at 32ℓ than at ℓ on a 24³ sub-mesh; the multigrid preconditioner that
@@ -232,6 +286,9 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
         The field is a large deformation (:data:`chunkdic.method.length.LARGE_GRADIENT`):
         ``"discrepancy-texture"`` then takes a curve over budget for a feature only where
         :func:`no_feature` does not hold (every candidate solved, only then).
+    boxes : list of tuple of 3 slice, optional
+        The sub-meshes to look at (default :func:`regions`; the engine's, where those leave
+        elements out: :func:`feature_regions`).
 
     Returns
     -------
@@ -246,7 +303,7 @@ def choose_length(kind: str, half: np.ndarray, ell: float, a: np.ndarray, b: np.
     near = near_freed(freed) if rule == "discrepancy-kinks" and freed is not None else None
     large_deformation = large_deformation and rule == "discrepancy-texture"
     best, best_index, curves = None, len(lengths) - 1, []
-    for sub in regions(half.shape[:3]):
+    for sub in regions(half.shape[:3]) if boxes is None else boxes:
         if best_index == 0 and not sweep:
             break  # the shortest candidate already: no region can choose shorter
         H = np.ascontiguousarray(half[sub])

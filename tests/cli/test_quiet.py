@@ -94,6 +94,23 @@ def test_dask_cluster_logs_only_with_verbose(tmp_path):
     assert verbose.returncode == 0 and any(s in verbose.stderr for s in DASK_LINES)
 
 
+def test_verbose_prints_each_progress_line_once(tmp_path):
+    """``-v`` adds the engine's details (its regularisation weights) to the progress lines, and
+    prints each of those once: the engine's log of its events repeated every line."""
+    from chunkdic.synth import synthetic
+
+    pair = synthetic.synthesize(tmp_path / "p", (32,) * 3, field=synthetic.Translation((0.3, -0.2, 0.1)), seed=1)
+    cmd = [sys.executable, "-m", "chunkdic", "correlate", str(pair["reference"]), str(pair["deformed"]),
+           "-l", "8", "-o", str(tmp_path / "v.zarr"), "-v"]
+    run = subprocess.run(cmd, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    lines = run.stderr.splitlines()
+    assert any("regularisation over" in line for line in lines), run.stderr  # a detail only -v shows
+    iterations = [line for line in lines if " iter " in line]
+    assert iterations and len(iterations) == len(set(iterations)), run.stderr
+    assert not [a for a, b in zip(lines, lines[1:]) if a == b], run.stderr
+
+
 def test_demo_says_it_is_compiling_every_5_seconds(capsys):
     """A first run of the demo waits for its compiling processes: a line every 5 s, not silence."""
     from chunkdic.cli.app import _wait_for_compile
