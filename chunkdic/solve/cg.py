@@ -254,7 +254,7 @@ class StencilSolver:
         return np.einsum("...ij,...j->...i", self._jacobi, r)
 
     def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
-              reference: float | None = None) -> tuple[np.ndarray, int]:
+              reference: float | None = None, rtol: float | None = None) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b``; ``b`` and ``x`` have shape (nz, ny, nx, 3).
 
         ``overwrite_b``: CG may use ``b`` (float64, contiguous) as its residual vector,
@@ -263,13 +263,13 @@ class StencilSolver:
         earlier solves (:func:`rhs_norm`; ``rtol`` is relative to the larger of it and
         ``b``'s): the Gauss–Newton state keeps it, so that a resumed run stops CG where the
         uninterrupted one did. ``None``: the solver's own, :attr:`largest_rhs`, which this
-        solve raises.
+        solve raises. ``rtol``: this solve's tolerance instead of the solver's.
         Returns the solution and the number of CG iterations.
         """
         b = np.ascontiguousarray(b, dtype=np.float64)
         x = np.zeros_like(b)
         code, Ke, Kf, sw, ew, freed = self._reg_args
-        rtol = relative_tolerance(self, b, reference)
+        rtol = relative_tolerance(self, b, reference, rtol)
         if self._vcycle is not None:
             vcycle = self._vcycle
             iterations = pcg(self.matvec, lambda r, z: vcycle.cycle(r, out=z), b, x, rtol, self.maxiter, overwrite_b)
@@ -292,15 +292,16 @@ class StencilSolver:
                                    self.cells, self.cell, overwrite_b)
 
 
-def relative_tolerance(solver, b: np.ndarray, reference: float | None) -> float:
-    """CG's tolerance relative to ``b``'s norm for ``solver.rtol`` relative to the larger of
-    ``b``'s norm and ``reference`` (None: ``solver.largest_rhs``, which this raises)."""
+def relative_tolerance(solver, b: np.ndarray, reference: float | None, rtol: float | None = None) -> float:
+    """CG's tolerance relative to ``b``'s norm for ``rtol`` (default ``solver.rtol``) relative to
+    the larger of ``b``'s norm and ``reference`` (None: ``solver.largest_rhs``, which this raises)."""
+    rtol = solver.rtol if rtol is None else rtol
     norm = rhs_norm(b)
     if reference is None:
         solver.largest_rhs = largest = max(solver.largest_rhs, norm)
     else:
         largest = max(float(reference), norm)
-    return solver.rtol * largest / norm if norm > 0 else solver.rtol
+    return rtol * largest / norm if norm > 0 else rtol
 
 
 def rhs_norm(b: np.ndarray) -> float:

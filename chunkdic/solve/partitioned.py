@@ -279,13 +279,14 @@ class PartitionedSolver:
     # --- the solve --------------------------------------------------------------------
 
     def solve(self, b: np.ndarray, *, overwrite_b: bool = False,
-              reference: float | None = None) -> tuple[np.ndarray, int]:
+              reference: float | None = None, rtol: float | None = None) -> tuple[np.ndarray, int]:
         """Solve ``(M + λR) x = b`` (nz, ny, nx, 3): :meth:`~chunkdic.solve.cg.StencilSolver.solve`'s
         CG (block-Jacobi). With the blocks on disk its vectors are in the process
         (:func:`~chunkdic.solve.stencil.pcg`, the products block by block from the stencil's
         files; ``overwrite_b`` as in memory); on workers they are node blocks there (``b``
-        copied into them). Returns the solution (in the client) and the number of CG iterations."""
-        rtol = relative_tolerance(self, b, reference)
+        copied into them); ``reference`` and ``rtol`` as there. Returns the solution (in the
+        client) and the number of CG iterations."""
+        rtol = relative_tolerance(self, b, reference, rtol)
         if self._files is not None:
             b = np.array(b, dtype=np.float64, order="C", copy=None if overwrite_b else True)
             x = np.zeros_like(b)
