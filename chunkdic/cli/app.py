@@ -394,19 +394,21 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     level = {1: logging.INFO, 0: logging.WARNING, -1: logging.ERROR}[args.verbosity]
     logging.basicConfig(level=level, format="%(message)s")
-    # every engine event reaches stderr through the commands' progress callback (print_progress):
-    # the engine's own log of them would print each line a second time under -v
-    event_log.setLevel(logging.CRITICAL + 1)
     warnings.showwarning = _one_line_warning
     new_run()
-    stderr = sys.stderr
+    stderr, events_level = sys.stderr, event_log.level
     if args.verbosity < 0:
         sys.stderr = _QuietStderr(stderr)
+    # every engine event reaches stderr through the command's progress callback (print_progress):
+    # the engine's own log of them would print each line a second time under -v (restored after:
+    # an API call later in the same process logs its events)
+    event_log.setLevel(logging.CRITICAL + 1)
     try:
         with _dask_logs(args.verbosity > 0):
             return _dispatch(args)
     finally:
         sys.stderr = stderr
+        event_log.setLevel(events_level)
 
 
 def _check_cwd() -> None:
