@@ -47,8 +47,8 @@ FINE_TEXTURE = 8.0
 #: voxel) below 0.01
 LARGE_GRADIENT = 0.02
 #: CG's tolerance of the whole-mesh solve that places the length choice's boxes
-#: (:func:`misfit_map`): it ranks places, and 1e-3 puts them where 1e-7 does (the 300³ slip
-#: at ℓ = 6: 10 CG iterations instead of 36, 1.8 s instead of 4.9)
+#: (:func:`misfit_map`): it ranks places, and 1e-3 puts them where the iterations' 1e-5 does
+#: (the 300³ slip at ℓ = 6: 10 CG iterations instead of 23, 1.8 s instead of 3.3)
 PROBE_RTOL = 1e-3
 
 
