@@ -145,6 +145,31 @@ def test_spanning_reweighting_frees_a_surface_and_not_a_streak():
     streak = robust_freed(x, spanning=0.0) & (1 << 1)
     assert streak[2:5, :, 2, ZZ].all()
 
+@pytest.mark.parametrize("compression", [0.0, -0.5])
+def test_spanning_reweighting_keeps_a_jump_and_not_a_mismatch_bent_both_ways(compression):
+    """A slip of 1 voxel in u_x across z = 5 (11 × 12 × 12 nodes: −0.5 up to z = 4, 0 at 5,
+    +0.5 from 6): its zz terms at z = 4 and 6 bend opposite ways, but the slope across them has
+    one sign. Beside it, u_z bent on the same plane as a coarse texture's mismatch bends it: a
+    bump of ±0.4 voxel at z = 5 whose sign alternates in 3 × 3-node patches along the sheet,
+    as large as the slip's curvature and spanning the mesh as a sheet too, but bent both ways
+    and its slope across the plane of both signs. With ``spanning`` only u_x's sheets are
+    freed, also under a uniform compression of u_z (−0.5 voxel per node, 6 % at ℓ = 8: the slope
+    less its median); without it, every term beyond the threshold, u_z's included."""
+    shape = (11, 12, 12)
+    rng = np.random.default_rng(3)
+    z = np.arange(shape[0], dtype=np.float64)
+    x = 0.01 * rng.standard_normal(shape + (3,))
+    x[..., 2] += np.clip(z - 5.0, -1.0, 1.0)[:, None, None] * 0.5
+    patches = np.kron((np.indices((4, 4)).sum(0) % 2) * 2.0 - 1.0, np.ones((3, 3)))
+    x[5, :, :, 0] += 0.4 * patches
+    x[..., 0] += compression * z[:, None, None]
+    jump = np.zeros(shape + (6,), np.uint8)
+    jump[[4, 6], :, :, ZZ] = 1 << 2
+    np.testing.assert_array_equal(robust_freed(x, spanning=0.5), jump)
+    everything = robust_freed(x, spanning=0.0)
+    assert (everything[4:7, :, :, ZZ] & 1).all()  # u_z's bump: freed without the spanning rule
+
+
 def _mass_stencil(nodes, seed=0):
     """Half stencil (float32) of ``Σ_e m ⊗ T_e``: the C8 mass matrix ``m`` times a random SPD 3×3
     per element (as tests/solve/test_multigrid.py)."""
