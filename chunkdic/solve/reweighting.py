@@ -50,8 +50,8 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: f
     up to ~13 terms on waves (extent ≤ 5 nodes of 25), and with a span along one axis a
     streak of 14 terms on a 24-voxel wave, and the length chosen for the freed penalty went
     long (docs/engine.md, "The regularisation length on a coarse texture", and "The band and
-    the slip at ℓ = 8"). With ``spanning``, a component keeps its sheets only if one of its
-    sheets of second differences along an axis is one-sided (:func:`_one_sided`): there the
+    the slip at ℓ = 8"). With ``spanning``, a component keeps its sheets only if its sheets
+    of second differences along one axis are one-sided (:func:`_one_sided`): there the
     imaging's mismatch at a kink bends the components the feature does not move as sharply,
     both ways along the sheet, and freed they follow it (a slip at ℓ = 8 on 24-voxel grains:
     0.150 voxel with ``u_z``'s sheets freed, 0.112 with ``u_x``'s only).
@@ -70,14 +70,14 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: f
     -------
     freed : ndarray, shape (nz, ny, nx, 6), uint8
         :attr:`Regularizer.freed`. Built one kind and component at a time: the client holds
-        one float64 difference array of the mesh's size at once (8 B per node).
+        at most two float64 difference arrays of the mesh's size at once (16 B per node).
     """
     x = np.asarray(x)
     shape = x.shape[:3]
     freed = np.zeros(shape + (len(TERM_KINDS),), np.uint8)
     for c in range(3):
         u = x[..., c]
-        coherent = spanning <= 0
+        one_sided = spanning <= 0  # every component keeps its terms
         for t in range(len(TERM_KINDS)):
             d, anchor = _term_values(u, t)
             if d.size == 0:
@@ -89,11 +89,11 @@ def robust_freed(x: np.ndarray, threshold: float = ROBUST_THRESHOLD, spanning: f
             beyond = a > threshold * sigma
             del a
             sheets = _spanning(beyond, shape, spanning)
-            if not coherent and t < 3 and sheets.any():
-                coherent = _one_sided(u, t, d, sheets)
+            if not one_sided and t < 3 and sheets.any():
+                one_sided = _one_sided(u, t, d, sheets)
             del d
             freed[anchor + (t,)] |= (sheets.astype(np.uint8) << c)
-        if not coherent:
+        if not one_sided:
             freed &= np.uint8(0xFF ^ (1 << c))
     return freed
 
