@@ -122,7 +122,7 @@ def test_kinks_on_grains_at_ell_8_near_the_best_fixed_length(case, bound, reques
     and the field followed the mismatch: the slip 0.150 voxel and the crack 0.160, 1.29 and
     1.57 times the best fixed length's. Freeing only a component whose slope across the sheet
     has one sign: 0.112 (0.97) and 0.116 (1.15; the length 16 voxels where 22.6 is best,
-    hence the crack's bound; docs/engine.md, "Robust reweighting")."""
+    hence the crack's bound; docs/engine.md, "The regularisation length on a coarse texture")."""
     pair = request.getfixturevalue(case)
     auto = _grains_error(pair, 8)
     best = min(_grains_error(pair, 8, regularization_length=L) for L in (16.0, 16 * 2**0.5, 32.0))
