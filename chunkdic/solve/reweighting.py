@@ -109,10 +109,8 @@ def _one_sided(u: np.ndarray, t: int, d: np.ndarray, terms: np.ndarray) -> bool:
     flanks, bent opposite ways) carries one jump."""
     if _one_signed(d[terms]) >= ONE_SIDED:
         return True
-    n = u.shape[t]
-    lo, hi = [slice(None)] * 3, [slice(None)] * 3
-    lo[t], hi[t] = slice(0, n - 2), slice(2, n)
-    g = u[tuple(hi)] - u[tuple(lo)]
+    lo, _, hi = _three_nodes(u.shape, t)
+    g = u[hi] - u[lo]
     return _one_signed(g[terms] - np.median(g)) >= ONE_SIDED
 
 
@@ -134,14 +132,21 @@ def _spanning(beyond: np.ndarray, shape, fraction: float) -> np.ndarray:
     return keep[labels]
 
 
+def _three_nodes(shape, t: int) -> tuple[tuple, tuple, tuple]:
+    """Slices of the nodes ``shape`` (nz, ny, nx) before, at and after each inner node along
+    axis ``t``: a second or a central difference there."""
+    n = shape[t]
+    lo, mid, hi = ([slice(None)] * 3 for _ in range(3))
+    lo[t], mid[t], hi[t] = slice(0, n - 2), slice(1, n - 1), slice(2, n)
+    return tuple(lo), tuple(mid), tuple(hi)
+
+
 def _term_values(u: np.ndarray, t: int) -> tuple[np.ndarray, tuple]:
     """The terms of kind ``TERM_KINDS[t]`` of a scalar nodal field ``u`` (nz, ny, nx) and where
     they are anchored (a tuple of slices into the nodes): the unweighted difference."""
     if t < 3:
-        n = u.shape[t]
-        lo, mid, hi = ([slice(None)] * 3 for _ in range(3))
-        lo[t], mid[t], hi[t] = slice(0, n - 2), slice(1, n - 1), slice(2, n)
-        return u[tuple(lo)] - 2.0 * u[tuple(mid)] + u[tuple(hi)], tuple(mid)
+        lo, mid, hi = _three_nodes(u.shape, t)
+        return u[lo] - 2.0 * u[mid] + u[hi], mid
     p, q = {3: (0, 1), 4: (0, 2), 5: (1, 2)}[t]
 
     def corner(dp, dq):
