@@ -216,12 +216,12 @@ STUDIES = {s.name: s for s in (
                 "and 4); the oracle as in the texture study"),
     Study("feature_offsets", "Sharp features between the nodes: the crack, band and slip at four offsets, ℓ = 8",
           "validation", "scripts/bench_vs_aldvc.py",
-          ("--sizes", "100", "--cases", "crack", "band", "slip", "--specimen", "concrete", "--texture-scales", "1",
-           "2", "4", "--spacings", "8", "--feature-offset", "0", "2", "4", "6", "--threads", "2", "--oracle",
-           "--workdir", "{workdir}", "--record", "{raw}"), _offset_rows,
-          about="100³ concrete at texture scales 1, 2, 4, noise 0.02 per scan, ℓ = 8; the feature's plane moved "
-                "along z by 0, 2, 4 and 6 voxels from the volume's centre, which is a node plane of chunkdic's "
-                "mesh and half a voxel from the midplane between two of al-dvc's (offset 4: the reverse); "
+          ("--sizes", "100", "--cases", "crack", "band", "slip", "--specimen", "concrete", "grains",
+           "--texture-scales", "1", "2", "4", "--spacings", "8", "--feature-offset", "0", "2", "4", "6",
+           "--threads", "2", "--oracle", "--workdir", "{workdir}", "--record", "{raw}"), _offset_rows,
+          about="100³ concrete and grains at texture scales 1, 2, 4, noise 0.02 per scan, ℓ = 8; the feature's "
+                "plane moved along z by 0, 2, 4 and 6 voxels from the volume's centre, which is a node plane of "
+                "chunkdic's mesh and half a voxel from the midplane between two of al-dvc's (offset 4: the reverse); "
                 "errors between the nodes on the voxels both tools score; the grid floor is each tool's node "
                 "grid holding the true field"),
     Study("texture_resolution", "Spatial resolution and MEI on the star at three texture scales, against al-dvc",
