@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -80,3 +81,40 @@ def test_the_history_check_finds_each_form_and_spares_external_references(tmp_pa
     (tmp_path / "README.md").write_text("fine\n")
     found = history.offences(tmp_path)
     assert [line.split(":")[1] for line in found] == [str(i) for i in range(1, len(lines) + 1)]
+
+
+#: a citation of a section: the page's path under docs/, a comma and the section's name in double
+#: quotes in code; a Markdown link, then the name in parentheses and quotes, in the docs
+_CODE_CITATION = re.compile(r'(docs/[\w/.-]+\.md)(?:,|\s*\(|\s*:)?\s*"([^"\n]+)"')
+_DOC_CITATION = re.compile(r'\]\(([^)#]+\.md)\),?\s*\(?"([^"\n]+)"')
+
+
+def _section_names(doc: Path) -> set[str]:
+    """Headings and bold paragraph leads (``**The least error in voxels**``) of a Markdown page."""
+    text = doc.read_text(encoding="utf-8")
+    names = {m.group(1).strip() for m in re.finditer(r"^#+\s+(.+)$", text, re.M)}
+    return names | {m.group(1).strip().rstrip(".:").strip() for m in re.finditer(r"\*\*([^*\n]+?)\*\*", text)}
+
+
+def _citations():
+    for base in ("chunkdic", "validation", "tests", "benchmarks", "docs"):
+        for path in sorted((ROOT / base).rglob("*")):
+            if path.suffix not in (".py", ".md") or "_build" in path.parts:
+                continue
+            for number, line in enumerate(path.read_text(encoding="utf-8", errors="replace").splitlines(), 1):
+                for m in _CODE_CITATION.finditer(line):
+                    yield path, number, ROOT / m.group(1), m.group(2).strip()
+                for m in _DOC_CITATION.finditer(line):
+                    yield path, number, (path.parent / m.group(1)).resolve(), m.group(2).strip()
+
+
+def test_every_cited_section_of_the_docs_exists():
+    # a comment or docstring that sends the reader to a section of a page must find it there: a
+    # heading, or a bold paragraph lead, that begins with the name
+    cited, missing = 0, []
+    for path, number, doc, name in _citations():
+        cited += 1
+        if not doc.exists() or not any(n.startswith(name) for n in _section_names(doc)):
+            missing.append(f"{path.relative_to(ROOT)}:{number}: {doc.name}, {name!r}")
+    assert cited > 50  # the pattern still reads the citations
+    assert missing == []

@@ -271,7 +271,7 @@ def standard_field(case: str, shape, *, shift=(0.5, 0.5, 0.5), strain: float = -
     follow: with 0.3 the lateral displacement jumps by up to 1.2 voxels across the 6-voxel
     band (a 40 % shear), and the best C8 fit of the exact field (its L2 projection) already
     misses it by 0.13 / 0.06 voxel RMS at the nodes for ℓ = 12 / 8 (0.029 / 0.026 with
-    0.05), far above any measurement error; docs/engine.md, "Measured on CT specimens".
+    0.05), far above any measurement error.
     """
     nz, ny, nx = shape
     if case == "fourier-shift":

@@ -13,7 +13,7 @@ the stopping rules on the very same pairs (the pairs are kept in ``--workdir``):
     python validation/scripts/bench_noise_stop.py --sizes 64 72 80 96 --workdir /tmp/noise-stop
     PYTHONPATH=/path/to/older python validation/scripts/bench_noise_stop.py --sizes 64 --workdir /tmp/noise-stop
 
-docs/engine.md, "A false "stalled" at ℓ = 6", records what it measured.
+docs/engine.md, "Iterations and stopping", states the stall rule it measured.
 """
 
 from __future__ import annotations
