@@ -226,10 +226,11 @@ STUDIES = {s.name: s for s in (
                 "grid holding the true field"),
     Study("texture_resolution", "Spatial resolution and MEI on the star at three texture scales, against al-dvc",
           "validation", "scripts/bench_star_vs_aldvc.py",
-          ("--specimen", "concrete", "--texture-scales", "1", "2", "4", "--spacings", "8", "--regularizations",
-           "tikhonov", "--seed", "1", "--threads", "2", "--workdir", "{workdir}", "--record", "{raw}"),
+          ("--specimen", "concrete", "grains", "--texture-scales", "1", "2", "4", "--spacings", "8",
+           "--regularizations", "tikhonov", "--seed", "1", "--threads", "2", "--workdir", "{workdir}", "--record",
+           "{raw}"),
           _texture_resolution_rows,
-          about="96×240×96 concrete at texture scales 1, 2, 4, noise 0.02 per scan, ℓ = 8: l10 % on the star, "
+          about="96×240×96 concrete and grains at texture scales 1, 2, 4, noise 0.02 per scan, ℓ = 8: l10 % on the star, "
                 "the noise n of a translation at the star's setting, MEI = n · l10 %"),
     Study("texture_scales", "The CT specimens' texture at each texture scale", "validation",
           "scripts/texture_scales.py",
