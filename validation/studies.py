@@ -230,8 +230,8 @@ STUDIES = {s.name: s for s in (
            "--regularizations", "tikhonov", "--seed", "1", "--threads", "2", "--workdir", "{workdir}", "--record",
            "{raw}"),
           _texture_resolution_rows,
-          about="96×240×96 concrete and grains at texture scales 1, 2, 4, noise 0.02 per scan, ℓ = 8: l10 % on the star, "
-                "the noise n of a translation at the star's setting, MEI = n · l10 %"),
+          about="96×240×96 concrete and grains at texture scales 1, 2, 4, noise 0.02 per scan, ℓ = 8: l10 % on "
+                "the star, the noise n of a translation at the star's setting, MEI = n · l10 %"),
     Study("texture_scales", "The CT specimens' texture at each texture scale", "validation",
           "scripts/texture_scales.py",
           ("--size", "192", "--specimens", "grains", "concrete", "--scales", "1", "2", "4", "5", "--workdir",
