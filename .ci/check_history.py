@@ -4,7 +4,8 @@ The product speaks in the present tense about what it is; how it came to be goes
 commit messages and ``docs/changelog.md``. A line is refused when it names a development
 round or an issue of this project ("session 31", "issue 20", "issue-20 cases"), marks
 something "(new)", dates a fact by a round ("since session 30", "until issue 21", "before
-commit ..."), or describes how a measurement was scheduled ("autogroup"). External
+commit ..."), says what the product "used to" do, cites an issue's "(item 3)", or describes
+how a measurement was scheduled ("autogroup"). External
 references keep their form: "numcodecs issue #228" (with ``#``) passes.
 
 Usage: ``python .ci/check_history.py [ROOT]``; exit status 1 and one line per offence.
@@ -28,6 +29,10 @@ PATTERNS = [
     (re.compile(r"\(new\)", re.I), "a '(new)' mark"),
     (re.compile(r"\b(since|until|before|after) (session|issue|round|commit|version)\b", re.I), "a dated fact"),
     (re.compile(r"autogroup", re.I), "how a measurement was scheduled"),
+    # "it used to hang", not "the weights (that are) used to compute": a be-verb before it passes
+    (re.compile(r"(?<!\bis )(?<!\bare )(?<!\bbe )(?<!\bbeen )(?<!\bwas )(?<!\bwere )(?<!\bbeing )\bused to\b", re.I),
+     "what the product used to do"),
+    (re.compile(r"\(items? [0-9]", re.I), "an item of an issue"),
 ]
 
 

@@ -1,8 +1,8 @@
 """``M`` kept in the output while a run is incomplete: a resumed level reads it instead of a pass.
 
 ``M`` is built once per level by a pass over every voxel of the level (:meth:`chunkdic.passes.level.LevelPasses.assemble_m`):
-563 s at 2048³ level 0, about two Gauss–Newton passes. A run killed during that level used to
-build it again on resume. Now the level's ``M`` (the client's half stencil, shape
+563 s at 2048³ level 0, about two Gauss–Newton passes. So that a run killed during that level
+does not build it again on resume, the level's ``M`` (the client's half stencil, shape
 ``(nz, ny, nx, 14, 3, 3)`` float32, 504 bytes per node: 1 056 964 608 bytes = 0.98 GiB for
 the 128³ nodes of 2048³ at ℓ = 16), the noise-correlation sums of its pass, the element
 activity of a mask and the reference's range are written into the output's checkpoint group

@@ -39,10 +39,10 @@ log = logging.getLogger(__name__)
 #: multigrid replaces block-Jacobi from ``λ tr R_ii ≥ MULTIGRID_FROM tr M_ii`` (medians
 #: over nodes): from about 7ℓ with Tikhonov, where block-Jacobi CG needs ~100 iterations and
 #: the V-cycle 9 (docs/engine.md, "Solve"); about 9ℓ with the equilibrium gap, whose
-#: diagonal is smaller at equal length. The equilibrium gap used to keep block-Jacobi: its
-#: null space then held every field set by the box's edges, which defeated the V-cycle
-#: (1 012 iterations at 16ℓ); with the edge term it has 24 fields, like Tikhonov's, and the
-#: V-cycle needs 27-74 iterations from 8ℓ to 32ℓ where block-Jacobi needs 214-1 861.
+#: diagonal is smaller at equal length. Without its edge term the equilibrium gap's null
+#: space would hold every field set by the box's edges, which defeats the V-cycle (1 012
+#: iterations at 16ℓ); with it the null space has 24 fields, like Tikhonov's, and the V-cycle
+#: needs 27-74 iterations from 8ℓ to 32ℓ where block-Jacobi needs 214-1 861.
 MULTIGRID_FROM = 100.0
 #: nodes per slab of planes of the client's node-by-node work (:func:`z_slabs`): the
 #: float64 temporaries of a slab (a few of 72 B per node) stay under ~20 MB
@@ -172,7 +172,7 @@ class StencilSolver:
         """``diag(A_ii⁻¹ M_ii A_ii⁻¹)`` of every node (nz, ny, nx, 3), float64, ``A = M + λ R``:
         each node's variance per unit noise when its neighbours are held
         (:func:`chunkdic.method.noise.nodal_uncertainty`), computed in float64 a slab of
-        planes at a time (the former whole-mesh arrays: 3 × 72 B per node)."""
+        planes at a time (whole-mesh temporaries would take 3 × 72 B per node)."""
         out = np.empty(self.nodes_shape + (3,))
         for planes in z_slabs(self.nodes_shape):
             inv = self.diagonal_inverse(planes)
