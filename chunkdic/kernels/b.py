@@ -218,18 +218,19 @@ def b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
                         _spread(Be, 4, a, w * yt, e0z, e0y, e0x, e1z, e1y, e1x)
                         _spread(Be, 5, a, w, q0z, q0y, q0x, q1z, q1y, q1x)
             # variogram of the residual along x (noise correlation estimate, LAGS), on one
-            # row in LAG_STRIDE (millions of pairs still): the client forms that of
+            # row in LAG_STRIDE by its place in the level (millions of pairs still), every lag
+            # on the same voxels (blocks.LAG_STRIDE): the client forms that of
             # r = d - α g' from these (blocks.ElementSums.lags). Lag 0 holds the second
             # moments; lags k >= 1 the squared differences of voxels k apart, so that whatever
             # is constant along the row (an offset, a drift along z or y) cancels exactly
-            if (z * ney * ell + y) % LAG_STRIDE != 0:
+            if (X0 + X1) % LAG_STRIDE != 0:
                 continue
             for k in range(LAGS + 1):
                 sdd_k = 0.0
                 cnt = 0.0
                 sdg_k = 0.0
                 sgg_k = 0.0
-                for x in range(nx - k):
+                for x in range(nx - LAGS):
                     ww = wrow[x] * wrow[x + k]
                     if k == 0:
                         dd = drow[x]

@@ -26,10 +26,19 @@ def _element_weights(active, elems, ell) -> np.ndarray:
     return np.repeat(np.repeat(np.repeat(a, ell, axis=0), ell, axis=1), ell, axis=2)
 
 
-def lag_rows(core) -> np.ndarray:
+def lag_rows(core, origin=(0, 0, 0)) -> np.ndarray:
     """The rows of a block core (bool, shape ``core[:2]``) whose lag sums are taken: one in
-    :data:`~chunkdic.kernels.blocks.LAG_STRIDE`, counted over the block's rows in order."""
-    return (np.arange(core[0] * core[1]).reshape(core[0], core[1]) % LAG_STRIDE) == 0
+    :data:`~chunkdic.kernels.blocks.LAG_STRIDE` by the row's place ``(z, y)`` in the level,
+    ``origin`` the core's first voxel."""
+    z = np.arange(core[0])[:, None] + int(origin[0])
+    y = np.arange(core[1])[None, :] + int(origin[1])
+    return (z + y) % LAG_STRIDE == 0
+
+
+def _lag_pairs(n: int, k: int) -> tuple[slice, slice]:
+    """The voxels of a row of ``n`` and those ``k`` further that the lag sums pair: every lag
+    starts on the first ``n - LAGS`` (:data:`~chunkdic.kernels.blocks.LAG_STRIDE`)."""
+    return slice(0, n - LAGS), slice(k, n - LAGS + k)
 
 
 def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_nodes=None, core_origin=None,
@@ -72,10 +81,10 @@ def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_node
                 S[ez + da[0], ey + da[1], ex + da[2], _stencil_index(db - da)] += Ke[a, :, b, :]
     out = (S, float(core.min()), float(core.max()))
     if with_lags:
-        rows = lag_rows(core.shape)
+        rows = lag_rows(core.shape, (0, 0, 0) if core_origin is None else core_origin)
         wg = (weight * grad)[:, rows]  # (3, rows, nx)
-        lags = np.array([[np.sum(wg[i, :, :wg.shape[-1] - k] * wg[i, :, k:]) for k in range(LAGS + 1)]
-                         for i in range(3)])
+        pairs = [_lag_pairs(wg.shape[-1], k) for k in range(LAGS + 1)]
+        lags = np.array([[np.sum(wg[i, :, a] * wg[i, :, b]) for a, b in pairs] for i in range(3)])
         out += (lags,)
     return out
 
@@ -151,20 +160,21 @@ def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, 
                       qx.reshape(-1)])
         B[e] = np.einsum("va,iv,qv->qai", W, G * w, v)
         gram[e] = (v * w) @ v.T
-    return ElementSums(B, gram, int(mask.size - mask.sum()) - n_off, residual_lags(d, gp, weight))
+    return ElementSums(B, gram, int(mask.size - mask.sum()) - n_off, residual_lags(d, gp, weight, core_origin))
 
 
-def residual_lags(d: np.ndarray, gp: np.ndarray, weight: np.ndarray) -> np.ndarray:
+def residual_lags(d: np.ndarray, gp: np.ndarray, weight: np.ndarray, origin=(0, 0, 0)) -> np.ndarray:
     """The lag sums (6, LAGS + 1) of :class:`~chunkdic.kernels.blocks.ElementSums` on the rows
-    of :func:`lag_rows`: pairs of voxels ``k`` apart along x, weighted ``w w'``."""
-    rows = lag_rows(d.shape)
+    of :func:`lag_rows` (``origin``: the core's first voxel in the level): pairs of voxels ``k``
+    apart along x (:func:`_lag_pairs`), weighted ``w w'``."""
+    rows = lag_rows(d.shape, origin)
     d, gp, w = d[rows], gp[rows], weight[rows]
     lags = np.zeros((6, LAGS + 1))
-    n = d.shape[-1]
     for k in range(LAGS + 1):
-        ww = w[:, :n - k] * w[:, k:]
-        dd = d[:, :n - k] - d[:, k:] if k else d
-        dg = gp[:, :n - k] - gp[:, k:] if k else gp
+        a, b = _lag_pairs(d.shape[-1], k)
+        ww = w[:, a] * w[:, b]
+        dd = d[:, a] - d[:, b] if k else d[:, a]
+        dg = gp[:, a] - gp[:, b] if k else gp[:, a]
         lags[:4, k] = [np.sum(ww * dd * dd), np.sum(ww), np.sum(ww * 2.0 * dd * dg), np.sum(ww * dg * dg)]
     lags[4, 0], lags[5, 0] = np.sum(w * d), np.sum(w * gp)
     return lags
