@@ -136,3 +136,24 @@ def test_a_run_in_node_blocks_killed_mid_level_resumes_to_the_uninterrupted_fiel
     resumed = chunkdic.open_result(out)
     scale = np.abs(reference.displacement).max()
     np.testing.assert_allclose(resumed.displacement, reference.displacement, rtol=0, atol=1e-8 * scale)
+
+
+def test_the_automatic_length_and_its_field_do_not_change_with_the_block_size(tmp_path):
+    # the noise correlation κ sets the length choice's budget; summed on rows chosen within each
+    # block, it read 15.1 or 16.5 on this bar as its blocks had 4 or 10 elements a side, and
+    # the choice kept 33.9 or 48 voxels (fields 0.05 voxel apart)
+    from chunkdic.synth.shear import Slip
+
+    shape = (300, 48, 48)
+    field = Slip(center=(shape[0] - 1) / 2, jump=1.0, edge=3.0)
+    pair = synthetic.synthesize(tmp_path / "bar", shape, field=field, specimen="grains", seed=1, noise=0.02,
+                                texture_scale=4.0)
+    runs = {}
+    for elements in (4, 10):
+        with pytest.warns(UserWarning):  # 6 voxels is below what this texture supports
+            runs[elements] = chunkdic.correlate(pair["reference"], pair["deformed"], element_size=6,
+                                                block_elements=elements)
+    small, large = runs[4], runs[10]
+    assert small.info["regularization"]["length"] == large.info["regularization"]["length"]
+    assert small.info["noise"]["kappa"] == pytest.approx(large.info["noise"]["kappa"], rel=0.03)
+    np.testing.assert_allclose(small.displacement, large.displacement, rtol=0, atol=1e-6)
