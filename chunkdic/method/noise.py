@@ -15,8 +15,11 @@ separable and alike along the three axes:
 
     κ_i = (1 + 2 Σ_{k≥1} ρ_r(k) ρ_{∂_i f}(k))³,   κ = mean over i.
 
-On the grains CT specimen (ℓ = 12) the estimate is 17 where the misfit a fitted unknown
-absorbs was measured at 14 (docs/engine.md, "Noise correlation").
+On the grains CT specimen at ℓ = 12 the misfit a fitted unknown absorbs was measured at 14;
+the estimate reads 19 on a 100³ grains pair translated with independent noise in each scan
+(ℓ = 12), 28 where the residual also holds the field's own misfit (a wave, a band). The lag
+sums do not depend on how the level is cut into blocks (:data:`chunkdic.kernels.blocks.LAG_STRIDE`;
+docs/engine.md, "Noise correlation").
 """
 
 from __future__ import annotations
