@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import twins as kernels_numpy
-from .blocks import LAG_STRIDE, LAGS, ElementSums, core_shape, grad_index, voxel_xi
+from .blocks import LAGS, ElementSums, core_shape, grad_index, voxel_xi
 from .interp import fast_bounds, jit, jit_inline, jit_sums
 from .rows import segment_samples, valid_bounds
 from .window import element_activity, kernel_setup
@@ -217,14 +217,11 @@ def b_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
                         _spread(Be, 3, a, w * zt, e0z, e0y, e0x, e1z, e1y, e1x)
                         _spread(Be, 4, a, w * yt, e0z, e0y, e0x, e1z, e1y, e1x)
                         _spread(Be, 5, a, w, q0z, q0y, q0x, q1z, q1y, q1x)
-            # variogram of the residual along x (noise correlation estimate, LAGS), on one
-            # row in LAG_STRIDE by its place in the level (millions of pairs still), every lag
-            # on the same voxels (blocks.LAG_STRIDE): the client forms that of
-            # r = d - α g' from these (blocks.ElementSums.lags). Lag 0 holds the second
-            # moments; lags k >= 1 the squared differences of voxels k apart, so that whatever
-            # is constant along the row (an offset, a drift along z or y) cancels exactly
-            if (X0 + X1) % LAG_STRIDE != 0:
-                continue
+            # variogram of the residual along x (noise correlation estimate, blocks.LAGS), every
+            # lag on the same voxels: the client forms that of r = d - α g' from these
+            # (blocks.ElementSums.lags). Lag 0 holds the second moments; lags k >= 1 the squared
+            # differences of voxels k apart, so that whatever is constant along the row (an
+            # offset, a drift along z or y) cancels exactly
             for k in range(LAGS + 1):
                 sdd_k = 0.0
                 cnt = 0.0

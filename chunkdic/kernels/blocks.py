@@ -12,17 +12,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: lags (voxels along x) of the autocorrelations that estimate the noise correlation
+#: lags (voxels along x) of the autocorrelations that estimate the noise correlation, summed on
+#: every row of voxels over the pairs that start on the block core's first ``nx - LAGS`` voxels,
+#: the same for every lag: whatever the blocks' cut, every row counts, and a lag summed over
+#: ``nx - k`` voxels would read less correlation the narrower the blocks; what a block's x end
+#: leaves out, ``LAGS`` voxels per row, depends on the cut (docs/engine.md, "Noise correlation")
 LAGS = 4
-#: they are summed on one row of voxels in this many (a 64³ block still gives 160 000 pairs per lag):
-#: the row at level coordinates ``(z, y)`` when ``(z + y) % LAG_STRIDE == 0``, and
-#: along it the pairs that start on the core's first ``nx - LAGS`` voxels, the same for every lag.
-#: So the rows do not depend on how the ROI is cut into blocks, and every lag sums the same
-#: voxels (a lag summed over ``nx - k`` voxels would weigh less the narrower the blocks);
-#: what a block's x-end leaves out, ``LAGS`` voxels per row, does depend on the cut
-LAG_STRIDE = 8
 
-__all__ = ["LAG_STRIDE", "LAGS", "QUANTITIES", "ElementSums", "core_shape", "elements_of", "check_nodes", "voxel_xi", "grad_index", "gradient_block"]
+__all__ = ["LAGS", "QUANTITIES", "ElementSums", "core_shape", "elements_of", "check_nodes", "voxel_xi", "grad_index", "gradient_block"]
 
 
 #: order of the quantities of :class:`ElementSums`: ``d``, ``g'``, ``1``, then the

@@ -12,7 +12,6 @@ import numpy as np
 
 from . import twins as kernels_numpy
 from .blocks import (
-    LAG_STRIDE,
     LAGS,
     check_nodes,
     core_shape,
@@ -117,9 +116,9 @@ def m_kernel(fp, lo0, lo1, lo2, ell, nez, ney, nex, imz, ipz, scz, imy, ipy, scy
                 prod[6, x] = w * gz
                 prod[7, x] = w * gy
                 prod[8, x] = w * gx
-            # autocorrelation of the gradient along x (noise correlation estimate, LAGS), on
-            # one row in LAG_STRIDE by its place in the level, every lag on the same voxels
-            for i in range(3 if (c0 + z + c1 + y) % LAG_STRIDE == 0 else 0):
+            # autocorrelation of the gradient along x (noise correlation estimate, LAGS), every
+            # lag on the same voxels
+            for i in range(3):
                 for k in range(LAGS + 1):
                     acc = 0.0
                     for x in range(nx - LAGS):
@@ -408,7 +407,7 @@ def m_block(f: np.ndarray, lo, hi, ell: int, *, impl: str = "numba", grey: str =
     hi = tuple(int(v) for v in hi)
     masked = u_nodes is not None
     u = check_nodes(u_nodes if masked else np.zeros((3,) + tuple(e + 1 for e in elems)), elems)
-    origin = (0, 0, 0) if core_origin is None else tuple(int(v) for v in core_origin)
+    origin = tuple(int(v) for v in core_origin) if masked else (0, 0, 0)
     shape = tuple(int(v) for v in g_shape) if masked else (1, 1, 1)
     active = element_activity(active, elems)
     if impl == "numpy":

@@ -13,7 +13,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from ..mesh import LOCAL_NODES, shape_table
-from .blocks import LAG_STRIDE, LAGS, ElementSums, gradient_block, voxel_xi
+from .blocks import LAGS, ElementSums, gradient_block, voxel_xi
 
 
 def _stencil_index(offset) -> int:
@@ -26,18 +26,9 @@ def _element_weights(active, elems, ell) -> np.ndarray:
     return np.repeat(np.repeat(np.repeat(a, ell, axis=0), ell, axis=1), ell, axis=2)
 
 
-def lag_rows(core, origin=(0, 0, 0)) -> np.ndarray:
-    """The rows of a block core (bool, shape ``core[:2]``) whose lag sums are taken: one in
-    :data:`~chunkdic.kernels.blocks.LAG_STRIDE` by the row's place ``(z, y)`` in the level,
-    ``origin`` the core's first voxel."""
-    z = np.arange(core[0])[:, None] + int(origin[0])
-    y = np.arange(core[1])[None, :] + int(origin[1])
-    return (z + y) % LAG_STRIDE == 0
-
-
 def _lag_pairs(n: int, k: int) -> tuple[slice, slice]:
     """The voxels of a row of ``n`` and those ``k`` further that the lag sums pair: every lag
-    starts on the first ``n - LAGS`` (:data:`~chunkdic.kernels.blocks.LAG_STRIDE`)."""
+    starts on the first ``n - LAGS`` (:data:`~chunkdic.kernels.blocks.LAGS`)."""
     return slice(0, n - LAGS), slice(k, n - LAGS + k)
 
 
@@ -45,7 +36,7 @@ def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_node
                   g_shape=None, margin: int = 0, active=None, with_lags: bool = False):
     """``M`` stencil (optionally minus the brightness Schur complement), min and max of ``f``
     and, ``with_lags``, the sensitivities' lag sums (3, LAGS + 1): ``Σ w ∂_i f(x) w ∂_i f(x + k)``
-    along x on the rows of :func:`lag_rows`.
+    along x on every row (:func:`_lag_pairs`).
 
     With ``u_nodes``, voxels whose ``X + u(X)`` leaves ``[margin, g_shape - 1 - margin]`` are left out.
     """
@@ -81,8 +72,7 @@ def m_block_numpy(f32, lo, hi, ell, elems, condensed: int, center: float, u_node
                 S[ez + da[0], ey + da[1], ex + da[2], _stencil_index(db - da)] += Ke[a, :, b, :]
     out = (S, float(core.min()), float(core.max()))
     if with_lags:
-        rows = lag_rows(core.shape, (0, 0, 0) if core_origin is None else core_origin)
-        wg = (weight * grad)[:, rows]  # (3, rows, nx)
+        wg = (weight * grad).reshape(3, -1, grad.shape[-1])  # (3, rows, nx)
         pairs = [_lag_pairs(wg.shape[-1], k) for k in range(LAGS + 1)]
         lags = np.array([[np.sum(wg[i, :, a] * wg[i, :, b]) for a, b in pairs] for i in range(3)])
         out += (lags,)
@@ -160,15 +150,14 @@ def b_sums_numpy(f32, lo, hi, ell, u_nodes, core_origin, gw, g_origin, g_shape, 
                       qx.reshape(-1)])
         B[e] = np.einsum("va,iv,qv->qai", W, G * w, v)
         gram[e] = (v * w) @ v.T
-    return ElementSums(B, gram, int(mask.size - mask.sum()) - n_off, residual_lags(d, gp, weight, core_origin))
+    return ElementSums(B, gram, int(mask.size - mask.sum()) - n_off, residual_lags(d, gp, weight))
 
 
-def residual_lags(d: np.ndarray, gp: np.ndarray, weight: np.ndarray, origin=(0, 0, 0)) -> np.ndarray:
-    """The lag sums (6, LAGS + 1) of :class:`~chunkdic.kernels.blocks.ElementSums` on the rows
-    of :func:`lag_rows` (``origin``: the core's first voxel in the level): pairs of voxels ``k``
-    apart along x (:func:`_lag_pairs`), weighted ``w w'``."""
-    rows = lag_rows(d.shape, origin)
-    d, gp, w = d[rows], gp[rows], weight[rows]
+def residual_lags(d: np.ndarray, gp: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """The lag sums (6, LAGS + 1) of :class:`~chunkdic.kernels.blocks.ElementSums` on every
+    row: pairs of voxels ``k`` apart along x (:func:`_lag_pairs`), weighted ``w w'``."""
+    n = d.shape[-1]
+    d, gp, w = d.reshape(-1, n), gp.reshape(-1, n), weight.reshape(-1, n)
     lags = np.zeros((6, LAGS + 1))
     for k in range(LAGS + 1):
         a, b = _lag_pairs(d.shape[-1], k)

@@ -18,8 +18,8 @@ separable and alike along the three axes:
 On the grains CT specimen at ℓ = 12 the misfit a fitted unknown absorbs was measured at 14;
 the estimate reads 19 on a 100³ grains pair translated with independent noise in each scan
 (ℓ = 12), 28 where the residual also holds the field's own misfit (a wave, a band). The lag
-sums do not depend on how the level is cut into blocks (:data:`chunkdic.kernels.blocks.LAG_STRIDE`;
-docs/engine.md, "Noise correlation").
+sums take every row, each lag on the same voxels, so that the blocks' cut does not bias them
+(:data:`chunkdic.kernels.blocks.LAGS`; docs/engine.md, "Noise correlation").
 """
 
 from __future__ import annotations

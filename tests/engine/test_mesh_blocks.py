@@ -139,9 +139,10 @@ def test_a_run_in_node_blocks_killed_mid_level_resumes_to_the_uninterrupted_fiel
 
 
 def test_the_automatic_length_and_its_field_do_not_change_with_the_block_size(tmp_path):
-    # the noise correlation κ sets the length choice's budget; summed on rows chosen within each
-    # block, it read 15.1 or 16.5 on this bar as its blocks had 4 or 10 elements a side, and
-    # the choice kept 33.9 or 48 voxels (fields 0.05 voxel apart)
+    # the noise correlation κ sets the length choice's budget; summed on one row in eight counted
+    # within each block, each lag k over nx - k voxels, it read 15.1 or 16.5 on this bar as its
+    # blocks had 4 or 10 elements a side, and the choice kept 33.9 or 48 voxels (fields 0.05
+    # voxel apart)
     from chunkdic.synth.shear import Slip
 
     shape = (300, 48, 48)

@@ -575,9 +575,9 @@ def _lag_sums_over_blocks(f_vol, g_vol, u_all, ell, cut, impl="numba"):
 
 
 def test_the_noise_lag_sums_do_not_depend_on_how_the_level_is_cut_into_blocks():
-    # the rows that carry them are chosen by their place in the level, not in a block: a level
-    # cut into blocks of 2×3, 3×2 or 6×6 elements along z and y sums the same pairs (the
-    # numba kernels and their NumPy twins alike)
+    # every row carries them (one row in eight counted within each block took other rows for
+    # every cut): a level cut into blocks of 2×3, 3×2 or 6×6 elements along z and y sums the
+    # same pairs (the numba kernels and their NumPy twins alike)
     ell = 4
     f_vol = _smooth_volume((24, 24, 12), seed=7)
     g_vol = _smooth_volume((24, 24, 12), seed=8)
