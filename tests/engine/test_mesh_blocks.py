@@ -8,6 +8,7 @@ import pytest
 
 import chunkdic
 from chunkdic.synth import foam, synthetic
+from chunkdic.synth.shear import Slip
 
 
 @pytest.fixture(scope="module")
@@ -143,8 +144,6 @@ def test_the_automatic_length_and_its_field_do_not_change_with_the_block_size(tm
     # within each block, each lag k over nx - k voxels, it read 15.1 or 16.5 on this bar as its
     # blocks had 4 or 10 elements a side, and the choice kept 33.9 or 48 voxels (fields 0.05
     # voxel apart)
-    from chunkdic.synth.shear import Slip
-
     shape = (300, 48, 48)
     field = Slip(center=(shape[0] - 1) / 2, jump=1.0, edge=3.0)
     pair = synthetic.synthesize(tmp_path / "bar", shape, field=field, specimen="grains", seed=1, noise=0.02,

@@ -16,7 +16,7 @@ import scipy.ndimage as ndi
 
 from chunkdic.kernels import warp as kernels_warp
 from chunkdic.kernels.b import b_block, b_sums
-from chunkdic.kernels.blocks import gradient_block, voxel_xi
+from chunkdic.kernels.blocks import LAGS, gradient_block, voxel_xi
 from chunkdic.kernels.jit import warmup
 from chunkdic.kernels.m import m_block
 from chunkdic.kernels.twins import nodal_field
@@ -594,8 +594,6 @@ def test_every_lag_sums_the_same_voxels_so_that_narrow_blocks_do_not_bias_the_co
     # a row of n voxels gives each lag the pairs that start on its first n - LAGS: with a
     # constant gradient every sensitivity lag equals lag 0 whatever the block's width (summed
     # over n - k voxels, lag k read (n - k) / n of it: 0.83 at lag 4 for a 24-voxel block)
-    from chunkdic.kernels.blocks import LAGS
-
     ramp = np.broadcast_to(np.arange(30, dtype=np.float32)[:, None, None] * 3.0, (30, 16, 24)).copy()
     for nx in (8, 24):
         f, lo, hi, c0, _ = _block(ramp, (1, 1, 0), (3, 3, nx // 4), 4)
