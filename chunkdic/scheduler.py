@@ -205,15 +205,20 @@ def _on_loopback(address: str) -> bool:
 
 def start_local_cluster(n_workers: int | None = None, threads_per_worker: int = 1):
     """Start a ``LocalCluster`` that listens on loopback only (scheduler, workers, dashboard)."""
+    import dask.config
     from distributed import Client, LocalCluster
 
     n = n_workers or os.cpu_count() or 1
+    preload = dask.config.get("distributed.worker.preload", [])
+    preload = [preload] if isinstance(preload, str) else list(preload)
     cluster = LocalCluster(
         n_workers=n,
         threads_per_worker=threads_per_worker,
         host="127.0.0.1",
         dashboard_address="127.0.0.1:0",
         processes=True,
+        # a worker's own close is not an error (chunkdic.worker_setup); the user's preloads kept
+        preload=[*preload, "chunkdic.worker_setup"],
     )
     return Client(cluster), cluster
 

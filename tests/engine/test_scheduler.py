@@ -159,3 +159,43 @@ def test_numpy_inputs_on_a_two_worker_local_cluster_send_no_voxels_in_any_graph(
     u = res.displacement.reshape(3, -1)
     assert res.converged
     np.testing.assert_allclose(np.median(u, axis=1), t, atol=0.01)
+
+
+def test_a_closing_worker_drops_only_its_failed_heartbeat():
+    """A worker that cancels its own heartbeat as it closes logs a traceback at ERROR that says
+    nothing to act on; the same failure while the worker runs, and any other error, are kept."""
+    import logging
+    from types import SimpleNamespace
+
+    from distributed.core import Status
+
+    from chunkdic.worker_setup import _ClosingHeartbeat
+
+    def shown(status, message):
+        record = logging.LogRecord("distributed.worker", logging.ERROR, __file__, 1, message, None, None)
+        return _ClosingHeartbeat(SimpleNamespace(status=status)).filter(record)
+
+    heartbeat = "Failed to communicate with scheduler during heartbeat."
+    for status in (Status.closing, Status.closing_gracefully, Status.closed):
+        assert not shown(status, heartbeat)
+        assert shown(status, "Unexpected exception during heartbeat. Closing worker.")
+    assert shown(Status.running, heartbeat) and shown(Status.paused, heartbeat)
+
+
+def _worker_filters():
+    import logging
+
+    return [type(f).__name__ for f in logging.getLogger("distributed.worker").filters]
+
+
+def test_every_worker_of_the_local_cluster_drops_its_closing_heartbeat_and_keeps_the_users_preloads():
+    import dask.config
+
+    with dask.config.set({"distributed.worker.preload": ["json"]}), open_runner("local:1") as runner:
+        client = runner.client
+        spec = next(iter(runner._cluster.worker_spec.values()))
+        assert spec["options"]["preload"] == ["json", "chunkdic.worker_setup"]
+        assert list(client.run(_worker_filters).values()) == [["_ClosingHeartbeat"]]
+        # the workers a nanny starts in place of others set up alike
+        client.restart()
+        assert list(client.run(_worker_filters).values()) == [["_ClosingHeartbeat"]]
