@@ -1,4 +1,5 @@
-"""Fail on development history written into the product: the package, its docs, the README.
+"""Fail on development history written into the product: the package, its docs, the README,
+the validation studies and the benchmarks.
 
 The product speaks in the present tense about what it is; how it came to be goes into
 commit messages and ``docs/changelog.md``. A line is refused when it names a development
@@ -18,7 +19,7 @@ import sys
 from pathlib import Path
 
 #: what is scanned, relative to the repository's root
-SCOPE = ("chunkdic", "docs", "README.md")
+SCOPE = ("chunkdic", "docs", "README.md", "validation", "benchmarks")
 SUFFIXES = {".py", ".pyi", ".md", ".rst", ".txt", ".yaml", ".yml", ".cff"}
 #: generated or history by design
 EXCLUDED = ("docs/changelog.md", "docs/_build/", "docs/gallery/", "docs/api/")

@@ -1,4 +1,6 @@
-"""Run time of the robust reweighting: the plain penalty against the default, alternated (issue 20's 15 %).
+"""Run time of the robust reweighting: the plain penalty against the default, alternated.
+
+The target: the default takes at most 15 % more time than the plain penalty.
 
 Usage::
 

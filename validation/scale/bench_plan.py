@@ -1,4 +1,4 @@
-"""The plan's estimates against measured time, memory and scratch disk (issue 21 item 4).
+"""The plan's estimates against measured time, memory and scratch disk.
 
 For each ``--size``: synthesize a uint16 foam pair with the band field (``chunkdic synth``,
 level 0 only, so the run builds its pyramid in scratch as a user's raw scans would),
@@ -12,7 +12,7 @@ With ``--plan-only`` nothing runs: each size gets a pair of scan groups holding 
 metadata (uint16, no chunk written: no disk), and the plan of a level-0 run is printed,
 uncalibrated; ``--free`` plans as if the scratch disk had that much free space (e.g.
 what is left once the scans are written), so the scratch layout the plan would choose
-shows (issue 21: the 2048³ pair on this machine's disk). ``--schedulers`` plans each size
+shows (e.g. the 2048³ pair on this machine's disk). ``--schedulers`` plans each size
 for each scheduler (``threads``: the embedded pool; ``local:N``: N single-threaded
 workers, as a cluster of N workers), ``--element-sizes`` at each length, and ends with a
 table of the figures per process: the client's (base and mesh data), a worker's (base,

@@ -1,4 +1,4 @@
-"""Time from a restart to the first Gauss–Newton pass after a kill during level 0 (issue 21, item 5).
+"""Time from a restart to the first Gauss–Newton pass after a kill during level 0.
 
 Runs ``python -m chunkdic correlate PAIR/ref.zarr PAIR/def.zarr -o OUT ARGS`` in a
 subprocess (a session of its own) and SIGKILLs its whole process group when a progress line

@@ -1,4 +1,4 @@
-"""The scratch layouts of a level-0 run side by side: disk, pass times, field (issue 21 item 1).
+"""The scratch layouts of a level-0 run side by side: disk, pass times, field.
 
 For each ``--layout`` (``fast``: uncompressed 16-bit stores; ``compact``: a 16× coarser grid,
 compressed, :mod:`chunkdic.passes.scratchstore`) and each repeat, a fresh process runs

@@ -17,7 +17,7 @@ field trilinear between the nodes, as a viewer shows it, RMS of the vector error
 voxels at least ``ell`` from the faces), evaluated at ``--points`` random voxel centres
 of that region, since every voxel of a 2048³ scan would be 8.6 G evaluations.
 
-Usage (issue 21's headline run, docs/distributed.md)::
+Usage (the 2048³ end-to-end run of docs/distributed.md)::
 
     chunkdic synth /big/grains2048 --shape 2048 --specimen grains --imaging local \\
         --field band --strain -0.05 --noise 0.02 --dtype uint16

@@ -8,10 +8,11 @@ choice starts, the run then continuing as usual), and after the run solves
 ``(M + λ(L) R) x = M a + b`` on the whole mesh for every candidate ``L = ℓ · 2^(k/2)``,
 ``k = 0 … 10`` (the plain Tikhonov penalty, no reweighting: what ``--regularization-length
 L`` runs): the first regularised Gauss–Newton step, within 1 % of the engine's converged
-field on the issue-20 cases (docs/engine.md). The parent scores each candidate's field as
-it scores the tool's own, and the least error is the oracle's; ``--oracle-full`` runs the
-whole engine at the oracle's length to check the linearisation. The child also saves the
-problem (``…-problem.npz`` beside its result) for ``bench_length_texture.py``.
+field on the 100³ cases of ``bench_vs_aldvc.py`` (docs/engine.md). The parent scores each
+candidate's field as it scores the tool's own, and the least error is the oracle's;
+``--oracle-full`` runs the whole engine at the oracle's length to check the linearisation.
+The child also saves the problem (``…-problem.npz`` beside its result) for
+``bench_length_texture.py``.
 """
 
 from __future__ import annotations

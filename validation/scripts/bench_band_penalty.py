@@ -1,4 +1,4 @@
-"""The band and the slip at ℓ = 8: what a different penalty could gain (issue 20).
+"""The band and the slip at ℓ = 8: what a different penalty could gain.
 
 Usage::
 
@@ -8,7 +8,7 @@ Usage::
         --options '{"smoothing": 1.5, "roi": "2:98,2:98,2:98"}'
     python validation/scripts/bench_band_penalty.py noise-free --workdir DIR [--pairs PAIRDIR] [--json PATH]
 
-``capture`` correlates the issue-20 pairs of ``bench_vs_aldvc.py`` (100³, seed 1, the
+``capture`` correlates the pairs of ``bench_vs_aldvc.py`` (100³, seed 1, the
 ``--workdir`` of that script: ``PAIRDIR/<case>-100-<specimen>-uint16-n0.02-s1``, with
 ``--offset N`` the ``--feature-offset N`` pairs, suffix ``-offN``) with the
 defaults at ℓ = 8 up to the automatic length choice and stores what the choice sees:
@@ -20,8 +20,8 @@ weight, the node axes (level 0) and the true field.
 engine's converged field, docs/engine.md) for variants of the curvature penalty
 ``R_w = Σ_terms w_t d_tᵀ d_t`` (``d_t`` the second and mixed differences of the
 Tikhonov Hessian penalty of :mod:`chunkdic.solve.regularizer`, each component apart)
-and scores ``x`` between the nodes on the voxels the issue-20 table scores at ℓ = 8
-(13 … 85 along each axis: ≥ ℓ from the faces and inside al-dvc's node hull):
+and scores ``x`` between the nodes on the voxels ``bench_vs_aldvc.py``'s table scores at
+ℓ = 8 (13 … 85 along each axis: ≥ ℓ from the faces and inside al-dvc's node hull):
 
 ``base``
     ``w = 1``, the engine's length (the default engine, linearised).
@@ -370,7 +370,7 @@ TRANSLATION_LENGTH = 16.0
 
 
 def noise_free(args) -> None:
-    """The issue-20 pairs rendered again without noise (same seed, same texture), at ℓ = 8: what
+    """The 100³ pairs rendered again without noise (same seed, same texture), at ℓ = 8: what
     the C8 fit and the penalty cost when no noise is left (band, slip: the defaults, no
     penalty, the plain penalty at the best of :data:`FIXED_LENGTHS`), and what the rendering alone costs a
     translation (``noise``: the deformed scan rendered from the moved geometry; ``shift``: the

@@ -1,4 +1,4 @@
-"""The equilibrium gap at small elements (issue 20 item 3): convergence, error, and its solve.
+"""The equilibrium gap at small elements: convergence, error, and its solve.
 
 Usage::
 

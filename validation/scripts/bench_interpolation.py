@@ -5,7 +5,7 @@ phase shift (exact for a periodic texture) and correlated blindly at several ele
 sizes with each interpolation. Prints per element size and interpolation: bias and
 standard deviation of the nodal displacement (max over components) and the median time
 of one ``b`` iteration, and the cubic/linear time ratio. The default interpolation is the
-more accurate one unless it costs more than twice the time (issue 2).
+more accurate one unless it costs more than twice the time.
 
 Usage::
 

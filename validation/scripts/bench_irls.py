@@ -1,18 +1,19 @@
-"""The robust reweighting of the penalty in the engine, against the plain penalty (issue 20).
+"""The robust reweighting of the penalty in the engine, against the plain penalty.
 
 Usage::
 
     python validation/scripts/bench_irls.py --pairs DIR [DIR ...] --cases band slip --spacings 8 \
         --offsets 0 2 4 6 --json out.json
 
-For each issue-20 pair (the 100³ seed-1 pairs of ``bench_vs_aldvc.py``, found by name in
+For each pair (the 100³ seed-1 pairs of ``bench_vs_aldvc.py``, found by name in
 the ``--pairs`` directories: ``<case>-100-<specimen>-uint16-n0.02-s1[-offN]``), runs
 :func:`chunkdic.correlate` in this process at each ``--spacings`` ℓ with each of
 ``--settings`` (default: ``plain`` = ``regularization_reweights=0``, the penalty before the
-reweighting, and ``default`` = the defaults of this checkout) and scores the field as the
-issue-20 table does: between the nodes, trilinear on the node grid, on the voxels common
-to both tools (≥ ℓ from the faces and inside al-dvc's node hull, the ``common_hull`` of the
-al-dvc record), RMS of the vector error (σ pooled for the translation ``noise``).
+reweighting, and ``default`` = the defaults of this checkout) and scores the field as
+``bench_vs_aldvc.py``'s table does: between the nodes, trilinear on the node grid, on the
+voxels common to both tools (≥ ℓ from the faces and inside al-dvc's node hull, the
+``common_hull`` of the al-dvc record), RMS of the vector error (σ pooled for the translation
+``noise``).
 
 al-dvc is not run: its figures are the same from session to session (same scans, same
 code; docs/engine.md), so the ratio is taken against the records (``--aldvc-record``

@@ -7,7 +7,7 @@ the field trilinear on the node grid at every voxel at least ``ell`` from the fa
 of the vector error):
 
 - ``comp10`` / ``comp20``: homogeneous axial compression of 10 / 20 % along z with 3 / 6 %
-  lateral expansion, about the volume's centre (issue 20);
+  lateral expansion, about the volume's centre;
 - ``rot10``: a rotation of 10° about z through the volume's centre;
 - ``bigband``: a large, non-affine deformation: a compression band of −20 % over 48 voxels
   (tanh edges of 12 voxels, lateral factor 0.3): ``u_z`` drops by 9.6 voxels across it,

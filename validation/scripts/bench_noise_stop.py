@@ -1,9 +1,9 @@
-"""Statuses at small elements: the false "stalled" of issue 20 item 6, case by case.
+"""Statuses at small elements: a false "stalled", case by case.
 
-The 24-voxel shear wave of issue 20 (``Ux = 0.5 sin(2π (Z - c) / T)``, ``c`` the volume's
-centre) on the CT-like specimens with independent noise 0.02 in each scan, correlated
-with chunkdic's defaults at a small element size (ℓ = 6), for several sizes and noise
-seeds. Prints, per pair, the status, the between-node RMS error against the analytic wave
+The 24-voxel shear wave of ``bench_vs_aldvc.py`` (``Ux = 0.5 sin(2π (Z - c) / T)``, ``c``
+the volume's centre) on the CT-like specimens with independent noise 0.02 in each scan,
+correlated with chunkdic's defaults at a small element size (ℓ = 6), for several sizes and
+noise seeds. Prints, per pair, the status, the between-node RMS error against the analytic wave
 (:func:`chunkdic.analysis.scoring.score_between_nodes`, every voxel ≥ ℓ from the faces),
 the finest level's passes, the chosen regularisation length and the nodes flagged weak.
 

@@ -1,4 +1,4 @@
-"""Criteria for the automatic regularisation length, compared by measurement (issue 20, item 2).
+"""Criteria for the automatic regularisation length, compared by measurement.
 
 Usage::
 

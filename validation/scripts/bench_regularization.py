@@ -15,7 +15,7 @@ by :func:`chunkdic.score_displacement` (nodes ≥ ℓ from the faces), the chose
 the L-curve corner (voxels; the automatic choice is run as a full sweep here so that the
 corner is known, where the engine bisects), the noise correlation factor ``κ``, and for the finest level
 the mean CG iterations and mean solve time per pass, from the engine's progress events.
-The solve's cost ratio (regularised / unregularised, same ℓ) is what issue 11 bounds
+The solve's cost ratio (regularised / unregularised, same ℓ) has a target
 (≤ 2×). Memory: the regulariser is applied matrix-free by element loops on the client
 (no stored matrix), so it adds only the CG's work vectors; the peak traced by
 ``tracemalloc`` in the client during the run is printed too (threads scheduler: the

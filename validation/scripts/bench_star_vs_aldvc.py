@@ -1,4 +1,4 @@
-"""The star table of issue 20 (item 4): noise, l10 % and MEI of chunkdic and al-dvc, side by side.
+"""The star table: noise, l10 % and MEI of chunkdic and al-dvc, side by side.
 
 For each CT-like specimen and each node spacing ``ell`` both tools correlate, in this
 session and on the same scans:
@@ -24,7 +24,7 @@ the noise ``n`` = σ pooled over the components of the translated pair between t
 (:func:`chunkdic.analysis.scoring.score_between_nodes`), over the tool's own voxels (at
 least ``ell`` from the faces, inside its hull: the voxels its ``l10 %`` is read on) and
 over the voxels common to both tools (``n common``); ``MEI = n · l10 %`` and the 3-D form
-``n · l10 %^1.5``; ``ratio`` = al-dvc's MEI / chunkdic's (issue 20's target: ≥ 1.5 at
+``n · l10 %^1.5``; ``ratio`` = al-dvc's MEI / chunkdic's (target: ≥ 1.5 at
 ell = 8).
 
 chunkdic runs once per ``--regularizations`` kind (default Tikhonov and the equilibrium

@@ -10,7 +10,7 @@ field) and each node spacing ``ell``, both tools run on the same data in this se
   defaults, from its own virtual environment (created on first use, outside the
   repository; see ``benchmarks/aldvc.py``), reading ``.npy`` copies of the same scans.
 
-With a known field both are scored **between the nodes** (issue 20's rule,
+With a known field both are scored **between the nodes** (the project's scoring rule,
 :func:`chunkdic.analysis.scoring.score_between_nodes`): the field trilinear on the tool's
 own node grid, as a viewer shows it, against the truth at every voxel at least ``ell``
 from the faces and inside the grid's hull; ``rms`` = RMS of the vector error, ``sigma``
@@ -60,13 +60,13 @@ Cases, on each ``--specimen`` (default: the CT-like ``grains`` and ``concrete`` 
   (the fields of ``bench_large_strain.py``), independent noise in each scan;
 - ``crack-comp10`` / ``slip-comp10`` (group ``composed``): the crack or the slip, then
   ``comp10`` (:class:`chunkdic.synth.fields.Composed`): a feature under a large deformation;
-- ``star``: issue 20's 3-D star, ``Ux = 0.5 sin(2π (z − z_c) / λ(y))`` with ``λ`` from 10 to
+- ``star``: the 3-D star, ``Ux = 0.5 sin(2π (z − z_c) / λ(y))`` with ``λ`` from 10 to
   100 voxels across y, rendered from the geometry, independent noise in each scan; besides
   the scores, each tool's spatial resolution ``l10 %`` read between its points
   (:func:`chunkdic.analysis.resolution.star_ratios_nodes`: chunkdic's C8 nodes, al-dvc's
   grid of step ``ell``, both trilinear between points). ``chunkdic resolution`` measures the
   same on a scan's own texture, with the noise of the same setting;
-  ``bench_star_vs_aldvc.py`` makes issue 20's star table (star ``2ell … 20ell``, each tool's
+  ``bench_star_vs_aldvc.py`` makes the star table (star ``2ell … 20ell``, each tool's
   noise at the setting of its star run, MEI and the ratios).
 
 ``--set KEY=VALUE`` passes settings to chunkdic (e.g. ``--set smoothing=0 --set grey=none``
@@ -80,7 +80,7 @@ Usage::
     python benchmarks/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
     python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimen grains --spacings 16 12 8
     python benchmarks/bench_vs_aldvc.py --sizes 100 --cases heterogeneous large noise \
-        --spacings 16 12 8 --solo-spacings 6 --repeats 1          # issue 20's table
+        --spacings 16 12 8 --solo-spacings 6 --repeats 1          # docs/validation/vs-aldvc.md
 
 The run ends with a Markdown table (:func:`summary_table`): per case and ``ell`` both
 tools' between-node error on the common voxels (RMS; sigma for the translations), the ratio
@@ -113,7 +113,7 @@ import aldvc as peer  # noqa: E402  (benchmarks/aldvc.py, next to this file)
 from _oracle import candidate_fields, keep_choice_problem  # noqa: E402
 
 RECORDS = Path(__file__).resolve().parent / "records"
-#: heterogeneous fields of issue 20 (independent noise in each scan): shear waves, a shear slip
+#: heterogeneous fields (independent noise in each scan): shear waves, a shear slip
 WAVES = ("wave24", "wave32", "wave48", "wave64")
 HETEROGENEOUS = WAVES + ("slip", "band", "crack")
 #: large deformations (bench_large_strain.py's fields): 10 / 20 % compression, 10 degree rotation
@@ -122,10 +122,10 @@ LARGE = ("comp10", "comp20", "rot10")
 #: (:class:`chunkdic.synth.fields.Composed`)
 COMPOSED = ("crack-comp10", "slip-comp10")
 CASE_NAMES = ("shift", "noise", "band", "band-grey", "star", *WAVES, "slip", "crack", *LARGE, *COMPOSED)
-#: the default case list (the cases of issue 20 plus the two translations)
+#: the default case list (the band, its grey-level variant and the star, plus the two translations)
 DEFAULT_CASES = ("shift", "noise", "band", "band-grey", "star")
 CASE_GROUPS = {"heterogeneous": HETEROGENEOUS, "large": LARGE, "composed": COMPOSED, "all": CASE_NAMES}
-#: the star of issue 20: Ux = 0.5 sin(2 pi (z - zc) / period(y)), period 10 -> 100 voxels across y
+#: the star: Ux = 0.5 sin(2 pi (z - zc) / period(y)), period 10 -> 100 voxels across y
 STAR = {"amplitude": 0.5, "period_min": 10.0, "period_max": 100.0}
 SHIFT = (0.5, 0.5, 0.5)
 #: the crack: a sliding jump Ux = ±0.3 voxel across the plane z = c (a slip whose edge is far below a voxel)
@@ -408,8 +408,8 @@ def _to_grid(points, u, valid=None):
 
 
 def _between(points, u, case: Case, ell: int, sample: int | None = None) -> dict:
-    """The field between the points (issue 20's rule, the same for both tools): trilinear on
-    the tool's node grid at every voxel at least ``ell`` from the faces
+    """The field between the points (the project's scoring rule, the same for both tools):
+    trilinear on the tool's node grid at every voxel at least ``ell`` from the faces
     (:func:`chunkdic.analysis.scoring.score_between_nodes`); RMS of the vector error, sigma
     pooled over the components. al-dvc's field is scored as it comes out (the nodes it
     flags hold its inpainted values: what a viewer shows); ``failed`` counts them."""

@@ -1,4 +1,4 @@
-"""The nodes flagged weak on CT-like pairs: how many, where, and how wrong (issue 20).
+"""The nodes flagged weak on CT-like pairs: how many, where, and how wrong.
 
 For each pair (``chunkdic synth``-like CT specimen, independent noise 0.02 in each scan,
 a 24-voxel shear wave ``Ux = 0.5 sin(2π (z - c) / 24)`` or a (0.5, 0.5, 0.5) translation)

@@ -1,4 +1,4 @@
-"""Issue 20's side-by-side table from ``bench_vs_aldvc.py`` records: ratios, geometric means, targets.
+"""The side-by-side table from ``bench_vs_aldvc.py`` records: ratios, geometric means, targets.
 
 Usage::
 
@@ -12,7 +12,7 @@ beside. Printed, in Markdown: per case, specimen and ℓ, the between-node error
 common to both tools (RMS; σ for the translation ``noise``; over all of chunkdic's voxels
 at least ℓ from the faces where al-dvc was not run) of chunkdic and of each variant, al-dvc's, the ratios chunkdic / al-dvc, the status and the regularisation length;
 then the geometric mean of the ratio over the six heterogeneous fields (four waves, slip,
-band) per specimen and ℓ; then issue 20's ℓ = 8 targets (≤ 0.7 on every heterogeneous
+band) per specimen and ℓ; then the ℓ = 8 targets (≤ 0.7 on every heterogeneous
 field, ≤ 1 on the large-strain ones) with the cases that miss them.
 """
 
@@ -111,7 +111,7 @@ def main(argv=None) -> None:
             if before:
                 line += f" (before {_f(geomean(ratio(before.get(k), before.get(k), k[0]) for k in ks), '.2f')})"
             print(line)
-    print("\nIssue 20's ℓ = 8 targets (≤ 0.7 heterogeneous, ≤ 1 large strain), the misses:")
+    print("\nThe ℓ = 8 targets (≤ 0.7 heterogeneous, ≤ 1 large strain), the misses:")
     for name, rec in [("default", base)] + variants:
         misses = []
         for (case, specimen, ell) in keys:

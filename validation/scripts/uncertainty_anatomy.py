@@ -1,4 +1,4 @@
-"""Where the per-node uncertainty estimate holds and where it cannot (issue 11).
+"""Where the per-node uncertainty estimate holds and where it cannot.
 
 For each case (``fourier-shift``: the paper's section 4.2 test, both scans share their
 noise; ``shift``: the same translation with independent noise in each scan) and element
