@@ -26,7 +26,8 @@ EXCLUDED = ("docs/changelog.md", "docs/_build/", "docs/gallery/", "docs/api/")
 
 PATTERNS = [
     (re.compile(r"\b(sessions?|rounds?) ?[0-9]", re.I), "a development round"),
-    (re.compile(r"\bissues? ?[0-9]|\bissue-[0-9]", re.I), "an issue number of this project"),
+    # (after a "\n" escape in a string literal too: no word boundary there)
+    (re.compile(r"(?:\b|(?<=\\n))issues? ?[0-9]|\bissue-[0-9]", re.I), "an issue number of this project"),
     (re.compile(r"\(new\)", re.I), "a '(new)' mark"),
     (re.compile(r"\b(since|until|before|after) (session|issue|round|commit|version)\b", re.I), "a dated fact"),
     (re.compile(r"autogroup", re.I), "how a measurement was scheduled"),

@@ -75,7 +75,7 @@ def test_the_history_check_finds_each_form_and_spares_external_references(tmp_pa
     (tmp_path / "docs").mkdir()
     lines = ["x = 1  # measured in session 31", "the cases of issue 20 pass", "the issue-20 cases",
              "## Masks (new)", "faster since version 2", "at autogroup nice 19", "local:0 used to hang",
-             "- **Names in figures** (item 3): report --label"]
+             "- **Names in figures** (item 3): report --label", r'print("\nIssue 20 targets")']
     clean = ["a cut Blosc frame (numcodecs issue #228)", "the penalty, since it damps short waves",
              "the weights are used to sum", "what was used to build it", "items 2 and 3 of the list"]
     (tmp_path / "chunkdic" / "mod.py").write_text("\n".join(lines + clean) + "\n")

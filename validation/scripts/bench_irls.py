@@ -15,7 +15,7 @@ voxels common to both tools (≥ ℓ from the faces and inside al-dvc's node hul
 ``common_hull`` of the al-dvc record), RMS of the vector error (σ pooled for the translation
 ``noise``).
 
-al-dvc is not run: its figures are the same from session to session (same scans, same
+al-dvc is not run: its figures are the same from run to run (same scans, same
 code; docs/engine.md), so the ratio is taken against the records (``--aldvc-record``
 for offset 0, ``--aldvc-offset-record N=PATH`` for the others).
 

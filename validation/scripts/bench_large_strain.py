@@ -25,9 +25,9 @@ about 24.
 
 Usage::
 
-    python benchmarks/bench_large_strain.py --size 100 --cases comp10 comp20 rot10 --spacings 8 6
-    python benchmarks/bench_large_strain.py --size 100 --cases shift band --spacings 16 12 8 --record NAME
-    python benchmarks/bench_large_strain.py --size 128 --scales 1 2.25 4.5 --aldvc --record NAME
+    python validation/scripts/bench_large_strain.py --size 100 --cases comp10 comp20 rot10 --spacings 8 6
+    python validation/scripts/bench_large_strain.py --size 100 --cases shift band --spacings 16 12 8 --record NAME
+    python validation/scripts/bench_large_strain.py --size 128 --scales 1 2.25 4.5 --aldvc --record NAME
 
 docs/engine.md, "ROI and meshes", records what it measured.
 """

@@ -74,12 +74,12 @@ for the paper's plain C8).
 
 Usage::
 
-    python benchmarks/bench_vs_aldvc.py --selfcheck            # verify the adapter's conventions
-    python benchmarks/bench_vs_aldvc.py --sizes 128 --spacings 16 12 8 --repeats 1
-    python benchmarks/bench_vs_aldvc.py --sizes 300 --cases shift --spacings 12 --repeats 3
-    python benchmarks/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
-    python benchmarks/bench_vs_aldvc.py --sizes 128 --cases star --specimen grains --spacings 16 12 8
-    python benchmarks/bench_vs_aldvc.py --sizes 100 --cases heterogeneous large noise \
+    python validation/scripts/bench_vs_aldvc.py --selfcheck            # verify the adapter's conventions
+    python validation/scripts/bench_vs_aldvc.py --sizes 128 --spacings 16 12 8 --repeats 1
+    python validation/scripts/bench_vs_aldvc.py --sizes 300 --cases shift --spacings 12 --repeats 3
+    python validation/scripts/bench_vs_aldvc.py --pair /data/specimen   # a synthesized pair directory
+    python validation/scripts/bench_vs_aldvc.py --sizes 128 --cases star --specimen grains --spacings 16 12 8
+    python validation/scripts/bench_vs_aldvc.py --sizes 100 --cases heterogeneous large noise \
         --spacings 16 12 8 --solo-spacings 6 --repeats 1          # docs/validation/vs-aldvc.md
 
 The run ends with a Markdown table (:func:`summary_table`): per case and ``ell`` both
