@@ -27,6 +27,9 @@ from .siblings import LOCK_SUFFIX, hidden_sibling
 
 log = logging.getLogger(__name__)
 
+#: a lock file younger than this that holds no record yet is being written by its owner, seconds
+WRITING_SECONDS = 10.0
+
 __all__ = ["OutputLock", "reclaim_stale_locks"]
 
 
@@ -54,7 +57,10 @@ class OutputLock:
         me = Owner.me()
         record = json.dumps({**asdict(me), "since": time.strftime("%Y-%m-%d %H:%M:%S"),
                              "output": str(self.output)})
-        for _ in range(3):
+        # a lock whose owner is still writing it (created, not yet holding its record) is waited
+        # for: on a loaded machine the owner may be descheduled between the two steps
+        deadline = time.monotonic() + WRITING_SECONDS + 5.0
+        while time.monotonic() < deadline:
             try:
                 fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
             except FileExistsError:
@@ -94,7 +100,7 @@ class OutputLock:
             return  # released meanwhile: try again
         except (OSError, ValueError, KeyError, TypeError, AttributeError):
             age = time.time() - _mtime(self.path)
-            if age < 10:  # being written right now by its owner
+            if age < WRITING_SECONDS:  # being written right now by its owner
                 time.sleep(0.2)
                 return
             raise InputError(f"output {self.output} has an unreadable lock {self.path}: remove it if no "

@@ -119,6 +119,35 @@ def _hold_lock(output: Path) -> subprocess.Popen:
     return proc
 
 
+def test_a_lock_its_owner_is_still_writing_is_waited_for(tmp_path):
+    """A lock file exists before its owner's record is in it (created, then written): a second
+    writer that finds it empty waits for the record and names the owner; on a loaded machine
+    the owner may stay descheduled between the two steps for longer than a moment."""
+    from chunkdic.io.locks import OutputLock
+
+    lock = OutputLock(tmp_path / "o.zarr")
+    lock.path.write_text("")
+    holder = _hold_lock(tmp_path / "other.zarr")  # a live chunkdic process, the owner to be
+    record = OutputLock(tmp_path / "other.zarr").path.read_text()
+
+    def finish_writing():
+        time.sleep(1.5)
+        lock.path.write_text(record)
+
+    import threading
+
+    writer = threading.Thread(target=finish_writing)
+    writer.start()
+    try:
+        with pytest.raises(InputError, match=rf"being written by another chunkdic run \(pid {holder.pid} "):
+            OutputLock(tmp_path / "o.zarr").acquire()
+    finally:
+        writer.join()
+        holder.kill()
+        holder.wait()
+    assert lock.path.read_text() == record  # the owner's lock is left as it is
+
+
 @pytest.mark.parametrize("what", ["vtk", "fields", "ingest", "pyramid"])
 def test_every_writer_takes_the_one_writer_lock(data, tmp_path, capsys, what):
     out = {"vtk": tmp_path / "m.vtu", "fields": tmp_path / "f.zarr", "ingest": tmp_path / "i.zarr",

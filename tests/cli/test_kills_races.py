@@ -12,6 +12,7 @@ Scans are 32³ (chunks 16³).
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -187,15 +188,23 @@ def test_export_killed_mid_write_is_reclaimed_and_completed_by_the_same_command(
 # --------------------------------------------------------------------------- item 8: races on in-place outputs
 
 
+def _holds(lock: Path) -> bool:
+    """Whether ``lock`` holds its owner's record: a lock file is created, then written."""
+    try:
+        return "pid" in json.loads(lock.read_text())
+    except (OSError, ValueError):
+        return False
+
+
 def _first_and_second(first: list, second: list, lock: Path, out: Path, cwd: Path):
     """Start ``first``; once it holds ``lock``, stop it (SIGSTOP), run ``second`` to its end,
     then let ``first`` finish. Returns both completed processes' (code, stderr)."""
     proc = subprocess.Popen([sys.executable, "-m", "chunkdic", *map(str, first)], cwd=cwd, stderr=subprocess.PIPE,
                             stdout=subprocess.DEVNULL, text=True)
     deadline = time.time() + 300
-    while not lock.exists() and proc.poll() is None and time.time() < deadline:
+    while not _holds(lock) and proc.poll() is None and time.time() < deadline:
         time.sleep(0.02)
-    assert lock.exists(), f"the first run never took its lock: {proc.poll()}"
+    assert _holds(lock), f"the first run never took its lock: {proc.poll()}"
     os.kill(proc.pid, signal.SIGSTOP)
     try:
         other = subprocess.run([sys.executable, "-m", "chunkdic", *map(str, second)], cwd=cwd, capture_output=True,
