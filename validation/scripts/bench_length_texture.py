@@ -5,6 +5,7 @@ Usage::
     python validation/scripts/bench_length_texture.py capture --pairs PAIRDIR --workdir DIR \
         [--cases band slip wave32 ...] [--specimens concrete] [--scales 1 2 4] [--spacings 8] [--noise-free]
     python validation/scripts/bench_length_texture.py evaluate --workdir DIR [--json PATH]
+    python validation/scripts/bench_length_texture.py grid --workdir DIR [--json PATH]
 
 ``capture`` runs the defaults on the ``bench_vs_aldvc.py`` pairs of ``PAIRDIR`` (100³, seed
 1; ``-tsS`` for a texture scale S) up to the length choice and stores the linearised problem
@@ -16,6 +17,11 @@ scores each between the nodes (every voxel ≥ ℓ from the faces), and prints, 
 error curve, the engine's rule's pick and curves (``choose_length(..., sweep=True)``), and —
 with a noise-free twin — how much of the misfit the noise really makes:
 ``‖a − a_nf‖²_M`` against the budget ``κ σ_r² · 3N`` the rule uses.
+
+``grid`` applies the engine's default rule (``discrepancy-texture``, from the level's length
+2ℓ as the engine does) with the candidates √2 apart and 2^(1/4) apart, every length of the
+finer grid solved on the whole mesh and scored, each choice's error over the best fixed
+length of the √2 grid (docs/engine.md, "The candidates' grid").
 """
 
 from __future__ import annotations
@@ -173,6 +179,57 @@ def evaluate(args) -> None:
             Path(args.json).write_text(json.dumps({"argv": sys.argv[1:], "rows": rows}, indent=1))
 
 
+def grid(args) -> None:
+    from _oracle import candidate_fields
+
+    import chunkdic.solve.regchoice as regchoice
+    from chunkdic.solve.cg import StencilSolver
+
+    coarse = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
+    fine = tuple(float(2.0 ** (k / 4)) for k in range(0, 21))
+    engine_grid = regchoice.CANDIDATES
+
+    def choose(p, candidates):
+        regchoice.CANDIDATES = candidates
+        cache = {}
+
+        def solve_with(half, reg, weight, rhs):
+            if id(half) not in cache:
+                cache.clear()
+                cache[id(half)] = StencilSolver(half.copy(), rtol=1e-7)
+            cache[id(half)].regularize(reg, weight)
+            return cache[id(half)].solve(rhs)[0]
+
+        return p["scale"] * regchoice.choose_length(p["kind"], p["half"], p["ell"], p["a"], p["b"],
+                                                    p["noise_variance"], solve_with, kappa=p["kappa"],
+                                                    guess=2 * p["ell"]).length
+
+    rows = []
+    try:
+        for path in sorted(Path(args.workdir).glob("*.npz")):
+            if path.stem.endswith("-nf"):
+                continue
+            p = load(path)
+            regchoice.CANDIDATES = fine
+            lengths, fields = candidate_fields(p)
+            err = errors(p, fields)
+            at = lambda length: float(err[int(np.argmin(np.abs(np.log(lengths / length))))])  # noqa: E731
+            oracle = float(err[::2].min())  # the √2 grid's every other length
+            row = {"case": path.stem, "oracle": oracle, "sqrt2": choose(p, coarse), "fourth_root": choose(p, fine)}
+            row["sqrt2_ratio"], row["fourth_root_ratio"] = at(row["sqrt2"]) / oracle, at(row["fourth_root"]) / oracle
+            rows.append(row)
+            print(f"{path.stem:32s} √2 grid {row['sqrt2']:6.1f} ({row['sqrt2_ratio']:.2f})  2^(1/4) grid "
+                  f"{row['fourth_root']:6.1f} ({row['fourth_root_ratio']:.2f})", flush=True)
+    finally:
+        regchoice.CANDIDATES = engine_grid
+    for key in ("sqrt2_ratio", "fourth_root_ratio"):
+        r = np.array([row[key] for row in rows])
+        print(f"{key}: geometric mean {np.exp(np.mean(np.log(r))):.3f}, above 1.15: {int(np.sum(r > 1.15))} "
+              f"of {len(r)}")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"argv": sys.argv[1:], "rows": rows}, indent=1))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="command", required=True)
@@ -187,8 +244,11 @@ def main() -> None:
     e = sub.add_parser("evaluate")
     e.add_argument("--workdir", required=True)
     e.add_argument("--json", default=None)
+    g = sub.add_parser("grid")
+    g.add_argument("--workdir", required=True)
+    g.add_argument("--json", default=None)
     args = ap.parse_args()
-    {"capture": capture, "evaluate": evaluate}[args.command](args)
+    {"capture": capture, "evaluate": evaluate, "grid": grid}[args.command](args)
 
 
 if __name__ == "__main__":
