@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import logging
 
+from distributed.core import Status
+
 #: how ``distributed.worker`` starts the message of a failed heartbeat
 HEARTBEAT_FAILED = "Failed to communicate with scheduler during heartbeat"
 
@@ -25,10 +27,8 @@ class _ClosingHeartbeat(logging.Filter):
         self.worker = worker
 
     def filter(self, record: logging.LogRecord) -> bool:
-        from distributed.core import Status
-
-        closing = self.worker.status in (Status.closing, Status.closing_gracefully, Status.closed)
-        return not (closing and record.getMessage().startswith(HEARTBEAT_FAILED))
+        return not (record.getMessage().startswith(HEARTBEAT_FAILED)
+                    and self.worker.status in (Status.closing, Status.closing_gracefully, Status.closed))
 
 
 def dask_setup(worker) -> None:

@@ -160,7 +160,7 @@ def residual_lags(d: np.ndarray, gp: np.ndarray, weight: np.ndarray) -> np.ndarr
     d, gp, w = d.reshape(-1, n), gp.reshape(-1, n), weight.reshape(-1, n)
     lags = np.zeros((6, LAGS + 1))
     for k in range(LAGS + 1):
-        a, b = _lag_pairs(d.shape[-1], k)
+        a, b = _lag_pairs(n, k)
         ww = w[:, a] * w[:, b]
         dd = d[:, a] - d[:, b] if k else d[:, a]
         dg = gp[:, a] - gp[:, b] if k else gp[:, a]

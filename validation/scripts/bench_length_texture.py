@@ -125,12 +125,14 @@ def errors(problem: dict, fields: np.ndarray) -> np.ndarray:
     return np.array(out)
 
 
-def engine_rule(problem: dict, rule: str = "discrepancy") -> object:
-    """The engine's choice on the captured problem, every candidate solved (its curves)."""
+def engine_rule(problem: dict, rule: str = "discrepancy", sweep: bool = True, guess: float | None = None) -> object:
+    """The engine's choice on the captured problem; with ``sweep``, every candidate solved (its curves)."""
     from chunkdic.solve.cg import StencilSolver
     from chunkdic.solve.regchoice import choose_length
 
-    def solve_with(half, reg, weight, rhs, cache={}):
+    cache = {}  # one solver per region's matrix, for this problem only
+
+    def solve_with(half, reg, weight, rhs):
         key = id(half)
         if key not in cache:
             cache.clear()
@@ -139,7 +141,8 @@ def engine_rule(problem: dict, rule: str = "discrepancy") -> object:
         return cache[key].solve(rhs)[0]
 
     return choose_length(problem["kind"], problem["half"], problem["ell"], problem["a"], problem["b"],
-                         problem["noise_variance"], solve_with, rule=rule, kappa=problem["kappa"], sweep=True)
+                         problem["noise_variance"], solve_with, rule=rule, kappa=problem["kappa"], sweep=sweep,
+                         guess=guess)
 
 
 def evaluate(args) -> None:
@@ -183,26 +186,14 @@ def grid(args) -> None:
     from _oracle import candidate_fields
 
     import chunkdic.solve.regchoice as regchoice
-    from chunkdic.solve.cg import StencilSolver
 
     coarse = tuple(float(2.0 ** (k / 2)) for k in range(0, 11))
     fine = tuple(float(2.0 ** (k / 4)) for k in range(0, 21))
     engine_grid = regchoice.CANDIDATES
 
     def choose(p, candidates):
-        regchoice.CANDIDATES = candidates
-        cache = {}
-
-        def solve_with(half, reg, weight, rhs):
-            if id(half) not in cache:
-                cache.clear()
-                cache[id(half)] = StencilSolver(half.copy(), rtol=1e-7)
-            cache[id(half)].regularize(reg, weight)
-            return cache[id(half)].solve(rhs)[0]
-
-        return p["scale"] * regchoice.choose_length(p["kind"], p["half"], p["ell"], p["a"], p["b"],
-                                                    p["noise_variance"], solve_with, kappa=p["kappa"],
-                                                    guess=2 * p["ell"]).length
+        regchoice.CANDIDATES = candidates  # choose_length reads the module's grid
+        return p["scale"] * engine_rule(p, "discrepancy-texture", sweep=False, guess=2 * p["ell"]).length
 
     rows = []
     try:
